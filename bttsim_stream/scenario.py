@@ -1,0 +1,1130 @@
+"""The scenario: one TOML file that configures a run, read into frozen dataclasses.
+
+Every field has a default: the paper's Table 1 (Nour, Bonello et al.) plus the rotor
+geometry we chose where the paper gives none. ``bttsim scenario`` prints the default file
+(:func:`default_toml`); the user edits it and passes it back (:func:`load_scenario`).
+
+Rules, the same for a file and for programmatic construction:
+
+* All values are SI with the unit in the name (``_m``, ``_s``, ``_n``, ``_hz``), except
+  angles in degrees (``_deg``) and speeds in rpm (``_rpm``), as in the paper.
+* Each section dataclass validates itself in ``__post_init__``; :class:`Scenario` adds
+  the checks that span sections. Any problem raises
+  :class:`~bttsim_stream.errors.ScenarioError` with a one-line message naming the field,
+  e.g. ``[probes] angles_deg[2] must be finite, got nan``; :func:`load_scenario` and
+  :func:`scenario_from_dict` prefix it with the file (``scenario.toml: ...``).
+* An integer is accepted where a float is expected, never the reverse; a boolean is never
+  accepted as a number. Floats must be finite. Lists are stored as tuples.
+* In a file, unknown sections and keys are errors; a missing section or key takes its
+  default. Array indices in messages count from 0.
+
+The file is read with :mod:`tomllib`; :func:`dumps_toml` is a small emitter for the few
+value types used here, written so that ``load(dumps(s)) == s`` exactly (floats by
+``repr``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+import math
+import numbers
+import os
+import re
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ScenarioError
+
+__all__ = [
+    "Run",
+    "Rotor",
+    "Model",
+    "Speed",
+    "Excitation",
+    "Probes",
+    "Toa",
+    "Acquisition",
+    "Scenario",
+    "SECTIONS",
+    "load_scenario",
+    "scenario_from_dict",
+    "scenario_to_dict",
+    "dumps_toml",
+    "default_toml",
+]
+
+BUILTIN_MODEL = "builtin"
+TOA_METHODS = ("HP", "AD", "PAD")
+FORCE_NODES = ("leading_edge", "trailing_edge")
+MAX_PROBES = 64
+MAX_FAMILIES = 20
+_RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
+_BARE_KEY_RE = re.compile(r"[A-Za-z0-9_-]+")
+
+
+# --------------------------------------------------------------------------------------
+# Errors and value checks
+# --------------------------------------------------------------------------------------
+
+
+class _FieldError(ScenarioError):
+    """A :class:`ScenarioError` that remembers where it happened, so it can be relabelled.
+
+    Parameters
+    ----------
+    where : str
+        Section label, e.g. ``"[probes]"`` or ``"[[excitation]][1]"``.
+    key : str
+        Field (with an index if any), e.g. ``"angles_deg[2]"``; may be empty.
+    problem : str
+        What is wrong, e.g. ``"must be finite, got nan"``.
+    """
+
+    def __init__(self, where: str, key: str, problem: str) -> None:
+        self.where, self.key, self.problem = where, key, problem
+        text = " ".join(part for part in (where, key, problem) if part)
+        super().__init__(_one_line(text))
+
+    def relabel(self, where: str) -> "_FieldError":
+        """The same error under another section label."""
+        return _FieldError(where, self.key, self.problem)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split()) if ("\n" in text or "\r" in text) else text
+
+
+def _toml_type(value: Any) -> str:
+    """The TOML name of a value's type (for messages)."""
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, numbers.Integral):
+        return "integer"
+    if isinstance(value, numbers.Real):
+        return "float"
+    if isinstance(value, str):
+        return "string"
+    if isinstance(value, Mapping):
+        return "table"
+    if isinstance(value, (list, tuple)):
+        return "array"
+    return type(value).__name__
+
+
+def _show(value: Any, limit: int = 60) -> str:
+    """A short one-line TOML-like rendering of a value (for messages)."""
+    if isinstance(value, bool):
+        text = "true" if value else "false"
+    elif isinstance(value, numbers.Integral):
+        text = str(int(value))
+    elif isinstance(value, numbers.Real):
+        text = repr(float(value))
+    elif isinstance(value, str):
+        text = json.dumps(value, ensure_ascii=False)
+    elif isinstance(value, Mapping):
+        text = "{" + ", ".join(f"{_key(k)} = {_show(v, limit)}" for k, v in value.items()) + "}"
+    elif isinstance(value, (list, tuple)):
+        text = "[" + ", ".join(_show(v, limit) for v in value) + "]"
+    else:
+        text = repr(value)
+    text = _one_line(text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _got(value: Any) -> str:
+    """``"got <type> <value>"`` for a value of the wrong type."""
+    return f"got {_toml_type(value)} {_show(value)}"
+
+
+def _num(x: float) -> str:
+    """A bound for a message: ``0``, ``0.5``, ``360``."""
+    return f"{x:g}"
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _real(where: str, key: str, value: Any, *, lo: float | None = None, lo_open: bool = False,
+          hi: float | None = None, hi_open: bool = False) -> float:
+    """Check a finite real number within optional bounds; return it as a float."""
+    if not _is_real(value):
+        raise _FieldError(where, key, f"must be a number, {_got(value)}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise _FieldError(where, key, f"must be finite, got {_show(x)}")
+    too_low = lo is not None and (x <= lo if lo_open else x < lo)
+    too_high = hi is not None and (x >= hi if hi_open else x > hi)
+    if too_low or too_high:
+        if lo is not None and hi is not None:
+            rng = f"in {'(' if lo_open else '['}{_num(lo)}, {_num(hi)}{')' if hi_open else ']'}"
+        elif lo is not None:
+            rng = f"{'>' if lo_open else '>='} {_num(lo)}"
+        else:
+            rng = f"{'<' if hi_open else '<='} {_num(hi)}"  # type: ignore[arg-type]
+        raise _FieldError(where, key, f"must be {rng}, got {_show(x)}")
+    return x
+
+
+def _integer(where: str, key: str, value: Any, *, lo: int | None = None,
+             hi: int | None = None) -> int:
+    """Check an integer (not a bool, not a float) within optional inclusive bounds."""
+    if lo is not None and hi is not None:
+        what = f"an integer in [{lo}, {hi}]"
+    elif lo is not None:
+        what = f"an integer >= {lo}"
+    elif hi is not None:
+        what = f"an integer <= {hi}"
+    else:
+        what = "an integer"
+    if not _is_int(value):
+        raise _FieldError(where, key, f"must be {what}, {_got(value)}")
+    n = int(value)
+    if (lo is not None and n < lo) or (hi is not None and n > hi):
+        raise _FieldError(where, key, f"must be {what}, got {n}")
+    return n
+
+
+def _boolean(where: str, key: str, value: Any) -> bool:
+    """Check a boolean (``true``/``false``; 0 and 1 are not booleans)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise _FieldError(where, key, f"must be true or false, {_got(value)}")
+    return bool(value)
+
+
+def _string(where: str, key: str, value: Any, *, choices: Sequence[str] | None = None) -> str:
+    """Check a string, optionally one of ``choices`` (case-sensitive)."""
+    if choices is not None:
+        allowed = ", ".join(json.dumps(c) for c in choices)
+        if not isinstance(value, str):
+            raise _FieldError(where, key, f"must be one of {allowed}, {_got(value)}")
+        if value not in choices:
+            raise _FieldError(where, key, f"must be one of {allowed}, got {_show(value)}")
+        return value
+    if not isinstance(value, str):
+        raise _FieldError(where, key, f"must be a string, {_got(value)}")
+    return value
+
+
+def _sequence(where: str, key: str, value: Any, what: str) -> list[Any]:
+    """Check an array (list, tuple or 1-D numpy array) and return its items as a list."""
+    if isinstance(value, np.ndarray) and value.ndim == 1:
+        return value.tolist()
+    if not isinstance(value, (list, tuple)):
+        raise _FieldError(where, key, f"must be {what}, {_got(value)}")
+    return list(value)
+
+
+def _real_tuple(where: str, key: str, value: Any, **bounds: Any) -> tuple[float, ...]:
+    """Check an array of finite reals, each within ``bounds`` (see :func:`_real`)."""
+    items = _sequence(where, key, value, "an array of numbers")
+    return tuple(_real(where, f"{key}[{i}]", v, **bounds) for i, v in enumerate(items))
+
+
+def _set(obj: Any, name: str, value: Any) -> None:
+    """Store a normalised value on a frozen dataclass (inside ``__post_init__`` only)."""
+    object.__setattr__(obj, name, value)
+
+
+def _doc(text: str) -> dict[str, str]:
+    """Field metadata: the comment written above the key in the emitted TOML."""
+    return {"toml": text}
+
+
+# --------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Run:
+    """``[run]``: identity of the run and the seed of every random choice.
+
+    Attributes
+    ----------
+    rig : str
+        Rig name, default ``"rig1"``. It becomes a Zenoh key segment, so it must be
+        non-empty and use only ``A-Z a-z 0-9 _ -``.
+    seed : int
+        Seed of every random choice of the run (random mistuning, acquisition errors),
+        default 0; integer >= 0. The same scenario and seed give the same run.
+    """
+
+    rig: str = field(default="rig1", metadata=_doc(
+        "rig name, used as a Zenoh key segment: non-empty, only A-Z a-z 0-9 _ -"))
+    seed: int = field(default=0, metadata=_doc(
+        "seed of every random choice (random mistuning, acquisition errors); integer >= 0"))
+
+    def __post_init__(self) -> None:
+        w = "[run]"
+        rig = _string(w, "rig", self.rig)
+        if not _RIG_RE.fullmatch(rig):
+            raise _FieldError(w, "rig", "must be non-empty and use only letters, digits, "
+                              f"'_' and '-', got {_show(rig)}")
+        _set(self, "rig", rig)
+        _set(self, "seed", _integer(w, "seed", self.seed, lo=0))
+
+
+@dataclass(frozen=True, slots=True)
+class Rotor:
+    """``[rotor]``: geometry of the built-in bladed disk and its tip section.
+
+    The tip chord runs from the leading edge (LE) at axial position z = 0 to the trailing
+    edge (TE) at z = ``tip_chord_m * sin(stagger_deg)``. The tip nodes lie on the chord,
+    ``tip_node_spacing_m`` apart, starting at the TE.
+
+    Attributes
+    ----------
+    n_blades : int
+        Number of blades, default 29 (the paper's rotor); integer >= 1.
+    tip_radius_m : float
+        Blade tip radius, m, default 0.19; > 0. Our choice (the first compressor stage of
+        a small turbojet): the paper does not give it.
+    stagger_deg : float
+        Tip stagger angle eta_tip, deg: angle of the tip chord from the tangential
+        direction. Default 41.5; in (0, 90).
+    tip_chord_m : float
+        Chord length of the tip section, m, default 0.0202523; > 0.
+    n_tip_nodes : int
+        Number of tip nodes along the chord, default 9; integer >= 2.
+    tip_node_spacing_m : float
+        Spacing of the tip nodes along the chord, m, starting at the TE; default
+        0.0004375; > 0. The nodes must fit on the chord:
+        ``(n_tip_nodes - 1) * tip_node_spacing_m <= tip_chord_m``.
+    nominal_node : int
+        The nominal tip node P_nom, counted from the TE (TE node = 1). Default 5 (the
+        paper's P_nom, 1.75 mm from the TE); integer in [1, n_tip_nodes].
+    """
+
+    n_blades: int = field(default=29, metadata=_doc(
+        "number of blades (the paper's rotor has 29); integer >= 1"))
+    tip_radius_m: float = field(default=0.19, metadata=_doc(
+        "blade tip radius, m; > 0 (our choice, small turbojet 1st compressor stage)"))
+    stagger_deg: float = field(default=41.5, metadata=_doc(
+        "tip stagger eta_tip, deg: tip chord angle from the tangential direction; in (0, 90)"))
+    tip_chord_m: float = field(default=0.0202523, metadata=_doc(
+        "tip chord length, m; > 0. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
+    n_tip_nodes: int = field(default=9, metadata=_doc(
+        "number of tip nodes along the chord; integer >= 2"))
+    tip_node_spacing_m: float = field(default=0.0004375, metadata=_doc(
+        "tip node spacing along the chord from the TE, m; > 0;\n"
+        "(n_tip_nodes - 1) * tip_node_spacing_m <= tip_chord_m"))
+    nominal_node: int = field(default=5, metadata=_doc(
+        "nominal node P_nom counted from the TE (TE node = 1); in [1, n_tip_nodes]"))
+
+    def __post_init__(self) -> None:
+        w = "[rotor]"
+        _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=1))
+        _set(self, "tip_radius_m", _real(w, "tip_radius_m", self.tip_radius_m, lo=0,
+                                         lo_open=True))
+        _set(self, "stagger_deg", _real(w, "stagger_deg", self.stagger_deg, lo=0,
+                                        lo_open=True, hi=90, hi_open=True))
+        _set(self, "tip_chord_m", _real(w, "tip_chord_m", self.tip_chord_m, lo=0,
+                                        lo_open=True))
+        _set(self, "n_tip_nodes", _integer(w, "n_tip_nodes", self.n_tip_nodes, lo=2))
+        _set(self, "tip_node_spacing_m", _real(w, "tip_node_spacing_m",
+                                               self.tip_node_spacing_m, lo=0, lo_open=True))
+        _set(self, "nominal_node", _integer(w, "nominal_node", self.nominal_node, lo=1))
+        if self.nominal_node > self.n_tip_nodes:
+            raise _FieldError(w, "nominal_node", f"must be <= n_tip_nodes = "
+                              f"{self.n_tip_nodes}, got {self.nominal_node}")
+        span = (self.n_tip_nodes - 1) * self.tip_node_spacing_m
+        if span > self.tip_chord_m * (1.0 + 1e-12):
+            raise _FieldError(w, "tip_node_spacing_m", f"puts the tip nodes beyond the chord: "
+                              f"(n_tip_nodes - 1) * tip_node_spacing_m = {span:.6g} m > "
+                              f"tip_chord_m = {self.tip_chord_m:.6g} m")
+
+    @property
+    def tip_axial_extent_m(self) -> float:
+        """Axial extent of the tip chord, m: the TE's z, ``tip_chord_m * sin(stagger)``."""
+        return self.tip_chord_m * math.sin(math.radians(self.stagger_deg))
+
+    @property
+    def nominal_offset_from_te_m(self) -> float:
+        """Distance of the nominal node from the TE along the chord, m."""
+        return (self.nominal_node - 1) * self.tip_node_spacing_m
+
+
+@dataclass(frozen=True, slots=True)
+class Model:
+    """``[model]``: where the modal model comes from, its damping and its mistuning.
+
+    Attributes
+    ----------
+    source : str
+        ``"builtin"`` (default: the parametric bladed disk built from ``[rotor]``) or the
+        path of a user's modal model ``.npz``. :func:`load_scenario` resolves a relative
+        path against the scenario file's directory; the string is not checked further here.
+    damping_beta_s : float
+        Stiffness-proportional damping coefficient beta, s, default 9e-6; >= 0. The modal
+        damping ratio is zeta = beta * omega / 2.
+    n_families : int
+        Mode families kept per nodal diameter, default 5 (5 families * 29 blades = 145
+        modes); integer in [1, 20].
+    disk_asymmetry : bool
+        Default false. If true, a small deterministic disk asymmetry splits the
+        nodal-diameter mode pairs, as in the paper's scanned disk.
+    stiffness_factors : tuple of float
+        Per-blade stiffness factors (dimensionless). Empty (default) = none; else exactly
+        ``n_blades`` finite values > 0. Exclusive with ``stiffness_std > 0``.
+    mass_factors : tuple of float
+        Per-blade mass factors, as ``stiffness_factors``. Exclusive with ``mass_std > 0``.
+    stiffness_std : float
+        Standard deviation of seeded random per-blade stiffness factors 1 + N(0, std),
+        dimensionless; default 0.0; in [0, 0.5).
+    mass_std : float
+        As ``stiffness_std``, for the blade masses.
+    """
+
+    source: str = field(default=BUILTIN_MODEL, metadata=_doc(
+        '"builtin" (parametric bladed disk from [rotor]) or the path of a modal model .npz\n'
+        "(a relative path is relative to this file's directory)"))
+    damping_beta_s: float = field(default=9e-6, metadata=_doc(
+        "stiffness-proportional damping beta, s; zeta = beta * omega / 2; >= 0"))
+    n_families: int = field(default=5, metadata=_doc(
+        "mode families kept per nodal diameter (modes = n_families * n_blades); in [1, 20]"))
+    disk_asymmetry: bool = field(default=False, metadata=_doc(
+        "small deterministic disk asymmetry splitting the nodal-diameter pairs (paper's disk)"))
+    stiffness_factors: tuple[float, ...] = field(default=(), metadata=_doc(
+        "per-blade stiffness factors: [] = none, else n_blades finite values > 0"))
+    mass_factors: tuple[float, ...] = field(default=(), metadata=_doc(
+        "per-blade mass factors: [] = none, else n_blades finite values > 0"))
+    stiffness_std: float = field(default=0.0, metadata=_doc(
+        "std of seeded random per-blade stiffness factors 1 + N(0, std); in [0, 0.5);\n"
+        "exclusive with stiffness_factors"))
+    mass_std: float = field(default=0.0, metadata=_doc(
+        "std of seeded random per-blade mass factors 1 + N(0, std); in [0, 0.5);\n"
+        "exclusive with mass_factors"))
+
+    def __post_init__(self) -> None:
+        w = "[model]"
+        source = _string(w, "source", self.source)
+        if not source:
+            raise _FieldError(w, "source", 'must be "builtin" or a file path, got ""')
+        _set(self, "source", source)
+        _set(self, "damping_beta_s", _real(w, "damping_beta_s", self.damping_beta_s, lo=0))
+        _set(self, "n_families", _integer(w, "n_families", self.n_families, lo=1,
+                                          hi=MAX_FAMILIES))
+        _set(self, "disk_asymmetry", _boolean(w, "disk_asymmetry", self.disk_asymmetry))
+        for kind in ("stiffness", "mass"):
+            factors = _real_tuple(w, f"{kind}_factors", getattr(self, f"{kind}_factors"),
+                                  lo=0, lo_open=True)
+            std = _real(w, f"{kind}_std", getattr(self, f"{kind}_std"), lo=0, hi=0.5,
+                        hi_open=True)
+            if factors and std > 0:
+                raise _FieldError(w, f"{kind}_std", f"must be 0 when {kind}_factors is given "
+                                  f"(use one or the other), got {_show(std)}")
+            _set(self, f"{kind}_factors", factors)
+            _set(self, f"{kind}_std", std)
+
+
+@dataclass(frozen=True, slots=True)
+class Speed:
+    """``[speed]``: the rotor speed profile.
+
+    By default the paper's linear run-up (Eq. 6) from ``start_rpm`` to ``end_rpm`` in
+    ``duration_s``. With ``segments``, a piecewise-linear profile: each segment ramps
+    linearly from the previous segment's end speed (the first from ``start_rpm``) to its
+    own ``end_rpm`` in its ``duration_s``; a dwell is a segment that keeps the speed.
+
+    Attributes
+    ----------
+    start_rpm : float
+        Speed at t = 0, rpm, default 1000.0; > 0.
+    end_rpm : float
+        Speed at the end of the profile, rpm, default 4000.0; > 0. With ``segments`` it is
+        derived (the last segment's ``end_rpm``) and must be absent from the file.
+    duration_s : float
+        Duration of the profile, s, default 130.0; > 0. With ``segments`` it is derived
+        (the sum of the segment durations) and must be absent from the file.
+    segments : tuple of (float, float)
+        ``(duration_s, end_rpm)`` pairs, default empty (plain ramp). In a file, an array
+        of inline tables ``{duration_s = 10.0, end_rpm = 2000.0}``. Durations > 0, speeds
+        > 0. Programmatically, pairs or such mappings are accepted.
+    """
+
+    start_rpm: float = field(default=1000.0, metadata=_doc(
+        "speed at t = 0, rpm; > 0 (paper Eq. 6: linear run-up)"))
+    end_rpm: float = field(default=4000.0, metadata=_doc(
+        "speed at the end of the run-up, rpm; > 0. Leave out when segments is given"))
+    duration_s: float = field(default=130.0, metadata=_doc(
+        "duration of the run-up, s; > 0. Leave out when segments is given"))
+    segments: tuple[tuple[float, float], ...] = field(default=(), metadata=_doc(
+        "piecewise-linear profile: segments from start_rpm, each {duration_s (s, > 0),\n"
+        "end_rpm (rpm, > 0)}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
+
+    def __post_init__(self) -> None:
+        w = "[speed]"
+        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True))
+        items = _sequence(w, "segments", self.segments,
+                          "an array of {duration_s = ..., end_rpm = ...} tables")
+        segments = tuple(_segment(w, f"segments[{i}]", s) for i, s in enumerate(items))
+        _set(self, "segments", segments)
+        if segments:
+            _set(self, "end_rpm", segments[-1][1])
+            _set(self, "duration_s", math.fsum(d for d, _ in segments))
+        else:
+            _set(self, "end_rpm", _real(w, "end_rpm", self.end_rpm, lo=0, lo_open=True))
+            _set(self, "duration_s", _real(w, "duration_s", self.duration_s, lo=0,
+                                           lo_open=True))
+
+    @property
+    def total_duration_s(self) -> float:
+        """Duration of the whole profile, s."""
+        return self.duration_s
+
+    def breakpoints(self) -> tuple[np.ndarray, np.ndarray]:
+        """The piecewise-linear speed profile.
+
+        Returns
+        -------
+        t_s : numpy.ndarray
+            Breakpoint times, s, increasing from 0 to :attr:`total_duration_s`.
+        rpm : numpy.ndarray
+            Speed at each breakpoint, rpm; linear in between.
+        """
+        if not self.segments:
+            return (np.array([0.0, self.duration_s]), np.array([self.start_rpm, self.end_rpm]))
+        durations = np.array([d for d, _ in self.segments])
+        t_s = np.concatenate(([0.0], np.cumsum(durations)))
+        t_s[-1] = self.duration_s
+        rpm = np.array([self.start_rpm] + [r for _, r in self.segments])
+        return t_s, rpm
+
+
+_SEGMENT_KEYS = ("duration_s", "end_rpm")
+
+
+def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
+    """Check one speed segment: a ``{duration_s, end_rpm}`` mapping or a pair."""
+    if isinstance(value, Mapping):
+        for k in value:
+            if k not in _SEGMENT_KEYS:
+                raise _FieldError(where, key, f"has unknown key {_key(k)}{_hint(k, _SEGMENT_KEYS)}"
+                                  " (expected duration_s and end_rpm)")
+        for k in _SEGMENT_KEYS:
+            if k not in value:
+                raise _FieldError(where, key, f"is missing {k}")
+        d, r = value["duration_s"], value["end_rpm"]
+    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2:
+        d, r = value[0], value[1]
+    else:
+        raise _FieldError(where, key, f"must be a table {{duration_s = ..., end_rpm = ...}}, "
+                          f"{_got(value)}")
+    return (_real(where, f"{key}.duration_s", d, lo=0, lo_open=True),
+            _real(where, f"{key}.end_rpm", r, lo=0, lo_open=True))
+
+
+@dataclass(frozen=True, slots=True)
+class Excitation:
+    """``[[excitation]]``: one engine-order force pattern applied at every blade tip.
+
+    Attributes
+    ----------
+    engine_order : int
+        Engine order EO (force cycles per revolution), default 8; integer >= 1.
+    nodal_diameter : int
+        Nodal diameter ND of the force pattern across the blades (inter-blade phase
+        2*pi*ND/n_blades), default 1; integer in [0, n_blades) (checked by
+        :class:`Scenario`).
+    amplitude_n : float
+        Force amplitude per blade, N, default 2.25; >= 0.
+    direction : tuple of float
+        Force direction as 3 components in the local (radial, tangential, axial) frame at
+        the force node, default (0, 0, 1). Finite, not all zero; stored as given and
+        normalised at use.
+    node : str
+        The tip-section edge where the force is applied: ``"leading_edge"`` (default) or
+        ``"trailing_edge"``.
+    """
+
+    engine_order: int = field(default=8, metadata=_doc(
+        "engine order EO (force cycles per revolution); integer >= 1"))
+    nodal_diameter: int = field(default=1, metadata=_doc(
+        "nodal diameter ND of the force pattern (inter-blade phase 2*pi*ND/n_blades);\n"
+        "integer in [0, n_blades)"))
+    amplitude_n: float = field(default=2.25, metadata=_doc(
+        "force amplitude per blade, N; >= 0"))
+    direction: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0), metadata=_doc(
+        "force direction (radial, tangential, axial) at the force node; 3 finite\n"
+        "components, not all zero; normalised at use"))
+    node: str = field(default="leading_edge", metadata=_doc(
+        'tip-section edge where the force is applied: "leading_edge" or "trailing_edge"'))
+
+    def __post_init__(self) -> None:
+        w = "[[excitation]]"
+        _set(self, "engine_order", _integer(w, "engine_order", self.engine_order, lo=1))
+        _set(self, "nodal_diameter", _integer(w, "nodal_diameter", self.nodal_diameter, lo=0))
+        _set(self, "amplitude_n", _real(w, "amplitude_n", self.amplitude_n, lo=0))
+        direction = _real_tuple(w, "direction", self.direction)
+        if len(direction) != 3:
+            raise _FieldError(w, "direction", "must have 3 components (radial, tangential, "
+                              f"axial), got {len(direction)}")
+        if not any(direction):
+            raise _FieldError(w, "direction", "must not be the zero vector")
+        _set(self, "direction", direction)
+        _set(self, "node", _string(w, "node", self.node, choices=FORCE_NODES))
+
+
+@dataclass(frozen=True, slots=True)
+class Probes:
+    """``[probes]``: the BTT probes and the once-per-revolution (OPR) sensor.
+
+    Angles are anticlockwise from +x seen from +z, like the rotation.
+
+    Attributes
+    ----------
+    angles_deg : tuple of float
+        Probe angular positions, deg, default (5.0, 15.15, 23.82, 220.0, 301.5) (the
+        paper's); 1 to 64 distinct finite values in [0, 360).
+    axial_position_m : float
+        Axial position z_j of the probes, m, default 0.01226; within the tip chord's
+        axial extent [0, ``tip_chord_m * sin(stagger_deg)``] (checked by
+        :class:`Scenario`).
+    opr_angle_deg : float
+        Angular position of the OPR sensor, deg, default 0.0; in [0, 360).
+    """
+
+    angles_deg: tuple[float, ...] = field(default=(5.0, 15.15, 23.82, 220.0, 301.5),
+                                          metadata=_doc(
+        "probe angular positions, deg, anticlockwise from +x; 1 to 64 distinct values\n"
+        "in [0, 360)"))
+    axial_position_m: float = field(default=0.01226, metadata=_doc(
+        "probe axial position z_j, m; within the tip chord's axial extent\n"
+        "[0, tip_chord_m * sin(stagger_deg)]"))
+    opr_angle_deg: float = field(default=0.0, metadata=_doc(
+        "once-per-revolution (OPR) sensor angle, deg; in [0, 360)"))
+
+    def __post_init__(self) -> None:
+        w = "[probes]"
+        angles = _real_tuple(w, "angles_deg", self.angles_deg, lo=0, hi=360, hi_open=True)
+        if not 1 <= len(angles) <= MAX_PROBES:
+            raise _FieldError(w, "angles_deg", f"must hold 1 to {MAX_PROBES} angles, "
+                              f"got {len(angles)}")
+        first: dict[float, int] = {}
+        for i, a in enumerate(angles):
+            if a in first:
+                raise _FieldError(w, f"angles_deg[{i}]", f"duplicates angles_deg[{first[a]}] "
+                                  f"({_show(a)})")
+            first[a] = i
+        _set(self, "angles_deg", angles)
+        _set(self, "axial_position_m", _real(w, "axial_position_m", self.axial_position_m))
+        _set(self, "opr_angle_deg", _real(w, "opr_angle_deg", self.opr_angle_deg, lo=0,
+                                          hi=360, hi_open=True))
+
+
+@dataclass(frozen=True, slots=True)
+class Toa:
+    """``[toa]``: how times of arrival (TOAs) are computed (paper Sec. 2.2).
+
+    Attributes
+    ----------
+    method : str
+        TOA method of the paper's Sec. 2.2: ``"HP"`` (default), ``"AD"`` or ``"PAD"``.
+    grid_step_s : float
+        Step of the integrator time grid used for the AD/PAD interpolation, s, default
+        2e-6; > 0.
+    axial_interpolation : bool
+        Default true: interpolate between the tip nodes at the probe's z. False: use the
+        nearest node (reproduces the paper's Fig. 7).
+    """
+
+    method: str = field(default="HP", metadata=_doc(
+        'TOA method (paper Sec. 2.2): "HP", "AD" or "PAD"'))
+    grid_step_s: float = field(default=2e-6, metadata=_doc(
+        "integrator time grid step for the AD/PAD interpolation, s; > 0"))
+    axial_interpolation: bool = field(default=True, metadata=_doc(
+        "true: interpolate between tip nodes at the probe z; false: nearest node (Fig. 7)"))
+
+    def __post_init__(self) -> None:
+        w = "[toa]"
+        _set(self, "method", _string(w, "method", self.method, choices=TOA_METHODS))
+        _set(self, "grid_step_s", _real(w, "grid_step_s", self.grid_step_s, lo=0,
+                                        lo_open=True))
+        _set(self, "axial_interpolation", _boolean(w, "axial_interpolation",
+                                                   self.axial_interpolation))
+
+
+@dataclass(frozen=True, slots=True)
+class Acquisition:
+    """``[acquisition]``: errors of the acquisition system; all off (0) by default.
+
+    Attributes
+    ----------
+    clock_hz : float
+        TOA counter clock, Hz. 0 (default) = no quantisation; else > 0 and the TOAs are
+        whole ticks of this clock.
+    trigger_jitter_s : float
+        Standard deviation of a Gaussian jitter on each TOA, s; >= 0.
+    probe_angle_error_deg : float
+        Standard deviation of static random errors of the probe angular positions, deg
+        (drawn once per run); >= 0.
+    opr_jitter_s : float
+        Standard deviation of a Gaussian jitter on each OPR timestamp, s; >= 0.
+    speed_fluctuation_rpm : float
+        Standard deviation of a random speed fluctuation about the speed profile, rpm;
+        >= 0.
+    """
+
+    clock_hz: float = field(default=0.0, metadata=_doc(
+        "TOA counter clock, Hz; 0 = no quantisation, else > 0 (TOAs become whole ticks)"))
+    trigger_jitter_s: float = field(default=0.0, metadata=_doc(
+        "std of the Gaussian jitter on each TOA, s; >= 0"))
+    probe_angle_error_deg: float = field(default=0.0, metadata=_doc(
+        "std of static random probe angular position errors, deg; >= 0"))
+    opr_jitter_s: float = field(default=0.0, metadata=_doc(
+        "std of the Gaussian jitter on each OPR timestamp, s; >= 0"))
+    speed_fluctuation_rpm: float = field(default=0.0, metadata=_doc(
+        "std of the random speed fluctuation about the speed profile, rpm; >= 0"))
+
+    def __post_init__(self) -> None:
+        w = "[acquisition]"
+        for f in dataclasses.fields(self):
+            _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0))
+
+
+def _default_excitation() -> tuple[Excitation, ...]:
+    return (Excitation(),)
+
+
+@dataclass(frozen=True, slots=True)
+class Scenario:
+    """A whole scenario: one instance of each section, and the checks across sections.
+
+    Attributes
+    ----------
+    run : Run
+        ``[run]``.
+    rotor : Rotor
+        ``[rotor]``.
+    model : Model
+        ``[model]``.
+    speed : Speed
+        ``[speed]``.
+    excitation : tuple of Excitation
+        ``[[excitation]]``: at least one entry; default one :class:`Excitation`.
+    probes : Probes
+        ``[probes]``.
+    toa : Toa
+        ``[toa]``.
+    acquisition : Acquisition
+        ``[acquisition]``.
+
+    Notes
+    -----
+    Cross-section checks: each ``nodal_diameter < n_blades``; the probes' axial position
+    within ``[0, rotor.tip_axial_extent_m]``; non-empty mistuning factor lists hold
+    ``n_blades`` values.
+    """
+
+    run: Run = field(default_factory=Run)
+    rotor: Rotor = field(default_factory=Rotor)
+    model: Model = field(default_factory=Model)
+    speed: Speed = field(default_factory=Speed)
+    excitation: tuple[Excitation, ...] = field(default_factory=_default_excitation)
+    probes: Probes = field(default_factory=Probes)
+    toa: Toa = field(default_factory=Toa)
+    acquisition: Acquisition = field(default_factory=Acquisition)
+
+    def __post_init__(self) -> None:
+        for name, cls in SECTIONS.items():
+            if name == "excitation":
+                continue
+            value = getattr(self, name)
+            if not isinstance(value, cls):
+                raise _FieldError(f"[{name}]", "", f"must be a {cls.__name__}, "
+                                  f"got {type(value).__name__}")
+        exc = self.excitation
+        if isinstance(exc, Excitation) or not isinstance(exc, (list, tuple)):
+            raise _FieldError("[[excitation]]", "", "must be a sequence of Excitation, "
+                              f"got {type(exc).__name__}")
+        exc = tuple(exc)
+        if not exc:
+            raise _FieldError("[[excitation]]", "", "must have at least one entry, got none")
+        for i, e in enumerate(exc):
+            if not isinstance(e, Excitation):
+                raise _FieldError(f"[[excitation]][{i}]", "", "must be an Excitation, "
+                                  f"got {type(e).__name__}")
+        _set(self, "excitation", exc)
+
+        n = self.rotor.n_blades
+        for i, e in enumerate(exc):
+            if e.nodal_diameter >= n:
+                raise _FieldError(f"[[excitation]][{i}]", "nodal_diameter",
+                                  f"must be < [rotor] n_blades = {n}, got {e.nodal_diameter}")
+        z, z_max = self.probes.axial_position_m, self.rotor.tip_axial_extent_m
+        if not 0.0 <= z <= z_max:
+            raise _FieldError("[probes]", "axial_position_m", "must lie within the tip "
+                              f"chord's axial extent [0, {z_max:.6g}] m ([rotor] tip_chord_m * "
+                              f"sin(stagger_deg)), got {_show(z)}")
+        for kind in ("stiffness_factors", "mass_factors"):
+            factors = getattr(self.model, kind)
+            if factors and len(factors) != n:
+                raise _FieldError("[model]", kind, f"must hold [rotor] n_blades = {n} values "
+                                  f"(or be empty), got {len(factors)}")
+
+
+#: Section name -> dataclass, in file order (``excitation`` is an array of tables).
+SECTIONS: dict[str, type] = {
+    "run": Run,
+    "rotor": Rotor,
+    "model": Model,
+    "speed": Speed,
+    "excitation": Excitation,
+    "probes": Probes,
+    "toa": Toa,
+    "acquisition": Acquisition,
+}
+
+_SECTION_COMMENTS: dict[str, str] = {
+    "run": "Identity of the run.",
+    "rotor": "Geometry of the built-in bladed disk and its tip section.",
+    "model": "Modal model: source, damping, mistuning.",
+    "speed": "Speed profile: the paper's linear run-up (Eq. 6), or segments.",
+    "excitation": "Engine-order excitation; repeat the [[excitation]] block for more.",
+    "probes": "BTT probes and once-per-revolution (OPR) sensor.",
+    "toa": "Time-of-arrival computation (paper Sec. 2.2).",
+    "acquisition": "Acquisition errors (all off by default).",
+}
+
+_SEGMENTS_EXAMPLE = """\
+# Example (then delete end_rpm and duration_s above):
+# segments = [
+#     {duration_s = 30.0, end_rpm = 2500.0},  # ramp 1000 -> 2500 rpm in 30 s
+#     {duration_s = 20.0, end_rpm = 2500.0},  # dwell 20 s
+#     {duration_s = 60.0, end_rpm = 4000.0},  # ramp 2500 -> 4000 rpm in 60 s
+# ]"""
+
+
+# --------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------
+
+
+def _key(k: Any) -> str:
+    """A key as written in TOML: bare if possible, else quoted."""
+    k = str(k)
+    return k if _BARE_KEY_RE.fullmatch(k) else _toml_string(k)
+
+
+def _hint(name: Any, candidates: Sequence[str]) -> str:
+    close = difflib.get_close_matches(str(name), list(candidates), n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
+def _check_keys(where: str, table: Mapping[str, Any], cls: type) -> None:
+    names = _field_names(cls)
+    for k in table:
+        if k not in names:
+            raise ScenarioError(f"unknown key {where} {_key(k)}{_hint(k, names)}")
+
+
+def _resolve_source(source: Any, base_dir: Path | None) -> Any:
+    if base_dir is None or not isinstance(source, str) or source in ("", BUILTIN_MODEL):
+        return source
+    path = Path(source).expanduser()
+    if not path.is_absolute():
+        path = base_dir / path
+    return os.path.normpath(path)
+
+
+def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
+    if not isinstance(d, Mapping):
+        raise ScenarioError(f"must be a table of sections, {_got(d)}")
+    for name, value in d.items():
+        if name not in SECTIONS:
+            if isinstance(value, Mapping):
+                what = f"unknown section [{_key(name)}]"
+            elif isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
+                what = f"unknown section [[{_key(name)}]]"
+            else:
+                owners = [s for s, c in SECTIONS.items() if name in _field_names(c)]
+                hint = f" (keys belong in a section: put it under [{owners[0]}])" if owners else ""
+                raise ScenarioError(f"unknown top-level key {_key(name)}{hint}")
+            raise ScenarioError(what + _hint(name, list(SECTIONS)))
+
+    # Structure first (tables, unknown keys), then values.
+    tables: dict[str, Mapping[str, Any]] = {}
+    for name, cls in SECTIONS.items():
+        if name == "excitation":
+            continue
+        table = d.get(name, {})
+        if not isinstance(table, Mapping):
+            raise ScenarioError(f"[{name}] must be a table, {_got(table)}")
+        _check_keys(f"[{name}]", table, cls)
+        tables[name] = table
+    entries = d.get("excitation", [{}])
+    if not isinstance(entries, list):
+        raise ScenarioError("excitation must be an array of tables ([[excitation]] blocks), "
+                            + _got(entries))
+    if not entries:
+        raise ScenarioError("[[excitation]] must have at least one entry, got none")
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, Mapping):
+            raise ScenarioError(f"[[excitation]][{i}] must be a table, {_got(entry)}")
+        _check_keys(f"[[excitation]][{i}]", entry, Excitation)
+
+    speed = tables["speed"]
+    if speed.get("segments"):
+        for k in ("end_rpm", "duration_s"):
+            if k in speed:
+                raise ScenarioError(f"[speed] {k} must be absent when segments is given "
+                                    "(the segments set the end speed and the duration)")
+
+    sections: dict[str, Any] = {}
+    for name, table in tables.items():
+        kwargs = dict(table)
+        if name == "model" and "source" in kwargs:
+            kwargs["source"] = _resolve_source(kwargs["source"], base_dir)
+        sections[name] = SECTIONS[name](**kwargs)
+    excitation = []
+    for i, entry in enumerate(entries):
+        try:
+            excitation.append(Excitation(**entry))
+        except _FieldError as exc:
+            raise exc.relabel(f"[[excitation]][{i}]") from None
+    return Scenario(excitation=tuple(excitation), **sections)
+
+
+def scenario_from_dict(d: Mapping[str, Any], source: str = "<dict>", *,
+                       base_dir: str | os.PathLike[str] | None = None) -> Scenario:
+    """Build and validate a :class:`Scenario` from a parsed-TOML dict.
+
+    Parameters
+    ----------
+    d : mapping
+        ``{section: {key: value}}`` as :func:`tomllib.loads` returns it, with
+        ``"excitation"`` a list of tables. Missing sections and keys take their defaults.
+    source : str
+        Name of the origin (a file name), used as the prefix of error messages.
+    base_dir : path-like, optional
+        Directory against which a relative ``[model] source`` path is resolved; if None
+        it is kept as given.
+
+    Returns
+    -------
+    Scenario
+
+    Raises
+    ------
+    ScenarioError
+        ``"<source>: <what is wrong>"`` for an unknown section or key, a wrong type, or
+        an impossible value.
+    """
+    try:
+        return _build(d, Path(base_dir) if base_dir is not None else None)
+    except ScenarioError as exc:
+        raise ScenarioError(f"{source}: {_one_line(str(exc))}") from None
+
+
+def load_scenario(path: str | os.PathLike[str]) -> Scenario:
+    """Read, parse and validate a scenario TOML file.
+
+    Parameters
+    ----------
+    path : path-like
+        The scenario file (UTF-8 TOML). A relative ``[model] source`` path in it is
+        resolved against the file's directory.
+
+    Returns
+    -------
+    Scenario
+
+    Raises
+    ------
+    ScenarioError
+        One line starting with the path as given: no such file, a directory, unreadable,
+        not UTF-8, malformed TOML, or any error of :func:`scenario_from_dict`.
+    """
+    name = os.fspath(path)
+    p = Path(name)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise ScenarioError(f"{name}: no such file") from None
+    except IsADirectoryError:
+        raise ScenarioError(f"{name}: is a directory, not a scenario file") from None
+    except PermissionError:
+        raise ScenarioError(f"{name}: permission denied") from None
+    except OSError as exc:
+        if p.is_dir():
+            raise ScenarioError(f"{name}: is a directory, not a scenario file") from None
+        raise ScenarioError(f"{name}: cannot read ({exc.strerror or exc})") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(f"{name}: not UTF-8 text (byte 0x{data[exc.start]:02x} at "
+                            f"offset {exc.start})") from None
+    text = text.removeprefix("\ufeff")
+    try:
+        d = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    return scenario_from_dict(d, source=name, base_dir=p.absolute().parent)
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+
+
+def _section_dict(obj: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        out[f.name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def scenario_to_dict(scn: Scenario) -> dict[str, Any]:
+    """The scenario as plain TOML-ready data (dicts, lists, str, int, float, bool).
+
+    ``scenario_from_dict(scenario_to_dict(s)) == s``. With speed segments, ``[speed]``
+    holds ``start_rpm`` and ``segments`` (a list of ``{duration_s, end_rpm}`` dicts) only.
+
+    Parameters
+    ----------
+    scn : Scenario
+
+    Returns
+    -------
+    dict
+        ``{section: {key: value}}``; ``"excitation"`` is a list of dicts.
+    """
+    out: dict[str, Any] = {}
+    for name in SECTIONS:
+        if name == "excitation":
+            out[name] = [_section_dict(e) for e in scn.excitation]
+            continue
+        table = _section_dict(getattr(scn, name))
+        if name == "speed":
+            table["segments"] = [{"duration_s": d, "end_rpm": r} for d, r in scn.speed.segments]
+            if table["segments"]:
+                del table["end_rpm"], table["duration_s"]
+        out[name] = table
+    return out
+
+
+def _toml_string(s: str) -> str:
+    """A TOML basic string."""
+    out = ['"']
+    for ch in s:
+        code = ord(ch)
+        if ch == '"':
+            out.append('\\"')
+        elif ch == "\\":
+            out.append("\\\\")
+        elif ch in "\b\t\n\f\r":
+            out.append({"\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}[ch])
+        elif code < 0x20 or code == 0x7F:
+            out.append(f"\\u{code:04X}")
+        else:
+            out.append(ch)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(v: Any) -> str:
+    """One TOML value: str, int, float, bool, list of values, or an inline table."""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, numbers.Integral):
+        return str(int(v))
+    if isinstance(v, numbers.Real):
+        return repr(float(v))  # shortest repr: parses back to the same float
+    if isinstance(v, str):
+        return _toml_string(v)
+    if isinstance(v, Mapping):
+        return "{" + ", ".join(f"{_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    if isinstance(v, (list, tuple)):
+        if v and all(isinstance(x, Mapping) for x in v):
+            return "[\n" + "".join(f"    {_toml_value(x)},\n" for x in v) + "]"
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+def _comment(text: str) -> list[str]:
+    return [f"# {line}".rstrip() for line in text.splitlines()]
+
+
+def _emit_table(lines: list[str], cls: type, table: Mapping[str, Any], comments: bool) -> None:
+    docs = {f.name: f.metadata.get("toml", "") for f in dataclasses.fields(cls)}
+    for k, v in table.items():
+        if k == "segments" and not v:
+            if comments:
+                lines.extend(_comment(docs[k]))
+                lines.append(_SEGMENTS_EXAMPLE)
+            continue
+        if comments and docs.get(k):
+            lines.extend(_comment(docs[k]))
+        lines.append(f"{_key(k)} = {_toml_value(v)}")
+
+
+def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
+    """Write a scenario as TOML that :func:`load_scenario` reads back equal.
+
+    Parameters
+    ----------
+    scn : Scenario
+    comments : bool
+        If true, write a header and a comment (meaning, unit, constraint) above every
+        section and key.
+
+    Returns
+    -------
+    str
+        The TOML text, ending with a newline. A relative ``[model] source`` is written as
+        is (and resolved against the file's directory when loaded).
+    """
+    d = scenario_to_dict(scn)
+    lines: list[str] = []
+    if comments:
+        lines += [
+            "# bttsim scenario: one file configures a run. Defaults: the paper's Table 1",
+            "# (Nour, Bonello et al.) plus our rotor geometry. SI units (name suffix _m, _s,",
+            "# _n, _hz), angles in degrees (_deg), speeds in rpm (_rpm). A missing key or",
+            "# section takes its default; unknown keys are errors.",
+            "# Check an edited file with: bttsim scenario --check FILE",
+        ]
+    for name, cls in SECTIONS.items():
+        if name == "excitation":
+            for i, entry in enumerate(d[name]):
+                lines.append("")
+                if comments and i == 0:
+                    lines.extend(_comment(_SECTION_COMMENTS[name]))
+                lines.append("[[excitation]]")
+                _emit_table(lines, cls, entry, comments and i == 0)
+            continue
+        lines.append("")
+        if comments:
+            lines.extend(_comment(_SECTION_COMMENTS[name]))
+        lines.append(f"[{name}]")
+        _emit_table(lines, cls, d[name], comments)
+    if lines and lines[0] == "":
+        lines.pop(0)
+    return "\n".join(lines) + "\n"
+
+
+def default_toml() -> str:
+    """The default scenario as commented TOML (what ``bttsim scenario`` prints).
+
+    Returns
+    -------
+    str
+    """
+    return dumps_toml(Scenario(), comments=True)

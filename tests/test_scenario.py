@@ -1,0 +1,352 @@
+"""Tests of the scenario file: defaults, round trip, validation messages, CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bttsim_stream.errors import BttsimError, ScenarioError
+from bttsim_stream.scenario import (
+    SECTIONS,
+    Acquisition,
+    Excitation,
+    Model,
+    Probes,
+    Rotor,
+    Run,
+    Scenario,
+    Speed,
+    Toa,
+    default_toml,
+    dumps_toml,
+    load_scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _write(tmp_path: Path, text: str, name: str = "scenario.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _assert_same(a: Scenario, b: Scenario) -> None:
+    """Field-by-field equality with a readable failure, then whole-object equality."""
+    for name in SECTIONS:
+        va, vb = getattr(a, name), getattr(b, name)
+        if name == "excitation":
+            assert len(va) == len(vb)
+            pairs = list(zip(va, vb))
+        else:
+            pairs = [(va, vb)]
+        for sa, sb in pairs:
+            for f in dataclasses.fields(sa):
+                x, y = getattr(sa, f.name), getattr(sb, f.name)
+                assert x == y, f"[{name}] {f.name}: {x!r} != {y!r}"
+                assert type(x) is type(y), f"[{name}] {f.name}: {type(x)} vs {type(y)}"
+    assert a == b
+
+
+# ----------------------------------------------------------------------------- defaults
+
+
+def test_default_is_table_1():
+    s = Scenario()
+    assert (s.speed.start_rpm, s.speed.end_rpm, s.speed.duration_s) == (1000.0, 4000.0, 130.0)
+    assert s.speed.segments == ()
+    assert s.model.damping_beta_s == 9e-6
+    assert s.model.source == "builtin"
+    assert s.model.n_families == 5
+    assert len(s.excitation) == 1
+    e = s.excitation[0]
+    assert (e.engine_order, e.nodal_diameter, e.amplitude_n) == (8, 1, 2.25)
+    assert e.direction == (0.0, 0.0, 1.0) and e.node == "leading_edge"
+    assert s.probes.angles_deg == (5.0, 15.15, 23.82, 220.0, 301.5)
+    assert s.probes.axial_position_m == 0.01226
+    assert s.rotor.n_blades == 29
+    assert s.rotor.nominal_node == 5
+    assert s.rotor.nominal_offset_from_te_m == pytest.approx(1.75e-3)
+    assert s.rotor.tip_axial_extent_m == pytest.approx(0.0202523 * math.sin(math.radians(41.5)))
+    assert 0 <= s.probes.axial_position_m <= s.rotor.tip_axial_extent_m
+    assert s.toa.method == "HP" and s.toa.axial_interpolation is True
+    assert all(getattr(s.acquisition, f.name) == 0.0 for f in dataclasses.fields(Acquisition))
+    assert (s.run.rig, s.run.seed) == ("rig1", 0)
+
+
+def test_default_toml_parses_back_to_default(tmp_path):
+    text = default_toml()
+    _assert_same(scenario_from_dict(tomllib.loads(text)), Scenario())
+    _assert_same(load_scenario(_write(tmp_path, text)), Scenario())
+
+
+def test_empty_file_is_default(tmp_path):
+    _assert_same(load_scenario(_write(tmp_path, "")), Scenario())
+
+
+def test_every_field_documented():
+    text = default_toml()
+    lines = text.splitlines()
+    for name, cls in SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            assert f.name in cls.__doc__, f"{cls.__name__}.{f.name} missing from docstring"
+            assert f.metadata.get("toml"), f"{cls.__name__}.{f.name} has no TOML comment"
+            if f.name == "segments":
+                continue
+            i = next(i for i, line in enumerate(lines) if line.startswith(f"{f.name} = "))
+            assert lines[i - 1].startswith("#"), f"{f.name} has no comment above it"
+
+
+def test_sections_are_frozen():
+    s = Scenario()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.rotor.n_blades = 3  # type: ignore[misc]
+
+
+# ----------------------------------------------------------------------------- round trip
+
+
+def _custom(tmp_path: Path) -> Scenario:
+    n = 12
+    return Scenario(
+        run=Run(rig="test-rig_2", seed=123456789),
+        rotor=Rotor(n_blades=n, tip_radius_m=0.2537, stagger_deg=33.3, tip_chord_m=0.031,
+                    n_tip_nodes=7, tip_node_spacing_m=0.001, nominal_node=3),
+        model=Model(source=str(tmp_path / 'my "model" \\ é.npz'), damping_beta_s=1.234567e-5,
+                    n_families=3, disk_asymmetry=True,
+                    stiffness_factors=tuple(1.0 + 0.01 * i for i in range(n)),
+                    mass_factors=np.linspace(0.99, 1.01, n), stiffness_std=0.0, mass_std=0.0),
+        speed=Speed(start_rpm=1500, segments=((30.0, 2500.0), (20.0, 2500.0),
+                                              {"duration_s": 0.1, "end_rpm": 3999.9})),
+        excitation=[
+            Excitation(engine_order=3, nodal_diameter=0, amplitude_n=0.1 + 0.2,
+                       direction=[1, -2.5, 1e-300], node="trailing_edge"),
+            Excitation(engine_order=11, nodal_diameter=11, amplitude_n=7),
+        ],
+        probes=Probes(angles_deg=(0.0, 359.999999999, 1 / 3), axial_position_m=0.0,
+                      opr_angle_deg=270.5),
+        toa=Toa(method="PAD", grid_step_s=1e-7, axial_interpolation=False),
+        acquisition=Acquisition(clock_hz=100e6, trigger_jitter_s=1e-7,
+                                probe_angle_error_deg=0.05, opr_jitter_s=2e-8,
+                                speed_fluctuation_rpm=0.3),
+    )
+
+
+def test_round_trip_non_default(tmp_path):
+    s = _custom(tmp_path)
+    text = dumps_toml(s)
+    _assert_same(load_scenario(_write(tmp_path, text)), s)
+    _assert_same(load_scenario(_write(tmp_path, dumps_toml(s, comments=True))), s)
+    _assert_same(scenario_from_dict(scenario_to_dict(s)), s)
+    assert text.count("[[excitation]]") == 2
+    assert "end_rpm = " not in text.split("[speed]")[1].split("[")[0]
+
+
+def test_round_trip_plain_ramp_and_mass_std(tmp_path):
+    s = Scenario(speed=Speed(start_rpm=800.5, end_rpm=8000, duration_s=12.25),
+                 model=Model(stiffness_std=0.03, mass_std=0.499))
+    _assert_same(load_scenario(_write(tmp_path, dumps_toml(s))), s)
+
+
+def test_normalised_types():
+    s = _custom(Path("/tmp"))
+    assert isinstance(s.excitation, tuple)
+    assert s.excitation[0].direction == (1.0, -2.5, 1e-300)
+    assert all(type(x) is float for x in s.model.mass_factors)
+    assert type(s.speed.start_rpm) is float and type(s.excitation[1].amplitude_n) is float
+
+
+def test_speed_segments_profile():
+    sp = Speed(start_rpm=1000.0, segments=((30.0, 2500.0), (20.0, 2500.0), (60.0, 4000.0)))
+    assert sp.total_duration_s == sp.duration_s == 110.0
+    assert sp.end_rpm == 4000.0
+    t, rpm = sp.breakpoints()
+    np.testing.assert_array_equal(t, [0.0, 30.0, 50.0, 110.0])
+    np.testing.assert_array_equal(rpm, [1000.0, 2500.0, 2500.0, 4000.0])
+    t, rpm = Speed().breakpoints()
+    np.testing.assert_array_equal(t, [0.0, 130.0])
+    np.testing.assert_array_equal(rpm, [1000.0, 4000.0])
+    assert Speed().total_duration_s == 130.0
+
+
+def test_segments_in_file(tmp_path):
+    text = """
+[speed]
+start_rpm = 1000.0
+segments = [
+    {duration_s = 30.0, end_rpm = 2500.0},
+    {duration_s = 20, end_rpm = 2500},
+]
+"""
+    s = load_scenario(_write(tmp_path, text))
+    assert s.speed.segments == ((30.0, 2500.0), (20.0, 2500.0))
+    assert s.speed.total_duration_s == 50.0
+
+
+def test_model_source_resolved_against_file_dir(tmp_path):
+    sub = tmp_path / "cases"
+    sub.mkdir()
+    path = _write(sub, '[model]\nsource = "models/disk.npz"\n')
+    assert load_scenario(path).model.source == str(sub / "models" / "disk.npz")
+    path = _write(sub, '[model]\nsource = "builtin"\n')
+    assert load_scenario(path).model.source == "builtin"
+    # programmatic construction stores the string as given
+    assert Model(source="rel/disk.npz").source == "rel/disk.npz"
+
+
+# ----------------------------------------------------------------------------- errors
+
+BAD = [
+    pytest.param("[speed]\nstart_rmp = 1000.0\n", ["unknown key [speed] start_rmp"],
+                 id="unknown key"),
+    pytest.param("[spede]\nstart_rpm = 1000.0\n", ["unknown section [spede]"],
+                 id="unknown section"),
+    pytest.param("[[excitation]]\nengine_ordr = 3\n",
+                 ["unknown key [[excitation]][0] engine_ordr"], id="unknown excitation key"),
+    pytest.param('[speed]\nstart_rpm = "fast"\n', ["[speed] start_rpm", "string"],
+                 id="string for float"),
+    pytest.param("[model]\ndamping_beta_s = true\n", ["[model] damping_beta_s", "boolean"],
+                 id="bool for float"),
+    pytest.param("[rotor]\nn_blades = true\n", ["[rotor] n_blades", "boolean"],
+                 id="bool for int"),
+    pytest.param("[rotor]\nn_blades = 29.0\n", ["[rotor] n_blades", "float"],
+                 id="float for int"),
+    pytest.param("[toa]\naxial_interpolation = 1\n", ["[toa] axial_interpolation"],
+                 id="int for bool"),
+    pytest.param('[toa]\nmethod = "hp"\n', ["[toa] method"], id="bad choice"),
+    pytest.param("[speed]\nstart_rpm = -1000.0\n", ["[speed] start_rpm must be > 0"],
+                 id="negative speed"),
+    pytest.param("[rotor]\nn_blades = 0\n", ["[rotor] n_blades must be an integer >= 1, got 0"],
+                 id="zero blades"),
+    pytest.param("[probes]\nangles_deg = [5.0, 15.15, nan]\n",
+                 ["[probes] angles_deg[2] must be finite, got nan"], id="nan probe angle"),
+    pytest.param("[probes]\nangles_deg = [5.0, 360.0]\n", ["[probes] angles_deg[1]"],
+                 id="probe angle 360"),
+    pytest.param("[probes]\nangles_deg = [5.0, 7.0, 5.0]\n", ["[probes] angles_deg[2]"],
+                 id="duplicate probe angle"),
+    pytest.param("[probes]\nangles_deg = []\n", ["[probes] angles_deg"], id="no probes"),
+    pytest.param("[probes]\naxial_position_m = 0.02\n", ["[probes] axial_position_m"],
+                 id="probe z outside chord"),
+    pytest.param("[rotor]\nstagger_deg = 10.0\n", ["[probes] axial_position_m"],
+                 id="chord too short for probe z"),
+    pytest.param("[[excitation]]\nnodal_diameter = 29\n",
+                 ["[[excitation]][0] nodal_diameter", "n_blades"], id="ND >= n_blades"),
+    pytest.param("[[excitation]]\n[[excitation]]\nengine_order = 0\n",
+                 ["[[excitation]][1] engine_order"], id="second excitation bad"),
+    pytest.param("[[excitation]]\ndirection = [0, 0, 0]\n", ["[[excitation]][0] direction"],
+                 id="zero direction"),
+    pytest.param("excitation = []\n", ["[[excitation]]"], id="no excitation"),
+    pytest.param("[excitation]\nengine_order = 8\n", ["excitation", "array of tables"],
+                 id="excitation as table"),
+    pytest.param("[model]\nstiffness_factors = [1.0, 1.01]\n",
+                 ["[model] stiffness_factors", "29"], id="mistuning list wrong length"),
+    pytest.param("[model]\nmass_std = 0.01\nmass_factors = " + str([1.0] * 29) + "\n",
+                 ["[model] mass_std"], id="mistuning factors and std"),
+    pytest.param("[rotor]\nnominal_node = 10\n", ["[rotor] nominal_node"],
+                 id="nominal node beyond nodes"),
+    pytest.param("[rotor]\nn_tip_nodes = 100\n", ["[rotor] tip_node_spacing_m"],
+                 id="tip nodes beyond chord"),
+    pytest.param('[run]\nrig = "rig 1"\n', ["[run] rig"], id="bad rig name"),
+    pytest.param("[speed\nstart_rpm = 1\n", ["malformed TOML"], id="malformed TOML"),
+    pytest.param(None, ["no such file"], id="missing file"),
+    pytest.param("[speed]\nend_rpm = 3000.0\nsegments = [{duration_s = 1.0, end_rpm = 2.0}]\n",
+                 ["[speed] end_rpm", "segments"], id="segments with end_rpm"),
+    pytest.param("[speed]\nsegments = [{duration_s = -1.0, end_rpm = 2.0}]\n",
+                 ["[speed] segments[0].duration_s"], id="negative segment duration"),
+    pytest.param("[speed]\nsegments = [{duration_s = 1.0}]\n",
+                 ["[speed] segments[0]", "end_rpm"], id="segment missing key"),
+    pytest.param("seed = 3\n", ["unknown top-level key seed", "[run]"], id="top-level key"),
+]
+
+
+@pytest.mark.parametrize("text, expected", BAD)
+def test_bad_input_names_the_field(tmp_path, text, expected):
+    path = tmp_path / "scenario.toml"
+    if text is not None:
+        path.write_text(text, encoding="utf-8")
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(path)
+    msg = str(info.value)
+    assert isinstance(info.value, BttsimError)
+    assert msg.startswith(f"{path}: "), msg
+    assert "\n" not in msg
+    for part in expected:
+        assert part in msg, msg
+
+
+def test_directory_and_non_utf8(tmp_path):
+    with pytest.raises(ScenarioError, match="is a directory"):
+        load_scenario(tmp_path)
+    path = tmp_path / "latin1.toml"
+    path.write_bytes('[run]\nrig = "r\xe9"\n'.encode("latin-1"))
+    with pytest.raises(ScenarioError, match="UTF-8"):
+        load_scenario(path)
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root reads anything")
+def test_unreadable_file(tmp_path):
+    path = _write(tmp_path, "")
+    path.chmod(0)
+    try:
+        with pytest.raises(ScenarioError, match="permission denied"):
+            load_scenario(path)
+    finally:
+        path.chmod(0o644)
+
+
+def test_programmatic_construction_is_validated():
+    with pytest.raises(ScenarioError, match=r"\[rotor\] n_blades"):
+        Rotor(n_blades=0)
+    with pytest.raises(ScenarioError, match=r"nodal_diameter"):
+        Scenario(rotor=Rotor(n_blades=4), excitation=(Excitation(nodal_diameter=4),))
+    with pytest.raises(ScenarioError, match=r"\[\[excitation\]\]"):
+        Scenario(excitation=())
+    with pytest.raises(ScenarioError, match=r"\[probes\] angles_deg\[0\]"):
+        Probes(angles_deg=[float("inf")])
+    with pytest.raises(ScenarioError, match=r"\[speed\] end_rpm"):
+        Speed(end_rpm=np.nan)
+    with pytest.raises(ScenarioError, match=r"\[model\] disk_asymmetry"):
+        Model(disk_asymmetry=1)
+    with pytest.raises(ScenarioError, match=r"\[run\] seed"):
+        Run(seed=-1)
+    assert scenario_from_dict({}) == Scenario()
+    with pytest.raises(ScenarioError, match=r"^<dict>: \[run\] seed"):
+        scenario_from_dict({"run": {"seed": 1.5}})
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, "-m", "bttsim_stream.cli", *args], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_cli_prints_default_scenario(tmp_path):
+    res = _cli("scenario")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout == default_toml()
+    _assert_same(load_scenario(_write(tmp_path, res.stdout)), Scenario())
+
+
+def test_cli_check_bad_file(tmp_path):
+    path = _write(tmp_path, "[rotor]\nn_blades = 0\n", name="bad.toml")
+    res = _cli("scenario", "--check", str(path))
+    assert res.returncode == 2
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("bttsim: error:")
+    assert "[rotor] n_blades" in lines[0]
+    ok = _cli("scenario", "--check", str(_write(tmp_path, default_toml(), name="ok.toml")))
+    assert ok.returncode == 0 and "ok" in ok.stdout
