@@ -49,6 +49,7 @@ __all__ = [
     "save_model",
     "load_model",
     "model_from_cartesian",
+    "label_modes",
     "to_cartesian",
 ]
 
@@ -167,6 +168,28 @@ def mistuning_factors(scn) -> tuple[np.ndarray, np.ndarray]:
     return k, ms
 
 
+def label_modes(freq_hz: np.ndarray, tip_shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Family (frequency rank // n_blades) and dominant ND of modes that come unlabelled.
+
+    The nodal diameter is the spatial DFT harmonic (k and N-k folded) that holds most of the
+    tip-node motion across the blades.
+
+    Parameters
+    ----------
+    freq_hz : ndarray, shape (n_modes,)
+    tip_shapes : ndarray, shape (n_modes, n_blades, n_tip, 3)
+    """
+    n_modes, n_blades = tip_shapes.shape[:2]
+    rank = np.empty(n_modes, np.int64)
+    rank[np.argsort(freq_hz, kind="stable")] = np.arange(n_modes)
+    F = np.fft.fft(tip_shapes.reshape(n_modes, n_blades, -1), axis=1)
+    e = np.sum(np.abs(F) ** 2, axis=2)
+    k = np.arange(n_blades)
+    folded = np.zeros((n_modes, n_blades // 2 + 1))
+    np.add.at(folded, (slice(None), np.minimum(k, n_blades - k)), e)
+    return rank // n_blades, np.argmax(folded, axis=1).astype(np.int64)
+
+
 def localisation(model: ModalModel, family: int = 0) -> np.ndarray:
     """Localisation of each mode of a family: ``N * sum_b p_b^2`` (inverse participation ratio).
 
@@ -174,8 +197,8 @@ def localisation(model: ModalModel, family: int = 0) -> np.ndarray:
     moves equally (a travelling-wave combination), 1.5 a tuned standing wave
     (``cos^2`` over the blades), ``N`` a mode confined to one blade.
     """
-    sel = model.family == family
-    e = np.sum(model.tip_shapes[sel] ** 2, axis=(2, 3))
+    fam = model.family if model.family is not None else label_modes(model.freq_hz, model.tip_shapes)[0]
+    e = np.sum(model.tip_shapes[fam == family] ** 2, axis=(2, 3))
     p = e / np.sum(e, axis=1, keepdims=True)
     return model.n_blades * np.sum(p**2, axis=1)
 
@@ -336,6 +359,10 @@ def model_from_cartesian(freq_hz, tip_xyz, tip_shapes_xyz, force_xyz, force_shap
     tip_ref, tip_shapes = _to_polar(np.asarray(tip_xyz, float), np.asarray(tip_shapes_xyz, float))
     force_ref, force_shapes = _to_polar(np.asarray(force_xyz, float), np.asarray(force_shapes_xyz, float))
     n_blades, n_tip = tip_ref.shape[:2]
+    if family is None or nodal_diameter is None:
+        fam, nd = label_modes(freq, tip_shapes)
+        family = fam if family is None else family
+        nodal_diameter = nd if nodal_diameter is None else nodal_diameter
     meta = {
         "schema": SCHEMA, "schema_version": SCHEMA_VERSION, "n_blades": int(n_blades),
         "n_tip_nodes": int(n_tip), "nominal_node": int(nominal_node), "stagger_deg": float(stagger_deg),

@@ -7,15 +7,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BttsimError
-from .modal_model import ModalModel, localisation
+from .modal_model import ModalModel, label_modes, localisation
 
 __all__ = ["family_table", "plot_family_frequencies"]
 
 
 def _labels(model: ModalModel) -> tuple[np.ndarray, np.ndarray]:
-    fam = model.family if model.family is not None else np.arange(model.n_modes) // model.n_blades
-    nd = model.nodal_diameter if model.nodal_diameter is not None else np.full(model.n_modes, -1)
-    return fam, nd
+    if model.family is not None and model.nodal_diameter is not None:
+        return model.family, model.nodal_diameter
+    return label_modes(model.freq_hz, model.tip_shapes)
 
 
 def family_table(model: ModalModel) -> str:
@@ -32,7 +32,7 @@ def family_table(model: ModalModel) -> str:
         lines.append("blade alone (clamped root): " +
                      ", ".join(f"{f:.2f} Hz" for f in model.blade_alone_freq_hz))
     lines.append(f"damping: zeta {model.damping_ratio.min():.4g} .. {model.damping_ratio.max():.4g}")
-    n_nd = int(nd.max()) + 1 if nd.max() >= 0 else 0
+    n_nd = int(nd.max()) + 1
     fams = np.unique(fam)
     header = "  ND " + "".join(f"  family {f + 1:<2d} (Hz)      " for f in fams)
     lines += ["", header]
