@@ -140,7 +140,7 @@ class BladedDiskDesign:
     rim_length_m: float = 0.025
     n_blade_elements: int = 12
     n_disk_elements: int = 4
-    force_span_fraction: float = 1.0
+    force_span_fraction: float = 0.3787778121032074
     n_families: int = 5
     asymmetry: tuple[float, float] = (0.0, 0.0)
 
@@ -316,31 +316,64 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
     tip_xyz = te[None, :] + s[:, None] * chord[None, :]
     tip_map, tip_ref = _point_maps(tip_xyz, foot, tip_node_dofs, m)
 
-    # excitation nodes: leading and trailing edge at the force span station
+    # excitation nodes: leading and trailing edge of the section at the force span station,
+    # carried by the beam's own interpolation inside the element that holds the station
     r_f = d.rim_radius_m + d.force_span_fraction * d.span_m
-    e_f = int(np.clip(np.argmin(np.abs(r_blade - r_f)), 1, nb))
-    r_f = r_blade[e_f]
+    e_f = int(np.clip(np.searchsorted(r_blade, r_f, side="right") - 1, 0, nb - 1))
+    xi_e = (r_f - r_blade[e_f]) / (r_blade[e_f + 1] - r_blade[e_f])
     _, stg = _blade_section(d, r_f, 1.0, 1.0)
     xi = (r_f - d.rim_radius_m) / d.span_m
     c_f = d.root_chord_m + (d.tip_chord_m - d.root_chord_m) * xi
     foot_f = np.array([r_f, 0.0, z0])
     cd = _chord_dir(stg)
     force_xyz = np.vstack([foot_f + 0.5 * c_f * cd, foot_f - 0.5 * c_f * cd])
-    force_map, force_ref = _point_maps(force_xyz, foot_f, dofs(blade_nodes[e_f]), m)
+    _, stg_e = _blade_section(d, 0.5 * (r_blade[e_f] + r_blade[e_f + 1]), 1.0, 1.0)
+    axis_map = _beam_point_map(r_blade[e_f + 1] - r_blade[e_f], xi_e, _chord_dir(stg_e))
+    e_dofs = np.concatenate([dofs(blade_nodes[e_f]), dofs(blade_nodes[e_f + 1])])
+    force_map, force_ref = _point_maps(force_xyz, foot_f, e_dofs, m, axis_map)
 
     return SectorModel(K=K, M=M, ring_dofs=np.array(ring_dofs), ring_K=np.array(ring_K),
                        ring_M=np.array(ring_M), tip_map=tip_map, tip_ref=tip_ref,
                        force_map=force_map, force_ref=force_ref, blade_dofs=blade_dofs)
 
 
-def _point_maps(points: np.ndarray, foot: np.ndarray, node_dofs: np.ndarray, m: int):
-    """Maps from sector DOF to (radial, tangential, axial) displacement of rigid points."""
+def _beam_point_map(L: float, xi: float, y_hint: np.ndarray) -> np.ndarray:
+    """Element DOF (12, sector frame) -> 6 DOF of the beam axis at ``x = xi L``.
+
+    Cubic Hermite bending, linear axial and torsion: the element's own interpolation, so a
+    force there is the element's consistent load.
+    """
+    from .beam import rotation_matrix
+
+    R = rotation_matrix(np.array([1.0, 0.0, 0.0]), y_hint)
+    T = np.kron(np.eye(4), R)
+    N1, N2, N3, N4 = 1 - 3 * xi**2 + 2 * xi**3, L * (xi - 2 * xi**2 + xi**3), 3 * xi**2 - 2 * xi**3, L * (xi**3 - xi**2)
+    d1, d2, d3, d4 = (6 * xi**2 - 6 * xi) / L, 1 - 4 * xi + 3 * xi**2, (6 * xi - 6 * xi**2) / L, 3 * xi**2 - 2 * xi
+    Nl = np.zeros((6, 12))
+    Nl[0, [0, 6]] = [1 - xi, xi]
+    Nl[3, [3, 9]] = [1 - xi, xi]
+    Nl[1, [1, 5, 7, 11]] = [N1, N2, N3, N4]  # v with rot_z
+    Nl[2, [2, 4, 8, 10]] = [N1, -N2, N3, -N4]  # w with -rot_y
+    Nl[5, [1, 5, 7, 11]] = [d1, d2, d3, d4]  # rot_z = v'
+    Nl[4, [2, 4, 8, 10]] = [-d1, d2, -d3, d4]  # rot_y = -w'
+    back = np.kron(np.eye(2), R.T)
+    return back @ Nl @ T
+
+
+def _point_maps(points: np.ndarray, foot: np.ndarray, node_dofs: np.ndarray, m: int,
+                axis_map: np.ndarray | None = None):
+    """Maps from sector DOF to (radial, tangential, axial) displacement of rigid points.
+
+    ``axis_map`` (6 x len(node_dofs)) gives the foot's 6 DOF from ``node_dofs``; without it
+    ``node_dofs`` are the foot's own 6 DOF.
+    """
     n = points.shape[0]
     maps = np.zeros((n, 3, m))
     ref = np.zeros((n, 3))
+    A = np.eye(6) if axis_map is None else axis_map
     for i, p in enumerate(points):
         ang = np.arctan2(p[1], p[0])
-        local = _rz(ang).T @ rigid_offset_matrix(p - foot)  # sector xyz -> node (r, t, z)
+        local = _rz(ang).T @ rigid_offset_matrix(p - foot) @ A  # sector xyz -> node (r, t, z)
         maps[i][:, node_dofs] = local
         ref[i] = (np.hypot(p[0], p[1]), ang, p[2])
     return maps, ref

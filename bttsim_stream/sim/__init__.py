@@ -1,0 +1,1 @@
+"""Run-up simulation: speed profile, exact modal response, blade times of arrival and truth."""
