@@ -25,6 +25,7 @@ __all__ = ["RunInfo", "Truth", "RevolutionBatch", "RunUpSimulator", "load_scenar
            "collect"]
 
 TWO_PI = 2.0 * np.pi
+_BLOCK = 64  # envelope grid steps per integration block
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -217,12 +218,19 @@ class RunUpSimulator:
 
     # -- envelopes -------------------------------------------------------------------------
     def _envelopes_until(self, t_end: float) -> EnvelopeGrid:
+        # advance in whole blocks of the global grid, so that the arithmetic (and so every
+        # bit of the output) does not depend on how revolutions are chunked
         i_end = min(int(np.searchsorted(self.grid, t_end)) + 1, self.grid.size - 1)
-        if i_end > self._i_grid:
-            new = self.integrator.advance(self.grid[self._i_grid:i_end + 1])
-            self._i_grid = i_end
-        else:
-            new = None
+        parts = []
+        while self._i_grid < i_end:
+            stop = min((self._i_grid // _BLOCK + 1) * _BLOCK, self.grid.size - 1)
+            parts.append(self.integrator.advance(self.grid[self._i_grid:stop + 1]))
+            self._i_grid = stop
+        new = None
+        if parts:
+            new = EnvelopeGrid(t=np.concatenate([parts[0].t] + [q.t[1:] for q in parts[1:]]),
+                               G=np.concatenate([parts[0].G] + [q.G[1:] for q in parts[1:]]),
+                               dG=np.concatenate([parts[0].dG] + [q.dG[1:] for q in parts[1:]]))
         if self._tail is None:
             env = new
         elif new is None:

@@ -51,23 +51,26 @@ __all__ = [
 def _j_moments(u: np.ndarray, kmax: int) -> np.ndarray:
     """``J_k(u) = int_0^1 x^k exp(u x) dx`` for k = 0..kmax (last axis).
 
-    ``J_0 = expm1(u) / u`` is accurate to round-off for every ``u``; the higher moments
-    (weighted by powers of the tiny chirp term ``v`` in :func:`chirp_integral`) use the
-    forward recurrence ``J_k = (e^u - k J_k-1) / u``, or the power series for ``|u| < 1/4``.
+    Power series ``sum_n u^n / (n! (n + k + 1))`` where ``|u| < max(kmax, 1/4) + 2`` (the forward
+    recurrence would amplify round-off by ``prod k / |u|`` there); elsewhere ``J_0 =
+    expm1(u) / u`` and the forward recurrence ``J_k = (e^u - k J_k-1) / u``, stable for
+    ``|u| > k``.
     """
     u = np.asarray(u, complex)
     out = np.empty(u.shape + (kmax + 1,), complex)
-    small = np.abs(u) < 0.25
+    limit = max(kmax, 0.25) + 2.0
+    small = np.abs(u) < limit
     if np.any(small):
         us = u[small]
-        n_terms = 18  # 0.25**18 / 18! ~ 1e-27
-        k = np.arange(kmax + 1)
-        term = np.ones_like(us)
-        acc = np.zeros(us.shape + (kmax + 1,), complex)
-        for n in range(n_terms):
-            acc += term[..., None] / (n + k + 1.0)
-            term = term * us / (n + 1)
-        out[small] = acc
+        n_terms = 8
+        while limit**n_terms / factorial(n_terms) > 1e-18:
+            n_terms += 1
+        n = np.arange(n_terms)
+        pw = np.empty(us.shape + (n_terms,), complex)
+        pw[..., 0] = 1.0
+        for i in range(1, n_terms):
+            pw[..., i] = pw[..., i - 1] * us / i
+        out[small] = pw @ (1.0 / (n[:, None] + np.arange(kmax + 1)[None, :] + 1.0))
     big = ~small
     if np.any(big):
         ub = u[big]
@@ -191,6 +194,8 @@ class EnvelopeGrid:
     t: np.ndarray
     G: np.ndarray
     dG: np.ndarray
+    a_plus: np.ndarray | None = None
+    a_minus: np.ndarray | None = None
 
 
 class EnvelopeIntegrator:
@@ -255,7 +260,7 @@ class EnvelopeIntegrator:
         acc = np.concatenate([np.zeros_like(g[:1]), np.cumsum(g * np.exp(-L[1:]), axis=0)])
         return np.exp(L) * (a0[None] + acc)
 
-    def advance(self, t_grid: np.ndarray) -> EnvelopeGrid:
+    def advance(self, t_grid: np.ndarray, keep_modal: bool = False) -> EnvelopeGrid:
         """Integrate from the current time (``t_grid[0]``) over ``t_grid``; return envelopes.
 
         ``t_grid`` must come from :func:`build_grid` (no step straddles a speed knot).
@@ -287,7 +292,8 @@ class EnvelopeIntegrator:
         mu_m = self.lam[None] + 1j * self.eo[None] * om[:, None, None]
         A = ap - np.conj(am)
         dA = (mu_p * ap + self.c_plus[None]) - np.conj(mu_m * am + self.c_minus[None])
-        return EnvelopeGrid(t=t_grid, G=self._to_blades(A), dG=self._to_blades(dA))
+        return EnvelopeGrid(t=t_grid, G=self._to_blades(A), dG=self._to_blades(dA),
+                            a_plus=ap if keep_modal else None, a_minus=am if keep_modal else None)
 
     def _to_blades(self, A: np.ndarray) -> np.ndarray:
         """(n, n_act, n_exc) modal envelopes -> (n, n_exc, n_blades, r) blade envelopes."""
