@@ -634,7 +634,7 @@ class Toa:
         TOA method of the paper's Sec. 2.2: ``"HP"`` (default), ``"AD"`` or ``"PAD"``.
     grid_step_s : float
         Step of the integrator time grid used for the AD/PAD interpolation, s, default
-        2e-6; > 0.
+        1.2e-5; > 0.
     axial_interpolation : bool
         Default true: interpolate between the tip nodes at the probe's z. False: use the
         nearest node (reproduces the paper's Fig. 7).
@@ -642,7 +642,7 @@ class Toa:
 
     method: str = field(default="HP", metadata=_doc(
         'TOA method (paper Sec. 2.2): "HP", "AD" or "PAD"'))
-    grid_step_s: float = field(default=2e-6, metadata=_doc(
+    grid_step_s: float = field(default=1.2e-5, metadata=_doc(
         "integrator time grid step for the AD/PAD interpolation, s; > 0"))
     axial_interpolation: bool = field(default=True, metadata=_doc(
         "true: interpolate between tip nodes at the probe z; false: nearest node (Fig. 7)"))

@@ -201,7 +201,7 @@ class RunUpSimulator:
         self.grid = build_grid(self.speed, envelope_step_s)
         self.h_env = envelope_step_s
         self._i_grid = 0
-        self._tail: EnvelopeGrid | None = None
+        self._env: EnvelopeGrid | None = None
         total = int(np.floor((self.speed.angle(self.speed.duration_s) - self.theta_opr) / TWO_PI))
         self.n_revolutions = max(0, total if n_revolutions is None else min(total, n_revolutions))
         v = self.basis.nodes[:, p, :]  # (r, 3)
@@ -217,32 +217,27 @@ class RunUpSimulator:
             toa_method=scn.toa.method, duration_s=self.speed.duration_s, seed=seed, rig=scn.run.rig)
 
     # -- envelopes -------------------------------------------------------------------------
-    def _envelopes_until(self, t_end: float) -> EnvelopeGrid:
-        # advance in whole blocks of the global grid, so that the arithmetic (and so every
-        # bit of the output) does not depend on how revolutions are chunked
+    def _envelopes(self, t_start: float, t_end: float) -> EnvelopeGrid:
+        """Envelopes covering ``[t_start, t_end]``; earlier grid points are dropped.
+
+        The integration advances in whole blocks of the global grid, so that the arithmetic
+        (and so every bit of the output) does not depend on how revolutions are chunked.
+        """
         i_end = min(int(np.searchsorted(self.grid, t_end)) + 1, self.grid.size - 1)
-        parts = []
-        while self._i_grid < i_end:
+        parts = [] if self._env is None else [self._env]
+        while self._i_grid < i_end or not parts:
             stop = min((self._i_grid // _BLOCK + 1) * _BLOCK, self.grid.size - 1)
-            parts.append(self.integrator.advance(self.grid[self._i_grid:stop + 1]))
+            new = self.integrator.advance(self.grid[self._i_grid:stop + 1])
+            parts.append(new if not parts else EnvelopeGrid(t=new.t[1:], G=new.G[1:], dG=new.dG[1:]))
             self._i_grid = stop
-        new = None
-        if parts:
-            new = EnvelopeGrid(t=np.concatenate([parts[0].t] + [q.t[1:] for q in parts[1:]]),
-                               G=np.concatenate([parts[0].G] + [q.G[1:] for q in parts[1:]]),
-                               dG=np.concatenate([parts[0].dG] + [q.dG[1:] for q in parts[1:]]))
-        if self._tail is None:
-            env = new
-        elif new is None:
-            env = self._tail
-        else:
-            env = EnvelopeGrid(t=np.concatenate([self._tail.t, new.t[1:]]),
-                               G=np.concatenate([self._tail.G, new.G[1:]]),
-                               dG=np.concatenate([self._tail.dG, new.dG[1:]]))
-        keep = env.t >= env.t[-1] - (4 * self.h_env + 4e-3)
-        keep[-2:] = True
-        self._tail = EnvelopeGrid(t=env.t[keep], G=env.G[keep], dG=env.dG[keep])
-        return env
+            if stop == self.grid.size - 1:
+                break
+        env = parts[0] if len(parts) == 1 else EnvelopeGrid(
+            t=np.concatenate([q.t for q in parts]), G=np.concatenate([q.G for q in parts]),
+            dG=np.concatenate([q.dG for q in parts]))
+        first = max(0, int(np.searchsorted(env.t, t_start, side="right")) - 2)
+        self._env = EnvelopeGrid(t=env.t[first:], G=env.G[first:], dG=env.dG[first:])
+        return self._env
 
     # -- one chunk -------------------------------------------------------------------------
     def _chunk(self, revs: np.ndarray) -> RevolutionBatch:
@@ -254,7 +249,8 @@ class RunUpSimulator:
         t_r = self.speed.time_at_angle(phi_c).ravel()
         blade = np.broadcast_to(np.arange(nb)[None, :, None], phi_c.shape).ravel()
         phi_c = phi_c.ravel()
-        env = self._envelopes_until(float(t_r.max()) + 2 * self.h_env + 2e-3)
+        margin = 2 * self.h_env + 2e-3
+        env = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
         cs = prepare_crossings(env, blade, t_r, self.basis.nodes)
         theta_n = self.tip_ref[blade][:, :, 1]  # (n_c, nt)
         radius = self.tip_ref[blade][:, :, 0]
