@@ -54,6 +54,14 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
     print(f"wrote {png}")
 
 
+def _cmd_validate(args: argparse.Namespace) -> None:
+    import json
+
+    from .sim.validate import validate
+
+    print(json.dumps(validate(), indent=2))
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -72,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", help="model file (.npz)")
     s.add_argument("--png", help="frequency vs ND plot (default: MODEL.png)")
     s.set_defaults(func=_cmd_model_show)
+    p = sub.add_parser("validate", help="check the simulator against the paper (Sec. 3.2-3.3.1)")
+    p.set_defaults(func=_cmd_validate)
     return parser
 
 

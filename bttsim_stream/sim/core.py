@@ -11,6 +11,7 @@ only a short tail of the grid is kept between chunks.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Iterator
 
@@ -202,6 +203,9 @@ class RunUpSimulator:
         self.h_env = envelope_step_s
         self._i_grid = 0
         self._env: EnvelopeGrid | None = None
+        #: wall time spent integrating envelopes (per simulated second, scales with the
+        #: responding modes) and on the crossings (per TOA, independent of the modes)
+        self.timing = {"envelopes_s": 0.0, "crossings_s": 0.0}
         total = int(np.floor((self.speed.angle(self.speed.duration_s) - self.theta_opr) / TWO_PI))
         self.n_revolutions = max(0, total if n_revolutions is None else min(total, n_revolutions))
         v = self.basis.nodes[:, p, :]  # (r, 3)
@@ -250,7 +254,10 @@ class RunUpSimulator:
         blade = np.broadcast_to(np.arange(nb)[None, :, None], phi_c.shape).ravel()
         phi_c = phi_c.ravel()
         margin = 2 * self.h_env + 2e-3
+        t_clock = time.perf_counter()
         env = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
+        self.timing["envelopes_s"] += time.perf_counter() - t_clock
+        t_clock = time.perf_counter()
         cs = prepare_crossings(env, blade, t_r, self.basis.nodes)
         theta_n = self.tip_ref[blade][:, :, 1]  # (n_c, nt)
         radius = self.tip_ref[blade][:, :, 0]
@@ -293,7 +300,9 @@ class RunUpSimulator:
                       d_eqv_m=d_eqv.reshape(shape), d_tang_m=d_tang.reshape(shape),
                       d_z_m=d_z.reshape(shape), d_eq1_m=d_eq1, d_eqv_pkpk_m=pkpk,
                       omega_mean=omega_mean)
-        return self._acquire(revs, truth, float(residual), bracketed.reshape(shape))
+        out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape))
+        self.timing["crossings_s"] += time.perf_counter() - t_clock
+        return out
 
     def _stage_a(self, cs, cand, t_r, target_all, radius, z_ref, u_all, du_all):
         """Stage A for the candidate nodes: HP Newton, then AD/PAD on the grid if asked."""

@@ -48,39 +48,48 @@ __all__ = [
 
 
 
-def _j_moments(u: np.ndarray, kmax: int) -> np.ndarray:
+def _j_series(u: np.ndarray, kmax: int, radius: float) -> np.ndarray:
+    """Power series ``J_k(u) = sum_n u^n / (n! (n + k + 1))`` for ``|u| <= radius``."""
+    n_terms = 4
+    while radius**n_terms / factorial(n_terms) > 1e-18:
+        n_terms += 1
+    n = np.arange(n_terms)
+    pw = np.empty(u.shape + (n_terms,), complex)
+    pw[..., 0] = 1.0
+    for i in range(1, n_terms):
+        pw[..., i] = pw[..., i - 1] * u / i
+    return pw @ (1.0 / (n[:, None] + np.arange(kmax + 1)[None, :] + 1.0))
+
+
+def _j_moments(u: np.ndarray, kmax: int, vabs: np.ndarray | float = 0.0) -> np.ndarray:
     """``J_k(u) = int_0^1 x^k exp(u x) dx`` for k = 0..kmax (last axis).
 
-    Power series ``sum_n u^n / (n! (n + k + 1))`` where ``|u| < max(kmax, 1/4) + 2`` (the forward
-    recurrence would amplify round-off by ``prod k / |u|`` there); elsewhere ``J_0 =
-    expm1(u) / u`` and the forward recurrence ``J_k = (e^u - k J_k-1) / u``, stable for
-    ``|u| > k``.
+    ``J_0 = expm1(u) / u`` is exact to round-off. The forward recurrence
+    ``J_k = (e^u - k J_k-1) / u`` amplifies round-off by ``k! / |u|^k``; in
+    :func:`chirp_integral` ``J_2n`` is weighted by ``v^n / n!``, so the recurrence is kept
+    wherever ``|u| >= 1/4`` and ``|v| <= |u|^2 / 10`` (then ``(2n)! |v|^n / (n! |u|^2n) < 1``
+    for n <= 3 and the weighted error stays at round-off); elsewhere the power series.
     """
     u = np.asarray(u, complex)
     out = np.empty(u.shape + (kmax + 1,), complex)
-    limit = max(kmax, 0.25) + 2.0
-    small = np.abs(u) < limit
-    if np.any(small):
-        us = u[small]
-        n_terms = 8
-        while limit**n_terms / factorial(n_terms) > 1e-18:
-            n_terms += 1
-        n = np.arange(n_terms)
-        pw = np.empty(us.shape + (n_terms,), complex)
-        pw[..., 0] = 1.0
-        for i in range(1, n_terms):
-            pw[..., i] = pw[..., i - 1] * us / i
-        out[small] = pw @ (1.0 / (n[:, None] + np.arange(kmax + 1)[None, :] + 1.0))
-    big = ~small
-    if np.any(big):
-        ub = u[big]
-        em1 = np.expm1(ub)
+    with np.errstate(all="ignore"):
+        em1 = np.expm1(u)
         eu = em1 + 1.0
-        j = em1 / ub
-        out[big, 0] = j
+        j = em1 / u
+        out[..., 0] = j
         for k in range(1, kmax + 1):
-            j = (eu - k * j) / ub
-            out[big, k] = j
+            j = (eu - k * j) / u
+            out[..., k] = j
+    au2 = (u * u.conj()).real
+    series = (au2 < 0.0625) | (np.broadcast_to(vabs, u.shape) > 0.1 * au2)
+    if np.any(series):
+        us = u[series]
+        small = np.abs(us) < 0.25
+        vals = np.empty(us.shape + (kmax + 1,), complex)
+        vals[small] = _j_series(us[small], kmax, 0.25)
+        if np.any(~small):
+            vals[~small] = _j_series(us[~small], kmax, float(np.max(np.abs(us[~small]))))
+        out[series] = vals
     return out
 
 
@@ -92,7 +101,7 @@ def chirp_integral(u, v) -> np.ndarray:
     n_v = 1
     while vmax ** n_v / factorial(n_v) > 1e-18 and n_v < 12:
         n_v += 1
-    J = _j_moments(u, 2 * (n_v - 1))
+    J = _j_moments(u, 2 * (n_v - 1), np.abs(v))
     out = J[..., 0] * np.ones(np.broadcast(u, v).shape)
     vn = np.ones_like(out)
     for n in range(1, n_v):
