@@ -397,7 +397,8 @@ def _corrupt(where: str, msg, problem: str) -> BttsimError:
 
 
 def _header(h) -> MsgHeader:
-    return MsgHeader(run_id=h.run_id, seq=int(h.seq), revolution=int(h.revolution), t_s=float(h.t_s))
+    return MsgHeader(run_id=h.run_id, seq=int(h.seq), revolution=int(h.revolution),
+                     t_s=float(h.t_s))
 
 
 def _array(values, dtype=np.float64) -> np.ndarray:
@@ -444,7 +445,7 @@ def schema_name_for(message_type: str) -> str:
     BttsimError
         If the schema has no such message.
     """
-    short = message_type[len(_PACKAGE) + 1:] if message_type.startswith(_PACKAGE + ".") else message_type
+    short = message_type.removeprefix(_PACKAGE + ".")
     desc = _pb.DESCRIPTOR.message_types_by_name.get(short)
     if desc is None:
         raise BttsimError(f"unknown message type {message_type!r}")
@@ -951,7 +952,8 @@ def decode_message(key: str, payload: bytes):
 
     Returns
     -------
-    OprMsg, ToaBatchMsg, TruthBatchMsg, RunMetadataMsg, BladeFitsMsg, TravellingWaveMsg or ResonanceReportMsg
+    OprMsg, ToaBatchMsg, TruthBatchMsg, RunMetadataMsg, BladeFitsMsg, TravellingWaveMsg or
+    ResonanceReportMsg
 
     Raises
     ------

@@ -1,0 +1,443 @@
+"""MCAP recordings of the bus: write raw payloads, read them back (also from a cut file).
+
+File layout (see ``schemas/bus.md``):
+
+* one channel per key expression (topic = key, message encoding ``"protobuf"``);
+* one schema per message type (encoding ``"protobuf"``, name = full message name such as
+  ``"bttsim.v1.ToaBatch"``, data = the ``FileDescriptorSet`` of ``bttsim/v1/bttsim.proto``),
+  so any MCAP reader with protobuf support decodes the file without project code;
+* message ``log_time`` = simulated time in ns (``publish_time`` likewise unless given);
+* a metadata record ``bttsim.run`` (``run_id``, ``rig``, ``scenario_toml``,
+  ``software_version``, ...) written right after the file header, before any chunk;
+* zstd-compressed chunks of about ``chunk_size`` bytes, written straight to the file with
+  no user-space buffering: a process killed mid-run leaves a file whose complete chunks are
+  all readable (:func:`read_recording` reports ``truncated=True`` for it).
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from mcap.exceptions import EndOfFile
+from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from .. import __version__
+from ..errors import BttsimError
+from . import codec
+from . import keys as _keys
+
+__all__ = [
+    "MCAP_MAGIC",
+    "RUN_METADATA_NAME",
+    "DEFAULT_CHUNK_SIZE",
+    "RecordedMessage",
+    "Recording",
+    "McapRecorder",
+    "read_messages",
+    "read_recording",
+    "run_metadata_from_mcap",
+]
+
+log = logging.getLogger(__name__)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: Name of the MCAP metadata record that describes the run.
+RUN_METADATA_NAME = "bttsim.run"
+#: Target uncompressed chunk size, bytes: a killed recorder loses at most about this much.
+DEFAULT_CHUNK_SIZE = 1024 * 1024
+_ENCODING = "protobuf"
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+class RecordedMessage(NamedTuple):
+    """One message of a recording: the key, the raw protobuf payload and its log time (ns)."""
+
+    key: str
+    payload: bytes
+    log_time_ns: int
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Recording:
+    """Everything readable from an MCAP recording.
+
+    Attributes
+    ----------
+    path : str
+    messages : list of RecordedMessage
+        In file order.
+    metadata : dict
+        Metadata records, ``name -> {key: value}`` (a later record of the same name wins).
+    truncated : bool
+        True when the file ends before its footer (a killed recorder): ``messages`` holds
+        everything up to the last complete chunk.
+    schemas : dict
+        ``topic (key) -> schema name`` (full protobuf message name) of every channel seen.
+    """
+
+    path: str
+    messages: list
+    metadata: dict
+    truncated: bool
+    schemas: dict = field(default_factory=dict)
+
+    @property
+    def run_metadata(self) -> dict | None:
+        """The ``bttsim.run`` metadata record, or None."""
+        return self.metadata.get(RUN_METADATA_NAME)
+
+    def keys(self) -> list[str]:
+        """Keys (channel topics) in order of first appearance."""
+        return list(self.schemas)
+
+
+class _DirectFile:
+    """Write-through file for :class:`mcap.writer.Writer`: no user-space buffer, so every
+    chunk the writer finishes is in the OS before the next one starts."""
+
+    def __init__(self, raw: io.FileIO) -> None:
+        self._raw = raw
+        self._pos = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        done = 0
+        while done < len(view):
+            done += self._raw.write(view[done:])
+        self._pos += done
+        return done
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._raw.close()
+
+
+class McapRecorder:
+    """Record raw bus payloads to an MCAP file (context manager).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file, written directly (created or truncated).
+    chunk_size : int
+        Target uncompressed chunk size, bytes.
+    run_metadata : mapping, optional
+        Written at once as the ``bttsim.run`` metadata record (see
+        :meth:`write_run_metadata`).
+
+    Examples
+    --------
+    >>> with McapRecorder("run.mcap") as rec:                      # doctest: +SKIP
+    ...     rec.write_run_metadata(run_id, rig, scenario_toml, version)
+    ...     for key, payload, t_ns in encode_revolutions(batch, run_id, rig, seqs):
+    ...         rec.write(key, payload, t_ns)
+    """
+
+    def __init__(self, path, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                 run_metadata: Mapping[str, str] | None = None) -> None:
+        self.path = str(path)
+        try:
+            raw = io.FileIO(self.path, "w")
+        except OSError as exc:
+            raise BttsimError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+        self._file = _DirectFile(raw)
+        self._writer = Writer(self._file, chunk_size=int(chunk_size),
+                              compression=CompressionType.ZSTD)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._closed = False
+        self.n_messages = 0
+        self._guard(self._writer.start, profile="", library=f"bttsim_stream {__version__}")
+        if run_metadata is not None:
+            self.write_metadata(RUN_METADATA_NAME, run_metadata)
+
+    # -- context manager -------------------------------------------------------------------
+    def __enter__(self) -> "McapRecorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _guard(self, fn, *args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except OSError as exc:
+            raise BttsimError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+
+    # -- writing ---------------------------------------------------------------------------
+    def write_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write an MCAP metadata record (string to string map) now."""
+        self._check_open()
+        self._guard(self._writer.add_metadata, name, {str(k): str(v) for k, v in data.items()})
+
+    def write_run_metadata(self, run_id: str, rig: str, scenario_toml: str,
+                           software_version: str = __version__, **extra: str) -> None:
+        """Write the ``bttsim.run`` metadata record (call it first, right after opening).
+
+        Parameters
+        ----------
+        run_id, rig, scenario_toml, software_version : str
+        **extra : str
+            More string entries (e.g. ``has_truth="true"``).
+        """
+        data = {"run_id": run_id, "rig": _keys.validate_rig(rig), "scenario_toml": scenario_toml,
+                "software_version": software_version}
+        data.update(extra)
+        self.write_metadata(RUN_METADATA_NAME, data)
+
+    def _channel(self, key: str, message_type: str | None) -> int:
+        channel_id = self._channels.get(key)
+        if channel_id is None:
+            name = codec.schema_name_for(message_type or _keys.message_type_for_key(key))
+            schema_id = self._schemas.get(name)
+            if schema_id is None:
+                schema_id = self._writer.register_schema(name=name, encoding=_ENCODING,
+                                                         data=codec.file_descriptor_set())
+                self._schemas[name] = schema_id
+            channel_id = self._writer.register_channel(topic=key, message_encoding=_ENCODING,
+                                                       schema_id=schema_id)
+            self._channels[key] = channel_id
+        return channel_id
+
+    def write(self, key: str, payload: bytes, log_time_ns: int, publish_time_ns: int | None = None,
+              *, sequence: int = 0, message_type: str | None = None) -> None:
+        """Append one raw payload (not decoded) on the channel of ``key``.
+
+        Parameters
+        ----------
+        key : str
+            Concrete bus key; its message type comes from
+            :func:`~bttsim_stream.io.keys.message_type_for_key` unless ``message_type`` is given.
+        payload : bytes
+        log_time_ns : int
+            Simulated time of the message, ns (>= 0).
+        publish_time_ns : int, optional
+            Defaults to ``log_time_ns``.
+        sequence : int
+            MCAP message sequence field (optional).
+        message_type : str, optional
+            Full protobuf message name, for keys outside the standard table.
+        """
+        self._check_open()
+        log_time = int(log_time_ns)
+        publish = log_time if publish_time_ns is None else int(publish_time_ns)
+        if log_time < 0 or publish < 0:
+            raise ValueError(f"{key}: MCAP times must be >= 0, got {log_time}, {publish}")
+        channel_id = self._channel(key, message_type)
+        self._guard(self._writer.add_message, channel_id=channel_id, log_time=log_time,
+                    data=bytes(payload), publish_time=publish, sequence=int(sequence))
+        self.n_messages += 1
+
+    def write_all(self, messages: Iterable) -> None:
+        """Write ``(key, payload, log_time_ns)`` triples (e.g. from ``encode_revolutions``)."""
+        for key, payload, t_ns in messages:
+            self.write(key, payload, t_ns)
+
+    def flush(self) -> None:
+        """Finish the chunk in progress (if it holds messages) and hand it to the OS."""
+        self._check_open()
+        flush = getattr(self._writer, "flush", None)  # mcap >= 1.6
+        if flush is not None:
+            self._guard(flush)
+
+    def close(self) -> None:
+        """Write the last chunk, the summary and the footer, and close the file (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._guard(self._writer.finish)
+        finally:
+            self._file.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError(f"{self.path}: recorder is closed")
+
+
+# ------------------------------------------------------------------------------------------
+# Reading
+# ------------------------------------------------------------------------------------------
+
+
+class _StrictFile:
+    """Reads that never come back short: a read past the end raises ``EndOfFile`` at once
+    (the stock stream reader would return short data and fail later, obscurely)."""
+
+    def __init__(self, f, size: int, pos: int) -> None:
+        self._f = f
+        self._size = size
+        self.pos = pos
+
+    def read(self, n: int) -> bytes:
+        if n > self._size - self.pos:
+            raise EndOfFile()
+        data = self._f.read(n)
+        if len(data) < n:
+            raise EndOfFile()
+        self.pos += n
+        return data
+
+
+class _Scan:
+    """State of one pass over a file."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.truncated = False
+        self.metadata: dict[str, dict[str, str]] = {}
+
+    def corrupt(self, what: str) -> BttsimError:
+        return BttsimError(f"{self.path}: corrupt MCAP ({what})")
+
+
+def _records(scan: _Scan, decode_chunks: bool = True) -> Iterator:
+    """Records of the file in order (chunks broken up); sets ``scan.truncated`` at a cut."""
+    path = scan.path
+    try:
+        f = open(path, "rb")
+    except OSError as exc:
+        raise BttsimError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    with f:
+        size = os.fstat(f.fileno()).st_size
+        magic = f.read(len(MCAP_MAGIC))
+        if magic != MCAP_MAGIC:
+            if magic and MCAP_MAGIC.startswith(magic):
+                scan.truncated = True
+                return
+            raise BttsimError(f"{path}: not an MCAP file")
+        strict = _StrictFile(f, size, len(MCAP_MAGIC))
+        it = iter(StreamReader(strict, skip_magic=True, emit_chunks=True).records)
+        first = True
+        while True:
+            start = strict.pos
+            try:
+                rec = next(it)
+            except StopIteration:
+                return
+            except EndOfFile:
+                scan.truncated = True
+                return
+            except Exception as exc:  # any parse failure of a complete record
+                raise scan.corrupt(f"record at byte {start}: {_one_line(exc)}") from None
+            if first and not isinstance(rec, Header):
+                raise scan.corrupt("the first record is not a header")
+            first = False
+            if isinstance(rec, Chunk):
+                if not decode_chunks:
+                    continue
+                try:
+                    inner = breakup_chunk(rec, validate_crc=True)
+                except Exception as exc:
+                    raise scan.corrupt(f"chunk at byte {start}: {_one_line(exc)}") from None
+                yield from inner
+            else:
+                if isinstance(rec, Metadata):
+                    scan.metadata[rec.name] = dict(rec.metadata)
+                yield rec
+
+
+def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[RecordedMessage]:
+    exprs = None if keys is None else [keys] if isinstance(keys, str) else list(keys)
+    schema_names: dict[int, str] = {}
+    channels: dict[int, tuple[str, bool]] = {}  # id -> (topic, wanted)
+    for rec in _records(scan):
+        if isinstance(rec, Message):
+            ch = channels.get(rec.channel_id)
+            if ch is None:
+                raise scan.corrupt(f"message on unknown channel {rec.channel_id}")
+            if ch[1]:
+                yield RecordedMessage(ch[0], rec.data, rec.log_time)
+        elif isinstance(rec, Schema):
+            schema_names[rec.id] = rec.name
+        elif isinstance(rec, Channel):
+            if rec.schema_id != 0 and rec.schema_id not in schema_names:
+                raise scan.corrupt(f"channel {rec.topic!r} refers to unknown schema "
+                                   f"{rec.schema_id}")
+            wanted = exprs is None or any(_keys.key_matches(e, rec.topic) for e in exprs)
+            channels[rec.id] = (rec.topic, wanted)
+            schemas_out.setdefault(rec.topic, schema_names.get(rec.schema_id, ""))
+
+
+def read_messages(path, keys=None) -> Iterator[RecordedMessage]:
+    """Iterate over the messages of a recording in file order.
+
+    Parameters
+    ----------
+    path : str or Path
+    keys : str or iterable of str, optional
+        Key expressions to keep (``*`` one chunk, ``**`` any number); default all.
+
+    Yields
+    ------
+    RecordedMessage
+        ``(key, payload, log_time_ns)``.
+
+    Raises
+    ------
+    BttsimError
+        ``"FILE: not an MCAP file"``, ``"FILE: corrupt MCAP (...)"`` or unreadable file. A
+        truncated file is not an error: iteration stops after its last complete chunk and a
+        warning is logged.
+    """
+    scan = _Scan(str(path))
+    yield from _messages(scan, keys, {})
+    if scan.truncated:
+        log.warning("%s: truncated MCAP file (read up to its last complete chunk)", scan.path)
+
+
+def read_recording(path, keys=None) -> Recording:
+    """Read a whole recording: messages, metadata, channel schemas and whether it was cut.
+
+    Parameters
+    ----------
+    path : str or Path
+    keys : str or iterable of str, optional
+        Key expressions of the messages to keep (all channels are still listed).
+
+    Raises
+    ------
+    BttsimError
+        As :func:`read_messages`.
+    """
+    scan = _Scan(str(path))
+    schemas: dict[str, str] = {}
+    messages = list(_messages(scan, keys, schemas))
+    return Recording(path=scan.path, messages=messages, metadata=dict(scan.metadata),
+                     truncated=scan.truncated, schemas=schemas)
+
+
+def run_metadata_from_mcap(path) -> dict | None:
+    """The ``bttsim.run`` metadata record of a recording (None if absent).
+
+    Chunks are skipped without decompression. A truncated file is read up to its cut.
+
+    Raises
+    ------
+    BttsimError
+        Not an MCAP file, corrupt, or unreadable.
+    """
+    scan = _Scan(str(path))
+    for _ in _records(scan, decode_chunks=False):
+        pass
+    return scan.metadata.get(RUN_METADATA_NAME)

@@ -1,0 +1,53 @@
+"""Shared fixtures of the I/O tests: synthetic revolution batches and encoded message streams."""
+
+import numpy as np
+
+from bttsim_stream.io import codec
+from bttsim_stream.sim.core import RevolutionBatch, RunInfo, Truth
+
+NR, NB, NP = 3, 29, 5
+TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
+
+
+def make_batch(seed=0, ticks=False, rev0=0, nr=NR, nb=NB, npr=NP) -> RevolutionBatch:
+    """A random but seeded batch with the simulator's shapes (values need not be physical)."""
+    rng = np.random.default_rng(seed)
+    shape = (nr, nb, npr)
+    opr = 0.05 * np.arange(rev0, rev0 + nr) + 1e-4 * rng.random(nr)
+    toa = opr[:, None, None] + 0.05 * rng.random(shape)
+    truth = Truth(opr_s=opr + 1e-7 * rng.standard_normal(nr),
+                  **{name: rng.standard_normal(shape) for name in TRUTH_2D},
+                  d_eqv_pkpk_m=rng.random((nr, nb)) * 1e-3, omega_mean=100 + rng.random(nr))
+    opr_ticks = toa_ticks = None
+    if ticks:
+        clock = 80e6
+        opr_ticks = np.floor(opr * clock).astype(np.int64)
+        toa_ticks = np.floor(toa * clock).astype(np.int64)
+        opr, toa = opr_ticks / clock, toa_ticks / clock
+    return RevolutionBatch(revolution=np.arange(rev0, rev0 + nr, dtype=np.int64), opr_s=opr,
+                           toa_s=toa, opr_ticks=opr_ticks, toa_ticks=toa_ticks, truth=truth,
+                           residual_s=0.0, bracketed=np.ones(shape, bool))
+
+
+def make_info(**changes) -> RunInfo:
+    base = dict(n_blades=NB, n_probes=NP, n_revolutions=5000,
+                probe_angles_rad=np.deg2rad([5, 15.15, 23.82, 220, 301.5]), probe_axial_m=12.26e-3,
+                tip_radius_m=0.19, opr_angle_rad=0.1, clock_hz=80e6, stagger_deg=41.5,
+                engine_orders=(8,), nodal_diameters=(1,), toa_method="PAD", duration_s=130.0,
+                seed=12345, rig="rig1")
+    base.update(changes)
+    return RunInfo(**base)
+
+
+RUN_META = {"run_id": "run-a", "rig": "rig1", "scenario_toml": "[run]\nrig = \"rig1\"\n",
+            "software_version": "0.1.0"}
+
+
+def recorded_messages(n_batches=4, ticks=False):
+    seqs = {}
+    meta = codec.encode_run_metadata(make_info(), "run-a", RUN_META["scenario_toml"], "0.1.0", True)
+    out = [("bttsim/rig1/meta", meta, 0)]
+    for k in range(n_batches):
+        out += codec.encode_revolutions(make_batch(seed=k, ticks=ticks, rev0=3 * k), "run-a", "rig1",
+                                        seqs)
+    return [tuple(m) for m in out]

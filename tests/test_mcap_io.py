@@ -1,0 +1,289 @@
+"""MCAP recordings: exact round trip, decoding with no project code, cut and corrupt files."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.data_stream import ReadDataStream
+from mcap.reader import make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import breakup_chunk
+
+from bttsim_stream.errors import BttsimError
+from bttsim_stream.io import codec, mcap_io
+from bttsim_stream.io.mcap_io import McapRecorder, read_messages, read_recording, run_metadata_from_mcap
+
+from _io_helpers import NB, NP, RUN_META, make_batch, recorded_messages
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _record(path, messages, chunk_size=mcap_io.DEFAULT_CHUNK_SIZE):
+    with McapRecorder(path, chunk_size=chunk_size) as rec:
+        rec.write_run_metadata(**RUN_META)
+        rec.write_all(messages)
+    return path
+
+
+@pytest.fixture(scope="module")
+def messages():
+    return recorded_messages()
+
+
+@pytest.fixture(scope="module")
+def recording(messages, tmp_path_factory):
+    return _record(tmp_path_factory.mktemp("rec") / "run.mcap", messages)
+
+
+@pytest.fixture(scope="module")
+def chunked(messages, tmp_path_factory):
+    """A recording with many small chunks, and the number of messages at the end of each."""
+    path = _record(tmp_path_factory.mktemp("rec") / "chunked.mcap", messages, chunk_size=4000)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 5
+    return path, chunks
+
+
+def test_round_trip_is_exact(recording, messages):
+    rec = read_recording(recording)
+    assert not rec.truncated
+    assert [tuple(m) for m in rec.messages] == messages
+    assert rec.run_metadata == RUN_META
+    assert rec.schemas["bttsim/rig1/toa/4"] == "bttsim.v1.ToaBatch"
+    assert rec.schemas["bttsim/rig1/meta"] == "bttsim.v1.RunMetadata"
+    assert rec.keys()[0] == "bttsim/rig1/meta"
+    assert [tuple(m) for m in read_messages(recording)] == messages
+    assert run_metadata_from_mcap(recording) == RUN_META
+
+
+def test_key_filter(recording, messages):
+    got = list(read_messages(recording, keys=["bttsim/rig1/opr", "bttsim/rig1/toa/*"]))
+    assert [tuple(m) for m in got] == [m for m in messages if "/opr" in m[0] or "/toa/" in m[0]]
+
+
+def test_decoded_recording_matches_the_batch(recording):
+    batch = make_batch(seed=0)
+    toa = [codec.decode_toa_batch(p, k) for k, p, _ in read_messages(recording, "bttsim/rig1/toa/2")]
+    np.testing.assert_array_equal(np.stack([m.toa_s for m in toa[:3]]), batch.toa_s[:, :, 2])
+    meta = [codec.decode_run_metadata(p, k) for k, p, _ in read_messages(recording, "bttsim/*/meta")]
+    assert len(meta) == 1 and meta[0].n_blades == NB
+
+
+def test_file_layout(recording):
+    with open(recording, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        records = list(reader.iter_metadata())
+    assert {c.topic for c in summary.channels.values()} >= {"bttsim/rig1/opr", "bttsim/rig1/truth"}
+    assert all(c.message_encoding == "protobuf" for c in summary.channels.values())
+    assert all(s.encoding == "protobuf" and s.data == codec.file_descriptor_set()
+               for s in summary.schemas.values())
+    assert len(summary.schemas) == 4  # RunMetadata, Opr, ToaBatch, TruthBatch: one per type
+    assert all(c.compression == "zstd" for c in summary.chunk_indexes)
+    assert [m.name for m in records] == ["bttsim.run"]
+    # the run metadata record comes before the first chunk
+    assert records and min(c.chunk_start_offset for c in summary.chunk_indexes) > \
+        summary.metadata_indexes[0].offset
+
+
+DECODE_WITHOUT_PROJECT = textwrap.dedent("""
+    import json, sys
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    out = []
+    with open(sys.argv[1], "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, proto in reader.iter_decoded_messages():
+            out.append({"topic": channel.topic, "type": schema.name, "log_time": message.log_time,
+                        "seq": proto.header.seq, "revolution": proto.header.revolution,
+                        "toa_s": list(proto.toa_s) if schema.name == "bttsim.v1.ToaBatch" else None,
+                        "opr_s": proto.opr_s if schema.name == "bttsim.v1.Opr" else None,
+                        "n_probes": proto.n_probes if schema.name == "bttsim.v1.RunMetadata" else None})
+    assert not any(m.startswith("bttsim_stream") for m in sys.modules), "project code imported"
+    print(json.dumps(out))
+""")
+
+
+def test_recording_decodes_without_project_code(recording, tmp_path):
+    script = tmp_path / "decode.py"
+    script.write_text(DECODE_WITHOUT_PROJECT)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run([sys.executable, "-I", str(script), str(recording)], capture_output=True,
+                          text=True, cwd=tmp_path, env=env, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    batch = make_batch(seed=0)
+    assert out[0]["type"] == "bttsim.v1.RunMetadata" and out[0]["n_probes"] == NP
+    assert out[1]["topic"] == "bttsim/rig1/opr" and out[1]["opr_s"] == batch.opr_s[0]
+    toa2 = [m for m in out if m["topic"] == "bttsim/rig1/toa/2"]
+    assert [m["seq"] for m in toa2] == list(range(12))
+    assert toa2[1]["toa_s"] == batch.toa_s[1, :, 2].tolist()
+    assert toa2[1]["log_time"] == int(round(batch.toa_s[1, :, 2].max() * 1e9))
+
+
+def _cut(src: Path, dst: Path, n: int) -> Path:
+    dst.write_bytes(src.read_bytes()[:n])
+    return dst
+
+
+def _messages_per_chunk(path, chunks):
+    """Message count of each chunk, read with the mcap library alone."""
+    counts = []
+    with open(path, "rb") as f:
+        for c in chunks:
+            f.seek(c.chunk_start_offset + 9)  # opcode (1) + record length (8)
+            chunk = Chunk.read(ReadDataStream(f))
+            counts.append(sum(isinstance(r, Message) for r in breakup_chunk(chunk)))
+    return counts
+
+
+def test_truncated_files_yield_their_complete_chunks(chunked, messages, tmp_path):
+    path, chunks = chunked
+    counts = _messages_per_chunk(path, chunks)
+    assert sum(counts) == len(messages)
+    for k, c in enumerate(chunks[:4]):
+        end = c.chunk_start_offset + c.chunk_length
+        before = sum(counts[:k])
+        cases = {"mid-chunk": (c.chunk_start_offset + c.chunk_length // 2, before),
+                 "after-chunk": (end, before + counts[k]),
+                 "in-message-index": (end + 3, before + counts[k])}
+        for name, (n, expected) in cases.items():
+            rec = read_recording(_cut(path, tmp_path / "cut.mcap", n))
+            assert rec.truncated, (k, name)
+            assert len(rec.messages) == expected, (k, name)
+            assert [tuple(m) for m in rec.messages] == messages[:expected]
+            assert rec.run_metadata == RUN_META
+            assert run_metadata_from_mcap(tmp_path / "cut.mcap") == RUN_META
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.9, 0.999])
+def test_file_cut_anywhere_reads_a_prefix(chunked, messages, tmp_path, fraction):
+    path, _ = chunked
+    n = int(path.stat().st_size * fraction)
+    rec = read_recording(_cut(path, tmp_path / "cut.mcap", n))
+    assert rec.truncated and 0 < len(rec.messages) <= len(messages)
+    assert [tuple(m) for m in rec.messages] == messages[:len(rec.messages)]
+    assert [tuple(m) for m in read_messages(tmp_path / "cut.mcap")] == \
+        [tuple(m) for m in rec.messages]
+
+
+def test_file_cut_in_its_summary_keeps_every_message(chunked, messages, tmp_path):
+    path, _ = chunked
+    rec = read_recording(_cut(path, tmp_path / "cut.mcap", path.stat().st_size - 4))
+    assert rec.truncated and [tuple(m) for m in rec.messages] == messages
+
+
+def test_file_cut_before_any_chunk(chunked, tmp_path):
+    path, chunks = chunked
+    rec = read_recording(_cut(path, tmp_path / "cut.mcap", chunks[0].chunk_start_offset))
+    assert rec.truncated and rec.messages == [] and rec.run_metadata == RUN_META
+    rec = read_recording(_cut(path, tmp_path / "cut.mcap", 5))
+    assert rec.truncated and rec.messages == [] and rec.run_metadata is None
+    assert run_metadata_from_mcap(tmp_path / "cut.mcap") is None
+
+
+def _error(excinfo) -> str:
+    text = str(excinfo.value)
+    assert "\n" not in text
+    return text
+
+
+@pytest.mark.parametrize("content", [b"", b"hello world, not an mcap file\n" * 10,
+                                     bytes(range(256))], ids=["empty", "text", "binary"])
+def test_garbage_is_not_an_mcap_file(tmp_path, content):
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(content)
+    with pytest.raises(BttsimError) as excinfo:
+        read_recording(path)
+    assert _error(excinfo) == f"{path}: not an MCAP file"
+    with pytest.raises(BttsimError):
+        list(read_messages(path))
+    with pytest.raises(BttsimError):
+        run_metadata_from_mcap(path)
+
+
+def test_garbage_after_the_magic_is_corrupt(tmp_path):
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(mcap_io.MCAP_MAGIC + b"\x07" + bytes(200))
+    with pytest.raises(BttsimError, match=r"corrupt MCAP \(the first record is not a header\)"):
+        read_recording(path)
+
+
+def test_damaged_chunk_is_corrupt(chunked, tmp_path):
+    path, chunks = chunked
+    data = bytearray(path.read_bytes())
+    data[chunks[1].chunk_start_offset + chunks[1].chunk_length - 10] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(BttsimError) as excinfo:
+        read_recording(bad)
+    assert _error(excinfo).startswith(f"{bad}: corrupt MCAP (chunk at byte ")
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(BttsimError, match="cannot read"):
+        read_recording(tmp_path / "nope.mcap")
+    with pytest.raises(BttsimError, match="cannot write"):
+        McapRecorder(tmp_path / "no" / "dir" / "x.mcap")
+
+
+def test_flush_puts_messages_on_disk_while_recording(messages, tmp_path):
+    path = tmp_path / "live.mcap"
+    with McapRecorder(path, run_metadata=RUN_META) as rec:
+        rec.write_all(messages[:10])
+        assert read_recording(path).messages == []  # still in the open chunk
+        rec.flush()
+        live = read_recording(path)
+        assert live.truncated and [tuple(m) for m in live.messages] == messages[:10]
+        rec.write_all(messages[10:])
+    done = read_recording(path)
+    assert not done.truncated and [tuple(m) for m in done.messages] == messages
+
+
+def test_recorder_refuses_unknown_keys_and_negative_times(tmp_path):
+    with McapRecorder(tmp_path / "x.mcap") as rec:
+        with pytest.raises(BttsimError, match="not a bttsim key"):
+            rec.write("other/topic", b"", 0)
+        with pytest.raises(ValueError):
+            rec.write("bttsim/rig1/opr", b"", -1)
+        rec.write("other/topic", b"", 0, message_type="bttsim.v1.Opr")
+    assert read_recording(tmp_path / "x.mcap").schemas == {"other/topic": "bttsim.v1.Opr"}
+
+
+KILLED_WRITER = textwrap.dedent("""
+    import os, signal, sys
+    sys.path.insert(0, sys.argv[2])
+    sys.path.insert(0, os.path.join(sys.argv[2], "tests"))
+    from bttsim_stream.io.mcap_io import McapRecorder
+    from _io_helpers import RUN_META, recorded_messages
+    msgs = recorded_messages(8)
+    rec = McapRecorder(sys.argv[1], chunk_size=8000, run_metadata=RUN_META)
+    rec.write_all(msgs)
+    print(len(msgs), flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+""")
+
+
+def test_sigkill_loses_at_most_the_open_chunk(tmp_path):
+    path = tmp_path / "killed.mcap"
+    script = tmp_path / "kill.py"
+    script.write_text(KILLED_WRITER)
+    proc = subprocess.run([sys.executable, str(script), str(path), str(REPO)], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    n_written = int(proc.stdout)
+    rec = read_recording(path)
+    assert rec.truncated and rec.run_metadata == RUN_META
+    expected = recorded_messages(8)
+    assert [tuple(m) for m in rec.messages] == expected[:len(rec.messages)]
+    open_chunk = 8000 // min(len(m[1]) for m in expected) + 1
+    assert n_written - open_chunk <= len(rec.messages) <= n_written
