@@ -54,6 +54,74 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
     print(f"wrote {png}")
 
 
+def _scenario(path):
+    from . import scenario
+
+    return scenario.load_scenario(path) if path else scenario.Scenario()
+
+
+def _cmd_simulate(args: argparse.Namespace) -> None:
+    import time
+
+    from .acquisition import simulate_to_mcap
+
+    scn = _scenario(args.scenario)
+    t0 = time.perf_counter()
+
+    def progress(n, total):
+        if not args.quiet:
+            print(f"\rrevolution {n}/{total}", end="", file=sys.stderr, flush=True)
+
+    out = simulate_to_mcap(scn, args.out, include_truth=not args.no_truth, progress=progress)
+    if not args.quiet:
+        print(file=sys.stderr)
+    print(f"wrote {args.out}: {out['messages']} messages, {out['revolutions']} revolutions, "
+          f"run {out['run_id']}, {time.perf_counter() - t0:.1f} s")
+
+
+def _node_args(args: argparse.Namespace) -> list[str]:
+    out = ["-m", args.mode]
+    for e in args.connect:
+        out += ["-e", e]
+    for e in args.listen:
+        out += ["-l", e]
+    if args.config:
+        out += ["-c", args.config]
+    if args.multicast_scouting:
+        out.append("--multicast-scouting")
+    return out
+
+
+def _cmd_replay(args: argparse.Namespace) -> None:
+    from .nodes import replay_node
+    from .nodes.sim_node import parse_rate
+    from .transport import config_from_args
+
+    res = replay_node.main(config_from_args(args), args.mcap, rate=parse_rate(args.rate), wait_s=args.wait,
+                           allow_truncated=args.allow_truncated, duration_s=args.duration)
+    print(f"replayed {res['messages']} of {res['of']} messages")
+
+
+def _cmd_record(args: argparse.Namespace) -> None:
+    import json
+
+    from .nodes import recorder_node
+    from .transport import config_from_args
+
+    print(json.dumps(recorder_node.main(config_from_args(args), args.out, args.rig,
+                                        duration_s=args.duration, until_sim_ends=not args.keep_going)))
+
+
+def _cmd_sim_node(args: argparse.Namespace) -> None:
+    from .nodes import sim_node
+    from .transport import config_from_args
+
+    sim_node.main(config_from_args(args), _scenario(args.scenario), rate=sim_node.parse_rate(args.rate),
+                  lossy=args.lossy, truth=not args.no_truth, wait_for=args.wait_for,
+                  duration_s=args.duration, revolutions=args.revolutions, linger_s=args.linger,
+                  progress=args.progress)
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     import json
 
@@ -80,6 +148,45 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", help="model file (.npz)")
     s.add_argument("--png", help="frequency vs ND plot (default: MODEL.png)")
     s.set_defaults(func=_cmd_model_show)
+    from .transport import add_session_args
+
+    p = sub.add_parser("simulate", help="simulate a scenario straight to MCAP (no Zenoh)")
+    p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
+    p.add_argument("--out", required=True, help="output MCAP file")
+    p.add_argument("--no-truth", action="store_true", help="leave the truth channel out")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("sim-node", help="run the simulator node (publish a run-up on Zenoh)")
+    p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
+    p.add_argument("--rate", default="max", help="'max' (default), 'realtime', or a speed-up factor")
+    p.add_argument("--lossy", action="store_true", help="drop under congestion instead of blocking")
+    p.add_argument("--no-truth", action="store_true")
+    p.add_argument("--wait-for", type=int, default=0, metavar="N", help="wait for N other nodes")
+    p.add_argument("--duration", type=float)
+    p.add_argument("--revolutions", type=int)
+    p.add_argument("--linger", type=float, default=0.0)
+    p.add_argument("--progress", action="store_true")
+    add_session_args(p)
+    p.set_defaults(func=_cmd_sim_node)
+
+    p = sub.add_parser("record", help="record every bttsim/** sample to MCAP")
+    p.add_argument("--out", required=True)
+    p.add_argument("--rig", default="*")
+    p.add_argument("--duration", type=float)
+    p.add_argument("--keep-going", action="store_true", help="do not stop when the simulator ends")
+    add_session_args(p)
+    p.set_defaults(func=_cmd_record)
+
+    p = sub.add_parser("replay", help="republish a recording on Zenoh")
+    p.add_argument("mcap")
+    p.add_argument("--rate", default="max", help="'max' (default), 'realtime', or a speed-up factor")
+    p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for subscribers (5)")
+    p.add_argument("--allow-truncated", action="store_true")
+    p.add_argument("--duration", type=float)
+    add_session_args(p)
+    p.set_defaults(func=_cmd_replay)
+
     p = sub.add_parser("validate", help="check the simulator against the paper (Sec. 3.2-3.3.1)")
     p.set_defaults(func=_cmd_validate)
     return parser

@@ -61,11 +61,13 @@ def _one_line(exc: BaseException) -> str:
 
 
 class RecordedMessage(NamedTuple):
-    """One message of a recording: the key, the raw protobuf payload and its log time (ns)."""
+    """One message of a recording: the key, the raw protobuf payload, its log time (ns) and
+    the publisher's sequence number (the MCAP ``sequence`` field)."""
 
     key: str
     payload: bytes
     log_time_ns: int
+    sequence: int = 0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -367,7 +369,7 @@ def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[RecordedMessage]
             if ch is None:
                 raise scan.corrupt(f"message on unknown channel {rec.channel_id}")
             if ch[1]:
-                yield RecordedMessage(ch[0], rec.data, rec.log_time)
+                yield RecordedMessage(ch[0], rec.data, rec.log_time, rec.sequence)
         elif isinstance(rec, Schema):
             schema_names[rec.id] = rec.name
         elif isinstance(rec, Channel):

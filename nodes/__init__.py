@@ -1,0 +1,1 @@
+"""Runnable node programs (installed as ``bttsim_stream.nodes``)."""

@@ -1,0 +1,159 @@
+"""Recorder node: writes every ``bttsim/<rig>/**`` sample to an MCAP file, as received.
+
+Inputs: every key of the rig (OPR, TOA batches, truth, fits, travelling waves, resonance
+reports), and the ``bttsim/<rig>/meta`` queryable, whose answer is written once on the meta
+channel (log time 0) and as the ``bttsim.run`` metadata record. Output: ``OUT.mcap`` with
+zstd chunks, one channel per key, the protobuf schemas embedded, log time = simulated time
+(from the sample attachment; payloads are not decoded). Sequence gaps are counted per key
+and reported (log line, JSON on stdout, and a ``bttsim.recorder`` metadata record).
+
+Stops when the simulator's liveliness token (``alive/sim``) goes away after having been
+seen, after ``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every
+case. After SIGKILL the file reads back up to its last complete chunk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+import time
+
+import zenoh
+import zenoh.ext as zx
+
+from bttsim_stream.errors import BttsimError
+from bttsim_stream.io import codec, keys
+from bttsim_stream.io.mcap_io import McapRecorder
+from bttsim_stream.transport import (StopFlag, add_session_args, config_from_args, open_session,
+                                     unpack_attachment)
+
+log = logging.getLogger("bttsim.recorder")
+
+
+class _SeqStats:
+    """Per-key counts, first sequence number and gaps (missing sequence numbers)."""
+
+    def __init__(self) -> None:
+        self.count: dict[str, int] = {}
+        self.first: dict[str, int] = {}
+        self.next: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}
+        self.duplicates = 0
+
+    def accept(self, key: str, seq: int | None) -> bool:
+        self.count[key] = self.count.get(key, 0) + 1
+        if seq is None:
+            return True
+        if key not in self.next:
+            self.first[key] = seq
+        elif seq < self.next[key]:
+            self.duplicates += 1  # history replayed after a live sample: already written
+            self.count[key] -= 1
+            return False
+        elif seq > self.next[key]:
+            self.gaps[key] = self.gaps.get(key, 0) + seq - self.next[key]
+        self.next[key] = seq + 1
+        return True
+
+    def summary(self) -> dict:
+        return {"messages": sum(self.count.values()), "keys": len(self.count),
+                "gaps": sum(self.gaps.values()), "gaps_by_key": dict(self.gaps),
+                "duplicates_skipped": self.duplicates,
+                "late_start_keys": {k: v for k, v in self.first.items() if v > 0}}
+
+
+def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | None = None,
+         until_sim_ends: bool = True, queue: int = 1 << 20) -> dict:
+    """Record until stopped; returns the gap statistics."""
+    if rig != "*":
+        keys.validate_rig(rig)
+    stop = StopFlag(duration_s)
+    stats = _SeqStats()
+    meta_key = f"{keys.PREFIX}/{rig}/meta"
+    meta_done: set[str] = set()
+    sim_seen = threading.Event()
+    sim_gone = threading.Event()
+
+    def on_alive(sample) -> None:
+        if str(sample.key_expr).endswith("/alive/sim"):
+            if sample.kind == zenoh.SampleKind.PUT:
+                sim_seen.set()
+            elif sim_seen.is_set():
+                sim_gone.set()
+
+    with open_session(conf) as session, McapRecorder(out) as rec:
+        token = session.liveliness().declare_token(keys.alive_key(rig if rig != "*" else "any", "recorder"))
+        watch = session.liveliness().declare_subscriber(f"{keys.PREFIX}/{rig}/alive/*", on_alive, history=True)
+        sub = zx.declare_advanced_subscriber(
+            session, keys.all_key(rig), handler=zenoh.handlers.FifoChannel(queue),
+            history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
+            recovery=None, subscriber_detection=False, allowed_origin=None)
+        last_meta_query = 0.0
+        idle_since = None
+        while True:
+            now = time.monotonic()
+            if now - last_meta_query > 0.25 and not meta_done:
+                last_meta_query = now
+                for reply in session.get(meta_key, timeout=0.2):
+                    if reply.ok is None or str(reply.ok.key_expr) in meta_done:
+                        continue
+                    k, payload = str(reply.ok.key_expr), reply.ok.payload.to_bytes()
+                    m = codec.decode_run_metadata(payload, k)
+                    rec.write_run_metadata(m.run_id, m.rig, m.scenario_toml, m.software_version)
+                    rec.write(k, payload, 0, sequence=0)
+                    meta_done.add(k)
+            sample = sub.try_recv()
+            if sample is None:
+                if stop:
+                    break
+                if until_sim_ends and sim_gone.is_set():
+                    idle_since = idle_since or now
+                    if now - idle_since > 0.5:  # drained
+                        break
+                time.sleep(0.001)
+                continue
+            idle_since = None
+            key = str(sample.key_expr)
+            att = unpack_attachment(sample.attachment)
+            seq, t_ns = (att if att is not None else (None, time.time_ns()))
+            if stats.accept(key, seq):
+                rec.write(key, sample.payload.to_bytes(), t_ns, sequence=seq or 0)
+        summary = stats.summary()
+        rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
+        sub.undeclare()
+        watch.undeclare()
+        token.undeclare()
+    level = logging.WARNING if summary["gaps"] else logging.INFO
+    log.log(level, "recorded %d messages on %d keys to %s; %d sequence gaps", summary["messages"],
+            summary["keys"], out, summary["gaps"])
+    return summary
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bttsim-recorder", description=__doc__.splitlines()[0])
+    p.add_argument("--out", required=True, help="output MCAP file")
+    p.add_argument("--rig", default="*", help="rig to record (default: every rig)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--keep-going", action="store_true", help="do not stop when the simulator ends")
+    add_session_args(p)
+    return p
+
+
+def run(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    try:
+        summary = main(config_from_args(args), args.out, args.rig, duration_s=args.duration,
+                       until_sim_ends=not args.keep_going)
+    except BttsimError as exc:
+        print(f"bttsim: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run())
