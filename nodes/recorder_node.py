@@ -1,8 +1,8 @@
 """Recorder node: writes every ``bttsim/<rig>/**`` sample to an MCAP file, as received.
 
-Inputs: every key of the rig (OPR, TOA batches, truth, fits, travelling waves, resonance
-reports), and the ``bttsim/<rig>/meta`` queryable, whose answer is written once on the meta
-channel (log time 0) and as the ``bttsim.run`` metadata record. Output: ``OUT.mcap`` with
+Inputs: every key of the rig (run metadata, OPR, TOA batches, truth, fits, travelling waves,
+resonance reports); the run metadata sample is also written as the ``bttsim.run`` metadata
+record. Output: ``OUT.mcap`` with
 zstd chunks, one channel per key, the protobuf schemas embedded, log time = simulated time
 (from the sample attachment; payloads are not decoded). Sequence gaps are counted per key
 and reported (log line, JSON on stdout, and a ``bttsim.recorder`` metadata record).
@@ -72,7 +72,6 @@ def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | 
         keys.validate_rig(rig)
     stop = StopFlag(duration_s)
     stats = _SeqStats()
-    meta_key = f"{keys.PREFIX}/{rig}/meta"
     meta_done: set[str] = set()
     sim_seen = threading.Event()
     sim_gone = threading.Event()
@@ -85,27 +84,17 @@ def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | 
                 sim_gone.set()
 
     with open_session(conf) as session, McapRecorder(out) as rec:
-        token = session.liveliness().declare_token(keys.alive_key(rig if rig != "*" else "any", "recorder"))
-        watch = session.liveliness().declare_subscriber(f"{keys.PREFIX}/{rig}/alive/*", on_alive, history=True)
+        # subscriber first: a simulator that waits for our token then finds our subscription
         sub = zx.declare_advanced_subscriber(
             session, keys.all_key(rig), handler=zenoh.handlers.FifoChannel(queue),
             history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
             recovery=None, subscriber_detection=False, allowed_origin=None)
-        last_meta_query = 0.0
+        watch = session.liveliness().declare_subscriber(f"{keys.PREFIX}/{rig}/alive/*", on_alive, history=True)
+        token = session.liveliness().declare_token(keys.alive_key(rig if rig != "*" else "any", "recorder"))
         idle_since = None
         while True:
-            now = time.monotonic()
-            if now - last_meta_query > 0.25 and not meta_done:
-                last_meta_query = now
-                for reply in session.get(meta_key, timeout=0.2):
-                    if reply.ok is None or str(reply.ok.key_expr) in meta_done:
-                        continue
-                    k, payload = str(reply.ok.key_expr), reply.ok.payload.to_bytes()
-                    m = codec.decode_run_metadata(payload, k)
-                    rec.write_run_metadata(m.run_id, m.rig, m.scenario_toml, m.software_version)
-                    rec.write(k, payload, 0, sequence=0)
-                    meta_done.add(k)
             sample = sub.try_recv()
+            now = time.monotonic()
             if sample is None:
                 if stop:
                     break
@@ -119,8 +108,14 @@ def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | 
             key = str(sample.key_expr)
             att = unpack_attachment(sample.attachment)
             seq, t_ns = (att if att is not None else (None, time.time_ns()))
-            if stats.accept(key, seq):
-                rec.write(key, sample.payload.to_bytes(), t_ns, sequence=seq or 0)
+            if not stats.accept(key, seq):
+                continue
+            payload = sample.payload.to_bytes()
+            if key.endswith("/meta") and key not in meta_done:
+                m = codec.decode_run_metadata(payload, key)
+                rec.write_run_metadata(m.run_id, m.rig, m.scenario_toml, m.software_version)
+                meta_done.add(key)
+            rec.write(key, payload, t_ns, sequence=seq or 0)
         summary = stats.summary()
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
         sub.undeclare()

@@ -34,8 +34,8 @@ def main(conf: "zenoh.Config", path: str, *, rate: float | None = None, wait_s: 
         raise BttsimError(f"{path}: truncated MCAP (no footer; {len(rec.messages)} messages readable); "
                           "use --allow-truncated to replay what is there")
     metas = [m for m in rec.messages if m.key.endswith("/meta")]
-    data = [m for m in rec.messages if not m.key.endswith("/meta")]
-    if not data:
+    data = rec.messages
+    if not any(not m.key.endswith("/meta") for m in data):
         raise BttsimError(f"{path}: no messages to replay")
     stop = StopFlag(duration_s)
     sent = 0
@@ -46,7 +46,7 @@ def main(conf: "zenoh.Config", path: str, *, rate: float | None = None, wait_s: 
             m.key, lambda q, p=m.payload: q.reply(q.key_expr, p, attachment=pack_attachment(0, 0)))
             for m in metas]
         pubs = {}
-        for k in dict.fromkeys(m.key for m in data):
+        for k in dict.fromkeys(m.key for m in data):  # metadata first, then data, as live
             pubs[k] = zx.declare_advanced_publisher(
                 session, k, cache=zx.CacheConfig(max_samples=64, replies_config=None),
                 publisher_detection=True, sample_miss_detection=None,
@@ -54,7 +54,7 @@ def main(conf: "zenoh.Config", path: str, *, rate: float | None = None, wait_s: 
                 encoding=None, priority=None, express=None, allowed_destination=None)
         if wait_s > 0 and not wait_for_subscribers(session, list(pubs), wait_s, stop):
             log.warning("not every key has a subscriber after %.1f s; replaying anyway", wait_s)
-        t0_log = data[0].log_time_ns
+        t0_log = min(m.log_time_ns for m in data)
         t0_wall = time.monotonic()
         for m in data:
             if stop:

@@ -5,7 +5,7 @@ Keys (``schemas/bus.md``):
 * ``bttsim/<rig>/opr`` -- ``bttsim.v1.Opr``, one per revolution
 * ``bttsim/<rig>/toa/<probe>`` -- ``bttsim.v1.ToaBatch``, one per probe per revolution
 * ``bttsim/<rig>/truth`` -- ``bttsim.v1.TruthBatch``, one per revolution (``--no-truth`` drops it)
-* ``bttsim/<rig>/meta`` -- queryable answering ``bttsim.v1.RunMetadata``
+* ``bttsim/<rig>/meta`` -- ``bttsim.v1.RunMetadata``: published once first, and a queryable
 * ``bttsim/<rig>/alive/sim`` -- liveliness token while the node runs
 
 Publishers keep a cache for late joiners (zenoh-ext advanced publishers) and block rather
@@ -74,6 +74,10 @@ def main(conf: "zenoh.Config", scenario, *, rate: float | None = None, lossy: bo
         if wait_for:
             seen = wait_for_liveliness(session, keys.alive_all_key(rig), wait_for + 1, wait_timeout_s, stop)
             log.info("%d other node(s) alive on %s", seen - 1, rig)
+        # the metadata also goes out once as a sample (cached for late joiners), so that a
+        # recorder stores it in stream order; the queryable answers on demand
+        publisher(stream.meta_key).put(stream.meta_payload, attachment=pack_attachment(0, 0))
+        sent += 1
         t_wall0 = time.monotonic()
         for batch, msgs in stream.batches():
             if stop:

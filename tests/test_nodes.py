@@ -1,0 +1,197 @@
+"""Integration tests: real node processes talking over Zenoh on loopback."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+import zenoh.ext as zx
+
+from bttsim_stream.io import codec
+from bttsim_stream.io.mcap_io import read_recording
+from bttsim_stream.testing import free_port, virtual_acquisition
+from bttsim_stream.transport import make_config, unpack_attachment
+
+REPO = Path(__file__).resolve().parents[1]
+SHORT = "[speed]\nstart_rpm = 2500.0\nend_rpm = 2600.0\nduration_s = 2.0\n"
+
+
+def _start(*args, stdout=subprocess.PIPE):
+    return subprocess.Popen([sys.executable, "-m", *map(str, args)], cwd=REPO, stdout=stdout,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _stop(proc, sig=signal.SIGTERM, timeout=20):
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def _messages(path):
+    return sorted((m.key, m.sequence, m.payload, m.log_time_ns) for m in read_recording(path).messages)
+
+
+@pytest.fixture
+def scenario(tmp_path):
+    path = tmp_path / "short.toml"
+    path.write_text(SHORT)
+    return path
+
+
+@pytest.fixture
+def direct(scenario, tmp_path):
+    out = tmp_path / "direct.mcap"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "simulate", scenario, "--out", out, "-q"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+def test_sim_node_and_recorder_give_the_simulate_bytes_with_no_gaps(scenario, direct, tmp_path):
+    port = free_port()
+    rec_out = tmp_path / "live.mcap"
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", rec_out,
+                 "-l", f"tcp/127.0.0.1:{port}")
+    sim = _start("bttsim_stream.nodes.sim_node", scenario, "-e", f"tcp/127.0.0.1:{port}", "--wait-for", "1")
+    try:
+        assert sim.wait(timeout=120) == 0, sim.stderr.read()
+        out, err = rec.communicate(timeout=60)  # the recorder stops when the simulator is gone
+        assert rec.returncode == 0, err
+    finally:
+        _stop(sim), _stop(rec)
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["gaps"] == 0 and summary["messages"] == 85 * 7 + 1
+    assert _messages(rec_out) == _messages(direct)
+
+
+def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct, tmp_path):
+    # a plain subscriber listening first, in this process
+    port = free_port()
+    got = []
+    conf = make_config(listen=[f"tcp/127.0.0.1:{port}"])
+    with zenoh.open(conf) as session:
+        sub = session.declare_subscriber("bttsim/**", lambda s: got.append(
+            (str(s.key_expr), s.payload.to_bytes(), unpack_attachment(s.attachment))))
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct, "--rate", "max",
+                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True,
+                             timeout=120)
+        assert rep.returncode == 0, rep.stderr
+        time.sleep(0.5)
+        sub.undeclare()
+    file_msgs = read_recording(direct).messages
+    assert len(got) == len(file_msgs)
+    assert sorted((k, p, a[0], a[1]) for k, p, a in got) == \
+        sorted((m.key, m.payload, m.sequence, m.log_time_ns) for m in file_msgs)
+    # and a recorder fed by the replay writes the same messages as the file
+    port = free_port()
+    out = tmp_path / "replayed.mcap"
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
+    try:
+        time.sleep(1.0)
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct,
+                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert rep.returncode == 0, rep.stderr
+        rec.communicate(timeout=60)
+    finally:
+        _stop(rec)
+    assert _messages(out) == _messages(direct)
+
+
+def test_late_joiner_receives_recent_history(scenario):
+    with virtual_acquisition(scenario, revolutions=30, linger_s=20) as daq:
+        time.sleep(1.5)  # the run (30 revolutions at full speed) is over by now
+        got = []
+        with zenoh.open(daq.client_config()) as session:
+            sub = zx.declare_advanced_subscriber(
+                session, "bttsim/rig1/opr", handler=zenoh.handlers.FifoChannel(1000),
+                history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
+                recovery=None, subscriber_detection=False, allowed_origin=None)
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline and len(got) < 30:
+                s = sub.try_recv()
+                if s is None:
+                    time.sleep(0.01)
+                    continue
+                got.append(codec.decode_opr(s.payload.to_bytes()).header.revolution)
+        assert daq.metadata.n_blades == 29 and daq.metadata.n_probes == 5
+    assert got == list(range(30))  # all 30 OPR pulses from the publisher cache, in order
+
+
+def test_recorder_killed_mid_run_leaves_a_readable_file(tmp_path):
+    port = free_port()
+    out = tmp_path / "killed.mcap"
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
+    sim = _start("bttsim_stream.nodes.sim_node", "-e", f"tcp/127.0.0.1:{port}", "--wait-for", "1",
+                 "--rate", "20", stdout=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 3_000_000):
+            time.sleep(0.2)
+        os.kill(rec.pid, signal.SIGKILL)
+        rec.wait(timeout=10)
+    finally:
+        _stop(sim), _stop(rec)
+    recording = read_recording(out)
+    assert recording.truncated and len(recording.messages) > 1000
+    by_key = {}
+    for m in recording.messages:
+        by_key.setdefault(m.key, []).append(m.sequence)
+        codec.decode_message(m.key, m.payload)  # every message decodes
+    for key, seqs in by_key.items():
+        if not key.endswith("/meta"):
+            assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), key
+    # a truncated file given to replay is a one-line error, exit 2
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", out, "--wait", "0"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "truncated" in res.stderr
+
+
+@pytest.mark.parametrize("content", [b"not an mcap at all", b"\x89MCAP0\r\n" + b"\x00" * 40], ids=["garbage", "corrupt"])
+def test_corrupt_mcap_to_replay_is_one_line_exit_2(content, tmp_path):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(content)
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", bad, "--wait", "0"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and res.stderr.startswith("bttsim: error:") and res.stderr.count("\n") == 1
+
+
+def test_nodes_stop_cleanly_on_sigterm_and_sigint(tmp_path):
+    port = free_port()
+    out = tmp_path / "stopped.mcap"
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
+    sim = _start("bttsim_stream.nodes.sim_node", "-e", f"tcp/127.0.0.1:{port}", "--wait-for", "1",
+                 "--rate", "realtime", stdout=subprocess.DEVNULL)
+    try:
+        time.sleep(4)
+        t0 = time.monotonic()
+        assert _stop(sim, signal.SIGTERM) == 0
+        assert _stop(rec, signal.SIGINT) == 0
+        assert time.monotonic() - t0 < 10
+    finally:
+        _stop(sim), _stop(rec)
+    recording = read_recording(out)
+    assert not recording.truncated and len(recording.messages) > 50  # finalised, with a footer
+    assert recording.metadata["bttsim.run"]["rig"] == "rig1"
+
+
+def test_readme_subscriber_decodes_live_toas():
+    """The README's 15-line subscriber, run as a program against a real-time virtual DAQ."""
+    with virtual_acquisition(revolutions=200, rate="realtime") as daq:
+        ex = subprocess.run([sys.executable, str(REPO / "examples" / "subscribe_toas.py"), daq.endpoint, "40"],
+                            capture_output=True, text=True, timeout=60)
+    assert ex.returncode == 0, ex.stderr
+    rows = [line.split(maxsplit=2) for line in ex.stdout.strip().splitlines()]
+    assert len(rows) >= 5 * 5
+    assert {int(r[1]) for r in rows} == {0, 1, 2, 3, 4}  # every probe
+    assert int(rows[-1][0]) == 39
