@@ -108,8 +108,9 @@ def _cmd_record(args: argparse.Namespace) -> None:
     from .nodes import recorder_node
     from .transport import config_from_args
 
+    until = tuple(n for n in args.until.split(",") if n) or None
     print(json.dumps(recorder_node.main(config_from_args(args), args.out, args.rig,
-                                        duration_s=args.duration, until_sim_ends=not args.keep_going)))
+                                        duration_s=args.duration, until=until)))
 
 
 def _cmd_sim_node(args: argparse.Namespace) -> None:
@@ -174,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--rig", default="*")
     p.add_argument("--duration", type=float)
-    p.add_argument("--keep-going", action="store_true", help="do not stop when the simulator ends")
+    p.add_argument("--until", default="sim", help="nodes whose end ends the recording (comma-separated)")
     add_session_args(p)
     p.set_defaults(func=_cmd_record)
 

@@ -21,7 +21,7 @@ import zenoh
 
 from .errors import BttsimError
 
-__all__ = ["add_session_args", "config_from_args", "make_config", "pack_attachment",
+__all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
            "unpack_attachment", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
            "open_session"]
 
@@ -158,3 +158,48 @@ def wait_for_subscribers(session, key_exprs, timeout_s: float, stop: StopFlag) -
     finally:
         for p in probes:
             p.undeclare()
+
+
+class NodeWatch:
+    """Follows the liveliness tokens ``bttsim/<rig>/alive/<name>`` of the named nodes.
+
+    :meth:`ended` is true once every named node has been seen and has gone, or once the
+    first of them has gone and ``grace_s`` passed without the others ever appearing (a node
+    that was never started). Tokens also go on SIGKILL, so a crashed node ends a run too.
+    """
+
+    def __init__(self, session, rig: str, names=("sim",), grace_s: float = 5.0) -> None:
+        self.names = tuple(names)
+        self.seen: set[str] = set()
+        self.gone: set[str] = set()
+        self._first_gone: float | None = None
+        self._grace = grace_s
+        self._lock = threading.Lock()
+        self._sub = session.liveliness().declare_subscriber(
+            f"bttsim/{rig}/alive/*", self._on_sample, history=True)
+
+    def _on_sample(self, sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if name not in self.names:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.seen.add(name)
+                self.gone.discard(name)
+            elif name in self.seen:
+                self.gone.add(name)
+                if self._first_gone is None:
+                    self._first_gone = time.monotonic()
+
+    def ended(self) -> bool:
+        with self._lock:
+            if not self.gone:
+                return False
+            if self.gone >= set(self.names):
+                return True
+            if self.gone >= self.seen and time.monotonic() - self._first_gone > self._grace:
+                return True
+            return False
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()

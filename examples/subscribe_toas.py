@@ -8,8 +8,8 @@ conf.insert_json5("scouting/multicast/enabled", "false")
 conf.insert_json5("connect/endpoints", f'["{sys.argv[1]}"]')   # e.g. tcp/127.0.0.1:7447
 with zenoh.open(conf) as session:
     sub = session.declare_subscriber("bttsim/*/toa/*", handler=zenoh.handlers.FifoChannel(1024))
-    for sample in sub:                       # one ToaBatch per probe per revolution
+    for i, sample in enumerate(sub):         # one ToaBatch per probe per revolution
         msg = codec.decode_toa_batch(sample.payload.to_bytes(), str(sample.key_expr))
         print(msg.header.revolution, msg.probe, msg.toa_s[:3], flush=True)
-        if len(sys.argv) > 2 and msg.header.revolution + 1 >= int(sys.argv[2]):
-            break                            # optional: stop after N revolutions
+        if len(sys.argv) > 2 and i + 1 == int(sys.argv[2]):
+            break                            # optional: stop after N batches

@@ -7,8 +7,8 @@ zstd chunks, one channel per key, the protobuf schemas embedded, log time = simu
 (from the sample attachment; payloads are not decoded). Sequence gaps are counted per key
 and reported (log line, JSON on stdout, and a ``bttsim.recorder`` metadata record).
 
-Stops when the simulator's liveliness token (``alive/sim``) goes away after having been
-seen, after ``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every
+Stops when the liveliness tokens of the nodes named by ``--until`` (default: the simulator,
+``alive/sim``) have gone, after ``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every
 case. After SIGKILL the file reads back up to its last complete chunk.
 """
 
@@ -18,7 +18,6 @@ import argparse
 import json
 import logging
 import sys
-import threading
 import time
 
 import zenoh
@@ -27,8 +26,8 @@ import zenoh.ext as zx
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.io import codec, keys
 from bttsim_stream.io.mcap_io import McapRecorder
-from bttsim_stream.transport import (StopFlag, add_session_args, config_from_args, open_session,
-                                     unpack_attachment)
+from bttsim_stream.transport import (NodeWatch, StopFlag, add_session_args, config_from_args,
+                                     open_session, unpack_attachment)
 
 log = logging.getLogger("bttsim.recorder")
 
@@ -66,30 +65,24 @@ class _SeqStats:
 
 
 def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | None = None,
-         until_sim_ends: bool = True, queue: int = 1 << 20) -> dict:
-    """Record until stopped; returns the gap statistics."""
+         until: tuple[str, ...] | None = ("sim",), queue: int = 1 << 20) -> dict:
+    """Record until stopped; returns the gap statistics.
+
+    ``until``: node names (liveliness tokens) whose end ends the recording (None: only a
+    signal or ``duration_s`` stops it).
+    """
     if rig != "*":
         keys.validate_rig(rig)
     stop = StopFlag(duration_s)
     stats = _SeqStats()
     meta_done: set[str] = set()
-    sim_seen = threading.Event()
-    sim_gone = threading.Event()
-
-    def on_alive(sample) -> None:
-        if str(sample.key_expr).endswith("/alive/sim"):
-            if sample.kind == zenoh.SampleKind.PUT:
-                sim_seen.set()
-            elif sim_seen.is_set():
-                sim_gone.set()
-
     with open_session(conf) as session, McapRecorder(out) as rec:
         # subscriber first: a simulator that waits for our token then finds our subscription
         sub = zx.declare_advanced_subscriber(
             session, keys.all_key(rig), handler=zenoh.handlers.FifoChannel(queue),
             history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
             recovery=None, subscriber_detection=False, allowed_origin=None)
-        watch = session.liveliness().declare_subscriber(f"{keys.PREFIX}/{rig}/alive/*", on_alive, history=True)
+        watch = NodeWatch(session, rig, until) if until else None
         token = session.liveliness().declare_token(keys.alive_key(rig if rig != "*" else "any", "recorder"))
         idle_since = None
         while True:
@@ -98,7 +91,7 @@ def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | 
             if sample is None:
                 if stop:
                     break
-                if until_sim_ends and sim_gone.is_set():
+                if watch is not None and watch.ended():
                     idle_since = idle_since or now
                     if now - idle_since > 0.5:  # drained
                         break
@@ -119,7 +112,8 @@ def main(conf: "zenoh.Config", out: str, rig: str = "*", *, duration_s: float | 
         summary = stats.summary()
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
         sub.undeclare()
-        watch.undeclare()
+        if watch is not None:
+            watch.undeclare()
         token.undeclare()
     level = logging.WARNING if summary["gaps"] else logging.INFO
     log.log(level, "recorded %d messages on %d keys to %s; %d sequence gaps", summary["messages"],
@@ -132,7 +126,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output MCAP file")
     p.add_argument("--rig", default="*", help="rig to record (default: every rig)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
-    p.add_argument("--keep-going", action="store_true", help="do not stop when the simulator ends")
+    p.add_argument("--until", default="sim", help="comma-separated nodes whose end ends the recording "
+                   "('sim'; '' = only a signal or --duration)")
     add_session_args(p)
     return p
 
@@ -142,7 +137,7 @@ def run(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     try:
         summary = main(config_from_args(args), args.out, args.rig, duration_s=args.duration,
-                       until_sim_ends=not args.keep_going)
+                       until=tuple(n for n in args.until.split(",") if n) or None)
     except BttsimError as exc:
         print(f"bttsim: error: {exc}", file=sys.stderr)
         return 2

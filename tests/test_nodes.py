@@ -188,10 +188,11 @@ def test_nodes_stop_cleanly_on_sigterm_and_sigint(tmp_path):
 def test_readme_subscriber_decodes_live_toas():
     """The README's 15-line subscriber, run as a program against a real-time virtual DAQ."""
     with virtual_acquisition(revolutions=200, rate="realtime") as daq:
-        ex = subprocess.run([sys.executable, str(REPO / "examples" / "subscribe_toas.py"), daq.endpoint, "40"],
+        ex = subprocess.run([sys.executable, str(REPO / "examples" / "subscribe_toas.py"), daq.endpoint, "25"],
                             capture_output=True, text=True, timeout=60)
     assert ex.returncode == 0, ex.stderr
     rows = [line.split(maxsplit=2) for line in ex.stdout.strip().splitlines()]
-    assert len(rows) >= 5 * 5
+    assert len(rows) == 25
     assert {int(r[1]) for r in rows} == {0, 1, 2, 3, 4}  # every probe
-    assert int(rows[-1][0]) == 39
+    revs = [int(r[0]) for r in rows]
+    assert revs == sorted(revs) and revs[-1] - revs[0] <= 6
