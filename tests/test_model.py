@@ -172,3 +172,22 @@ def test_disk_asymmetry_splits_nd1_pair_like_the_paper(design):
     assert len(pair) == 2
     assert pair[1] - pair[0] == pytest.approx(0.05, abs=0.01)  # paper: 343.89 / 343.94 Hz
     np.testing.assert_allclose(pair, 343.9, rtol=1e-3)
+
+
+@pytest.mark.parametrize("k", [3, 7, 12])
+def test_force_point_inside_an_element_is_the_beam_interpolation(design, k):
+    """At a beam node the interpolated force point equals the node's own rigid map, and between
+    nodes it moves continuously (cubic Hermite): checked against the nodal maps."""
+    from bttsim_stream.model.bladed_disk import _point_maps, assemble_sector
+
+    d = replace(design, force_span_fraction=k / design.n_blade_elements)
+    sec = assemble_sector(d)
+    nd = design.n_disk_elements
+    node = nd + k  # blade node k (node nd is the root on the rim)
+    dofs = np.arange(6) + 6 * (node - 1)
+    r = design.rim_radius_m + k / design.n_blade_elements * design.span_m
+    foot = np.array([r, 0.0, design.z_mid_m])
+    xyz = np.stack([sec.force_ref[:, 0] * np.cos(sec.force_ref[:, 1]),
+                    sec.force_ref[:, 0] * np.sin(sec.force_ref[:, 1]), sec.force_ref[:, 2]], axis=1)
+    maps, _ = _point_maps(xyz, foot, dofs, sec.n_dof)
+    np.testing.assert_allclose(sec.force_map, maps, atol=1e-12)
