@@ -176,8 +176,7 @@ def test_disk_asymmetry_splits_nd1_pair_like_the_paper(design):
 
 @pytest.mark.parametrize("k", [3, 7, 12])
 def test_force_point_inside_an_element_is_the_beam_interpolation(design, k):
-    """At a beam node the interpolated force point equals the node's own rigid map, and between
-    nodes it moves continuously (cubic Hermite): checked against the nodal maps."""
+    """At a beam node the element-interpolated force point equals the node's own rigid map."""
     from bttsim_stream.model.bladed_disk import _point_maps, assemble_sector
 
     d = replace(design, force_span_fraction=k / design.n_blade_elements)
