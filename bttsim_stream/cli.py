@@ -123,6 +123,29 @@ def _cmd_sim_node(args: argparse.Namespace) -> None:
                   progress=args.progress)
 
 
+def _cmd_process(args: argparse.Namespace) -> None:
+    import json
+
+    from .offline import load_run
+    from .process.pipeline import ProcessOptions, process_arrays
+    from .process.resonance import summary_table
+
+    run = load_run(args.mcap)
+    if args.exact_expected and run.truth is None:
+        raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
+    opts = ProcessOptions(expected_times="exact" if args.exact_expected else "opr", prep=not args.no_prep,
+                          window=args.window)
+    result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth)
+    summary = result.summary
+    print(summary_table(summary))
+    if args.summary:
+        try:
+            Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+        except OSError as exc:
+            raise BttsimError(f"{args.summary}: cannot write ({exc.strerror or exc})") from None
+        print(f"wrote {args.summary}")
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     import json
 
@@ -187,6 +210,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float)
     add_session_args(p)
     p.set_defaults(func=_cmd_replay)
+
+    p = sub.add_parser("process", help="process a recording offline into the resonance report")
+    p.add_argument("mcap", help="recording (MCAP)")
+    p.add_argument("--summary", help="write the summary JSON here")
+    p.add_argument("--exact-expected", action="store_true",
+                   help="use the truth's exact expected arrival times (reproduces the paper)")
+    p.add_argument("--no-prep", action="store_true", help="no data preparation")
+    p.add_argument("--window", type=int, default=1, help="revolutions per sine fit (1)")
+    p.set_defaults(func=_cmd_process)
 
     p = sub.add_parser("validate", help="check the simulator against the paper (Sec. 3.2-3.3.1)")
     p.set_defaults(func=_cmd_validate)
