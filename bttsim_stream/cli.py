@@ -146,6 +146,19 @@ def _cmd_process(args: argparse.Namespace) -> None:
         print(f"wrote {args.summary}")
 
 
+def _cmd_run(args: argparse.Namespace) -> None:
+    from .orchestrate import run_all
+    from .process.resonance import summary_table
+
+    res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
+                  connect=args.connect, config=args.config, quiet=args.quiet)
+    if res["summary"] is not None:
+        print(summary_table(res["summary"]))
+    files = res["files"]
+    print(f"wrote {files['mcap']}, {files['rrd']}, {files['summary']} in {res['wall_s']:.1f} s"
+          + (" (interrupted)" if res["interrupted"] else ""))
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     import json
 
@@ -157,6 +170,18 @@ def _cmd_validate(args: argparse.Namespace) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("run", help="the main job: simulator, processor, recorder and viewer on Zenoh")
+    p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
+    p.add_argument("--out", required=True, help="output folder: run.mcap, views.rrd, summary.json")
+    p.add_argument("--web", action="store_true", help="serve the Rerun web viewer and print its URL")
+    p.add_argument("--web-port", type=int, default=9090)
+    p.add_argument("--realtime", action="store_true", help="pace the simulator like real hardware")
+    p.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="join an existing Zenoh network instead of the embedded one")
+    p.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration for every node")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("scenario", help="print the default scenario (TOML) or check one")
     p.add_argument("--check", metavar="SCENARIO.toml", help="validate a scenario file and report")
