@@ -1,0 +1,81 @@
+"""The main job, end to end: ``bttsim run`` as a new user runs it (separate node processes)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from bttsim_stream.io.mcap_io import read_recording
+
+REPO = Path(__file__).resolve().parents[1]
+SHORT = "[speed]\nstart_rpm = 2400.0\nend_rpm = 2800.0\nduration_s = 12.0\n"
+
+
+def _rrd_verify(path: Path) -> None:
+    res = subprocess.run([sys.executable, "-m", "rerun", "rrd", "verify", str(path)], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def _node_pids(out: Path) -> list[int]:
+    """PIDs of node processes whose command line names this output folder."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                continue
+            if "bttsim_stream.nodes." in cmd and str(out) in cmd:
+                pids.append(int(proc.name))
+    return pids
+
+
+def test_run_writes_the_three_files(tmp_path):
+    scn = tmp_path / "short.toml"
+    scn.write_text(SHORT)
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "run", scn, "--out", out],
+                         cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "revolution" in res.stderr and "rpm" in res.stderr and "remaining" in res.stderr  # progress
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["nd"] == 1 and summary["eo"] == 8 and len(summary["blades"]) == 29
+    assert summary["mean_E_A_pct"] < 5.0 and summary["mean_E_f_pct"] < 0.5
+    assert "E_A" in res.stdout  # the per-blade table is printed
+    rec = read_recording(out / "run.mcap")
+    assert not rec.truncated
+    kinds = {m.key.split("/")[2] for m in rec.messages}
+    assert {"meta", "opr", "toa", "truth", "fit", "tw", "resonance"} <= kinds
+    assert '"gaps": 0' in (out / "recorder.log").read_text()
+    _rrd_verify(out / "views.rrd")
+    assert _node_pids(out) == []
+
+
+def test_ctrl_c_stops_every_node_and_leaves_valid_files(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "run", "--realtime", "--out", out],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (out / "run.mcap").exists():
+            time.sleep(0.2)
+        time.sleep(6)  # a few seconds of the real-time run
+        assert len(_node_pids(out)) == 4
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, stderr
+    assert "interrupted" in stdout
+    assert _node_pids(out) == []
+    rec = read_recording(out / "run.mcap")
+    assert not rec.truncated and len(rec.messages) > 100
+    _rrd_verify(out / "views.rrd")
