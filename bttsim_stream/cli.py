@@ -159,6 +159,59 @@ def _cmd_run(args: argparse.Namespace) -> None:
           + (" (interrupted)" if res["interrupted"] else ""))
 
 
+def _cmd_view(args: argparse.Namespace) -> None:
+    import tempfile
+    import time
+
+    from .offline import with_processing
+    from .views import log_recording
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
+        src = with_processing(args.mcap, Path(tmp) / "processed.mcap")
+        session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port)
+        if args.web:
+            from .transport import StopFlag
+
+            print(f"web viewer: {session.sinks.web_url}  (Ctrl-C to stop)", flush=True)
+            stop = StopFlag()
+            while not stop.wait(0.5):
+                pass
+        session.close()
+    if args.rrd:
+        print(f"wrote {args.rrd} in {time.perf_counter() - t0:.1f} s")
+
+
+def _cmd_cn(args: argparse.Namespace) -> None:
+    from .process.probes import condition_number
+
+    print(f"{condition_number(args.eo, _angles(args.probes)):.4g}")
+
+
+def _cmd_probes(args: argparse.Namespace) -> None:
+    from .process.probes import PAPER_CANDIDATES_DEG, rank_layouts
+
+    cands = _angles(args.candidates) if args.candidates else PAPER_CANDIDATES_DEG
+    ranked = rank_layouts(args.eo, cands, args.n)
+    finite = [r.cn for r in ranked if r.cn != float("inf")]
+    print(f"{len(ranked)} layouts of {args.n} probes from {len(cands)} candidates at EO {args.eo}; "
+          f"CN {min(finite):.3g} .. {max(finite):.3g}")
+    for r in ranked[: args.top]:
+        print(f"  CN {r.cn:8.3f}   " + ", ".join(f"{a:g}" for a in r.probe_angles_deg))
+
+
+def _angles(text: str) -> list[float]:
+    import math
+
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise BttsimError(f"probe angles must be comma-separated degrees, got {text!r}") from None
+    if not vals or not all(math.isfinite(v) for v in vals):
+        raise BttsimError(f"probe angles must be finite numbers, got {text!r}")
+    return vals
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     import json
 
@@ -244,6 +297,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-prep", action="store_true", help="no data preparation")
     p.add_argument("--window", type=int, default=1, help="revolutions per sine fit (1)")
     p.set_defaults(func=_cmd_process)
+
+    p = sub.add_parser("view", help="Rerun views of a recording (.rrd file and/or web viewer)")
+    p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
+    p.add_argument("--rrd", help="write the views to this .rrd file")
+    p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
+    p.add_argument("--web-port", type=int, default=9090)
+    p.set_defaults(func=_cmd_view)
+
+    p = sub.add_parser("cn", help="condition number of B (Eq. 16) for an EO and probe angles")
+    p.add_argument("--eo", type=int, default=8)
+    p.add_argument("--probes", default="5,15.15,23.82,220,301.5", help="comma-separated angles, deg")
+    p.set_defaults(func=_cmd_cn)
+
+    p = sub.add_parser("probes", help="probe layouts ranked by condition number")
+    p.add_argument("--eo", type=int, default=8)
+    p.add_argument("--n", type=int, default=5, help="number of probes")
+    p.add_argument("--candidates", help="comma-separated candidate angles, deg (default: the paper's 11)")
+    p.add_argument("--top", type=int, default=10)
+    p.set_defaults(func=_cmd_probes)
 
     p = sub.add_parser("validate", help="check the simulator against the paper (Sec. 3.2-3.3.1)")
     p.set_defaults(func=_cmd_validate)

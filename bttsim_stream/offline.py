@@ -96,3 +96,47 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
                ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m", "d_eqv_pkpk_m")})
     return RecordedRun(meta=meta, revolution=revs, opr_s=np.array([opr[r] for r in revs]),
                        toa_s=toa_arr, truth=tr, messages=rec.messages)
+
+
+def processed_messages(run: RecordedRun, result) -> list:
+    """Encode an offline :class:`~bttsim_stream.process.pipeline.ProcessingResult` as the
+    processor node would publish it (fits and travelling waves per revolution, the report)."""
+    meta = run.meta
+    rig, run_id, seqs = meta.rig, meta.run_id, {}
+    fit, tw = result.fit, result.probe_tw
+    eo = int(result.engine_orders[0])
+    omega = result.displacements.omega_rad_s
+    out = []
+    for i, rev in enumerate(run.revolution.tolist()):
+        t = float(run.opr_s[i])
+        out.append(codec.encode_blade_fits(
+            run_id=run_id, rig=rig, seqs=seqs, revolution=rev, t_s=t, engine_order=eo,
+            omega_mean_rad_s=float(omega[i]), cn=fit.cn, amp_pkpk_m=fit.amp_pkpk_m[i, :, 0],
+            phase_rad=fit.phase_rad[i, :, 0], dc_m=fit.dc_m[i], residual_m=fit.residual_rms_m[i],
+            amp_std_m=fit.amp_std_m[i, :, 0]))
+        for p in range(tw.forward_m.shape[1]):
+            out.append(codec.encode_travelling_wave(
+                run_id=run_id, rig=rig, seqs=seqs, revolution=rev, t_s=t, probe=p,
+                forward_m=tw.forward_m[i, p], backward_m=tw.backward_m[i, p]))
+    out.append(codec.encode_resonance_report(result.summary, run_id=run_id, rig=rig, seqs=seqs))
+    return out
+
+
+def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:
+    """Copy a recording to ``out_path``, adding the processor's messages if it has none."""
+    from .io.mcap_io import McapRecorder
+    from .process.pipeline import ProcessOptions, process_arrays
+
+    run = load_run(path, allow_truncated=allow_truncated)
+    kinds = {keys.parse_key(m.key).kind for m in run.messages}
+    if "fit" in kinds:
+        return str(path)
+    result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth)
+    with McapRecorder(out_path) as rec:
+        for m in run.messages:
+            rec.write(m.key, m.payload, m.log_time_ns, sequence=m.sequence)
+        seq: dict[str, int] = {}
+        for e in processed_messages(run, result):
+            rec.write(e.key, e.payload, e.log_time_ns, sequence=seq.get(e.key, 0))
+            seq[e.key] = seq.get(e.key, 0) + 1
+    return str(out_path)
