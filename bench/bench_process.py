@@ -1,0 +1,94 @@
+"""Benchmark: processing throughput, offline and streaming, on one core (prints JSON).
+
+Usage::
+
+    python bench/bench_process.py               # default run (HP), best of 3
+    python bench/bench_process.py --method PAD --repeat 5
+
+Simulates the default scenario once (not timed), then times
+
+* offline ``process_arrays`` on the whole run: the default pipeline (OPR-based expected
+  times, data preparation) and without data preparation;
+* the streaming processor: one ``push`` per revolution (fits and travelling-wave spectra per
+  revolution) plus ``flush``; then ``finish`` (the final report over the history);
+
+and reports TOAs per second (target >= 1e6 on one core) and the streaming latency in
+revolutions (revolution pushed when an output appeared minus the output's revolution).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+
+def _best(fn, repeat: int) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def main(method: str = "HP", repeat: int = 3) -> dict:
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+    from threadpoolctl import threadpool_limits
+
+    from bttsim_stream.process import ProcessOptions, StreamingProcessor, process_arrays
+    from bttsim_stream.process.validate import simulate
+
+    run = simulate({"toa": {"method": method}} if method != "HP" else None)
+    n_toa = int(run.toa_s.size)
+    out: dict = {"method": method, "revolutions": int(run.opr_s.size), "toas": n_toa,
+                 "simulation_wall_s": round(run.wall_s, 2)}
+    with threadpool_limits(1):
+        for name, opts in (("offline_default", ProcessOptions()), ("offline_no_prep", ProcessOptions(prep=False))):
+            wall, res = _best(lambda opts=opts: process_arrays(run.opr_s, run.toa_s, run.info, opts, truth=run.truth),
+                              repeat)
+            out[name] = {"wall_s": round(wall, 4), "toas_per_s": round(n_toa / wall),
+                         "mean_E_A_pct": round(res.summary["mean_E_A_pct"], 4)}
+
+        def stream():
+            proc = StreamingProcessor(run.info)
+            latency = 0
+            t0 = time.perf_counter()
+            n_out = 0
+            for n in range(run.opr_s.size):
+                for o in proc.push(n, run.opr_s[n], run.toa_s[n]):
+                    latency = max(latency, n - o.revolution)
+                    n_out += 1
+            n_out += len(proc.flush())
+            t_push = time.perf_counter() - t0
+            summary = proc.finish(run.truth)
+            return t_push, time.perf_counter() - t0, latency, n_out, summary
+
+        best = None
+        for _ in range(repeat):
+            r = stream()
+            best = r if best is None or r[0] < best[0] else best
+        t_push, t_total, latency, n_out, summary = best
+        out["streaming"] = {"push_wall_s": round(t_push, 4), "toas_per_s": round(n_toa / t_push),
+                            "us_per_revolution": round(1e6 * t_push / run.opr_s.size, 1),
+                            "with_final_report_wall_s": round(t_total, 4),
+                            "toas_per_s_with_final_report": round(n_toa / t_total),
+                            "latency_revolutions": latency, "outputs": n_out,
+                            "mean_E_A_pct": round(summary["mean_E_A_pct"], 4)}
+    out["target_toas_per_s"] = 1_000_000
+    out["ok"] = all(out[k]["toas_per_s"] >= 1_000_000 for k in ("offline_default", "streaming"))
+    return out
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--method", default="HP", choices=("HP", "AD", "PAD"))
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    print(json.dumps(main(args.method, args.repeat), indent=2))

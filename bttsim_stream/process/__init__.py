@@ -1,0 +1,47 @@
+"""BTT processing: OPR and TOAs to blade vibration, travelling waves and resonances.
+
+One module per stage (paper equations in brackets):
+
+* :mod:`.displacement` -- speed and expected arrival times from the OPR, blade
+  identification, Eq. 1 displacements;
+* :mod:`.prep` -- data preparation (Sec. 2.3): offset removal and noise reduction;
+* :mod:`.fit` -- windowed multi-EO sine fits (Eq. 16-17);
+* :mod:`.resonance` -- peak amplitude and frequency per blade, E_A and E_f (Eq. 18-19),
+  the summary JSON;
+* :mod:`.travelling_wave` -- nodal diameter spectra (Fig. 10);
+* :mod:`.probes` -- condition number of ``B`` and probe layout search (Table 3);
+* :mod:`.pipeline` -- offline :func:`process_arrays` and :class:`StreamingProcessor`;
+* :mod:`.validate` -- the paper's Table 2 / Table 3 / ND checks on simulated runs.
+
+Conventions: arrays ``(revolution, blade, probe)``, SI units (s, m, rad, rad/s; Hz for
+frequencies), amplitudes peak-to-peak, blades and probes numbered from 0, NaN for a
+missing arrival. Nothing here imports the transport, codec or viewer layers.
+"""
+
+from .displacement import (Displacements, Geometry, RotorPhase, btt_displacement, calibrate_arrival_angles,
+                           compute_displacements, expected_times, identify_blades, mean_speed_from_opr,
+                           rotor_phase_from_opr)
+from .fit import SineFit, design_matrix, fit_revolutions, sine_at_probes
+from .pipeline import (ProcessingResult, ProcessOptions, RevolutionOutput, StreamingProcessor,
+                       engine_orders_of, process_arrays)
+from .prep import (PreparedData, PrepOptions, ResonanceRegion, locate_resonance, prepare, remove_offset,
+                   smooth_revolutions, speed_adaptive_half_width)
+from .probes import LayoutCandidate, condition_number, rank_layouts
+from .resonance import (ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker, find_peaks,
+                        resonance_errors, resonance_report, summary_table, truth_peaks)
+from .travelling_wave import TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra, signed_nd
+
+__all__ = [
+    "Geometry", "RotorPhase", "Displacements", "mean_speed_from_opr", "rotor_phase_from_opr",
+    "calibrate_arrival_angles", "expected_times", "btt_displacement", "compute_displacements",
+    "identify_blades",
+    "PrepOptions", "ResonanceRegion", "PreparedData", "locate_resonance", "remove_offset",
+    "smooth_revolutions", "speed_adaptive_half_width", "prepare",
+    "SineFit", "design_matrix", "fit_revolutions", "sine_at_probes",
+    "ResonancePeaks", "TruthPeaks", "TruthPeakTracker", "ResonanceReport", "find_peaks", "truth_peaks",
+    "resonance_errors", "resonance_report", "summary_table",
+    "TravellingWaveSpectra", "probe_spectra", "fit_spectra", "identify_nd", "signed_nd",
+    "condition_number", "LayoutCandidate", "rank_layouts",
+    "ProcessOptions", "ProcessingResult", "RevolutionOutput", "StreamingProcessor", "process_arrays",
+    "engine_orders_of",
+]

@@ -1,0 +1,473 @@
+"""BTT displacements from OPR and TOA times (paper Eq. 1), and blade identification.
+
+Conventions (written once for the processing package): arrays are ``(revolution, blade,
+probe)``; times in s, angles in rad (anticlockwise from +x, the direction of rotation),
+speeds in rad/s, displacements in m. Revolution ``n`` starts at OPR pulse ``n`` and holds,
+for every blade and probe, the arrival whose *rigid* crossing of the probe falls in
+``[OPR_n, OPR_n+1)`` (the simulator's convention, and that of :func:`identify_blades`).
+A missing arrival is NaN; everything here propagates NaN instead of failing.
+
+Expected arrival times
+----------------------
+A real system knows only the OPR times. Between OPR pulses it models the rotor angle; the
+linear model ``phi = Omega_n (t - OPR_n)`` of the textbook is wrong by
+``alpha T^2 / 8`` rad mid-revolution under an acceleration ``alpha`` (200 um of Eq. 1
+displacement at 1000 rpm in the paper's run-up). We use instead, per revolution, the
+quadratic (constant-acceleration) angle through the previous, current and next OPR pulses
+(:class:`RotorPhase`): it is exact for the piecewise-linear speed of the run-up
+(expected times within 3e-10 s of the truth) and needs only the next OPR pulse, i.e. one
+revolution of latency.
+
+The angle at which a blade reaches a probe after the OPR pulse, ``psi[b, j]``, is either
+nominal, ``(theta_probe_j - theta_blade_b - theta_opr) mod 2 pi`` with the geometry's blade
+angles (default ``2 pi b / N_b``), or -- the default of the pipeline and what real systems
+do -- **calibrated** per blade and probe as the median measured arrival angle over a
+reference window of low-speed revolutions (:func:`calibrate_arrival_angles`). Calibration
+absorbs the unknown angular position of the sensing point on each blade (P_nom sits 1.89 deg
+behind the nominal blade angle in the built-in model), static probe angle errors, and the
+small quasi-static forced response present in the reference window; it assumes the window
+is free of resonances.
+
+Whichever ``psi`` is used, the expected time of an arrival is the time at which the rotor
+angle model reaches the representative of ``psi + 2 pi k`` nearest to the measured angle,
+so a blade whose arrival falls close to the OPR pulse is never assigned to the wrong
+revolution. Eq. 1 then uses the revolution-mean speed ``Omega_n = 2 pi / (OPR_n+1 - OPR_n)``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "Geometry",
+    "RotorPhase",
+    "Displacements",
+    "mean_speed_from_opr",
+    "rotor_phase_from_opr",
+    "calibrate_arrival_angles",
+    "expected_times",
+    "btt_displacement",
+    "compute_displacements",
+    "identify_blades",
+]
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Geometry:
+    """What the processing needs to know about the rig (the run's acquisition metadata).
+
+    Attributes
+    ----------
+    n_blades : int
+    probe_angles_rad : ndarray, shape (n_probes,)
+        Probe angles, rad, anticlockwise from +x.
+    tip_radius_m : float
+        Radius of the nominal sensing point, m (``R_Pnom`` in Eq. 1).
+    opr_angle_rad : float
+        Angle of the OPR sensor, rad.
+    blade_angles_rad : ndarray, shape (n_blades,)
+        Angle of each blade's sensing point in the rotor frame at the OPR pulse (rotor angle
+        0), rad. Default nominal: ``2 pi b / n_blades``.
+    """
+
+    n_blades: int
+    probe_angles_rad: np.ndarray
+    tip_radius_m: float
+    opr_angle_rad: float = 0.0
+    blade_angles_rad: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        nb = int(self.n_blades)
+        if nb < 1:
+            raise ValueError(f"n_blades must be >= 1, got {self.n_blades}")
+        probes = np.atleast_1d(np.asarray(self.probe_angles_rad, dtype=float))
+        if probes.ndim != 1 or probes.size < 1 or not np.all(np.isfinite(probes)):
+            raise ValueError("probe_angles_rad must be a finite 1-D array of at least one angle")
+        if not (np.isfinite(self.tip_radius_m) and self.tip_radius_m > 0):
+            raise ValueError(f"tip_radius_m must be > 0, got {self.tip_radius_m}")
+        blades = (TWO_PI * np.arange(nb) / nb if self.blade_angles_rad is None
+                  else np.asarray(self.blade_angles_rad, dtype=float))
+        if blades.shape != (nb,) or not np.all(np.isfinite(blades)):
+            raise ValueError(f"blade_angles_rad must be finite with shape ({nb},), got {blades.shape}")
+        object.__setattr__(self, "n_blades", nb)
+        object.__setattr__(self, "probe_angles_rad", probes)
+        object.__setattr__(self, "tip_radius_m", float(self.tip_radius_m))
+        object.__setattr__(self, "opr_angle_rad", float(self.opr_angle_rad))
+        object.__setattr__(self, "blade_angles_rad", blades)
+
+    @property
+    def n_probes(self) -> int:
+        return int(self.probe_angles_rad.size)
+
+    @classmethod
+    def from_info(cls, info, model=None) -> "Geometry":
+        """Geometry from run metadata (``RunInfo``, ``RunMetadataMsg`` or a ``Geometry``).
+
+        Parameters
+        ----------
+        info : object
+            Anything with ``n_blades``, ``probe_angles_rad``, ``tip_radius_m`` and
+            ``opr_angle_rad`` attributes.
+        model : ModalModel, optional
+            When given, the blade angles are those of its nominal sensing node
+            (``model.tip_ref[:, model.nominal_node, 1]``) instead of ``2 pi b / n_blades``.
+        """
+        if isinstance(info, Geometry) and model is None:
+            return info
+        blades = getattr(info, "blade_angles_rad", None)
+        if model is not None:
+            blades = np.asarray(model.tip_ref)[:, model.nominal_node, 1]
+        return cls(n_blades=int(info.n_blades), probe_angles_rad=info.probe_angles_rad,
+                   tip_radius_m=float(info.tip_radius_m),
+                   opr_angle_rad=float(getattr(info, "opr_angle_rad", 0.0)),
+                   blade_angles_rad=blades)
+
+    def nominal_arrival_angles(self) -> np.ndarray:
+        """Rotor angle after the OPR pulse at which each blade reaches each probe.
+
+        Returns
+        -------
+        ndarray, shape (n_blades, n_probes)
+            ``(theta_probe - theta_blade - theta_opr) mod 2 pi``, rad.
+        """
+        return np.mod(self.probe_angles_rad[None, :] - self.blade_angles_rad[:, None]
+                      - self.opr_angle_rad, TWO_PI)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RotorPhase:
+    """Rotor angle after each OPR pulse: ``phi_n(t) = w_n tau + alpha_n tau^2 / 2``, ``tau = t - OPR_n``.
+
+    Attributes
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+    omega0_rad_s : ndarray, shape (n_rev,)
+        Speed at the OPR pulse, rad/s.
+    alpha_rad_s2 : ndarray, shape (n_rev,)
+        Angular acceleration over the revolution, rad/s^2.
+    omega_mean_rad_s : ndarray, shape (n_rev,)
+        Mean speed over the revolution, ``2 pi / (OPR_n+1 - OPR_n)`` (Eq. 1's Omega).
+    """
+
+    opr_s: np.ndarray
+    omega0_rad_s: np.ndarray
+    alpha_rad_s2: np.ndarray
+    omega_mean_rad_s: np.ndarray
+
+    def angle(self, t_s: np.ndarray) -> np.ndarray:
+        """Rotor angle since the revolution's OPR pulse at times ``t_s`` (axis 0 = revolution), rad."""
+        t = np.asarray(t_s, dtype=float)
+        ex = (slice(None),) + (None,) * (t.ndim - 1)
+        tau = t - self.opr_s[ex]
+        return tau * (self.omega0_rad_s[ex] + 0.5 * self.alpha_rad_s2[ex] * tau)
+
+    def time_at_angle(self, angle_rad: np.ndarray) -> np.ndarray:
+        """Time at which the rotor angle model reaches ``angle_rad`` (axis 0 = revolution), s."""
+        a = np.asarray(angle_rad, dtype=float)
+        ex = (slice(None),) + (None,) * (a.ndim - 1)
+        return self.opr_s[ex] + self.delay_at_angle(a)
+
+    def delay_at_angle(self, angle_rad: np.ndarray) -> np.ndarray:
+        """Time after the revolution's OPR pulse at which the model reaches ``angle_rad``, s."""
+        a = np.asarray(angle_rad, dtype=float)
+        ex = (slice(None),) + (None,) * (a.ndim - 1)
+        w = self.omega0_rad_s[ex]
+        # the stable root of w tau + alpha tau^2 / 2 = a (no cancellation as alpha -> 0)
+        return 2.0 * a / (w + np.sqrt(w * w + 2.0 * self.alpha_rad_s2[ex] * a))
+
+
+def mean_speed_from_opr(opr_s: np.ndarray) -> np.ndarray:
+    """Mean speed of each revolution from consecutive OPR times.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        OPR pulse times, s, increasing; ``n_rev >= 2``.
+
+    Returns
+    -------
+    ndarray, shape (n_rev,)
+        ``Omega_n = 2 pi / (OPR_n+1 - OPR_n)``, rad/s; the last revolution, whose end is not
+        known, is extrapolated linearly, ``2 Omega_{n-1} - Omega_{n-2}``.
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    if opr.ndim != 1 or opr.size < 2:
+        raise ValueError("at least two OPR times are needed for a speed")
+    om = TWO_PI / np.diff(opr)
+    last = 2.0 * om[-1] - om[-2] if om.size >= 2 else om[-1]
+    return np.append(om, last)
+
+
+def _phase_coefficients(t_prev: np.ndarray, t_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Speed at the OPR pulse and acceleration of the quadratic angle through three OPR pulses.
+
+    ``w T + alpha T^2 / 2 = 2 pi`` (next pulse) and ``-w S + alpha S^2 / 2 = -2 pi``
+    (previous pulse), with ``T = t_cur``, ``S = t_prev`` the periods; ``S`` NaN: linear.
+    """
+    s, t = np.asarray(t_prev, float), np.asarray(t_cur, float)
+    alpha = 2.0 * TWO_PI * (s - t) / (t * s * (t + s))
+    alpha = np.where(np.isfinite(alpha), alpha, 0.0)
+    return (TWO_PI - 0.5 * alpha * t * t) / t, alpha
+
+
+def rotor_phase_from_opr(opr_s: np.ndarray) -> RotorPhase:
+    """Per-revolution quadratic rotor angle from the OPR times alone.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        OPR times, s, increasing; ``n_rev >= 2``.
+
+    Returns
+    -------
+    RotorPhase
+
+    Notes
+    -----
+    Revolution ``n`` uses the pulses ``n-1, n, n+1`` (constant acceleration over two
+    revolutions; exact for a piecewise-linear speed away from its knots). The first
+    revolution takes the acceleration of the second; the last one, whose end is unknown,
+    uses the extrapolated mean speed of :func:`mean_speed_from_opr`.
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    om = mean_speed_from_opr(opr)
+    period = TWO_PI / om
+    prev = np.concatenate([[np.nan], period[:-1]])
+    w0, alpha = _phase_coefficients(prev, period)
+    if opr.size >= 2:
+        alpha[0] = alpha[1]
+        w0[0] = (TWO_PI - 0.5 * alpha[0] * period[0] ** 2) / period[0]
+    return RotorPhase(opr_s=opr, omega0_rad_s=w0, alpha_rad_s2=alpha, omega_mean_rad_s=om)
+
+
+def calibrate_arrival_angles(phase: RotorPhase, toa_s: np.ndarray,
+                             revolutions: slice | tuple[int, int] | int) -> np.ndarray:
+    """Arrival angle of each blade at each probe, calibrated over a reference window.
+
+    Parameters
+    ----------
+    phase : RotorPhase
+        Rotor angle model of the revolutions of ``toa_s``.
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+        TOAs, s (NaN for missing).
+    revolutions : int, (start, stop) or slice
+        The reference window (an int ``n`` means the first ``n`` revolutions). It should
+        be at low speed and free of resonances: any vibration in it becomes the reference.
+
+    Returns
+    -------
+    ndarray, shape (n_blades, n_probes)
+        Median over the window of the rotor angle since the OPR pulse at the TOA, rad;
+        NaN where no arrival was seen.
+    """
+    if isinstance(revolutions, (int, np.integer)):
+        sel = slice(0, int(revolutions))
+    elif isinstance(revolutions, slice):
+        sel = revolutions
+    else:
+        sel = slice(int(revolutions[0]), int(revolutions[1]))
+    toa = np.asarray(toa_s, dtype=float)[sel]
+    if toa.shape[0] == 0:
+        raise ValueError("the calibration window holds no revolution")
+    sub = RotorPhase(opr_s=phase.opr_s[sel], omega0_rad_s=phase.omega0_rad_s[sel],
+                     alpha_rad_s2=phase.alpha_rad_s2[sel], omega_mean_rad_s=phase.omega_mean_rad_s[sel])
+    ang = sub.angle(toa)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN column stays NaN
+        return np.nanmedian(ang, axis=0)
+
+
+def expected_times(phase: RotorPhase, arrival_angles_rad: np.ndarray, toa_s: np.ndarray) -> np.ndarray:
+    """Expected arrival times of the undeformed blades from the OPR model.
+
+    Parameters
+    ----------
+    phase : RotorPhase
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes)
+        Rotor angle after the OPR pulse at which each blade reaches each probe, rad.
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+        Measured TOAs, s; they select, for each arrival, the representative
+        ``psi + 2 pi k`` nearest to the measured angle (NaN TOA: ``k = 0``).
+
+    Returns
+    -------
+    ndarray, shape (n_rev, n_blades, n_probes)
+        ``t_exp``, s.
+    """
+    psi = np.asarray(arrival_angles_rad, dtype=float)[None]
+    measured = phase.angle(toa_s)
+    k = np.round((measured - psi) / TWO_PI)
+    k = np.where(np.isfinite(k), k, 0.0)
+    return phase.time_at_angle(psi + TWO_PI * k)
+
+
+def btt_displacement(omega_rad_s: np.ndarray, tip_radius_m: float, t_exp_s: np.ndarray,
+                     toa_s: np.ndarray) -> np.ndarray:
+    """Eq. 1: ``d = Omega R (t_exp - t_TOA)``.
+
+    Parameters
+    ----------
+    omega_rad_s : ndarray, shape (n_rev,)
+        Mean speed over each revolution, rad/s.
+    tip_radius_m : float
+    t_exp_s, toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+
+    Returns
+    -------
+    ndarray, shape (n_rev, n_blades, n_probes)
+        Displacement in the direction of rotation, m (a blade arriving early is positive).
+    """
+    om = np.asarray(omega_rad_s, dtype=float)
+    return (om * float(tip_radius_m))[:, None, None] * (np.asarray(t_exp_s, float) - np.asarray(toa_s, float))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Displacements:
+    """Eq. 1 displacements with how they were obtained.
+
+    Attributes
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    omega_rad_s : ndarray, shape (n_rev,)
+        Mean speed of each revolution (from the OPR times), rad/s.
+    t_exp_s : ndarray, shape (n_rev, n_blades, n_probes)
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes), or None
+        The ``psi`` used (None with exact expected times).
+    method : str
+        ``"exact"``, ``"calibrated"`` or ``"nominal"``.
+    """
+
+    d_m: np.ndarray
+    omega_rad_s: np.ndarray
+    t_exp_s: np.ndarray
+    arrival_angles_rad: np.ndarray | None
+    method: str
+
+
+def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geometry, *,
+                          t_exp_s: np.ndarray | None = None,
+                          calibration: int | tuple[int, int] | None = 64,
+                          arrival_angles_rad: np.ndarray | None = None) -> Displacements:
+    """BTT displacements (Eq. 1) from OPR and TOA arrays.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        OPR times, s.
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+        TOAs, s (NaN for a missing arrival).
+    geometry : Geometry
+    t_exp_s : ndarray, shape (n_rev, n_blades, n_probes), optional
+        Exact expected times (the simulator's truth, as in the paper); the OPR times then
+        only give the speed.
+    calibration : int or (start, stop), optional
+        Reference window for :func:`calibrate_arrival_angles` (int: the first revolutions);
+        None or 0: the nominal arrival angles of ``geometry``.
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes), optional
+        Use these arrival angles (e.g. from an earlier calibration) instead.
+
+    Returns
+    -------
+    Displacements
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    toa = np.asarray(toa_s, dtype=float)
+    if toa.ndim != 3 or toa.shape[0] != opr.size:
+        raise ValueError(f"toa_s must be (n_rev, n_blades, n_probes) with n_rev = {opr.size}, got {toa.shape}")
+    if toa.shape[1:] != (geometry.n_blades, geometry.n_probes):
+        raise ValueError(f"toa_s has {toa.shape[1:]} (blades, probes); the geometry "
+                         f"({geometry.n_blades}, {geometry.n_probes})")
+    phase = rotor_phase_from_opr(opr)
+    if t_exp_s is not None:
+        t_exp = np.asarray(t_exp_s, dtype=float)
+        return Displacements(btt_displacement(phase.omega_mean_rad_s, geometry.tip_radius_m, t_exp, toa),
+                             phase.omega_mean_rad_s, t_exp, None, "exact")
+    if arrival_angles_rad is not None:
+        psi, method = np.asarray(arrival_angles_rad, dtype=float), "calibrated"
+    elif calibration:
+        psi, method = calibrate_arrival_angles(phase, toa, calibration), "calibrated"
+        nominal = geometry.nominal_arrival_angles()
+        psi = np.where(np.isfinite(psi), psi, nominal)
+    else:
+        psi, method = geometry.nominal_arrival_angles(), "nominal"
+    # times relative to the OPR pulse: no cancellation of the absolute time (130 s) in Eq. 1
+    tau = toa - opr[:, None, None]
+    measured = phase.angle(toa)
+    k = np.round((measured - psi[None]) / TWO_PI)
+    tau_exp = phase.delay_at_angle(psi[None] + TWO_PI * np.where(np.isfinite(k), k, 0.0))
+    d = btt_displacement(phase.omega_mean_rad_s, geometry.tip_radius_m, tau_exp, tau)
+    return Displacements(d, phase.omega_mean_rad_s, opr[:, None, None] + tau_exp, psi, method)
+
+
+def identify_blades(opr_s: np.ndarray, pulse_s: np.ndarray, probe_angle_rad: float,
+                    geometry: Geometry, *, tolerance: float = 0.25) -> np.ndarray:
+    """Assign one probe's raw, unlabelled pulse times to revolutions and blades.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        OPR times, s.
+    pulse_s : ndarray, shape (n_pulses,)
+        Pulse times at the probe, s, in any order; may miss pulses and hold spurious ones.
+    probe_angle_rad : float
+    geometry : Geometry
+        Blade count, blade angles and OPR angle.
+    tolerance : float
+        Largest distance of a pulse from its blade's expected angle, as a fraction of the
+        blade pitch ``2 pi / n_blades``; pulses further away are dropped as spurious.
+
+    Returns
+    -------
+    ndarray, shape (n_rev, n_blades)
+        The pulse time of each blade in each revolution, s; NaN where none was assigned.
+
+    Notes
+    -----
+    Each pulse's total rotor angle ``Phi = 2 pi n + phi_n(t)`` (quadratic OPR model) is
+    matched to the nearest expected angle ``psi_b + 2 pi m``; ``m`` is the revolution (the
+    one whose rigid crossing it belongs to) and ``b`` the blade, so a missing pulse leaves a
+    NaN and shifts nothing. When several pulses claim one ``(m, b)``, the nearest wins.
+    With the sensing points' true angles (``Geometry.from_info(info, model)``) the labels
+    are the simulator's; with nominal angles a blade whose crossing lies within the angle
+    error of the OPR pulse may be labelled one revolution apart, consistently, which
+    :func:`compute_displacements` handles (nearest representative of ``psi``).
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    t = np.asarray(pulse_s, dtype=float).ravel()
+    t = t[np.isfinite(t)]
+    nr, nb = opr.size, geometry.n_blades
+    out = np.full((nr, nb), np.nan)
+    if t.size == 0:
+        return out
+    phase = rotor_phase_from_opr(opr)
+    n = np.clip(np.searchsorted(opr, t, side="right") - 1, 0, nr - 1)
+    tau = t - opr[n]
+    total = TWO_PI * n + tau * (phase.omega0_rad_s[n] + 0.5 * phase.alpha_rad_s2[n] * tau)
+    psi = np.mod(float(probe_angle_rad) - geometry.blade_angles_rad - geometry.opr_angle_rad, TWO_PI)
+    order = np.argsort(psi)
+    ps = psi[order]
+    r = np.mod(total, TWO_PI)
+    i = np.searchsorted(ps, r)
+    lo, hi = (i - 1) % nb, i % nb
+    d_lo = np.abs(np.mod(r - ps[lo] + np.pi, TWO_PI) - np.pi)
+    d_hi = np.abs(np.mod(r - ps[hi] + np.pi, TWO_PI) - np.pi)
+    pick = np.where(d_lo <= d_hi, lo, hi)
+    blade = order[pick]
+    resid = np.minimum(d_lo, d_hi)
+    m = np.round((total - psi[blade]) / TWO_PI).astype(np.int64)
+    ok = (resid <= tolerance * TWO_PI / nb) & (m >= 0) & (m < nr)
+    if not np.any(ok):
+        return out
+    m, blade, resid, t = m[ok], blade[ok], resid[ok], t[ok]
+    key = m * nb + blade
+    srt = np.lexsort((resid, key))
+    first = np.ones(srt.size, bool)
+    first[1:] = key[srt][1:] != key[srt][:-1]
+    keep = srt[first]
+    out[m[keep], blade[keep]] = t[keep]
+    return out

@@ -1,0 +1,218 @@
+"""Windowed multi-frequency sine fit of BTT displacements (paper Eq. 16-17).
+
+For a blade in a revolution the displacements at the ``N_p`` probes are modelled as
+
+``d_j = a_0 + sum_m [a_{2m-1} sin(EO_m theta_j) + a_{2m} cos(EO_m theta_j)]``, i.e.
+``d = B a`` (Eq. 16 for one EO), solved in the least-squares sense. A window of ``w``
+revolutions centred on the revolution (``n - (w-1)//2 .. n + w//2``, truncated at the ends)
+stacks the ``w N_p`` samples, assuming ``a`` constant over the window. Per engine order:
+amplitude ``A = sqrt(a1^2 + a2^2)`` reported peak-to-peak (``2 A``), phase
+``psi = atan2(a2, a1)`` so that ``d_j = a0 + A sin(EO theta_j + psi)``, and
+``f_BTT = EO Omega / (2 pi)`` in Hz (Eq. 17 with Omega in rad/s).
+
+Shapes: ``(revolution, blade, probe)`` in, ``(revolution, blade)`` or
+``(revolution, blade, engine order)`` out. A missing arrival (NaN) simply drops that
+sample; a fit with fewer usable probes than unknowns is NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["design_matrix", "SineFit", "fit_revolutions", "sine_at_probes"]
+
+TWO_PI = 2.0 * np.pi
+_MAX_COND = 1e10  # beyond this the present probes cannot separate the unknowns
+
+
+def design_matrix(probe_angles_rad, engine_orders) -> np.ndarray:
+    """The matrix ``B`` of Eq. 16, extended to several engine orders.
+
+    Parameters
+    ----------
+    probe_angles_rad : array_like, shape (n_probes,)
+    engine_orders : int or sequence of int
+
+    Returns
+    -------
+    ndarray, shape (n_probes, 1 + 2 n_eo)
+        Columns ``1, sin(EO_1 theta), cos(EO_1 theta), sin(EO_2 theta), ...``.
+    """
+    th = np.atleast_1d(np.asarray(probe_angles_rad, dtype=float))
+    eos = np.atleast_1d(np.asarray(engine_orders, dtype=float))
+    cols = [np.ones_like(th)]
+    for eo in eos:
+        cols += [np.sin(eo * th), np.cos(eo * th)]
+    return np.stack(cols, axis=1)
+
+
+def sine_at_probes(probe_angles_rad, engine_order: int, amp_pkpk_m: float, phase_rad: float,
+                   dc_m: float = 0.0) -> np.ndarray:
+    """The displacement a pure engine-order response gives at the probes (test fixtures).
+
+    Returns
+    -------
+    ndarray, shape (n_probes,)
+        ``dc + (amp_pkpk / 2) sin(EO theta_j + phase)``, m.
+    """
+    th = np.asarray(probe_angles_rad, dtype=float)
+    return dc_m + 0.5 * amp_pkpk_m * np.sin(engine_order * th + phase_rad)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SineFit:
+    """Per-revolution, per-blade sine fits.
+
+    Attributes
+    ----------
+    engine_orders : tuple of int
+    window : int
+        Revolutions per fit.
+    coeffs : ndarray, shape (n_rev, n_blades, 1 + 2 n_eo)
+        ``a`` of Eq. 16, m.
+    amp_pkpk_m, phase_rad, amp_std_m : ndarray, shape (n_rev, n_blades, n_eo)
+        Peak-to-peak amplitude, phase and the amplitude's (pk-pk) standard deviation from the
+        least-squares covariance ``s^2 (B^T B)^-1``, ``s^2 = RSS / (n - p)`` (NaN without
+        redundancy).
+    dc_m, residual_rms_m : ndarray, shape (n_rev, n_blades)
+        ``a0`` and ``sqrt(RSS / n)``.
+    n_samples : ndarray of int, shape (n_rev, n_blades)
+        Samples in each fit.
+    omega_rad_s : ndarray, shape (n_rev,), or None
+    freq_hz : ndarray, shape (n_rev, n_eo), or None
+        ``EO Omega / (2 pi)`` (Eq. 17).
+    cn : float
+        2-norm condition number of ``B`` for all probes.
+    """
+
+    engine_orders: tuple
+    window: int
+    coeffs: np.ndarray
+    amp_pkpk_m: np.ndarray
+    phase_rad: np.ndarray
+    amp_std_m: np.ndarray
+    dc_m: np.ndarray
+    residual_rms_m: np.ndarray
+    n_samples: np.ndarray
+    omega_rad_s: np.ndarray | None
+    freq_hz: np.ndarray | None
+    cn: float
+
+    @property
+    def phasor(self) -> np.ndarray:
+        """Complex response ``a1 + i a2`` per engine order, shape (n_rev, n_blades, n_eo), m.
+
+        ``d(theta) = a0 + Im(phasor * exp(i EO theta))``.
+        """
+        return self.coeffs[..., 1::2] + 1j * self.coeffs[..., 2::2]
+
+
+def _window_sums(x: np.ndarray, window: int) -> np.ndarray:
+    """Sum of ``x`` along axis 0 over the centred window (truncated at the ends)."""
+    n = x.shape[0]
+    c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
+    lo = np.clip(np.arange(n) - (window - 1) // 2, 0, n)
+    hi = np.clip(np.arange(n) + window // 2 + 1, 0, n)
+    return c[hi] - c[lo]
+
+
+def fit_revolutions(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
+                    omega_rad_s: np.ndarray | None = None, window: int = 1) -> SineFit:
+    """Fit Eq. 16 to every blade and revolution at once.
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+        Displacements, m (NaN: missing).
+    probe_angles_rad : array_like, shape (n_probes,)
+    engine_orders : int or sequence of int
+    omega_rad_s : ndarray, shape (n_rev,), optional
+        Mean speed per revolution, for ``freq_hz``.
+    window : int
+        Revolutions per fit (centred), >= 1.
+
+    Returns
+    -------
+    SineFit
+
+    Notes
+    -----
+    With the same samples in every probe (no NaN in the window) the solution is one
+    precomputed pseudo-inverse applied to the window means, ``a = B^+ dbar``; windows with
+    missing samples solve their own weighted normal equations ``B^T C B a = B^T C dbar``
+    (``C`` the sample counts per probe), which is the stacked least-squares problem.
+    """
+    d = np.asarray(d_m, dtype=float)
+    if d.ndim != 3:
+        raise ValueError(f"d_m must be (n_rev, n_blades, n_probes), got shape {d.shape}")
+    window = int(window)
+    if window < 1:
+        raise ValueError(f"window must be >= 1, got {window}")
+    eos = tuple(int(e) for e in np.atleast_1d(engine_orders))
+    if not eos:
+        raise ValueError("at least one engine order is needed")
+    B = design_matrix(probe_angles_rad, eos)
+    n_rev, nb, npr = d.shape
+    if B.shape[0] != npr:
+        raise ValueError(f"{B.shape[0]} probe angles for {npr} probes")
+    p = B.shape[1]
+    ok = np.isfinite(d)
+    x = np.where(ok, d, 0.0)
+    if window == 1:
+        S, C, Q = x, ok.astype(float), x * x
+    else:
+        S, C, Q = (_window_sums(v, window) for v in (x, ok.astype(float), x * x))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dbar = S / C
+    n_tot = C.sum(axis=2)
+    uniform = np.all(C == C[..., :1], axis=2) & (C[..., 0] > 0)
+    i1 = np.arange(1, p, 2)
+    coeffs = np.full((n_rev, nb, p), np.nan)
+    # (B^T C B)^-1 entries needed for the amplitude variance: [a_sin, a_cos, cross] per EO
+    ginv = np.full((n_rev, nb, 3, len(eos)), np.nan)
+    if npr >= p:
+        coeffs = dbar @ np.linalg.pinv(B).T  # NaN where a probe is missing; redone below
+        gi = np.linalg.inv(B.T @ B)
+        with np.errstate(divide="ignore"):
+            inv_c = np.where(uniform, 1.0 / C[..., 0], np.nan)[..., None, None]
+        ginv = np.stack([gi[i1, i1], gi[i1 + 1, i1 + 1], gi[i1, i1 + 1]])[None, None] * inv_c
+    coeffs[~uniform] = np.nan
+    rest = ~uniform & (np.sum(C > 0, axis=2) >= p)
+    if np.any(rest):
+        c = C[rest]
+        G = np.einsum("rj,jp,jq->rpq", c, B, B)
+        good = np.linalg.cond(G) < _MAX_COND
+        G[~good] = np.eye(p)
+        Ginv = np.linalg.inv(G)
+        a = np.einsum("rpq,jq,rj->rp", Ginv, B, c * np.where(c > 0, dbar[rest], 0.0))
+        a[~good] = np.nan
+        Ginv[~good] = np.nan
+        coeffs[rest] = a
+        ginv[rest] = np.stack([Ginv[:, i1, i1], Ginv[:, i1 + 1, i1 + 1], Ginv[:, i1, i1 + 1]], axis=1)
+    # residual: within-probe scatter plus the misfit of the window means
+    fitted = coeffs @ B.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if window == 1:
+            rss = np.sum((x - fitted) ** 2 * C, axis=2)
+        else:
+            within = np.where(C > 0, Q - S * dbar, 0.0)
+            misfit = np.where(C > 0, C * (dbar - fitted) ** 2, 0.0)
+            rss = np.maximum(np.sum(within + misfit, axis=2), 0.0)
+        rss = np.where(np.isfinite(coeffs[..., 0]), rss, np.nan)
+        residual_rms = np.sqrt(rss / n_tot)
+        s2 = np.where(n_tot > p, rss / (n_tot - p), np.nan)
+    c11, c22, c12 = (ginv[..., k, :] * s2[..., None] for k in range(3))
+    a1, a2 = coeffs[..., 1::2], coeffs[..., 2::2]
+    amp = np.hypot(a1, a2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.where(amp > 0, (a1 * a1 * c11 + 2 * a1 * a2 * c12 + a2 * a2 * c22) / (amp * amp),
+                       0.5 * (c11 + c22))
+    omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
+    freq = None if omega is None else omega[:, None] * np.asarray(eos, float)[None, :] / TWO_PI
+    return SineFit(engine_orders=eos, window=window, coeffs=coeffs, amp_pkpk_m=2.0 * amp,
+                   phase_rad=np.arctan2(a2, a1), amp_std_m=2.0 * np.sqrt(np.maximum(var, 0.0)),
+                   dc_m=coeffs[..., 0], residual_rms_m=residual_rms,
+                   n_samples=n_tot.astype(np.int64), omega_rad_s=omega, freq_hz=freq,
+                   cn=float(np.linalg.cond(B)))

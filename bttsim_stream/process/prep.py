@@ -1,0 +1,470 @@
+"""Data preparation of BTT displacements before the sine fit (paper Sec. 2.3).
+
+Raw Eq. 1 displacements carry, besides the blade vibration, (i) a slowly varying offset
+per blade and probe -- static deflection, probe and blade angle errors, the OPR model's
+error and, for interpolated TOAs (PAD), a bias that grows with speed -- and (ii) noise whose
+level grows with speed (Eq. 15: ``delta d = Omega R delta t``). Preparation removes the
+first and reduces the second without eating the resonance. Each step can be switched off
+(:class:`PrepOptions`); all steps work on ``(revolution, blade, probe)`` arrays, tolerate NaN
+(missing arrivals stay NaN) and are vectorised over blades and probes.
+
+1. **Resonance location** (:func:`locate_resonance`): a first pass fits Eq. 16 to the raw
+   data (per-probe median removed), smooths the amplitude along revolutions (running median
+   then mean) and finds, per blade, the peak, its half-power width ``W`` (revolutions) and
+   the *resonance region*: the contiguous revolutions around the peak where the amplitude
+   exceeds ``exclusion_level`` times the peak (and twice the run's median amplitude),
+   widened by ``exclusion_margin * W`` on each side.
+2. **Offset removal** (:func:`remove_offset`): per blade and probe, a polynomial in speed
+   (degree ``offset_degree``) fitted to the revolutions *outside* the resonance region by
+   iteratively reweighted least squares (Tukey bisquare, MAD scale) with Eq. 15 weights
+   ``1 / Omega^2``, and subtracted everywhere, so the region is bridged by a smooth
+   baseline instead of being flattened. The non-resonant forced response is part of the
+   baseline; at the peak it is in quadrature with the resonant response and barely changes
+   its amplitude.
+3. **Noise reduction** (:func:`smooth_revolutions`): a local quadratic regression (LOESS,
+   tricube kernel) along revolutions per blade and probe -- the per-probe sequence of an
+   integral-EO response varies slowly from one revolution to the next, so it can be
+   smoothed without distorting the response as long as the kernel is narrow compared to
+   the resonance. The half-width is ``smooth_width_fraction`` of the half-power width ``W``
+   at the resonance speed and **adapts to speed** as ``(Omega / Omega_res)^2``: with the
+   noise proportional to ``Omega`` (Eq. 15) this keeps the smoothed noise level constant,
+   and for a run-up at a fixed sweep rate a resonance spans a number of revolutions that
+   grows at least as ``Omega^2``, so the relative smoothing bias stays constant too. The
+   local fits are weighted by Eq. 15 (``1 / Omega^2``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import median_filter, uniform_filter1d
+
+from .fit import fit_revolutions
+
+__all__ = [
+    "PrepOptions",
+    "ResonanceRegion",
+    "PreparedData",
+    "locate_resonance",
+    "remove_offset",
+    "smooth_revolutions",
+    "speed_adaptive_half_width",
+    "prepare",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class PrepOptions:
+    """Switches and parameters of the data preparation.
+
+    Attributes
+    ----------
+    remove_offset : bool
+        Subtract the per blade/probe baseline (polynomial in speed outside the resonance).
+    offset_degree : int
+        Degree of the baseline polynomial in speed.
+    exclusion_level : float
+        Resonance region: amplitude above this fraction of the first-pass peak...
+    exclusion_margin : float
+        ...widened by this many half-power widths on each side.
+    robust : bool
+        Bisquare reweighting of the baseline fit (3 iterations).
+    smooth : bool
+        Local quadratic regression along revolutions.
+    smooth_half_width : float or None
+        Kernel half-width at the resonance speed, revolutions; None: ``smooth_width_fraction``
+        of the first-pass half-power width.
+    smooth_width_fraction : float
+    min_half_width, max_half_width : float
+        Limits of the (speed-adaptive) half-width, revolutions.
+    speed_adaptive : bool
+        Scale the half-width as ``(Omega / Omega_res)^2``.
+    noise_weighting : bool
+        Weight samples by the Eq. 15 error model, ``1 / Omega^2``.
+    """
+
+    remove_offset: bool = True
+    offset_degree: int = 2
+    exclusion_level: float = 0.1
+    exclusion_margin: float = 1.0
+    robust: bool = True
+    smooth: bool = True
+    smooth_half_width: float | None = None
+    smooth_width_fraction: float = 0.125
+    min_half_width: float = 2.0
+    max_half_width: float = 40.0
+    speed_adaptive: bool = True
+    noise_weighting: bool = True
+
+    def __post_init__(self) -> None:
+        if self.offset_degree < 0:
+            raise ValueError("offset_degree must be >= 0")
+        if not 0 < self.min_half_width <= self.max_half_width:
+            raise ValueError("need 0 < min_half_width <= max_half_width")
+        if self.smooth_half_width is not None and self.smooth_half_width <= 0:
+            raise ValueError("smooth_half_width must be > 0")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ResonanceRegion:
+    """First-pass location of the resonance of each blade.
+
+    Attributes
+    ----------
+    amp_pkpk_m : ndarray, shape (n_rev, n_blades)
+        Smoothed first-pass amplitude (all engine orders combined), m.
+    peak_revolution : ndarray of int, shape (n_blades,)
+    half_power_width : ndarray, shape (n_blades,)
+        Revolutions where the smoothed amplitude exceeds ``peak / sqrt(2)``.
+    significant : ndarray of bool, shape (n_blades,)
+        Peak above 3x the run's median amplitude (else the region is empty).
+    mask : ndarray of bool, shape (n_rev, n_blades)
+        The resonance region (excluded from the baseline fit).
+    """
+
+    amp_pkpk_m: np.ndarray
+    peak_revolution: np.ndarray
+    half_power_width: np.ndarray
+    significant: np.ndarray
+    mask: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PreparedData:
+    """Prepared displacements and what the preparation did.
+
+    Attributes
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    offset_m : ndarray, shape (n_rev, n_blades, n_probes)
+        The subtracted baseline (zeros when off).
+    region : ResonanceRegion
+    half_width : ndarray, shape (n_rev,)
+        Smoother half-width per revolution (NaN when off).
+    options : PrepOptions
+    """
+
+    d_m: np.ndarray
+    offset_m: np.ndarray
+    region: ResonanceRegion
+    half_width: np.ndarray
+    options: PrepOptions
+
+
+def _contiguous(above: np.ndarray, peak: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last index of the run of ``above`` (n, m) that contains ``peak`` (m,)."""
+    n = above.shape[0]
+    idx = np.arange(n)[:, None]
+    lo = np.max(np.where(~above & (idx < peak), idx, -1), axis=0) + 1
+    hi = np.min(np.where(~above & (idx > peak), idx, n), axis=0) - 1
+    return lo, hi
+
+
+def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median along axis 0 of the entries where ``mask`` (NaN for an empty column); faster
+    than ``nanmedian`` on wide arrays."""
+    n = np.sum(mask, axis=0)
+    srt = np.sort(np.where(mask, x, np.inf).T, axis=1)  # contiguous rows sort fast
+    cols = np.arange(x.shape[1])
+    lo = srt[cols, np.clip((n - 1) // 2, 0, None)]
+    hi = srt[cols, np.clip(n // 2, 0, None)]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+
+
+def _fill_nan(x: np.ndarray) -> np.ndarray:
+    """NaN replaced by the column's median (for filters that cannot skip NaN)."""
+    if not np.any(np.isnan(x)):
+        return x
+    ok = ~np.isnan(x)
+    med = np.nan_to_num(_masked_median(np.where(ok, x, 0.0), ok))
+    return np.where(ok, x, med)
+
+
+def locate_resonance(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
+                     exclusion_level: float = 0.1, exclusion_margin: float = 1.0,
+                     filter_revolutions: int = 11) -> ResonanceRegion:
+    """First pass: where is each blade's resonance, and how wide is it?
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+        Raw displacements, m.
+    probe_angles_rad : array_like, shape (n_probes,)
+    engine_orders : int or sequence of int
+    exclusion_level, exclusion_margin : float
+        See :class:`PrepOptions`.
+    filter_revolutions : int
+        Length of the running median and running mean applied to the amplitude.
+
+    Returns
+    -------
+    ResonanceRegion
+    """
+    d = np.asarray(d_m, dtype=float)
+    flat = d.reshape(d.shape[0], -1)
+    ok = np.isfinite(flat)
+    base = np.nan_to_num(_masked_median(np.where(ok, flat, 0.0), ok)).reshape(d.shape[1:])
+    fit = fit_revolutions(d - base[None], probe_angles_rad, engine_orders)
+    amp = np.sqrt(np.sum(fit.amp_pkpk_m ** 2, axis=2))
+    n_rev, nb = amp.shape
+    size = max(1, min(int(filter_revolutions), n_rev))
+    amp_s = uniform_filter1d(median_filter(_fill_nan(amp), size=(size, 1), mode="nearest"),
+                             size, axis=0, mode="nearest")
+    peak = np.argmax(amp_s, axis=0)
+    p_val = amp_s[peak, np.arange(nb)]
+    background = np.median(amp_s, axis=0)
+    significant = p_val > 3.0 * background
+    lo, hi = _contiguous(amp_s >= p_val / math.sqrt(2.0), peak)
+    width = (hi - lo + 1).astype(float)
+    thr = np.maximum(exclusion_level * p_val, 2.0 * background)
+    lo_x, hi_x = _contiguous(amp_s >= thr, peak)
+    margin = np.ceil(exclusion_margin * width).astype(np.int64)
+    idx = np.arange(n_rev)[:, None]
+    mask = (idx >= lo_x - margin) & (idx <= hi_x + margin) & significant
+    return ResonanceRegion(amp_pkpk_m=amp_s, peak_revolution=peak.astype(np.int64),
+                           half_power_width=width, significant=significant, mask=mask)
+
+
+def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray | None = None, *,
+                  degree: int = 2, robust: bool = True, noise_weighting: bool = True,
+                  iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Subtract a per blade/probe polynomial baseline in speed fitted outside ``exclude``.
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    omega_rad_s : ndarray, shape (n_rev,)
+    exclude : ndarray of bool, shape (n_rev, n_blades), optional
+        Revolutions left out of each blade's fit (the resonance region).
+    degree : int
+    robust : bool
+        Tukey bisquare reweighting (``c = 4.685`` MAD-scaled residuals).
+    noise_weighting : bool
+        Eq. 15 weights ``1 / Omega^2``.
+    iterations : int
+        Reweighting iterations when ``robust``.
+
+    Returns
+    -------
+    d_m, offset_m : ndarray, shape (n_rev, n_blades, n_probes)
+        Displacement minus baseline, and the baseline. A column with fewer than
+        ``3 (degree + 1)`` usable revolutions gets a constant (weighted mean) baseline, one
+        with none a zero baseline.
+    """
+    d = np.asarray(d_m, dtype=float)
+    n_rev, nb, npr = d.shape
+    om = np.asarray(omega_rad_s, dtype=float)
+    span = max(float(om.max() - om.min()), 1e-12)
+    x = (om - 0.5 * (om.max() + om.min())) / (0.5 * span)
+    V = np.vander(x, int(degree) + 1, increasing=True)  # (n_rev, p)
+    y = d.reshape(n_rev, nb * npr)
+    ok = np.isfinite(y)
+    w0 = ok.astype(float)
+    if exclude is not None:
+        w0 = w0 * np.repeat(~np.asarray(exclude, bool), npr, axis=1)
+    if noise_weighting:
+        w0 = w0 / (om * om / np.mean(om * om))[:, None]
+    yz = np.where(ok, y, 0.0)
+    p = V.shape[1]
+    enough = np.sum(w0 > 0, axis=0) >= 3 * p
+    w = w0.copy()
+    VV = (V[:, :, None] * V[:, None, :]).reshape(n_rev, p * p)
+    n_it = 1 + (int(iterations) if robust else 0)
+    for it in range(n_it):
+        G = (w.T @ VV).reshape(-1, p, p)
+        G[~enough] = np.eye(p)
+        rhs = (w * yz).T @ V
+        coef = np.linalg.solve(G, rhs[..., None])[..., 0].T
+        if it == n_it - 1:
+            break
+        r = yz - V @ coef
+        s = 1.4826 * _masked_median(np.abs(r), w0 > 0)
+        s = np.where(np.isfinite(s) & (s > 0), s, np.inf)
+        u = r / (4.685 * s)
+        w = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    offset = V @ coef
+    # columns without enough reference revolutions: weighted mean, or nothing at all
+    sw = w0.sum(axis=0)
+    with np.errstate(all="ignore"):
+        mean = np.where(sw > 0, (w0 * yz).sum(axis=0) / sw, 0.0)
+    offset[:, ~enough] = mean[~enough]
+    offset = offset.reshape(n_rev, nb, npr)
+    return d - offset, offset
+
+
+def speed_adaptive_half_width(omega_rad_s: np.ndarray, half_width_at_res: float, omega_res: float, *,
+                              adaptive: bool = True, lo: float = 2.0, hi: float = 40.0) -> np.ndarray:
+    """Smoother half-width per revolution: ``h_res (Omega / Omega_res)^2`` clipped to ``[lo, hi]``.
+
+    Returns
+    -------
+    ndarray, shape (n_rev,)
+    """
+    om = np.asarray(omega_rad_s, dtype=float)
+    h = np.full(om.shape, float(half_width_at_res))
+    if adaptive:
+        h = h * (om / float(omega_res)) ** 2
+    return np.clip(h, lo, hi)
+
+
+def _local_quadratic_weights(K: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Equivalent kernel of a local quadratic fit evaluated at its centre.
+
+    ``K`` (m, L) holds the sample weights (kernel x noise weights x validity) at offsets
+    ``j`` (L,); returns ``L`` (m, L) with ``estimate = sum_j L x_j``; rows whose 3x3 moment
+    matrix is singular get NaN.
+    """
+    M = np.stack([K @ j ** k for k in range(5)], axis=-1)  # (m, 5)
+    A = np.stack([M[:, 0:3], M[:, 1:4], M[:, 2:5]], axis=-2)  # (m, 3, 3)
+    det = np.linalg.det(A)
+    scale = np.maximum(np.abs(A).max(axis=(1, 2)) ** 3, 1e-300)
+    good = np.abs(det) > 1e-12 * scale
+    A[~good] = np.eye(3)
+    c = np.linalg.solve(A, np.broadcast_to(np.array([1.0, 0.0, 0.0]), (A.shape[0], 3))[..., None])[..., 0]
+    L = K * (c[:, 0:1] + c[:, 1:2] * j + c[:, 2:3] * j * j)
+    L[~good] = np.nan
+    return L
+
+
+def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
+                       weights: np.ndarray | None = None) -> np.ndarray:
+    """Local quadratic regression (tricube kernel) along the revolution axis.
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, ...)
+        Data; NaN samples are skipped and stay NaN in the output.
+    half_width : float or ndarray, shape (n_rev,)
+        Kernel half-width per revolution (revolutions, >= 1): the kernel is
+        ``(1 - |j / (h + 1)|^3)^3`` for ``|j| <= h``.
+    weights : ndarray, shape (n_rev,), optional
+        Sample weights along revolutions (e.g. inverse noise variance).
+
+    Returns
+    -------
+    ndarray, same shape as ``d_m``
+
+    Notes
+    -----
+    Without NaN every column shares the per-revolution equivalent kernel, applied as
+    ``2 H + 1`` shifted multiply-adds; the few outputs whose window holds a NaN solve their
+    own local fit. Windows are truncated at the ends of the run (the local quadratic then
+    extrapolates without the bias of a symmetric average).
+    """
+    d = np.asarray(d_m, dtype=float)
+    n = d.shape[0]
+    flat = d.reshape(n, -1)
+    h = np.broadcast_to(np.asarray(half_width, dtype=float), (n,))
+    if np.any(~np.isfinite(h)) or np.any(h < 1):
+        raise ValueError("half_width must be finite and >= 1")
+    H = int(np.ceil(h.max()))
+    j = np.arange(-H, H + 1, dtype=float)
+    w_rev = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
+    idx = np.arange(n)[:, None] + np.arange(-H, H + 1)[None, :]
+    inside = (idx >= 0) & (idx < n)
+    u = np.abs(j)[None, :] / (h[:, None] + 1.0)
+    K = np.where(u < 1.0, (1.0 - u ** 3) ** 3, 0.0) * np.where(inside, w_rev[np.clip(idx, 0, n - 1)], 0.0)
+    L = _local_quadratic_weights(K, j)
+    nan = np.isnan(flat)
+    xz = np.where(nan, 0.0, flat)
+    pad = np.zeros((n + 2 * H, flat.shape[1]))
+    pad[H:H + n] = xz
+    out = np.zeros_like(flat)
+    Lz = np.nan_to_num(L)
+    for k in range(2 * H + 1):
+        rows = np.flatnonzero(Lz[:, k])
+        if rows.size:
+            a, b = rows[0], rows[-1] + 1  # h(n) follows the speed: a contiguous range
+            out[a:b] += Lz[a:b, k, None] * pad[k + a:k + b]
+    out[np.any(np.isnan(L), axis=1)] = flat[np.any(np.isnan(L), axis=1)]
+    if np.any(nan):
+        # outputs whose window holds a missing sample: their own local fit, from the
+        # complete-data moments minus those of the missing samples (sparse), in u = j / (H + 1)
+        ncol = flat.shape[1]
+        uj = j / (H + 1.0)
+        M_full = np.stack([K @ uj ** k for k in range(5)])  # (5, n)
+        r0, c0 = np.nonzero(nan)
+        rows = r0[:, None] - np.arange(-H, H + 1)[None, :]  # outputs that see the sample at offset j
+        ok = (rows >= 0) & (rows < n)
+        rows_c = np.clip(rows, 0, n - 1)
+        kw = np.where(ok, K[rows_c, np.arange(2 * H + 1)[None, :]], 0.0)
+        lin = (rows_c * ncol + c0[:, None]).ravel()
+        hit = np.bincount(lin, weights=(kw > 0).ravel().astype(float), minlength=n * ncol) > 0
+        r, c = np.divmod(np.flatnonzero(hit), ncol)
+        pos = np.full(n * ncol, -1, dtype=np.int64)
+        pos[np.flatnonzero(hit)] = np.arange(r.size)
+        M = M_full[:, r].copy()  # (5, m)
+        sel = pos[lin]
+        for k in range(5):
+            M[k] -= np.bincount(sel[sel >= 0], weights=(kw * uj ** k).ravel()[sel >= 0], minlength=r.size)
+        Y = np.zeros((3, r.size))
+        for jj in range(2 * H + 1):
+            rr = r + jj - H
+            inside_r = (rr >= 0) & (rr < n)
+            kv = np.where(inside_r, K[r, jj], 0.0)
+            if not np.any(kv):
+                continue
+            xv = xz[np.clip(rr, 0, n - 1), c] * kv
+            Y[0] += xv
+            Y[1] += xv * uj[jj]
+            Y[2] += xv * uj[jj] ** 2
+        m0, m1, m2, m3, m4 = M
+        c00 = m2 * m4 - m3 * m3
+        c01 = m3 * m2 - m1 * m4
+        c02 = m1 * m3 - m2 * m2
+        det = m0 * c00 + m1 * c01 + m2 * c02
+        scale = np.maximum(np.abs(M).max(axis=0) ** 3, 1e-300)
+        good = np.abs(det) > 1e-10 * scale
+        with np.errstate(all="ignore"):
+            val = (c00 * Y[0] + c01 * Y[1] + c02 * Y[2]) / det
+        out[r, c] = np.where(good, val, flat[r, c])
+        out[nan] = np.nan
+    return out.reshape(d.shape)
+
+
+def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
+            options: PrepOptions = PrepOptions()) -> PreparedData:
+    """Run the data preparation (resonance location, offset removal, noise reduction).
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+        Raw Eq. 1 displacements, m.
+    omega_rad_s : ndarray, shape (n_rev,)
+        Mean speed per revolution, rad/s.
+    probe_angles_rad : array_like, shape (n_probes,)
+    engine_orders : int or sequence of int
+    options : PrepOptions
+
+    Returns
+    -------
+    PreparedData
+    """
+    d = np.asarray(d_m, dtype=float)
+    om = np.asarray(omega_rad_s, dtype=float)
+    n_rev = d.shape[0]
+    region = locate_resonance(d, probe_angles_rad, engine_orders,
+                              exclusion_level=options.exclusion_level,
+                              exclusion_margin=options.exclusion_margin)
+    out = d
+    offset = np.zeros_like(d)
+    if options.remove_offset:
+        out, offset = remove_offset(d, om, region.mask, degree=options.offset_degree,
+                                    robust=options.robust, noise_weighting=options.noise_weighting)
+    half = np.full(n_rev, np.nan)
+    if options.smooth and n_rev >= 3:
+        sig = region.significant
+        if options.smooth_half_width is not None:
+            h_res = float(options.smooth_half_width)
+        elif np.any(sig):
+            h_res = options.smooth_width_fraction * float(np.median(region.half_power_width[sig]))
+        else:
+            h_res = options.min_half_width
+        i_res = int(np.median(region.peak_revolution[sig])) if np.any(sig) else int(np.argmax(om))
+        half = speed_adaptive_half_width(om, h_res, om[i_res], adaptive=options.speed_adaptive,
+                                         lo=max(options.min_half_width, 1.0), hi=options.max_half_width)
+        w = 1.0 / (om * om) if options.noise_weighting else None
+        out = smooth_revolutions(out, half, w)
+    return PreparedData(d_m=out, offset_m=offset, region=region, half_width=half, options=options)
