@@ -114,10 +114,11 @@ def processed_messages(run: RecordedRun, result) -> list:
             omega_mean_rad_s=float(omega[i]), cn=fit.cn, amp_pkpk_m=fit.amp_pkpk_m[i, :, 0],
             phase_rad=fit.phase_rad[i, :, 0], dc_m=fit.dc_m[i], residual_m=fit.residual_rms_m[i],
             amp_std_m=fit.amp_std_m[i, :, 0]))
+        nd = int(result.fit_tw.dominant_nd[i])  # from the fits: no per-probe image ambiguity
         for p in range(tw.forward_m.shape[1]):
             out.append(codec.encode_travelling_wave(
                 run_id=run_id, rig=rig, seqs=seqs, revolution=rev, t_s=t, probe=p,
-                forward_m=tw.forward_m[i, p], backward_m=tw.backward_m[i, p]))
+                forward_m=tw.forward_m[i, p], backward_m=tw.backward_m[i, p], dominant_nd=nd))
     out.append(codec.encode_resonance_report(result.summary, run_id=run_id, rig=rig, seqs=seqs))
     return out
 

@@ -59,15 +59,20 @@ def main(conf: "zenoh.Config", rig: str = "rig1", *, summary_path: str | None = 
 
         def publish(outputs) -> None:
             for o in outputs:
-                put(codec.encode_blade_fits(
-                    run_id=meta.run_id, rig=rig, seqs=seqs, revolution=o.revolution, t_s=o.opr_s,
-                    engine_order=o.engine_orders[0], omega_mean_rad_s=o.omega_rad_s, cn=o.cn,
-                    amp_pkpk_m=o.amp_pkpk_m[:, 0], phase_rad=o.phase_rad[:, 0], dc_m=o.dc_m,
-                    residual_m=o.residual_rms_m, amp_std_m=o.amp_std_m[:, 0], freq_hz=float(o.freq_hz[0])))
+                for i, eo in enumerate(o.engine_orders):  # one BladeFits per engine order
+                    put(codec.encode_blade_fits(
+                        run_id=meta.run_id, rig=rig, seqs=seqs, revolution=o.revolution, t_s=o.opr_s,
+                        engine_order=eo, omega_mean_rad_s=o.omega_rad_s, cn=o.cn,
+                        amp_pkpk_m=o.amp_pkpk_m[:, i], phase_rad=o.phase_rad[:, i], dc_m=o.dc_m,
+                        residual_m=o.residual_rms_m, amp_std_m=o.amp_std_m[:, i], freq_hz=float(o.freq_hz[i])))
+                # the ND identified from the fits (all probes): a single probe cannot tell a
+                # wave from its image 2 EO - ND
+                nd = int(o.fit_tw.dominant_nd)
                 for p in range(o.probe_tw.forward_m.shape[0]):
                     put(codec.encode_travelling_wave(
                         run_id=meta.run_id, rig=rig, seqs=seqs, revolution=o.revolution, t_s=o.opr_s,
-                        probe=p, forward_m=o.probe_tw.forward_m[p], backward_m=o.probe_tw.backward_m[p]))
+                        probe=p, forward_m=o.probe_tw.forward_m[p], backward_m=o.probe_tw.backward_m[p],
+                        dominant_nd=nd))
 
         idle_since = None
         while not stop:
@@ -113,7 +118,7 @@ def main(conf: "zenoh.Config", rig: str = "rig1", *, summary_path: str | None = 
         summary = None
         if proc is not None and proc._opr.n >= 3:
             publish(proc.flush())
-            summary = proc.finish(tracker.peaks() if tracker is not None and tracker._amp is not None else None)
+            summary = proc.finish(tracker if score else None)
             put(codec.encode_resonance_report(summary, run_id=meta.run_id, rig=rig, seqs=seqs))
             if summary_path:
                 Path(summary_path).write_text(json.dumps(summary, indent=2) + "\n")
