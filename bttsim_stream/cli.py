@@ -215,6 +215,11 @@ def _angles(text: str) -> list[float]:
 def _cmd_validate(args: argparse.Namespace) -> None:
     import json
 
+    if args.processing:
+        from .process.validate import format_validation, validate as validate_processing
+
+        print(format_validation(validate_processing()))
+        return
     from .sim.validate import validate
 
     print(json.dumps(validate(), indent=2))
@@ -317,7 +322,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=int, default=10)
     p.set_defaults(func=_cmd_probes)
 
-    p = sub.add_parser("validate", help="check the simulator against the paper (Sec. 3.2-3.3.1)")
+    p = sub.add_parser("validate", help="check the simulator (or, --processing, the processing) against the paper")
+    p.add_argument("--processing", action="store_true",
+                   help="Table 2 (HP/AD/PAD x data prep.), ND 1 vs ND 14, Table 3 (about a minute)")
     p.set_defaults(func=_cmd_validate)
     return parser
 
