@@ -13,23 +13,9 @@ import numpy as np
 from .errors import BttsimError
 from .io import codec, keys
 from .io.mcap_io import read_recording
+from .sim.core import Truth
 
-__all__ = ["RecordedRun", "RecordedTruth", "load_run"]
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class RecordedTruth:
-    """Truth arrays of a recording (same fields as the simulator's ``Truth``)."""
-
-    opr_s: np.ndarray
-    omega_mean: np.ndarray
-    toa_s: np.ndarray
-    t_exp_s: np.ndarray
-    d_eqv_m: np.ndarray
-    d_tang_m: np.ndarray
-    d_z_m: np.ndarray
-    d_eq1_m: np.ndarray
-    d_eqv_pkpk_m: np.ndarray
+__all__ = ["RecordedRun", "load_run", "processed_messages", "with_processing"]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -42,7 +28,8 @@ class RecordedRun:
     revolution : ndarray of int64, shape (n_rev,)
     opr_s : ndarray, shape (n_rev,)
     toa_s : ndarray, shape (n_rev, n_blades, n_probes)
-    truth : RecordedTruth or None
+    truth : Truth or None
+        The simulator's :class:`~bttsim_stream.sim.core.Truth`, rebuilt from the truth channel.
     messages : list
         Every recorded message (key, payload, log_time_ns, sequence).
     """
@@ -51,7 +38,7 @@ class RecordedRun:
     revolution: np.ndarray
     opr_s: np.ndarray
     toa_s: np.ndarray
-    truth: RecordedTruth | None
+    truth: Truth | None
     messages: list
 
 
@@ -90,7 +77,7 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
     tr = None
     if truth and all(r in truth for r in revs):
         rows = [truth[r] for r in revs]
-        tr = RecordedTruth(
+        tr = Truth(
             opr_s=np.array([t.opr_s for t in rows]), omega_mean=np.array([t.omega_mean_rad_s for t in rows]),
             **{f: np.stack([getattr(t, f) for t in rows]) for f in
                ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m", "d_eqv_pkpk_m")})

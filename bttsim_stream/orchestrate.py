@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .errors import BttsimError
 
 __all__ = ["run_all"]
@@ -40,10 +42,9 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             realtime: bool = False, connect: list[str] | None = None, config: str | None = None,
             quiet: bool = False) -> dict:
     """Run the main job; returns the summary dict (also written to ``OUT/summary.json``)."""
-    import zenoh
-
     from .io import codec, keys
     from .scenario import Scenario, dumps_toml, load_scenario
+    from .sim.speed import speed_profile_from_scenario
     from .testing import free_port
     from .transport import make_config, open_session
 
@@ -97,7 +98,8 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             started.append(n)
         conf = make_config(connect=list(endpoints.values()) if embedded else list(connect or []),
                            config_file=config)
-        n_rev = None
+        speed = speed_profile_from_scenario(scn)
+        n_rev = int(np.floor((speed.angle(speed.duration_s) - np.deg2rad(scn.probes.opr_angle_deg)) / (2 * np.pi)))
         with open_session(conf) as session:
             state = {"rev": 0, "rpm": 0.0, "last": None}
 
@@ -108,19 +110,21 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
                 state["last"] = m.opr_s
                 state["rev"] = m.header.revolution + 1
 
+            def show():
+                el = time.monotonic() - t0
+                rev = state["rev"]
+                rem = f"{el * (n_rev - rev) / rev:5.1f} s" if rev else "  ?  "
+                print(f"\rrevolution {rev:5d}/{n_rev}  {state['rpm']:6.0f} rpm  elapsed {el:5.1f} s  "
+                      f"remaining {rem}", end="", file=sys.stderr, flush=True)
+
             sub = session.declare_subscriber(keys.opr_key(rig), on_opr)
             while procs["sim"].poll() is None:
                 time.sleep(0.25)
-                if n_rev is None:
-                    for r in session.get(keys.meta_key(rig), timeout=0.2):
-                        if r.ok is not None:
-                            n_rev = codec.decode_run_metadata(r.ok.payload.to_bytes()).n_revolutions
-                if not quiet and n_rev:
-                    el = time.monotonic() - t0
-                    rev = state["rev"]
-                    rem = el * (n_rev - rev) / rev if rev else float("nan")
-                    print(f"\rrevolution {rev:5d}/{n_rev}  {state['rpm']:6.0f} rpm  elapsed {el:5.1f} s  "
-                          f"remaining {rem:5.1f} s", end="", file=sys.stderr, flush=True)
+                if not quiet:
+                    show()
+            time.sleep(0.1)
+            if not quiet:
+                show()
             sub.undeclare()
         if not quiet:
             print(file=sys.stderr)

@@ -21,7 +21,7 @@ import zenoh
 
 from .errors import BttsimError
 
-__all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
+__all__ = ["NodeWatch", "run_program", "add_session_args", "config_from_args", "make_config", "pack_attachment",
            "unpack_attachment", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
            "open_session"]
 
@@ -40,6 +40,21 @@ def add_session_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration file")
     g.add_argument("--multicast-scouting", action="store_true",
                    help="enable multicast scouting (off by default: loopback-only runs)")
+
+
+def run_program(parser: argparse.ArgumentParser, body, argv=None) -> int:
+    """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into
+    one line ``bttsim: error: ...`` with exit status 2."""
+    import sys
+
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    try:
+        body(args)
+    except BttsimError as exc:
+        print(f"bttsim: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | None = None,

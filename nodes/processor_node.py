@@ -23,11 +23,10 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from bttsim_stream.errors import BttsimError
 from bttsim_stream.io import codec, keys
 from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
 from bttsim_stream.process.resonance import TruthPeakTracker, summary_table
-from bttsim_stream.transport import (NodeWatch, StopFlag, add_session_args, config_from_args,
+from bttsim_stream.transport import (NodeWatch, StopFlag, run_program, add_session_args, config_from_args,
                                      open_session, pack_attachment)
 
 log = logging.getLogger("bttsim.processor")
@@ -146,15 +145,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def run(argv=None) -> int:
-    args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
-        main(config_from_args(args), args.rig, summary_path=args.summary, score=not args.no_score,
-             options=ProcessOptions(prep=not args.no_prep, window=args.window), duration_s=args.duration)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return run_program(_parser(), lambda args: main(
+        config_from_args(args), args.rig, summary_path=args.summary, score=not args.no_score,
+        options=ProcessOptions(prep=not args.no_prep, window=args.window), duration_s=args.duration), argv)
 
 
 if __name__ == "__main__":

@@ -23,10 +23,9 @@ import time
 import zenoh
 import zenoh.ext as zx
 
-from bttsim_stream.errors import BttsimError
 from bttsim_stream.io import codec, keys
 from bttsim_stream.io.mcap_io import McapRecorder
-from bttsim_stream.transport import (NodeWatch, StopFlag, add_session_args, config_from_args,
+from bttsim_stream.transport import (NodeWatch, StopFlag, run_program, add_session_args, config_from_args,
                                      open_session, unpack_attachment)
 
 log = logging.getLogger("bttsim.recorder")
@@ -133,16 +132,12 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def run(argv=None) -> int:
-    args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
+    def body(args):
         summary = main(config_from_args(args), args.out, args.rig, duration_s=args.duration,
                        until=tuple(n for n in args.until.split(",") if n) or None)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary), flush=True)
-    return 0
+        print(json.dumps(summary), flush=True)
+
+    return run_program(_parser(), body, argv)
 
 
 if __name__ == "__main__":

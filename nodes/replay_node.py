@@ -21,7 +21,7 @@ import zenoh.ext as zx
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.io import keys
 from bttsim_stream.io.mcap_io import read_recording
-from bttsim_stream.transport import (StopFlag, add_session_args, config_from_args, open_session,
+from bttsim_stream.transport import (StopFlag, run_program, add_session_args, config_from_args, open_session,
                                      pack_attachment, wait_for_subscribers)
 
 log = logging.getLogger("bttsim.replay")
@@ -90,15 +90,9 @@ def _parser() -> argparse.ArgumentParser:
 def run(argv=None) -> int:
     from .sim_node import parse_rate
 
-    args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
-        main(config_from_args(args), args.mcap, rate=parse_rate(args.rate), wait_s=args.wait,
-             allow_truncated=args.allow_truncated, duration_s=args.duration)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return run_program(_parser(), lambda args: main(
+        config_from_args(args), args.mcap, rate=parse_rate(args.rate), wait_s=args.wait,
+        allow_truncated=args.allow_truncated, duration_s=args.duration), argv)
 
 
 if __name__ == "__main__":

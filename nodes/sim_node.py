@@ -26,7 +26,7 @@ import zenoh.ext as zx
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.io import keys
-from bttsim_stream.transport import (StopFlag, add_session_args, config_from_args, open_session,
+from bttsim_stream.transport import (StopFlag, run_program, add_session_args, config_from_args, open_session,
                                      pack_attachment, wait_for_liveliness)
 
 log = logging.getLogger("bttsim.sim_node")
@@ -136,17 +136,11 @@ def parse_rate(text: str) -> float | None:
 def run(argv=None) -> int:
     from bttsim_stream.scenario import Scenario, load_scenario
 
-    args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
-        scn = load_scenario(args.scenario) if args.scenario else Scenario()
-        main(config_from_args(args), scn, rate=parse_rate(args.rate), lossy=args.lossy,
-             truth=not args.no_truth, wait_for=args.wait_for, duration_s=args.duration,
-             revolutions=args.revolutions, linger_s=args.linger, progress=args.progress)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return run_program(_parser(), lambda args: main(
+        config_from_args(args), load_scenario(args.scenario) if args.scenario else Scenario(),
+        rate=parse_rate(args.rate), lossy=args.lossy, truth=not args.no_truth, wait_for=args.wait_for,
+        duration_s=args.duration, revolutions=args.revolutions, linger_s=args.linger,
+        progress=args.progress), argv)
 
 
 if __name__ == "__main__":

@@ -23,9 +23,8 @@ import zenoh
 import zenoh.ext as zx
 
 from bttsim_stream import views
-from bttsim_stream.errors import BttsimError
 from bttsim_stream.io import keys
-from bttsim_stream.transport import StopFlag, add_session_args, config_from_args, open_session
+from bttsim_stream.transport import StopFlag, add_session_args, config_from_args, open_session, run_program
 
 log = logging.getLogger("bttsim.viewer")
 
@@ -103,14 +102,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def run(argv=None) -> int:
-    args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
-        main(config_from_args(args), args)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return run_program(_parser(), lambda args: main(config_from_args(args), args), argv)
 
 
 if __name__ == "__main__":

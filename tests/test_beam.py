@@ -1,7 +1,6 @@
 """The beam element against closed-form beam theory."""
 
 import numpy as np
-import pytest
 import scipy.linalg as sla
 
 from bttsim_stream.model.beam import BeamSection, beam_matrices, rigid_offset_matrix

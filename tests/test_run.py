@@ -1,14 +1,12 @@
 """The main job, end to end: ``bttsim run`` as a new user runs it (separate node processes)."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import pytest
 
 from bttsim_stream.io.mcap_io import read_recording
 

@@ -5,7 +5,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 
-from bttsim_stream.scenario import Scenario, scenario_from_dict
+from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
 from bttsim_stream.sim.modal import (
     EnvelopeIntegrator,

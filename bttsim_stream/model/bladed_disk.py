@@ -30,7 +30,7 @@ the ring couplings into a Hermitian per-ND stiffness; each complex eigenvector o
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla

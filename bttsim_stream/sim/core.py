@@ -12,7 +12,7 @@ only a short tail of the grid is kept between chunks.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
