@@ -212,6 +212,14 @@ def _angles(text: str) -> list[float]:
     return vals
 
 
+def _cmd_study(args: argparse.Namespace) -> None:
+    from . import studies
+
+    rc = studies.main([args.name, "--out", args.out])
+    if rc:
+        raise BttsimError(f"study {args.name} failed")
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     import json
 
@@ -309,6 +317,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
     p.add_argument("--web-port", type=int, default=9090)
     p.set_defaults(func=_cmd_view)
+
+    p = sub.add_parser("study", help="reproduce one of the paper's studies into docs/results/")
+    p.add_argument("name", choices=("table2", "table3", "nd", "figures", "probe_count", "bench", "all"))
+    p.add_argument("--out", default="docs/results", help="output folder (docs/results)")
+    p.set_defaults(func=_cmd_study)
 
     p = sub.add_parser("cn", help="condition number of B (Eq. 16) for an EO and probe angles")
     p.add_argument("--eo", type=int, default=8)

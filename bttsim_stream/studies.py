@@ -272,15 +272,20 @@ def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) 
                 ["max E_A local peak > 10 % at CN 7.3",
                  (f"max E_A at CN 7.3: {rs[6]['max_E_A_pct']:.2f} % (largest over layouts "
                  f"{max(r['max_E_A_pct'] for r in rs):.2f} % at CN {max(rs, key=lambda r: r['max_E_A_pct'])['cn']:.1f})")],
+                ["max E_f has a local peak at CN 7.3 (mirroring max E_A)",
+                 (f"max E_f at CN 5.0 / 7.3 / 10.0: {rs[5]['max_E_f_pct']:.3f} / {rs[6]['max_E_f_pct']:.3f} / "
+                 f"{rs[7]['max_E_f_pct']:.3f} %")],
                 ["E_f < 0.62 % for all CN", f"max E_f <= {max(r['max_E_f_pct'] for r in rs):.3f} %"],
                 ["E_f < 0.31 % for CN 1.4-2.6",
                  f"max E_f <= {max(r['max_E_f_pct'] for r in rs if r['cn'] < 2.7):.3f} % for CN <= 2.6"],
             ]),
             "",
-            "Our errors grow with the CN as the paper's do (the fit amplifies the PAD noise by up to the "
-            "CN), but are smaller in absolute terms: our data preparation removes most of the PAD noise "
-            "before the fit, and the paper's commercial package has its own (proprietary) preparation "
-            "and peak identification. " + WHY,
+            ("Our errors grow with the CN as the paper's do: the least-squares fit (Eq. 16) amplifies what "
+             "noise the data preparation leaves by up to the CN. Mean E_A is close to the paper's bound "
+             "(about 4 % for CN < 10) and E_f stays well inside the paper's bounds. The paper's non-monotone "
+             "detail (a local max E_A peak over 10 % at CN 7.3) is a property of one noise realisation and "
+             "one blade's peak; ours is 9.0 % there, from a different noise realisation (our PAD noise is "
+             "deterministic in the crossing position within the grid step) and different processing. ") + WHY,
         ]
     data.update(wall_s=wall, figures=figs)
     _write(out_dir, "table3", "\n".join(text), data)
@@ -341,7 +346,7 @@ def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
          f"{res[1]['amp_mm'].mean():.3f} / {res[14]['amp_mm'].mean():.3f}", "-"],
         ["mean amplitude difference (A_ND1 - A_ND14) / A_ND14, BTT", f"{d['btt_amp_pct']:.2f} %", "11.62 %"],
         ["mean amplitude difference, d_eqv truth", f"{d['truth_amp_pct']:.2f} %", "11.48 % (ii) / 11.57 % (iii)"],
-        ["mean |amplitude difference| / A_ND1, BTT / truth", f"{d_abs_amp['btt']:.2f} % / {d_abs_amp['truth']:.2f} %", "-"],
+        ["mean abs(A_ND14 - A_ND1) / A_ND1, BTT / truth", f"{d_abs_amp['btt']:.2f} % / {d_abs_amp['truth']:.2f} %", "-"],
         ["mean E_A / E_f %, ND 1", f"{res[1]['mean_E_A_pct']:.3f} / {res[1]['mean_E_f_pct']:.4f}", "-"],
         ["mean E_A / E_f %, ND 14", f"{res[14]['mean_E_A_pct']:.3f} / {res[14]['mean_E_f_pct']:.4f}", "-"],
     ]
