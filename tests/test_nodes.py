@@ -156,11 +156,17 @@ def test_recorder_killed_mid_run_leaves_a_readable_file(tmp_path):
     assert res.returncode == 2 and res.stderr.count("\n") == 1 and "truncated" in res.stderr
 
 
-@pytest.mark.parametrize("content", [b"not an mcap at all", b"\x89MCAP0\r\n" + b"\x00" * 40], ids=["garbage", "corrupt"])
-def test_corrupt_mcap_to_replay_is_one_line_exit_2(content, tmp_path):
+SAMPLE = REPO / "recordings" / "resonance_window.mcap"
+
+
+@pytest.mark.parametrize("command", [["replay", "--wait", "0"], ["process"], ["view", "--rrd", "x.rrd"]],
+                         ids=["replay", "process", "view"])
+@pytest.mark.parametrize("content", [b"not an mcap at all", b"\x89MCAP0\r\n" + b"\x00" * 40, "cut"],
+                         ids=["garbage", "corrupt", "truncated"])
+def test_corrupt_or_truncated_mcap_is_one_line_exit_2(command, content, tmp_path):
     bad = tmp_path / "bad.mcap"
-    bad.write_bytes(content)
-    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", bad, "--wait", "0"], cwd=REPO,
+    bad.write_bytes(SAMPLE.read_bytes()[:1_500_000] if content == "cut" else content)
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", command[0], bad, *command[1:]], cwd=tmp_path,
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and res.stderr.startswith("bttsim: error:") and res.stderr.count("\n") == 1
 

@@ -508,3 +508,17 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     target = os.environ.get("BTTSIM_SAVE_SCREENSHOT")
     if target:
         shutil.copyfile(shot, target)
+
+
+def test_bttsim_view_of_the_sample_recording(tmp_path):
+    """`bttsim view recordings/<sample>.mcap --rrd out.rrd`: processed first, every view present."""
+    out = tmp_path / "sample.rrd"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "view",
+                          str(REPO / "recordings" / "resonance_window.mcap"), "--rrd", str(out)],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    rrd_verify(out)
+    ent = rrd_entities(out)
+    for path in ("/tw/probe_0", "/fit/amp_pkpk_mm", "/truth/amp_pkpk_mm", "/displacement/probe_0/btt",
+                 "/rotor/blades", "/campbell/families", "/resonance/table"):
+        assert path in ent, path
