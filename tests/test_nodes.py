@@ -12,6 +12,7 @@ import pytest
 import zenoh
 import zenoh.ext as zx
 
+from _procs import start as _start, stop as _stop
 from bttsim_stream.io import codec
 from bttsim_stream.io.mcap_io import read_recording
 from bttsim_stream.testing import free_port, virtual_acquisition
@@ -19,22 +20,6 @@ from bttsim_stream.transport import make_config, unpack_attachment
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT = "[speed]\nstart_rpm = 2500.0\nend_rpm = 2600.0\nduration_s = 2.0\n"
-
-
-def _start(*args, stdout=subprocess.PIPE):
-    return subprocess.Popen([sys.executable, "-m", *map(str, args)], cwd=REPO, stdout=stdout,
-                            stderr=subprocess.PIPE, text=True)
-
-
-def _stop(proc, sig=signal.SIGTERM, timeout=20):
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
 
 
 def _messages(path):

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _procs import start as _start, stop as _stop
 from bttsim_stream.io import codec, keys
 from bttsim_stream.io.mcap_io import McapRecorder, read_recording
 from bttsim_stream.testing import free_port
@@ -130,22 +131,6 @@ def rrd_entities(path: Path) -> dict[str, dict]:
         else:
             e["rows"] += chunk.num_rows
     return out
-
-
-def _start(*args):
-    return subprocess.Popen([sys.executable, "-m", *map(str, args)], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-
-
-def _stop(proc, sig=signal.SIGTERM, timeout=30):
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
 
 
 # --------------------------------------------------------------------------------------
