@@ -10,6 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from .defaults import DEFAULT_WEB_PORT
 from .errors import BttsimError
 
 __all__ = ["main", "build_parser"]
@@ -64,63 +65,22 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
     import time
 
     from .acquisition import simulate_to_mcap
+    from .runtime import Progress
 
     scn = _scenario(args.scenario)
     t0 = time.perf_counter()
-
-    def progress(n, total):
-        if not args.quiet:
-            print(f"\rrevolution {n}/{total}", end="", file=sys.stderr, flush=True)
-
-    out = simulate_to_mcap(scn, args.out, include_truth=not args.no_truth, progress=progress)
-    if not args.quiet:
-        print(file=sys.stderr)
+    progress = Progress(not args.quiet)
+    out = simulate_to_mcap(scn, args.out, include_truth=not args.no_truth,
+                           progress=lambda n, total: progress.update(f"revolution {n}/{total}"))
+    progress.close()
     print(f"wrote {args.out}: {out['messages']} messages, {out['revolutions']} revolutions, "
           f"run {out['run_id']}, {time.perf_counter() - t0:.1f} s")
 
 
-def _node_args(args: argparse.Namespace) -> list[str]:
-    out = ["-m", args.mode]
-    for e in args.connect:
-        out += ["-e", e]
-    for e in args.listen:
-        out += ["-l", e]
-    if args.config:
-        out += ["-c", args.config]
-    if args.multicast_scouting:
-        out.append("--multicast-scouting")
-    return out
+def _cmd_node(args: argparse.Namespace) -> None:
+    from .runtime import run_parsed
 
-
-def _cmd_replay(args: argparse.Namespace) -> None:
-    from .nodes import replay_node
-    from .nodes.sim_node import parse_rate
-    from .transport import config_from_args
-
-    res = replay_node.main(config_from_args(args), args.mcap, rate=parse_rate(args.rate), wait_s=args.wait,
-                           allow_truncated=args.allow_truncated, duration_s=args.duration)
-    print(f"replayed {res['messages']} of {res['of']} messages")
-
-
-def _cmd_record(args: argparse.Namespace) -> None:
-    import json
-
-    from .nodes import recorder_node
-    from .transport import config_from_args
-
-    until = tuple(n for n in args.until.split(",") if n) or None
-    print(json.dumps(recorder_node.main(config_from_args(args), args.out, args.rig,
-                                        duration_s=args.duration, until=until)))
-
-
-def _cmd_sim_node(args: argparse.Namespace) -> None:
-    from .nodes import sim_node
-    from .transport import config_from_args
-
-    sim_node.main(config_from_args(args), _scenario(args.scenario), rate=sim_node.parse_rate(args.rate),
-                  lossy=args.lossy, truth=not args.no_truth, wait_for=args.wait_for,
-                  duration_s=args.duration, revolutions=args.revolutions, linger_s=args.linger,
-                  progress=args.progress)
+    run_parsed(args)
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
@@ -133,8 +93,11 @@ def _cmd_process(args: argparse.Namespace) -> None:
     run = load_run(args.mcap)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
-    opts = ProcessOptions(expected_times="exact" if args.exact_expected else "opr", prep=not args.no_prep,
-                          window=args.window)
+    try:
+        opts = ProcessOptions(expected_times="exact" if args.exact_expected else "opr", prep=not args.no_prep,
+                              window=args.window)
+    except ValueError as exc:
+        raise BttsimError(str(exc)) from None
     result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth)
     summary = result.summary
     print(summary_table(summary))
@@ -164,14 +127,14 @@ def _cmd_view(args: argparse.Namespace) -> None:
     import time
 
     from .offline import with_processing
-    from .views import log_recording
+    from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
         src = with_processing(args.mcap, Path(tmp) / "processed.mcap")
         session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port)
         if args.web:
-            from .transport import StopFlag
+            from .bus.session import StopFlag
 
             print(f"web viewer: {session.sinks.web_url}  (Ctrl-C to stop)", flush=True)
             stop = StopFlag()
@@ -241,7 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output folder: run.mcap, views.rrd, summary.json")
     p.add_argument("--web", action="store_true", help="serve the Rerun web viewer and print its URL")
-    p.add_argument("--web-port", type=int, default=9090)
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
+                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
     p.add_argument("--realtime", action="store_true", help="pace the simulator like real hardware")
     p.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
                    help="join an existing Zenoh network instead of the embedded one")
@@ -263,44 +227,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", help="model file (.npz)")
     s.add_argument("--png", help="frequency vs ND plot (default: MODEL.png)")
     s.set_defaults(func=_cmd_model_show)
-    from .transport import add_session_args
-
     p = sub.add_parser("simulate", help="simulate a scenario straight to MCAP (no Zenoh)")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output MCAP file")
     p.add_argument("--no-truth", action="store_true", help="leave the truth channel out")
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_simulate)
 
-    p = sub.add_parser("sim-node", help="run the simulator node (publish a run-up on Zenoh)")
-    p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
-    p.add_argument("--rate", default="max", help="'max' (default), 'realtime', or a speed-up factor")
-    p.add_argument("--lossy", action="store_true", help="drop under congestion instead of blocking")
-    p.add_argument("--no-truth", action="store_true")
-    p.add_argument("--wait-for", type=int, default=0, metavar="N", help="wait for N other nodes")
-    p.add_argument("--duration", type=float)
-    p.add_argument("--revolutions", type=int)
-    p.add_argument("--linger", type=float, default=0.0)
-    p.add_argument("--progress", action="store_true")
-    add_session_args(p)
-    p.set_defaults(func=_cmd_sim_node)
+    from .nodes import program, programs
+    from .runtime import add_node_parser
 
-    p = sub.add_parser("record", help="record every bttsim/** sample to MCAP")
-    p.add_argument("--out", required=True)
-    p.add_argument("--rig", default="*")
-    p.add_argument("--duration", type=float)
-    p.add_argument("--until", default="sim", help="nodes whose end ends the recording (comma-separated)")
-    add_session_args(p)
-    p.set_defaults(func=_cmd_record)
-
-    p = sub.add_parser("replay", help="republish a recording on Zenoh")
-    p.add_argument("mcap")
-    p.add_argument("--rate", default="max", help="'max' (default), 'realtime', or a speed-up factor")
-    p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for subscribers (5)")
-    p.add_argument("--allow-truncated", action="store_true")
-    p.add_argument("--duration", type=float)
-    add_session_args(p)
-    p.set_defaults(func=_cmd_replay)
+    p = sub.add_parser("node", help="run one node program on Zenoh (sim, recorder, processor, viewer, replay)",
+                       description="Run one node program; `bttsim node NAME --help` lists its options.")
+    nsub = p.add_subparsers(dest="node", required=True, parser_class=_Parser)
+    for prog in programs():
+        add_node_parser(nsub, prog).set_defaults(func=_cmd_node)
+    # the same programs under their historical names
+    add_node_parser(sub, program("sim"), "sim-node").set_defaults(func=_cmd_node)
+    add_node_parser(sub, program("recorder"), "record").set_defaults(func=_cmd_node)
+    add_node_parser(sub, program("replay"), "replay").set_defaults(func=_cmd_node)
 
     p = sub.add_parser("process", help="process a recording offline into the resonance report")
     p.add_argument("mcap", help="recording (MCAP)")
@@ -315,7 +260,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
     p.add_argument("--rrd", help="write the views to this .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
-    p.add_argument("--web-port", type=int, default=9090)
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
+                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("study", help="reproduce one of the paper's studies into docs/results/")

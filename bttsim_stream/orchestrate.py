@@ -18,12 +18,16 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
+from .bus import codec, keys
+from .bus.session import free_port, make_config, open_session
+from .defaults import DEFAULT_WEB_PORT
 from .errors import BttsimError
+from .runtime import Progress
+from .scenario import Scenario, dumps_toml, load_scenario
 
-__all__ = ["run_all"]
+__all__ = ["run_all", "NODES"]
 
+#: The node programs of a run, in start order (the simulator last: it waits for the others).
 NODES = ("recorder", "processor", "viewer", "sim")
 
 
@@ -38,16 +42,10 @@ def _session_flags(listen: str | None, connect: list[str], config: str | None) -
     return out
 
 
-def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = 9090,
+def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = DEFAULT_WEB_PORT,
             realtime: bool = False, connect: list[str] | None = None, config: str | None = None,
             quiet: bool = False) -> dict:
     """Run the main job; returns the summary dict (also written to ``OUT/summary.json``)."""
-    from .io import codec, keys
-    from .scenario import Scenario, dumps_toml, load_scenario
-    from .sim.speed import speed_profile_from_scenario
-    from .testing import free_port
-    from .transport import make_config, open_session
-
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
     out = Path(out_dir)
     try:
@@ -65,13 +63,11 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     ports = {n: free_port() for n in NODES} if embedded else {}
     endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in ports.items()}
     args = {
-        "recorder": ["bttsim_stream.nodes.recorder_node", "--rig", rig, "--out", files["mcap"],
-                     "--until", "sim,processor"],
-        "processor": ["bttsim_stream.nodes.processor_node", "--rig", rig, "--summary", files["summary"]],
-        "viewer": ["bttsim_stream.nodes.viewer_node", "--rig", rig, "--rrd", files["rrd"]]
+        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
+        "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
+        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor"]
         + (["--web", "--web-port", str(web_port)] if web else []),
-        "sim": ["bttsim_stream.nodes.sim_node", scn_file, "--wait-for", "3",
-                "--rate", "realtime" if realtime else "max"],
+        "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
     }
     procs: dict[str, subprocess.Popen] = {}
     logs = {n: open(out / f"{n}.log", "w") for n in NODES}
@@ -86,48 +82,45 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
 
     old = {s: signal.signal(s, on_sigint) for s in (signal.SIGINT, signal.SIGTERM)}
     t0 = time.monotonic()
+    progress = Progress(not quiet)
     summary = None
     try:
         started: list[str] = []
         for n in NODES:
             flags = _session_flags(endpoints.get(n), [endpoints[m] for m in started] if embedded else
                                    list(connect or []), config)
-            procs[n] = subprocess.Popen([sys.executable, "-m", *map(str, args[n]), *flags],
+            procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *map(str, args[n]), *flags],
                                         stdout=logs[n], stderr=subprocess.STDOUT,
                                         start_new_session=True)  # Ctrl-C reaches only us
             started.append(n)
         conf = make_config(connect=list(endpoints.values()) if embedded else list(connect or []),
                            config_file=config)
-        speed = speed_profile_from_scenario(scn)
-        n_rev = int(np.floor((speed.angle(speed.duration_s) - np.deg2rad(scn.probes.opr_angle_deg)) / (2 * np.pi)))
         with open_session(conf) as session:
+            n_rev = _revolutions(procs, session, rig)
             state = {"rev": 0, "rpm": 0.0, "last": None}
 
             def on_opr(sample):
                 m = codec.decode_opr(sample.payload.to_bytes())
-                if state["last"] is not None and m.opr_s > state["last"]:
-                    state["rpm"] = 60.0 / (m.opr_s - state["last"])
-                state["last"] = m.opr_s
+                if state["last"] is not None and m.body.opr_s > state["last"]:
+                    state["rpm"] = 60.0 / (m.body.opr_s - state["last"])
+                state["last"] = m.body.opr_s
                 state["rev"] = m.header.revolution + 1
 
-            def show():
+            def line() -> str:
                 el = time.monotonic() - t0
                 rev = state["rev"]
-                rem = f"{el * (n_rev - rev) / rev:5.1f} s" if rev else "  ?  "
-                print(f"\rrevolution {rev:5d}/{n_rev}  {state['rpm']:6.0f} rpm  elapsed {el:5.1f} s  "
-                      f"remaining {rem}", end="", file=sys.stderr, flush=True)
+                rem = f"{el * (n_rev - rev) / rev:5.1f} s" if rev and n_rev else "  ?  "
+                return (f"revolution {rev:5d}/{n_rev}  {state['rpm']:6.0f} rpm  elapsed {el:5.1f} s  "
+                        f"remaining {rem}")
 
             sub = session.declare_subscriber(keys.opr_key(rig), on_opr)
             while procs["sim"].poll() is None:
                 time.sleep(0.25)
-                if not quiet:
-                    show()
+                progress.update(line())
             time.sleep(0.1)
-            if not quiet:
-                show()
+            progress.update(line(), force=True)
             sub.undeclare()
-        if not quiet:
-            print(file=sys.stderr)
+        progress.close()
         for n in ("processor", "recorder", "viewer"):
             try:
                 procs[n].wait(timeout=120)
@@ -140,6 +133,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         if files["summary"].exists():
             summary = json.loads(files["summary"].read_text())
     finally:
+        progress.close()
         for p in procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
@@ -154,3 +148,14 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             signal.signal(s, h)
     return {"summary": summary, "files": {k: str(v) for k, v in files.items()},
             "interrupted": interrupted, "wall_s": time.monotonic() - t0}
+
+
+def _revolutions(procs: dict, session, rig: str) -> int:
+    """The run's revolution count, from the simulator's metadata queryable (0 if it does not
+    answer before the simulator ends)."""
+    while procs["sim"].poll() is None:
+        for reply in session.get(keys.meta_key(rig), timeout=1.0):
+            if reply.ok is not None:
+                return codec.decode_run_metadata(reply.ok.payload.to_bytes()).body.n_revolutions
+        time.sleep(0.05)
+    return 0

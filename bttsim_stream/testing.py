@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -34,14 +33,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from .bus import codec, keys
+from .bus.session import free_port, make_config, open_session
+from .scenario import Scenario, dumps_toml, load_scenario, scenario_from_dict
+
 __all__ = ["free_port", "VirtualAcquisition", "virtual_acquisition", "virtual_acquisition_fixture"]
-
-
-def free_port() -> int:
-    """A free TCP port on 127.0.0.1."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass(frozen=True)
@@ -53,7 +49,7 @@ class VirtualAcquisition:
     endpoint : str
         Zenoh endpoint to connect to (``tcp/127.0.0.1:PORT``).
     rig : str
-    metadata : RunMetadataMsg
+    metadata : RunInfo
         The run's acquisition metadata (probe angles, blade count, tip radius, clock...).
     process : subprocess.Popen
     """
@@ -65,8 +61,6 @@ class VirtualAcquisition:
 
     def client_config(self):
         """A zenoh.Config that connects to the simulator (peer, loopback, no scouting)."""
-        from .transport import make_config
-
         return make_config(connect=[self.endpoint])
 
 
@@ -90,10 +84,6 @@ def virtual_acquisition(scenario: str | os.PathLike | dict | None = None, *, rev
     linger_s : float
         The node keeps serving metadata and its cache this long after the run.
     """
-    from .io import codec, keys
-    from .scenario import Scenario, dumps_toml, load_scenario, scenario_from_dict
-    from .transport import make_config, open_session
-
     with tempfile.TemporaryDirectory(prefix="bttsim-daq-") as tmp:
         if isinstance(scenario, dict):
             scn = scenario_from_dict(scenario)
@@ -121,7 +111,7 @@ def virtual_acquisition(scenario: str | os.PathLike | dict | None = None, *, rev
                         raise RuntimeError(f"simulator node exited: {proc.stderr.read().decode()[-500:]}")
                     for reply in session.get(keys.meta_key(scn.run.rig), timeout=0.5):
                         if reply.ok is not None:
-                            meta = codec.decode_run_metadata(reply.ok.payload.to_bytes())
+                            meta = codec.decode_run_metadata(reply.ok.payload.to_bytes()).body
                     if meta is None:
                         time.sleep(0.05)
             if meta is None:

@@ -1,1 +1,35 @@
-"""Runnable node programs (installed as ``bttsim_stream.nodes``)."""
+"""Runnable node programs (installed as ``bttsim_stream.nodes``).
+
+Each module is a thin program on the shared node runtime (:mod:`bttsim_stream.runtime`)
+and declares one :class:`~bttsim_stream.runtime.NodeProgram` (``PROGRAM``): its name, help,
+arguments and ``main``. Run one as ``bttsim node NAME ...``, ``python -m
+bttsim_stream.nodes NAME ...``, ``python -m bttsim_stream.nodes.<module> ...`` or its console
+script (``bttsim-sim-node``, ``bttsim-recorder``, ``bttsim-processor``, ``bttsim-viewer``,
+``bttsim-replay``): the same flags and help everywhere.
+
+=============  ====================  ===============================================
+name           module                what it does
+=============  ====================  ===============================================
+``sim``        ``sim_node``          publishes a scenario's run-up (OPR, TOAs, truth)
+``recorder``   ``recorder_node``     records every key of a rig to MCAP
+``processor``  ``processor_node``    fits, travelling waves, resonance report (blind)
+``viewer``     ``viewer_node``       Rerun views of the bus
+``replay``     ``replay_node``       republishes a recording
+=============  ====================  ===============================================
+"""
+
+import importlib
+
+#: Node name -> module (in this package).
+MODULES = {"sim": "sim_node", "recorder": "recorder_node", "processor": "processor_node",
+           "viewer": "viewer_node", "replay": "replay_node"}
+
+
+def program(name: str):
+    """The :class:`~bttsim_stream.runtime.NodeProgram` of node ``name``."""
+    return importlib.import_module(f"{__name__}.{MODULES[name]}").PROGRAM
+
+
+def programs() -> list:
+    """Every node program, in the order of :data:`MODULES`."""
+    return [program(n) for n in MODULES]

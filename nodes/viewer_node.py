@@ -1,14 +1,14 @@
 """Viewer node: streams a rig's bus to Rerun views (an .rrd file, a native viewer, the web viewer).
 
 Inputs: every key of the rig, ``bttsim/<rig>/**`` (run metadata, OPR, TOA batches, truth,
-blade fits, travelling waves, resonance reports), pulled from a FIFO on the main thread and
-fed to :class:`bttsim_stream.views.LiveViews` (batched, flushed every 0.2 s).
-Outputs: Rerun only (``--rrd OUT.rrd``, ``--rerun-url URL``, ``--web``); its liveliness token
+blade fits, travelling waves, resonance reports), fed to
+:class:`bttsim_stream.views.LiveViews` (batched, flushed every 0.2 s). Outputs: Rerun only
+(``--rrd OUT.rrd``, ``--rerun-url URL``, ``--web``); its liveliness token
 ``bttsim/<rig>/alive/viewer`` (a simulator started with ``--wait-for`` counts it).
 
-Stops when the simulator's token (``alive/sim``) goes away after having been seen (with
-``--web`` it keeps serving until stopped), after ``--duration`` seconds, or on SIGINT /
-SIGTERM; the .rrd is finalised in every case.
+Stops when the nodes named by ``--until`` (default: the simulator) have gone and the bus is
+drained (with ``--web`` it keeps serving until stopped), after ``--duration`` seconds, or on
+SIGINT / SIGTERM; the .rrd is finalised in every case.
 """
 
 from __future__ import annotations
@@ -16,69 +16,41 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import threading
-import time
 
-import zenoh
-import zenoh.ext as zx
-
-from bttsim_stream import views
-from bttsim_stream.io import keys
-from bttsim_stream.transport import StopFlag, add_session_args, config_from_args, open_session, run_program
+from bttsim_stream.bus import keys
+from bttsim_stream.bus.session import StopFlag
+from bttsim_stream.defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
 
 
-def main(conf: "zenoh.Config", options) -> None:
-    """Show the rig's bus until stopped.
+def main(conf, args: argparse.Namespace) -> None:
+    """Show the rig's bus until stopped (options: see :func:`add_arguments`)."""
+    from bttsim_stream import views  # rerun takes 0.5 s to import: not for every ``bttsim --help``
 
-    ``options`` has ``rig``, ``rrd``, ``web``, ``web_port``, ``grpc_port``, ``rerun_url`` and
-    ``duration`` (an :class:`argparse.Namespace` from :func:`run`, or any such object).
-    """
-    rig = keys.validate_rig(options.rig)
-    stop = StopFlag(options.duration)
-    rec, sinks = views.open_recording(rrd_path=options.rrd, grpc_url=options.rerun_url, serve_web=options.web,
-                                      web_port=options.web_port, grpc_port=options.grpc_port)
+    rig = keys.validate_rig(args.rig)
+    stop = StopFlag(args.duration)
+    rec, sinks = views.open_recording(rrd_path=args.rrd, grpc_url=args.rerun_url, serve_web=args.web,
+                                      web_port=args.web_port, grpc_port=args.grpc_port)
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
-    sim_seen, sim_gone = threading.Event(), threading.Event()
-
-    def on_alive(sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            sim_seen.set()
-        elif sim_seen.is_set():
-            sim_gone.set()
-
     try:
-        with open_session(conf) as session:
+        with node_session(conf, rig, "viewer") as node:
             # subscriber before the token: a simulator waiting for our token finds our subscription
-            sub = zx.declare_advanced_subscriber(
-                session, keys.all_key(rig), handler=zenoh.handlers.FifoChannel(1 << 16),
-                history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
-                recovery=None, subscriber_detection=False, allowed_origin=None)
-            watch = session.liveliness().declare_subscriber(keys.alive_key(rig, "sim"), on_alive, history=True)
-            token = session.liveliness().declare_token(keys.alive_key(rig, "viewer"))
-            idle_since = None
-            while not stop:
-                sample = sub.try_recv()
-                if sample is not None:
-                    idle_since = None
+            node.subscribe(keys.all_key(rig), history=True)
+            node.watch_nodes(tuple(n for n in args.until.split(",") if n) or ("sim",))
+            node.announce()
+            for sample in node.samples(stop, poll_s=0.02):
+                if sample is None:
+                    live.poll()
+                else:
                     live.feed(str(sample.key_expr), sample.payload.to_bytes())
-                    continue
-                live.poll()
-                if sim_gone.is_set():
-                    idle_since = idle_since or time.monotonic()
-                    if time.monotonic() - idle_since > 0.5:  # drained
-                        break
-                time.sleep(0.002)
-            token.undeclare()
-            watch.undeclare()
-            sub.undeclare()
         live.close()
         log.info("showed %d messages (%d revolutions, %d fits, %d travelling waves)", live.stats["messages"],
                  live.stats["revolutions"], live.stats["fits"], live.stats["tw"])
-        if options.web and not stop:
+        if args.web and not stop:
             log.info("run ended; serving the web viewer until stopped (Ctrl-C)")
             while not stop.wait(0.2):
                 pass
@@ -87,22 +59,26 @@ def main(conf: "zenoh.Config", options) -> None:
         rec.disconnect()
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bttsim-viewer", description=__doc__.splitlines()[0])
-    p.add_argument("--rig", default="rig1", help="rig to show (default rig1)")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", default="rig1", help="rig to show (rig1)")
     p.add_argument("--rrd", metavar="OUT.rrd", help="write an .rrd file (open it with: rerun OUT.rrd)")
     p.add_argument("--rerun-url", metavar="URL",
                    help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
-    p.add_argument("--web", action="store_true", help="serve the web viewer (prints its URL)")
-    p.add_argument("--web-port", type=int, default=9090, help="web viewer HTTP port (9090)")
-    p.add_argument("--grpc-port", type=int, default=9876, help="port of the web viewer's data server (9876)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
-    add_session_args(p)
-    return p
+    p.add_argument("--web", action="store_true", help="serve the web viewer on loopback (prints its URL)")
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
+                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
+                   help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
+    p.add_argument("--until", default="sim", metavar="NODES",
+                   help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+
+
+PROGRAM = NodeProgram("viewer", __doc__, add_arguments, main)
 
 
 def run(argv=None) -> int:
-    return run_program(_parser(), lambda args: main(config_from_args(args), args), argv)
+    return run_node(PROGRAM, argv)
 
 
 if __name__ == "__main__":

@@ -51,6 +51,7 @@ __all__ = [
     "expected_times",
     "btt_displacement",
     "compute_displacements",
+    "displacements_from_phase",
     "identify_blades",
 ]
 
@@ -158,6 +159,11 @@ class RotorPhase:
     omega0_rad_s: np.ndarray
     alpha_rad_s2: np.ndarray
     omega_mean_rad_s: np.ndarray
+
+    def rows(self, sel) -> "RotorPhase":
+        """The model of some revolutions (``sel``: a slice or index array along axis 0)."""
+        return RotorPhase(opr_s=self.opr_s[sel], omega0_rad_s=self.omega0_rad_s[sel],
+                          alpha_rad_s2=self.alpha_rad_s2[sel], omega_mean_rad_s=self.omega_mean_rad_s[sel])
 
     def angle(self, t_s: np.ndarray) -> np.ndarray:
         """Rotor angle since the revolution's OPR pulse at times ``t_s`` (axis 0 = revolution), rad."""
@@ -274,9 +280,7 @@ def calibrate_arrival_angles(phase: RotorPhase, toa_s: np.ndarray,
     toa = np.asarray(toa_s, dtype=float)[sel]
     if toa.shape[0] == 0:
         raise ValueError("the calibration window holds no revolution")
-    sub = RotorPhase(opr_s=phase.opr_s[sel], omega0_rad_s=phase.omega0_rad_s[sel],
-                     alpha_rad_s2=phase.alpha_rad_s2[sel], omega_mean_rad_s=phase.omega_mean_rad_s[sel])
-    ang = sub.angle(toa)
+    ang = phase.rows(sel).angle(toa)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN column stays NaN
         return np.nanmedian(ang, axis=0)
@@ -299,11 +303,17 @@ def expected_times(phase: RotorPhase, arrival_angles_rad: np.ndarray, toa_s: np.
     ndarray, shape (n_rev, n_blades, n_probes)
         ``t_exp``, s.
     """
-    psi = np.asarray(arrival_angles_rad, dtype=float)[None]
-    measured = phase.angle(toa_s)
-    k = np.round((measured - psi) / TWO_PI)
-    k = np.where(np.isfinite(k), k, 0.0)
-    return phase.time_at_angle(psi + TWO_PI * k)
+    return phase.opr_s[:, None, None] + _expected_delay(phase, np.asarray(toa_s, dtype=float),
+                                                        np.asarray(arrival_angles_rad, dtype=float))
+
+
+def _expected_delay(phase: RotorPhase, toa: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """Time after each revolution's OPR pulse at which the rotor model reaches the
+    representative ``psi + 2 pi k`` nearest to the measured angle of each TOA (``k = 0``
+    where the TOA is missing), s."""
+    psi = psi[None]
+    k = np.round((phase.angle(toa) - psi) / TWO_PI)
+    return phase.delay_at_angle(psi + TWO_PI * np.where(np.isfinite(k), k, 0.0))
 
 
 def btt_displacement(omega_rad_s: np.ndarray, tip_radius_m: float, t_exp_s: np.ndarray,
@@ -395,13 +405,40 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
         psi = np.where(np.isfinite(psi), psi, nominal)
     else:
         psi, method = geometry.nominal_arrival_angles(), "nominal"
-    # times relative to the OPR pulse: no cancellation of the absolute time (130 s) in Eq. 1
-    tau = toa - opr[:, None, None]
-    measured = phase.angle(toa)
-    k = np.round((measured - psi[None]) / TWO_PI)
-    tau_exp = phase.delay_at_angle(psi[None] + TWO_PI * np.where(np.isfinite(k), k, 0.0))
-    d = btt_displacement(phase.omega_mean_rad_s, geometry.tip_radius_m, tau_exp, tau)
+    d, tau_exp = displacements_from_phase(phase, toa, psi, geometry.tip_radius_m)
     return Displacements(d, phase.omega_mean_rad_s, opr[:, None, None] + tau_exp, psi, method)
+
+
+def displacements_from_phase(phase: RotorPhase, toa_s: np.ndarray, arrival_angles_rad: np.ndarray,
+                             tip_radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 1 displacements of some revolutions, given their rotor phase and arrival angles.
+
+    This is the one implementation of Eq. 1 with OPR-based expected times: the offline
+    pipeline (:func:`compute_displacements`), the streaming processor (one revolution at a
+    time) and the views all call it.
+
+    Parameters
+    ----------
+    phase : RotorPhase
+        The rotor angle model of these revolutions (:func:`rotor_phase_from_opr`, or rows of it).
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+        TOAs, s (NaN: missing).
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes)
+        ``psi``: nominal or calibrated (:func:`calibrate_arrival_angles`).
+    tip_radius_m : float
+
+    Returns
+    -------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+        ``Omega R (t_exp - t_TOA)``, m.
+    tau_exp_s : ndarray, shape (n_rev, n_blades, n_probes)
+        Expected arrival times after the revolution's OPR pulse, s.
+    """
+    toa = np.asarray(toa_s, dtype=float)
+    tau_exp = _expected_delay(phase, toa, np.asarray(arrival_angles_rad, dtype=float))
+    # times relative to the OPR pulse: no cancellation of the absolute time (130 s) in Eq. 1
+    tau = toa - phase.opr_s[:, None, None]
+    return btt_displacement(phase.omega_mean_rad_s, tip_radius_m, tau_exp, tau), tau_exp
 
 
 def identify_blades(opr_s: np.ndarray, pulse_s: np.ndarray, probe_angle_rad: float,
@@ -446,8 +483,7 @@ def identify_blades(opr_s: np.ndarray, pulse_s: np.ndarray, probe_angle_rad: flo
         return out
     phase = rotor_phase_from_opr(opr)
     n = np.clip(np.searchsorted(opr, t, side="right") - 1, 0, nr - 1)
-    tau = t - opr[n]
-    total = TWO_PI * n + tau * (phase.omega0_rad_s[n] + 0.5 * phase.alpha_rad_s2[n] * tau)
+    total = TWO_PI * n + phase.rows(n).angle(t)
     psi = np.mod(float(probe_angle_rad) - geometry.blade_angles_rad - geometry.opr_angle_rad, TWO_PI)
     order = np.argsort(psi)
     ps = psi[order]

@@ -30,14 +30,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .displacement import (TWO_PI, Displacements, Geometry, calibrate_arrival_angles, compute_displacements,
-                           rotor_phase_from_opr)
+                           displacements_from_phase, rotor_phase_from_opr)
 from .fit import SineFit, design_matrix, fit_revolutions
 from .prep import PreparedData, PrepOptions, prepare
 from .resonance import (ResonanceReport, TruthPeaks, TruthPeakTracker, find_peaks, resonance_report,
                         truth_peaks as _truth_peaks)
-from .travelling_wave import TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra
+from .travelling_wave import ProbeWave, TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra
 
-__all__ = ["ProcessOptions", "ProcessingResult", "RevolutionOutput", "StreamingProcessor",
+__all__ = ["ProcessOptions", "ProcessingResult", "RevolutionFit", "RevolutionOutput", "StreamingProcessor",
            "process_arrays", "engine_orders_of"]
 
 EXPECTED_TIMES = ("opr", "exact")
@@ -199,6 +199,40 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class RevolutionFit:
+    """One revolution's sine fits of every blade at one engine order (Eq. 16-17): what the
+    processor publishes per revolution and EO (``bttsim.v1.BladeFits``).
+
+    Attributes
+    ----------
+    engine_order : int
+    omega_rad_s : float
+        Mean speed of the revolution, rad/s.
+    freq_hz : float
+        ``f_BTT = EO Omega / (2 pi)`` (Eq. 17), Hz.
+    cn : float
+        Condition number of ``B`` (Eq. 16).
+    amp_pkpk_m, phase_rad, dc_m, residual_rms_m, amp_std_m : ndarray, shape (n_blades,)
+        Peak-to-peak amplitude (m), phase (rad), DC offset ``a0`` (m), RMS fit residual (m)
+        and the amplitude's standard deviation (m).
+    """
+
+    engine_order: int
+    omega_rad_s: float
+    freq_hz: float
+    cn: float
+    amp_pkpk_m: np.ndarray
+    phase_rad: np.ndarray
+    dc_m: np.ndarray
+    residual_rms_m: np.ndarray
+    amp_std_m: np.ndarray
+
+    @property
+    def n_blades(self) -> int:
+        return int(self.amp_pkpk_m.size)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class RevolutionOutput:
     """What the streaming processor emits for one revolution.
 
@@ -241,6 +275,23 @@ class RevolutionOutput:
     fit_tw: TravellingWaveSpectra
     calibrated: bool
 
+    def fits(self) -> tuple[RevolutionFit, ...]:
+        """The revolution's fits, one per engine order (as published)."""
+        return tuple(RevolutionFit(
+            engine_order=int(eo), omega_rad_s=float(self.omega_rad_s), freq_hz=float(self.freq_hz[i]),
+            cn=float(self.cn), amp_pkpk_m=self.amp_pkpk_m[:, i], phase_rad=self.phase_rad[:, i],
+            dc_m=self.dc_m, residual_rms_m=self.residual_rms_m, amp_std_m=self.amp_std_m[:, i])
+            for i, eo in enumerate(self.engine_orders))
+
+    def probe_waves(self) -> tuple[ProbeWave, ...]:
+        """Each probe's travelling-wave spectrum (first EO), labelled with the ND identified
+        from the fits of all probes: a single probe cannot tell a wave from its image
+        ``2 EO - ND``."""
+        nd = int(self.fit_tw.dominant_nd)
+        tw = self.probe_tw
+        return tuple(ProbeWave(probe=p, forward_m=tw.forward_m[p], backward_m=tw.backward_m[p], nd=nd)
+                     for p in range(tw.forward_m.shape[0]))
+
 
 class _Growable:
     """An array that grows along axis 0 by doubling."""
@@ -275,7 +326,8 @@ class StreamingProcessor:
     Notes
     -----
     Latency: the outputs of revolution ``n`` come out of ``push`` of revolution
-    ``n + 1 + window // 2`` (:attr:`latency_revolutions`). A gap in the revolution numbers
+    ``n + 1 + window // 2`` (:attr:`latency_revolutions`; revolution 0 waits one more for the
+    acceleration of revolution 1, as offline). A gap in the revolution numbers
     (lost messages) is filled with revolutions without arrivals and interpolated OPR times.
 
     Examples
@@ -371,7 +423,9 @@ class StreamingProcessor:
         self._opr.append(float(opr_s))
         self._toa.append(toa)
         out = []
-        while self._n_done < self._opr.n - 1:
+        # revolution k needs OPR k+1 for its speed (and revolution 0 also OPR 2, for the
+        # acceleration of revolution 1)
+        while self._n_done < self._opr.n - 1 and (self._n_done > 0 or self._opr.n >= 3):
             self._displace(self._n_done, final=False)
             self._n_done += 1
             out.extend(self._emit_ready(final=False))
@@ -381,8 +435,8 @@ class StreamingProcessor:
         """Outputs of the revolutions still pending at the end of the stream (the last
         revolution uses an extrapolated speed)."""
         out = []
-        if self._opr.n >= 2 and self._n_done < self._opr.n:
-            self._displace(self._n_done, final=True)
+        while self._opr.n >= 2 and self._n_done < self._opr.n:
+            self._displace(self._n_done, final=self._n_done == self._opr.n - 1)
             self._n_done += 1
         out.extend(self._emit_ready(final=True))
         return out
@@ -414,40 +468,27 @@ class StreamingProcessor:
         return self.result.summary
 
     # -- per revolution -------------------------------------------------------------------
-    def _speed_and_phase(self, k: int, final: bool) -> tuple[float, float, float]:
-        """Mean speed, speed at the OPR pulse and acceleration of revolution ``k`` (the
-        formulas of :func:`~.displacement.rotor_phase_from_opr`, on plain floats)."""
-        opr = self._opr.array
-        if not final:
-            T = float(opr[k + 1] - opr[k])
-        else:  # last revolution: extrapolate the mean speed linearly
-            om = [TWO_PI / float(opr[i + 1] - opr[i]) for i in range(max(0, k - 2), k)]
-            T = TWO_PI / (2 * om[-1] - om[-2] if len(om) >= 2 else om[-1])
-        if k >= 1:
-            S = float(opr[k] - opr[k - 1])
-            alpha = 2.0 * TWO_PI * (S - T) / (T * S * (T + S))
-        else:
-            alpha = 0.0  # the first revolution has no previous pulse yet
-        return TWO_PI / T, (TWO_PI - 0.5 * alpha * T * T) / T, alpha
-
     def _displace(self, k: int, final: bool) -> None:
-        om, w0, alpha = self._speed_and_phase(k, final)
-        tau = self._toa.array[k] - self._opr.array[k]
-        ang = tau * (w0 + 0.5 * alpha * tau)
+        """Eq. 1 of revolution ``k`` with the offline pipeline's rotor phase: the quadratic
+        model through OPR pulses ``k-1, k, k+1`` (revolution 0 takes revolution 1's
+        acceleration; the last one, at the end, an extrapolated speed), so that the streamed
+        displacements are the offline ones."""
+        opr = self._opr.array
         if self._cal_window is not None and not self._calibrated and k + 1 >= self._cal_window[1]:
             # the same arrival angles as offline: the window's phase model from its OPRs
             stop = self._cal_window[1]
             n_opr = min(stop + 1, self._opr.n)
-            phase = rotor_phase_from_opr(self._opr.array[:n_opr])
+            phase = rotor_phase_from_opr(opr[:n_opr])
             psi = calibrate_arrival_angles(phase, self._toa.array[:n_opr], self._cal_window)
             self._psi = np.where(np.isfinite(psi), psi, self._psi)
             self._calibrated = True
-        psi = self._psi
-        # a missing TOA gives NaN turns, target and displacement: nothing else to do
-        target = psi + TWO_PI * np.round((ang - psi) * (1.0 / TWO_PI))
-        t_exp = 2.0 * target / (w0 + np.sqrt(w0 * w0 + 2.0 * alpha * target))
-        self._d.append((om * self.geometry.tip_radius_m) * (t_exp - tau))
-        self._omega.append(om)
+        lo = max(0, k - 2) if final else max(0, k - 1)
+        row = k - lo
+        hi = k + 1 if final else max(k + 2, 3)
+        phase = rotor_phase_from_opr(opr[lo:hi]).rows(slice(row, row + 1))
+        d, _ = displacements_from_phase(phase, self._toa.array[k][None], self._psi, self.geometry.tip_radius_m)
+        self._d.append(d[0])
+        self._omega.append(float(phase.omega_mean_rad_s[0]))
         self._was_calibrated.append(self._calibrated or self._cal_window is None)
 
     def _solver(self, present: tuple):

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TravellingWaveSpectra", "probe_spectra", "fit_spectra", "identify_nd", "signed_nd"]
+__all__ = ["TravellingWaveSpectra", "ProbeWave", "probe_spectra", "fit_spectra", "identify_nd", "signed_nd"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -76,6 +76,37 @@ class TravellingWaveSpectra:
         vf = np.take_along_axis(f, i_f[..., None], -1)[..., 0]
         vb = np.take_along_axis(b, i_b[..., None], -1)[..., 0]
         return np.where(vb > vf, -i_b, i_f)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ProbeWave:
+    """One probe's travelling-wave spectrum of one revolution, as the processor publishes it
+    (``bttsim.v1.TravellingWave``).
+
+    Attributes
+    ----------
+    probe : int
+    forward_m, backward_m : ndarray, shape (n_nd,)
+        Forward and backward magnitudes by nodal diameter 0..n_nd-1, m.
+    nd : int
+        The revolution's nodal diameter (signed: negative for a backward wave), identified
+        from the fits of every probe.
+    """
+
+    probe: int
+    forward_m: np.ndarray
+    backward_m: np.ndarray
+    nd: int
+
+    @property
+    def n_nd(self) -> int:
+        return int(self.forward_m.size)
+
+    def signed_spectrum(self) -> np.ndarray:
+        """Magnitudes by signed ND, rows ``+(n_nd-1) .. 0 .. -(n_nd-1)`` (forward positive),
+        shape (2 n_nd - 1,); ND 0 is the larger of its two estimates."""
+        zero = np.fmax(self.forward_m[:1], self.backward_m[:1])
+        return np.concatenate([self.forward_m[:0:-1], zero, self.backward_m[1:]])
 
 
 def signed_nd(bin_index, n_blades: int):

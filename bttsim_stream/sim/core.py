@@ -49,6 +49,27 @@ class RunInfo:
     toa_method : str
     duration_s : float
     seed : int
+    rig : str
+    sensing_angles_rad : ndarray, shape (n_blades,), or None
+        Angle of each blade's nominal sensing point P_nom in the rotor frame at rotor angle 0
+        (the model's ``tip_ref[:, nominal_node, 1]``), rad; None: unknown.
+    family_freq_hz : ndarray, shape (n_families, n_blades // 2 + 1), or None
+        The model's mode family frequencies per nodal diameter (Campbell diagram), Hz.
+    speed_range_rpm : tuple of float
+        Slowest and fastest speed of the run's speed profile, rpm ((0, 0): unknown).
+    run_id : str
+        Identifies the run on the bus ("" until published).
+    scenario_toml : str
+        The run's full scenario file ("" when not known).
+    software_version : str
+    has_truth : bool
+        Whether the run publishes ground truth on its own key.
+
+    Notes
+    -----
+    This is what travels as ``bttsim.v1.RunMetadata`` (:mod:`bttsim_stream.bus.codec`): the
+    simulator fills the acquisition fields, the publisher adds ``run_id``, ``scenario_toml``,
+    ``software_version`` and ``has_truth`` (:func:`dataclasses.replace`).
     """
 
     n_blades: int
@@ -66,6 +87,18 @@ class RunInfo:
     duration_s: float
     seed: int
     rig: str = "rig1"
+    sensing_angles_rad: np.ndarray | None = None
+    family_freq_hz: np.ndarray | None = None
+    speed_range_rpm: tuple = (0.0, 0.0)
+    run_id: str = ""
+    scenario_toml: str = ""
+    software_version: str = ""
+    has_truth: bool = False
+
+    @property
+    def tick_s(self) -> float:
+        """TOA clock period, s (0 when not quantised)."""
+        return 1.0 / self.clock_hz if self.clock_hz > 0 else 0.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -218,7 +251,10 @@ class RunUpSimulator:
             clock_hz=acq.clock_hz, stagger_deg=float(m.meta["stagger_deg"]),
             engine_orders=tuple(int(e.engine_order) for e in scn.excitation),
             nodal_diameters=tuple(int(e.nodal_diameter) for e in scn.excitation),
-            toa_method=scn.toa.method, duration_s=self.speed.duration_s, seed=seed, rig=scn.run.rig)
+            toa_method=scn.toa.method, duration_s=self.speed.duration_s, seed=seed, rig=scn.run.rig,
+            sensing_angles_rad=self.theta_p.copy(),
+            family_freq_hz=None if m.campbell_freq_hz is None else np.array(m.campbell_freq_hz, float),
+            speed_range_rpm=self.speed.rpm_range())
 
     # -- envelopes -------------------------------------------------------------------------
     def _envelopes(self, t_start: float, t_end: float) -> EnvelopeGrid:

@@ -50,6 +50,11 @@ class SpeedProfile:
     def duration_s(self) -> float:
         return float(self.t_s[-1])
 
+    def rpm_range(self) -> tuple[float, float]:
+        """Slowest and fastest speed of the profile, rpm."""
+        rpm = self.omega / RPM
+        return float(rpm.min()), float(rpm.max())
+
     @property
     def alpha(self) -> np.ndarray:
         """Angular acceleration of each segment, rad/s^2 (last entry 0: beyond the end)."""

@@ -21,10 +21,10 @@ import logging
 import os
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, Header, Metadata, Schema
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -32,12 +32,12 @@ from .. import __version__
 from ..errors import BttsimError
 from . import codec
 from . import keys as _keys
+from .stream import Message
 
 __all__ = [
     "MCAP_MAGIC",
     "RUN_METADATA_NAME",
     "DEFAULT_CHUNK_SIZE",
-    "RecordedMessage",
     "Recording",
     "McapRecorder",
     "read_messages",
@@ -60,16 +60,6 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
-class RecordedMessage(NamedTuple):
-    """One message of a recording: the key, the raw protobuf payload, its log time (ns) and
-    the publisher's sequence number (the MCAP ``sequence`` field)."""
-
-    key: str
-    payload: bytes
-    log_time_ns: int
-    sequence: int = 0
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class Recording:
     """Everything readable from an MCAP recording.
@@ -77,7 +67,7 @@ class Recording:
     Attributes
     ----------
     path : str
-    messages : list of RecordedMessage
+    messages : list of Message
         In file order.
     metadata : dict
         Metadata records, ``name -> {key: value}`` (a later record of the same name wins).
@@ -147,8 +137,7 @@ class McapRecorder:
     --------
     >>> with McapRecorder("run.mcap") as rec:                      # doctest: +SKIP
     ...     rec.write_run_metadata(run_id, rig, scenario_toml, version)
-    ...     for key, payload, t_ns in encode_revolutions(batch, run_id, rig, seqs):
-    ...         rec.write(key, payload, t_ns)
+    ...     rec.write_all(stream.acquisition(batch))
     """
 
     def __init__(self, path, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
@@ -218,21 +207,21 @@ class McapRecorder:
         return channel_id
 
     def write(self, key: str, payload: bytes, log_time_ns: int, publish_time_ns: int | None = None,
-              *, sequence: int = 0, message_type: str | None = None) -> None:
+              *, seq: int = 0, message_type: str | None = None) -> None:
         """Append one raw payload (not decoded) on the channel of ``key``.
 
         Parameters
         ----------
         key : str
             Concrete bus key; its message type comes from
-            :func:`~bttsim_stream.io.keys.message_type_for_key` unless ``message_type`` is given.
+            :func:`~bttsim_stream.bus.keys.message_type_for_key` unless ``message_type`` is given.
         payload : bytes
         log_time_ns : int
             Simulated time of the message, ns (>= 0).
         publish_time_ns : int, optional
             Defaults to ``log_time_ns``.
-        sequence : int
-            MCAP message sequence field (optional).
+        seq : int
+            The publisher's sequence number (the MCAP message ``sequence`` field).
         message_type : str, optional
             Full protobuf message name, for keys outside the standard table.
         """
@@ -243,13 +232,18 @@ class McapRecorder:
             raise ValueError(f"{key}: MCAP times must be >= 0, got {log_time}, {publish}")
         channel_id = self._channel(key, message_type)
         self._guard(self._writer.add_message, channel_id=channel_id, log_time=log_time,
-                    data=bytes(payload), publish_time=publish, sequence=int(sequence))
+                    data=bytes(payload), publish_time=publish, sequence=int(seq))
         self.n_messages += 1
 
-    def write_all(self, messages: Iterable) -> None:
-        """Write ``(key, payload, log_time_ns)`` triples (e.g. from ``encode_revolutions``)."""
-        for key, payload, t_ns in messages:
-            self.write(key, payload, t_ns)
+    def write_message(self, message: Message) -> None:
+        """Append one :class:`~bttsim_stream.bus.stream.Message` (its key, payload, log time and
+        sequence number)."""
+        self.write(message.key, message.payload, message.log_time_ns, seq=message.seq)
+
+    def write_all(self, messages: Iterable[Message]) -> None:
+        """Append :class:`~bttsim_stream.bus.stream.Message` records in order."""
+        for m in messages:
+            self.write_message(m)
 
     def flush(self) -> None:
         """Finish the chunk in progress (if it holds messages) and hand it to the OS."""
@@ -359,17 +353,17 @@ def _records(scan: _Scan, decode_chunks: bool = True) -> Iterator:
                 yield rec
 
 
-def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[RecordedMessage]:
+def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[Message]:
     exprs = None if keys is None else [keys] if isinstance(keys, str) else list(keys)
     schema_names: dict[int, str] = {}
     channels: dict[int, tuple[str, bool]] = {}  # id -> (topic, wanted)
     for rec in _records(scan):
-        if isinstance(rec, Message):
+        if isinstance(rec, McapMessage):
             ch = channels.get(rec.channel_id)
             if ch is None:
                 raise scan.corrupt(f"message on unknown channel {rec.channel_id}")
             if ch[1]:
-                yield RecordedMessage(ch[0], rec.data, rec.log_time, rec.sequence)
+                yield Message(ch[0], rec.data, rec.log_time, rec.sequence)
         elif isinstance(rec, Schema):
             schema_names[rec.id] = rec.name
         elif isinstance(rec, Channel):
@@ -381,7 +375,7 @@ def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[RecordedMessage]
             schemas_out.setdefault(rec.topic, schema_names.get(rec.schema_id, ""))
 
 
-def read_messages(path, keys=None) -> Iterator[RecordedMessage]:
+def read_messages(path, keys=None) -> Iterator[Message]:
     """Iterate over the messages of a recording in file order.
 
     Parameters
@@ -392,8 +386,8 @@ def read_messages(path, keys=None) -> Iterator[RecordedMessage]:
 
     Yields
     ------
-    RecordedMessage
-        ``(key, payload, log_time_ns)``.
+    Message
+        ``(key, payload, log_time_ns, seq)``.
 
     Raises
     ------

@@ -12,20 +12,22 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import socket
 import struct
 import threading
 import time
 from pathlib import Path
 
 import zenoh
+import zenoh.ext as zx
 
-from .errors import BttsimError
+from ..errors import BttsimError
 
-__all__ = ["NodeWatch", "run_program", "add_session_args", "config_from_args", "make_config", "pack_attachment",
+__all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
            "unpack_attachment", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
-           "open_session"]
+           "open_session", "free_port", "declare_publisher", "declare_subscriber"]
 
-log = logging.getLogger("bttsim.transport")
+log = logging.getLogger("bttsim.session")
 _ATT = struct.Struct("<Qq")
 
 
@@ -40,21 +42,6 @@ def add_session_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration file")
     g.add_argument("--multicast-scouting", action="store_true",
                    help="enable multicast scouting (off by default: loopback-only runs)")
-
-
-def run_program(parser: argparse.ArgumentParser, body, argv=None) -> int:
-    """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into
-    one line ``bttsim: error: ...`` with exit status 2."""
-    import sys
-
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
-        body(args)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
 
 
 def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | None = None,
@@ -103,7 +90,15 @@ def open_session(conf: "zenoh.Config") -> "zenoh.Session":
         raise BttsimError(f"cannot open the zenoh session: {str(exc).splitlines()[0]}") from None
 
 
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def pack_attachment(seq: int, log_time_ns: int) -> bytes:
+    """The 16-byte attachment of a sample: sequence number and log time (ns)."""
     return _ATT.pack(int(seq), int(log_time_ns))
 
 
@@ -146,6 +141,28 @@ class StopFlag:
             timeout = min(timeout, max(0.0, self._deadline - time.monotonic()))
         self._event.wait(timeout)
         return bool(self)
+
+
+def declare_publisher(session, key: str, *, cache_samples: int = 64, lossy: bool = False):
+    """A reliable publisher that keeps its last ``cache_samples`` samples for late joiners
+    (zenoh-ext advanced publisher) and blocks under congestion (``lossy``: drops instead)."""
+    return zx.declare_advanced_publisher(
+        session, key, cache=zx.CacheConfig(max_samples=int(cache_samples), replies_config=None),
+        publisher_detection=True, sample_miss_detection=None,
+        congestion_control=zenoh.CongestionControl.DROP if lossy else zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE, encoding=None, priority=None, express=None,
+        allowed_destination=None)
+
+
+def declare_subscriber(session, key_expr: str, handler, *, history: bool = True):
+    """A subscriber calling ``handler(sample)``; with ``history`` it also receives the
+    cached samples of publishers that were there before it (late joiner)."""
+    if not history:
+        return session.declare_subscriber(key_expr, handler)
+    return zx.declare_advanced_subscriber(
+        session, key_expr, handler=handler,
+        history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
+        recovery=None, subscriber_detection=False, allowed_origin=None)
 
 
 def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, stop: StopFlag) -> int:

@@ -1,0 +1,658 @@
+"""Protobuf encoding and decoding of every bus message (the only user of the generated code).
+
+Each message type maps to one of the library's own frozen dataclasses; there are no
+parallel message classes and no dicts:
+
+=============================  ======================================================
+``bttsim.v1.RunMetadata``      :class:`~bttsim_stream.sim.core.RunInfo`
+``bttsim.v1.Opr``              :class:`OprPulse` (one revolution's part of a
+                               :class:`~bttsim_stream.sim.core.RevolutionBatch`)
+``bttsim.v1.ToaBatch``         :class:`ToaBatch` (one probe's part of a revolution)
+``bttsim.v1.TruthBatch``       :class:`~bttsim_stream.sim.core.Truth` (one revolution)
+``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.pipeline.RevolutionFit`
+``bttsim.v1.TravellingWave``   :class:`~bttsim_stream.process.travelling_wave.ProbeWave`
+``bttsim.v1.ResonanceReport``  :class:`~bttsim_stream.process.resonance.ResonanceReport`
+=============================  ======================================================
+
+Encoders take a :class:`Header` (run id, sequence number, revolution, time) and the
+dataclass and return the serialized bytes; decoders take bytes and return a
+:class:`Decoded` ``(header, body)``. Sequence numbers are not chosen here: the caller owns
+them (:class:`bttsim_stream.bus.stream.Sequencer`). The message definitions are in
+``schemas/bttsim/v1/bttsim.proto``; the keys in :mod:`.keys`.
+
+Conventions:
+
+* ``log_time_ns = round(t_s * 1e9)`` with ``t_s`` the header time (:func:`log_time_ns`).
+  MCAP times are unsigned: a negative time is clamped to 0 (``header.t_s`` keeps the value).
+* Serialization is deterministic (``SerializeToString(deterministic=True)``): the same input
+  gives the same bytes.
+* Decoders refuse payloads above :data:`MAX_PAYLOAD_BYTES`, unparsable bytes, a missing
+  header, and arrays whose lengths contradict the declared shape, with a one-line
+  :class:`~bttsim_stream.errors.BttsimError` naming the key (or the message type).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from google.protobuf import descriptor_pb2
+from google.protobuf.message import DecodeError
+
+from ..errors import BttsimError
+from ..process.pipeline import RevolutionFit
+from ..process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks
+from ..process.travelling_wave import ProbeWave
+from ..sim.core import RunInfo, Truth
+from . import keys as _keys
+from ._gen.bttsim.v1 import bttsim_pb2 as _pb
+
+__all__ = [
+    "MAX_PAYLOAD_BYTES",
+    "PROTO_FILE",
+    "Header",
+    "Decoded",
+    "OprPulse",
+    "ToaBatch",
+    "encode_run_metadata",
+    "decode_run_metadata",
+    "encode_opr",
+    "decode_opr",
+    "encode_toa_batch",
+    "decode_toa_batch",
+    "encode_truth",
+    "decode_truth",
+    "encode_fit",
+    "decode_fit",
+    "encode_probe_wave",
+    "decode_probe_wave",
+    "encode_resonance_report",
+    "decode_resonance_report",
+    "decode_message",
+    "log_time_ns",
+    "message_types",
+    "schema_name_for",
+    "file_descriptor_set",
+]
+
+#: Largest payload a decoder accepts, bytes.
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+#: Name of the schema file inside the descriptor (and path under ``schemas/``).
+PROTO_FILE = "bttsim/v1/bttsim.proto"
+_PACKAGE = "bttsim.v1"
+_MAX_NS = (1 << 63) - 1
+
+
+@dataclass(frozen=True, slots=True)
+class Header:
+    """The header every message carries.
+
+    Attributes
+    ----------
+    run_id : str
+    seq : int
+        Per-publisher, per-key sequence number (0, 1, 2, ...).
+    revolution : int
+        Revolution index, -1 where it does not apply.
+    t_s : float
+        Simulated time the message refers to, s.
+    """
+
+    run_id: str
+    seq: int
+    revolution: int = -1
+    t_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """A decoded message: its header and its body (the library dataclass of its type)."""
+
+    header: Header
+    body: Any
+
+
+@dataclass(frozen=True, slots=True)
+class OprPulse:
+    """One OPR pulse (``bttsim.v1.Opr``): ``opr_s`` in s, ``opr_ticks`` None if not quantised."""
+
+    opr_s: float
+    opr_ticks: int | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ToaBatch:
+    """One probe's TOAs of one revolution (``bttsim.v1.ToaBatch``).
+
+    Attributes
+    ----------
+    probe : int
+    toa_s : ndarray, shape (n_blades,)
+    toa_ticks : ndarray of int64, shape (n_blades,), or None
+    """
+
+    probe: int
+    toa_s: np.ndarray
+    toa_ticks: np.ndarray | None = None
+
+
+_TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
+_FIT_ARRAYS = (("amp_pkpk_m", "amp_pkpk_m"), ("phase_rad", "phase_rad"), ("dc_m", "dc_m"),
+               ("residual_m", "residual_rms_m"), ("amp_std_m", "amp_std_m"))  # (proto, dataclass)
+
+
+# --------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------
+
+
+def log_time_ns(t_s: float) -> int:
+    """MCAP log time of a message: ``round(t_s * 1e9)`` clamped to ``[0, 2**63 - 1]``."""
+    t = float(t_s)
+    if not math.isfinite(t):
+        return 0 if t != math.inf else _MAX_NS
+    return min(max(int(round(t * 1e9)), 0), _MAX_NS)
+
+
+def _fill_header(h, run_id: str, seq: int, revolution: int, t_s: float) -> None:
+    h.run_id = run_id
+    h.seq = seq
+    h.revolution = revolution
+    h.t_s = t_s
+
+
+def _serialize(msg) -> bytes:
+    return msg.SerializeToString(deterministic=True)
+
+
+def _vec(values, name: str, n: int | None = None, dtype=float) -> np.ndarray:
+    arr = np.asarray(values, dtype=dtype)
+    if arr.ndim != 1 or (n is not None and arr.size != n):
+        want = f"({n},)" if n is not None else "1-D"
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    return arr
+
+
+def _parse(cls, payload, where: str | None):
+    name = cls.DESCRIPTOR.name
+    where = where or cls.DESCRIPTOR.full_name
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise BttsimError(f"{where}: {name} payload must be bytes, got {type(payload).__name__}")
+    size = len(payload)
+    if size > MAX_PAYLOAD_BYTES:
+        raise BttsimError(f"{where}: {name} payload of {size} bytes exceeds the "
+                          f"{MAX_PAYLOAD_BYTES} byte limit")
+    msg = cls()
+    try:
+        msg.ParseFromString(bytes(payload))
+    except (DecodeError, ValueError, RuntimeError) as exc:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        raise BttsimError(f"{where}: corrupt {name} ({text})") from None
+    if not msg.HasField("header"):
+        raise BttsimError(f"{where}: corrupt {name} (no header)")
+    return msg, where
+
+
+def _corrupt(where: str, msg, problem: str) -> BttsimError:
+    return BttsimError(f"{where}: corrupt {msg.DESCRIPTOR.name} ({problem})")
+
+
+def _header(h) -> Header:
+    return Header(run_id=h.run_id, seq=int(h.seq), revolution=int(h.revolution),
+                     t_s=float(h.t_s))
+
+
+def _array(values, dtype=np.float64) -> np.ndarray:
+    return np.array(values, dtype=dtype)
+
+
+def _check_len(where: str, msg, field: str, n: int, shape: str) -> None:
+    got = len(getattr(msg, field))
+    if got != n:
+        raise _corrupt(where, msg, f"{field} has {got} values, expected {n} for shape {shape}")
+
+
+def _check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
+    if key is None:
+        return
+    try:
+        info = _keys.parse_key(key)
+    except BttsimError:
+        return
+    if info.kind == kind and info.probe != msg.probe:
+        raise _corrupt(where, msg, f"probe {msg.probe} on the key of probe {info.probe}")
+
+
+# --------------------------------------------------------------------------------------
+# Schema helpers
+# --------------------------------------------------------------------------------------
+
+
+def message_types() -> tuple[str, ...]:
+    """Full names of every message in the schema (``"bttsim.v1.Header"``, ...)."""
+    return tuple(d.full_name for d in _pb.DESCRIPTOR.message_types_by_name.values())
+
+
+def schema_name_for(message_type: str) -> str:
+    """The MCAP schema name (full protobuf name) of a message type.
+
+    Parameters
+    ----------
+    message_type : str
+        ``"ToaBatch"`` or ``"bttsim.v1.ToaBatch"``.
+
+    Raises
+    ------
+    BttsimError
+        If the schema has no such message.
+    """
+    short = message_type.removeprefix(_PACKAGE + ".")
+    desc = _pb.DESCRIPTOR.message_types_by_name.get(short)
+    if desc is None:
+        raise BttsimError(f"unknown message type {message_type!r}")
+    return desc.full_name
+
+
+@functools.lru_cache(maxsize=1)
+def file_descriptor_set() -> bytes:
+    """The serialized ``FileDescriptorSet`` of ``bttsim/v1/bttsim.proto`` and its dependencies.
+
+    This is the MCAP schema data of every channel (schema encoding ``"protobuf"``).
+    """
+    fds = descriptor_pb2.FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd) -> None:
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        fd.CopyToProto(fds.file.add())
+
+    add(_pb.DESCRIPTOR)
+    return fds.SerializeToString(deterministic=True)
+
+
+# --------------------------------------------------------------------------------------
+# Run metadata
+# --------------------------------------------------------------------------------------
+
+
+def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
+    """Encode a run's acquisition metadata (:class:`bttsim.v1.RunMetadata`).
+
+    Parameters
+    ----------
+    header : Header
+        ``revolution`` -1; the simulator and its queryable use ``seq`` 0.
+    info : RunInfo
+        With ``run_id`` (defaults to the header's), ``scenario_toml``, ``software_version``
+        and ``has_truth`` set by the publisher.
+
+    Returns
+    -------
+    bytes
+        Payload for the ``bttsim/<rig>/meta`` queryable and recording channel.
+    """
+    rig = _keys.validate_rig(info.rig)
+    angles = _vec(info.probe_angles_rad, "probe_angles_rad", int(info.n_probes))
+    eos = [int(e) for e in info.engine_orders]
+    nds = [int(n) for n in info.nodal_diameters]
+    if len(eos) != len(nds):
+        raise ValueError("engine_orders and nodal_diameters must have the same length")
+    m = _pb.RunMetadata()
+    _fill_header(m.header, header.run_id, int(header.seq), int(header.revolution), float(header.t_s))
+    m.run_id = info.run_id or header.run_id
+    m.rig = rig
+    m.n_blades = int(info.n_blades)
+    m.n_probes = int(info.n_probes)
+    m.n_revolutions = int(info.n_revolutions)
+    m.probe_angles_rad.extend(angles.tolist())
+    m.probe_axial_m = float(info.probe_axial_m)
+    m.tip_radius_m = float(info.tip_radius_m)
+    m.opr_angle_rad = float(info.opr_angle_rad)
+    m.clock_hz = float(info.clock_hz)
+    m.tick_s = info.tick_s
+    m.stagger_deg = float(info.stagger_deg)
+    m.engine_orders.extend(eos)
+    m.nodal_diameters.extend(nds)
+    m.toa_method = str(info.toa_method)
+    m.duration_s = float(info.duration_s)
+    m.seed = int(info.seed)
+    m.scenario_toml = info.scenario_toml
+    m.software_version = info.software_version
+    m.has_truth = bool(info.has_truth)
+    if info.sensing_angles_rad is not None:
+        m.sensing_angles_rad.extend(_vec(info.sensing_angles_rad, "sensing_angles_rad", int(info.n_blades)).tolist())
+    if info.family_freq_hz is not None:
+        fam = np.asarray(info.family_freq_hz, dtype=float)
+        if fam.ndim != 2 or fam.shape[1] != int(info.n_blades) // 2 + 1:
+            raise ValueError(f"family_freq_hz: expected shape (n_families, {int(info.n_blades) // 2 + 1}), "
+                             f"got {fam.shape}")
+        m.n_families = fam.shape[0]
+        m.family_freq_hz.extend(fam.ravel().tolist())
+    m.speed_min_rpm, m.speed_max_rpm = (float(v) for v in info.speed_range_rpm)
+    return _serialize(m)
+
+
+def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.RunMetadata` payload into ``(Header, RunInfo)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable, oversized or inconsistent payload (one line, naming ``key``).
+    """
+    m, where = _parse(_pb.RunMetadata, payload, key)
+    _check_len(where, m, "probe_angles_rad", m.n_probes, "(n_probes,)")
+    if len(m.engine_orders) != len(m.nodal_diameters):
+        raise _corrupt(where, m, f"{len(m.engine_orders)} engine_orders but "
+                                 f"{len(m.nodal_diameters)} nodal_diameters")
+    if m.n_blades < 1 or m.n_probes < 1:
+        raise _corrupt(where, m, f"n_blades = {m.n_blades}, n_probes = {m.n_probes}")
+    if m.header.run_id and m.run_id and m.header.run_id != m.run_id:
+        raise _corrupt(where, m, f"run_id {m.run_id!r} differs from header {m.header.run_id!r}")
+    try:
+        _keys.validate_rig(m.rig)
+    except BttsimError:
+        raise _corrupt(where, m, f"invalid rig name {m.rig!r}") from None
+    sensing = None
+    if len(m.sensing_angles_rad):
+        _check_len(where, m, "sensing_angles_rad", m.n_blades, "(n_blades,)")
+        sensing = _array(m.sensing_angles_rad)
+    families = None
+    if m.n_families:
+        n_nd = m.n_blades // 2 + 1
+        _check_len(where, m, "family_freq_hz", m.n_families * n_nd, f"({m.n_families}, {n_nd})")
+        families = _array(m.family_freq_hz).reshape(m.n_families, n_nd)
+    info = RunInfo(
+        n_blades=int(m.n_blades), n_probes=int(m.n_probes), n_revolutions=int(m.n_revolutions),
+        probe_angles_rad=_array(m.probe_angles_rad), probe_axial_m=m.probe_axial_m,
+        tip_radius_m=m.tip_radius_m, opr_angle_rad=m.opr_angle_rad, clock_hz=m.clock_hz,
+        stagger_deg=m.stagger_deg, engine_orders=tuple(int(e) for e in m.engine_orders),
+        nodal_diameters=tuple(int(n) for n in m.nodal_diameters), toa_method=m.toa_method,
+        duration_s=m.duration_s, seed=int(m.seed), rig=m.rig, sensing_angles_rad=sensing,
+        family_freq_hz=families, speed_range_rpm=(m.speed_min_rpm, m.speed_max_rpm),
+        run_id=m.run_id or m.header.run_id, scenario_toml=m.scenario_toml,
+        software_version=m.software_version, has_truth=bool(m.has_truth))
+    return Decoded(_header(m.header), info)
+
+
+# --------------------------------------------------------------------------------------
+# Acquisition stream: OPR, TOA batches, truth
+# --------------------------------------------------------------------------------------
+
+
+def encode_opr(header: Header, pulse: OprPulse) -> bytes:
+    """Encode one OPR pulse (:class:`bttsim.v1.Opr`)."""
+    m = _pb.Opr()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.opr_s = pulse.opr_s
+    if pulse.opr_ticks is not None:
+        m.opr_ticks = pulse.opr_ticks
+        m.has_ticks = True
+    return _serialize(m)
+
+
+def decode_opr(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.Opr` payload into ``(Header, OprPulse)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header.
+    """
+    m, where = _parse(_pb.Opr, payload, key)
+    if not m.has_ticks and m.opr_ticks != 0:
+        raise _corrupt(where, m, "opr_ticks set but has_ticks is false")
+    return Decoded(_header(m.header), OprPulse(opr_s=m.opr_s,
+                                               opr_ticks=int(m.opr_ticks) if m.has_ticks else None))
+
+
+def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | None = None) -> bytes:
+    """Encode one probe's TOAs of one revolution (:class:`bttsim.v1.ToaBatch`).
+
+    ``toa_s`` (and ``toa_ticks``) are sequences of n_blades values (lists are fastest).
+    """
+    m = _pb.ToaBatch()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.probe = probe
+    m.toa_s.extend(toa_s)
+    if toa_ticks is not None:
+        m.toa_ticks.extend(toa_ticks)
+        m.has_ticks = True
+    return _serialize(m)
+
+
+def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.ToaBatch` payload into ``(Header, ToaBatch)``.
+
+    Parameters
+    ----------
+    payload : bytes
+    key : str, optional
+        The key it came on (named in errors; its probe index must match the message's).
+    n_blades : int, optional
+        Expected blade count (from the run metadata).
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+    """
+    m, where = _parse(_pb.ToaBatch, payload, key)
+    n = len(m.toa_s)
+    if n == 0:
+        raise _corrupt(where, m, "toa_s is empty")
+    if n_blades is not None and n != n_blades:
+        raise _corrupt(where, m, f"toa_s has {n} values, expected n_blades = {n_blades}")
+    if m.has_ticks:
+        _check_len(where, m, "toa_ticks", n, "(n_blades,)")
+    elif len(m.toa_ticks):
+        raise _corrupt(where, m, "toa_ticks set but has_ticks is false")
+    _check_probe_key(where, m, key, "toa")
+    return Decoded(_header(m.header), ToaBatch(
+        probe=int(m.probe), toa_s=_array(m.toa_s),
+        toa_ticks=_array(m.toa_ticks, np.int64) if m.has_ticks else None))
+
+
+def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
+    """Encode revolution ``i`` of a :class:`~bttsim_stream.sim.core.Truth` (:class:`bttsim.v1.TruthBatch`)."""
+    toa = truth.toa_s[i]
+    nb, npr = toa.shape
+    m = _pb.TruthBatch()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.opr_s = float(truth.opr_s[i])
+    m.omega_mean_rad_s = float(truth.omega_mean[i])
+    m.n_blades = nb
+    m.n_probes = npr
+    for name in _TRUTH_2D:
+        getattr(m, name).extend(np.asarray(getattr(truth, name)[i], dtype=np.float64).ravel().tolist())
+    m.d_eqv_pkpk_m.extend(np.asarray(truth.d_eqv_pkpk_m[i], dtype=np.float64).tolist())
+    return _serialize(m)
+
+
+def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.TruthBatch` payload into ``(Header, Truth)`` with one
+    revolution (arrays of shape (1, n_blades, n_probes), (1, n_blades) and (1,)).
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+    """
+    m, where = _parse(_pb.TruthBatch, payload, key)
+    nb, npr = int(m.n_blades), int(m.n_probes)
+    if nb < 1 or npr < 1:
+        raise _corrupt(where, m, f"n_blades = {nb}, n_probes = {npr}")
+    for name in _TRUTH_2D:
+        _check_len(where, m, name, nb * npr, f"({nb}, {npr})")
+    _check_len(where, m, "d_eqv_pkpk_m", nb, f"({nb},)")
+    arrays = {name: _array(getattr(m, name)).reshape(1, nb, npr) for name in _TRUTH_2D}
+    truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
+                  d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays)
+    return Decoded(_header(m.header), truth)
+
+
+# --------------------------------------------------------------------------------------
+# Processing outputs
+# --------------------------------------------------------------------------------------
+
+
+def encode_fit(header: Header, fit: RevolutionFit) -> bytes:
+    """Encode one revolution's fits at one EO (:class:`bttsim.v1.BladeFits`, key ``fit``)."""
+    amp = _vec(fit.amp_pkpk_m, "amp_pkpk_m")
+    nb = amp.size
+    m = _pb.BladeFits()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.n_blades = nb
+    m.engine_order = int(fit.engine_order)
+    m.omega_mean_rad_s = float(fit.omega_rad_s)
+    m.freq_hz = float(fit.freq_hz)
+    m.cn = float(fit.cn)
+    for proto_name, name in _FIT_ARRAYS:
+        getattr(m, proto_name).extend(_vec(getattr(fit, name), name, nb).tolist())
+    return _serialize(m)
+
+
+def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.BladeFits` payload into ``(Header, RevolutionFit)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+    """
+    m, where = _parse(_pb.BladeFits, payload, key)
+    nb = int(m.n_blades)
+    for proto_name, _ in _FIT_ARRAYS:
+        _check_len(where, m, proto_name, nb, f"({nb},)")
+    fit = RevolutionFit(engine_order=int(m.engine_order), omega_rad_s=m.omega_mean_rad_s, freq_hz=m.freq_hz,
+                        cn=m.cn, **{name: _array(getattr(m, proto_name)) for proto_name, name in _FIT_ARRAYS})
+    return Decoded(_header(m.header), fit)
+
+
+def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
+    """Encode one probe's travelling-wave spectrum (:class:`bttsim.v1.TravellingWave`, key ``tw/<probe>``)."""
+    fwd = _vec(wave.forward_m, "forward_m")
+    bwd = _vec(wave.backward_m, "backward_m", fwd.size)
+    if fwd.size == 0:
+        raise ValueError("forward_m: at least one nodal diameter is needed")
+    m = _pb.TravellingWave()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.probe = int(wave.probe)
+    m.n_nd = fwd.size
+    m.forward_m.extend(fwd.tolist())
+    m.backward_m.extend(bwd.tolist())
+    m.dominant_nd = int(wave.nd)
+    return _serialize(m)
+
+
+def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.TravellingWave` payload into ``(Header, ProbeWave)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+    """
+    m, where = _parse(_pb.TravellingWave, payload, key)
+    n = int(m.n_nd)
+    _check_len(where, m, "forward_m", n, f"({n},)")
+    _check_len(where, m, "backward_m", n, f"({n},)")
+    if abs(m.dominant_nd) >= max(n, 1):
+        raise _corrupt(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
+    _check_probe_key(where, m, key, "tw")
+    return Decoded(_header(m.header), ProbeWave(probe=int(m.probe), forward_m=_array(m.forward_m),
+                                                backward_m=_array(m.backward_m), nd=int(m.dominant_nd)))
+
+
+def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
+    """Encode a resonance report (:class:`bttsim.v1.ResonanceReport`, key ``resonance``).
+
+    Blades are numbered 0..n_blades-1; truth fields (and the error statistics) are set when
+    the report carries the truth.
+    """
+    m = _pb.ResonanceReport()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.nd = int(report.nd)
+    m.eo = int(report.eo)
+    m.cn = float(report.cn)
+    pk, tr = report.peaks, report.truth
+    for b in range(pk.amp_pkpk_m.size):
+        row = m.blades.add()
+        row.blade = b
+        row.amp_pkpk_m = float(pk.amp_pkpk_m[b])
+        row.freq_hz = float(pk.freq_hz[b])
+        if tr is not None:
+            row.truth_amp_pkpk_m = float(tr.amp_pkpk_m[b])
+            row.truth_freq_hz = float(tr.freq_hz[b])
+            row.e_a_pct = float(report.e_a_pct[b])
+            row.e_f_pct = float(report.e_f_pct[b])
+            row.has_truth = True
+    if tr is not None:
+        summary = report.to_summary()
+        m.mean_e_a_pct, m.max_e_a_pct = summary["mean_E_A_pct"], summary["max_E_A_pct"]
+        m.mean_e_f_pct, m.max_e_f_pct = summary["mean_E_f_pct"], summary["max_E_f_pct"]
+    return _serialize(m)
+
+
+def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.ResonanceReport` payload into ``(Header, ResonanceReport)``.
+
+    The per-blade peak revolutions and damping ratios do not travel: they come back NaN
+    (truth peak revolutions -1), with ``peaks.method == "reported"``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, blades out of order, or truth on
+        only some blades.
+    """
+    m, where = _parse(_pb.ResonanceReport, payload, key)
+    nb = len(m.blades)
+    if [b.blade for b in m.blades] != list(range(nb)):
+        raise _corrupt(where, m, "blades must be numbered 0..n_blades-1 in order")
+    has_truth = [bool(b.has_truth) for b in m.blades]
+    if any(has_truth) and not all(has_truth):
+        raise _corrupt(where, m, "truth on some blades only")
+    nan = np.full(nb, np.nan)
+    peaks = ResonancePeaks(revolution=nan, amp_pkpk_m=_array([b.amp_pkpk_m for b in m.blades]),
+                           freq_hz=_array([b.freq_hz for b in m.blades]), damping_ratio=nan.copy(),
+                           method="reported")
+    truth = e_a = e_f = None
+    if nb and all(has_truth):
+        truth = TruthPeaks(revolution=np.full(nb, -1, np.int64),
+                           amp_pkpk_m=_array([b.truth_amp_pkpk_m for b in m.blades]),
+                           freq_hz=_array([b.truth_freq_hz for b in m.blades]))
+        e_a = _array([b.e_a_pct for b in m.blades])
+        e_f = _array([b.e_f_pct for b in m.blades])
+    report = ResonanceReport(nd=int(m.nd), eo=int(m.eo), cn=m.cn, peaks=peaks, truth=truth,
+                             e_a_pct=e_a, e_f_pct=e_f)
+    return Decoded(_header(m.header), report)
+
+
+_DECODERS = {
+    "bttsim.v1.Opr": decode_opr,
+    "bttsim.v1.ToaBatch": decode_toa_batch,
+    "bttsim.v1.TruthBatch": decode_truth,
+    "bttsim.v1.RunMetadata": decode_run_metadata,
+    "bttsim.v1.BladeFits": decode_fit,
+    "bttsim.v1.TravellingWave": decode_probe_wave,
+    "bttsim.v1.ResonanceReport": decode_resonance_report,
+}
+
+
+def decode_message(key: str, payload: bytes) -> Decoded:
+    """Decode a payload by the key it travels on (see :func:`.keys.message_type_for_key`).
+
+    Raises
+    ------
+    BttsimError
+        Unknown key, or a payload its decoder refuses.
+    """
+    return _DECODERS[_keys.message_type_for_key(key)](payload, key)

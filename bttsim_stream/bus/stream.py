@@ -1,0 +1,271 @@
+"""The message stream: one record type, one place that numbers messages, one revolution
+assembler, one "results -> messages".
+
+* :class:`Message` is the one record of a message wherever it is -- about to be published,
+  received with its attachment, or read from an MCAP file: key, payload bytes, log time (ns)
+  and the publisher's per-key sequence number.
+* :class:`Sequencer` is the only place where sequence numbers are assigned (0, 1, 2, ... per
+  key). :class:`MessageStream` owns one and turns the library's dataclasses into numbered
+  messages: the run metadata, the acquisition (:class:`~bttsim_stream.sim.core.RevolutionBatch`)
+  and the processing results (:class:`~bttsim_stream.process.pipeline.RevolutionOutput`,
+  :class:`~bttsim_stream.process.resonance.ResonanceReport`). The simulator node, ``bttsim
+  simulate``, the processor node and the offline processing all publish through it, so a
+  live run and a file hold the same bytes.
+* :class:`RevolutionAssembler` regroups OPR pulses and per-probe TOA batches into
+  revolutions (the processor node, offline processing and the views all use it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..sim.core import RevolutionBatch, RunInfo
+from . import codec, keys
+
+__all__ = ["Message", "Sequencer", "MessageStream", "Revolution", "RevolutionAssembler"]
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """One message of the bus or of a recording.
+
+    Attributes
+    ----------
+    key : str
+        Key expression it travels on (the MCAP channel topic).
+    payload : bytes
+        Serialized protobuf.
+    log_time_ns : int
+        Simulated time, ns (the MCAP log time).
+    seq : int
+        The publisher's per-key sequence number (the MCAP ``sequence`` field and the
+        sample attachment).
+    """
+
+    key: str
+    payload: bytes
+    log_time_ns: int
+    seq: int = 0
+
+
+class Sequencer:
+    """Per-key sequence numbers: 0, 1, 2, ... (the only place they are assigned)."""
+
+    __slots__ = ("_next",)
+
+    def __init__(self) -> None:
+        self._next: dict[str, int] = {}
+
+    def next(self, key: str) -> int:
+        """Take the next number of ``key``."""
+        seq = self._next.get(key, 0)
+        self._next[key] = seq + 1
+        return seq
+
+    def count(self, key: str) -> int:
+        """How many numbers ``key`` has taken."""
+        return self._next.get(key, 0)
+
+
+class MessageStream:
+    """A publisher's outgoing messages, numbered per key.
+
+    Parameters
+    ----------
+    run_id, rig : str
+    """
+
+    def __init__(self, run_id: str, rig: str) -> None:
+        self.run_id = run_id
+        self.rig = keys.validate_rig(rig)
+        self.sequencer = Sequencer()
+        self._k_opr = keys.opr_key(self.rig)
+        self._k_truth = keys.truth_key(self.rig)
+        self._k_fit = keys.fits_key(self.rig)
+        self._k_toa: list[str] = []
+        self._k_tw: list[str] = []
+
+    def _message(self, key: str, revolution: int, t_s: float, encode, *args) -> Message:
+        seq = self.sequencer.next(key)
+        payload = encode(codec.Header(self.run_id, seq, revolution, t_s), *args)
+        return Message(key, payload, codec.log_time_ns(t_s), seq)
+
+    # -- metadata ------------------------------------------------------------------------
+    def run_metadata(self, info: RunInfo) -> Message:
+        """The run metadata message (log time 0); ``info.run_id`` is set to the stream's."""
+        info = replace(info, run_id=self.run_id, rig=self.rig)
+        return self._message(keys.meta_key(self.rig), -1, 0.0, codec.encode_run_metadata, info)
+
+    # -- acquisition ---------------------------------------------------------------------
+    def acquisition(self, batch: RevolutionBatch, *, include_truth: bool = True) -> list[Message]:
+        """Messages of a batch of revolutions, in publication order.
+
+        Per revolution: one ``Opr`` (header time: the OPR as acquired), one ``ToaBatch`` per
+        probe 0..n_probes-1 (header time: its latest TOA, the OPR time if all are missing),
+        then one ``TruthBatch`` (header time: the acquired OPR; if ``include_truth``).
+        """
+        toa = np.asarray(batch.toa_s, dtype=np.float64)
+        if toa.ndim != 3:
+            raise ValueError(f"toa_s: expected shape (n_rev, n_blades, n_probes), got {toa.shape}")
+        nr, nb, npr = toa.shape
+        revs = np.asarray(batch.revolution, dtype=np.int64).tolist()
+        opr = np.asarray(batch.opr_s, dtype=np.float64)
+        if len(revs) != nr or opr.shape != (nr,):
+            raise ValueError(f"revolution and opr_s must have shape ({nr},)")
+        ticked = batch.toa_ticks is not None
+        if ticked != (batch.opr_ticks is not None):
+            raise ValueError("opr_ticks and toa_ticks must both be given or both be None")
+        if ticked:
+            toa_ticks = np.asarray(batch.toa_ticks, dtype=np.int64)
+            if toa_ticks.shape != toa.shape:
+                raise ValueError(f"toa_ticks: expected shape {toa.shape}, got {toa_ticks.shape}")
+            ticks_l = toa_ticks.transpose(0, 2, 1).tolist()
+            opr_ticks_l = np.asarray(batch.opr_ticks, dtype=np.int64).tolist()
+        if include_truth and np.shape(batch.truth.toa_s) != toa.shape:
+            raise ValueError(f"truth: expected shape {toa.shape}, got {np.shape(batch.truth.toa_s)}")
+        while len(self._k_toa) < npr:
+            self._k_toa.append(keys.toa_key(self.rig, len(self._k_toa)))
+        latest = np.fmax.reduce(toa, axis=1)  # (nr, np), ignores NaN
+        latest = np.where(np.isnan(latest), opr[:, None], latest).tolist()
+        toa_l = toa.transpose(0, 2, 1).tolist()  # (nr, np, nb) nested lists: fast to extend
+        opr_l = opr.tolist()
+        out: list[Message] = []
+        for i in range(nr):
+            rev, t_opr = revs[i], opr_l[i]
+            out.append(self._message(self._k_opr, rev, t_opr, codec.encode_opr,
+                                     codec.OprPulse(t_opr, opr_ticks_l[i] if ticked else None)))
+            for j in range(npr):
+                out.append(self._message(self._k_toa[j], rev, latest[i][j], codec.encode_toa_batch, j,
+                                         toa_l[i][j], ticks_l[i][j] if ticked else None))
+            if include_truth:
+                out.append(self._message(self._k_truth, rev, t_opr, codec.encode_truth, batch.truth, i))
+        return out
+
+    # -- processing results --------------------------------------------------------------
+    def processing(self, output) -> list[Message]:
+        """Messages of one processed revolution
+        (:class:`~bttsim_stream.process.pipeline.RevolutionOutput`): one ``BladeFits`` per
+        engine order, then one ``TravellingWave`` per probe; header time: the OPR."""
+        rev, t = int(output.revolution), float(output.opr_s)
+        out = [self._message(self._k_fit, rev, t, codec.encode_fit, fit) for fit in output.fits()]
+        for wave in output.probe_waves():
+            while len(self._k_tw) <= wave.probe:
+                self._k_tw.append(keys.tw_key(self.rig, len(self._k_tw)))
+            out.append(self._message(self._k_tw[wave.probe], rev, t, codec.encode_probe_wave, wave))
+        return out
+
+    def resonance(self, report, *, revolution: int = -1, t_s: float = 0.0) -> Message:
+        """The resonance report message (:class:`~bttsim_stream.process.resonance.ResonanceReport`);
+        ``revolution`` -1: the whole run."""
+        return self._message(keys.resonance_key(self.rig), revolution, t_s, codec.encode_resonance_report,
+                             report)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Revolution:
+    """One assembled revolution.
+
+    Attributes
+    ----------
+    revolution : int
+    opr_s : float
+        OPR pulse time, s.
+    toa_s : ndarray, shape (n_blades, n_probes)
+        TOAs, s; NaN for a probe whose batch did not arrive.
+    complete : bool
+        True when every probe's batch arrived.
+    """
+
+    revolution: int
+    opr_s: float
+    toa_s: np.ndarray
+    complete: bool
+
+
+class RevolutionAssembler:
+    """Regroup OPR pulses and per-probe TOA batches (decoded, in any order) into revolutions.
+
+    Revolutions come out in increasing order from :meth:`pop`: a revolution as soon as its
+    OPR and every probe's batch are in; an incomplete one (probe batches lost, NaN TOAs)
+    once the OPR of a revolution two or more ahead has arrived (the stream is in order, so
+    nothing more will come for it), or at the end (``final``). A revolution without an OPR
+    pulse cannot be placed and is dropped (counted in :attr:`dropped`).
+
+    Parameters
+    ----------
+    n_blades, n_probes : int
+    """
+
+    def __init__(self, n_blades: int, n_probes: int) -> None:
+        self.n_blades = int(n_blades)
+        self.n_probes = int(n_probes)
+        self._opr: dict[int, float] = {}
+        self._toa: dict[int, np.ndarray] = {}
+        self._seen: dict[int, set] = {}
+        self._max_opr = -1
+        self._last_out: int | None = None
+        self.dropped = 0
+        self.ignored = 0
+
+    def add_opr(self, revolution: int, opr_s: float) -> None:
+        """An OPR pulse; a revolution already given out, or a second pulse for one, is ignored."""
+        revolution = int(revolution)
+        if self._done(revolution) or revolution in self._opr:
+            self.ignored += 1
+            return
+        self._opr[revolution] = float(opr_s)
+        self._max_opr = max(self._max_opr, revolution)
+
+    def add_toa(self, revolution: int, probe: int, toa_s: np.ndarray) -> None:
+        """One probe's TOAs (n_blades,); out-of-range probes and wrong sizes are ignored."""
+        revolution, probe = int(revolution), int(probe)
+        toa = np.asarray(toa_s, dtype=float)
+        if self._done(revolution) or not 0 <= probe < self.n_probes or toa.shape != (self.n_blades,):
+            self.ignored += 1
+            return
+        row = self._toa.get(revolution)
+        if row is None:
+            row = self._toa[revolution] = np.full((self.n_blades, self.n_probes), np.nan)
+        self._seen.setdefault(revolution, set()).add(probe)
+        row[:, probe] = toa
+
+    def add(self, kind: str, decoded: codec.Decoded) -> None:
+        """Add a decoded ``opr`` or ``toa`` message (other kinds are ignored)."""
+        if kind == "opr":
+            self.add_opr(decoded.header.revolution, decoded.body.opr_s)
+        elif kind == "toa":
+            self.add_toa(decoded.header.revolution, decoded.body.probe, decoded.body.toa_s)
+
+    def _done(self, revolution: int) -> bool:
+        return self._last_out is not None and revolution <= self._last_out
+
+    @property
+    def pending(self) -> int:
+        """Revolutions waiting (with an OPR pulse or TOAs)."""
+        return len(set(self._opr) | set(self._toa))
+
+    def pop(self, final: bool = False) -> list[Revolution]:
+        """Revolutions ready now, in increasing order (``final``: everything left)."""
+        out: list[Revolution] = []
+        while True:
+            revs = set(self._opr) | set(self._toa)
+            if not revs:
+                break
+            k = min(revs)
+            has_opr = k in self._opr
+            complete = has_opr and len(self._seen.get(k, ())) >= self.n_probes
+            if not (complete or final or self._max_opr >= k + 2):
+                break
+            toa = self._toa.pop(k, None)
+            self._seen.pop(k, None)
+            opr = self._opr.pop(k, None)
+            self._last_out = k
+            if not has_opr:
+                self.dropped += 1
+                continue
+            if toa is None:
+                toa = np.full((self.n_blades, self.n_probes), np.nan)
+            out.append(Revolution(k, opr, toa, complete))
+        return out

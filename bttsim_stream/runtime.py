@@ -1,0 +1,288 @@
+"""The node runtime: every node program in ``nodes/`` is a thin program on it.
+
+* :class:`NodeProgram` -- a node's name, what it does, its arguments and its ``main``,
+  declared once: :func:`run_node` (the node's own script / console script) and ``bttsim node
+  NAME`` (:func:`add_node_parser`) build the same parser from it, so both show the same
+  flags and help. The Zenoh session flags (``-m``, ``-e/--connect``, ``-l/--listen``,
+  ``-c/--config``, ``--multicast-scouting``) come from :func:`~bttsim_stream.bus.session.add_session_args`.
+* :class:`NodeContext` (:func:`node_session`) -- the loop every subscribing node runs: one
+  session, its subscriptions into one bounded inbox (back-pressure instead of unbounded
+  memory), publishers, the liveliness token ``bttsim/<rig>/alive/<name>``, the watch on the
+  nodes whose end ends this one, a drain, and everything undeclared on the way out.
+* :class:`Progress` -- the progress line: redrawn in place on a terminal, plain periodic
+  lines otherwise (a log file gets no carriage returns).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import queue
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+from .bus import keys
+from .bus.session import NodeWatch, StopFlag, add_session_args, config_from_args, declare_publisher, \
+    declare_subscriber, open_session
+from .errors import BttsimError
+
+__all__ = ["NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
+           "Progress", "parse_rate", "RATE_HELP"]
+
+#: Help text of every ``--rate`` option.
+RATE_HELP = "pacing: 'max' (default: as fast as possible), 'realtime', or a speed-up factor"
+
+
+@dataclass(frozen=True)
+class NodeProgram:
+    """A node program, declared once.
+
+    Attributes
+    ----------
+    name : str
+        ``bttsim node NAME``; also the liveliness token name.
+    description : str
+        What the node does, its keys and how it stops (the ``--help`` text).
+    add_arguments : callable
+        ``add_arguments(parser)``: the node's own options (every one with help text).
+    main : callable
+        ``main(conf, args)``: runs the node with a ``zenoh.Config`` and the parsed options.
+    """
+
+    name: str
+    description: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    main: Callable[..., object]
+
+    @property
+    def summary(self) -> str:
+        return self.description.strip().splitlines()[0]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's one-line error format (argparse already exits 2)."""
+
+    def error(self, message: str) -> None:
+        self.exit(2, f"bttsim: error: {message}\n")
+
+
+def _configure(parser: argparse.ArgumentParser, program: NodeProgram) -> argparse.ArgumentParser:
+    program.add_arguments(parser)
+    add_session_args(parser)
+    parser.set_defaults(node_program=program)
+    return parser
+
+
+def node_parser(program: NodeProgram) -> argparse.ArgumentParser:
+    """The parser of a node's own script (``python -m bttsim_stream.nodes.X``)."""
+    parser = _Parser(prog=f"bttsim-{program.name}", description=program.description,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    return _configure(parser, program)
+
+
+def add_node_parser(subparsers, program: NodeProgram, name: str | None = None) -> argparse.ArgumentParser:
+    """Add ``program`` to a ``bttsim`` subcommand table (``bttsim node NAME``, ``bttsim replay``...)."""
+    parser = subparsers.add_parser(name or program.name, help=program.summary, description=program.description,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    return _configure(parser, program)
+
+
+def run_parsed(args: argparse.Namespace):
+    """Run the node program of parsed arguments (from :func:`node_parser` or :func:`add_node_parser`)."""
+    return args.node_program.main(config_from_args(args), args)
+
+
+def run_node(program: NodeProgram, argv=None) -> int:
+    """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into one
+    line ``bttsim: error: ...`` with exit status 2."""
+    args = node_parser(program).parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    try:
+        run_parsed(args)
+    except BttsimError as exc:
+        print(f"bttsim: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+def parse_rate(text: str) -> float | None:
+    """``--rate``: None for ``max``, 1.0 for ``realtime``, else a positive speed-up factor."""
+    if text == "max":
+        return None
+    if text == "realtime":
+        return 1.0
+    try:
+        value = float(text)
+    except ValueError:
+        raise BttsimError(f"--rate must be 'max', 'realtime' or a positive factor, got {text!r}") from None
+    if not value > 0:
+        raise BttsimError(f"--rate must be positive, got {text!r}")
+    return value
+
+
+class NodeContext:
+    """A node's presence on the bus (see :func:`node_session`).
+
+    Samples of every subscription go into one bounded inbox, in arrival order; a full inbox
+    blocks Zenoh's delivery (back-pressure) rather than growing without bound.
+    """
+
+    def __init__(self, session, rig: str, name: str, *, inbox_size: int = 1 << 16) -> None:
+        self.session = session
+        self.rig = rig
+        self.name = name
+        self._inbox: queue.Queue = queue.Queue(maxsize=int(inbox_size))
+        self._subs: list = []
+        self._pubs: dict[str, object] = {}
+        self._others: list = []
+        self.watch: NodeWatch | None = None
+
+    # -- declarations --------------------------------------------------------------------
+    def subscribe(self, key_expr: str, *, history: bool = False) -> None:
+        """Receive ``key_expr`` into the inbox (``history``: also late-joiner history)."""
+        self._subs.append(declare_subscriber(self.session, key_expr, self._inbox.put, history=history))
+
+    def publisher(self, key: str, *, cache_samples: int = 64, lossy: bool = False):
+        """The publisher of ``key`` (declared on first use)."""
+        pub = self._pubs.get(key)
+        if pub is None:
+            pub = self._pubs[key] = declare_publisher(self.session, key, cache_samples=cache_samples, lossy=lossy)
+        return pub
+
+    def declare(self, entity):
+        """Keep ``entity`` (a queryable, a token...) to undeclare it on close; returns it."""
+        self._others.append(entity)
+        return entity
+
+    def query(self, key_expr: str, timeout_s: float = 1.0) -> int:
+        """Ask a queryable; its replies join the inbox like samples. Returns how many came."""
+        n = 0
+        for reply in self.session.get(key_expr, timeout=timeout_s):
+            if reply.ok is not None:
+                self._inbox.put(reply.ok)
+                n += 1
+        return n
+
+    def announce(self) -> None:
+        """Declare the liveliness token ``bttsim/<rig>/alive/<name>`` (after the subscriptions:
+        a simulator waiting for the token then finds them)."""
+        self.declare(self.session.liveliness().declare_token(keys.alive_key(self.rig, self.name)))
+
+    def watch_nodes(self, names, grace_s: float = 5.0) -> NodeWatch:
+        """Follow the named nodes' liveliness: :meth:`samples` ends once they are gone."""
+        self.watch = NodeWatch(self.session, self.rig, names, grace_s=grace_s)
+        return self.watch
+
+    # -- the loop ------------------------------------------------------------------------
+    def samples(self, stop: StopFlag, *, idle_s: float = 0.5, poll_s: float = 0.05) -> Iterator:
+        """Yield received samples; ``None`` about every ``poll_s`` while idle (time to flush).
+
+        Ends on ``stop`` once what was already received has been handed out, or once the
+        watched nodes have ended and the inbox has been empty for ``idle_s`` (drained).
+        """
+        idle_since = None
+        left = None  # samples still to hand out once stopped
+        while True:
+            if left is None and stop:
+                left = self._inbox.qsize()
+            if left is not None:
+                if left <= 0:
+                    return
+                left -= 1
+            try:
+                sample = self._inbox.get(timeout=poll_s) if left is None else self._inbox.get_nowait()
+            except queue.Empty:
+                if left is not None:
+                    return
+                sample = None
+            if sample is not None:
+                idle_since = None
+                yield sample
+                continue
+            if self.watch is not None and self.watch.ended():
+                idle_since = idle_since or time.monotonic()
+                if time.monotonic() - idle_since > idle_s:
+                    return
+            yield None
+
+    def close(self, linger_s: float = 0.0) -> None:
+        """Undeclare everything (after ``linger_s``, so that the last samples leave first)."""
+        if linger_s and self._pubs:
+            time.sleep(linger_s)
+        for entity in [*self._pubs.values(), *self._subs, *reversed(self._others)]:
+            with contextlib.suppress(Exception):
+                entity.undeclare()
+        if self.watch is not None:
+            self.watch.undeclare()
+        self._pubs.clear()
+        self._subs.clear()
+        self._others.clear()
+
+
+@contextlib.contextmanager
+def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, linger_s: float = 0.2):
+    """Open a session and a :class:`NodeContext` for node ``name`` on ``rig``; on exit,
+    wait ``linger_s`` if anything was published, undeclare everything and close."""
+    with open_session(conf) as session:
+        ctx = NodeContext(session, rig, name, inbox_size=inbox_size)
+        try:
+            yield ctx
+        finally:
+            ctx.close(linger_s)
+
+
+class Progress:
+    """A progress line on stderr.
+
+    On a terminal it is redrawn in place (at most every ``redraw_s``); otherwise (a log file,
+    a pipe) it prints a plain line at most every ``period_s`` and a last one on :meth:`close`.
+
+    Parameters
+    ----------
+    enabled : bool
+    stream : file, optional
+        Default ``sys.stderr``.
+    period_s, redraw_s : float
+    """
+
+    def __init__(self, enabled: bool = True, stream=None, *, period_s: float = 10.0, redraw_s: float = 0.1) -> None:
+        self.enabled = bool(enabled)
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._every = redraw_s if self.tty else period_s
+        self._last = -float("inf")
+        self._text = ""
+        self._shown = ""
+
+    def update(self, text: str, *, force: bool = False) -> None:
+        """Show ``text`` (throttled unless ``force``)."""
+        self._text = text
+        now = time.monotonic()
+        if not self.enabled or (not force and now - self._last < self._every):
+            return
+        self._last = now
+        self._write(text)
+
+    def _write(self, text: str) -> None:
+        if self.tty:
+            self.stream.write("\r" + text + " " * max(0, len(self._shown) - len(text)))
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+        self._shown = text
+
+    def close(self) -> None:
+        """Show the last state and end the line."""
+        if not self.enabled:
+            return
+        if self._text and self._text != self._shown:
+            self._write(self._text)
+        if self.tty and self._shown:
+            self.stream.write("\n")
+            self.stream.flush()
+        self.enabled = False
