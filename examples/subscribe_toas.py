@@ -1,15 +1,25 @@
-"""Print live blade times of arrival from a bttsim simulator (or any bttsim.v1 publisher)."""
-import sys, zenoh
-from bttsim_stream.io import codec          # or build the classes from schemas/bttsim/v1/bttsim.proto
+"""Print live blade times of arrival from a bttsim simulator (or any bttsim.v1 publisher).
 
+Run ``python examples/subscribe_toas.py ENDPOINT [N] [--listen]``: connect to ENDPOINT (e.g.
+``tcp/127.0.0.1:7447`` of a ``bttsim node sim -l ...``), or with ``--listen`` listen on it (for
+``bttsim replay ... -e ENDPOINT``, which connects); stop after N batches if given.
+"""
+import sys
+
+import zenoh
+
+from bttsim_stream.bus import codec  # or build the classes from schemas/bttsim/v1/bttsim.proto
+
+args = [a for a in sys.argv[1:] if a != "--listen"]
+side = "listen" if "--listen" in sys.argv else "connect"
 conf = zenoh.Config()
 conf.insert_json5("mode", '"peer"')
 conf.insert_json5("scouting/multicast/enabled", "false")
-conf.insert_json5("connect/endpoints", f'["{sys.argv[1]}"]')   # e.g. tcp/127.0.0.1:7447
+conf.insert_json5(f"{side}/endpoints", f'["{args[0]}"]')
 with zenoh.open(conf) as session:
     sub = session.declare_subscriber("bttsim/*/toa/*", handler=zenoh.handlers.FifoChannel(1024))
-    for i, sample in enumerate(sub):         # one ToaBatch per probe per revolution
+    for i, sample in enumerate(sub):  # one ToaBatch per probe per revolution
         msg = codec.decode_toa_batch(sample.payload.to_bytes(), str(sample.key_expr))
-        print(msg.header.revolution, msg.probe, msg.toa_s[:3], flush=True)
-        if len(sys.argv) > 2 and i + 1 == int(sys.argv[2]):
-            break                            # optional: stop after N batches
+        print(msg.header.revolution, msg.body.probe, msg.body.toa_s[:3], flush=True)
+        if len(args) > 1 and i + 1 == int(args[1]):
+            break  # optional: stop after N batches

@@ -1,8 +1,8 @@
-"""Shared fixtures of the I/O tests: synthetic revolution batches and encoded message streams."""
+"""Shared fixtures of the bus tests: synthetic revolution batches and numbered message streams."""
 
 import numpy as np
 
-from bttsim_stream.io import codec
+from bttsim_stream.bus.stream import MessageStream
 from bttsim_stream.sim.core import RevolutionBatch, RunInfo, Truth
 
 NR, NB, NP = 3, 29, 5
@@ -34,7 +34,8 @@ def make_info(**changes) -> RunInfo:
                 probe_angles_rad=np.deg2rad([5, 15.15, 23.82, 220, 301.5]), probe_axial_m=12.26e-3,
                 tip_radius_m=0.19, opr_angle_rad=0.1, clock_hz=80e6, stagger_deg=41.5,
                 engine_orders=(8,), nodal_diameters=(1,), toa_method="PAD", duration_s=130.0,
-                seed=12345, rig="rig1")
+                seed=12345, rig="rig1", scenario_toml="[run]\nrig = \"rig1\"\n", software_version="0.1.0",
+                has_truth=True)
     base.update(changes)
     return RunInfo(**base)
 
@@ -44,10 +45,9 @@ RUN_META = {"run_id": "run-a", "rig": "rig1", "scenario_toml": "[run]\nrig = \"r
 
 
 def recorded_messages(n_batches=4, ticks=False):
-    seqs = {}
-    meta = codec.encode_run_metadata(make_info(), "run-a", RUN_META["scenario_toml"], "0.1.0", True)
-    out = [("bttsim/rig1/meta", meta, 0)]
+    """The metadata and ``n_batches`` batches of 3 revolutions as one publisher numbers them."""
+    stream = MessageStream("run-a", "rig1")
+    out = [stream.run_metadata(make_info())]
     for k in range(n_batches):
-        out += codec.encode_revolutions(make_batch(seed=k, ticks=ticks, rev0=3 * k), "run-a", "rig1",
-                                        seqs)
-    return [tuple(m) for m in out]
+        out += stream.acquisition(make_batch(seed=k, ticks=ticks, rev0=3 * k))
+    return out

@@ -1,5 +1,5 @@
-"""Protobuf codec: exact round trips, sequence numbers, determinism, refusal of bad payloads,
-and the committed generated code being current."""
+"""Protobuf codec: exact round trips to the library's dataclasses, determinism, refusal of bad
+payloads, and the committed generated code being current."""
 
 import importlib.metadata
 import importlib.util
@@ -11,78 +11,75 @@ import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
+from bttsim_stream.bus import codec
+from bttsim_stream.bus.stream import MessageStream
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.io import codec
-from bttsim_stream.sim.core import RevolutionBatch, RunInfo
+from bttsim_stream.process.pipeline import RevolutionFit
+from bttsim_stream.process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks, resonance_report
+from bttsim_stream.process.travelling_wave import ProbeWave
+from bttsim_stream.sim.core import RevolutionBatch, RunInfo, Truth
 
 from _io_helpers import NB, NP, NR, TRUTH_2D, make_batch, make_info
 
 REPO = Path(__file__).resolve().parents[1]
-GENERATED = REPO / "bttsim_stream" / "io" / "_gen" / "bttsim" / "v1" / "bttsim_pb2.py"
+GENERATED = REPO / "bttsim_stream" / "bus" / "_gen" / "bttsim" / "v1" / "bttsim_pb2.py"
+
+
+pytestmark = pytest.mark.unit
+
+
+def _header(seq=0, revolution=-1, t_s=0.0) -> codec.Header:
+    return codec.Header("run-a", seq, revolution, t_s)
 
 
 @pytest.mark.parametrize("ticks", [False, True], ids=["float-clock", "ticks"])
-def test_revolutions_round_trip_exactly(ticks):
+def test_acquisition_messages_round_trip_exactly(ticks):
     batch = make_batch(seed=1, ticks=ticks)
-    encoded = codec.encode_revolutions(batch, "run-a", "rig1", {})
-    assert len(encoded) == NR * (NP + 2)
+    msgs = MessageStream("run-a", "rig1").acquisition(batch)
+    assert len(msgs) == NR * (NP + 2)
     expected_keys = (["bttsim/rig1/opr"] + [f"bttsim/rig1/toa/{j}" for j in range(NP)]
                      + ["bttsim/rig1/truth"]) * NR
-    assert [e.key for e in encoded] == expected_keys
-    it = iter(encoded)
+    assert [m.key for m in msgs] == expected_keys
+    it = iter(msgs)
     for i in range(NR):
-        key, payload, t_ns = next(it)
-        opr = codec.decode_opr(payload, key)
-        assert opr.header.run_id == "run-a" and opr.header.revolution == i
-        assert opr.opr_s == batch.opr_s[i] and opr.header.t_s == batch.opr_s[i]
-        assert t_ns == int(round(batch.opr_s[i] * 1e9))
-        assert opr.opr_ticks == (int(batch.opr_ticks[i]) if ticks else None)
+        m = next(it)
+        opr = codec.decode_opr(m.payload, m.key)
+        assert opr.header.run_id == "run-a" and opr.header.revolution == i and opr.header.seq == m.seq == i
+        assert opr.body.opr_s == batch.opr_s[i] and opr.header.t_s == batch.opr_s[i]
+        assert m.log_time_ns == int(round(batch.opr_s[i] * 1e9))
+        assert opr.body.opr_ticks == (int(batch.opr_ticks[i]) if ticks else None)
         for j in range(NP):
-            key, payload, t_ns = next(it)
-            toa = codec.decode_toa_batch(payload, key, n_blades=NB)
-            assert toa.probe == j and toa.header.revolution == i
-            np.testing.assert_array_equal(toa.toa_s, batch.toa_s[i, :, j])
-            assert toa.toa_s.dtype == np.float64
+            m = next(it)
+            toa = codec.decode_toa_batch(m.payload, m.key, n_blades=NB)
+            assert toa.body.probe == j and toa.header.revolution == i
+            np.testing.assert_array_equal(toa.body.toa_s, batch.toa_s[i, :, j])
+            assert toa.body.toa_s.dtype == np.float64
             if ticks:
-                np.testing.assert_array_equal(toa.toa_ticks, batch.toa_ticks[i, :, j])
-                assert toa.toa_ticks.dtype == np.int64
+                np.testing.assert_array_equal(toa.body.toa_ticks, batch.toa_ticks[i, :, j])
+                assert toa.body.toa_ticks.dtype == np.int64
             else:
-                assert toa.toa_ticks is None
+                assert toa.body.toa_ticks is None
             assert toa.header.t_s == batch.toa_s[i, :, j].max()
-            assert t_ns == int(round(batch.toa_s[i, :, j].max() * 1e9))
-        key, payload, t_ns = next(it)
-        tr = codec.decode_truth_batch(payload, key)
-        assert (tr.n_blades, tr.n_probes) == (NB, NP)
-        assert tr.opr_s == batch.truth.opr_s[i] and tr.omega_mean_rad_s == batch.truth.omega_mean[i]
-        assert tr.header.t_s == batch.opr_s[i] and t_ns == int(round(batch.opr_s[i] * 1e9))
+            assert m.log_time_ns == int(round(batch.toa_s[i, :, j].max() * 1e9))
+        m = next(it)
+        tr = codec.decode_truth(m.payload, m.key)
+        assert isinstance(tr.body, Truth) and tr.body.toa_s.shape == (1, NB, NP)
+        assert tr.body.opr_s[0] == batch.truth.opr_s[i] and tr.body.omega_mean[0] == batch.truth.omega_mean[i]
+        assert tr.header.t_s == batch.opr_s[i] and m.log_time_ns == int(round(batch.opr_s[i] * 1e9))
         for name in TRUTH_2D:
-            np.testing.assert_array_equal(getattr(tr, name), getattr(batch.truth, name)[i])
-        np.testing.assert_array_equal(tr.d_eqv_pkpk_m, batch.truth.d_eqv_pkpk_m[i])
-
-
-def test_sequence_numbers_count_per_key_across_batches():
-    seqs = {}
-    first = codec.encode_revolutions(make_batch(seed=1), "r", "rig1", seqs)
-    second = codec.encode_revolutions(make_batch(seed=2, rev0=NR), "r", "rig1", seqs)
-    assert seqs == {"bttsim/rig1/opr": 2 * NR, "bttsim/rig1/truth": 2 * NR,
-                    **{f"bttsim/rig1/toa/{j}": 2 * NR for j in range(NP)}}
-    by_key = {}
-    for key, payload, _ in first + second:
-        by_key.setdefault(key, []).append(codec.decode_message(key, payload).header)
-    for key, headers in by_key.items():
-        assert [h.seq for h in headers] == list(range(2 * NR)), key
-        assert [h.revolution for h in headers] == list(range(2 * NR)), key
+            np.testing.assert_array_equal(getattr(tr.body, name)[0], getattr(batch.truth, name)[i])
+        np.testing.assert_array_equal(tr.body.d_eqv_pkpk_m[0], batch.truth.d_eqv_pkpk_m[i])
 
 
 def test_truth_can_be_left_out():
-    encoded = codec.encode_revolutions(make_batch(), "r", "rig1", {}, include_truth=False)
-    assert len(encoded) == NR * (NP + 1)
-    assert not any(e.key.endswith("/truth") for e in encoded)
+    msgs = MessageStream("r", "rig1").acquisition(make_batch(), include_truth=False)
+    assert len(msgs) == NR * (NP + 1)
+    assert not any(m.key.endswith("/truth") for m in msgs)
 
 
 def test_encoding_is_deterministic():
-    a = codec.encode_revolutions(make_batch(seed=3, ticks=True), "r", "rig1", {})
-    b = codec.encode_revolutions(make_batch(seed=3, ticks=True), "r", "rig1", {})
+    a = MessageStream("r", "rig1").acquisition(make_batch(seed=3, ticks=True))
+    b = MessageStream("r", "rig1").acquisition(make_batch(seed=3, ticks=True))
     assert a == b
 
 
@@ -94,12 +91,12 @@ def test_log_time_of_a_toa_batch_ignores_missing_arrivals():
     batch = RevolutionBatch(revolution=batch.revolution, opr_s=batch.opr_s, toa_s=toa,
                             opr_ticks=None, toa_ticks=None, truth=batch.truth, residual_s=0.0,
                             bracketed=batch.bracketed)
-    enc = {(e.key, codec.decode_message(e.key, e.payload).header.revolution): e
-           for e in codec.encode_revolutions(batch, "r", "rig1", {})}
+    enc = {(m.key, codec.decode_message(m.key, m.payload).header.revolution): m
+           for m in MessageStream("r", "rig1").acquisition(batch)}
     assert enc["bttsim/rig1/toa/2", 0].log_time_ns == int(round(np.nanmax(toa[0, :, 2]) * 1e9))
     assert enc["bttsim/rig1/toa/4", 1].log_time_ns == int(round(batch.opr_s[1] * 1e9))
     back = codec.decode_toa_batch(enc["bttsim/rig1/toa/2", 0].payload)
-    np.testing.assert_array_equal(back.toa_s, toa[0, :, 2])  # NaN survives
+    np.testing.assert_array_equal(back.body.toa_s, toa[0, :, 2])  # NaN survives
 
 
 def test_log_time_ns():
@@ -108,78 +105,82 @@ def test_log_time_ns():
     assert codec.log_time_ns(math.nan) == 0
 
 
-def test_run_metadata_round_trip():
-    info = make_info()
-    payload = codec.encode_run_metadata(info, "run-a", "[run]\nseed = 1\n", "0.1.0", True)
-    meta = codec.decode_run_metadata(payload, "bttsim/rig1/meta")
-    assert (meta.run_id, meta.rig, meta.header.run_id, meta.header.revolution) == \
-        ("run-a", "rig1", "run-a", -1)
-    assert meta.scenario_toml == "[run]\nseed = 1\n" and meta.software_version == "0.1.0"
-    assert meta.has_truth is True and meta.tick_s == 1 / 80e6
-    back = meta.to_run_info()
+def _assert_same_info(got: RunInfo, want: RunInfo, skip=()) -> None:
     for name in RunInfo.__dataclass_fields__:
-        got, want = getattr(back, name), getattr(info, name)
-        if isinstance(want, np.ndarray):
-            np.testing.assert_array_equal(got, want)
+        if name in skip:
+            continue
+        a, b = getattr(got, name), getattr(want, name)
+        if isinstance(b, np.ndarray) or isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=name)
         else:
-            assert got == want, name
-    unclocked = codec.decode_run_metadata(codec.encode_run_metadata(
-        make_info(clock_hz=0.0), "r", "", "0.1.0", False))
-    assert unclocked.tick_s == 0.0 and unclocked.has_truth is False
+            assert a == b, name
 
 
-def test_blade_fits_round_trip():
+def test_run_metadata_round_trip_is_the_run_info():
+    fam = np.linspace(300.0, 2000.0, 3 * (NB // 2 + 1)).reshape(3, NB // 2 + 1)
+    info = make_info(run_id="run-a", sensing_angles_rad=np.linspace(0, 6, NB), family_freq_hz=fam,
+                     speed_range_rpm=(1000.0, 4000.0))
+    d = codec.decode_run_metadata(codec.encode_run_metadata(_header(), info), "bttsim/rig1/meta")
+    assert (d.header.run_id, d.header.revolution) == ("run-a", -1)
+    assert isinstance(d.body, RunInfo) and d.body.tick_s == 1 / 80e6
+    _assert_same_info(d.body, info)
+    # the optional model data may be absent; the run id then comes from the header
+    bare = make_info(clock_hz=0.0, has_truth=False)
+    back = codec.decode_run_metadata(codec.encode_run_metadata(_header(), bare)).body
+    assert back.tick_s == 0.0 and back.has_truth is False and back.run_id == "run-a"
+    assert back.sensing_angles_rad is None and back.family_freq_hz is None
+    _assert_same_info(back, bare, skip=("run_id",))
+
+
+def test_run_metadata_refuses_a_wrong_family_table():
+    with pytest.raises(ValueError, match="family_freq_hz"):
+        codec.encode_run_metadata(_header(), make_info(family_freq_hz=np.ones((2, 3))))
+
+
+def test_fit_round_trip():
     rng = np.random.default_rng(5)
     arrays = {name: rng.standard_normal(NB) for name in
-              ("amp_pkpk_m", "phase_rad", "dc_m", "residual_m", "amp_std_m")}
-    seqs = {}
-    key, payload, t_ns = codec.encode_blade_fits(run_id="r", rig="rig1", seqs=seqs, revolution=7,
-                                                 t_s=2.5, engine_order=8, omega_mean_rad_s=270.0,
-                                                 cn=1.4, **arrays)
-    assert key == "bttsim/rig1/fit" and t_ns == 2_500_000_000 and seqs == {key: 1}
-    fits = codec.decode_blade_fits(payload, key)
-    assert (fits.n_blades, fits.engine_order, fits.cn, fits.header.revolution) == (NB, 8, 1.4, 7)
-    assert fits.freq_hz == 8 * 270.0 / (2 * math.pi)  # Eq. 17
+              ("amp_pkpk_m", "phase_rad", "dc_m", "residual_rms_m", "amp_std_m")}
+    fit = RevolutionFit(engine_order=8, omega_rad_s=270.0, freq_hz=8 * 270.0 / (2 * math.pi), cn=1.4, **arrays)
+    d = codec.decode_fit(codec.encode_fit(_header(3, 7, 2.5), fit), "bttsim/rig1/fit")
+    assert (d.header.seq, d.header.revolution, d.header.t_s) == (3, 7, 2.5)
+    got = d.body
+    assert (got.n_blades, got.engine_order, got.cn, got.omega_rad_s) == (NB, 8, 1.4, 270.0)
+    assert got.freq_hz == fit.freq_hz
     for name, values in arrays.items():
-        np.testing.assert_array_equal(getattr(fits, name), values)
+        np.testing.assert_array_equal(getattr(got, name), values)
 
 
-def test_travelling_wave_round_trip_and_dominant_nd():
+def test_probe_wave_round_trip():
     fwd = np.array([0.1, 0.2, 0.9, 0.0])
     bwd = np.array([0.1, 0.0, 0.3, 1.5])
-    key, payload, _ = codec.encode_travelling_wave(run_id="r", rig="rig1", seqs={}, revolution=2,
-                                                   t_s=0.1, probe=3, forward_m=fwd, backward_m=bwd)
-    tw = codec.decode_travelling_wave(payload, key)
-    assert key == "bttsim/rig1/tw/3" and tw.probe == 3 and tw.n_nd == 4
-    assert tw.dominant_nd == -3
-    np.testing.assert_array_equal(tw.forward_m, fwd)
-    np.testing.assert_array_equal(tw.backward_m, bwd)
-    _, payload, _ = codec.encode_travelling_wave(run_id="r", rig="rig1", seqs={}, revolution=2,
-                                                 t_s=0.1, probe=3, forward_m=fwd, backward_m=bwd / 10)
-    assert codec.decode_travelling_wave(payload).dominant_nd == 2
+    wave = ProbeWave(probe=3, forward_m=fwd, backward_m=bwd, nd=-3)
+    d = codec.decode_probe_wave(codec.encode_probe_wave(_header(0, 2, 0.1), wave), "bttsim/rig1/tw/3")
+    assert d.body.probe == 3 and d.body.n_nd == 4 and d.body.nd == -3
+    np.testing.assert_array_equal(d.body.forward_m, fwd)
+    np.testing.assert_array_equal(d.body.backward_m, bwd)
+    np.testing.assert_array_equal(d.body.signed_spectrum(), [0.0, 0.9, 0.2, 0.1, 0.0, 0.3, 1.5])
+    with pytest.raises(BttsimError, match="probe 3 on the key of probe 1"):
+        codec.decode_probe_wave(codec.encode_probe_wave(_header(), wave), "bttsim/rig1/tw/1")
 
 
-def _summary(truth: bool) -> dict:
-    blades = []
-    for b in range(3):
-        row = {"blade": b, "amp_pkpk_m": 2.3e-3 + b * 1e-5, "freq_hz": 344.1 + b * 0.01}
-        if truth:
-            row.update(truth_amp_pkpk_m=2.37e-3, truth_freq_hz=344.16, E_A_pct=1.0 + b,
-                       E_f_pct=0.01 * b)
-        blades.append(row)
-    out = {"nd": 1, "eo": 8, "cn": 1.4, "blades": blades}
-    if truth:
-        out.update(mean_E_A_pct=2.0, max_E_A_pct=3.0, mean_E_f_pct=0.01, max_E_f_pct=0.02)
-    return out
+def _report(truth: bool) -> ResonanceReport:
+    nb = 3
+    peaks = ResonancePeaks(revolution=np.array([10.0, 11.0, 12.0]), amp_pkpk_m=2.3e-3 + 1e-5 * np.arange(nb),
+                           freq_hz=344.1 + 0.01 * np.arange(nb), damping_ratio=np.full(nb, np.nan), method="max")
+    if not truth:
+        return resonance_report(peaks, nd=-1, eo=8, cn=1.4)
+    tp = TruthPeaks(revolution=np.array([10, 11, 12]), amp_pkpk_m=np.full(nb, 2.37e-3), freq_hz=np.full(nb, 344.16))
+    return resonance_report(peaks, nd=1, eo=8, cn=1.4, truth=tp)
 
 
 @pytest.mark.parametrize("truth", [True, False], ids=["with-truth", "blind"])
 def test_resonance_report_round_trip(truth):
-    summary = _summary(truth)
-    key, payload, _ = codec.encode_resonance_report(summary, run_id="r", rig="rig1", seqs={})
-    report = codec.decode_resonance_report(payload, key)
-    assert key == "bttsim/rig1/resonance" and report.has_truth is truth
-    assert report.to_summary() == summary
+    report = _report(truth)
+    d = codec.decode_resonance_report(codec.encode_resonance_report(_header(), report), "bttsim/rig1/resonance")
+    assert isinstance(d.body, ResonanceReport) and (d.body.truth is not None) is truth
+    assert d.body.to_summary() == report.to_summary()
+    assert d.body.peaks.method == "reported"
 
 
 def _one_line_error(excinfo) -> str:
@@ -190,9 +191,9 @@ def _one_line_error(excinfo) -> str:
 
 def test_random_bytes_are_refused():
     payload = np.random.default_rng(6).bytes(200)
-    for decode in (codec.decode_opr, codec.decode_toa_batch, codec.decode_truth_batch,
-                   codec.decode_run_metadata, codec.decode_blade_fits,
-                   codec.decode_travelling_wave, codec.decode_resonance_report):
+    for decode in (codec.decode_opr, codec.decode_toa_batch, codec.decode_truth,
+                   codec.decode_run_metadata, codec.decode_fit,
+                   codec.decode_probe_wave, codec.decode_resonance_report):
         with pytest.raises(BttsimError) as excinfo:
             decode(payload, "bttsim/rig1/x")
         assert _one_line_error(excinfo).startswith("bttsim/rig1/x: corrupt ")
@@ -204,7 +205,7 @@ def test_empty_payload_has_no_header():
 
 
 def test_oversized_payload_is_refused(monkeypatch):
-    payload = codec.encode_revolutions(make_batch(), "r", "rig1", {})[1].payload
+    payload = MessageStream("r", "rig1").acquisition(make_batch())[1].payload
     monkeypatch.setattr(codec, "MAX_PAYLOAD_BYTES", len(payload) - 1)
     with pytest.raises(BttsimError, match="exceeds the .* byte limit") as excinfo:
         codec.decode_toa_batch(payload, "bttsim/rig1/toa/0")
@@ -226,8 +227,8 @@ def _field(number: int, wire: int, body: bytes) -> bytes:
 
 
 def test_inconsistent_toa_batch_is_refused():
-    encoded = codec.encode_revolutions(make_batch(ticks=True), "r", "rig1", {})
-    key, payload, _ = encoded[1]
+    m = MessageStream("r", "rig1").acquisition(make_batch(ticks=True))[1]
+    key, payload = m.key, m.payload
     # one more packed toa_ticks value (field 4) than toa_s
     bad = payload + _field(4, 2, _varint(1) + _varint(5))
     with pytest.raises(BttsimError, match=r"toa_ticks has 30 values, expected 29") as excinfo:
@@ -240,11 +241,11 @@ def test_inconsistent_toa_batch_is_refused():
 
 
 def test_inconsistent_truth_batch_is_refused():
-    encoded = codec.encode_revolutions(make_batch(), "r", "rig1", {})
-    key, payload, _ = encoded[NP + 1]
+    m = MessageStream("r", "rig1").acquisition(make_batch())[NP + 1]
+    key, payload = m.key, m.payload
     bad = payload + _field(5, 0, _varint(4))  # n_probes = 4
     with pytest.raises(BttsimError, match=r"toa_s has 145 values, expected 116 for shape \(29, 4\)"):
-        codec.decode_truth_batch(bad, key)
+        codec.decode_truth(bad, key)
 
 
 def test_decode_message_refuses_unknown_keys():
@@ -267,7 +268,7 @@ def test_file_descriptor_set_decodes_payloads_without_generated_code():
         pool.Add(f)
     cls = message_factory.GetMessageClass(pool.FindMessageTypeByName("bttsim.v1.ToaBatch"))
     batch = make_batch(seed=7)
-    msg = cls.FromString(codec.encode_revolutions(batch, "r", "rig1", {})[2].payload)
+    msg = cls.FromString(MessageStream("r", "rig1").acquisition(batch)[2].payload)
     assert msg.probe == 1 and msg.header.run_id == "r"
     assert list(msg.toa_s) == batch.toa_s[0, :, 1].tolist()
 

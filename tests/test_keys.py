@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.io import keys
+from bttsim_stream.bus import keys
 
 
 def test_key_table():

@@ -13,17 +13,17 @@ import zenoh
 import zenoh.ext as zx
 
 from _procs import start as _start, stop as _stop
-from bttsim_stream.io import codec
-from bttsim_stream.io.mcap_io import read_recording
+from bttsim_stream.bus import codec
+from bttsim_stream.bus.recording import read_recording
 from bttsim_stream.testing import free_port, virtual_acquisition
-from bttsim_stream.transport import make_config, unpack_attachment
+from bttsim_stream.bus.session import make_config, unpack_attachment
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT = "[speed]\nstart_rpm = 2500.0\nend_rpm = 2600.0\nduration_s = 2.0\n"
 
 
 def _messages(path):
-    return sorted((m.key, m.sequence, m.payload, m.log_time_ns) for m in read_recording(path).messages)
+    return sorted((m.key, m.seq, m.payload, m.log_time_ns) for m in read_recording(path).messages)
 
 
 @pytest.fixture
@@ -76,7 +76,7 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     file_msgs = read_recording(direct).messages
     assert len(got) == len(file_msgs)
     assert sorted((k, p, a[0], a[1]) for k, p, a in got) == \
-        sorted((m.key, m.payload, m.sequence, m.log_time_ns) for m in file_msgs)
+        sorted((m.key, m.payload, m.seq, m.log_time_ns) for m in file_msgs)
     # and a recorder fed by the replay writes the same messages as the file
     port = free_port()
     out = tmp_path / "replayed.mcap"
@@ -130,7 +130,7 @@ def test_recorder_killed_mid_run_leaves_a_readable_file(tmp_path):
     assert recording.truncated and len(recording.messages) > 1000
     by_key = {}
     for m in recording.messages:
-        by_key.setdefault(m.key, []).append(m.sequence)
+        by_key.setdefault(m.key, []).append(m.seq)
         codec.decode_message(m.key, m.payload)  # every message decodes
     for key, seqs in by_key.items():
         if not key.endswith("/meta"):

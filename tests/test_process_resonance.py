@@ -100,11 +100,12 @@ def test_summary_json_exact_form():
 
 @pytest.mark.parametrize("with_truth", [True, False], ids=["truth", "blind"])
 def test_summary_round_trips_through_the_codec(with_truth):
-    from bttsim_stream.io import codec
+    from bttsim_stream.bus import codec
 
-    s = _report(with_truth).to_summary()
-    _, payload, _ = codec.encode_resonance_report(s, run_id="r", rig="rig1", seqs={})
-    back = codec.decode_resonance_report(payload).to_summary()
+    report = _report(with_truth)
+    s = report.to_summary()
+    payload = codec.encode_resonance_report(codec.Header("r", 0), report)
+    back = codec.decode_resonance_report(payload).body.to_summary()
     assert back.keys() == s.keys()
     for a, b in zip(back["blades"], s["blades"]):
         assert a == pytest.approx(b)

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 
-from bttsim_stream.io.mcap_io import read_recording
+from bttsim_stream.bus.recording import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT = "[speed]\nstart_rpm = 2400.0\nend_rpm = 2800.0\nduration_s = 12.0\n"

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from _procs import start as _start, stop as _stop
-from bttsim_stream.io import codec, keys
-from bttsim_stream.io.mcap_io import McapRecorder, read_recording
+from bttsim_stream.bus import codec, keys
+from bttsim_stream.bus.recording import McapRecorder, read_recording
 from bttsim_stream.testing import free_port
 
 rr = pytest.importorskip("rerun")

@@ -562,11 +562,11 @@ class StreamingProcessor:
             a1, a2 = a[:, 1::2], a[:, 2::2]
             amp2 = a1 * a1 + a2 * a2
             num = a1 * (g11 * a1 + (2.0 * g12) * a2) + g22 * a2 * a2  # (a1, a2) G (a1, a2)^T
+            amp = np.sqrt(amp2)
             zero = amp2 == 0
             if zero.any():  # no direction: the mean of the two variances
                 num = np.where(zero, 0.5 * (g11 + g22), num)
                 amp2 = np.where(zero, 1.0, amp2)
-            amp = np.sqrt(amp2)
             amp_pkpk, phase = 2.0 * amp, np.arctan2(a2, a1)
             amp_std = 2.0 * np.sqrt(s2[:, None] * num / amp2)
             dc, res = a[:, 0], np.sqrt(rss / n_used)

@@ -16,8 +16,8 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import breakup_chunk
 
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.io import codec, mcap_io
-from bttsim_stream.io.mcap_io import McapRecorder, read_messages, read_recording, run_metadata_from_mcap
+from bttsim_stream.bus import codec, recording as mcap_io
+from bttsim_stream.bus.recording import McapRecorder, read_messages, read_recording, run_metadata_from_mcap
 
 from _io_helpers import NB, NP, RUN_META, make_batch, recorded_messages
 
@@ -55,25 +55,25 @@ def chunked(messages, tmp_path_factory):
 def test_round_trip_is_exact(recording, messages):
     rec = read_recording(recording)
     assert not rec.truncated
-    assert [tuple(m)[:3] for m in rec.messages] == messages
+    assert list(rec.messages) == messages
     assert rec.run_metadata == RUN_META
     assert rec.schemas["bttsim/rig1/toa/4"] == "bttsim.v1.ToaBatch"
     assert rec.schemas["bttsim/rig1/meta"] == "bttsim.v1.RunMetadata"
     assert rec.keys()[0] == "bttsim/rig1/meta"
-    assert [tuple(m)[:3] for m in read_messages(recording)] == messages
+    assert list(read_messages(recording)) == messages
     assert run_metadata_from_mcap(recording) == RUN_META
 
 
 def test_key_filter(recording, messages):
     got = list(read_messages(recording, keys=["bttsim/rig1/opr", "bttsim/rig1/toa/*"]))
-    assert [tuple(m)[:3] for m in got] == [m for m in messages if "/opr" in m[0] or "/toa/" in m[0]]
+    assert list(got) == [m for m in messages if "/opr" in m.key or "/toa/" in m.key]
 
 
 def test_decoded_recording_matches_the_batch(recording):
     batch = make_batch(seed=0)
-    toa = [codec.decode_toa_batch(p, k) for k, p, *_ in read_messages(recording, "bttsim/rig1/toa/2")]
-    np.testing.assert_array_equal(np.stack([m.toa_s for m in toa[:3]]), batch.toa_s[:, :, 2])
-    meta = [codec.decode_run_metadata(p, k) for k, p, *_ in read_messages(recording, "bttsim/*/meta")]
+    toa = [codec.decode_toa_batch(m.payload, m.key).body for m in read_messages(recording, "bttsim/rig1/toa/2")]
+    np.testing.assert_array_equal(np.stack([t.toa_s for t in toa[:3]]), batch.toa_s[:, :, 2])
+    meta = [codec.decode_run_metadata(m.payload, m.key).body for m in read_messages(recording, "bttsim/*/meta")]
     assert len(meta) == 1 and meta[0].n_blades == NB
 
 
@@ -160,7 +160,7 @@ def test_truncated_files_yield_their_complete_chunks(chunked, messages, tmp_path
             rec = read_recording(_cut(path, tmp_path / "cut.mcap", n))
             assert rec.truncated, (k, name)
             assert len(rec.messages) == expected, (k, name)
-            assert [tuple(m)[:3] for m in rec.messages] == messages[:expected]
+            assert list(rec.messages) == messages[:expected]
             assert rec.run_metadata == RUN_META
             assert run_metadata_from_mcap(tmp_path / "cut.mcap") == RUN_META
 
@@ -171,15 +171,15 @@ def test_file_cut_anywhere_reads_a_prefix(chunked, messages, tmp_path, fraction)
     n = int(path.stat().st_size * fraction)
     rec = read_recording(_cut(path, tmp_path / "cut.mcap", n))
     assert rec.truncated and 0 < len(rec.messages) <= len(messages)
-    assert [tuple(m)[:3] for m in rec.messages] == messages[:len(rec.messages)]
-    assert [tuple(m)[:3] for m in read_messages(tmp_path / "cut.mcap")] == \
-        [tuple(m)[:3] for m in rec.messages]
+    assert list(rec.messages) == messages[:len(rec.messages)]
+    assert list(read_messages(tmp_path / "cut.mcap")) == \
+        list(rec.messages)
 
 
 def test_file_cut_in_its_summary_keeps_every_message(chunked, messages, tmp_path):
     path, _ = chunked
     rec = read_recording(_cut(path, tmp_path / "cut.mcap", path.stat().st_size - 4))
-    assert rec.truncated and [tuple(m)[:3] for m in rec.messages] == messages
+    assert rec.truncated and list(rec.messages) == messages
 
 
 def test_file_cut_before_any_chunk(chunked, tmp_path):
@@ -243,10 +243,10 @@ def test_flush_puts_messages_on_disk_while_recording(messages, tmp_path):
         assert read_recording(path).messages == []  # still in the open chunk
         rec.flush()
         live = read_recording(path)
-        assert live.truncated and [tuple(m)[:3] for m in live.messages] == messages[:10]
+        assert live.truncated and list(live.messages) == messages[:10]
         rec.write_all(messages[10:])
     done = read_recording(path)
-    assert not done.truncated and [tuple(m)[:3] for m in done.messages] == messages
+    assert not done.truncated and list(done.messages) == messages
 
 
 def test_recorder_refuses_unknown_keys_and_negative_times(tmp_path):
@@ -263,7 +263,7 @@ KILLED_WRITER = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, sys.argv[2])
     sys.path.insert(0, os.path.join(sys.argv[2], "tests"))
-    from bttsim_stream.io.mcap_io import McapRecorder
+    from bttsim_stream.bus.recording import McapRecorder
     from _io_helpers import RUN_META, recorded_messages
     msgs = recorded_messages(8)
     rec = McapRecorder(sys.argv[1], chunk_size=8000, run_metadata=RUN_META)
@@ -284,6 +284,6 @@ def test_sigkill_loses_at_most_the_open_chunk(tmp_path):
     rec = read_recording(path)
     assert rec.truncated and rec.run_metadata == RUN_META
     expected = recorded_messages(8)
-    assert [tuple(m)[:3] for m in rec.messages] == expected[:len(rec.messages)]
-    open_chunk = 8000 // min(len(m[1]) for m in expected) + 1
+    assert list(rec.messages) == expected[:len(rec.messages)]
+    open_chunk = 8000 // min(len(m.payload) for m in expected) + 1
     assert n_written - open_chunk <= len(rec.messages) <= n_written

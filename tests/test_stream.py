@@ -1,0 +1,134 @@
+"""The message stream: sequence numbers, results to messages, revolution assembly."""
+
+import numpy as np
+import pytest
+
+from bttsim_stream.bus import codec
+from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler, Sequencer
+from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
+
+from _io_helpers import NB, NP, NR, make_batch, make_info
+
+pytestmark = pytest.mark.unit
+
+
+def test_sequencer_counts_per_key():
+    s = Sequencer()
+    assert [s.next("a"), s.next("a"), s.next("b"), s.next("a")] == [0, 1, 0, 2]
+    assert (s.count("a"), s.count("b"), s.count("c")) == (3, 1, 0)
+
+
+def test_sequence_numbers_count_per_key_across_batches():
+    stream = MessageStream("r", "rig1")
+    msgs = stream.acquisition(make_batch(seed=1)) + stream.acquisition(make_batch(seed=2, rev0=NR))
+    by_key = {}
+    for m in msgs:
+        h = codec.decode_message(m.key, m.payload).header
+        assert h.seq == m.seq  # the record and the header agree
+        by_key.setdefault(m.key, []).append(h)
+    assert set(by_key) == {"bttsim/rig1/opr", "bttsim/rig1/truth", *(f"bttsim/rig1/toa/{j}" for j in range(NP))}
+    for key, headers in by_key.items():
+        assert [h.seq for h in headers] == list(range(2 * NR)), key
+        assert [h.revolution for h in headers] == list(range(2 * NR)), key
+
+
+def test_run_metadata_message_has_the_stream_run_id():
+    m = MessageStream("run-x", "rig1").run_metadata(make_info(run_id="other"))
+    d = codec.decode_run_metadata(m.payload, m.key)
+    assert (m.key, m.seq, m.log_time_ns) == ("bttsim/rig1/meta", 0, 0)
+    assert d.body.run_id == d.header.run_id == "run-x"
+
+
+def _outputs(n_rev=12, eos=(8, 9)):
+    """Real streaming outputs of a rigid rotor at constant speed (five probes, two EOs)."""
+    info = make_info(engine_orders=eos, nodal_diameters=(1,) * len(eos))
+    proc = StreamingProcessor(info, ProcessOptions(calibration=None))
+    period = 0.02
+    opr = period * np.arange(n_rev)
+    psi = np.mod(info.probe_angles_rad[None, :] - 2 * np.pi * np.arange(NB)[:, None] / NB - info.opr_angle_rad,
+                 2 * np.pi)
+    out = []
+    for k in range(n_rev):
+        out += proc.push(k, opr[k], opr[k] + psi / (2 * np.pi) * period)
+    return out + proc.flush()
+
+
+def test_processing_messages_one_fit_per_engine_order_then_one_wave_per_probe():
+    outs = _outputs()
+    stream = MessageStream("r", "rig1")
+    msgs = stream.processing(outs[0])
+    assert [m.key for m in msgs] == ["bttsim/rig1/fit"] * 2 + [f"bttsim/rig1/tw/{j}" for j in range(NP)]
+    fits = [codec.decode_fit(m.payload, m.key).body for m in msgs[:2]]
+    assert [f.engine_order for f in fits] == [8, 9]
+    np.testing.assert_array_equal(fits[1].amp_pkpk_m, outs[0].amp_pkpk_m[:, 1])
+    assert [m.seq for m in msgs[:2]] == [0, 1]
+    waves = [codec.decode_probe_wave(m.payload, m.key).body for m in msgs[2:]]
+    assert [w.probe for w in waves] == list(range(NP))
+    assert {w.nd for w in waves} == {int(outs[0].fit_tw.dominant_nd)}
+    # a rigid rotor at the nominal geometry: no vibration at all
+    assert np.nanmax(np.abs(fits[0].amp_pkpk_m)) < 1e-12
+    later = stream.processing(outs[1])
+    assert [m.seq for m in later if m.key.endswith("/fit")] == [2, 3]
+
+
+def _fragments(n_rev=5, drop=()):
+    """Decoded OPR / TOA fragments of ``n_rev`` revolutions, minus ``(kind, revolution, probe)``."""
+    batch = make_batch(seed=9, nr=n_rev)
+    out = []
+    for m in MessageStream("r", "rig1").acquisition(batch, include_truth=False):
+        kind = m.key.split("/")[2]
+        d = codec.decode_message(m.key, m.payload)
+        probe = d.body.probe if kind == "toa" else None
+        if (kind, d.header.revolution, probe) not in drop:
+            out.append((kind, d))
+    return batch, out
+
+
+def test_assembler_gives_complete_revolutions_in_order_despite_reordering():
+    """Fragments of a revolution arrive in any order, mixed with those of the next one (a
+    revolution's fragments all come before the OPR two revolutions later)."""
+    batch, frags = _fragments()
+    rng = np.random.default_rng(0)
+    order = np.argsort([d.header.revolution + rng.uniform(0.0, 1.9) for _, d in frags])
+    assert not np.all(np.diff(order) > 0)
+    asm = RevolutionAssembler(NB, NP)
+    got = []
+    for i in order:
+        asm.add(*frags[i])
+        got += asm.pop()
+    got += asm.pop(final=True)
+    assert [r.revolution for r in got] == list(range(5))
+    assert all(r.complete for r in got)
+    for r in got:
+        np.testing.assert_array_equal(r.toa_s, batch.toa_s[r.revolution])
+        assert r.opr_s == batch.opr_s[r.revolution]
+
+
+def test_assembler_waits_for_missing_probes_until_two_revolutions_later():
+    batch, frags = _fragments(drop={("toa", 1, 3)})
+    asm = RevolutionAssembler(NB, NP)
+    released = {}
+    for kind, d in frags:
+        asm.add(kind, d)
+        for r in asm.pop():
+            released[r.revolution] = (r, kind, d.header.revolution)
+    r1, kind, at = released[1]
+    assert not r1.complete and (kind, at) == ("opr", 3)  # given out when OPR 3 arrived
+    assert np.isnan(r1.toa_s[:, 3]).all()
+    np.testing.assert_array_equal(r1.toa_s[:, :3], batch.toa_s[1, :, :3])
+    assert released[2][0].complete
+
+
+def test_assembler_drops_revolutions_without_opr_and_ignores_late_or_foreign_fragments():
+    _, frags = _fragments(drop={("opr", 2, None)})
+    asm = RevolutionAssembler(NB, NP)
+    got = []
+    for kind, d in frags:
+        asm.add(kind, d)
+        got += asm.pop()
+    got += asm.pop(final=True)
+    assert [r.revolution for r in got] == [0, 1, 3, 4] and asm.dropped == 1
+    asm.add_opr(1, 123.0)  # already given out
+    asm.add_toa(9, NP, np.zeros(NB))  # no such probe
+    asm.add_toa(9, 0, np.zeros(NB + 1))  # wrong blade count
+    assert asm.ignored == 3 and asm.pending == 0
