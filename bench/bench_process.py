@@ -43,7 +43,7 @@ def main(method: str = "HP", repeat: int = 3) -> dict:
     from threadpoolctl import threadpool_limits
 
     from bttsim_stream.process import ProcessOptions, StreamingProcessor, process_arrays
-    from bttsim_stream.process.validate import simulate
+    from bttsim_stream.paper.validate_processing import simulate
 
     run = simulate({"toa": {"method": method}} if method != "HP" else None)
     n_toa = int(run.toa_s.size)

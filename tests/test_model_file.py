@@ -159,6 +159,25 @@ def test_cli_build_with_scenario_mistuning(tmp_path):
     np.testing.assert_array_equal(load_model(again).tip_shapes, m.tip_shapes)  # deterministic
 
 
+def test_cli_show_without_matplotlib_prints_the_table(model_file, tmp_path, capsys, monkeypatch):
+    """Without the plot extra: the table and a note (exit 0); with --png the one-line error (exit 2)."""
+    from bttsim_stream import cli
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    hint = "the model plot needs matplotlib: pip install 'bttsim-stream[plot]'"
+    assert cli.main(["model", "show", str(model_file)]) == 0
+    out, err = capsys.readouterr()
+    assert "343.90 / 343.90" in out and "wrote" not in out
+    assert err.strip().splitlines() == [f"bttsim: note: no plot written: {hint}"]
+    assert not model_file.with_suffix(".png").exists()
+    png = tmp_path / "asked.png"
+    assert cli.main(["model", "show", str(model_file), "--png", str(png)]) == 2
+    out, err = capsys.readouterr()
+    assert "343.90 / 343.90" in out
+    assert err.strip().splitlines() == [f"bttsim: error: {hint}"]
+    assert not png.exists()
+
+
 @pytest.mark.parametrize("content", [b"garbage", b"PK\x03\x04broken"], ids=["text", "broken-zip"])
 def test_cli_bad_model_exits_2_with_one_line(content, tmp_path):
     bad = tmp_path / "bad.npz"

@@ -7,7 +7,7 @@ import pytest
 
 from bttsim_stream.process import (Geometry, btt_displacement, calibrate_arrival_angles, compute_displacements,
                                    expected_times, identify_blades, mean_speed_from_opr, rotor_phase_from_opr)
-from bttsim_stream.process.validate import simulate
+from bttsim_stream.paper.validate_processing import simulate
 
 TWO_PI = 2 * np.pi
 PROBES = np.deg2rad([5.0, 15.15, 23.82, 220.0, 301.5])

@@ -10,7 +10,7 @@ import pytest
 
 from bttsim_stream.process import (Geometry, ProcessOptions, StreamingProcessor, TruthPeakTracker, fit_spectra,
                                    probe_spectra, process_arrays, truth_peaks)
-from bttsim_stream.process.validate import ACCEPTANCE, format_validation, simulate, table2_row, validate
+from bttsim_stream.paper.validate_processing import ACCEPTANCE, format_validation, simulate, table2_row, validate
 
 RUNS = {"HP": None, "PAD": {"toa": {"method": "PAD"}}}
 

@@ -5,7 +5,7 @@ import pytest
 
 from bttsim_stream.process import (ProcessOptions, fit_revolutions, fit_spectra, identify_nd, probe_spectra,
                                    process_arrays, signed_nd)
-from bttsim_stream.process.validate import simulate
+from bttsim_stream.paper.validate_processing import simulate
 
 PROBES = np.deg2rad([5.0, 15.15, 23.82, 220.0, 301.5])
 NB, EO = 29, 8

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._plotting import pyplot
 from ..errors import BttsimError
 from .modal_model import ModalModel, label_modes, localisation
 
@@ -51,12 +52,16 @@ def family_table(model: ModalModel) -> str:
 
 
 def plot_family_frequencies(model: ModalModel, png: Path) -> None:
-    """PNG like the paper's Fig. 3: frequency vs nodal diameter for each family."""
-    import matplotlib
+    """PNG like the paper's Fig. 3: frequency vs nodal diameter for each family.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    Raises
+    ------
+    bttsim_stream._plotting.PlotExtraMissing
+        matplotlib (the ``plot`` extra) is not installed (a :class:`BttsimError`).
+    BttsimError
+        ``png`` cannot be written.
+    """
+    plt = pyplot("the model plot")
     fam, nd = _labels(model)
     fams = np.unique(fam)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))

@@ -10,8 +10,10 @@ One module per stage (paper equations in brackets):
   the summary JSON;
 * :mod:`.travelling_wave` -- nodal diameter spectra (Fig. 10);
 * :mod:`.probes` -- condition number of ``B`` and probe layout search (Table 3);
-* :mod:`.pipeline` -- offline :func:`process_arrays` and :class:`StreamingProcessor`;
-* :mod:`.validate` -- the paper's Table 2 / Table 3 / ND checks on simulated runs.
+* :mod:`.pipeline` -- offline :func:`process_arrays` and :class:`StreamingProcessor`.
+
+The paper's Table 2 / Table 3 / ND checks on simulated runs are in
+:mod:`bttsim_stream.paper.validate_processing` (this package never imports the simulator).
 
 Conventions: arrays ``(revolution, blade, probe)``, SI units (s, m, rad, rad/s; Hz for
 frequencies), amplitudes peak-to-peak, blades and probes numbered from 0, NaN for a

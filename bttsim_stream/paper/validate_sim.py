@@ -21,7 +21,7 @@ import numpy as np
 
 from ..model import build_model
 from ..scenario import Scenario, scenario_from_dict
-from .core import RunUpSimulator, collect
+from ..sim.core import RunUpSimulator, collect
 
 __all__ = ["validate"]
 

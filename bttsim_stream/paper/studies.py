@@ -1,41 +1,45 @@
 """Reproduce the paper's studies (Table 2, Table 3, Sec. 3.3.4, Figs. 6-13), ours beside its numbers.
 
 Each study is one function ``study_<name>(out_dir) -> dict`` that simulates what it needs
-with the library (:func:`bttsim_stream.process.validate.simulate`, cached per process),
-processes it with :func:`bttsim_stream.process.pipeline.process_arrays`, and writes
-``<out_dir>/<name>.md`` (a Markdown table with the paper's values beside ours) and PNG
-figures. Errors are percent, amplitudes peak-to-peak; "ours" uses the default pipeline
-(OPR-based expected times, calibrated arrival angles, peak pick) unless a table says
-otherwise.
+with the library (:func:`bttsim_stream.paper.validate_processing.simulate`, cached per
+process), processes it with :func:`bttsim_stream.process.pipeline.process_arrays`, and writes
+``<out_dir>/<name>.md`` (a Markdown table with the paper's values beside ours),
+``<out_dir>/<name>.json`` and PNG figures. Errors are percent, amplitudes peak-to-peak;
+"ours" uses the default pipeline (OPR-based expected times, calibrated arrival angles, peak
+pick) unless a table says otherwise.
 
-Run ``python -m bttsim_stream.studies NAME [--out docs/results]`` with NAME one of
-:data:`STUDIES` or ``all``. Numerical only: never imports zenoh, protobuf, mcap or rerun.
+Run ``bttsim study NAME --out DIR`` or ``python -m bttsim_stream.paper.studies NAME --out DIR``
+with NAME one of :data:`STUDIES` or ``all`` (the repository's copy is ``docs/results``). The
+figures need matplotlib (the ``plot`` extra). Numerical only: never imports zenoh, protobuf,
+mcap or rerun.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .bench_ref import reference_hp_toas, study_bench
-from .process.pipeline import ProcessOptions, process_arrays
-from .process.probes import (
+from ..errors import BttsimError
+from ..process.pipeline import ProcessOptions, process_arrays
+from ..process.probes import (
     PAPER_CANDIDATES_DEG,
     PAPER_TABLE3,
     condition_number,
     rank_layouts,
 )
-from .process.validate import PAPER_TABLE2, simulate
+from ._report import md_table, out_dir_mk, pyplot, savefig, write_study
+from .bench_ref import reference_hp_toas, study_bench
+from .validate_processing import PAPER_TABLE2, default_model, simulate
 
 __all__ = [
     "STUDIES",
     "main",
     "reference_hp_toas",
+    "run",
     "study_bench",
     "study_figures",
     "study_nd",
@@ -44,7 +48,6 @@ __all__ = [
     "study_table3",
 ]
 
-DEFAULT_OUT = Path("docs/results")
 METHODS = ("HP", "AD", "PAD")
 STATS = ("max_E_A_pct", "mean_E_A_pct", "max_E_f_pct", "mean_E_f_pct")
 
@@ -58,34 +61,6 @@ WHY = ("Our processing is exact least squares (Eq. 16) on exactly simulated data
 
 
 # ----------------------------------------------------------------------------- helpers
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _md_table(headers, rows) -> str:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
-    return "\n".join(lines)
-
-
-def _write(out_dir: Path, name: str, text: str, data: dict) -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{name}.md").write_text(text.rstrip() + "\n")
-    (out_dir / f"{name}.json").write_text(json.dumps(data, indent=1, default=float) + "\n")
-
-
-def _savefig(fig, path: Path) -> str:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    _plt().close(fig)
-    return path.name
-
-
 def _process(run, *, prep: bool = True, expected_times: str = "opr", peak_method: str = "max"):
     opts = ProcessOptions(expected_times=expected_times, prep=prep, peak_method=peak_method)
     return process_arrays(run.opr_s, run.toa_s, run.info, opts, truth=run.truth)
@@ -100,7 +75,7 @@ def _per_blade(summary: dict, key: str) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- Table 2
-def study_table2(out_dir: Path = DEFAULT_OUT) -> dict:
+def study_table2(out_dir: Path) -> dict:
     """Table 2: HP / AD / PAD TOAs x with / without data preparation, and Fig. 9."""
     t0 = time.perf_counter()
     runs = {m: simulate({"toa": {"method": m}} if m != "HP" else None) for m in METHODS}
@@ -117,7 +92,7 @@ def study_table2(out_dir: Path = DEFAULT_OUT) -> dict:
                 if expected == "opr":
                     summaries[(m, key)] = s
     # Fig. 9: PAD per blade, with / without preparation
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     blades = np.arange(1, 30)
     for i, (key, lab) in enumerate((("with_prep", "with data prep."), ("without_prep", "without data prep."))):
@@ -130,7 +105,7 @@ def study_table2(out_dir: Path = DEFAULT_OUT) -> dict:
     ax[1].set_xlabel("blade")
     ax[0].legend()
     ax[0].set_title("PAD TOAs, default pipeline (cf. paper Fig. 9)")
-    figs = [_savefig(fig, out_dir_mk(out_dir) / "fig9_pad_errors_per_blade.png")]
+    figs = [savefig(fig, out_dir_mk(out_dir) / "fig9_pad_errors_per_blade.png")]
     wall = time.perf_counter() - t0
 
     # the table: ours (OPR-based expected times) beside the paper; flag beyond paper scatter
@@ -158,15 +133,15 @@ def study_table2(out_dir: Path = DEFAULT_OUT) -> dict:
     text = [
         "# Table 2: resonance errors by TOA method and data preparation",
         "",
-        (f"`python -m bttsim_stream.studies table2` ({wall:.0f} s). Default scenario (Table 1), 29 blades, "
+        (f"`bttsim study table2 --out DIR` ({wall:.0f} s). Default scenario (Table 1), 29 blades, "
         "EO 8 / ND 1 run-up 1000 -> 4000 rpm in 130 s; default pipeline (OPR-based expected times, "
         "calibrated arrival angles, peak pick). Cells: **ours (paper Table 2)**, percent."),
         "",
-        _md_table(["processing", "statistic", "HP", "AD", "PAD"], rows),
+        md_table(["processing", "statistic", "HP", "AD", "PAD"], rows),
         "",
         "Exact expected times (from the simulator's truth), max E_A / mean E_A / max E_f / mean E_f %:",
         "",
-        _md_table(["processing", "HP", "AD", "PAD"], exact_rows),
+        md_table(["processing", "HP", "AD", "PAD"], exact_rows),
         "",
         "![Fig. 9](fig9_pad_errors_per_blade.png)",
         "",
@@ -190,18 +165,12 @@ def study_table2(out_dir: Path = DEFAULT_OUT) -> dict:
     ]
     data = {"ours": res, "paper": {k: {m: dict(zip(STATS, v)) for m, v in r.items()} for k, r in PAPER_TABLE2.items()},
             "flags": flags, "figures": figs, "wall_s": wall}
-    _write(out_dir, "table2", "\n".join(text), data)
+    write_study(out_dir, "table2", "\n".join(text), data)
     return data
 
 
-def out_dir_mk(out_dir) -> Path:
-    p = Path(out_dir)
-    p.mkdir(parents=True, exist_ok=True)
-    return p
-
-
 # ----------------------------------------------------------------------------- Table 3
-def table3_cn(out_dir: Path = DEFAULT_OUT) -> dict:
+def table3_cn() -> dict:
     """Condition numbers of Table 3's layouts and the 462-layout range (no simulation)."""
     rows = [{"probes_deg": list(a), "paper_cn": p, "cn": condition_number(8, a)} for a, p in PAPER_TABLE3]
     ranked = rank_layouts(8, PAPER_CANDIDATES_DEG, 5)
@@ -209,11 +178,11 @@ def table3_cn(out_dir: Path = DEFAULT_OUT) -> dict:
             "best": list(ranked[0].probe_angles_deg), "worst": list(ranked[-1].probe_angles_deg)}
 
 
-def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) -> dict:
+def study_table3(out_dir: Path, *, simulate_layouts: bool = True) -> dict:
     """Table 3 / Fig. 11: E_A and E_f against CN for the nine layouts (PAD TOAs, with prep.)."""
     t0 = time.perf_counter()
     out_dir = out_dir_mk(out_dir)
-    data = table3_cn(out_dir)
+    data = table3_cn()
     if simulate_layouts:
         for r in data["rows"]:
             run = simulate({"toa": {"method": "PAD"}, "probes": {"angles_deg": r["probes_deg"]}})
@@ -222,7 +191,7 @@ def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) 
     wall = time.perf_counter() - t0
     figs = []
     if simulate_layouts:
-        plt = _plt()
+        plt = pyplot()
         cn = [r["cn"] for r in data["rows"]]
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
         for k, lab, st in (("max_E_A_pct", "max E_A", "o-"), ("mean_E_A_pct", "mean E_A", "s-")):
@@ -235,7 +204,7 @@ def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) 
             a.legend()
         ax[0].set_title("PAD TOAs, with data prep. (cf. Fig. 11a)")
         ax[1].set_title("(cf. Fig. 11b)")
-        figs.append(_savefig(fig, out_dir / "fig11_errors_vs_cn.png"))
+        figs.append(savefig(fig, out_dir / "fig11_errors_vs_cn.png"))
     head = ["probes (deg)", "CN ours", "CN paper"]
     if simulate_layouts:
         head += ["max E_A %", "mean E_A %", "max E_f %", "mean E_f %", "mean E_A % no prep."]
@@ -249,10 +218,10 @@ def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) 
     text = [
         "# Table 3 / Fig. 11: effect of the condition number",
         "",
-        (f"`python -m bttsim_stream.studies table3` ({wall:.0f} s). EO 8; each layout simulated with PAD TOAs "
+        (f"`bttsim study table3 --out DIR` ({wall:.0f} s). EO 8; each layout simulated with PAD TOAs "
         "(grid step 1.2e-5 s, NSR ~10 %) and processed with data preparation, as in the paper."),
         "",
-        _md_table(head, rows),
+        md_table(head, rows),
         "",
         (f"All {data['n_layouts']} five-probe layouts of the 11 candidate angles: CN "
         f"{data['cn_min']:.3f} .. {data['cn_max']:.3f} (paper 1.4 .. 16.7); best {data['best']} "
@@ -267,7 +236,7 @@ def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) 
             "",
             "Paper's statements (Fig. 11) beside ours:",
             "",
-            _md_table(["paper", "ours"], [
+            md_table(["paper", "ours"], [
                 ["mean E_A < 4 % for CN < 10", f"mean E_A <= {max(r['mean_E_A_pct'] for r in lo):.2f} % for CN < 10"],
                 ["max E_A local peak > 10 % at CN 7.3",
                  (f"max E_A at CN 7.3: {rs[6]['max_E_A_pct']:.2f} % (largest over layouts "
@@ -288,12 +257,12 @@ def study_table3(out_dir: Path = DEFAULT_OUT, *, simulate_layouts: bool = True) 
              "deterministic in the crossing position within the grid step) and different processing. ") + WHY,
         ]
     data.update(wall_s=wall, figures=figs)
-    _write(out_dir, "table3", "\n".join(text), data)
+    write_study(out_dir, "table3", "\n".join(text), data)
     return data
 
 
 # ----------------------------------------------------------------------------- ND 1 vs ND 14
-def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
+def study_nd(out_dir: Path) -> dict:
     """Sec. 3.3.4, Figs. 12-13: ND 1 vs ND 14 resonant frequency and amplitude per blade."""
     t0 = time.perf_counter()
     out_dir = out_dir_mk(out_dir)
@@ -305,9 +274,7 @@ def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
                    "amp_mm": 1e3 * _per_blade(s, "amp_pkpk_m"), "truth_freq_hz": _per_blade(s, "truth_freq_hz"),
                    "truth_amp_mm": 1e3 * _per_blade(s, "truth_amp_pkpk_m"), **_stats(s)}
     wall = time.perf_counter() - t0
-    from .process.validate import _model
-
-    m = _model()
+    m = default_model()
     f1, f14 = (float(np.min(m.freq_hz[m.nodal_diameter == k])) for k in (1, 14))
     fnat = 100 * (f14 - f1) / f1
 
@@ -321,7 +288,7 @@ def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
     d_abs_amp = {"btt": float(np.mean(100 * np.abs(res[14]["amp_mm"] - res[1]["amp_mm"]) / res[1]["amp_mm"])),
                  "truth": float(np.mean(100 * np.abs(res[14]["truth_amp_mm"] - res[1]["truth_amp_mm"])
                                         / res[1]["truth_amp_mm"]))}
-    plt = _plt()
+    plt = pyplot()
     blades = np.arange(1, 30)
     figs = []
     for q, tq, unit, fname, title in (("freq_hz", "truth_freq_hz", "Hz", "fig12_nd_freq.png", "Fig. 12"),
@@ -334,7 +301,7 @@ def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
             a.set_xlabel("blade")
             a.set_ylabel(unit)
             a.legend()
-        figs.append(_savefig(fig, out_dir / fname))
+        figs.append(savefig(fig, out_dir / fname))
     rows = [
         ["identified ND", f"{res[1]['identified_nd']} / {res[14]['identified_nd']}", "1 / 14"],
         ["mean resonant frequency, ND 1 / ND 14 (Hz)",
@@ -353,11 +320,11 @@ def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
     text = [
         "# Sec. 3.3.4 / Figs. 12-13: ND 1 vs ND 14",
         "",
-        (f"`python -m bttsim_stream.studies nd` ({wall:.0f} s). Default scenario (HP TOAs) with the EO 8 forcing "
+        (f"`bttsim study nd --out DIR` ({wall:.0f} s). Default scenario (HP TOAs) with the EO 8 forcing "
         "phased for ND 1 and for ND 14; default pipeline. The paper does not say which way its amplitude "
         "difference is taken; we give (A_ND1 - A_ND14) / A_ND14 and the mean absolute difference."),
         "",
-        _md_table(["quantity", "ours", "paper"], rows),
+        md_table(["quantity", "ours", "paper"], rows),
         "",
         "![Fig. 12](fig12_nd_freq.png)",
         "",
@@ -374,14 +341,14 @@ def study_nd(out_dir: Path = DEFAULT_OUT) -> dict:
     data = {"nd1": res[1], "nd14": res[14], "differences_pct": d, "abs_amp_difference_pct": d_abs_amp,
             "paper": {"freq_pct": 0.99, "amp_pct": 11.62, "amp_pct_ii": 11.48, "amp_pct_iii": 11.57},
             "figures": figs, "wall_s": wall}
-    _write(out_dir, "nd", "\n".join(text), {k: (v if not isinstance(v, dict) else
+    write_study(out_dir, "nd", "\n".join(text), {k: (v if not isinstance(v, dict) else
                                                 {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv)
                                                  for kk, vv in v.items()}) for k, v in data.items()})
     return data
 
 
 # ----------------------------------------------------------------------------- probe count
-def study_probe_count(out_dir: Path = DEFAULT_OUT, *, target_cn: float = 1.5) -> dict:
+def study_probe_count(out_dir: Path, *, target_cn: float = 1.5) -> dict:
     """3..9 probes from the 11 candidates at CN near 1.5: mean E_A / E_f per count (PAD, with prep.)."""
     t0 = time.perf_counter()
     out_dir = out_dir_mk(out_dir)
@@ -394,7 +361,7 @@ def study_probe_count(out_dir: Path = DEFAULT_OUT, *, target_cn: float = 1.5) ->
         rows.append({"n_probes": n, "probes_deg": list(best.probe_angles_deg), "cn": best.cn,
                      "cn_min": ranked[0].cn, **s})
     wall = time.perf_counter() - t0
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     n = [r["n_probes"] for r in rows]
     ax[0].plot(n, [r["mean_E_A_pct"] for r in rows], "o-", label="mean E_A")
@@ -405,8 +372,8 @@ def study_probe_count(out_dir: Path = DEFAULT_OUT, *, target_cn: float = 1.5) ->
         a.set_xlabel("number of probes (CN closest to 1.5)")
         a.set_ylabel(y)
         a.legend()
-    figs = [_savefig(fig, out_dir / "probe_count.png")]
-    table = _md_table(["probes", "layout (deg)", "CN", "lowest CN at this count", "mean E_A %", "max E_A %",
+    figs = [savefig(fig, out_dir / "probe_count.png")]
+    table = md_table(["probes", "layout (deg)", "CN", "lowest CN at this count", "mean E_A %", "max E_A %",
                        "mean E_f %", "max E_f %"],
                       [[r["n_probes"], ", ".join(f"{a:g}" for a in r["probes_deg"]), f"{r['cn']:.3f}",
                         f"{r['cn_min']:.3f}", f"{r['mean_E_A_pct']:.3f}", f"{r['max_E_A_pct']:.3f}",
@@ -414,7 +381,7 @@ def study_probe_count(out_dir: Path = DEFAULT_OUT, *, target_cn: float = 1.5) ->
     text = [
         "# Number of probes at CN ~ 1.5 (Sec. 3.3.3, last paragraph)",
         "",
-        (f"`python -m bttsim_stream.studies probe_count` ({wall:.0f} s). For each count, the layout of the 11 "
+        (f"`bttsim study probe_count --out DIR` ({wall:.0f} s). For each count, the layout of the 11 "
         "candidate angles whose EO 8 condition number is closest to 1.5; PAD TOAs, default pipeline with "
         "data preparation."),
         "",
@@ -428,7 +395,7 @@ def study_probe_count(out_dir: Path = DEFAULT_OUT, *, target_cn: float = 1.5) ->
         "the PAD noise and no residual is left to judge the fit."),
     ]
     data = {"rows": rows, "figures": figs, "wall_s": wall}
-    _write(out_dir, "probe_count", "\n".join(text), data)
+    write_study(out_dir, "probe_count", "\n".join(text), data)
     return data
 
 
@@ -436,11 +403,11 @@ def study_probe_count(out_dir: Path = DEFAULT_OUT, *, target_cn: float = 1.5) ->
 WINDOW = {"speed": {"start_rpm": 2450.0, "segments": [{"duration_s": 10.0, "end_rpm": 2700.0}]}}
 
 
-def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4) -> dict:
+def study_figures(out_dir: Path, *, blade: int = 0, probe: int = 4) -> dict:
     """Fig. 6, 7, 8 and 10 equivalents (one blade / probe around resonance; travelling-wave map)."""
     t0 = time.perf_counter()
     out_dir = out_dir_mk(out_dir)
-    plt = _plt()
+    plt = pyplot()
     figs = []
     hp = simulate(WINDOW)
     tr = hp.truth
@@ -458,7 +425,7 @@ def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4
         a.set_ylabel("mm")
         a.legend(fontsize=8)
     ax[0].set_title(f"blade {blade + 1}, probe {probe + 1} (cf. Fig. 6)")
-    figs.append(_savefig(fig, out_dir / "fig6_eq1_vs_deqv.png"))
+    figs.append(savefig(fig, out_dir / "fig6_eq1_vs_deqv.png"))
     # Fig. 7: axial interpolation on / off
     near = simulate({**WINDOW, "toa": {"axial_interpolation": False}})
     fig, ax = plt.subplots(figsize=(9, 4))
@@ -469,7 +436,7 @@ def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4
     ax.set_ylabel("mm")
     ax.legend(fontsize=8)
     ax.set_title(f"blade {blade + 1}, probe {probe + 1} (cf. Fig. 7)")
-    figs.append(_savefig(fig, out_dir / "fig7_axial_interpolation.png"))
+    figs.append(savefig(fig, out_dir / "fig7_axial_interpolation.png"))
     jumps = {name: float(1e3 * np.max(np.abs(np.diff(r.truth.d_eq1_m, axis=0))))
              for name, r in (("axial_interpolation", hp), ("nearest_node", near))}
     # Fig. 8: HP / AD / PAD
@@ -485,7 +452,7 @@ def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4
         a.set_ylabel("mm")
         a.legend(fontsize=8)
     ax[0].set_title(f"blade {blade + 1}, probe {probe + 1}: HP / AD / PAD (cf. Fig. 8)")
-    figs.append(_savefig(fig, out_dir / "fig8_hp_ad_pad.png"))
+    figs.append(savefig(fig, out_dir / "fig8_hp_ad_pad.png"))
     win = tr.d_eqv_pkpk_m.max(axis=1) > 0.5 * tr.d_eqv_pkpk_m.max()
     nsr = {}
     for lab, r in (("AD", ad), ("PAD", pad)):
@@ -510,7 +477,7 @@ def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4
         a.set_ylabel("revolution")
         a.set_title(title)
         fig.colorbar(m, ax=a, label="mm pk-pk")
-    figs.append(_savefig(fig, out_dir / "fig10_travelling_wave.png"))
+    figs.append(savefig(fig, out_dir / "fig10_travelling_wave.png"))
     wall = time.perf_counter() - t0
     rows = [
         ["Fig. 6", "max abs(d_j - d_eqv(t_TOA)) / max pk-pk (window, all blades/probes)",
@@ -526,11 +493,11 @@ def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4
     text = [
         "# Figs. 6, 7, 8, 10",
         "",
-        (f"`python -m bttsim_stream.studies figures` ({wall:.0f} s). Figs. 6-8: a 10 s run-up through the resonance "
+        (f"`bttsim study figures --out DIR` ({wall:.0f} s). Figs. 6-8: a 10 s run-up through the resonance "
         f"(2450 -> 2700 rpm, same sweep rate as the default run), blade {blade + 1}, probe {probe + 1}. "
         "Fig. 10: the default run with PAD TOAs."),
         "",
-        _md_table(["figure", "quantity", "ours", "paper"], rows),
+        md_table(["figure", "quantity", "ours", "paper"], rows),
         "",
         "![Fig. 6](fig6_eq1_vs_deqv.png)",
         "",
@@ -545,7 +512,7 @@ def study_figures(out_dir: Path = DEFAULT_OUT, *, blade: int = 0, probe: int = 4
         "our all-probe fit spectrum, which has no image."),
     ]
     data = {"jumps_mm": jumps, "nsr_pct": nsr, "nd": res.summary["nd"], "figures": figs, "wall_s": wall}
-    _write(out_dir, "figures", "\n".join(text), data)
+    write_study(out_dir, "figures", "\n".join(text), data)
     return data
 
 
@@ -553,17 +520,49 @@ STUDIES = {"table2": study_table2, "table3": study_table3, "nd": study_nd, "figu
            "probe_count": study_probe_count, "bench": study_bench}
 
 
-def main(argv=None) -> int:
-    """``python -m bttsim_stream.studies NAME [--out DIR]``; NAME in :data:`STUDIES` or ``all``."""
-    p = argparse.ArgumentParser(prog="bttsim_stream.studies", description=__doc__.splitlines()[0])
-    p.add_argument("name", choices=[*STUDIES, "all"])
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default docs/results)")
-    a = p.parse_args(argv)
-    names = list(STUDIES) if a.name == "all" else [a.name]
+def run(name: str, out_dir) -> None:
+    """Run one study, or all of them, into ``out_dir`` (progress on stderr).
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`STUDIES`, or ``"all"``.
+    out_dir : path-like
+        Output folder, created if missing (the repository's copy is ``docs/results``).
+
+    Raises
+    ------
+    BttsimError
+        Unknown study, an output folder that cannot be created, or (before any simulation)
+        matplotlib missing for a study that draws figures.
+    """
+    if name != "all" and name not in STUDIES:
+        raise BttsimError(f"unknown study {name!r} (choose from {', '.join([*STUDIES, 'all'])})")
+    names = list(STUDIES) if name == "all" else [name]
+    if any(n != "bench" for n in names):
+        pyplot()  # fail now, not at the first figure after minutes of simulation
+    try:
+        out_dir = out_dir_mk(out_dir)
+    except OSError as exc:
+        raise BttsimError(f"{out_dir}: cannot create the output folder ({exc.strerror or exc})") from None
     for n in names:
         t0 = time.perf_counter()
-        STUDIES[n](a.out)
-        print(f"{n}: wrote {a.out / (n + '.md')} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        STUDIES[n](out_dir)
+        print(f"{n}: wrote {out_dir / (n + '.md')} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+
+
+def main(argv=None) -> int:
+    """``python -m bttsim_stream.paper.studies NAME --out DIR``; NAME in :data:`STUDIES` or ``all``."""
+    p = argparse.ArgumentParser(prog="python -m bttsim_stream.paper.studies", description=__doc__.splitlines()[0])
+    p.add_argument("name", choices=[*STUDIES, "all"])
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="output folder (the repository's copy: docs/results)")
+    a = p.parse_args(argv)
+    try:
+        run(a.name, a.out)
+    except BttsimError as exc:
+        print(f"{p.prog}: error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -10,7 +10,9 @@ simulator (the quasi-steady forced response), so the two must agree to the toler
 :func:`study_bench` times the default run (real-time factor), runs both simulators on a
 short window near the resonance, and writes ``bench.md`` with the speed ratio per TOA and
 the TOA agreement; it adds ``bench/bench_process.py`` / ``bench/bench_model.py`` output
-when those scripts are present. Numerical only (no zenoh, protobuf, mcap, rerun).
+from the repository's ``bench/`` folder (:data:`BENCH_DIR`), and says so in ``bench.md`` when
+that folder is absent (an installed wheel) or a script fails. Numerical only (no zenoh,
+protobuf, mcap, rerun).
 """
 
 from __future__ import annotations
@@ -24,7 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SHORT_WINDOW", "ReferenceResult", "reference_hp_toas", "study_bench"]
+from ..model import build_model
+from ..scenario import Scenario, scenario_from_dict
+from ..sim.core import RunUpSimulator, collect
+from ..sim.modal import modal_forcing
+from ..sim.toa import stage_b
+from ._report import md_table, out_dir_mk, write_study
+
+__all__ = ["BENCH_DIR", "SHORT_WINDOW", "ReferenceResult", "reference_hp_toas", "study_bench"]
+
+#: The repository's ``bench/`` folder (beside the package); absent in an installed wheel.
+BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
 
 #: 0.2 s at the default sweep rate (23.08 rpm/s) just below the ND 1 resonance (2581.5 rpm).
 SHORT_WINDOW = {"speed": {"start_rpm": 2578.0, "segments": [{"duration_s": 0.2, "end_rpm": 2578.0 + 0.2 * 3000 / 130}]}}
@@ -86,12 +98,6 @@ def reference_hp_toas(overrides: dict | None = None, *, blades=(0, 14), probes=(
     ReferenceResult
     """
     from scipy.integrate import solve_ivp
-
-    from .model import build_model
-    from .scenario import scenario_from_dict
-    from .sim.core import RunUpSimulator, collect
-    from .sim.modal import modal_forcing
-    from .sim.toa import stage_b
 
     scn = scenario_from_dict(overrides if overrides is not None else SHORT_WINDOW)
     model = build_model()
@@ -169,10 +175,6 @@ def reference_hp_toas(overrides: dict | None = None, *, blades=(0, 14), probes=(
 
 
 def _default_run_timing() -> dict:
-    from .model import build_model
-    from .scenario import Scenario
-    from .sim.core import RunUpSimulator
-
     model = build_model()
     t0 = time.perf_counter()
     sim = RunUpSimulator(Scenario(), model)
@@ -184,27 +186,54 @@ def _default_run_timing() -> dict:
             "real_time_factor": float(sim.info.duration_s / wall), "us_per_toa": 1e6 * wall / n}
 
 
-def _bench_script(name: str) -> dict | None:
-    path = Path("bench") / name
-    if not path.exists():
-        return None
+def _bench_script(name: str, bench_dir: Path) -> dict | str:
+    """JSON printed by ``bench_dir / name``, or why there is none (a one-line reason)."""
+    if not bench_dir.is_dir():
+        return f"not run: no bench/ folder at {bench_dir} (it ships with the repository, not with the wheel)"
+    path = bench_dir / name
+    if not path.is_file():
+        return f"not run: {path} not found"
     try:
         out = subprocess.run([sys.executable, str(path)], capture_output=True, text=True, timeout=300, check=True)
         text = out.stdout
         return json.loads(text[text.index("{"):text.rindex("}") + 1])
-    except (subprocess.SubprocessError, json.JSONDecodeError, ValueError):
-        return None
+    except subprocess.CalledProcessError as exc:
+        last = (exc.stderr or "").strip().splitlines()[-1:] or [f"exit status {exc.returncode}"]
+        return f"failed: {path}: {last[0]}"
+    except subprocess.TimeoutExpired:
+        return f"failed: {path}: no result within 300 s"
+    except (json.JSONDecodeError, ValueError):
+        return f"failed: {path}: printed no JSON"
 
 
-def study_bench(out_dir: Path = Path("docs/results"), *, window: dict | None = None, blades=(0, 14),
-                probes=(0, 3), full: bool = True, scripts: bool = True) -> dict:
-    """Write ``bench.md``: real-time factor, reference-vs-ours speed per TOA and TOA agreement.
+def study_bench(out_dir: Path, *, window: dict | None = None, blades=(0, 14), probes=(0, 3),
+                full: bool = True, scripts: bool = True, bench_dir: Path | None = None) -> dict:
+    """Write ``bench.md`` and ``bench.json``: real-time factor, reference-vs-ours speed per TOA,
+    TOA agreement and the repository's bench scripts' results.
 
-    ``full=False`` skips the default-run timing and ``scripts=False`` the bench scripts (for
-    quick tests with a tiny ``window``).
+    Parameters
+    ----------
+    out_dir : path-like
+        Output folder (created if missing).
+    window : dict, optional
+        Scenario overrides of the reference comparison; default :data:`SHORT_WINDOW`.
+    blades, probes : sequence of int
+        Blades and probes the reference simulates.
+    full : bool
+        Time the default run (``False``: skip it, for quick tests with a tiny ``window``).
+    scripts : bool
+        Run ``bench_process.py`` and ``bench_model.py`` (``False``: skip them).
+    bench_dir : path-like, optional
+        Where the bench scripts are; default :data:`BENCH_DIR`. When a script is missing or
+        fails, ``bench.md`` says so (the study does not fail).
+
+    Returns
+    -------
+    dict
+        Everything written to ``bench.json``.
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = out_dir_mk(out_dir)
+    bench_dir = Path(bench_dir) if bench_dir is not None else BENCH_DIR
     t0 = time.perf_counter()
     data: dict = {}
     if full:
@@ -221,11 +250,15 @@ def study_bench(out_dir: Path = Path("docs/results"), *, window: dict | None = N
                          "fast_s_per_toa": fast_per_toa, "speed_ratio_per_toa": ref_per_toa / fast_per_toa,
                          "max_abs_toa_diff_s": ref.max_abs_diff_s,
                          "duration_s": float((window or SHORT_WINDOW)["speed"]["segments"][0]["duration_s"])}
+    skipped = {}
     if scripts:
         for name in ("bench_process.py", "bench_model.py"):
-            r = _bench_script(name)
-            if r is not None:
+            r = _bench_script(name, bench_dir)
+            if isinstance(r, dict):
                 data[name] = r
+            else:
+                skipped[name] = r
+        data["scripts_not_run"] = skipped
     data["wall_s"] = time.perf_counter() - t0
     r = data["reference"]
     rows = []
@@ -259,14 +292,13 @@ def study_bench(out_dir: Path = Path("docs/results"), *, window: dict | None = N
         rows.append(["model build (`python bench/bench_model.py`)",
                      (f"tuned {bm['build_tuned_s_median']:.3f} s, mistuned full wheel "
                      f"{bm['build_mistuned_full_wheel_s']:.2f} s ({bm['n_modes']} modes)")])
-    from .studies import _md_table  # local: studies imports this module
-
+    rows += [[f"`python bench/{name}`", reason] for name, reason in skipped.items()]
     text = [
         "# Benchmarks",
         "",
-        f"`python -m bttsim_stream.studies bench` ({data['wall_s']:.0f} s), one process.",
+        f"`bttsim study bench --out DIR` ({data['wall_s']:.0f} s), one process.",
         "",
-        _md_table(["what", "result"], rows),
+        md_table(["what", "result"], rows),
         "",
         ("The reference is the paper's HP approach: integrate the modal ODEs with an adaptive solver "
         "and let the solver's event location find each tip node's crossing of each probe (the paper "
@@ -277,6 +309,5 @@ def study_bench(out_dir: Path = Path("docs/results"), *, window: dict | None = N
         "by the reference's tolerance, not by ours (ours matches brute-force root finding on the "
         "exact modal sum to 1.3e-13 s, tests/test_sim_exact.py)."),
     ]
-    (out_dir / "bench.md").write_text("\n".join(text) + "\n")
-    (out_dir / "bench.json").write_text(json.dumps(data, indent=1, default=float) + "\n")
+    write_study(out_dir, "bench", "\n".join(text), data)
     return data

@@ -1,5 +1,7 @@
 """Validation of the processing against the paper (Table 2, Table 3, Sec. 3.3.2-3.3.4).
 
+``bttsim validate --processing`` prints :func:`format_validation` of :func:`validate`.
+
 :func:`validate` simulates the default run-up with HP, AD and PAD TOAs and an ND 14 run,
 processes every run with exact and OPR-based expected times, with and without data
 preparation, and returns (all numbers, nothing hard-coded but the paper's own values):
@@ -26,13 +28,16 @@ from functools import lru_cache
 
 import numpy as np
 
-from .displacement import Geometry, identify_blades
-from .fit import fit_revolutions, sine_at_probes
-from .pipeline import ProcessOptions, process_arrays
-from .probes import PAPER_CANDIDATES_DEG, PAPER_TABLE3, condition_number, rank_layouts
+from ..model import build_model
+from ..process.displacement import Geometry, identify_blades
+from ..process.fit import fit_revolutions, sine_at_probes
+from ..process.pipeline import ProcessOptions, process_arrays
+from ..process.probes import PAPER_CANDIDATES_DEG, PAPER_TABLE3, condition_number, rank_layouts
+from ..scenario import scenario_from_dict
+from ..sim.core import RunUpSimulator, collect
 
-__all__ = ["SimulatedRun", "simulate", "table2_row", "validate", "format_validation", "PAPER_TABLE2",
-           "ACCEPTANCE"]
+__all__ = ["SimulatedRun", "default_model", "simulate", "table2_row", "validate", "format_validation",
+           "PAPER_TABLE2", "ACCEPTANCE"]
 
 #: Table 2 of the paper: {prep: {method: (max E_A, mean E_A, max E_f, mean E_f)}} in percent.
 PAPER_TABLE2 = {
@@ -67,21 +72,17 @@ class SimulatedRun:
 
 
 @lru_cache(maxsize=None)
-def _model():
-    from ..model import build_model
-
+def default_model():
+    """The default scenario's modal model, built once per process."""
     return build_model()
 
 
 @lru_cache(maxsize=16)
 def _simulate_json(overrides_json: str) -> SimulatedRun:
-    from ..scenario import scenario_from_dict
-    from ..sim.core import RunUpSimulator, collect
-
     scn = scenario_from_dict(json.loads(overrides_json))
     t0 = time.perf_counter()
-    default_model = scn.model == scenario_from_dict({}).model and scn.rotor == scenario_from_dict({}).rotor
-    sim = RunUpSimulator(scn, _model() if default_model else None)
+    same_model = scn.model == scenario_from_dict({}).model and scn.rotor == scenario_from_dict({}).rotor
+    sim = RunUpSimulator(scn, default_model() if same_model else None)
     run = collect(sim)
     return SimulatedRun(opr_s=run.opr_s, toa_s=run.toa_s, truth=run.truth, info=sim.info,
                         wall_s=time.perf_counter() - t0)
