@@ -82,7 +82,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
 
     old = {s: signal.signal(s, on_sigint) for s in (signal.SIGINT, signal.SIGTERM)}
     t0 = time.monotonic()
-    progress = Progress(not quiet)
+    progress = Progress(not quiet, period_s=5.0)
     summary = None
     try:
         started: list[str] = []

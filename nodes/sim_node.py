@@ -62,9 +62,9 @@ def main(conf, args: argparse.Namespace) -> dict:
             sent += len(msgs)
             progress.update(f"revolution {int(batch.revolution[-1]) + 1}/{stream.info.n_revolutions}")
         progress.close()
+        log.info("published %d messages (run %s)", sent, stream.run_id)
         if args.linger and not stop:
             stop.wait(args.linger)
-    log.info("published %d messages (run %s)", sent, stream.run_id)
     return {"run_id": stream.run_id, "messages": sent, "stopped_by_signal": stop.signal}
 
 

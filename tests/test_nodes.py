@@ -12,11 +12,13 @@ import pytest
 import zenoh
 import zenoh.ext as zx
 
-from _procs import start as _start, stop as _stop
+from _procs import LineWatch, start as _start, stop as _stop
 from bttsim_stream.bus import codec
 from bttsim_stream.bus.recording import read_recording
 from bttsim_stream.testing import free_port, virtual_acquisition
 from bttsim_stream.bus.session import make_config, unpack_attachment
+
+pytestmark = pytest.mark.integration
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT = "[speed]\nstart_rpm = 2500.0\nend_rpm = 2600.0\nduration_s = 2.0\n"
@@ -71,9 +73,11 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
                               "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True,
                              timeout=120)
         assert rep.returncode == 0, rep.stderr
-        time.sleep(0.5)
+        file_msgs = read_recording(direct).messages
+        deadline = time.monotonic() + 30  # the last samples may still be in flight
+        while len(got) < len(file_msgs) and time.monotonic() < deadline:
+            time.sleep(0.05)
         sub.undeclare()
-    file_msgs = read_recording(direct).messages
     assert len(got) == len(file_msgs)
     assert sorted((k, p, a[0], a[1]) for k, p, a in got) == \
         sorted((m.key, m.payload, m.seq, m.log_time_ns) for m in file_msgs)
@@ -81,10 +85,9 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     port = free_port()
     out = tmp_path / "replayed.mcap"
     rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
-    try:
-        time.sleep(1.0)
-        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct,
-                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    try:  # the replay waits (up to --wait s) until the recorder subscribes to every key
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct, "--wait", "120",
+                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=180)
         assert rep.returncode == 0, rep.stderr
         rec.communicate(timeout=60)
     finally:
@@ -93,8 +96,8 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
 
 
 def test_late_joiner_receives_recent_history(scenario):
-    with virtual_acquisition(scenario, revolutions=30, linger_s=20) as daq:
-        time.sleep(1.5)  # the run (30 revolutions at full speed) is over by now
+    with virtual_acquisition(scenario, revolutions=30, linger_s=60) as daq:
+        LineWatch(daq.process.stderr).wait_for(lambda line: "published" in line)  # the run is over
         got = []
         with zenoh.open(daq.client_config()) as session:
             sub = zx.declare_advanced_subscriber(
@@ -163,7 +166,14 @@ def test_nodes_stop_cleanly_on_sigterm_and_sigint(tmp_path):
     sim = _start("bttsim_stream.nodes.sim_node", "-e", f"tcp/127.0.0.1:{port}", "--wait-for", "1",
                  "--rate", "realtime", stdout=subprocess.DEVNULL)
     try:
-        time.sleep(4)
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:  # a few revolutions in
+            oprs = []
+            sub = session.declare_subscriber("bttsim/rig1/opr", oprs.append)
+            deadline = time.monotonic() + 120
+            while len(oprs) < 20 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            sub.undeclare()
+        assert len(oprs) >= 20
         t0 = time.monotonic()
         assert _stop(sim, signal.SIGTERM) == 0
         assert _stop(rec, signal.SIGINT) == 0

@@ -1,0 +1,114 @@
+"""The package's layers, read from the source: no import cycle, and each layer imports only
+the layers below it (numerics never the stream, nodes, views or paper code)."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.unit
+
+REPO = Path(__file__).resolve().parents[1]
+PKG = REPO / "bttsim_stream"
+
+#: Third-party packages each layer must not import.
+TRANSPORT = {"zenoh", "google", "mcap", "mcap_protobuf", "rerun"}
+NUMERICS = ("bttsim_stream.model", "bttsim_stream.sim", "bttsim_stream.process")
+#: Internal modules each group must not import (prefix match).
+FORBIDDEN = {
+    NUMERICS: ("bttsim_stream.bus", "bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.views",
+               "bttsim_stream.paper", "bttsim_stream.acquisition", "bttsim_stream.offline",
+               "bttsim_stream.orchestrate", "bttsim_stream.cli", "bttsim_stream.testing"),
+    ("bttsim_stream.bus",): ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.views",
+                             "bttsim_stream.paper", "bttsim_stream.acquisition", "bttsim_stream.offline",
+                             "bttsim_stream.orchestrate", "bttsim_stream.cli"),
+    ("bttsim_stream.views",): ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.paper",
+                               "bttsim_stream.orchestrate", "bttsim_stream.cli", "bttsim_stream.model",
+                               "bttsim_stream.scenario"),
+    ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline",
+     "bttsim_stream.orchestrate", "bttsim_stream.testing"): ("bttsim_stream.paper",),
+}
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for root, name in ((PKG, "bttsim_stream"), (REPO / "nodes", "bttsim_stream.nodes")):
+        for path in root.rglob("*.py"):
+            if "_gen" in path.parts:
+                continue
+            rel = path.relative_to(root).with_suffix("").parts
+            parts = (name,) + (rel[:-1] if rel[-1] == "__init__" else rel)
+            mods[".".join(parts)] = path
+    return mods
+
+
+def _imports(name: str, path: Path, mods: dict) -> list[tuple[str, int, bool]]:
+    """``(imported module, line, at module level)`` for every import of ``path``."""
+    tree = ast.parse(path.read_text())
+    is_pkg = path.name == "__init__.py"
+    top = set(map(id, tree.body))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno, id(node) in top) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".")
+                base = base[:len(base) - node.level + (1 if is_pkg else 0)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module
+            for a in node.names:
+                sub = f"{mod}.{a.name}"
+                out.append((sub if sub in mods else mod, node.lineno, id(node) in top))
+    return out
+
+
+@pytest.fixture(scope="module")
+def graph():
+    mods = _modules()
+    return mods, {m: _imports(m, p, mods) for m, p in mods.items()}
+
+
+def test_no_import_cycle(graph):
+    mods, imports = graph
+    edges = {m: sorted({t for t, _, _ in imp if t in mods and t != m}) for m, imp in imports.items()}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for t in edges[m]:
+            if state.get(t) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(t):] + [t]))
+            if t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m)
+
+
+def test_layers_import_only_what_is_below_them(graph):
+    _, imports = graph
+    bad = []
+    for m, imp in imports.items():
+        for group, forbidden in FORBIDDEN.items():
+            if m.startswith(group):
+                bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if t.startswith(forbidden)]
+        if m.startswith(NUMERICS):
+            bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if t.split(".")[0] in TRANSPORT]
+        if m.startswith("bttsim_stream.views"):
+            bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if t.split(".")[0] == "zenoh"]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_runtime_imports_paper_code_only_from_the_cli_commands(graph):
+    _, imports = graph
+    users = {m for m, imp in imports.items() for t, _, _ in imp
+             if t.startswith("bttsim_stream.paper") and not m.startswith("bttsim_stream.paper")}
+    assert users <= {"bttsim_stream.cli"}
+    assert all(not top for m in users for t, _, top in imports[m] if t.startswith("bttsim_stream.paper"))
