@@ -5,8 +5,8 @@ attachment (sequence number, log time); the recorded run metadata answers the
 ``bttsim/<rig>/meta`` queryable and an ``alive/sim`` liveliness token is held while
 replaying, as the simulator node does. Pacing: the original (``--rate realtime``), a
 speed-up factor, or as fast as possible (``--rate max``, the default). Before publishing it
-waits (``--wait``, default 5 s) for subscribers on the data keys: give the subscriber a
-listen endpoint (``-l``) and the replay a connect endpoint (``-e``), or the other way round.
+waits (``--wait``, default 5 s) for a subscriber on its keys: give the subscriber a listen
+endpoint (``-l``) and the replay a connect endpoint (``-e``), or the other way round.
 """
 
 from __future__ import annotations
@@ -47,9 +47,12 @@ def main(conf, args: argparse.Namespace) -> dict:
                 m.key, lambda q, p=m.payload, s=m.seq: q.reply(q.key_expr, p, attachment=pack_attachment(s, 0))))
         for k in dict.fromkeys(m.key for m in data):  # metadata first, then data, as live
             node.publisher(k)
-        if args.wait > 0 and not wait_for_subscribers(node.session, list(dict.fromkeys(m.key for m in data)),
-                                                      args.wait, stop):
-            log.warning("not every key has a subscriber after %.1f s; replaying anyway", args.wait)
+        data_keys = list(dict.fromkeys(m.key for m in data))
+        if args.wait > 0:
+            # a first subscriber, then a moment for the others of the same node to match too
+            if not wait_for_subscribers(node.session, data_keys, args.wait, stop, every=False):
+                log.warning("no subscriber after %.1f s; replaying anyway", args.wait)
+            wait_for_subscribers(node.session, data_keys, 0.5, stop)
         t0_log = min(m.log_time_ns for m in data)
         t0_wall = time.monotonic()
         for m in data:
@@ -67,7 +70,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("mcap", help="recording to replay (MCAP)")
     p.add_argument("--rate", default="max", help=RATE_HELP)
     p.add_argument("--wait", type=float, default=5.0, metavar="S",
-                   help="seconds to wait for subscribers on every key before replaying (5)")
+                   help="seconds to wait for a subscriber before replaying (5)")
     p.add_argument("--allow-truncated", action="store_true", help="replay a file without its footer")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
 

@@ -163,10 +163,11 @@ def test_nodes_stop_cleanly_on_sigterm_and_sigint(tmp_path):
     port = free_port()
     out = tmp_path / "stopped.mcap"
     rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
-    sim = _start("bttsim_stream.nodes.sim_node", "-e", f"tcp/127.0.0.1:{port}", "--wait-for", "1",
-                 "--rate", "realtime", stdout=subprocess.DEVNULL)
-    try:
-        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:  # a few revolutions in
+    sim_port = free_port()
+    sim = _start("bttsim_stream.nodes.sim_node", "-e", f"tcp/127.0.0.1:{port}", "-l", f"tcp/127.0.0.1:{sim_port}",
+                 "--wait-for", "1", "--rate", "realtime", stdout=subprocess.DEVNULL)
+    try:  # a few revolutions in (peers do not route: listen to the simulator itself)
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{sim_port}"])) as session:
             oprs = []
             sub = session.declare_subscriber("bttsim/rig1/opr", oprs.append)
             deadline = time.monotonic() + 120
@@ -196,3 +197,21 @@ def test_readme_subscriber_decodes_live_toas():
     assert {int(r[1]) for r in rows} == {0, 1, 2, 3, 4}  # every probe
     revs = [int(r[0]) for r in rows]
     assert revs == sorted(revs) and revs[-1] - revs[0] <= 6
+
+
+def test_readme_subscriber_listens_to_a_replay():
+    """The README's second example: the subscriber listens, the replay connects and waits for it."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sub = subprocess.Popen([sys.executable, str(REPO / "examples" / "subscribe_toas.py"), endpoint, "25", "--listen"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", SAMPLE, "--wait", "120",
+                              "-e", endpoint], cwd=REPO, capture_output=True, text=True, timeout=180)
+        assert rep.returncode == 0, rep.stderr
+        assert "replayed 3004 of 3004" in rep.stdout and "no subscriber" not in rep.stderr
+        out, err = sub.communicate(timeout=60)
+    finally:
+        _stop(sub)
+    assert sub.returncode == 0, err
+    rows = [line.split(maxsplit=2) for line in out.strip().splitlines()]
+    assert len(rows) == 25 and {int(r[1]) for r in rows} == {0, 1, 2, 3, 4}

@@ -177,16 +177,18 @@ def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, st
     return seen
 
 
-def wait_for_subscribers(session, key_exprs, timeout_s: float, stop: StopFlag) -> bool:
-    """Wait until every key expression has a matching subscriber (or time runs out)."""
+def wait_for_subscribers(session, key_exprs, timeout_s: float, stop: StopFlag, *, every: bool = True) -> bool:
+    """Wait until every key expression (``every=False``: any one) has a matching subscriber,
+    or time runs out; returns whether it happened."""
     probes = [session.declare_publisher(k) for k in key_exprs]
+    done = all if every else any
     try:
         deadline = time.monotonic() + timeout_s
         while not stop and time.monotonic() < deadline:
-            if all(p.matching_status.matching for p in probes):
+            if done(p.matching_status.matching for p in probes):
                 return True
             stop.wait(0.05)
-        return all(p.matching_status.matching for p in probes)
+        return done(p.matching_status.matching for p in probes)
     finally:
         for p in probes:
             p.undeclare()
