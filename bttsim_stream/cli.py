@@ -7,11 +7,31 @@ stderr, ``bttsim: error: ...``, and exit status 2 -- never a traceback.
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
+import tempfile
+import time
 from pathlib import Path
 
+from . import scenario
+from ._plotting import PlotExtraMissing
+from .acquisition import simulate_to_mcap
 from .defaults import DEFAULT_WEB_PORT
 from .errors import BttsimError
+from .model import build_model, load_model, save_model
+from .model.report import family_table, plot_family_frequencies
+from .nodes import program, programs
+from .offline import load_run, with_processing
+from .orchestrate import run_all
+from .process.pipeline import ProcessOptions, process_arrays
+from .process.probes import PAPER_CANDIDATES_DEG, condition_number, rank_layouts
+from .process.resonance import summary_table
+from .runtime import Progress, add_node_parser, run_parsed
+
+# Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
+# paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
+# the plot functions when they run.
 
 __all__ = ["main", "build_parser"]
 
@@ -24,7 +44,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _cmd_scenario(args: argparse.Namespace) -> None:
-    from . import scenario
 
     if args.check is not None:
         scn = scenario.load_scenario(args.check)
@@ -34,8 +53,6 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_build(args: argparse.Namespace) -> None:
-    from . import scenario
-    from .model import build_model, save_model
 
     scn = scenario.load_scenario(args.scenario) if args.scenario else scenario.Scenario()
     model = build_model(scn)
@@ -45,10 +62,6 @@ def _cmd_model_build(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_show(args: argparse.Namespace) -> None:
-    from ._plotting import PlotExtraMissing
-    from .model import load_model
-    from .model.report import family_table, plot_family_frequencies
-
     model = load_model(args.model)
     print(family_table(model), flush=True)
     png = Path(args.png) if args.png else Path(args.model).with_suffix(".png")
@@ -63,16 +76,12 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
 
 
 def _scenario(path):
-    from . import scenario
 
     return scenario.load_scenario(path) if path else scenario.Scenario()
 
 
 def _cmd_simulate(args: argparse.Namespace) -> None:
-    import time
 
-    from .acquisition import simulate_to_mcap
-    from .runtime import Progress
 
     scn = _scenario(args.scenario)
     t0 = time.perf_counter()
@@ -85,17 +94,12 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
 
 
 def _cmd_node(args: argparse.Namespace) -> None:
-    from .runtime import run_parsed
 
     run_parsed(args)
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
-    import json
 
-    from .offline import load_run
-    from .process.pipeline import ProcessOptions, process_arrays
-    from .process.resonance import summary_table
 
     run = load_run(args.mcap)
     if args.exact_expected and run.truth is None:
@@ -117,8 +121,6 @@ def _cmd_process(args: argparse.Namespace) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> None:
-    from .orchestrate import run_all
-    from .process.resonance import summary_table
 
     res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
                   connect=args.connect, config=args.config, quiet=args.quiet)
@@ -130,10 +132,7 @@ def _cmd_run(args: argparse.Namespace) -> None:
 
 
 def _cmd_view(args: argparse.Namespace) -> None:
-    import tempfile
-    import time
 
-    from .offline import with_processing
     from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()
@@ -153,13 +152,11 @@ def _cmd_view(args: argparse.Namespace) -> None:
 
 
 def _cmd_cn(args: argparse.Namespace) -> None:
-    from .process.probes import condition_number
 
     print(f"{condition_number(args.eo, _angles(args.probes)):.4g}")
 
 
 def _cmd_probes(args: argparse.Namespace) -> None:
-    from .process.probes import PAPER_CANDIDATES_DEG, rank_layouts
 
     cands = _angles(args.candidates) if args.candidates else PAPER_CANDIDATES_DEG
     ranked = rank_layouts(args.eo, cands, args.n)
@@ -171,7 +168,6 @@ def _cmd_probes(args: argparse.Namespace) -> None:
 
 
 def _angles(text: str) -> list[float]:
-    import math
 
     try:
         vals = [float(x) for x in text.split(",") if x.strip()]
@@ -189,7 +185,6 @@ def _cmd_study(args: argparse.Namespace) -> None:
 
 
 def _cmd_validate(args: argparse.Namespace) -> None:
-    import json
 
     if args.processing:
         from .paper.validate_processing import format_validation, validate as validate_processing
@@ -239,8 +234,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_simulate)
 
-    from .nodes import program, programs
-    from .runtime import add_node_parser
 
     p = sub.add_parser("node", help="run one node program on Zenoh (sim, recorder, processor, viewer, replay)",
                        description="Run one node program; `bttsim node NAME --help` lists its options.")

@@ -37,7 +37,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .beam import BeamSection, beam_matrices, rigid_offset_matrix
+from .beam import BeamSection, beam_matrices, rigid_offset_matrix, rotation_matrix
 
 __all__ = [
     "BladedDiskDesign",
@@ -343,8 +343,6 @@ def _beam_point_map(L: float, xi: float, y_hint: np.ndarray) -> np.ndarray:
     Cubic Hermite bending, linear axial and torsion: the element's own interpolation, so a
     force there is the element's consistent load.
     """
-    from .beam import rotation_matrix
-
     R = rotation_matrix(np.array([1.0, 0.0, 0.0]), y_hint)
     T = np.kron(np.eye(4), R)
     N1, N2, N3, N4 = 1 - 3 * xi**2 + 2 * xi**3, L * (xi - 2 * xi**2 + xi**3), 3 * xi**2 - 2 * xi**3, L * (xi**3 - xi**2)

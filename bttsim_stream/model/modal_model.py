@@ -27,6 +27,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import __version__
 from ..errors import ModelFileError
+from ..scenario import Scenario
 from .bladed_disk import (
     BladedDiskDesign,
     WheelModes,
@@ -238,7 +239,6 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
     t0 = time.perf_counter()
     if design is None:
         if scn is None:
-            from ..scenario import Scenario
             scn = Scenario()
         design = design_from_scenario(scn)
     if damping_beta_s is None:

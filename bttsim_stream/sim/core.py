@@ -18,6 +18,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import BttsimError
+from ..model import build_model, load_model
 from .modal import EnvelopeIntegrator, EnvelopeGrid, build_grid, modal_forcing, tip_basis
 from .speed import SpeedProfile, speed_profile_from_scenario
 from .toa import CrossingSet, eval_compressed, eval_nodes, prepare_crossings, stage_a_grid, stage_a_hp, stage_b
@@ -167,8 +168,6 @@ class RevolutionBatch:
 
 def load_scenario_model(scn):
     """The scenario's modal model: built-in (built now) or a user's file."""
-    from ..model import build_model, load_model
-
     if scn.model.source == "builtin":
         return build_model(scn)
     return load_model(scn.model.source)

@@ -34,6 +34,7 @@ from math import factorial
 
 import numpy as np
 
+from ..errors import BttsimError
 from .speed import SpeedProfile
 
 __all__ = [
@@ -136,7 +137,6 @@ def modal_forcing(model, excitations) -> tuple[np.ndarray, np.ndarray]:
             shapes = model.force_shapes
         else:
             if "force_shapes_trailing_edge" not in model.extra:
-                from ..errors import BttsimError
                 raise BttsimError("excitation node 'trailing_edge' needs force_shapes_trailing_edge "
                                   "in the model file")
             shapes = model.extra["force_shapes_trailing_edge"]
