@@ -18,7 +18,7 @@ from . import scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
 from .defaults import DEFAULT_WEB_PORT
-from .errors import BttsimError
+from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
@@ -27,6 +27,7 @@ from .orchestrate import run_all
 from .process.pipeline import ProcessOptions, process_arrays
 from .process.probes import PAPER_CANDIDATES_DEG, condition_number, rank_layouts
 from .process.resonance import summary_table
+from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
@@ -34,13 +35,6 @@ from .runtime import Progress, add_node_parser, run_parsed
 # the plot functions when they run.
 
 __all__ = ["main", "build_parser"]
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with the project's one-line error format (argparse already exits 2)."""
-
-    def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
-        self.exit(2, f"bttsim: error: {message}\n")
 
 
 def _cmd_scenario(args: argparse.Namespace) -> None:
@@ -290,14 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        args.func(args)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    return 0
+    return exit_status(args.func, args)
 
 
 if __name__ == "__main__":  # pragma: no cover

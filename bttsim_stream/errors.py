@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-__all__ = ["BttsimError", "ScenarioError", "ModelFileError"]
+import sys
+
+__all__ = ["BttsimError", "ScenarioError", "ModelFileError", "exit_status"]
 
 
 class BttsimError(Exception):
@@ -15,3 +17,16 @@ class ScenarioError(BttsimError):
 
 class ModelFileError(BttsimError):
     """A modal model file is missing, corrupt, pickled, or inconsistent."""
+
+
+def exit_status(fn, *args) -> int:
+    """Run ``fn(*args)`` for a program: 0 on success; a :class:`BttsimError` becomes one line
+    ``bttsim: error: ...`` on stderr and status 2; Ctrl-C status 130 (no traceback)."""
+    try:
+        fn(*args)
+    except BttsimError as exc:
+        print(f"bttsim: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from .bus import keys
 from .bus.session import NodeWatch, StopFlag, add_session_args, config_from_args, declare_publisher, \
     declare_subscriber, open_session
-from .errors import BttsimError
+from .errors import BttsimError, exit_status
 
-__all__ = ["NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
+__all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
            "Progress", "parse_rate", "RATE_HELP"]
 
 #: Help text of every ``--rate`` option.
@@ -62,7 +62,7 @@ class NodeProgram:
         return self.description.strip().splitlines()[0]
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse with the project's one-line error format (argparse already exits 2)."""
 
     def error(self, message: str) -> None:
@@ -78,7 +78,7 @@ def _configure(parser: argparse.ArgumentParser, program: NodeProgram) -> argpars
 
 def node_parser(program: NodeProgram) -> argparse.ArgumentParser:
     """The parser of a node's own script (``python -m bttsim_stream.nodes.X``)."""
-    parser = _Parser(prog=f"bttsim-{program.name}", description=program.description,
+    parser = Parser(prog=f"bttsim-{program.name}", description=program.description,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     return _configure(parser, program)
 
@@ -100,14 +100,7 @@ def run_node(program: NodeProgram, argv=None) -> int:
     line ``bttsim: error: ...`` with exit status 2."""
     args = node_parser(program).parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    try:
-        run_parsed(args)
-    except BttsimError as exc:
-        print(f"bttsim: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    return 0
+    return exit_status(run_parsed, args)
 
 
 def parse_rate(text: str) -> float | None:
