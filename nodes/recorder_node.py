@@ -21,43 +21,12 @@ import sys
 import time
 
 from bttsim_stream.bus import codec, keys
-from bttsim_stream.bus.recording import McapRecorder
+from bttsim_stream.bus.recording import MAX_SEQ, McapRecorder
 from bttsim_stream.bus.session import StopFlag, unpack_attachment
+from bttsim_stream.bus.stream import SequenceTracker
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
-
-
-class _SeqStats:
-    """Per-key counts, first sequence number and gaps (missing sequence numbers)."""
-
-    def __init__(self) -> None:
-        self.count: dict[str, int] = {}
-        self.first: dict[str, int] = {}
-        self.next: dict[str, int] = {}
-        self.gaps: dict[str, int] = {}
-        self.duplicates = 0
-
-    def accept(self, key: str, seq: int | None) -> bool:
-        self.count[key] = self.count.get(key, 0) + 1
-        if seq is None:
-            return True
-        if key not in self.next:
-            self.first[key] = seq
-        elif seq < self.next[key]:
-            self.duplicates += 1  # history replayed after a live sample: already written
-            self.count[key] -= 1
-            return False
-        elif seq > self.next[key]:
-            self.gaps[key] = self.gaps.get(key, 0) + seq - self.next[key]
-        self.next[key] = seq + 1
-        return True
-
-    def summary(self) -> dict:
-        return {"messages": sum(self.count.values()), "keys": len(self.count),
-                "gaps": sum(self.gaps.values()), "gaps_by_key": dict(self.gaps),
-                "duplicates_skipped": self.duplicates,
-                "late_start_keys": {k: v for k, v in self.first.items() if v > 0}}
 
 
 def main(conf, args: argparse.Namespace) -> dict:
@@ -65,7 +34,8 @@ def main(conf, args: argparse.Namespace) -> dict:
     rig = args.rig if args.rig == "*" else keys.validate_rig(args.rig)
     until = tuple(n for n in args.until.split(",") if n)
     stop = StopFlag(args.duration)
-    stats = _SeqStats()
+    stats = SequenceTracker()
+    rejected = 0
     meta_done: set[str] = set()
     with McapRecorder(args.out) as rec, \
             node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue) as node:
@@ -79,6 +49,11 @@ def main(conf, args: argparse.Namespace) -> dict:
             key = str(sample.key_expr)
             att = unpack_attachment(sample.attachment)
             seq, t_ns = att if att is not None else (None, time.time_ns())
+            if (seq is not None and seq >= MAX_SEQ) or t_ns < 0:  # untrusted: MCAP cannot hold it
+                rejected += 1
+                if rejected <= 3:
+                    log.warning("rejected a sample on %s (sequence %s, time %s ns)", key, seq, t_ns)
+                continue
             if not stats.accept(key, seq):
                 continue
             payload = sample.payload.to_bytes()
@@ -87,7 +62,7 @@ def main(conf, args: argparse.Namespace) -> dict:
                 rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
                 meta_done.add(key)
             rec.write(key, payload, t_ns, seq=seq or 0)
-        summary = stats.summary()
+        summary = dict(stats.summary(), rejected=rejected)
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
     level = logging.WARNING if summary["gaps"] else logging.INFO
     log.log(level, "recorded %d messages on %d keys to %s; %d sequence gaps", summary["messages"],

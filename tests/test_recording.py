@@ -255,8 +255,11 @@ def test_recorder_refuses_unknown_keys_and_negative_times(tmp_path):
             rec.write("other/topic", b"", 0)
         with pytest.raises(ValueError):
             rec.write("bttsim/rig1/opr", b"", -1)
+        with pytest.raises(ValueError, match="32-bit"):  # refused before anything is written
+            rec.write("bttsim/rig1/opr", b"", 0, seq=1 << 62)
         rec.write("other/topic", b"", 0, message_type="bttsim.v1.Opr")
-    assert read_recording(tmp_path / "x.mcap").schemas == {"other/topic": "bttsim.v1.Opr"}
+    back = read_recording(tmp_path / "x.mcap")
+    assert back.schemas == {"other/topic": "bttsim.v1.Opr"} and not back.truncated and len(back.messages) == 1
 
 
 KILLED_WRITER = textwrap.dedent("""

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.bus import codec
-from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler, Sequencer
+from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler, SequenceTracker, Sequencer
 from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
 
 from _io_helpers import NB, NP, NR, make_batch, make_info
@@ -132,3 +132,12 @@ def test_assembler_drops_revolutions_without_opr_and_ignores_late_or_foreign_fra
     asm.add_toa(9, NP, np.zeros(NB))  # no such probe
     asm.add_toa(9, 0, np.zeros(NB + 1))  # wrong blade count
     assert asm.ignored == 3 and asm.pending == 0
+
+
+def test_sequence_tracker_counts_duplicates_and_gaps():
+    t = SequenceTracker()
+    accepted = [t.accept("a", s) for s in (0, 1, 1, 0, 4, 5)] + [t.accept("b", 3), t.accept("c", None)]
+    assert accepted == [True, True, False, False, True, True, True, True]
+    assert t.duplicates == 2 and t.lost == 2 and t.gaps == {"a": 2}
+    s = t.summary()
+    assert s["messages"] == 6 and s["keys"] == 3 and s["late_start_keys"] == {"b": 3}

@@ -50,6 +50,8 @@ log = logging.getLogger(__name__)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: Name of the MCAP metadata record that describes the run.
 RUN_METADATA_NAME = "bttsim.run"
+#: MCAP message sequence numbers are unsigned 32-bit.
+MAX_SEQ = 1 << 32
 #: Target uncompressed chunk size, bytes: a killed recorder loses at most about this much.
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 _ENCODING = "protobuf"
@@ -230,6 +232,8 @@ class McapRecorder:
         publish = log_time if publish_time_ns is None else int(publish_time_ns)
         if log_time < 0 or publish < 0:
             raise ValueError(f"{key}: MCAP times must be >= 0, got {log_time}, {publish}")
+        if not 0 <= int(seq) < MAX_SEQ:
+            raise ValueError(f"{key}: MCAP sequence numbers are 32-bit, got {seq}")
         channel_id = self._channel(key, message_type)
         self._guard(self._writer.add_message, channel_id=channel_id, log_time=log_time,
                     data=bytes(payload), publish_time=publish, sequence=int(seq))

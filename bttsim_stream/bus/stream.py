@@ -24,7 +24,7 @@ import numpy as np
 from ..sim.core import RevolutionBatch, RunInfo
 from . import codec, keys
 
-__all__ = ["Message", "Sequencer", "MessageStream", "Revolution", "RevolutionAssembler"]
+__all__ = ["Message", "Sequencer", "SequenceTracker", "MessageStream", "Revolution", "RevolutionAssembler"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +67,52 @@ class Sequencer:
     def count(self, key: str) -> int:
         """How many numbers ``key`` has taken."""
         return self._next.get(key, 0)
+
+
+class SequenceTracker:
+    """The receiving side of :class:`Sequencer`: per key, what arrived against the numbers.
+
+    :meth:`accept` says whether a message is new (its number is beyond the last one seen on
+    its key); a number at or below it is a duplicate (e.g. late-joiner history replayed
+    after live samples) and is counted, not accepted; a jump counts the numbers skipped as
+    lost. Messages without a number (``seq=None``) are always accepted.
+    """
+
+    def __init__(self) -> None:
+        self.count: dict[str, int] = {}
+        self.first: dict[str, int] = {}
+        self.next: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}
+        self.duplicates = 0
+
+    def accept(self, key: str, seq: int | None) -> bool:
+        """Count one message; False for a duplicate."""
+        if seq is None:
+            self.count[key] = self.count.get(key, 0) + 1
+            return True
+        expected = self.next.get(key)
+        if expected is None:
+            self.first[key] = seq
+        elif seq < expected:
+            self.duplicates += 1
+            return False
+        elif seq > expected:
+            self.gaps[key] = self.gaps.get(key, 0) + seq - expected
+        self.count[key] = self.count.get(key, 0) + 1
+        self.next[key] = seq + 1
+        return True
+
+    @property
+    def lost(self) -> int:
+        """Numbers skipped on every key."""
+        return sum(self.gaps.values())
+
+    def summary(self) -> dict:
+        """Counts for a report: messages, keys, gaps (by key), duplicates, late-start keys."""
+        return {"messages": sum(self.count.values()), "keys": len(self.count),
+                "gaps": self.lost, "gaps_by_key": dict(self.gaps),
+                "duplicates_skipped": self.duplicates,
+                "late_start_keys": {k: v for k, v in self.first.items() if v > 0}}
 
 
 class MessageStream:
