@@ -215,3 +215,32 @@ def test_readme_subscriber_listens_to_a_replay():
     assert sub.returncode == 0, err
     rows = [line.split(maxsplit=2) for line in out.strip().splitlines()]
     assert len(rows) == 25 and {int(r[1]) for r in rows} == {0, 1, 2, 3, 4}
+
+
+def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(tmp_path):
+    """A forged attachment (sequence 2^62) used to crash the recorder and leave no readable file."""
+    from bttsim_stream.bus.session import pack_attachment, wait_for_subscribers, StopFlag
+    from bttsim_stream.bus.stream import MessageStream
+    from _io_helpers import make_batch, make_info
+
+    port = free_port()
+    out = tmp_path / "forged.mcap"
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
+    stream = MessageStream("run-a", "rig1")
+    msgs = [stream.run_metadata(make_info())] + stream.acquisition(make_batch())
+    try:
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            token = session.liveliness().declare_token("bttsim/rig1/alive/sim")  # the recorder stops when it goes
+            assert wait_for_subscribers(session, ["bttsim/rig1/opr"], 120, StopFlag(install=False))
+            pubs = {m.key: session.declare_publisher(m.key) for m in msgs}
+            pubs[msgs[1].key].put(msgs[1].payload, attachment=pack_attachment(1 << 62, 10))  # forged
+            for m in msgs:
+                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+            token.undeclare()
+        out_text, err = rec.communicate(timeout=120)
+    finally:
+        _stop(rec)
+    assert rec.returncode == 0, err
+    assert json.loads(out_text.strip().splitlines()[-1])["rejected"] == 1
+    recording = read_recording(out)
+    assert not recording.truncated and recording.messages == msgs
