@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment
 from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler
@@ -52,17 +54,27 @@ def main(conf, args: argparse.Namespace) -> dict | None:
 
         proc = tracker = asm = out = None
         asked_meta = 0.0
+        rejected = 0
         for sample in node.samples(stop):
             if sample is None:
                 continue
             key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            kind = keys.parse_key(key).kind
+            try:  # every sample is untrusted: a bad one is counted and skipped
+                kind = keys.parse_key(key).kind
+                d = codec.decode_message(key, payload)
+                if kind in ("opr", "toa", "truth") and proc is not None:
+                    _check_shape(d, kind, proc.geometry)
+            except BttsimError as exc:
+                rejected += 1
+                if rejected <= 3 or rejected % 1000 == 0:
+                    log.warning("rejected %d sample(s); latest: %s", rejected, exc)
+                continue
             if kind == "meta":
                 if proc is None:
-                    meta = codec.decode_run_metadata(payload, key).body
+                    meta = d.body
                     proc = StreamingProcessor(meta, options)
                     tracker = TruthPeakTracker(proc.engine_orders[0])
-                    asm = RevolutionAssembler(meta.n_blades, meta.n_probes)
+                    asm = RevolutionAssembler(meta.n_blades, meta.n_probes, n_revolutions=meta.n_revolutions)
                     out = MessageStream(meta.run_id, rig)
                 continue
             if proc is None:  # joined late: ask the queryable (once a second), data before it is lost
@@ -70,7 +82,6 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                     asked_meta = time.monotonic()
                     node.query(keys.meta_key(rig))
                 continue
-            d = codec.decode_message(key, payload)
             if kind == "truth":
                 tracker.update(d.header.revolution, d.body.d_eqv_pkpk_m[0], float(d.body.omega_mean[0]))
                 continue
@@ -92,7 +103,19 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             if args.summary:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
             print(summary_table(summary), flush=True)
+            log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "
+                     "samples rejected %d", asm.given, asm.dropped, asm.ignored, asm.duplicates, rejected)
     return summary
+
+
+def _check_shape(d, kind: str, geometry) -> None:
+    """Refuse a decoded OPR / TOA / truth message that does not fit the run's geometry."""
+    if kind == "toa" and d.body.toa_s.size != geometry.n_blades:
+        raise BttsimError(f"TOA batch of {d.body.toa_s.size} blades in a run of {geometry.n_blades}")
+    if kind == "truth" and d.body.d_eqv_pkpk_m.shape != (1, geometry.n_blades):
+        raise BttsimError(f"truth of {d.body.d_eqv_pkpk_m.shape[1]} blades in a run of {geometry.n_blades}")
+    if kind == "opr" and not np.isfinite(d.body.opr_s):
+        raise BttsimError("OPR time is not finite")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -244,3 +244,47 @@ def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(
     assert json.loads(out_text.strip().splitlines()[-1])["rejected"] == 1
     recording = read_recording(out)
     assert not recording.truncated and recording.messages == msgs
+
+
+def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(scenario, tmp_path):
+    """Garbage, a probe that does not exist, a revolution far ahead, a duplicate batch shifted
+    by 1 us: the processor neither crashes nor changes its result."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.bus.session import pack_attachment, wait_for_liveliness, StopFlag
+    from bttsim_stream.bus.codec import Header, OprPulse, encode_opr, encode_toa_batch
+    from bttsim_stream.process.pipeline import process_arrays
+    from bttsim_stream.scenario import load_scenario
+    from bttsim_stream.sim.core import collect
+
+    acq = AcquisitionStream(load_scenario(scenario), include_truth=False)
+    pairs = list(acq.batches())
+    msgs = [acq.meta] + [m for _, ms in pairs for m in ms]
+    batch = collect(b for b, _ in pairs)
+    bad = [("bttsim/rig1/toa/0", b"\x08\x96\x01garbage", (1 << 40, 0)),
+           ("bttsim/rig1/toa/99", encode_toa_batch(Header(acq.run_id, 0, 3, 0.1), 99, [0.1] * 29), (0, 0)),
+           ("bttsim/rig1/opr", encode_opr(Header(acq.run_id, 10**6, 100_000, 1e3), OprPulse(1e3)), (10**6, 0)),
+           ("bttsim/rig1/toa/0", encode_toa_batch(Header(acq.run_id, 0, 0, 0.0), 0,
+                                                  (batch.toa_s[0, :, 0] + 1e-6).tolist()), (0, 0))]
+    port = free_port()
+    summary_path = tmp_path / "summary.json"
+    proc = _start("bttsim_stream.nodes.processor_node", "--rig", "rig1", "--no-score", "--summary", summary_path,
+                  "-l", f"tcp/127.0.0.1:{port}")
+    try:
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
+            assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
+            pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                    for k in {m.key for m in msgs} | {k for k, _, _ in bad}}
+            for i, m in enumerate(msgs):
+                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+                if i == 40:  # in the middle of the run, after revolution 0 is in
+                    for key, payload, (seq, t_ns) in bad:
+                        pubs[key].put(payload, attachment=pack_attachment(seq, t_ns))
+            token.undeclare()
+        out, err = proc.communicate(timeout=120)
+    finally:
+        _stop(proc)
+    assert proc.returncode == 0, err
+    assert "rejected 1 sample" in err and "duplicates 1" in err
+    clean = process_arrays(batch.opr_s, batch.toa_s, acq.info).summary
+    assert json.loads(summary_path.read_text()) == json.loads(json.dumps(clean))

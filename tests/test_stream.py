@@ -104,7 +104,7 @@ def test_assembler_gives_complete_revolutions_in_order_despite_reordering():
         assert r.opr_s == batch.opr_s[r.revolution]
 
 
-def test_assembler_waits_for_missing_probes_until_two_revolutions_later():
+def test_assembler_waits_for_missing_probes_until_a_revolution_two_later_is_complete():
     batch, frags = _fragments(drop={("toa", 1, 3)})
     asm = RevolutionAssembler(NB, NP)
     released = {}
@@ -113,7 +113,7 @@ def test_assembler_waits_for_missing_probes_until_two_revolutions_later():
         for r in asm.pop():
             released[r.revolution] = (r, kind, d.header.revolution)
     r1, kind, at = released[1]
-    assert not r1.complete and (kind, at) == ("opr", 3)  # given out when OPR 3 arrived
+    assert not r1.complete and (kind, at) == ("toa", 3)  # given out when revolution 3 was complete
     assert np.isnan(r1.toa_s[:, 3]).all()
     np.testing.assert_array_equal(r1.toa_s[:, :3], batch.toa_s[1, :, :3])
     assert released[2][0].complete
@@ -141,3 +141,21 @@ def test_sequence_tracker_counts_duplicates_and_gaps():
     assert t.duplicates == 2 and t.lost == 2 and t.gaps == {"a": 2}
     s = t.summary()
     assert s["messages"] == 6 and s["keys"] == 3 and s["late_start_keys"] == {"b": 3}
+
+
+def test_assembler_rejects_forged_fragments_without_disturbing_the_run():
+    batch, frags = _fragments(n_rev=6)
+    asm = RevolutionAssembler(NB, NP, n_revolutions=6, max_ahead=8)
+    got = []
+    for i, (kind, d) in enumerate(frags):
+        asm.add(kind, d)
+        if i == 10:  # forgeries in the middle of the stream
+            asm.add_opr(100_000, 1e3)  # far ahead: would flush everything in progress
+            asm.add_opr(5, 1.0)  # within the run: accepted, later a duplicate of the real one
+            asm.add_toa(1, 0, np.full(NB, 7.0))  # a second batch of a probe already in
+            asm.add_opr(2, np.nan)
+        got += asm.pop()
+    got += asm.pop(final=True)
+    assert [r.revolution for r in got] == list(range(6)) and all(r.complete for r in got)
+    np.testing.assert_array_equal(np.stack([r.toa_s for r in got[:5]]), batch.toa_s[:5])
+    assert asm.ignored == 2 and asm.duplicates == 2  # the real OPR 5 came second: a duplicate

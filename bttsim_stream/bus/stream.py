@@ -235,47 +235,71 @@ class RevolutionAssembler:
 
     Revolutions come out in increasing order from :meth:`pop`: a revolution as soon as its
     OPR and every probe's batch are in; an incomplete one (probe batches lost, NaN TOAs)
-    once the OPR of a revolution two or more ahead has arrived (the stream is in order, so
-    nothing more will come for it), or at the end (``final``). A revolution without an OPR
+    once a revolution two or more ahead is complete (the stream is in order, so nothing more
+    will come for it), or at the end (``final``). A revolution without an OPR
     pulse cannot be placed and is dropped (counted in :attr:`dropped`).
+
+    Every fragment is untrusted: one for a revolution already given out, outside
+    ``[0, n_revolutions)``, more than ``max_ahead`` revolutions beyond the last one given out,
+    for a probe that does not exist or with the wrong blade count is ignored (counted in
+    :attr:`ignored`); a second batch for the same (revolution, probe) or a second OPR pulse
+    for a revolution is a duplicate (counted in :attr:`duplicates`; the first one stays). So a
+    forged far-ahead revolution neither flushes the revolutions in progress nor makes memory
+    grow.
 
     Parameters
     ----------
     n_blades, n_probes : int
+    n_revolutions : int, optional
+        The run's revolution count (from the run metadata), if known.
+    max_ahead : int
+        Largest accepted distance beyond the last revolution given out.
     """
 
-    def __init__(self, n_blades: int, n_probes: int) -> None:
+    def __init__(self, n_blades: int, n_probes: int, *, n_revolutions: int | None = None,
+                 max_ahead: int = 64) -> None:
         self.n_blades = int(n_blades)
         self.n_probes = int(n_probes)
+        self.n_revolutions = None if not n_revolutions else int(n_revolutions)
+        self.max_ahead = int(max_ahead)
+        self.duplicates = 0
         self._opr: dict[int, float] = {}
         self._toa: dict[int, np.ndarray] = {}
         self._seen: dict[int, set] = {}
-        self._max_opr = -1
+        self._max_complete = -1
         self._last_out: int | None = None
         self.dropped = 0
         self.ignored = 0
+        self.given = 0
 
     def add_opr(self, revolution: int, opr_s: float) -> None:
-        """An OPR pulse; a revolution already given out, or a second pulse for one, is ignored."""
+        """An OPR pulse (``opr_s`` finite)."""
         revolution = int(revolution)
-        if self._done(revolution) or revolution in self._opr:
+        if not self._acceptable(revolution) or not np.isfinite(opr_s):
             self.ignored += 1
             return
+        if revolution in self._opr:
+            self.duplicates += 1
+            return
         self._opr[revolution] = float(opr_s)
-        self._max_opr = max(self._max_opr, revolution)
+        self._note_complete(revolution)
 
     def add_toa(self, revolution: int, probe: int, toa_s: np.ndarray) -> None:
         """One probe's TOAs (n_blades,); out-of-range probes and wrong sizes are ignored."""
         revolution, probe = int(revolution), int(probe)
         toa = np.asarray(toa_s, dtype=float)
-        if self._done(revolution) or not 0 <= probe < self.n_probes or toa.shape != (self.n_blades,):
+        if not self._acceptable(revolution) or not 0 <= probe < self.n_probes or toa.shape != (self.n_blades,):
             self.ignored += 1
+            return
+        if probe in self._seen.get(revolution, ()):
+            self.duplicates += 1
             return
         row = self._toa.get(revolution)
         if row is None:
             row = self._toa[revolution] = np.full((self.n_blades, self.n_probes), np.nan)
         self._seen.setdefault(revolution, set()).add(probe)
         row[:, probe] = toa
+        self._note_complete(revolution)
 
     def add(self, kind: str, decoded: codec.Decoded) -> None:
         """Add a decoded ``opr`` or ``toa`` message (other kinds are ignored)."""
@@ -284,8 +308,19 @@ class RevolutionAssembler:
         elif kind == "toa":
             self.add_toa(decoded.header.revolution, decoded.body.probe, decoded.body.toa_s)
 
-    def _done(self, revolution: int) -> bool:
-        return self._last_out is not None and revolution <= self._last_out
+    def _complete(self, revolution: int) -> bool:
+        return revolution in self._opr and len(self._seen.get(revolution, ())) >= self.n_probes
+
+    def _note_complete(self, revolution: int) -> None:
+        if self._complete(revolution):
+            self._max_complete = max(self._max_complete, revolution)
+
+    def _acceptable(self, revolution: int) -> bool:
+        if revolution < 0 or (self.n_revolutions is not None and revolution >= self.n_revolutions):
+            return False
+        if self._last_out is None:
+            return True
+        return self._last_out < revolution <= self._last_out + self.max_ahead
 
     @property
     def pending(self) -> int:
@@ -301,8 +336,8 @@ class RevolutionAssembler:
                 break
             k = min(revs)
             has_opr = k in self._opr
-            complete = has_opr and len(self._seen.get(k, ())) >= self.n_probes
-            if not (complete or final or self._max_opr >= k + 2):
+            complete = self._complete(k)
+            if not (complete or final or self._max_complete >= k + 2):
                 break
             toa = self._toa.pop(k, None)
             self._seen.pop(k, None)
@@ -314,4 +349,5 @@ class RevolutionAssembler:
             if toa is None:
                 toa = np.full((self.n_blades, self.n_probes), np.nan)
             out.append(Revolution(k, opr, toa, complete))
+            self.given += 1
         return out
