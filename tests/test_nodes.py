@@ -286,10 +286,10 @@ def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(sc
     finally:
         _stop(proc)
     assert proc.returncode == 0, err
+    clean = process_arrays(batch.opr_s, batch.toa_s, acq.info).summary
+    assert json.loads(summary_path.read_text()) == json.loads(json.dumps(clean))
     assert "rejected 1 sample" in err
     # the wrong probe and the far revolution are ignored; the duplicate batch too, or counted as
     # a duplicate if its revolution was still being assembled
     counts = re.search(r"fragments ignored (\d+), duplicates (\d+)", err)
     assert counts and int(counts[1]) + int(counts[2]) == 3, err
-    clean = process_arrays(batch.opr_s, batch.toa_s, acq.info).summary
-    assert json.loads(summary_path.read_text()) == json.loads(json.dumps(clean))
