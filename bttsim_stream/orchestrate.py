@@ -59,7 +59,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     for f in files.values():
         f.unlink(missing_ok=True)
 
-    embedded = not connect and not config
+    embedded = not connect  # a -c file is merged with each node's own loopback endpoint
     ports = {n: free_port() for n in NODES} if embedded else {}
     endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in ports.items()}
     args = {

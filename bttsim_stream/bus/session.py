@@ -46,12 +46,32 @@ def add_session_args(parser: argparse.ArgumentParser) -> None:
 
 def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | None = None,
                 multicast_scouting: bool = False) -> "zenoh.Config":
-    """A Zenoh configuration; a bad file or endpoint is a one-line :class:`BttsimError`."""
+    """A Zenoh configuration; a bad file or endpoint is a one-line :class:`BttsimError`.
+
+    Without a file: ``mode``, only the given listen and connect endpoints, multicast
+    scouting off (unless ``multicast_scouting``). A file (``-c``) is merged with these
+    defaults rather than replacing them: what it sets wins (TLS, access control, a router's
+    endpoints...), but where it says nothing about listen endpoints the node listens only
+    where ``listen`` says (not on every interface, zenoh's own default), multicast scouting
+    stays off unless the file or ``multicast_scouting`` turns it on, and ``-e``/``-l`` given
+    on the command line are added.
+    """
     try:
         if config_file:
             if not Path(config_file).is_file():
                 raise BttsimError(f"{config_file}: no such Zenoh configuration file")
             conf = zenoh.Config.from_file(config_file)
+            defaults = zenoh.Config()
+            if conf.get_json("listen/endpoints") == defaults.get_json("listen/endpoints"):
+                conf.insert_json5("listen/endpoints", _json_list(listen))
+            elif listen:
+                conf.insert_json5("listen/endpoints", _json_list(listen))
+            if multicast_scouting:
+                conf.insert_json5("scouting/multicast/enabled", "true")
+            elif conf.get_json("scouting/multicast/enabled") in (None, "null"):
+                conf.insert_json5("scouting/multicast/enabled", "false")
+            if conf.get_json("mode") in (None, "null"):
+                conf.insert_json5("mode", f'"{mode}"')
         else:
             conf = zenoh.Config()
             conf.insert_json5("mode", f'"{mode}"')
@@ -61,8 +81,6 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
                 raise BttsimError("client mode needs -e/--connect ENDPOINT")
         if connect:
             conf.insert_json5("connect/endpoints", _json_list(connect))
-        if listen and config_file:
-            conf.insert_json5("listen/endpoints", _json_list(listen))
         conf.insert_json5("timestamping/enabled", "true")  # needed by the advanced publishers
         return conf
     except BttsimError:
