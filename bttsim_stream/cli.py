@@ -22,7 +22,7 @@ from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
-from .offline import load_run, with_processing
+from .offline import completeness, load_run, with_processing
 from .orchestrate import run_all
 from .process.pipeline import ProcessOptions, process_arrays
 from .process.probes import PAPER_CANDIDATES_DEG, condition_number, rank_layouts
@@ -34,11 +34,14 @@ from .runtime import Progress, add_node_parser, run_parsed
 # paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
 # the plot functions when they run.
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "EXIT_INCOMPLETE"]
+
+#: Exit status of ``bttsim run`` when it finished but its result is not the whole run
+#: (lost messages, revolutions missing, no report); 2 is bad input, 130 Ctrl-C.
+EXIT_INCOMPLETE = 3
 
 
 def _cmd_scenario(args: argparse.Namespace) -> None:
-
     if args.check is not None:
         scn = scenario.load_scenario(args.check)
         print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes)")
@@ -47,7 +50,6 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_build(args: argparse.Namespace) -> None:
-
     scn = scenario.load_scenario(args.scenario) if args.scenario else scenario.Scenario()
     model = build_model(scn)
     save_model(model, args.out)
@@ -88,13 +90,10 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
 
 
 def _cmd_node(args: argparse.Namespace) -> None:
-
     run_parsed(args)
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
-
-
     run = load_run(args.mcap)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
@@ -104,29 +103,41 @@ def _cmd_process(args: argparse.Namespace) -> None:
     except ValueError as exc:
         raise BttsimError(str(exc)) from None
     result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth)
-    summary = result.summary
-    print(summary_table(summary))
-    if args.summary:
+    summary = dict(result.summary, **completeness(run).to_summary())
+    if args.summary:  # before anything is printed: a closed stdout must not lose it
         try:
             Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
         except OSError as exc:
             raise BttsimError(f"{args.summary}: cannot write ({exc.strerror or exc})") from None
+    print(summary_table(summary))
+    if args.summary:
         print(f"wrote {args.summary}")
 
 
-def _cmd_run(args: argparse.Namespace) -> None:
-
+def _cmd_run(args: argparse.Namespace) -> int:
     res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
                   connect=args.connect, config=args.config, quiet=args.quiet)
-    if res["summary"] is not None:
-        print(summary_table(res["summary"]))
-    files = res["files"]
+    summary, files = res["summary"], res["files"]
+    if summary is not None:
+        print(summary_table(summary))
     print(f"wrote {files['mcap']}, {files['rrd']}, {files['summary']} in {res['wall_s']:.1f} s"
           + (" (interrupted)" if res["interrupted"] else ""))
+    if res["interrupted"]:
+        return 130
+    problems = []
+    if summary is None:
+        problems.append("no summary (the processor gave no report; see processor.log)")
+    elif not summary.get("complete", False):
+        problems.append("the result is incomplete")
+    if res["recorder"].get("gaps"):
+        problems.append(f"the recording misses {res['recorder']['gaps']} messages")
+    if problems:
+        print(f"bttsim: warning: {'; '.join(problems)}", file=sys.stderr)
+        return EXIT_INCOMPLETE
+    return 0
 
 
 def _cmd_view(args: argparse.Namespace) -> None:
-
     from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()
@@ -146,12 +157,10 @@ def _cmd_view(args: argparse.Namespace) -> None:
 
 
 def _cmd_cn(args: argparse.Namespace) -> None:
-
     print(f"{condition_number(args.eo, _angles(args.probes)):.4g}")
 
 
 def _cmd_probes(args: argparse.Namespace) -> None:
-
     cands = _angles(args.candidates) if args.candidates else PAPER_CANDIDATES_DEG
     ranked = rank_layouts(args.eo, cands, args.n)
     finite = [r.cn for r in ranked if r.cn != float("inf")]
@@ -179,7 +188,6 @@ def _cmd_study(args: argparse.Namespace) -> None:
 
 
 def _cmd_validate(args: argparse.Namespace) -> None:
-
     if args.processing:
         from .paper.validate_processing import format_validation, validate as validate_processing
 

@@ -20,13 +20,15 @@ class ModelFileError(BttsimError):
 
 
 def exit_status(fn, *args) -> int:
-    """Run ``fn(*args)`` for a program: 0 on success; a :class:`BttsimError` becomes one line
-    ``bttsim: error: ...`` on stderr and status 2; Ctrl-C status 130 (no traceback)."""
+    """Run ``fn(*args)`` for a program: its return value if that is an int (an exit status),
+    else 0; a
+    :class:`BttsimError` becomes one line ``bttsim: error: ...`` on stderr and status 2;
+    Ctrl-C status 130 (no traceback)."""
     try:
-        fn(*args)
+        status = fn(*args)
     except BttsimError as exc:
         print(f"bttsim: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
-    return 0
+    return status if isinstance(status, int) and not isinstance(status, bool) else 0

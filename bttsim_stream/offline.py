@@ -19,13 +19,13 @@ import numpy as np
 
 from .bus import codec, keys
 from .bus.recording import McapRecorder, read_recording
-from .bus.stream import Message, MessageStream, RevolutionAssembler
+from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker
 from .errors import BttsimError
 from .process.pipeline import ProcessOptions, StreamingProcessor
 from .process.resonance import TruthPeakTracker
 from .sim.core import RunInfo, Truth
 
-__all__ = ["RecordedRun", "load_run", "processing_messages", "with_processing"]
+__all__ = ["RecordedRun", "load_run", "completeness", "processing_messages", "with_processing"]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -90,6 +90,17 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
                        toa_s=np.stack([r.toa_s for r in revs]), truth=tr, messages=rec.messages)
 
 
+def completeness(run: RecordedRun) -> Completeness:
+    """What of the run the recording holds: complete revolutions against the run metadata's
+    count, acquisition messages missing or repeated by their sequence numbers."""
+    seqs = SequenceTracker()
+    for m in run.messages:
+        if keys.parse_key(m.key).kind in ("opr", "toa"):
+            seqs.accept(m.key, m.seq)
+    return Completeness(revolutions_expected=run.meta.n_revolutions, revolutions_processed=int(run.revolution.size),
+                        lost=seqs.lost, duplicates=seqs.duplicates)
+
+
 def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptions()) -> tuple[list[Message], dict]:
     """The processor node's messages for a recorded run, and the summary dict.
 
@@ -113,6 +124,7 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
         for i, rev in enumerate(run.revolution.tolist()):
             tracker.update(rev, run.truth.d_eqv_pkpk_m[i], float(run.truth.omega_mean[i]))
     summary = proc.finish(tracker)
+    summary.update(completeness(run).to_summary())
     msgs.append(out.resonance(proc.result.report))
     return msgs, summary
 

@@ -84,6 +84,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     t0 = time.monotonic()
     progress = Progress(not quiet, period_s=5.0)
     summary = None
+    recorder: dict = {}
     try:
         started: list[str] = []
         for n in NODES:
@@ -132,6 +133,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             raise BttsimError(f"node(s) failed: {bad}; see the logs in {out}")
         if files["summary"].exists():
             summary = json.loads(files["summary"].read_text())
+        recorder = _last_json_line(out / "recorder.log")
     finally:
         progress.close()
         for p in procs.values():
@@ -146,8 +148,19 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             f.close()
         for s, h in old.items():
             signal.signal(s, h)
-    return {"summary": summary, "files": {k: str(v) for k, v in files.items()},
+    return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder,
             "interrupted": interrupted, "wall_s": time.monotonic() - t0}
+
+
+def _last_json_line(path: Path) -> dict:
+    """The recorder's statistics: the last JSON line of its log ({} if none)."""
+    for line in reversed(path.read_text(errors="replace").splitlines()):
+        if line.startswith("{"):
+            try:
+                return json.loads(line)
+            except ValueError:
+                break
+    return {}
 
 
 def _revolutions(procs: dict, session, rig: str) -> int:

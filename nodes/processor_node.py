@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from bttsim_stream.bus import codec, keys
-from bttsim_stream.bus.session import StopFlag, pack_attachment
-from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler
+from bttsim_stream.bus.session import StopFlag, pack_attachment, unpack_attachment
+from bttsim_stream.bus.stream import Completeness, MessageStream, RevolutionAssembler, SequenceTracker
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
 from bttsim_stream.process.resonance import TruthPeakTracker, summary_table
@@ -55,6 +55,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         proc = tracker = asm = out = None
         asked_meta = 0.0
         rejected = 0
+        seqs = SequenceTracker()
         for sample in node.samples(stop):
             if sample is None:
                 continue
@@ -69,6 +70,9 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                 if rejected <= 3 or rejected % 1000 == 0:
                     log.warning("rejected %d sample(s); latest: %s", rejected, exc)
                 continue
+            att = unpack_attachment(sample.attachment)
+            if kind in ("opr", "toa") and not seqs.accept(key, att[0] if att else None):
+                continue  # already received, or an implausible sequence number (counted)
             if kind == "meta":
                 if proc is None:
                     meta = d.body
@@ -99,6 +103,10 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                 summary = proc.finish(tracker if score else None)
             except ValueError as exc:  # fewer than three revolutions
                 raise BttsimError(f"no resonance report: {exc}") from None
+            summary.update(Completeness(
+                revolutions_expected=meta.n_revolutions, revolutions_processed=asm.given_complete,
+                lost=seqs.lost, duplicates=seqs.duplicates + asm.duplicates,
+                rejected=rejected + seqs.implausible).to_summary())
             publish([out.resonance(proc.result.report)])
             if args.summary:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")

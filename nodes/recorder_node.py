@@ -62,7 +62,7 @@ def main(conf, args: argparse.Namespace) -> dict:
                 rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
                 meta_done.add(key)
             rec.write(key, payload, t_ns, seq=seq or 0)
-        summary = dict(stats.summary(), rejected=rejected)
+        summary = dict(stats.summary(), rejected=rejected + stats.implausible)
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
     level = logging.WARNING if summary["gaps"] else logging.INFO
     log.log(level, "recorded %d messages on %d keys to %s; %d sequence gaps", summary["messages"],

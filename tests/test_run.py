@@ -50,6 +50,8 @@ def test_run_writes_the_three_files(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["nd"] == 1 and summary["eo"] == 8 and len(summary["blades"]) == 29
     assert summary["mean_E_A_pct"] < 5.0 and summary["mean_E_f_pct"] < 0.5
+    assert summary["complete"] is True and summary["lost"] == summary["duplicates"] == summary["rejected"] == 0
+    assert summary["revolutions_processed"] == summary["revolutions_expected"] > 400
     assert "E_A" in res.stdout  # the per-blade table is printed
     rec = read_recording(out / "run.mcap")
     assert not rec.truncated
@@ -79,8 +81,11 @@ def test_ctrl_c_stops_every_node_and_leaves_valid_files(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 0, stderr
+    assert proc.returncode == 130, stderr  # Ctrl-C: the partial files are valid, and marked
     assert "interrupted" in stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] is False and summary["revolutions_processed"] < summary["revolutions_expected"]
+    assert "INCOMPLETE" in stdout
     assert _node_pids(out) == []
     rec = read_recording(out / "run.mcap")
     assert not rec.truncated and len(rec.messages) > 100

@@ -159,3 +159,10 @@ def test_assembler_rejects_forged_fragments_without_disturbing_the_run():
     assert [r.revolution for r in got] == list(range(6)) and all(r.complete for r in got)
     np.testing.assert_array_equal(np.stack([r.toa_s for r in got[:5]]), batch.toa_s[:5])
     assert asm.ignored == 2 and asm.duplicates == 2  # the real OPR 5 came second: a duplicate
+
+
+def test_sequence_tracker_does_not_believe_a_far_jump():
+    """A forged number far ahead would make every later message a duplicate: it is refused."""
+    t = SequenceTracker(max_jump=100)
+    assert [t.accept("a", s) for s in (0, 1, 10**6, 2, 3, 50)] == [True, True, False, True, True, True]
+    assert (t.implausible, t.duplicates, t.lost) == (1, 0, 46)

@@ -24,7 +24,8 @@ import numpy as np
 from ..sim.core import RevolutionBatch, RunInfo
 from . import codec, keys
 
-__all__ = ["Message", "Sequencer", "SequenceTracker", "MessageStream", "Revolution", "RevolutionAssembler"]
+__all__ = ["Message", "Sequencer", "SequenceTracker", "MessageStream", "Revolution", "RevolutionAssembler",
+           "Completeness"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,10 +76,14 @@ class SequenceTracker:
     :meth:`accept` says whether a message is new (its number is beyond the last one seen on
     its key); a number at or below it is a duplicate (e.g. late-joiner history replayed
     after live samples) and is counted, not accepted; a jump counts the numbers skipped as
-    lost. Messages without a number (``seq=None``) are always accepted.
+    lost. A jump of more than ``max_jump`` is not believed (a forged or corrupt number that
+    would make every later message look like a duplicate): counted in :attr:`implausible`,
+    not accepted. Messages without a number (``seq=None``) are always accepted.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, max_jump: int = 1 << 16) -> None:
+        self.max_jump = int(max_jump)
+        self.implausible = 0
         self.count: dict[str, int] = {}
         self.first: dict[str, int] = {}
         self.next: dict[str, int] = {}
@@ -97,6 +102,9 @@ class SequenceTracker:
             self.duplicates += 1
             return False
         elif seq > expected:
+            if seq - expected > self.max_jump:
+                self.implausible += 1
+                return False
             self.gaps[key] = self.gaps.get(key, 0) + seq - expected
         self.count[key] = self.count.get(key, 0) + 1
         self.next[key] = seq + 1
@@ -113,6 +121,43 @@ class SequenceTracker:
                 "gaps": self.lost, "gaps_by_key": dict(self.gaps),
                 "duplicates_skipped": self.duplicates,
                 "late_start_keys": {k: v for k, v in self.first.items() if v > 0}}
+
+
+@dataclass(frozen=True, slots=True)
+class Completeness:
+    """What a result rests on, against what the run holds (the summary's completeness keys).
+
+    Attributes
+    ----------
+    revolutions_expected : int
+        The run's revolution count (run metadata).
+    revolutions_processed : int
+        Revolutions processed with every probe's batch.
+    lost : int
+        Acquisition messages missing by their sequence numbers.
+    duplicates : int
+        Messages (or fragments) received twice; the first one is used.
+    rejected : int
+        Messages refused as malformed or not fitting the run.
+    """
+
+    revolutions_expected: int
+    revolutions_processed: int
+    lost: int = 0
+    duplicates: int = 0
+    rejected: int = 0
+
+    @property
+    def complete(self) -> bool:
+        """Every revolution of the run processed and nothing lost."""
+        return self.lost == 0 and self.revolutions_processed >= self.revolutions_expected
+
+    def to_summary(self) -> dict:
+        """The summary JSON keys: ``complete``, ``revolutions_expected``, ``revolutions_processed``,
+        ``lost``, ``duplicates``, ``rejected``."""
+        return {"complete": self.complete, "revolutions_expected": int(self.revolutions_expected),
+                "revolutions_processed": int(self.revolutions_processed), "lost": int(self.lost),
+                "duplicates": int(self.duplicates), "rejected": int(self.rejected)}
 
 
 class MessageStream:
@@ -271,6 +316,7 @@ class RevolutionAssembler:
         self.dropped = 0
         self.ignored = 0
         self.given = 0
+        self.given_complete = 0
 
     def add_opr(self, revolution: int, opr_s: float) -> None:
         """An OPR pulse (``opr_s`` finite)."""
@@ -350,4 +396,5 @@ class RevolutionAssembler:
                 toa = np.full((self.n_blades, self.n_probes), np.nan)
             out.append(Revolution(k, opr, toa, complete))
             self.given += 1
+            self.given_complete += int(complete)
         return out

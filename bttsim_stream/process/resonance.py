@@ -307,6 +307,10 @@ def summary_table(summary: dict) -> str:
     if truth:
         lines.append(f"E_A mean {summary['mean_E_A_pct']:.3f} %  max {summary['max_E_A_pct']:.3f} %   "
                      f"E_f mean {summary['mean_E_f_pct']:.4f} %  max {summary['max_E_f_pct']:.4f} %")
+    if summary.get("complete") is False:
+        lines.append(f"INCOMPLETE: {summary['revolutions_processed']} of {summary['revolutions_expected']} "
+                     f"revolutions processed, {summary['lost']} messages lost, {summary['duplicates']} "
+                     f"duplicates, {summary['rejected']} rejected: this is not the whole run")
     return "\n".join(lines)
 
 
