@@ -116,7 +116,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
-                  connect=args.connect, config=args.config, quiet=args.quiet)
+                  connect=args.connect, config=args.config, quiet=args.quiet, mode=args.mode)
     summary, files = res["summary"], res["files"]
     if summary is not None:
         print(summary_table(summary))
@@ -212,6 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
                    help="join an existing Zenoh network instead of the embedded one")
     p.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration for every node")
+    p.add_argument("-m", "--mode", choices=("peer", "client"), default="peer",
+                   help="session mode of every node (peer; client: through a Zenoh router given with -e)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_run)
 
@@ -246,6 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_node_parser(sub, program("sim"), "sim-node").set_defaults(func=_cmd_node)
     add_node_parser(sub, program("recorder"), "record").set_defaults(func=_cmd_node)
     add_node_parser(sub, program("replay"), "replay").set_defaults(func=_cmd_node)
+    add_node_parser(sub, program("router"), "router").set_defaults(func=_cmd_node)
 
     p = sub.add_parser("process", help="process a recording offline into the resonance report")
     p.add_argument("mcap", help="recording (MCAP)")

@@ -31,8 +31,8 @@ __all__ = ["run_all", "NODES"]
 NODES = ("recorder", "processor", "viewer", "sim")
 
 
-def _session_flags(listen: str | None, connect: list[str], config: str | None) -> list[str]:
-    out: list[str] = []
+def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str) -> list[str]:
+    out: list[str] = ["-m", mode]
     if listen:
         out += ["-l", listen]
     for e in connect:
@@ -44,8 +44,10 @@ def _session_flags(listen: str | None, connect: list[str], config: str | None) -
 
 def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = DEFAULT_WEB_PORT,
             realtime: bool = False, connect: list[str] | None = None, config: str | None = None,
-            quiet: bool = False) -> dict:
+            quiet: bool = False, mode: str = "peer") -> dict:
     """Run the main job; returns the summary dict (also written to ``OUT/summary.json``)."""
+    if mode == "client" and not connect:
+        raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
     out = Path(out_dir)
     try:
@@ -89,12 +91,12 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         started: list[str] = []
         for n in NODES:
             flags = _session_flags(endpoints.get(n), [endpoints[m] for m in started] if embedded else
-                                   list(connect or []), config)
+                                   list(connect or []), config, mode)
             procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *map(str, args[n]), *flags],
                                         stdout=logs[n], stderr=subprocess.STDOUT,
                                         start_new_session=True)  # Ctrl-C reaches only us
             started.append(n)
-        conf = make_config(connect=list(endpoints.values()) if embedded else list(connect or []),
+        conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
                            config_file=config)
         with open_session(conf) as session:
             n_rev = _revolutions(procs, session, rig)

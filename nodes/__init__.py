@@ -15,6 +15,7 @@ name           module                what it does
 ``processor``  ``processor_node``    fits, travelling waves, resonance report (blind)
 ``viewer``     ``viewer_node``       Rerun views of the bus
 ``replay``     ``replay_node``       republishes a recording
+``router``     ``router_node``       a Zenoh router for multi-host layouts
 =============  ====================  ===============================================
 """
 
@@ -22,7 +23,7 @@ import importlib
 
 #: Node name -> module (in this package).
 MODULES = {"sim": "sim_node", "recorder": "recorder_node", "processor": "processor_node",
-           "viewer": "viewer_node", "replay": "replay_node"}
+           "viewer": "viewer_node", "replay": "replay_node", "router": "router_node"}
 
 
 def program(name: str):

@@ -23,6 +23,7 @@ import time
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
+from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
 
@@ -45,8 +46,12 @@ def main(conf, args: argparse.Namespace) -> dict:
             meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0))))
         if args.wait_for:
             seen = wait_for_liveliness(node.session, keys.alive_all_key(stream.rig), args.wait_for + 1,
-                                       args.wait_timeout, stop)
-            log.info("%d other node(s) alive on %s", seen - 1, stream.rig)
+                                       args.wait_timeout, stop) - 1
+            log.info("%d other node(s) alive on %s", seen, stream.rig)
+            if seen < args.wait_for and not stop:
+                raise BttsimError(f"found {seen} of the {args.wait_for} node(s) to wait for on {stream.rig} after "
+                                  f"{args.wait_timeout:g} s: check the endpoints (behind a Zenoh router, use "
+                                  "client mode: -m client)")
         # the metadata also goes out once as a sample (cached for late joiners), so that a
         # recorder stores it in stream order; the queryable answers on demand
         node.publisher(meta.key, lossy=args.lossy).put(meta.payload, attachment=pack_attachment(meta.seq, 0))

@@ -90,3 +90,26 @@ def test_ctrl_c_stops_every_node_and_leaves_valid_files(tmp_path):
     rec = read_recording(out / "run.mcap")
     assert not rec.truncated and len(rec.messages) > 100
     _rrd_verify(out / "views.rrd")
+
+
+def test_run_through_a_zenoh_router_in_client_mode(tmp_path):
+    """`bttsim router` routes between client-mode nodes: the same complete result as the
+    embedded peer network."""
+    from _procs import start, stop
+    from bttsim_stream.bus.session import free_port
+
+    scn = tmp_path / "short.toml"
+    scn.write_text(SHORT)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = start("bttsim_stream.nodes", "router", "-l", endpoint)
+    try:
+        LineWatch(router.stdout).wait_for(lambda line: "router ready" in line)
+        out = tmp_path / "out"
+        res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "run", scn, "--out", out, "-q",
+                              "-m", "client", "-e", endpoint], cwd=REPO, capture_output=True, text=True, timeout=600)
+    finally:
+        assert stop(router) == 0
+    assert res.returncode == 0, res.stdout + res.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] is True and summary["lost"] == 0 and summary["mean_E_A_pct"] < 5.0
+    assert '"gaps": 0' in (out / "recorder.log").read_text()

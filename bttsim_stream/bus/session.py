@@ -77,7 +77,7 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
             conf.insert_json5("mode", f'"{mode}"')
             conf.insert_json5("scouting/multicast/enabled", "true" if multicast_scouting else "false")
             conf.insert_json5("listen/endpoints", _json_list(listen))
-            if mode == "client" and not connect:
+            if mode == "client" and not connect:  # a router listens; a peer may do neither
                 raise BttsimError("client mode needs -e/--connect ENDPOINT")
         if connect:
             conf.insert_json5("connect/endpoints", _json_list(connect))

@@ -1,0 +1,51 @@
+"""Router node: a Zenoh router for multi-host layouts (no ``zenohd`` ships on the registries).
+
+Nodes on other hosts connect to it in client mode (``-m client -e tcp/ROUTER_HOST:7447``) and
+it routes every ``bttsim/**`` key between them; peers behind a router exchange nothing, so use
+client mode. Listens on ``-l`` (default ``tcp/127.0.0.1:7447``: loopback; give the host's
+address to serve other hosts), connects to other routers with ``-e``. Liveliness:
+``bttsim/<rig>/alive/router``. Runs until ``--duration``, SIGINT or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from bttsim_stream.bus import keys
+from bttsim_stream.bus.session import StopFlag, make_config, open_session
+from bttsim_stream.runtime import NodeProgram, run_node
+
+log = logging.getLogger("bttsim.router")
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def main(conf, args: argparse.Namespace) -> None:
+    """Route until stopped. ``conf`` is rebuilt in router mode from the same flags."""
+    rig = keys.validate_rig(args.rig)
+    conf = make_config("router", args.connect, args.listen or [DEFAULT_LISTEN], args.config, args.multicast_scouting)
+    stop = StopFlag(args.duration)
+    with open_session(conf) as session:
+        token = session.liveliness().declare_token(keys.alive_key(rig, "router"))
+        log.info("routing on %s", ", ".join(args.listen or [DEFAULT_LISTEN]))
+        print("router ready", flush=True)
+        while not stop.wait(0.5):
+            pass
+        token.undeclare()
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", default="rig1", help="rig whose liveliness the router announces (rig1)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+
+
+PROGRAM = NodeProgram("router", __doc__, add_arguments, main)
+
+
+def run(argv=None) -> int:
+    return run_node(PROGRAM, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(run())
