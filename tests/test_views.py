@@ -1,8 +1,9 @@
-"""Rerun views: bulk logging of a recording, the live viewer node, and the web viewer (browser)."""
+"""Rerun views: Eq. 1 and layout as the views use them, bulk logging of a recording, live
+feeding, the viewer node, and the web viewer (browser)."""
 
 from __future__ import annotations
 
-import collections
+import dataclasses
 import os
 import shutil
 import signal
@@ -10,23 +11,38 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from _procs import start as _start, stop as _stop
+from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.recording import McapRecorder, read_recording
-from bttsim_stream.testing import free_port
+from bttsim_stream.bus.session import free_port
+from bttsim_stream.bus.stream import Sequencer
+from bttsim_stream.errors import BttsimError
+from bttsim_stream.offline import with_processing
+from bttsim_stream.process.pipeline import RevolutionFit
+from bttsim_stream.process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks
+from bttsim_stream.scenario import load_scenario
 
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
 from bttsim_stream import views  # noqa: E402
+from bttsim_stream.views import paths  # noqa: E402
+from bttsim_stream.views._plot2d import BOUNDS, Label, PlotFrame, label_box, place_labels  # noqa: E402
+from bttsim_stream.views.campbell import CampbellLayout  # noqa: E402
+from bttsim_stream.views.resonance import resonance_markdown  # noqa: E402
+from bttsim_stream.views.revolutions import CALIBRATION_REVOLUTIONS, RevolutionDisplacements  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT = "[speed]\nstart_rpm = 2500.0\nend_rpm = 2600.0\nduration_s = 3.0\n"
+N_REV = 127  # revolutions of SHORT
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -36,83 +52,64 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 @pytest.fixture(scope="module")
-def short_mcap(tmp_path_factory) -> Path:
-    """A 3 s recording from ``bttsim simulate`` (127 revolutions near resonance, with truth)."""
-    tmp = tmp_path_factory.mktemp("views")
-    scenario = tmp / "short.toml"
-    scenario.write_text(SHORT)
-    out = tmp / "short.mcap"
-    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "simulate", str(scenario), "--out",
-                          str(out), "-q"], cwd=REPO, capture_output=True, text=True, timeout=180)
-    assert res.returncode == 0, res.stderr
+def short_scenario(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("scenario") / "short.toml"
+    path.write_text(SHORT)
+    return path
+
+
+@pytest.fixture(scope="module")
+def short_run(short_scenario):
+    """The acquisition messages of a 3 s run near the ND 1 resonance (127 revolutions,
+    with truth), as the simulator publishes them."""
+    stream = AcquisitionStream(load_scenario(short_scenario))
+    messages = [stream.meta]
+    for _, msgs in stream.batches():
+        messages += msgs
+    return stream, messages
+
+
+@pytest.fixture(scope="module")
+def short_mcap(short_run, tmp_path_factory) -> Path:
+    stream, messages = short_run
+    out = tmp_path_factory.mktemp("views") / "short.mcap"
+    with McapRecorder(out, run_metadata=stream.run_metadata_record) as rec:
+        rec.write_all(messages)
     return out
-
-
-def add_processing(src: Path, dst: Path) -> dict:
-    """Copy a recording and add hand-built processing messages derived from its truth.
-
-    Per revolution, a least-squares EO sine fit of each blade's d_eqv over the probes
-    (``d = Re(c exp(i EO phi)) + dc`` with ``phi`` the rotor angle at the crossing):
-    ``BladeFits`` (``2 |c|``, ``arg c``) and one ``TravellingWave`` per probe (the spatial DFT
-    of ``c`` over the blades: ND ``n`` forward ``|C_n|``, backward ``|C_-n|``); at the end one
-    ``ResonanceReport`` (each blade's largest fitted amplitude against the truth envelope's).
-    Returns message counts by kind.
-    """
-    recording = read_recording(src)
-    meta = next(codec.decode_run_metadata(m.payload) for m in recording.messages if m.key.endswith("/meta"))
-    rig, run_id, eo, nb = meta.rig, meta.run_id, meta.engine_orders[0], meta.n_blades
-    phi = np.mod(meta.probe_angles_rad[None, :] - 2 * np.pi * np.arange(nb)[:, None] / nb - meta.opr_angle_rad,
-                 2 * np.pi)
-    basis = np.stack([np.cos(eo * phi), np.sin(eo * phi), np.ones_like(phi)], axis=-1)  # (nb, np, 3)
-    pinv = np.linalg.pinv(basis)
-    n_nd = nb // 2 + 1
-    seqs: dict[str, int] = {}
-    counts = collections.Counter()
-    best = {"fit": np.zeros(nb), "fit_f": np.zeros(nb), "truth": np.zeros(nb), "truth_f": np.zeros(nb)}
-    with McapRecorder(dst, run_metadata=recording.run_metadata) as out:
-        for m in recording.messages:
-            out.write(m.key, m.payload, m.log_time_ns, sequence=m.sequence)
-            if not m.key.endswith("/truth"):
-                continue
-            tr = codec.decode_truth_batch(m.payload)
-            rev, t = tr.header.revolution, tr.header.t_s
-            coef = np.einsum("bkj,bj->bk", pinv, tr.d_eqv_m)
-            c = coef[:, 0] - 1j * coef[:, 1]
-            f = eo * tr.omega_mean_rad_s / (2 * np.pi)
-            out.write(*codec.encode_blade_fits(
-                run_id=run_id, rig=rig, seqs=seqs, revolution=rev, t_s=t, engine_order=eo,
-                omega_mean_rad_s=tr.omega_mean_rad_s, cn=1.4, amp_pkpk_m=2 * np.abs(c), phase_rad=np.angle(c),
-                dc_m=coef[:, 2], residual_m=np.full(nb, 1e-6), amp_std_m=np.full(nb, 1e-6)))
-            counts["fit"] += 1
-            spectrum = np.fft.fft(c) / nb
-            for j in range(tr.n_probes):
-                out.write(*codec.encode_travelling_wave(
-                    run_id=run_id, rig=rig, seqs=seqs, revolution=rev, t_s=t, probe=j,
-                    forward_m=np.abs(spectrum[:n_nd]), backward_m=np.abs(spectrum[(-np.arange(n_nd)) % nb])))
-                counts["tw"] += 1
-            for name, amp in (("fit", 2 * np.abs(c)), ("truth", tr.d_eqv_pkpk_m)):
-                up = amp > best[name]
-                best[name][up], best[name + "_f"][up] = amp[up], f
-        blades = [{"blade": b, "amp_pkpk_m": best["fit"][b], "freq_hz": best["fit_f"][b],
-                   "truth_amp_pkpk_m": best["truth"][b], "truth_freq_hz": best["truth_f"][b],
-                   "E_A_pct": 100 * (best["fit"][b] / best["truth"][b] - 1),
-                   "E_f_pct": 100 * (best["fit_f"][b] / best["truth_f"][b] - 1)} for b in range(nb)]
-        e_a = np.abs([row["E_A_pct"] for row in blades])
-        e_f = np.abs([row["E_f_pct"] for row in blades])
-        report = {"nd": meta.nodal_diameters[0], "eo": eo, "cn": 1.4, "blades": blades,
-                  "mean_E_A_pct": e_a.mean(), "max_E_A_pct": e_a.max(), "mean_E_f_pct": e_f.mean(),
-                  "max_E_f_pct": e_f.max()}
-        out.write(*codec.encode_resonance_report(report, run_id=run_id, rig=rig, seqs=seqs,
-                                                 revolution=-1, t_s=recording.messages[-1].log_time_ns * 1e-9))
-        counts["resonance"] += 1
-    return dict(counts)
 
 
 @pytest.fixture(scope="module")
 def processed_mcap(short_mcap) -> Path:
-    out = short_mcap.with_name("processed.mcap")
-    add_processing(short_mcap, out)
-    return out
+    """The short recording with the streaming processor's messages (fits, travelling waves,
+    resonance report), as ``bttsim view`` makes it."""
+    return Path(with_processing(short_mcap, short_mcap.with_name("processed.mcap")))
+
+
+def decoded(messages):
+    """``[(kind, Decoded)]`` of bus messages."""
+    return [(keys.parse_key(m.key).kind, codec.decode_message(m.key, m.payload)) for m in messages]
+
+
+def show(info, stream, final=True):
+    """Feed ``(kind, Decoded)`` OPR/TOA messages to the views' revolution stage one by one;
+    ``(revolutions, d_m, shown_after)``: ``shown_after[i]`` is the last revolution shown
+    after message ``i`` (-1: none)."""
+    stage = RevolutionDisplacements(info)
+    revs, d, after = [], [], []
+    for kind, msg in stream:
+        stage.add(kind, msg)
+        out = stage.pop()
+        if out is not None:
+            revs.append(out.revolution), d.append(out.d_m)
+        after.append(int(revs[-1][-1]) if revs else -1)
+    out = stage.pop(final=final)
+    if out is not None:
+        revs.append(out.revolution), d.append(out.d_m)
+    return np.concatenate(revs), np.concatenate(d), after
+
+
+def truth_of(stream) -> dict:
+    return {msg.header.revolution: msg.body for kind, msg in stream if kind == "truth"}
 
 
 def rrd_verify(path: Path) -> None:
@@ -124,63 +121,237 @@ def rrd_verify(path: Path) -> None:
 def rrd_entities(path: Path) -> dict[str, dict]:
     """``entity path -> {"rows": temporal rows, "static": bool}`` of the recording store."""
     out: dict[str, dict] = {}
-    for chunk in RrdReader(path).stream():
-        e = out.setdefault(chunk.entity_path, {"rows": 0, "static": False})
-        if chunk.is_static:
-            e["static"] = True
-        else:
-            e["rows"] += chunk.num_rows
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a file still being written has no footer
+        for chunk in RrdReader(path).stream():
+            e = out.setdefault(chunk.entity_path, {"rows": 0, "static": False})
+            if chunk.is_static:
+                e["static"] = True
+            else:
+                e["rows"] += chunk.num_rows
     return out
 
 
+def static_value(path: Path, entity: str, suffix: str):
+    """The last static value of component ``suffix`` (e.g. ``":strips"``) of ``entity``."""
+    value = None
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == entity and chunk.is_static:
+            batch = chunk.to_record_batch()
+            for name in batch.schema.names:
+                if name.endswith(suffix):
+                    value = batch.column(name).to_pylist()[-1]
+    if value is None:
+        raise AssertionError(f"{entity}: no static {suffix}")
+    return value
+
+
+def static_tensor(path: Path, entity: str) -> np.ndarray:
+    col = static_value(path, entity, ":data")[0]
+    buffer = col["buffer"]
+    values = buffer[1] if isinstance(buffer, tuple) else buffer
+    return np.asarray(values, dtype=np.float32).reshape(col["shape"])
+
+
+def temporal(path: Path, entity: str, suffix: str) -> tuple[np.ndarray, list]:
+    """``(revolution (n,), values)`` of a temporal component, sorted by revolution."""
+    revs, values = [], []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == entity and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            name = next(n for n in batch.schema.names if n.endswith(suffix))
+            revs += batch.column("revolution").to_pylist()
+            values += batch.column(name).to_pylist()
+    order = np.argsort(revs, kind="stable")
+    return np.asarray(revs)[order], [values[i] for i in order]
+
+
+def to_box(path: Path, entity: str, xy: np.ndarray) -> np.ndarray:
+    """Data points of a plot (``entity`` holds its Transform3D) in screen box units."""
+    scale = np.asarray(static_value(path, entity, ":scale")[0])
+    shift = np.asarray(static_value(path, entity, ":translation")[0])
+    return xy * scale[:2] + shift[:2]
+
+
+def rewrite_metadata(src: Path, dst: Path, **changes) -> None:
+    """A copy of a recording whose run metadata has ``changes``."""
+    recording = read_recording(src)
+    with McapRecorder(dst, run_metadata=recording.run_metadata) as out:
+        for m in recording.messages:
+            if keys.parse_key(m.key).kind == "meta":
+                d = codec.decode_run_metadata(m.payload, m.key)
+                m = dataclasses.replace(m, payload=codec.encode_run_metadata(
+                    d.header, dataclasses.replace(d.body, **changes)))
+            out.write_message(m)
+
+
 # --------------------------------------------------------------------------------------
-# Numerics
+# Eq. 1 as the views compute it (the processing's rotor phase and Eq. 1)
 # --------------------------------------------------------------------------------------
 
 
-def test_btt_displacement_matches_the_simulator_eq1_truth(short_mcap):
-    recording = read_recording(short_mcap)
-    msgs = [(m.key, codec.decode_message(m.key, m.payload)) for m in recording.messages]
-    meta = msgs[0][1]
-    opr = np.array([m.opr_s for k, m in msgs if k.endswith("/opr")])
-    truth = [m for k, m in msgs if k.endswith("/truth")]
-    toa = np.array([t.toa_s for t in truth])  # (n_rev, n_blades, n_probes), no acquisition errors
-    d_eq1 = np.array([t.d_eq1_m for t in truth])
-    from bttsim_stream.model import build_model
-    from bttsim_stream.scenario import scenario_from_dict
-    import tomllib
-
-    model = build_model(scenario_from_dict(tomllib.loads(meta.scenario_toml)))
-    blade_angles = model.tip_ref[:, model.nominal_node, 1]
-    inner = slice(1, opr.size - 1)
-    omega, accel = views.speed_from_opr(opr[:-2], opr[1:-1], opr[2:])
-    d = views.btt_displacement(opr[inner], omega, accel, toa[inner], probe_angles_rad=meta.probe_angles_rad,
-                               blade_angles_rad=blade_angles, opr_angle_rad=meta.opr_angle_rad,
-                               tip_radius_m=meta.tip_radius_m)
-    np.testing.assert_allclose(d, d_eq1[inner], rtol=0, atol=1e-9)
-    # without the acceleration term the error is far larger (what the correction is for)
-    d0 = views.btt_displacement(opr[inner], omega, np.zeros_like(accel), toa[inner],
-                                probe_angles_rad=meta.probe_angles_rad, blade_angles_rad=blade_angles,
-                                opr_angle_rad=meta.opr_angle_rad, tip_radius_m=meta.tip_radius_m)
-    assert np.max(np.abs(d0 - d_eq1[inner])) > 1e-5
+@pytest.mark.unit
+def test_views_eq1_is_the_simulators_exact_eq1_one_revolution_late(short_run):
+    stream = decoded(short_run[1])
+    info, truth = stream[0][1].body, truth_of(stream)
+    acq = [(k, m) for k, m in stream if k in ("opr", "toa")]
+    revs, d, after = show(info, acq)
+    np.testing.assert_array_equal(revs, np.arange(N_REV))
+    d_eq1 = np.stack([truth[k].d_eq1_m[0] for k in revs])
+    # the sensing angles of the metadata: exact expected times but for rounding, except the
+    # last revolution, whose speed is extrapolated (no next OPR pulse)
+    np.testing.assert_allclose(d[:-1], d_eq1[:-1], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(d[-1], d_eq1[-1], rtol=0, atol=1e-6)
+    # revolution k is shown as soon as revolution k + 1 is complete (its OPR and every TOA
+    # batch); the first one also waits for revolution 2 (for its acceleration)
+    n_probes = info.n_probes
+    last_of_rev = [i for i, (k, m) in enumerate(acq) if k == "toa" and m.body.probe == n_probes - 1]
+    assert [after[i] for i in last_of_rev] == [-1, -1] + list(range(1, N_REV - 1))
 
 
-def test_speed_from_opr_of_a_constant_acceleration_is_exact():
-    omega0, alpha = 260.0, 2.4  # rad/s, rad/s^2
-    k = np.arange(8)
-    t = (-omega0 + np.sqrt(omega0**2 + 2 * alpha * 2 * np.pi * k)) / alpha  # angle 2 pi k
-    omega, accel = views.speed_from_opr(t[:-2], t[1:-1], t[2:])
-    np.testing.assert_allclose(omega, 2 * np.pi / np.diff(t)[1:], rtol=1e-12)
-    np.testing.assert_allclose(accel, alpha, rtol=1e-6)
-    # the first revolution has no previous OPR: it takes its neighbour's acceleration
-    _, accel_first = views.speed_from_opr([np.nan, t[0]], t[:2], t[1:3])
-    np.testing.assert_allclose(accel_first, alpha, rtol=1e-6)
+@pytest.mark.unit
+def test_views_eq1_without_sensing_angles_is_calibrated_on_the_first_revolutions(short_run):
+    stream = decoded(short_run[1])
+    info = dataclasses.replace(stream[0][1].body, sensing_angles_rad=None)
+    truth = truth_of(stream)
+    revs, d, after = show(info, [(k, m) for k, m in stream if k in ("opr", "toa")])
+    assert revs.size == N_REV and max(after[:50]) == -1  # held back until the calibration
+    d_eq1 = np.stack([truth[k].d_eq1_m[0] for k in revs])
+    # calibration takes the median arrival over the window as the undeflected one: the
+    # window's vibration (this run starts near resonance) becomes the zero
+    reference = np.median(d_eq1[:CALIBRATION_REVOLUTIONS], axis=0)
+    assert np.abs(reference).max() > 1e-4
+    np.testing.assert_allclose(d[:-1], (d_eq1 - reference)[:-1], rtol=0, atol=1e-8)
 
 
-@pytest.mark.parametrize("n_probes", [1, 5], ids=["one-probe", "five-probes"])
-def test_build_blueprint_has_a_travelling_wave_and_displacement_view_per_probe(n_probes):
-    bp = views.build_blueprint(n_probes, n_blades=29)
-    assert isinstance(bp, rr.blueprint.Blueprint)
+@pytest.mark.unit
+def test_views_eq1_over_lost_messages(short_run):
+    stream = decoded(short_run[1])
+    info, truth = stream[0][1].body, truth_of(stream)
+    lost_opr, lost_toa = 40, (60, 2)  # revolution 40's OPR pulse; probe 2's batch of revolution 60
+    acq = [(k, m) for k, m in stream if k in ("opr", "toa")
+           and not (k == "opr" and m.header.revolution == lost_opr)
+           and not (k == "toa" and (m.header.revolution, m.body.probe) == lost_toa)]
+    revs, d, _ = show(info, acq)
+    np.testing.assert_array_equal(revs, [k for k in range(N_REV) if k != lost_opr])  # no OPR: not placed
+    i60 = list(revs).index(60)
+    assert np.isnan(d[i60, :, 2]).all() and np.isfinite(np.delete(d[i60], 2, axis=1)).all()
+    d_eq1 = np.stack([truth[k].d_eq1_m[0] for k in revs])
+    err = np.nanmax(np.abs(d - d_eq1), axis=(1, 2))
+    before = list(revs).index(lost_opr - 1)  # no next pulse: extrapolated speed
+    assert err[before] < 1e-6
+    # after the gap, revolution 41 takes the acceleration of 42 (row 0 of OPR 41, 42, 43)
+    assert np.delete(err, [before, -1]).max() < 1e-11
+
+
+# --------------------------------------------------------------------------------------
+# Layout: blueprint, plots, labels, tables
+# --------------------------------------------------------------------------------------
+
+
+def _views_of(container) -> list:
+    out = []
+    for item in getattr(container, "contents", []):
+        out += _views_of(item) if hasattr(item, "kind") else [item]
+    return out
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("n_probes, eos", [(1, (8,)), (5, (8, 16))], ids=["one-probe-one-eo", "five-probes-two-eos"])
+def test_blueprint_has_the_views_of_every_probe_and_engine_order(n_probes, eos):
+    bp = views.build_blueprint(n_probes, n_blades=29, engine_orders=eos)
+    tabs = bp.root_container
+    names = [t.name for t in tabs.contents]
+    assert names == ["Overview", *[f"Fits EO {e}" for e in eos], "Travelling wave", "Displacement",
+                     "Rotor & Campbell", "Resonance"]
+    by_tab = {t.name: {(v.class_identifier, v.origin) for v in _views_of(t)} for t in tabs.contents}
+    assert by_tab["Travelling wave"] >= {("Tensor", paths.tw_path(j)) for j in range(n_probes)}
+    assert ("Tensor", paths.tw_path(n_probes)) not in by_tab["Travelling wave"]
+    assert by_tab["Displacement"] == {("TimeSeries", paths.displacement_path(j)) for j in range(n_probes)}
+    for e in eos:
+        assert by_tab[f"Fits EO {e}"] >= {("TimeSeries", paths.fit_path(e)), ("2D", paths.fit_rpm_path(e)),
+                                          ("TimeSeries", f"{paths.fit_path(e)}/phase_deg"),
+                                          ("TimeSeries", f"{paths.fit_path(e)}/freq_hz")}
+        amplitude = next(v for v in _views_of(tabs.contents[1 + eos.index(e)]) if v.origin == paths.fit_path(e))
+        assert f"+ /{paths.TRUTH_AMP}" in amplitude.contents and "+ $origin/amp_pkpk_mm" in amplitude.contents
+    assert ("TimeSeries", paths.fit_path(eos[0])) in by_tab["Overview"]
+    assert by_tab["Rotor & Campbell"] == {("2D", paths.ROTOR), ("2D", paths.CAMPBELL)}
+
+
+def _run_info(short_run, **changes):
+    return dataclasses.replace(short_run[0].info, **changes)
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("changes", [{}, {"speed_range_rpm": (1000.0, 4000.0)},
+                                     {"engine_orders": (8, 16), "nodal_diameters": (1, 3)},
+                                     {"family_freq_hz": None, "speed_range_rpm": (300.0, 12000.0)}],
+                         ids=["short-run", "default-speeds", "two-eos", "no-families-fast"])
+def test_campbell_labels_do_not_overlap(short_run, changes):
+    info = _run_info(short_run, **changes)
+    lay = CampbellLayout(info)
+    frame = PlotFrame(None, paths.CAMPBELL, (0.0, lay.x_top_rpm), (0.0, lay.f_top_hz), x_label=lambda x: f"{x:g} rpm",
+                      y_label=lambda f: f"{f:g} Hz")
+    lay.place(frame)
+    boxes = [label_box(text, *spot) for text, spot, _ in lay.labels]
+    for a, b in combinations(boxes + frame.obstacles(), 2):
+        assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (a, b)
+    assert all(BOUNDS[0] <= b[0] and BOUNDS[1] <= b[1] and b[2] <= BOUNDS[2] and b[3] <= BOUNDS[3] for b in boxes)
+    texts = [t for t, _, _ in lay.labels]
+    assert all(f"EO {e}" in texts for e in info.engine_orders)  # the excited EOs always
+    assert sum(t.startswith("EO ") and " x ND" not in t for t in texts) >= 10
+    if not changes:  # the short run: every EO line, the crossing, the run range and the family
+        assert texts.count("EO 12") == 1 and "run 2500-2600 rpm" in texts
+        assert any(t.startswith("EO 8 x ND 1: ") for t in texts) and any(t.startswith("family 1") for t in texts)
+
+
+@pytest.mark.unit
+def test_place_labels_takes_the_first_free_spot_or_leaves_the_label_out():
+    first = Label("abc", ((0.5, 0.3),))
+    clash = Label("abc", ((0.5, 0.3), (0.5, 0.3 + 0.04), (0.5, 0.45)))
+    nowhere = Label("abc", ((0.5, 0.3), (5.0, 5.0)))  # taken, or out of bounds
+    assert place_labels([first, clash, nowhere]) == [(0.5, 0.3), (0.5, 0.45), None]
+    assert place_labels([first], obstacles=[label_box("x", 0.5, 0.3)]) == [None]
+
+
+@pytest.mark.unit
+def test_plot_frame_maps_data_into_the_box_and_grows_round():
+    frame = PlotFrame(None, "plot", None, (0.0, 0.0), x_label=str, y_label=str)
+    frame.draw = lambda: None  # no output here: the ranges only
+    assert frame.include([2450.0, 2700.0], [0.83])
+    x0, x1 = frame.x_range
+    assert x0 < 2450.0 and x1 > 2700.0 and x0 % 50 == 0 and x1 % 50 == 0
+    assert frame.y_range == (0.0, 1.0)  # 10 % headroom, rounded
+    assert not frame.include([2500.0], [0.9])  # already inside
+    np.testing.assert_allclose(frame.to_data(*frame.to_box(2555.0, 0.42).T), [2555.0, 0.42])
+    fixed = PlotFrame(None, "plot", (0.0, 10.0), (0.0, 2.0), x_label=str, y_label=str)
+    fixed.draw = lambda: None
+    fixed.include([20.0], [1.0])
+    assert fixed.x_range == (0.0, 10.0)  # a given x range stays
+
+
+def _report(truth: bool) -> ResonanceReport:
+    nb = 29
+    amp, freq = np.linspace(2.0e-3, 2.4e-3, nb), np.full(nb, 345.123)
+    peaks = ResonancePeaks(revolution=np.full(nb, 60.0), amp_pkpk_m=amp, freq_hz=freq,
+                           damping_ratio=np.full(nb, np.nan), method="max")
+    if not truth:
+        return ResonanceReport(nd=-1, eo=8, cn=1.43, peaks=peaks)
+    tp = TruthPeaks(revolution=np.full(nb, 61), amp_pkpk_m=amp * 1.01, freq_hz=freq * 1.0001)
+    return ResonanceReport(nd=1, eo=8, cn=1.43, peaks=peaks, truth=tp, e_a_pct=np.full(nb, 0.99),
+                           e_f_pct=np.full(nb, 0.01))
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("truth", [True, False], ids=["with-truth", "blind"])
+def test_resonance_tables_are_narrow(truth):
+    text = resonance_markdown(_report(truth))
+    rows = [line for line in text.splitlines() if line.startswith("|")]
+    assert len(rows) == (2 * (2 + 29) if truth else 2 + 29)
+    assert max(line.count("|") - 1 for line in rows) == (4 if truth else 3)
+    assert max(len(line) for line in rows) <= 40
+    assert "| 28 | 2.4000 | 2.4240 | 0.990 |" in rows if truth else "| 28 | 2.4000 | 345.123 |" in rows
+    assert ("ND 1 (forward)" if truth else "ND -1 (backward)") in text
 
 
 # --------------------------------------------------------------------------------------
@@ -188,113 +359,109 @@ def test_build_blueprint_has_a_travelling_wave_and_displacement_view_per_probe(n
 # --------------------------------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_log_recording_of_a_raw_acquisition(short_mcap, tmp_path):
     out = tmp_path / "raw.rrd"
     session = views.log_recording(short_mcap, out)
-    assert session.sinks.rrd_path == str(out) and session.stats["revolutions"] == 127
-    assert session.stats["bad"] == 0 and session.stats["fits"] == 0
+    assert session.sinks.rrd_path == str(out) and session.stats["revolutions"] == N_REV
+    assert session.stats["bad"] == 0 and session.stats["fits"] == 0 and session.stats["truth"] == N_REV
     rrd_verify(out)
     ent = rrd_entities(out)
     for probe in range(5):
-        assert ent[f"/displacement/probe_{probe}/btt"]["rows"] == 127
-        assert ent[f"/displacement/probe_{probe}/d_eqv"]["rows"] == 127
-    for path in ("/speed/rpm", "/truth/amp_pkpk_mm", "/rotor/blades", "/campbell/speed"):
-        assert ent[path]["rows"] == 127, path
-    for path in ("/campbell/families", "/campbell/engine_orders", "/campbell/run_range", "/campbell/resonance",
-                 "/rotor/casing", "/rotor/probes", "/rotor/opr"):
+        assert ent[f"/{paths.displacement_path(probe)}/btt"]["rows"] == N_REV
+        assert ent[f"/{paths.displacement_path(probe)}/d_eqv"]["rows"] == N_REV
+    for path in (paths.SPEED, paths.TRUTH_AMP, "rotor/blades", "campbell/data/speed"):
+        assert ent["/" + path]["rows"] == N_REV, path
+    for path in ("families", "engine_orders", "run_range", "resonance", "labels", "axes", "ticks"):
+        assert ent[f"/campbell/data/{path}"]["static"], path
+    for path in ("/rotor/casing", "/rotor/probes", "/rotor/opr", "/campbell/data"):
         assert ent[path]["static"], path
     assert not any(p.startswith(("/fit", "/tw", "/resonance")) for p in ent)  # no processing: empty views
-    reader = RrdReader(out)
-    assert [s.application_id for s in reader.blueprints()] == [views.APPLICATION_ID]
+    assert [s.application_id for s in RrdReader(out).blueprints()] == [views.APPLICATION_ID]
 
 
+@pytest.mark.integration
 def test_log_recording_with_processing_messages(processed_mcap, tmp_path):
     out = tmp_path / "processed.rrd"
     session = views.log_recording(processed_mcap, out, blades=[3, 7, 11])
-    assert session.stats["fits"] == 127 and session.stats["tw"] == 127 * 5 and session.stats["resonance"] == 1
+    assert session.stats["fits"] == N_REV and session.stats["tw"] == N_REV * 5 and session.stats["resonance"] == 1
     rrd_verify(out)
     ent = rrd_entities(out)
-    for path in ("/fit/amp_pkpk_mm", "/fit/phase_deg", "/fit/freq_hz"):
-        assert ent[path]["rows"] == 127, path
+    for leaf in ("amp_pkpk_mm", "phase_deg", "freq_hz", "vs_rpm/data/fit", "vs_rpm/data/d_eqv"):
+        assert ent[f"/fit/eo_8/{leaf}"]["rows"] == N_REV, leaf
+    assert ent[f"/{paths.TW_ND}"]["rows"] == N_REV
     for probe in range(5):
-        assert ent[f"/tw/probe_{probe}"]["static"]
-        assert ent[f"/tw/dominant_nd/probe_{probe}"]["rows"] == 127
-    for path in ("/resonance/table", "/resonance/amp_pkpk_mm/btt", "/resonance/amp_pkpk_mm/d_eqv"):
-        assert ent[path]["static"], path
-    # the whole-run travelling wave: rows ND +14 (top) .. -14 (bottom), one column per revolution,
-    # magnitudes in mm; each column's largest row is the message's dominant ND
-    tensor = _static_tensor(out, "/tw/probe_0")
-    assert tensor.shape == (29, 127)
-    tws = [codec.decode_travelling_wave(m.payload) for m in read_recording(processed_mcap).messages
-           if m.key == keys.tw_key("rig1", 0)]
-    dominant = np.array([m.dominant_nd for m in tws])
-    np.testing.assert_array_equal(14 - np.argmax(tensor, axis=0), dominant)
-    np.testing.assert_allclose(tensor[14 - 3], [m.forward_m[3] * 1e3 for m in tws], rtol=1e-6)
-    np.testing.assert_allclose(tensor[14 + 3], [m.backward_m[3] * 1e3 for m in tws], rtol=1e-6)
-    assert "| 28 |" in _static_text(out, "/resonance/table")
+        assert ent[f"/{paths.tw_path(probe)}"]["static"]
+    for path in (paths.RESONANCE_TABLE, f"{paths.RESONANCE_BARS}/btt", f"{paths.RESONANCE_BARS}/d_eqv"):
+        assert ent["/" + path]["static"], path
+    msgs = decoded(read_recording(processed_mcap).messages)
+    # the whole-run travelling wave: rows ND +14 (top) .. -14 (bottom), one column per
+    # revolution, magnitudes in mm, as the processor sent them
+    tws = [m for k, m in msgs if k == "tw" and m.body.probe == 0]
+    tensor = static_tensor(out, f"/{paths.tw_path(0)}")
+    assert tensor.shape == (29, N_REV)
+    np.testing.assert_allclose(tensor, np.stack([m.body.signed_spectrum() for m in tws], axis=1) * 1e3, rtol=1e-6)
+    revs, nd = temporal(out, f"/{paths.TW_ND}", ":scalars")
+    np.testing.assert_array_equal(np.ravel(nd), [m.body.nd for m in tws])
+    # per EO, one amplitude series per blade, in mm, at the fit's revolution
+    fits = [m for k, m in msgs if k == "fit"]
+    revs, amp = temporal(out, "/fit/eo_8/amp_pkpk_mm", ":scalars")
+    np.testing.assert_array_equal(revs, [m.header.revolution for m in fits])
+    np.testing.assert_allclose(amp, [m.body.amp_pkpk_m * 1e3 for m in fits], rtol=1e-6)
+    # amplitude against speed: (rpm, mm) points, all inside the plot box
+    _, pts = temporal(out, "/fit/eo_8/vs_rpm/data/fit", ":positions")
+    pts = np.asarray(pts, float)  # (n_rev, n_blades, 2)
+    np.testing.assert_allclose(pts[:, 0, 0], [m.body.omega_rad_s * 30 / np.pi for m in fits], rtol=1e-6)
+    box = to_box(out, "/fit/eo_8/vs_rpm/data", pts.reshape(-1, 2))
+    assert box[:, 0].min() >= 0 and box[:, 0].max() <= 1 and box[:, 1].min() >= -1 / 1.6 and box[:, 1].max() <= 0
+    table = static_value(out, f"/{paths.RESONANCE_TABLE}", ":text")[0]
+    assert "| 28 |" in table and max(len(line) for line in table.splitlines() if line.startswith("|")) <= 40
 
 
-def _static_column(path: Path, entity: str, suffix: str):
-    for chunk in RrdReader(path).stream():
-        if chunk.entity_path == entity and chunk.is_static:
-            batch = chunk.to_record_batch()
-            for name in batch.schema.names:
-                if name.endswith(suffix):
-                    return batch.column(name)
-    raise AssertionError(f"{entity}: no static {suffix}")
+@pytest.mark.integration
+def test_campbell_is_drawn_from_the_run_metadata_alone(short_mcap, tmp_path, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("the views rebuilt the model or parsed the scenario")
+
+    for target in ("bttsim_stream.model.build_model", "bttsim_stream.model.load_model",
+                   "bttsim_stream.sim.core.load_scenario_model", "bttsim_stream.scenario.scenario_from_dict",
+                   "bttsim_stream.scenario.load_scenario"):
+        monkeypatch.setattr(target, refuse)
+    out = tmp_path / "campbell.rrd"
+    views.log_recording(short_mcap, out)
+    meta = codec.decode_message(*next((m.key, m.payload) for m in read_recording(short_mcap).messages
+                                      if keys.parse_key(m.key).kind == "meta")).body
+    strips = np.asarray(static_value(out, "/campbell/data/families", ":strips"), float)  # (n, 2, 2)
+    f_top = CampbellLayout(meta).f_top_hz
+    expected = np.sort([f for f in meta.family_freq_hz.ravel() if 0 < f < f_top])
+    np.testing.assert_allclose(np.sort(strips[:, 0, 1]), expected, rtol=1e-6)
+    crossing = np.asarray(static_value(out, "/campbell/data/resonance", ":positions"), float)
+    np.testing.assert_allclose(crossing[:, 0], 60 * crossing[:, 1] / 8)  # on the EO 8 line
+    np.testing.assert_allclose(crossing[:, 1], meta.family_freq_hz[0, 1], rtol=1e-6)  # family 1, ND 1
+    box = np.asarray(static_value(out, "/campbell/data/run_range", ":half_sizes"), float)
+    np.testing.assert_allclose(2 * box[0, 0], np.diff(meta.speed_range_rpm), rtol=1e-6)
 
 
-def _static_tensor(path: Path, entity: str) -> np.ndarray:
-    col = _static_column(path, entity, ":data").to_pylist()[0][0]
-    shape = col["shape"]
-    buffer = col["buffer"]
-    kind, values = buffer if isinstance(buffer, tuple) else (None, buffer)
-    return np.asarray(values, dtype=np.float32).reshape(shape)
+@pytest.mark.integration
+def test_log_recording_without_sensing_angles_or_families(short_mcap, tmp_path):
+    """An older recording's metadata: Eq. 1 calibrated, Campbell without families."""
+    src = tmp_path / "old-meta.mcap"
+    rewrite_metadata(short_mcap, src, sensing_angles_rad=None, family_freq_hz=None, speed_range_rpm=(0.0, 0.0))
+    out = tmp_path / "old-meta.rrd"
+    views.log_recording(src, out)
+    rrd_verify(out)
+    ent = rrd_entities(out)
+    assert "/campbell/data/families" not in ent and ent["/campbell/data/engine_orders"]["static"]
+    assert ent["/campbell/data/speed"]["rows"] == N_REV  # drawn up to the speeds seen
+    revs, d_mm = temporal(out, f"/{paths.displacement_path(2)}/btt", ":scalars")  # blades 0 and 14
+    truth = truth_of(decoded(read_recording(short_mcap).messages))
+    d_eq1 = np.stack([truth[k].d_eq1_m[0, [0, 14], 2] for k in revs])
+    reference = np.median(d_eq1[:CALIBRATION_REVOLUTIONS], axis=0)
+    np.testing.assert_allclose(np.asarray(d_mm)[:-1] * 1e-3, (d_eq1 - reference)[:-1], rtol=0, atol=1e-8)
 
 
-def _static_text(path: Path, entity: str) -> str:
-    return _static_column(path, entity, ":text").to_pylist()[0][0]
-
-
-def _temporal_scalars(path: Path, entity: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(revolution (n,), values (n, k))`` of a Scalars entity, sorted by revolution."""
-    revs, values = [], []
-    for chunk in RrdReader(path).stream():
-        if chunk.entity_path == entity and not chunk.is_static:
-            batch = chunk.to_record_batch()
-            revs += batch.column("revolution").to_pylist()
-            values += batch.column("Scalars:scalars").to_pylist()
-    order = np.argsort(revs)
-    return np.asarray(revs)[order], np.asarray(values, float)[order]
-
-
-def test_without_the_model_the_blade_angles_are_estimated(short_mcap, tmp_path):
-    # the same run, but its scenario names a model file that does not exist here
-    recording = read_recording(short_mcap)
-    meta = codec.decode_run_metadata(recording.messages[0].payload)
-    toml = meta.scenario_toml.replace('source = "builtin"', 'source = "/nonexistent/model.npz"')
-    assert toml != meta.scenario_toml
-    moved = tmp_path / "no-model.mcap"
-    with McapRecorder(moved, run_metadata=recording.run_metadata) as out:
-        out.write(recording.messages[0].key, codec.encode_run_metadata(meta.to_run_info(), meta.run_id, toml,
-                                                                       meta.software_version, True), 0)
-        for m in recording.messages[1:]:
-            out.write(m.key, m.payload, m.log_time_ns, sequence=m.sequence)
-    out_rrd = tmp_path / "no-model.rrd"
-    views.log_recording(moved, out_rrd)
-    rrd_verify(out_rrd)
-    ent = rrd_entities(out_rrd)
-    assert "/campbell/families" not in ent and ent["/campbell/engine_orders"]["static"]
-    revs, d_mm = _temporal_scalars(out_rrd, "/displacement/probe_2/btt")  # blades 0 and 14
-    truth = np.array([codec.decode_truth_batch(m.payload).d_eq1_m[[0, 14], 2] for m in recording.messages
-                      if m.key.endswith("/truth")])
-    inner = slice(1, -1)  # the first and last revolutions lack a neighbouring OPR
-    np.testing.assert_allclose(d_mm[inner] * 1e-3, truth[revs][inner], rtol=0, atol=1e-6)
-
-
+@pytest.mark.integration
 def test_log_recording_bad_input_is_a_one_line_error(tmp_path):
-    from bttsim_stream.errors import BttsimError
-
     with pytest.raises(BttsimError):
         views.log_recording(tmp_path / "missing.mcap", tmp_path / "x.rrd")
     bad = tmp_path / "bad.mcap"
@@ -303,9 +470,10 @@ def test_log_recording_bad_input_is_a_one_line_error(tmp_path):
         views.log_recording(bad, tmp_path / "x.rrd")
 
 
-def test_live_views_fed_message_by_message_match_the_bulk_log(processed_mcap, tmp_path):
+@pytest.mark.integration
+def test_live_views_fed_message_by_message(processed_mcap, tmp_path):
     out = tmp_path / "live.rrd"
-    rec, sinks = views.open_recording(rrd_path=out)
+    rec, _ = views.open_recording(rrd_path=out)
     live = views.LiveViews(rec, live=True, flush_period_s=0.01, tw_window=32, tw_period_s=0.0)
     for m in read_recording(processed_mcap).messages:
         live.feed(m.key, m.payload)
@@ -313,12 +481,39 @@ def test_live_views_fed_message_by_message_match_the_bulk_log(processed_mcap, tm
     live.feed("bttsim/rig1/opr", b"\xff\xff garbage")  # counted, skipped
     live.close()
     rec.disconnect()
-    assert live.stats["revolutions"] == 127 and live.stats["bad"] == 1 and live.stats["ignored"] == 1
+    assert live.stats["revolutions"] == N_REV and live.stats["bad"] == 1 and live.stats["ignored"] == 1
+    assert live.stats["fits"] == N_REV and live.stats["resonance"] == 1
     rrd_verify(out)
     ent = rrd_entities(out)
-    assert ent["/speed/rpm"]["rows"] == 127 and ent["/displacement/probe_4/btt"]["rows"] == 127
-    assert ent["/tw/probe_0"]["rows"] > 1 and not ent["/tw/probe_0"]["static"]  # a rolling window
-    assert ent["/resonance/table"]["rows"] == 1
+    assert ent[f"/{paths.SPEED}"]["rows"] == N_REV and ent[f"/{paths.displacement_path(4)}/btt"]["rows"] == N_REV
+    assert ent["/fit/eo_8/amp_pkpk_mm"]["rows"] == N_REV and ent[f"/{paths.TW_ND}"]["rows"] == N_REV
+    assert ent[f"/{paths.tw_path(0)}"]["rows"] > 1 and not ent[f"/{paths.tw_path(0)}"]["static"]  # rolling window
+    assert ent[f"/{paths.RESONANCE_TABLE}"]["rows"] == 1
+
+
+@pytest.mark.integration
+def test_live_views_add_the_views_of_an_engine_order_the_metadata_lacks(short_run, tmp_path, caplog):
+    stream, messages = short_run
+    seq = Sequencer()
+    key = keys.fits_key(stream.rig)
+    nb = stream.info.n_blades
+    fits = []
+    for rev in range(3):
+        fit = RevolutionFit(engine_order=9, omega_rad_s=262.0, freq_hz=9 * 262.0 / (2 * np.pi), cn=1.5,
+                            amp_pkpk_m=np.full(nb, 1e-4), phase_rad=np.zeros(nb), dc_m=np.zeros(nb),
+                            residual_rms_m=np.zeros(nb), amp_std_m=np.zeros(nb))
+        fits.append(codec.encode_fit(codec.Header(stream.run_id, seq.next(key), rev, 0.02 * rev), fit))
+    rec, _ = views.open_recording(rrd_path=tmp_path / "eo9.rrd")
+    live = views.LiveViews(rec, live=True)
+    live.feed(stream.meta.key, stream.meta.payload)
+    with caplog.at_level("INFO", logger="bttsim.views"):
+        for payload in fits:
+            live.feed(key, payload)
+        live.close()
+    rec.disconnect()
+    assert live.stats["fits"] == 3 and "layout updated" in caplog.text
+    ent = rrd_entities(tmp_path / "eo9.rrd")
+    assert ent["/fit/eo_9/amp_pkpk_mm"]["rows"] == 3 and ent["/fit/eo_9/vs_rpm/data/fit"]["rows"] == 3
 
 
 # --------------------------------------------------------------------------------------
@@ -326,45 +521,79 @@ def test_live_views_fed_message_by_message_match_the_bulk_log(processed_mcap, tm
 # --------------------------------------------------------------------------------------
 
 
+def _wait_for_rows(path: Path, entity: str, n: int, procs, timeout_s: float = 180.0) -> int:
+    """Poll the .rrd being written until ``entity`` has ``n`` rows (the viewer is showing the
+    run); fails if a process ends first or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    rows = 0
+    while time.monotonic() < deadline:
+        assert all(p.poll() is None for p in procs), "a node ended before the viewer showed the run"
+        if path.exists():
+            try:
+                rows = rrd_entities(path).get(entity, {}).get("rows", 0)
+            except Exception:  # noqa: BLE001 -- a chunk still being written
+                rows = 0
+            if rows >= n:
+                return rows
+        time.sleep(0.2)
+    raise AssertionError(f"{entity}: {rows} rows after {timeout_s} s")
+
+
+@pytest.mark.integration
 @pytest.mark.parametrize("stop_by", ["sim-ends", "sigterm"])
-def test_viewer_node_follows_a_live_simulator_and_leaves_a_valid_rrd(short_mcap, tmp_path, stop_by):
-    scenario = tmp_path / "short.toml"
-    scenario.write_text(SHORT)
+def test_viewer_node_follows_a_live_simulator_and_leaves_a_valid_rrd(short_scenario, tmp_path, stop_by):
     port = free_port()
     out = tmp_path / "live.rrd"
     viewer = _start("bttsim_stream.nodes.viewer_node", "-e", f"tcp/127.0.0.1:{port}", "--rig", "rig1",
                     "--rrd", out)
-    rate = "10" if stop_by == "sim-ends" else "0.3"  # 0.3: a 10 s run, stopped after ~4 s
-    sim = _start("bttsim_stream.nodes.sim_node", scenario, "-l", f"tcp/127.0.0.1:{port}", "--rate", rate,
-                 "--wait-for", "1")
+    rate = "10" if stop_by == "sim-ends" else "0.05"  # 0.05: a 60 s run, stopped once it shows
+    sim = _start("bttsim_stream.nodes.sim_node", short_scenario, "-l", f"tcp/127.0.0.1:{port}", "--rate", rate,
+                 "--wait-for", "1", "--wait-timeout", "120")
     try:
         if stop_by == "sim-ends":
-            assert sim.wait(timeout=120) == 0, sim.stderr.read()
-            _, err = viewer.communicate(timeout=60)  # the viewer stops when the simulator is gone
+            assert sim.wait(timeout=180) == 0, sim.stderr.read()
+            _, err = viewer.communicate(timeout=120)  # the viewer stops when the simulator is gone
         else:
-            time.sleep(4.0)
-            assert viewer.poll() is None and sim.poll() is None
+            _wait_for_rows(out, f"/{paths.SPEED}", 3, (viewer, sim))
             viewer.send_signal(signal.SIGTERM)
-            _, err = viewer.communicate(timeout=60)
+            _, err = viewer.communicate(timeout=120)
         assert viewer.returncode == 0, err
     finally:
         _stop(sim), _stop(viewer)
     rrd_verify(out)
     ent = rrd_entities(out)
-    rows = ent["/speed/rpm"]["rows"]
+    rows = ent[f"/{paths.SPEED}"]["rows"]
     if stop_by == "sim-ends":
-        assert rows == 127
-        assert ent["/displacement/probe_0/btt"]["rows"] == 127 and ent["/truth/amp_pkpk_mm"]["rows"] == 127
+        assert rows == N_REV
+        assert ent[f"/{paths.displacement_path(0)}/btt"]["rows"] == N_REV
+        assert ent[f"/{paths.TRUTH_AMP}"]["rows"] == N_REV
     else:
-        assert 0 < rows < 127
-    assert ent["/campbell/families"]["static"] and ent["/rotor/blades"]["rows"] == rows
+        assert 3 <= rows < N_REV
+    assert ent["/campbell/data/families"]["static"] and ent["/rotor/blades"]["rows"] == rows
 
 
+@pytest.mark.integration
 def test_viewer_node_without_an_output_is_a_one_line_error():
     res = subprocess.run([sys.executable, "-m", "bttsim_stream.nodes.viewer_node", "--rig", "rig1"],
                          cwd=REPO, capture_output=True, text=True, timeout=60)
     assert res.returncode == 2
     assert res.stderr.strip().startswith("bttsim: error:") and len(res.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.integration
+def test_bttsim_view_of_the_sample_recording(tmp_path):
+    """`bttsim view recordings/<sample>.mcap --rrd out.rrd`: processed first, every view present."""
+    out = tmp_path / "sample.rrd"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "view",
+                          str(REPO / "recordings" / "resonance_window.mcap"), "--rrd", str(out)],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    rrd_verify(out)
+    ent = rrd_entities(out)
+    for path in (paths.tw_path(0), "fit/eo_8/amp_pkpk_mm", "fit/eo_8/vs_rpm/data/fit", paths.TRUTH_AMP,
+                 f"{paths.displacement_path(0)}/btt", "rotor/blades", "campbell/data/engine_orders",
+                 paths.RESONANCE_TABLE):
+        assert "/" + path in ent, path
 
 
 # --------------------------------------------------------------------------------------
@@ -493,17 +722,3 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     target = os.environ.get("BTTSIM_SAVE_SCREENSHOT")
     if target:
         shutil.copyfile(shot, target)
-
-
-def test_bttsim_view_of_the_sample_recording(tmp_path):
-    """`bttsim view recordings/<sample>.mcap --rrd out.rrd`: processed first, every view present."""
-    out = tmp_path / "sample.rrd"
-    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "view",
-                          str(REPO / "recordings" / "resonance_window.mcap"), "--rrd", str(out)],
-                         cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
-    rrd_verify(out)
-    ent = rrd_entities(out)
-    for path in ("/tw/probe_0", "/fit/amp_pkpk_mm", "/truth/amp_pkpk_mm", "/displacement/probe_0/btt",
-                 "/rotor/blades", "/campbell/families", "/resonance/table"):
-        assert path in ent, path

@@ -1,0 +1,108 @@
+"""Views of an MCAP recording, logged in one pass (:func:`log_recording`)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import rerun as rr
+
+from ..bus.recording import read_recording
+from ..defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from ..process.pipeline import ProcessOptions, engine_orders_of
+from .blueprint import build_blueprint
+from .live import LiveViews, MessageDecoder
+from .rotor import DEFAULT_EXAGGERATION
+from .sinks import ViewSinks, open_recording
+
+__all__ = ["ViewSession", "log_recording"]
+
+log = logging.getLogger("bttsim.views")
+
+
+@dataclass(eq=False)
+class ViewSession:
+    """The result of :func:`log_recording`: the stream (keep it alive while serving), its
+    sinks and counts.
+
+    Attributes
+    ----------
+    recording : rerun.RecordingStream
+    sinks : ViewSinks
+    stats : dict
+        Message counts (``messages``, ``revolutions``, ``fits``, ``tw``, ``truth``, ...;
+        ``truncated`` when the file was cut).
+    elapsed_s : float
+        Wall time of reading, decoding and logging.
+    """
+
+    recording: rr.RecordingStream
+    sinks: ViewSinks
+    stats: dict = field(default_factory=dict)
+    elapsed_s: float = 0.0
+
+    def close(self) -> None:
+        """Flush and disconnect every sink (finalises the ``.rrd``, stops a hosted server)."""
+        self.recording.flush()
+        self.recording.disconnect()
+
+
+def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web_port: int = DEFAULT_WEB_PORT,
+                  grpc_port: int = DEFAULT_GRPC_PORT, grpc_url: str | None = None,
+                  blades: Sequence[int] | None = None, exaggeration: float = DEFAULT_EXAGGERATION) -> ViewSession:
+    """Log every view of an MCAP recording to Rerun in one pass.
+
+    Parameters
+    ----------
+    recording_path : path
+        An MCAP recording of the bus (``bttsim simulate``, the recorder node, ``bttsim run``).
+    rrd_path : path, optional
+        Write an ``.rrd`` file (finalised before returning unless ``serve_web``).
+    serve_web : bool
+        Host the web viewer on ``web_port`` (gRPC server on ``grpc_port``, loopback); the
+        URL is in ``session.sinks.web_url``. Keep the process (and the returned session)
+        alive while it is viewed, then ``session.close()``.
+    grpc_url : str, optional
+        Also stream to a running viewer.
+    blades : sequence of int, optional
+        Blades of the raw-displacement views (default 0 and ``n_blades // 2``).
+    exaggeration : float
+        Tip deflection gain of the rotor view.
+
+    Returns
+    -------
+    ViewSession
+
+    Raises
+    ------
+    BttsimError
+        Unreadable recording, or no output requested.
+    """
+    t_start = time.perf_counter()
+    recording = read_recording(recording_path)
+    decoder = MessageDecoder()
+    messages = [msg for m in recording.messages if (msg := decoder.decode(m.key, m.payload)) is not None]
+    meta = next((msg.decoded.body for msg in messages if msg.kind == "meta"), None)
+    fitted = [msg.decoded.body.engine_order for msg in messages if msg.kind == "fit"]
+    eos = list(dict.fromkeys(fitted)) or (list(engine_orders_of(meta, ProcessOptions())) if meta else [8])
+    n_probes = meta.n_probes if meta is not None else 1 + max(
+        (msg.decoded.body.probe for msg in messages if msg.kind in ("toa", "tw")), default=0)
+    blueprint = build_blueprint(n_probes, n_blades=meta.n_blades if meta else None, engine_orders=eos, live=False)
+    rec, sinks = open_recording(rrd_path=rrd_path, grpc_url=grpc_url, serve_web=serve_web, web_port=web_port,
+                                grpc_port=grpc_port, blueprint=blueprint,
+                                recording_id=meta.run_id if meta is not None else None)
+    views = LiveViews(rec, live=False, blades=blades, exaggeration=exaggeration, send_blueprint=False,
+                      engine_orders=eos, decoder=decoder)
+    for msg in messages:
+        views.feed_decoded(msg)
+    views.close()
+    session = ViewSession(recording=rec, sinks=sinks, stats=views.stats, elapsed_s=time.perf_counter() - t_start)
+    if recording.truncated:
+        session.stats["truncated"] = True
+    if not serve_web:
+        session.close()
+    log.info("logged %d messages (%d revolutions) in %.1f s", session.stats["messages"],
+             session.stats["revolutions"], session.elapsed_s)
+    return session
