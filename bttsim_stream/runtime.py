@@ -91,16 +91,16 @@ def add_node_parser(subparsers, program: NodeProgram, name: str | None = None) -
 
 
 def run_parsed(args: argparse.Namespace):
-    """Run the node program of parsed arguments (from :func:`node_parser` or :func:`add_node_parser`)."""
+    """Run the node program of parsed arguments (from :func:`node_parser` or :func:`add_node_parser`),
+    logging to stderr."""
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     return args.node_program.main(config_from_args(args), args)
 
 
 def run_node(program: NodeProgram, argv=None) -> int:
     """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into one
     line ``bttsim: error: ...`` with exit status 2."""
-    args = node_parser(program).parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    return exit_status(run_parsed, args)
+    return exit_status(run_parsed, node_parser(program).parse_args(argv))
 
 
 def parse_rate(text: str) -> float | None:

@@ -22,6 +22,7 @@ receives truth; a recorder subscribes to :func:`all_key`.
 
 from __future__ import annotations
 
+import functools
 import operator
 import re
 from dataclasses import dataclass
@@ -191,14 +192,19 @@ class KeyInfo:
 
 
 def parse_key(key: str) -> KeyInfo:
-    """Parse a concrete key of the bus.
+    """Parse a concrete key of the bus (a run has few distinct keys: parses are cached).
 
     Raises
     ------
     BttsimError
         If ``key`` is not one of the keys in the module table (wildcards are not concrete).
     """
-    parts = str(key).split("/")
+    return _parse_key(str(key))
+
+
+@functools.lru_cache(maxsize=1024)
+def _parse_key(key: str) -> KeyInfo:
+    parts = key.split("/")
     bad = BttsimError(f"{key}: not a bttsim key (expected {PREFIX}/<rig>/<kind>[/<n>])")
     if len(parts) not in (3, 4) or parts[0] != PREFIX or not _NAME_RE.fullmatch(parts[1]):
         raise bad

@@ -376,11 +376,7 @@ class RevolutionAssembler:
     def pop(self, final: bool = False) -> list[Revolution]:
         """Revolutions ready now, in increasing order (``final``: everything left)."""
         out: list[Revolution] = []
-        while True:
-            revs = set(self._opr) | set(self._toa)
-            if not revs:
-                break
-            k = min(revs)
+        for k in sorted(set(self._opr) | set(self._toa)):  # nothing is added while popping
             has_opr = k in self._opr
             complete = self._complete(k)
             if not (complete or final or self._max_complete >= k + 2):
