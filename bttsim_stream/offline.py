@@ -6,9 +6,9 @@
 and every probe's batch) are kept; truth comes back as a
 :class:`~bttsim_stream.sim.core.Truth` when recorded.
 
-:func:`processing_messages` runs the streaming processor over a recording and numbers its
-outputs with the same :class:`~bttsim_stream.bus.stream.MessageStream` as the processor
-node, so ``bttsim view`` of a raw recording shows what a live run would have shown.
+:func:`processing_messages` feeds a recording to the processor node's own
+:class:`~bttsim_stream.processor.ProcessorSession`, so ``bttsim view`` of a raw recording
+shows what a live run would have shown.
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ import numpy as np
 
 from .bus import codec, keys
 from .bus.recording import McapRecorder, read_recording
-from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker
+from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
 from .errors import BttsimError
-from .process.pipeline import ProcessOptions, StreamingProcessor
-from .process.resonance import TruthPeakTracker
+from .process.pipeline import ProcessOptions
+from .processor import ProcessorSession
 from .sim.core import RunInfo, Truth
 
 __all__ = ["RecordedRun", "load_run", "completeness", "processing_messages", "with_processing"]
@@ -104,29 +104,18 @@ def completeness(run: RecordedRun) -> Completeness:
 def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptions()) -> tuple[list[Message], dict]:
     """The processor node's messages for a recorded run, and the summary dict.
 
-    The recording goes through :class:`~bttsim_stream.process.pipeline.StreamingProcessor`
-    revolution by revolution, as live; its outputs and the final resonance report (scored
-    against the recorded truth, if any) are numbered by a
-    :class:`~bttsim_stream.bus.stream.MessageStream` under the run's id and rig.
+    The recording's acquisition (and truth) messages go through the processor node's own
+    :class:`~bttsim_stream.processor.ProcessorSession`, in file order with their sequence
+    numbers, so the result is what the processor would have published live.
     """
-    meta = run.meta
-    proc = StreamingProcessor(meta, options)
-    out = MessageStream(meta.run_id, meta.rig)
+    session = ProcessorSession(run.meta, options)
     msgs: list[Message] = []
-    for i, rev in enumerate(run.revolution.tolist()):
-        for o in proc.push(rev, float(run.opr_s[i]), run.toa_s[i]):
-            msgs += out.processing(o)
-    for o in proc.flush():
-        msgs += out.processing(o)
-    tracker = None
-    if run.truth is not None:
-        tracker = TruthPeakTracker(proc.engine_orders[0])
-        for i, rev in enumerate(run.revolution.tolist()):
-            tracker.update(rev, run.truth.d_eqv_pkpk_m[i], float(run.truth.omega_mean[i]))
-    summary = proc.finish(tracker)
-    summary.update(completeness(run).to_summary())
-    msgs.append(out.resonance(proc.result.report))
-    return msgs, summary
+    for m in run.messages:
+        kind = keys.parse_key(m.key).kind
+        if kind in ("opr", "toa", "truth"):
+            msgs += session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+    tail, summary = session.finish()
+    return msgs + tail, summary
 
 
 def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:

@@ -14,22 +14,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, unpack_attachment
-from bttsim_stream.bus.stream import Completeness, MessageStream, RevolutionAssembler, SequenceTracker
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
-from bttsim_stream.process.resonance import TruthPeakTracker, summary_table
+from bttsim_stream.process.pipeline import ProcessOptions
+from bttsim_stream.process.resonance import summary_table
+from bttsim_stream.processor import ProcessorSession
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
-log = logging.getLogger("bttsim.processor")
 
 
 def main(conf, args: argparse.Namespace) -> dict | None:
@@ -39,11 +35,11 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         options = ProcessOptions(prep=not args.no_prep, window=args.window)
     except ValueError as exc:
         raise BttsimError(str(exc)) from None
-    score = not args.no_score
     stop = StopFlag(args.duration)
     summary = None
     with node_session(conf, rig, "processor") as node:
-        for k in (keys.meta_key(rig), keys.opr_key(rig), keys.toa_all_key(rig)) + ((keys.truth_key(rig),) if score else ()):
+        for k in (keys.meta_key(rig), keys.opr_key(rig), keys.toa_all_key(rig)) + (
+                () if args.no_score else (keys.truth_key(rig),)):
             node.subscribe(k)
         node.watch_nodes(("sim",))
         node.announce()
@@ -52,78 +48,51 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             for m in messages:
                 node.publisher(m.key).put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
 
-        proc = tracker = asm = out = None
+        run = None
+        early: list = []  # data that came before the metadata (callbacks of different keys race)
+        bad = 0
         asked_meta = 0.0
-        rejected = 0
-        seqs = SequenceTracker()
         for sample in node.samples(stop):
             if sample is None:
                 continue
             key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            att = unpack_attachment(sample.attachment)
             try:  # every sample is untrusted: a bad one is counted and skipped
                 kind = keys.parse_key(key).kind
-                d = codec.decode_message(key, payload)
-                if kind in ("opr", "toa", "truth") and proc is not None:
-                    _check_shape(d, kind, proc.geometry)
+                item = (kind, key, codec.decode_message(key, payload), att[0] if att else None)
             except BttsimError as exc:
-                rejected += 1
-                if rejected <= 3 or rejected % 1000 == 0:
-                    log.warning("rejected %d sample(s); latest: %s", rejected, exc)
+                if run is not None:
+                    run.reject(exc)
+                else:
+                    bad += 1
                 continue
-            att = unpack_attachment(sample.attachment)
-            if kind in ("opr", "toa") and not seqs.accept(key, att[0] if att else None):
-                continue  # already received, or an implausible sequence number (counted)
             if kind == "meta":
-                if proc is None:
-                    meta = d.body
-                    proc = StreamingProcessor(meta, options)
-                    tracker = TruthPeakTracker(proc.engine_orders[0])
-                    asm = RevolutionAssembler(meta.n_blades, meta.n_probes, n_revolutions=meta.n_revolutions)
-                    out = MessageStream(meta.run_id, rig)
-                continue
-            if proc is None:  # joined late: ask the queryable (once a second), data before it is lost
-                if time.monotonic() - asked_meta > 1.0:
+                if run is None:
+                    run = ProcessorSession(item[2].body, options, score=not args.no_score)
+                    run.rejected += bad
+                    for e in early:
+                        publish(run.add(*e))
+                    early.clear()
+            elif run is not None:
+                publish(run.add(*item))
+            elif len(early) < MAX_EARLY:
+                early.append(item)
+                if time.monotonic() - asked_meta > 1.0:  # joined late: ask the queryable
                     asked_meta = time.monotonic()
                     node.query(keys.meta_key(rig))
-                continue
-            if kind == "truth":
-                tracker.update(d.header.revolution, d.body.d_eqv_pkpk_m[0], float(d.body.omega_mean[0]))
-                continue
-            asm.add(kind, d)
-            for rev in asm.pop():
-                for o in proc.push(rev.revolution, rev.opr_s, rev.toa_s):
-                    publish(out.processing(o))
-        if proc is not None:
-            for rev in asm.pop(final=True):
-                for o in proc.push(rev.revolution, rev.opr_s, rev.toa_s):
-                    publish(out.processing(o))
-            try:
-                for o in proc.flush():
-                    publish(out.processing(o))
-                summary = proc.finish(tracker if score else None)
-            except ValueError as exc:  # fewer than three revolutions
-                raise BttsimError(f"no resonance report: {exc}") from None
-            summary.update(Completeness(
-                revolutions_expected=meta.n_revolutions, revolutions_processed=asm.given_complete,
-                lost=seqs.lost, duplicates=seqs.duplicates + asm.duplicates,
-                rejected=rejected + seqs.implausible).to_summary())
-            publish([out.resonance(proc.result.report)])
+            else:
+                bad += 1
+        if run is not None:
+            msgs, summary = run.finish()
+            publish(msgs)
             if args.summary:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
             print(summary_table(summary), flush=True)
-            log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "
-                     "samples rejected %d", asm.given, asm.dropped, asm.ignored, asm.duplicates, rejected)
     return summary
 
 
-def _check_shape(d, kind: str, geometry) -> None:
-    """Refuse a decoded OPR / TOA / truth message that does not fit the run's geometry."""
-    if kind == "toa" and d.body.toa_s.size != geometry.n_blades:
-        raise BttsimError(f"TOA batch of {d.body.toa_s.size} blades in a run of {geometry.n_blades}")
-    if kind == "truth" and d.body.d_eqv_pkpk_m.shape != (1, geometry.n_blades):
-        raise BttsimError(f"truth of {d.body.d_eqv_pkpk_m.shape[1]} blades in a run of {geometry.n_blades}")
-    if kind == "opr" and not np.isfinite(d.body.opr_s):
-        raise BttsimError("OPR time is not finite")
+#: Samples kept while the run metadata has not arrived.
+MAX_EARLY = 100_000
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,0 +1,127 @@
+"""The processor's work without the transport: decoded bus messages in, numbered result
+messages and the summary out.
+
+:class:`ProcessorSession` is the one path from acquisition messages to results, used live
+by the processor node (``nodes/processor_node.py``) and on recordings by
+:func:`bttsim_stream.offline.processing_messages` (``bttsim view`` of a raw recording), so
+both publish the same messages and the same summary. Revolutions are regrouped by the bus's
+:class:`~bttsim_stream.bus.stream.RevolutionAssembler`, processed by the streaming
+processor (Eq. 1, Eq. 16-17 per revolution; the offline pipeline for the final report) and
+numbered by a :class:`~bttsim_stream.bus.stream.MessageStream`. Every message is untrusted:
+sequence numbers are checked (:class:`~bttsim_stream.bus.stream.SequenceTracker`), shapes
+against the run, and what does not fit is counted, never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .bus.codec import Decoded
+from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker
+from .errors import BttsimError
+from .process.pipeline import ProcessOptions, StreamingProcessor
+from .process.resonance import TruthPeakTracker
+from .sim.core import RunInfo
+
+__all__ = ["ProcessorSession"]
+
+log = logging.getLogger("bttsim.processor")
+
+
+class ProcessorSession:
+    """Process one run's messages as they come.
+
+    Parameters
+    ----------
+    meta : RunInfo
+        The run metadata (geometry, revolution count, engine orders).
+    options : ProcessOptions
+    score : bool
+        Use truth messages for E_A / E_f in the final report.
+
+    Attributes
+    ----------
+    rejected : int
+        Messages refused (malformed, not fitting the run, implausible sequence numbers).
+    """
+
+    def __init__(self, meta: RunInfo, options: ProcessOptions = ProcessOptions(), *, score: bool = True) -> None:
+        self.meta = meta
+        self.score = score
+        self.proc = StreamingProcessor(meta, options)
+        self.tracker = TruthPeakTracker(self.proc.engine_orders[0])
+        self.asm = RevolutionAssembler(meta.n_blades, meta.n_probes, n_revolutions=meta.n_revolutions)
+        self.seqs = SequenceTracker()
+        self.out = MessageStream(meta.run_id, meta.rig)
+        self.rejected = 0
+
+    def reject(self, exc: Exception) -> None:
+        """Count a refused message (logged: the first three, then every 1000th)."""
+        self.rejected += 1
+        if self.rejected <= 3 or self.rejected % 1000 == 0:
+            log.warning("rejected %d message(s); latest: %s", self.rejected, exc)
+
+    def add(self, kind: str, key: str, decoded: Decoded, seq: int | None = None) -> list[Message]:
+        """Add a decoded ``opr``, ``toa`` or ``truth`` message (``seq``: its sequence number, if
+        known); returns the result messages that became ready."""
+        if kind in ("opr", "toa") and not self.seqs.accept(key, seq):
+            return []  # already received, or an implausible sequence number (counted)
+        try:
+            self._check(kind, decoded)
+        except BttsimError as exc:
+            self.reject(exc)
+            return []
+        if kind == "truth":
+            t = decoded.body
+            self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]))
+            return []
+        self.asm.add(kind, decoded)
+        return self._push(self.asm.pop())
+
+    def _check(self, kind: str, d: Decoded) -> None:
+        g = self.proc.geometry
+        if kind == "toa" and d.body.toa_s.size != g.n_blades:
+            raise BttsimError(f"TOA batch of {d.body.toa_s.size} blades in a run of {g.n_blades}")
+        if kind == "truth" and d.body.d_eqv_pkpk_m.shape != (1, g.n_blades):
+            raise BttsimError(f"truth of {d.body.d_eqv_pkpk_m.shape[1]} blades in a run of {g.n_blades}")
+        if kind == "opr" and not np.isfinite(d.body.opr_s):
+            raise BttsimError("OPR time is not finite")
+
+    def _push(self, revolutions) -> list[Message]:
+        out: list[Message] = []
+        for rev in revolutions:
+            for o in self.proc.push(rev.revolution, rev.opr_s, rev.toa_s):
+                out += self.out.processing(o)
+        return out
+
+    def completeness(self) -> Completeness:
+        """What the result rests on so far."""
+        return Completeness(revolutions_expected=self.meta.n_revolutions,
+                            revolutions_processed=self.asm.given_complete, lost=self.seqs.lost,
+                            duplicates=self.seqs.duplicates + self.asm.duplicates,
+                            rejected=self.rejected + self.seqs.implausible)
+
+    def finish(self) -> tuple[list[Message], dict]:
+        """The rest of the stream, the last outputs and the resonance report message, and the
+        summary dict (the brief's form, with the completeness keys).
+
+        Raises
+        ------
+        BttsimError
+            Fewer than three revolutions: no report.
+        """
+        msgs = self._push(self.asm.pop(final=True))
+        try:
+            for o in self.proc.flush():
+                msgs += self.out.processing(o)
+            summary = self.proc.finish(self.tracker if self.score else None)
+        except ValueError as exc:
+            raise BttsimError(f"no resonance report: {exc}") from None
+        summary.update(self.completeness().to_summary())
+        msgs.append(self.out.resonance(self.proc.result.report))
+        a = self.asm
+        log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "
+                 "messages rejected %d", a.given, a.dropped, a.ignored, a.duplicates, self.rejected)
+        return msgs, summary
