@@ -268,21 +268,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("study", help="reproduce one of the paper's studies (NAME.md, NAME.json, PNGs) into --out")
-    p.add_argument("name", choices=("table2", "table3", "nd", "figures", "probe_count", "bench", "all"))
+    p.add_argument("name", choices=("table2", "table3", "nd", "figures", "probe_count", "bench", "all"),
+                   help="the study to run (all: every one)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR",
                    help="output folder (the repository's copy: docs/results); figures need the plot extra")
     p.set_defaults(func=_cmd_study)
 
     p = sub.add_parser("cn", help="condition number of B (Eq. 16) for an EO and probe angles")
-    p.add_argument("--eo", type=int, default=8)
+    p.add_argument("--eo", type=int, default=8, help="engine order (8)")
     p.add_argument("--probes", default="5,15.15,23.82,220,301.5", help="comma-separated angles, deg")
     p.set_defaults(func=_cmd_cn)
 
     p = sub.add_parser("probes", help="probe layouts ranked by condition number")
-    p.add_argument("--eo", type=int, default=8)
+    p.add_argument("--eo", type=int, default=8, help="engine order (8)")
     p.add_argument("--n", type=int, default=5, help="number of probes")
     p.add_argument("--candidates", help="comma-separated candidate angles, deg (default: the paper's 11)")
-    p.add_argument("--top", type=int, default=10)
+    p.add_argument("--top", type=int, default=10, help="how many layouts to print (10)")
     p.set_defaults(func=_cmd_probes)
 
     p = sub.add_parser("validate", help="check the simulator (or, --processing, the processing) against the paper")

@@ -117,3 +117,31 @@ def test_the_runtime_imports_paper_code_only_from_the_cli_commands(graph):
     users = {m for m, imp in imports.items() for t, _, _ in imp if _within(t, paper) and not _within(m, paper)}
     assert users <= {"bttsim_stream.cli"}
     assert all(not top for m in users for t, _, top in imports[m] if _within(t, paper))
+
+
+def test_every_command_line_option_has_help_and_nodes_show_the_same_flags_everywhere():
+    import argparse
+
+    from bttsim_stream.cli import build_parser
+    from bttsim_stream.nodes import programs
+    from bttsim_stream.runtime import node_parser
+
+    missing, node_flags = [], {}
+
+    def walk(parser, path):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, path + (name,))
+            elif not isinstance(action, argparse._HelpAction):
+                if not action.help:
+                    missing.append(" ".join(path) + f" {action.option_strings or action.dest}")
+                if path[:2] == ("bttsim", "node"):
+                    node_flags.setdefault(path[2], []).append((tuple(action.option_strings), action.help))
+
+    walk(build_parser(), ("bttsim",))
+    assert not missing, missing
+    for prog in programs():  # `bttsim node NAME` and the node's own script: one definition
+        own = [(tuple(a.option_strings), a.help) for a in node_parser(prog)._actions
+               if not isinstance(a, argparse._HelpAction)]
+        assert node_flags[prog.name] == own, prog.name
