@@ -162,7 +162,10 @@ def test_corrupt_or_truncated_mcap_is_one_line_exit_2(command, content, tmp_path
 def test_nodes_stop_cleanly_on_sigterm_and_sigint(tmp_path):
     port = free_port()
     out = tmp_path / "stopped.mcap"
-    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
+    # --until '': only the signal stops the recorder (it would otherwise end with the
+    # simulator, and a signal during its exit is not the case under test)
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "--until", "",
+                 "-l", f"tcp/127.0.0.1:{port}")
     sim_port = free_port()
     sim = _start("bttsim_stream.nodes.sim_node", "-e", f"tcp/127.0.0.1:{port}", "-l", f"tcp/127.0.0.1:{sim_port}",
                  "--wait-for", "1", "--rate", "realtime", stdout=subprocess.DEVNULL)
