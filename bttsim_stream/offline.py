@@ -98,7 +98,7 @@ def completeness(run: RecordedRun) -> Completeness:
         if keys.parse_key(m.key).kind in ("opr", "toa"):
             seqs.accept(m.key, m.seq)
     return Completeness(revolutions_expected=run.meta.n_revolutions, revolutions_processed=int(run.revolution.size),
-                        lost=seqs.lost, duplicates=seqs.duplicates)
+                        lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
 
 
 def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptions()) -> tuple[list[Message], dict]:

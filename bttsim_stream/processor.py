@@ -99,7 +99,8 @@ class ProcessorSession:
     def completeness(self) -> Completeness:
         """What the result rests on so far."""
         return Completeness(revolutions_expected=self.meta.n_revolutions,
-                            revolutions_processed=self.asm.given_complete, lost=self.seqs.lost,
+                            revolutions_processed=self.asm.given_complete,
+                            lost=self.seqs.lost + self.seqs.missed_at_start,
                             duplicates=self.seqs.duplicates + self.asm.duplicates,
                             rejected=self.rejected + self.seqs.implausible)
 

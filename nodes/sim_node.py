@@ -22,7 +22,7 @@ import time
 
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
-from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness, wait_for_subscribers
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
@@ -52,6 +52,11 @@ def main(conf, args: argparse.Namespace) -> dict:
                 raise BttsimError(f"found {seen} of the {args.wait_for} node(s) to wait for on {stream.rig} after "
                                   f"{args.wait_timeout:g} s: check the endpoints (behind a Zenoh router, use "
                                   "client mode: -m client)")
+            # their subscriptions reach the publishers a moment later (through a router, later
+            # than their tokens): nothing goes out before every data key has a subscriber
+            data_keys = [keys.opr_key(stream.rig)] + [keys.toa_key(stream.rig, j) for j in range(stream.info.n_probes)]
+            if not wait_for_subscribers(node.session, data_keys, args.wait_timeout, stop):
+                raise BttsimError(f"no subscriber on {stream.rig}'s OPR and TOA keys after {args.wait_timeout:g} s")
         # the metadata also goes out once as a sample (cached for late joiners), so that a
         # recorder stores it in stream order; the queryable answers on demand
         node.publisher(meta.key, lossy=args.lossy).put(meta.payload, attachment=pack_attachment(meta.seq, 0))

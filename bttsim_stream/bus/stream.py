@@ -115,6 +115,12 @@ class SequenceTracker:
         """Numbers skipped on every key."""
         return sum(self.gaps.values())
 
+    @property
+    def missed_at_start(self) -> int:
+        """Numbers before the first one received, on every key (publishers count from 0: a
+        subscriber that joined late, or the first messages lost)."""
+        return sum(self.first.values())
+
     def summary(self) -> dict:
         """Counts for a report: messages, keys, gaps (by key), duplicates, late-start keys."""
         return {"messages": sum(self.count.values()), "keys": len(self.count),
