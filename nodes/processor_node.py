@@ -25,7 +25,8 @@ from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, unpack_attachment
 from bttsim_stream.bus.stream import Completeness, MessageStream, RevolutionAssembler, SequenceTracker
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
+from bttsim_stream.offline import add_processing_arguments, processing_options
+from bttsim_stream.process.pipeline import StreamingProcessor
 from bttsim_stream.process.resonance import TruthPeakTracker, summary_table
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
@@ -35,10 +36,7 @@ log = logging.getLogger("bttsim.processor")
 def main(conf, args: argparse.Namespace) -> dict | None:
     """Process until the simulator ends; returns the summary dict."""
     rig = keys.validate_rig(args.rig)
-    try:
-        options = ProcessOptions(prep=not args.no_prep, window=args.window)
-    except ValueError as exc:
-        raise BttsimError(str(exc)) from None
+    options = processing_options(args)  # a bad value: one line, exit 2
     score = not args.no_score
     stop = StopFlag(args.duration)
     summary = None
@@ -76,7 +74,10 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             if kind == "meta":
                 if proc is None:
                     meta = d.body
-                    proc = StreamingProcessor(meta, options)
+                    try:
+                        proc = StreamingProcessor(meta, options)
+                    except ValueError as exc:  # the layout cannot separate an engine order: say so, once
+                        raise BttsimError(f"cannot process rig {rig}: {exc}") from None
                     tracker = TruthPeakTracker(proc.engine_orders[0])
                     asm = RevolutionAssembler(meta.n_blades, meta.n_probes, n_revolutions=meta.n_revolutions)
                     out = MessageStream(meta.run_id, rig)
@@ -101,7 +102,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                 for o in proc.flush():
                     publish(out.processing(o))
                 summary = proc.finish(tracker if score else None)
-            except ValueError as exc:  # fewer than three revolutions
+            except (ValueError, np.linalg.LinAlgError) as exc:  # fewer than three revolutions, ...
                 raise BttsimError(f"no resonance report: {exc}") from None
             summary.update(Completeness(
                 revolutions_expected=meta.n_revolutions, revolutions_processed=asm.given_complete,
@@ -130,8 +131,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", default="rig1", help="rig to process (rig1)")
     p.add_argument("--summary", metavar="FILE.json", help="write the summary JSON here at the end")
     p.add_argument("--no-score", action="store_true", help="do not read truth (no E_A / E_f)")
-    p.add_argument("--no-prep", action="store_true", help="no data preparation in the final report")
-    p.add_argument("--window", type=int, default=1, metavar="N", help="revolutions per sine fit (1)")
+    add_processing_arguments(p)  # --method, --eo, --eo-range, --no-prep, --window
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
 
 
