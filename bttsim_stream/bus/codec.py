@@ -612,6 +612,7 @@ def _fill_entry(m, e: ResonanceEntry) -> None:
     m.detection_snr, m.detection_snr_threshold = float(d.snr), float(d.snr_threshold)
     m.first_revolution, m.last_revolution = int(e.first_revolution), int(e.last_revolution)
     m.peak_revolution, m.sweep_rate = int(e.peak_revolution), float(e.sweep_rate)
+    m.zeroing_correction_pct = 100.0 * float(e.zeroing_correction)
     _fill_blades(m.blades, e.peaks, e.truth, e.e_a_pct, e.e_f_pct, extended=True)
     if e.truth is not None and e.peaks.n_blades:
         _fill_stats(m, e.e_a_pct, e.e_f_pct)
@@ -691,7 +692,7 @@ def _decode_entry(where: str, m, e) -> ResonanceEntry:
                             float(e.detection_snr), float(e.detection_snr_threshold)),
         first_revolution=int(e.first_revolution), last_revolution=int(e.last_revolution),
         peak_revolution=int(e.peak_revolution), peaks=peaks, truth=truth, e_a_pct=e_a, e_f_pct=e_f,
-        sweep_rate=float(e.sweep_rate))
+        sweep_rate=float(e.sweep_rate), zeroing_correction=float(e.zeroing_correction_pct) / 100.0)
 
 
 def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:

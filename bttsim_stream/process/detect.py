@@ -51,7 +51,7 @@ from scipy.signal import find_peaks
 
 __all__ = ["DetectOptions", "SpeedSegment", "Sweep", "RunSegments", "Crossing", "Reference",
            "speed_segments", "detection_curve", "detect_crossings", "choose_reference", "resolve_engine_orders",
-           "predicted_contamination"]
+           "predicted_contamination", "predicted_response"]
 
 TWO_PI = 2.0 * np.pi
 _SNR_CAP = 1e9  # a noise-free curve: reported as this, not inf (JSON)
@@ -240,7 +240,7 @@ class Reference:
     start, stop : int or None
         Revolutions ``[start, stop)`` (None: no usable window, nominal geometry).
     contamination : float
-        Largest predicted response in the window, as a fraction of the crossing's peak.
+        Largest predicted response in the window, as a fraction of a crossing's peak.
     reason : str
         How it was chosen (for the report).
     """
@@ -454,13 +454,31 @@ def resolve_engine_orders(crossings: list[Crossing], misfit: dict) -> list[Cross
     return sorted(kept, key=lambda c: c.peak)
 
 
-def predicted_contamination(omega_rad_s: np.ndarray, crossings: list[Crossing]) -> np.ndarray:
-    """Response predicted at each revolution from the detected crossings, as a fraction of
-    each crossing's peak (the largest over crossings).
+def predicted_response(omega_rad_s: np.ndarray, crossings: list[Crossing]) -> np.ndarray:
+    """Complex response predicted at each revolution from the detected crossings, relative to
+    each crossing's peak response (summed over crossings).
 
     Each crossing is an SDOF of peak speed ``Omega_k`` and damping ``zeta_k`` (its half-power
-    width): ``2 zeta_k / |1 - r^2 + 2 i zeta_k r|``, ``r = Omega / Omega_k`` (the engine order
-    multiplies both frequencies).
+    width); relative to its peak, ``h_k = 2 i zeta_k r / (1 - r^2 + 2 i zeta_k r)``,
+    ``r = Omega / Omega_k`` (the engine order multiplies both frequencies): 1 at the peak,
+    about ``2 i zeta / (1 - r^2)`` -- in quadrature with the peak, opposite signs below and
+    above -- far from it.
+
+    Returns
+    -------
+    ndarray of complex, shape (n_rev,)
+    """
+    om = np.asarray(omega_rad_s, dtype=float)
+    h = np.zeros(om.size, complex)
+    for c in crossings:
+        z = c.damping_estimate(om)
+        r = om / float(om[c.peak])
+        h += 2j * z * r / (1.0 - r * r + 2j * z * r)
+    return h
+
+
+def predicted_contamination(omega_rad_s: np.ndarray, crossings: list[Crossing]) -> np.ndarray:
+    """``|h|`` of :func:`predicted_response`, the largest over the crossings.
 
     Returns
     -------
@@ -469,15 +487,32 @@ def predicted_contamination(omega_rad_s: np.ndarray, crossings: list[Crossing]) 
     om = np.asarray(omega_rad_s, dtype=float)
     rho = np.zeros(om.size)
     for c in crossings:
-        z = c.damping_estimate(om)
-        r = om / float(om[c.peak])
-        rho = np.maximum(rho, 2.0 * z / np.abs(1.0 - r * r + 2j * z * r))
+        rho = np.maximum(rho, np.abs(predicted_response(om, [c])))
     return rho
+
+
+def _windows(ramp: np.ndarray, L: int, lo: int = 0, hi: int | None = None) -> np.ndarray:
+    """Starts of the windows of ``L`` consecutive ramp revolutions within ``[lo, hi)``."""
+    n = ramp.size if hi is None else hi
+    if n - lo < L or L < 1:
+        return np.zeros(0, np.int64)
+    c = np.concatenate([[0], np.cumsum(ramp[lo:n])])
+    starts = np.arange(0, n - lo - L + 1)
+    return lo + starts[(c[starts + L] - c[starts]) == L]
 
 
 def choose_reference(omega_rad_s: np.ndarray, segments: RunSegments, crossings: list[Crossing],
                      options: DetectOptions = DetectOptions()) -> Reference:
-    """The zeroing window: quiet, away from every detected crossing, slow; never a dwell.
+    """The zeroing reference: away from every detected crossing; never a dwell.
+
+    Without crossings: the slowest window (Eq. 15: the least noise). With crossings: the
+    slowest quiet window (predicted response at most :attr:`DetectOptions.contamination_limit`
+    of every crossing's peak), else the least contaminated one. A single window is kept on
+    purpose: its response lies on the resonance's response circle (SDOF), in quadrature with
+    the peak, and the largest distance from a point of the circle is its diameter, so the
+    peak amplitude is insensitive to it to first order (the peak's revolution moves by about
+    ``zeta x contamination / 2`` in frequency); an average of windows on both sides would sit
+    inside the circle and bias the amplitude at first order.
 
     Returns
     -------
@@ -488,37 +523,24 @@ def choose_reference(omega_rad_s: np.ndarray, segments: RunSegments, crossings: 
     ramp = ~segments.dwell_mask(n)
     if not ramp.any():
         return Reference(None, None, math.nan, "the run is a dwell: no ramp to zero on (nominal geometry)")
-    rho = predicted_contamination(om, crossings)
     L = min(int(options.reference_revolutions), n)
-    # windows of L consecutive ramp revolutions
-    c_ramp = np.concatenate([[0], np.cumsum(ramp)])
-    starts = np.arange(0, n - L + 1)
-    full = (c_ramp[starts + L] - c_ramp[starts]) == L
-    if not full.any():  # ramps shorter than L: the longest ramp stretch
-        best, s0 = 0, 0
-        i = 0
-        while i < n:
-            if ramp[i]:
-                j = i
-                while j < n and ramp[j]:
-                    j += 1
-                if j - i > best:
-                    best, s0 = j - i, i
-                i = j
-            else:
-                i += 1
-        L = best
-        starts = np.array([s0])
-        full = np.array([True])
-    c_rho_max = sliding_window_view(rho, L).max(axis=1)[starts]
-    c_om = np.convolve(om, np.ones(L) / L, mode="valid")[starts]
-    quiet = full & (c_rho_max <= options.contamination_limit)
-    if quiet.any():
-        s = int(starts[quiet][np.argmin(c_om[quiet])])
-        why = ("the slowest quiet window" if crossings else "the slowest window (no crossing detected)")
-    else:
-        cand = np.where(full, c_rho_max, np.inf)
-        s = int(starts[int(np.argmin(cand))])
-        why = (f"no window is quiet (below {100 * options.contamination_limit:g} % of a peak): the least "
-               f"contaminated one")
-    return Reference(s, s + L, float(rho[s:s + L].max()), why)
+    starts = _windows(ramp, L)
+    while starts.size == 0 and L > 1:  # ramps shorter than L
+        L = max(1, L // 2)
+        starts = _windows(ramp, L)
+    if starts.size == 0:
+        return Reference(None, None, math.nan, "no ramp revolutions to zero on (nominal geometry)")
+    mean_om = np.convolve(om, np.ones(L) / L, mode="valid")
+    if not crossings:
+        s = int(starts[np.argmin(mean_om[starts])])
+        return Reference(s, s + L, 0.0, "the slowest window (no crossing detected)")
+    rho = predicted_contamination(om, crossings)
+    rho_win = sliding_window_view(rho, L).max(axis=1)
+    quiet = starts[rho_win[starts] <= options.contamination_limit]
+    if quiet.size:
+        s = int(quiet[np.argmin(mean_om[quiet])])
+        return Reference(s, s + L, float(rho_win[s]), "the slowest quiet window")
+    s = int(starts[np.argmin(rho_win[starts])])
+    return Reference(s, s + L, float(rho_win[s]),
+                     f"no window is quiet (below {100 * options.contamination_limit:g} % of a peak): the least "
+                     f"contaminated one")

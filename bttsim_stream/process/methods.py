@@ -123,7 +123,8 @@ def cff_window(half_power_width: int) -> int:
 
 
 def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, omega_rad_s: np.ndarray,
-               lo: int, hi: int, window: int, *, tip_radius_m: float | None = None) -> ResonancePeaks:
+               lo: int, hi: int, window: int, *, tip_radius_m: float | None = None,
+               offset: np.ndarray | None = None) -> ResonancePeaks:
     """Circumferential Fourier fit over ``window`` revolutions, peak of each blade.
 
     Parameters
@@ -142,6 +143,8 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
         Revolutions per fit (odd).
     tip_radius_m : float, optional
         Fit at the sampling angles (:func:`~bttsim_stream.process.fit.fit_revolutions`).
+    offset : ndarray of complex, shape (n_blades,), optional
+        Added to every fitted response ``a1 + i a2`` (the zeroing correction).
 
     Returns
     -------
@@ -152,7 +155,9 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
     f = fit_revolutions(d_m[a:b], probe_angles_rad, engine_orders, omega_rad_s=omega_rad_s[a:b], window=window,
                         tip_radius_m=tip_radius_m)
     i0, i1 = lo - a, hi - a
-    amp = f.amp_pkpk_m[i0:i1 + 1, :, index]
+    P = f.phasor[..., index] + (0.0 if offset is None else np.asarray(offset)[None, :])
+    amp = 2.0 * np.abs(P[i0:i1 + 1])
+    phase = np.angle(P)
     nb = amp.shape[1]
     has = np.isfinite(amp).any(axis=0)
     k = np.argmax(np.where(np.isfinite(amp), amp, -np.inf), axis=0)
@@ -162,7 +167,7 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
     return ResonancePeaks(
         revolution=np.where(has, (lo + k).astype(float), nan), amp_pkpk_m=np.where(has, amp[k, cols], nan),
         freq_hz=np.where(has, freq[i0 + k], nan), damping_ratio=nan.copy(), method="cff",
-        phase_rad=np.where(has, f.phase_rad[i0 + k, cols, index], nan),
+        phase_rad=np.where(has, phase[i0 + k, cols], nan),
         amp_std_m=np.where(has, f.amp_std_m[i0 + k, cols, index], nan),
         freq_std_hz=np.where(has, _freq_step_std(freq, i0 + k), nan))
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
-                     predicted_contamination, resolve_engine_orders, speed_segments)
+                     predicted_contamination, predicted_response, resolve_engine_orders, speed_segments)
 from .displacement import (TWO_PI, Displacements, Geometry, calibrate_arrival_angles, compute_displacements,
                            displacements_from_phase, rotor_phase_from_opr)
 from .fit import SineFit, design_matrix, fit_revolutions
@@ -371,8 +371,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                         "contamination_pct": _num(100.0 * reference.contamination), "reason": reference.reason}
             if crossings and reference.contamination > det.contamination_limit:
                 notes.append(f"no quiet reference window: the zeroing holds a response of about "
-                             f"{100 * reference.contamination:.0f} % of a peak (amplitudes are insensitive to it to "
-                             f"first order, frequencies shift by about zeta x that / 2)")
+                             f"{100 * reference.contamination:.0f} % of a peak, estimated from the response's growth "
+                             f"and added back (each resonance's zeroing_correction_pct)")
     else:
         disp = compute_displacements(opr, toa, geometry, calibration=cal)
         w = (0, int(cal)) if isinstance(cal, (int, np.integer)) else (int(cal[0]), int(cal[1]))
@@ -388,7 +388,13 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     hw = _half_widths(omega, crossings, options.prep_options)
     if options.prep:
         region = _region(fit0.amp_pkpk_m, crossings, n_rev)
-        prepared = prepare(d, omega, angles, eos, options.prep_options, region=region, half_width=hw,
+        prep_opts = options.prep_options
+        bridge = _baseline_bridges(omega, ~(dwell_mask | skirts | region.mask.any(axis=1)))
+        if prep_opts.remove_offset and crossings and not bridge:
+            prep_opts = replace(prep_opts, remove_offset=False)
+            notes.append("no offset removal: the run holds too little data on both sides of the crossings for a "
+                         "baseline in speed to bridge them (the zeroing reference alone is used)")
+        prepared = prepare(d, omega, angles, eos, prep_opts, region=region, half_width=hw,
                            exclude_revolutions=dwell_mask | skirts)
         d = prepared.d_m
     radius = geometry.tip_radius_m if options.sampling_angles else None
@@ -409,7 +415,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     gain_w = 1.0 / (omega * omega) if options.prep_options.noise_weighting else None
     ctx = _Context(geometry=geometry, eos=eos, joint=joint, cns=cns, fit=fit, raw=raw, d_flat=d_flat, omega=omega,
                    opr=opr, toa=toa, half_width=(prepared.half_width if prepared is not None else None),
-                   gain_weights=gain_w, truth=rows_truth, revolution0=revolution0, options=options)
+                   gain_weights=gain_w, truth=rows_truth, revolution0=revolution0, options=options,
+                   reference=reference, crossings=tuple(crossings),
+                   offset_removed=bool(prepared is not None and prepared.options.remove_offset))
     entries = [_crossing_entry(ctx, c) for c in crossings if c.eo in eos]
     steady = [e for dw in segments.dwells for e in _dwell_entries(ctx, dw)]
     if not entries:
@@ -480,6 +488,22 @@ def _best_dwell_eo(fit0: SineFit, eos: tuple, segments: RunSegments):
     return int(eos[int(np.nanargmax(amp))]) if np.isfinite(amp).any() else None
 
 
+def _baseline_bridges(omega: np.ndarray, usable: np.ndarray) -> bool:
+    """Whether a baseline in speed fitted to the ``usable`` revolutions can bridge the others:
+    usable speeds on both sides of the excluded ones, each side spanning at least half the
+    excluded span (otherwise the polynomial extrapolates, or interpolates a long gap, and
+    turns the resonances' skirts or noise into a first-order amplitude error)."""
+    if usable.all():
+        return True
+    if not usable.any():
+        return False
+    ex = omega[~usable]
+    lo, hi = float(ex.min()), float(ex.max())
+    below, above = omega[usable & (omega < lo)], omega[usable & (omega > hi)]
+    gap = hi - lo
+    return bool(below.size and above.size and np.ptp(below) >= 0.5 * gap and np.ptp(above) >= 0.5 * gap)
+
+
 def _half_widths(omega: np.ndarray, crossings, prep: PrepOptions) -> np.ndarray:
     """Smoother half-width per revolution: ``fraction x W_k (Omega / Omega_k)^2`` of the
     nearest-in-effect crossing (the smallest), clipped; the minimum without any."""
@@ -536,6 +560,55 @@ class _Context:
     truth: object
     revolution0: int
     options: ProcessOptions
+    reference: Reference | None = None
+    crossings: tuple = ()
+    offset_removed: bool = False
+
+
+#: The zeroing correction fits the response's growth where the predicted response is at most
+#: this fraction of the peak (the skirt between the reference and the crossing).
+TAIL_LEVEL = 0.3
+
+
+def _zeroing_correction(ctx: _Context, c: Crossing, i: int) -> np.ndarray | None:
+    """The response the zeroing reference held, per blade, to add back to the crossing's
+    complex responses (None: not needed or not estimable).
+
+    The reference subtracted the response ``P_ref`` it held from every revolution. Between
+    the reference and the crossing the measured response is ``P(n) = K (h(n) - h_ref)``,
+    ``h`` the crossing's predicted SDOF shape (:func:`~.detect.predicted_response`): a complex
+    ``K`` per blade fitted there by least squares gives ``P_ref = K h_ref``. Only the growth
+    law ``h`` is assumed, not the phase of the peak, so it also holds for a blade whose peak
+    mixes several (mistuned) modes. When the data preparation removed a baseline fitted
+    around the reference, that baseline took the reference's response already: no
+    correction.
+    """
+    ref = ctx.reference
+    if ref is None or ref.start is None or ctx.offset_removed:
+        return None
+    same = [k for k in ctx.crossings if k.eo == c.eo]
+    h = predicted_response(ctx.omega, same)
+    h_ref = complex(np.mean(h[ref.start:ref.stop]))
+    idx = np.arange(ref.start, c.peak) if ref.start < c.peak else np.arange(c.peak + 1, ref.stop)
+    idx = idx[np.abs(h[idx]) <= TAIL_LEVEL]
+    if idx.size < 16:
+        return None
+    g = h[idx] - h_ref
+    P = ctx.fit.phasor[idx, :, i]
+    ok = np.isfinite(P)
+    w = np.where(ok, np.abs(g)[:, None] ** 2, 0.0).sum(axis=0)
+    with np.errstate(all="ignore"):
+        K = np.where(ok, np.conj(g)[:, None] * np.where(ok, P, 0.0), 0.0).sum(axis=0) / w
+    return np.where(w > 0, K * h_ref, 0.0)
+
+
+def _correction_size(corr, P) -> float:
+    """Blade mean of ``|correction| / |peak response|`` (NaN: no correction)."""
+    if corr is None:
+        return math.nan
+    with _quiet():
+        peak = np.nanmax(np.abs(P), axis=0)
+        return float(np.nanmean(np.abs(corr) / peak))
 
 
 def _nd(ctx: _Context, i: int, eo: int, rows) -> int:
@@ -548,6 +621,11 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
     fit, opts = ctx.fit, ctx.options
     freq = ctx.omega * c.eo / TWO_PI
     amp, ph = fit.amp_pkpk_m[..., i], fit.phase_rad[..., i]
+    corr = _zeroing_correction(ctx, c, i)
+    if corr is not None:  # the response the reference held, added back in the crossing's window
+        P = fit.phasor[..., i].copy()
+        P[c.lo:c.hi + 1] += corr[None, :]
+        amp, ph = 2.0 * np.abs(P), np.angle(P)
     method, sweep = opts.method, math.nan
     if opts.method == "peak" and opts.peak_method != "max":
         pk = find_peaks(amp[c.lo:c.hi + 1], freq[c.lo:c.hi + 1], method=opts.peak_method)
@@ -566,7 +644,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
             eos_fit = ctx.eos if ctx.joint else (c.eo,)
             pk = cff_method(ctx.d_flat, ctx.geometry.probe_angles_rad, eos_fit, eos_fit.index(c.eo), ctx.omega,
                             c.lo, c.hi, cff_window(c.half_power_width),
-                            tip_radius_m=ctx.geometry.tip_radius_m if opts.sampling_angles else None)
+                            tip_radius_m=ctx.geometry.tip_radius_m if opts.sampling_angles else None, offset=corr)
         elif opts.method == "sdof":
             with np.errstate(all="ignore"), _quiet():
                 t_sample = np.nanmean(ctx.toa, axis=2)
@@ -582,7 +660,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         detection=Detection("prominence_ratio", c.ratio, opts.detect.ratio_threshold, c.snr,
                             opts.detect.snr_threshold),
         first_revolution=r0 + c.lo, last_revolution=r0 + c.hi, peak_revolution=r0 + c.peak, peaks=pk,
-        sweep_rate=sweep)
+        sweep_rate=sweep, zeroing_correction=_correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i]))
     return entry.with_truth(window_truth(ctx.truth, c.eo, c.lo, c.hi))
 
 

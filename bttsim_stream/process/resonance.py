@@ -404,6 +404,9 @@ class ResonanceEntry:
     e_a_pct, e_f_pct : ndarray or None
     sweep_rate : float
         Dimensionless sweep rate ``|d omega / dt| / omega_n^2`` of the SDOF method (NaN otherwise).
+    zeroing_correction : float
+        The response the zeroing reference held, added back to this crossing's responses, as a
+        fraction of the peak response (blade mean; NaN: none applied).
     """
 
     kind: str
@@ -423,6 +426,7 @@ class ResonanceEntry:
     e_a_pct: np.ndarray | None = None
     e_f_pct: np.ndarray | None = None
     sweep_rate: float = math.nan
+    zeroing_correction: float = math.nan
 
     @property
     def mean_amp_pkpk_m(self) -> float:
@@ -447,6 +451,8 @@ class ResonanceEntry:
             out["damping_ratio"] = float(self.damping_ratio)
         if math.isfinite(self.sweep_rate):
             out["sweep_rate"] = float(self.sweep_rate)
+        if math.isfinite(self.zeroing_correction):
+            out["zeroing_correction_pct"] = 100.0 * float(self.zeroing_correction)
         out["blades"] = _blade_rows(self.peaks, self.truth, self.e_a_pct, self.e_f_pct, extended=True)
         if self.truth is not None:
             out.update(_error_stats(self.e_a_pct, self.e_f_pct))
