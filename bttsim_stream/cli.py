@@ -26,8 +26,8 @@ from .nodes import program, programs
 from .offline import add_processing_arguments, completeness, load_run, processing_options, with_processing
 from .orchestrate import run_all
 from .process.pipeline import process_arrays
-from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles, check_engine_orders, check_layout,
-                             layout_report, rank_layouts)
+from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
+                             check_engine_orders, check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed

@@ -187,11 +187,12 @@ def _entry(kind, eo, truth, method="sdof"):
     from bttsim_stream.process.resonance import Detection, ResonanceEntry
 
     nb = 3
-    peaks = ResonancePeaks(revolution=np.array([100.0, 101.5, np.nan]), amp_pkpk_m=np.array([2.3e-3, 2.4e-3, np.nan]),
-                           freq_hz=np.array([344.1, 344.2, np.nan]), damping_ratio=np.array([0.0096, 0.0097, np.nan]),
-                           method=method, phase_rad=np.array([0.1, -2.0, np.nan]), amp_std_m=np.array([1e-6, 2e-6, np.nan]),
-                           freq_std_hz=np.array([0.01, 0.02, np.nan]), steady_amp_pkpk_m=np.array([2.31e-3, 2.41e-3, np.nan]),
-                           natural_freq_hz=np.array([343.9, 344.0, np.nan]))
+    peaks = ResonancePeaks(revolution=np.array([100.0, 101.5, np.nan]),
+                           amp_pkpk_m=np.array([2.3e-3, 2.4e-3, np.nan]), freq_hz=np.array([344.1, 344.2, np.nan]),
+                           damping_ratio=np.array([0.0096, 0.0097, np.nan]), method=method,
+                           phase_rad=np.array([0.1, -2.0, np.nan]), amp_std_m=np.array([1e-6, 2e-6, np.nan]),
+                           freq_std_hz=np.array([0.01, 0.02, np.nan]),
+                           steady_amp_pkpk_m=np.array([2.31e-3, 2.41e-3, np.nan]), natural_freq_hz=np.array([343.9, 344.0, np.nan]))
     det = (Detection("prominence_ratio", 23.7, 2.0, 1e9, 8.0) if kind == "crossing"
            else Detection("amplitude_snr", 55.0, 5.0, 55.0, 5.0))
     e = ResonanceEntry(kind=kind, eo=eo, nd=-3, cn=1.43, method=method if kind == "crossing" else "mean", rpm=2580.5,
@@ -211,7 +212,8 @@ def test_resonance_report_with_entries_round_trip(truth, status):
     fields, NaN kept), detection statistics, revolutions, the zeroing reference and notes."""
     res = (_entry("crossing", 8, truth), _entry("crossing", 9, truth, method="peak")) if status == "resonance" else ()
     steady = (_entry("dwell", 8, truth),) if status != "none" else ()
-    ref = {"method": "calibrated", "first": 0, "last": 63, "contamination_pct": 2.35, "reason": "the slowest quiet window"}
+    ref = {"method": "calibrated", "first": 0, "last": 63, "contamination_pct": 2.35,
+           "reason": "the slowest quiet window"}
     report = ResonanceReport.from_entries(res, steady, eo=8, cn=1.43, reference=ref,
                                           notes=("a note", "another") if status == "none" else ())
     assert report.status == status

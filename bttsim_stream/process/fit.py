@@ -36,6 +36,7 @@ __all__ = ["design_matrix", "SineFit", "fit_revolutions", "sine_at_probes"]
 
 TWO_PI = 2.0 * np.pi
 _MAX_COND = 1e10  # beyond this the present probes cannot separate the unknowns
+_FAST = True  # the closed-form path of the sampling-angle fit (tests compare it with the general one)
 
 
 def design_matrix(probe_angles_rad, engine_orders) -> np.ndarray:
@@ -243,6 +244,8 @@ def _fit_sampled(d: np.ndarray, th: np.ndarray, eos: tuple, radius: float, omega
     ok = np.isfinite(d)
     x = np.where(ok, d, 0.0)
     te = th[None, None, :] - x / radius
+    if len(eos) == 1 and window == 1 and _FAST:
+        return _fit_sampled_one(x, ok, te, eos, omega_rad_s, cn)
     cols = [np.ones_like(te)]
     for eo in eos:
         cols += [np.sin(eo * te), np.cos(eo * te)]
@@ -288,6 +291,55 @@ def _fit_sampled(d: np.ndarray, th: np.ndarray, eos: tuple, radius: float, omega
                    phase_rad=np.arctan2(a2, a1), amp_std_m=2.0 * np.sqrt(np.maximum(var, 0.0)),
                    dc_m=coeffs[..., 0], residual_rms_m=residual_rms, n_samples=C.astype(np.int64),
                    omega_rad_s=omega, freq_hz=freq, cn=cn)
+
+
+def _fit_sampled_one(x: np.ndarray, ok: np.ndarray, te: np.ndarray, eos: tuple, omega_rad_s, cn: float) -> SineFit:
+    """:func:`_fit_sampled` for one engine order and one revolution per fit: the normal
+    equations as nine sums over the probes and a closed-form 3 x 3 inverse."""
+    npr = x.shape[2]
+    arg = eos[0] * te
+    sn = np.sin(arg) * ok
+    cs = np.cos(arg) * ok
+    m = ok.astype(float)
+    C = m.sum(axis=2)
+    S1, C1 = sn.sum(axis=2), cs.sum(axis=2)
+    SS, SC, CC = (sn * sn).sum(axis=2), (sn * cs).sum(axis=2), (cs * cs).sum(axis=2)
+    R0, R1, R2 = x.sum(axis=2), (sn * x).sum(axis=2), (cs * x).sum(axis=2)
+    Q = (x * x).sum(axis=2)
+    # adjugate of [[C, S1, C1], [S1, SS, SC], [C1, SC, CC]]
+    A00 = SS * CC - SC * SC
+    A01 = C1 * SC - S1 * CC
+    A02 = S1 * SC - C1 * SS
+    A11 = C * CC - C1 * C1
+    A12 = S1 * C1 - C * SC
+    A22 = C * SS - S1 * S1
+    det = C * A00 + S1 * A01 + C1 * A02
+    n_seen = ok.sum(axis=2)
+    good = (n_seen >= 3) & (det > 0)
+    partial = good & (n_seen < npr)
+    if np.any(partial):  # rows with missing probes: their own conditioning
+        G = np.stack([np.stack([C, S1, C1], -1), np.stack([S1, SS, SC], -1), np.stack([C1, SC, CC], -1)], -2)
+        with np.errstate(all="ignore"):
+            good[partial] = np.linalg.cond(G[partial]) < _MAX_COND
+    with np.errstate(all="ignore"):
+        inv = 1.0 / np.where(good, det, np.nan)
+        a0 = (A00 * R0 + A01 * R1 + A02 * R2) * inv
+        a1 = (A01 * R0 + A11 * R1 + A12 * R2) * inv
+        a2 = (A02 * R0 + A12 * R1 + A22 * R2) * inv
+        rss = np.maximum(Q - (a0 * R0 + a1 * R1 + a2 * R2), 0.0)
+        residual_rms = np.sqrt(rss / C)
+        s2 = np.where(C > 3, rss / (C - 3), np.nan)
+        c11, c22, c12 = A11 * inv * s2, A22 * inv * s2, A12 * inv * s2
+        amp = np.hypot(a1, a2)
+        var = np.where(amp > 0, (a1 * a1 * c11 + 2 * a1 * a2 * c12 + a2 * a2 * c22) / (amp * amp),
+                       0.5 * (c11 + c22))
+    coeffs = np.stack([a0, a1, a2], axis=-1)
+    omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
+    freq = None if omega is None else omega[:, None] * float(eos[0]) / TWO_PI
+    return SineFit(engine_orders=eos, window=1, coeffs=coeffs, amp_pkpk_m=2.0 * amp[..., None],
+                   phase_rad=np.arctan2(a2, a1)[..., None], amp_std_m=2.0 * np.sqrt(np.maximum(var, 0.0))[..., None],
+                   dc_m=a0, residual_rms_m=residual_rms, n_samples=C.astype(np.int64), omega_rad_s=omega,
+                   freq_hz=freq, cn=cn)
 
 
 def _sym_inv(G: np.ndarray) -> np.ndarray:

@@ -237,6 +237,36 @@ def _fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, rad
                    cn=max(f.cn for f in fits))
 
 
+def _merge_spans(spans) -> list:
+    """Sorted, non-overlapping ``[start, stop)`` revolution spans."""
+    out: list = []
+    for a, b in sorted(spans):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
+
+
+def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius, spans) -> SineFit:
+    """Fits at the probe angles everywhere and, inside ``spans`` (the crossings and dwells,
+    where results are read), at the sampling angles. Outside them the response is small, and
+    the two agree (the correction is proportional to the displacement)."""
+    fit = _fit(d, angles, eos, joint, omega, window, None)
+    if radius is None or not spans:
+        return fit
+    arrays = {k: getattr(fit, k).copy() for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
+                                                    "residual_rms_m", "n_samples")}
+    h = window // 2
+    n = d.shape[0]
+    for a, b in spans:
+        lo, hi = max(0, a - h), min(n, b + h)
+        f = _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], window, radius)
+        for k, arr in arrays.items():
+            arr[a:b] = getattr(f, k)[a - lo:b - lo]
+    return replace(fit, **arrays)
+
+
 def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
     x = d if rows is None else d[rows]
     import warnings
@@ -398,16 +428,15 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                            exclude_revolutions=dwell_mask | skirts)
         d = prepared.d_m
     radius = geometry.tip_radius_m if options.sampling_angles else None
-    fit = _fit(d, angles, eos, joint, omega, options.window, radius)
+    spans = _merge_spans([(c.lo, c.hi + 1) for c in crossings] + [(dw.start, dw.stop) for dw in segments.dwells])
+    fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
     d_flat = disp.d_m - (prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
     if (prepared is None or not options.prep_options.smooth) and options.window == 1:
         raw = _Raw(fit.amp_pkpk_m, fit.phasor)
     else:  # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
-        spans = [(c.lo, c.hi + 1) for c in crossings] + [(dw.start, dw.stop) for dw in segments.dwells]
         amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
         ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
-        if spans:
-            a, b = min(x[0] for x in spans), max(x[1] for x in spans)
+        for a, b in spans:
             f_r = _fit(d_flat[a:b], angles, eos, joint, omega[a:b], 1, radius)
             amp_r[a:b], ph_r[a:b] = f_r.amp_pkpk_m, f_r.phasor
         raw = _Raw(amp_r, ph_r)
@@ -422,6 +451,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     steady = [e for dw in segments.dwells for e in _dwell_entries(ctx, dw)]
     if not entries:
         notes.append(_why_none(eos_asked, segments, omega, info, det))
+    if rows_truth is not None and len(eos) > 1:
+        notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
+                     "engine orders' off-resonance response at its speed")
     report = ResonanceReport.from_entries(entries, steady, eo=eos[0], cn=cns.get(eos[0], fit.cn),
                                           reference=ref_info, notes=notes)
     eo = eos[0]
