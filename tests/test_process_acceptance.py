@@ -177,3 +177,14 @@ def test_streaming_gives_the_same_summary_as_process(tmp_path):
     assert cli.main(["process", str(SAMPLE), "--summary", str(out)]) == 0
     _, streamed = processing_messages(load_run(SAMPLE))
     assert json.loads(json.dumps(streamed)) == json.loads(out.read_text())
+
+
+def test_unknown_engine_order_scan(summaries):
+    """No EO in the metadata: a scan over a range finds both orders of the two-EO run (each
+    fitted on its own, the leak into the other orders resolved by their residuals)."""
+    from dataclasses import replace
+
+    run, _ = summaries("two_eo")
+    blind = replace(run.info, engine_orders=(), nodal_diameters=())
+    s = process_arrays(run.opr_s, run.toa_s, blind, ProcessOptions(eo_range=(4, 12))).summary
+    assert sorted((e["eo"], e["nd"]) for e in s["resonances"]) == [(8, 1), (9, 9)]

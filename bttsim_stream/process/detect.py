@@ -315,11 +315,15 @@ def speed_segments(opr_s: np.ndarray, omega_rad_s: np.ndarray,
     # merge neighbours of the same kind and direction (the polyline may split a ramp)
     merged: list[SpeedSegment] = []
     for s in segs:
-        if merged and merged[-1].kind == s.kind and (
-                s.kind == "dwell" and abs(s.rpm_end - merged[-1].rpm_start)
-                < options.dwell_tolerance * 0.5 * (s.rpm_end + merged[-1].rpm_start)):
-            p = merged.pop()
-            s = SpeedSegment(p.start, s.stop, "dwell", p.rpm_start, s.rpm_end, p.duration_s + s.duration_s)
+        if merged and merged[-1].kind == s.kind:
+            p = merged[-1]
+            same_dwell = s.kind == "dwell" and abs(s.rpm_end - p.rpm_start) < options.dwell_tolerance * 0.5 * (
+                s.rpm_end + p.rpm_start)
+            same_ramp = s.kind == "ramp" and (s.direction == p.direction or 0 in (s.direction, p.direction))
+            if same_dwell or same_ramp:
+                merged.pop()
+                end = s.rpm_end if s.direction or s.kind == "dwell" else p.rpm_end
+                s = SpeedSegment(p.start, s.stop, s.kind, p.rpm_start, end, p.duration_s + s.duration_s)
         merged.append(s)
     sweeps: list[Sweep] = []
     for s in merged:
