@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from . import scenario
 from ._plotting import PlotExtraMissing
@@ -22,10 +23,11 @@ from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
-from .offline import completeness, load_run, with_processing
+from .offline import add_processing_arguments, completeness, load_run, processing_options, with_processing
 from .orchestrate import run_all
-from .process.pipeline import ProcessOptions, process_arrays
-from .process.probes import PAPER_CANDIDATES_DEG, condition_number, rank_layouts
+from .process.pipeline import process_arrays
+from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
+                             check_engine_orders, check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed
@@ -44,7 +46,15 @@ EXIT_INCOMPLETE = 3
 def _cmd_scenario(args: argparse.Namespace) -> None:
     if args.check is not None:
         scn = scenario.load_scenario(args.check)
-        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes)")
+        eos = [int(e.engine_order) for e in scn.excitation]
+        try:  # a layout that cannot separate an engine order is refused before anything runs
+            rows, warns = layout_report(eos, scn.probes.angles_deg)
+        except LayoutError as exc:
+            raise BttsimError(f"{args.check}: [probes] angles_deg: {exc}") from None
+        cns = ", ".join(f"CN {cn:.3g} at {label}" for label, cn in rows)
+        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns})")
+        for w in warns:
+            print(f"bttsim: warning: {args.check}: {w}", file=sys.stderr)
         return
     sys.stdout.write(scenario.default_toml())
 
@@ -97,12 +107,14 @@ def _cmd_process(args: argparse.Namespace) -> None:
     run = load_run(args.mcap)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
+    opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")
     try:
-        opts = ProcessOptions(expected_times="exact" if args.exact_expected else "opr", prep=not args.no_prep,
-                              window=args.window)
-    except ValueError as exc:
-        raise BttsimError(str(exc)) from None
-    result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth)
+        result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
+                                revolution0=int(run.revolution[0]))
+    except ValueError as exc:  # an impossible layout (LayoutError), inconsistent arrays
+        raise BttsimError(f"{args.mcap}: {exc}") from None
+    except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway
+        raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None
     summary = dict(result.summary, **completeness(run).to_summary())
     if args.summary:  # before anything is printed: a closed stdout must not lose it
         try:
@@ -157,28 +169,54 @@ def _cmd_view(args: argparse.Namespace) -> None:
 
 
 def _cmd_cn(args: argparse.Namespace) -> None:
-    print(f"{condition_number(args.eo, _angles(args.probes)):.4g}")
+    # impossible input (EO < 1, too few probes, angles outside [0, 360), a singular layout):
+    # LayoutError, one line, exit 2
+    eos = _engine_orders(args.eo)
+    cn = check_layout(eos, _angles(args.probes))
+    print(f"{cn:.4g}")
+    if cn > CN_WARN:
+        print(f"bttsim: warning: condition number {cn:.3g} is above {CN_WARN:g}: expect large amplitude errors "
+              f"(paper Fig. 11); try `bttsim probes --eo {args.eo}`", file=sys.stderr)
 
 
 def _cmd_probes(args: argparse.Namespace) -> None:
-    cands = _angles(args.candidates) if args.candidates else PAPER_CANDIDATES_DEG
-    ranked = rank_layouts(args.eo, cands, args.n)
-    finite = [r.cn for r in ranked if r.cn != float("inf")]
-    print(f"{len(ranked)} layouts of {args.n} probes from {len(cands)} candidates at EO {args.eo}; "
-          f"CN {min(finite):.3g} .. {max(finite):.3g}")
+    eos = _engine_orders(args.eo)
+    cands = _angles(args.candidates, "candidate angles") if args.candidates else PAPER_CANDIDATES_DEG
+    unknowns = 1 + 2 * len(eos)
+    label = "EO " + "+".join(str(e) for e in eos)
+    if args.n < unknowns:
+        raise BttsimError(f"--n {args.n}: a layout needs at least {unknowns} probes to separate the {unknowns} "
+                          f"unknowns of the sine fit at {label} (Eq. 16)")
+    if args.n > len(cands):
+        raise BttsimError(f"--n {args.n}: only {len(cands)} candidate angles to choose from")
+    if args.top < 1:
+        raise BttsimError(f"--top must be >= 1, got {args.top}")
+    ranked = rank_layouts(eos, cands, args.n)
+    finite = [r.cn for r in ranked if r.cn < CN_SINGULAR]
+    if not finite:
+        raise BttsimError(f"every layout of {args.n} probes from these {len(cands)} candidates is singular at "
+                          f"{label}: add or move candidate angles")
+    print(f"{len(ranked)} layouts of {args.n} probes from {len(cands)} candidates at {label}; "
+          f"CN {min(finite):.3g} .. {max(finite):.3g}"
+          + (f" ({len(ranked) - len(finite)} singular)" if len(finite) < len(ranked) else ""))
     for r in ranked[: args.top]:
         print(f"  CN {r.cn:8.3f}   " + ", ".join(f"{a:g}" for a in r.probe_angles_deg))
 
 
-def _angles(text: str) -> list[float]:
+def _engine_orders(text: str) -> tuple:
+    try:
+        vals = [int(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise BttsimError(f"--eo must be comma-separated whole numbers, got {text!r}") from None
+    return check_engine_orders(vals)
 
+
+def _angles(text: str, what: str = "probe angles") -> tuple:
     try:
         vals = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise BttsimError(f"probe angles must be comma-separated degrees, got {text!r}") from None
-    if not vals or not all(math.isfinite(v) for v in vals):
-        raise BttsimError(f"probe angles must be finite numbers, got {text!r}")
-    return vals
+        raise BttsimError(f"{what} must be comma-separated degrees, got {text!r}") from None
+    return check_angles(vals, what)
 
 
 def _cmd_study(args: argparse.Namespace) -> None:
@@ -255,8 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--summary", help="write the summary JSON here")
     p.add_argument("--exact-expected", action="store_true",
                    help="use the truth's exact expected arrival times (reproduces the paper)")
-    p.add_argument("--no-prep", action="store_true", help="no data preparation")
-    p.add_argument("--window", type=int, default=1, help="revolutions per sine fit (1)")
+    add_processing_arguments(p)
     p.set_defaults(func=_cmd_process)
 
     p = sub.add_parser("view", help="Rerun views of a recording (.rrd file and/or web viewer)")
@@ -275,12 +312,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_study)
 
     p = sub.add_parser("cn", help="condition number of B (Eq. 16) for an EO and probe angles")
-    p.add_argument("--eo", type=int, default=8, help="engine order (8)")
+    p.add_argument("--eo", default="8", help="engine order (>= 1), or several comma-separated (fitted jointly)")
     p.add_argument("--probes", default="5,15.15,23.82,220,301.5", help="comma-separated angles, deg")
     p.set_defaults(func=_cmd_cn)
 
     p = sub.add_parser("probes", help="probe layouts ranked by condition number")
-    p.add_argument("--eo", type=int, default=8, help="engine order (8)")
+    p.add_argument("--eo", default="8", help="engine order (>= 1), or several comma-separated (fitted jointly)")
     p.add_argument("--n", type=int, default=5, help="number of probes")
     p.add_argument("--candidates", help="comma-separated candidate angles, deg (default: the paper's 11)")
     p.add_argument("--top", type=int, default=10, help="how many layouts to print (10)")

@@ -118,7 +118,7 @@ class ProcessorSession:
             for o in self.proc.flush():
                 msgs += self.out.processing(o)
             summary = self.proc.finish(self.tracker if self.score else None)
-        except ValueError as exc:
+        except (ValueError, np.linalg.LinAlgError) as exc:  # fewer than three revolutions, ...
             raise BttsimError(f"no resonance report: {exc}") from None
         summary.update(self.completeness().to_summary())
         msgs.append(self.out.resonance(self.proc.result.report))

@@ -21,7 +21,7 @@ from pathlib import Path
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, unpack_attachment
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.process.pipeline import ProcessOptions
+from bttsim_stream.offline import add_processing_arguments, processing_options
 from bttsim_stream.process.resonance import summary_table
 from bttsim_stream.processor import ProcessorSession
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
@@ -31,10 +31,7 @@ from bttsim_stream.runtime import NodeProgram, node_session, run_node
 def main(conf, args: argparse.Namespace) -> dict | None:
     """Process until the simulator ends; returns the summary dict."""
     rig = keys.validate_rig(args.rig)
-    try:
-        options = ProcessOptions(prep=not args.no_prep, window=args.window)
-    except ValueError as exc:
-        raise BttsimError(str(exc)) from None
+    options = processing_options(args)  # a bad value: one line, exit 2
     stop = StopFlag(args.duration)
     summary = None
     with node_session(conf, rig, "processor") as node:
@@ -68,7 +65,10 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                 continue
             if kind == "meta":
                 if run is None:
-                    run = ProcessorSession(item[2].body, options, score=not args.no_score)
+                    try:
+                        run = ProcessorSession(item[2].body, options, score=not args.no_score)
+                    except ValueError as exc:  # the layout cannot separate an engine order: say so, once
+                        raise BttsimError(f"cannot process rig {rig}: {exc}") from None
                     run.rejected += bad
                     for e in early:
                         publish(run.add(*e))
@@ -99,8 +99,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", default="rig1", help="rig to process (rig1)")
     p.add_argument("--summary", metavar="FILE.json", help="write the summary JSON here at the end")
     p.add_argument("--no-score", action="store_true", help="do not read truth (no E_A / E_f)")
-    p.add_argument("--no-prep", action="store_true", help="no data preparation in the final report")
-    p.add_argument("--window", type=int, default=1, metavar="N", help="revolutions per sine fit (1)")
+    add_processing_arguments(p)  # --method, --eo, --eo-range, --no-prep, --window
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
 
 

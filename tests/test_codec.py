@@ -183,6 +183,75 @@ def test_resonance_report_round_trip(truth):
     assert d.body.peaks.method == "reported"
 
 
+def _entry(kind, eo, truth, method="sdof"):
+    from bttsim_stream.process.resonance import Detection, ResonanceEntry
+
+    nb = 3
+    peaks = ResonancePeaks(revolution=np.array([100.0, 101.5, np.nan]),
+                           amp_pkpk_m=np.array([2.3e-3, 2.4e-3, np.nan]), freq_hz=np.array([344.1, 344.2, np.nan]),
+                           damping_ratio=np.array([0.0096, 0.0097, np.nan]), method=method,
+                           phase_rad=np.array([0.1, -2.0, np.nan]), amp_std_m=np.array([1e-6, 2e-6, np.nan]),
+                           freq_std_hz=np.array([0.01, 0.02, np.nan]),
+                           steady_amp_pkpk_m=np.array([2.31e-3, 2.41e-3, np.nan]), natural_freq_hz=np.array([343.9, 344.0, np.nan]))
+    det = (Detection("prominence_ratio", 23.7, 2.0, 1e9, 8.0) if kind == "crossing"
+           else Detection("amplitude_snr", 55.0, 5.0, 55.0, 5.0))
+    e = ResonanceEntry(kind=kind, eo=eo, nd=-3, cn=1.43, method=method if kind == "crossing" else "mean", rpm=2580.5,
+                       freq_hz=344.15, damping_ratio=0.00965 if method == "sdof" else math.nan, detection=det,
+                       first_revolution=1479, last_revolution=2607, peak_revolution=2043 if kind == "crossing" else -1,
+                       peaks=peaks, sweep_rate=4.1e-6 if method == "sdof" else math.nan, zeroing_correction=0.25)
+    if truth:
+        e = e.with_truth(TruthPeaks(revolution=np.array([99, 101, 102]), amp_pkpk_m=np.full(nb, 2.37e-3),
+                                    freq_hz=np.full(nb, 344.16)))
+    return e
+
+
+@pytest.mark.parametrize("truth", [True, False], ids=["with-truth", "blind"])
+@pytest.mark.parametrize("status", ["resonance", "steady", "none"])
+def test_resonance_report_with_entries_round_trip(truth, status):
+    """Issue 12: status, every resonance and dwell (blade tables with phase, uncertainty, SDOF
+    fields, NaN kept), detection statistics, revolutions, the zeroing reference and notes."""
+    res = (_entry("crossing", 8, truth), _entry("crossing", 9, truth, method="peak")) if status == "resonance" else ()
+    steady = (_entry("dwell", 8, truth),) if status != "none" else ()
+    ref = {"method": "calibrated", "first": 0, "last": 63, "contamination_pct": 2.35,
+           "reason": "the slowest quiet window"}
+    report = ResonanceReport.from_entries(res, steady, eo=8, cn=1.43, reference=ref,
+                                          notes=("a note", "another") if status == "none" else ())
+    assert report.status == status
+    s = report.to_summary()
+    d = codec.decode_resonance_report(codec.encode_resonance_report(_header(), report), "bttsim/rig1/resonance")
+    back = d.body.to_summary()
+    assert back.keys() == s.keys() and back["status"] == status and back["notes"] == s["notes"]
+    assert back["reference"] == s["reference"]
+    _assert_close(back, s)
+    if status == "none":
+        assert back["blades"] == [] and "mean_E_A_pct" not in back
+
+
+def _assert_close(a, b, path="summary"):
+    """Equal structure, equal strings and ints, floats equal to 1e-12 relative (NaN == NaN)."""
+    assert type(a) is type(b) or {type(a), type(b)} <= {int, float}, path
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), path
+        for k in a:
+            _assert_close(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_close(x, y, f"{path}[{i}]")
+    elif isinstance(a, float):
+        assert a == pytest.approx(b, rel=1e-12, nan_ok=True), path
+    else:
+        assert a == b, path
+
+
+def test_resonance_report_from_an_older_writer_decodes():
+    """A payload without the issue-12 fields (status "") still decodes to the legacy report."""
+    report = _report(True)
+    payload = codec.encode_resonance_report(_header(), report)
+    d = codec.decode_resonance_report(payload)
+    assert d.body.status == "" and d.body.resonances == () and d.body.to_summary()["status"] == "resonance"
+
+
 def _one_line_error(excinfo) -> str:
     text = str(excinfo.value)
     assert "\n" not in text

@@ -12,6 +12,8 @@ from bttsim_stream.process import (TruthPeaks, TruthPeakTracker, find_peaks, res
 
 BLADE_KEYS = {"blade", "amp_pkpk_m", "freq_hz", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct"}
 TOP_KEYS = {"nd", "eo", "cn", "blades", "mean_E_A_pct", "max_E_A_pct", "mean_E_f_pct", "max_E_f_pct"}
+#: Added by issue 12 beside the legacy keys (a legacy report built by resonance_report has no entries).
+NEW_KEYS = {"status", "resonances", "steady", "notes"}
 
 
 def _sdof_curve(f, fn, zeta, a0):
@@ -85,7 +87,8 @@ def _report(with_truth):
 
 def test_summary_json_exact_form():
     s = _report(True).to_summary()
-    assert set(s) == TOP_KEYS
+    assert set(s) == TOP_KEYS | NEW_KEYS
+    assert s["status"] == "resonance" and s["resonances"] == [] and s["steady"] == []
     assert [b["blade"] for b in s["blades"]] == [0, 1, 2]
     assert all(set(b) == BLADE_KEYS for b in s["blades"])
     assert isinstance(s["nd"], int) and isinstance(s["eo"], int) and isinstance(s["cn"], float)
@@ -94,7 +97,7 @@ def test_summary_json_exact_form():
     assert s["max_E_f_pct"] == pytest.approx(max(b["E_f_pct"] for b in s["blades"]))
     json.loads(json.dumps(s))
     blind = _report(False).to_summary()
-    assert set(blind) == {"nd", "eo", "cn", "blades"}
+    assert set(blind) == {"nd", "eo", "cn", "blades"} | NEW_KEYS
     assert all(set(b) == {"blade", "amp_pkpk_m", "freq_hz"} for b in blind["blades"])
 
 

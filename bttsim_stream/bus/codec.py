@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -44,7 +44,8 @@ from google.protobuf.message import DecodeError
 
 from ..errors import BttsimError
 from ..process.pipeline import RevolutionFit
-from ..process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks
+from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport,
+                                TruthPeaks)
 from ..process.travelling_wave import ProbeWave
 from ..sim.core import RunInfo, Truth
 from . import keys as _keys
@@ -571,68 +572,158 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
                                                 backward_m=_array(m.backward_m), nd=int(m.dominant_nd)))
 
 
+_EXTENDED = ("phase_rad", "amp_std_m", "freq_std_hz", "damping_ratio", "steady_amp_pkpk_m", "natural_freq_hz")
+
+
+def _fill_blades(rows, peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, extended: bool) -> None:
+    nan = np.full(peaks.n_blades, np.nan)
+    for b in range(peaks.n_blades):
+        row = rows.add()
+        row.blade = b
+        row.amp_pkpk_m = float(peaks.amp_pkpk_m[b])
+        row.freq_hz = float(peaks.freq_hz[b])
+        if truth is not None:
+            row.truth_amp_pkpk_m = float(truth.amp_pkpk_m[b])
+            row.truth_freq_hz = float(truth.freq_hz[b])
+            row.e_a_pct = float(e_a[b])
+            row.e_f_pct = float(e_f[b])
+            row.has_truth = True
+        if extended:
+            for name in _EXTENDED:
+                arr = getattr(peaks, name)
+                setattr(row, name, float((nan if arr is None or np.size(arr) != peaks.n_blades else arr)[b]))
+            row.revolution = float(peaks.revolution[b])
+            row.has_extended = True
+
+
+def _fill_stats(m, e_a, e_f) -> None:
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        m.mean_e_a_pct, m.max_e_a_pct = float(np.nanmean(e_a)), float(np.nanmax(e_a))
+        m.mean_e_f_pct, m.max_e_f_pct = float(np.nanmean(e_f)), float(np.nanmax(e_f))
+
+
+def _fill_entry(m, e: ResonanceEntry) -> None:
+    m.kind, m.eo, m.nd, m.cn, m.method = e.kind, int(e.eo), int(e.nd), float(e.cn), e.method
+    m.rpm, m.freq_hz, m.damping_ratio = float(e.rpm), float(e.freq_hz), float(e.damping_ratio)
+    d = e.detection
+    m.detection_statistic, m.detection_value, m.detection_threshold = d.statistic, float(d.value), float(d.threshold)
+    m.detection_snr, m.detection_snr_threshold = float(d.snr), float(d.snr_threshold)
+    m.first_revolution, m.last_revolution = int(e.first_revolution), int(e.last_revolution)
+    m.peak_revolution, m.sweep_rate = int(e.peak_revolution), float(e.sweep_rate)
+    m.zeroing_correction_pct = 100.0 * float(e.zeroing_correction)
+    _fill_blades(m.blades, e.peaks, e.truth, e.e_a_pct, e.e_f_pct, extended=True)
+    if e.truth is not None and e.peaks.n_blades:
+        _fill_stats(m, e.e_a_pct, e.e_f_pct)
+
+
 def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
     """Encode a resonance report (:class:`bttsim.v1.ResonanceReport`, key ``resonance``).
 
     Blades are numbered 0..n_blades-1; truth fields (and the error statistics) are set when
-    the report carries the truth.
+    the report carries the truth. The status, every resonance and dwell entry (with its own
+    blade table, detection statistic and revolutions), the zeroing reference and the notes
+    travel too (fields 10-18).
     """
     m = _pb.ResonanceReport()
     _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.nd = int(report.nd)
     m.eo = int(report.eo)
     m.cn = float(report.cn)
-    pk, tr = report.peaks, report.truth
-    for b in range(pk.amp_pkpk_m.size):
-        row = m.blades.add()
-        row.blade = b
-        row.amp_pkpk_m = float(pk.amp_pkpk_m[b])
-        row.freq_hz = float(pk.freq_hz[b])
-        if tr is not None:
-            row.truth_amp_pkpk_m = float(tr.amp_pkpk_m[b])
-            row.truth_freq_hz = float(tr.freq_hz[b])
-            row.e_a_pct = float(report.e_a_pct[b])
-            row.e_f_pct = float(report.e_f_pct[b])
-            row.has_truth = True
-    if tr is not None:
-        summary = report.to_summary()
-        m.mean_e_a_pct, m.max_e_a_pct = summary["mean_E_A_pct"], summary["max_E_A_pct"]
-        m.mean_e_f_pct, m.max_e_f_pct = summary["mean_E_f_pct"], summary["max_E_f_pct"]
+    _fill_blades(m.blades, report.peaks, report.truth, report.e_a_pct, report.e_f_pct, extended=False)
+    if report.truth is not None and report.peaks.n_blades:
+        _fill_stats(m, report.e_a_pct, report.e_f_pct)
+    m.status = report.status
+    for e in report.resonances:
+        _fill_entry(m.resonances.add(), e)
+    for e in report.steady:
+        _fill_entry(m.steady.add(), e)
+    ref = report.reference
+    if ref is not None:
+        m.reference_method = str(ref.get("method") or "")
+        m.reference_first = -1 if ref.get("first") is None else int(ref["first"])
+        m.reference_last = -1 if ref.get("last") is None else int(ref["last"])
+        c = ref.get("contamination_pct")
+        m.reference_contamination_pct = math.nan if c is None else float(c)
+        m.reference_reason = str(ref.get("reason") or "")
+    m.notes.extend(str(n) for n in report.notes)
     return _serialize(m)
+
+
+def _decode_blades(where: str, m, rows, *, extended: bool):
+    nb = len(rows)
+    if [b.blade for b in rows] != list(range(nb)):
+        raise _corrupt(where, m, "blades must be numbered 0..n_blades-1 in order")
+    has_truth = [bool(b.has_truth) for b in rows]
+    if any(has_truth) and not all(has_truth):
+        raise _corrupt(where, m, "truth on some blades only")
+    nan = np.full(nb, np.nan)
+    kw = {}
+    rev = nan
+    method = "reported"
+    if extended and nb:
+        if not all(b.has_extended for b in rows):
+            raise _corrupt(where, m, "an entry's blade rows lack their extended fields")
+        kw = {name: _array([getattr(b, name) for b in rows]) for name in _EXTENDED}
+        rev = _array([b.revolution for b in rows])
+    peaks = ResonancePeaks(revolution=rev, amp_pkpk_m=_array([b.amp_pkpk_m for b in rows]),
+                           freq_hz=_array([b.freq_hz for b in rows]),
+                           damping_ratio=kw.pop("damping_ratio", nan.copy()), method=method, **kw)
+    truth = e_a = e_f = None
+    if nb and all(has_truth):
+        truth = TruthPeaks(revolution=np.full(nb, -1, np.int64),
+                           amp_pkpk_m=_array([b.truth_amp_pkpk_m for b in rows]),
+                           freq_hz=_array([b.truth_freq_hz for b in rows]))
+        e_a = _array([b.e_a_pct for b in rows])
+        e_f = _array([b.e_f_pct for b in rows])
+    return peaks, truth, e_a, e_f
+
+
+def _decode_entry(where: str, m, e) -> ResonanceEntry:
+    if e.kind not in ("crossing", "dwell"):
+        raise _corrupt(where, m, f"entry kind {e.kind!r}")
+    peaks, truth, e_a, e_f = _decode_blades(where, m, e.blades, extended=True)
+    peaks = replace(peaks, method=e.method)
+    return ResonanceEntry(
+        kind=e.kind, eo=int(e.eo), nd=int(e.nd), cn=float(e.cn), method=e.method, rpm=float(e.rpm),
+        freq_hz=float(e.freq_hz), damping_ratio=float(e.damping_ratio),
+        detection=Detection(e.detection_statistic, float(e.detection_value), float(e.detection_threshold),
+                            float(e.detection_snr), float(e.detection_snr_threshold)),
+        first_revolution=int(e.first_revolution), last_revolution=int(e.last_revolution),
+        peak_revolution=int(e.peak_revolution), peaks=peaks, truth=truth, e_a_pct=e_a, e_f_pct=e_f,
+        sweep_rate=float(e.sweep_rate), zeroing_correction=float(e.zeroing_correction_pct) / 100.0)
 
 
 def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
     """Decode a :class:`bttsim.v1.ResonanceReport` payload into ``(Header, ResonanceReport)``.
 
-    The per-blade peak revolutions and damping ratios do not travel: they come back NaN
-    (truth peak revolutions -1), with ``peaks.method == "reported"``.
+    The legacy per-blade peak revolutions and damping ratios do not travel: they come back
+    NaN (truth peak revolutions -1), with ``peaks.method == "reported"``; the entries'
+    blade rows carry theirs. A report from an older writer has ``status == ""`` and no
+    entries.
 
     Raises
     ------
     BttsimError
-        Unparsable or oversized payload, missing header, blades out of order, or truth on
-        only some blades.
+        Unparsable or oversized payload, missing header, blades out of order, truth on
+        only some blades, an unknown status or entry kind.
     """
     m, where = _parse(_pb.ResonanceReport, payload, key)
-    nb = len(m.blades)
-    if [b.blade for b in m.blades] != list(range(nb)):
-        raise _corrupt(where, m, "blades must be numbered 0..n_blades-1 in order")
-    has_truth = [bool(b.has_truth) for b in m.blades]
-    if any(has_truth) and not all(has_truth):
-        raise _corrupt(where, m, "truth on some blades only")
-    nan = np.full(nb, np.nan)
-    peaks = ResonancePeaks(revolution=nan, amp_pkpk_m=_array([b.amp_pkpk_m for b in m.blades]),
-                           freq_hz=_array([b.freq_hz for b in m.blades]), damping_ratio=nan.copy(),
-                           method="reported")
-    truth = e_a = e_f = None
-    if nb and all(has_truth):
-        truth = TruthPeaks(revolution=np.full(nb, -1, np.int64),
-                           amp_pkpk_m=_array([b.truth_amp_pkpk_m for b in m.blades]),
-                           freq_hz=_array([b.truth_freq_hz for b in m.blades]))
-        e_a = _array([b.e_a_pct for b in m.blades])
-        e_f = _array([b.e_f_pct for b in m.blades])
+    if m.status not in ("",) + STATUSES:
+        raise _corrupt(where, m, f"status {m.status!r}")
+    peaks, truth, e_a, e_f = _decode_blades(where, m, m.blades, extended=False)
+    ref = None
+    if m.reference_method:
+        c = float(m.reference_contamination_pct)
+        ref = {"method": m.reference_method, "first": None if m.reference_first < 0 else int(m.reference_first),
+               "last": None if m.reference_last < 0 else int(m.reference_last),
+               "contamination_pct": c if math.isfinite(c) else None, "reason": m.reference_reason}
     report = ResonanceReport(nd=int(m.nd), eo=int(m.eo), cn=m.cn, peaks=peaks, truth=truth,
-                             e_a_pct=e_a, e_f_pct=e_f)
+                             e_a_pct=e_a, e_f_pct=e_f, status=m.status,
+                             resonances=tuple(_decode_entry(where, m, e) for e in m.resonances),
+                             steady=tuple(_decode_entry(where, m, e) for e in m.steady),
+                             reference=ref, notes=tuple(m.notes))
     return Decoded(_header(m.header), report)
 
 

@@ -4,9 +4,12 @@ One module per stage (paper equations in brackets):
 
 * :mod:`.displacement` -- speed and expected arrival times from the OPR, blade
   identification, Eq. 1 displacements;
+* :mod:`.detect` -- what the run holds: speed segments (ramps, dwells), resonance
+  crossings per engine order with their detection statistic, the zeroing reference;
 * :mod:`.prep` -- data preparation (Sec. 2.3): offset removal and noise reduction;
 * :mod:`.fit` -- windowed multi-EO sine fits (Eq. 16-17);
-* :mod:`.resonance` -- peak amplitude and frequency per blade, E_A and E_f (Eq. 18-19),
+* :mod:`.methods` -- resonance per blade through a crossing: peak, swept SDOF, CFF;
+* :mod:`.resonance` -- entries per crossing and dwell, E_A and E_f (Eq. 18-19), status,
   the summary JSON;
 * :mod:`.travelling_wave` -- nodal diameter spectra (Fig. 10);
 * :mod:`.probes` -- condition number of ``B`` and probe layout search (Table 3);
@@ -23,14 +26,18 @@ missing arrival. Nothing here imports the transport, codec or viewer layers.
 from .displacement import (Displacements, Geometry, RotorPhase, btt_displacement, calibrate_arrival_angles,
                            compute_displacements, expected_times, identify_blades, mean_speed_from_opr,
                            rotor_phase_from_opr)
+from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
+                     predicted_response, speed_segments)
 from .fit import SineFit, design_matrix, fit_revolutions, sine_at_probes
+from .methods import METHODS, cff_method, peak_method, sdof_method
 from .pipeline import (ProcessingResult, ProcessOptions, RevolutionOutput, StreamingProcessor,
                        engine_orders_of, process_arrays)
 from .prep import (PreparedData, PrepOptions, ResonanceRegion, locate_resonance, prepare, remove_offset,
                    smooth_revolutions, speed_adaptive_half_width)
-from .probes import LayoutCandidate, condition_number, rank_layouts
-from .resonance import (ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker, find_peaks,
-                        resonance_errors, resonance_report, summary_table, truth_peaks)
+from .probes import LayoutCandidate, LayoutError, check_layout, condition_number, layout_report, rank_layouts
+from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
+                        TruthRows, find_peaks, resonance_errors, resonance_report, summary_table, truth_peaks,
+                        window_truth)
 from .travelling_wave import TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra, signed_nd
 
 __all__ = [
@@ -40,6 +47,9 @@ __all__ = [
     "PrepOptions", "ResonanceRegion", "PreparedData", "locate_resonance", "remove_offset",
     "smooth_revolutions", "speed_adaptive_half_width", "prepare",
     "SineFit", "design_matrix", "fit_revolutions", "sine_at_probes",
+    "DetectOptions", "RunSegments", "Crossing", "Reference", "speed_segments", "detect_crossings", "choose_reference",
+    "predicted_response", "METHODS", "peak_method", "sdof_method", "cff_method",
+    "Detection", "ResonanceEntry", "TruthRows", "window_truth", "LayoutError", "check_layout", "layout_report",
     "ResonancePeaks", "TruthPeaks", "TruthPeakTracker", "ResonanceReport", "find_peaks", "truth_peaks",
     "resonance_errors", "resonance_report", "summary_table",
     "TravellingWaveSpectra", "probe_spectra", "fit_spectra", "identify_nd", "signed_nd",

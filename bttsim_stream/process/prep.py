@@ -52,6 +52,7 @@ __all__ = [
     "smooth_revolutions",
     "speed_adaptive_half_width",
     "prepare",
+    "smoothing_gain",
 ]
 
 
@@ -249,9 +250,10 @@ def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray 
     Returns
     -------
     d_m, offset_m : ndarray, shape (n_rev, n_blades, n_probes)
-        Displacement minus baseline, and the baseline. A column with fewer than
-        ``3 (degree + 1)`` usable revolutions gets a constant (weighted mean) baseline, one
-        with none a zero baseline.
+        Displacement minus baseline, and the baseline. The polynomial is not extrapolated:
+        outside the speeds of the revolutions it was fitted to, the baseline keeps its value
+        at the nearest of them. A column with fewer than ``3 (degree + 1)`` usable
+        revolutions gets a constant (weighted mean) baseline, one with none a zero baseline.
     """
     d = np.asarray(d_m, dtype=float)
     n_rev, nb, npr = d.shape
@@ -284,7 +286,18 @@ def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray 
         s = np.where(np.isfinite(s) & (s > 0), s, np.inf)
         u = r / (4.685 * s)
         w = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-    offset = V @ coef
+    # no extrapolation: outside the speeds of its reference revolutions (e.g. a crossing
+    # near the start of a run), a column's baseline keeps its value at the nearest end
+    used = w0 > 0
+    big = np.where(used, x[:, None], -np.inf).max(axis=0)
+    small = np.where(used, x[:, None], np.inf).min(axis=0)
+    if np.any(enough & ((x.min() < small) | (x.max() > big))):
+        xc = np.clip(x[:, None], np.where(enough, small, -np.inf), np.where(enough, big, np.inf))  # (n_rev, ncol)
+        offset = np.zeros_like(xc)
+        for k in range(p - 1, -1, -1):  # Horner, column by column
+            offset = offset * xc + coef[k][None, :]
+    else:
+        offset = V @ coef
     # columns without enough reference revolutions: weighted mean, or nothing at all
     sw = w0.sum(axis=0)
     with np.errstate(all="ignore"):
@@ -424,8 +437,51 @@ def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
     return out.reshape(d.shape)
 
 
+def smoothing_gain(half_width: np.ndarray, weights: np.ndarray | None, rows) -> np.ndarray:
+    """White-noise gain ``||L||_2`` of :func:`smooth_revolutions` at some revolutions.
+
+    Parameters
+    ----------
+    half_width : ndarray, shape (n_rev,)
+        The smoother's half-width per revolution (NaN: no smoothing, gain 1).
+    weights : ndarray, shape (n_rev,), optional
+    rows : array_like of int
+
+    Returns
+    -------
+    ndarray, shape (len(rows),)
+        The standard deviation of the smoothed value over that of one white-noise sample
+        (for equal sample variances).
+    """
+    h_all = np.asarray(half_width, dtype=float)
+    rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
+    n = h_all.size
+    out = np.ones(rows.size)
+    if n == 0 or not np.isfinite(h_all).any():
+        return out
+    w_rev = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
+    for i, r in enumerate(rows):
+        h = h_all[r]
+        if not np.isfinite(h):
+            continue
+        H = int(np.ceil(h))
+        j = np.arange(-H, H + 1, dtype=float)
+        idx = r + np.arange(-H, H + 1)
+        inside = (idx >= 0) & (idx < n)
+        u = np.abs(j) / (h + 1.0)
+        K = np.where(u < 1.0, (1.0 - u ** 3) ** 3, 0.0) * np.where(inside, w_rev[np.clip(idx, 0, n - 1)], 0.0)
+        L = _local_quadratic_weights(K[None], j)[0]
+        if np.all(np.isfinite(L)):
+            # sample variance proportional to 1 / weight (Eq. 15): gain relative to the centre sample
+            var = np.where(inside, 1.0 / np.where(inside, w_rev[np.clip(idx, 0, n - 1)], 1.0), 0.0)
+            out[i] = float(np.sqrt(np.sum(L * L * var) * w_rev[r]))
+    return out
+
+
 def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
-            options: PrepOptions = PrepOptions()) -> PreparedData:
+            options: PrepOptions = PrepOptions(), *, region: ResonanceRegion | None = None,
+            half_width: np.ndarray | None = None,
+            exclude_revolutions: np.ndarray | None = None) -> PreparedData:
     """Run the data preparation (resonance location, offset removal, noise reduction).
 
     Parameters
@@ -437,6 +493,14 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     probe_angles_rad : array_like, shape (n_probes,)
     engine_orders : int or sequence of int
     options : PrepOptions
+    region : ResonanceRegion, optional
+        Where the resonances are (e.g. from the crossings of :mod:`.detect`); default the
+        single-resonance first pass :func:`locate_resonance`.
+    half_width : ndarray, shape (n_rev,), optional
+        Smoother half-width per revolution; default from ``region`` (one resonance).
+    exclude_revolutions : ndarray of bool, shape (n_rev,), optional
+        Further revolutions left out of the baseline fit (e.g. dwells: at one speed, their
+        vibration cannot be told from an offset).
 
     Returns
     -------
@@ -445,16 +509,24 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     d = np.asarray(d_m, dtype=float)
     om = np.asarray(omega_rad_s, dtype=float)
     n_rev = d.shape[0]
-    region = locate_resonance(d, probe_angles_rad, engine_orders,
-                              exclusion_level=options.exclusion_level,
-                              exclusion_margin=options.exclusion_margin)
+    if region is None:
+        region = locate_resonance(d, probe_angles_rad, engine_orders,
+                                  exclusion_level=options.exclusion_level,
+                                  exclusion_margin=options.exclusion_margin)
     out = d
     offset = np.zeros_like(d)
     if options.remove_offset:
-        out, offset = remove_offset(d, om, region.mask, degree=options.offset_degree,
+        exclude = region.mask
+        if exclude_revolutions is not None:
+            exclude = exclude | np.asarray(exclude_revolutions, bool)[:, None]
+        out, offset = remove_offset(d, om, exclude, degree=options.offset_degree,
                                     robust=options.robust, noise_weighting=options.noise_weighting)
     half = np.full(n_rev, np.nan)
-    if options.smooth and n_rev >= 3:
+    if options.smooth and n_rev >= 3 and half_width is not None:
+        half = np.clip(np.asarray(half_width, dtype=float), max(options.min_half_width, 1.0), options.max_half_width)
+        w = 1.0 / (om * om) if options.noise_weighting else None
+        out = smooth_revolutions(out, half, w)
+    elif options.smooth and n_rev >= 3:
         sig = region.significant
         if options.smooth_half_width is not None:
             h_res = float(options.smooth_half_width)

@@ -13,20 +13,31 @@ The benchmark (Sec. 2.4) is the truth's peak-to-peak envelope of ``d_eqv`` (Eq. 
 frequency ``EO Omega_mean / (2 pi)`` of that revolution. Errors (percent):
 ``E_A = 100 |A_BTT - A_eqv| / A_eqv`` (Eq. 18), ``E_f = 100 |f_BTT - f_eqv| / f_eqv`` (Eq. 19).
 
+A run may hold several resonances (engine orders, crossings) and steady-state dwells, or
+none: :class:`ResonanceEntry` is one (EO, crossing) or one dwell, with its detection statistic
+and its own per-blade table; :class:`ResonanceReport` holds them all, a ``status``
+(``"resonance"``, ``"steady"`` or ``"none"``) and, for existing readers, the legacy top-level
+fields of the strongest one (:meth:`ResonanceReport.to_summary`, the brief's summary JSON).
+
 Blades are numbered from 0, as on the bus. Amplitudes are peak-to-peak, m; frequencies Hz.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 __all__ = [
+    "STATUSES",
+    "Detection",
+    "ResonanceEntry",
+    "window_truth",
     "ResonancePeaks",
     "TruthPeaks",
     "TruthPeakTracker",
+    "TruthRows",
     "ResonanceReport",
     "find_peaks",
     "truth_peaks",
@@ -38,6 +49,7 @@ __all__ = [
 
 TWO_PI = 2.0 * np.pi
 PEAK_METHODS = ("max", "parabolic", "sdof")
+STATUSES = ("resonance", "steady", "none")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -53,6 +65,13 @@ class ResonancePeaks:
     damping_ratio : ndarray, shape (n_blades,)
         From the ``"sdof"`` fit (NaN otherwise).
     method : str
+    phase_rad : ndarray, shape (n_blades,), or None
+        Phase of the response at the peak (Eq. 16's ``psi``), rad.
+    amp_std_m, freq_std_hz : ndarray, shape (n_blades,), or None
+        Standard uncertainty of the amplitude (pk-pk, m) and of the frequency (Hz).
+    steady_amp_pkpk_m, natural_freq_hz : ndarray, shape (n_blades,), or None
+        SDOF method only: the sweep-corrected steady-state resonant amplitude and the
+        natural frequency.
     """
 
     revolution: np.ndarray
@@ -60,6 +79,21 @@ class ResonancePeaks:
     freq_hz: np.ndarray
     damping_ratio: np.ndarray
     method: str
+    phase_rad: np.ndarray | None = None
+    amp_std_m: np.ndarray | None = None
+    freq_std_hz: np.ndarray | None = None
+    steady_amp_pkpk_m: np.ndarray | None = None
+    natural_freq_hz: np.ndarray | None = None
+
+    @property
+    def n_blades(self) -> int:
+        return int(np.asarray(self.amp_pkpk_m).size)
+
+    @classmethod
+    def empty(cls, method: str = "none") -> "ResonancePeaks":
+        """No blade at all (a report that claims no amplitude)."""
+        e = np.zeros(0)
+        return cls(revolution=e, amp_pkpk_m=e, freq_hz=e, damping_ratio=e, method=method)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -87,8 +121,25 @@ def truth_peaks(truth, engine_order: int) -> TruthPeaks:
                       freq_hz=int(engine_order) * om[rev] / TWO_PI)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class TruthRows:
+    """Per-revolution truth envelopes (what :func:`window_truth` needs).
+
+    Attributes
+    ----------
+    d_eqv_pkpk_m : ndarray, shape (n_rev, n_blades)
+        NaN for revolutions without truth.
+    omega_mean : ndarray, shape (n_rev,)
+        Mean speed, rad/s (NaN without truth).
+    """
+
+    d_eqv_pkpk_m: np.ndarray
+    omega_mean: np.ndarray
+
+
 class TruthPeakTracker:
-    """Running truth peaks for a stream: feed each revolution's truth, read the peaks.
+    """Running truth for a stream: feed each revolution's truth, read the peaks (or, for the
+    per-crossing truths of the final report, the rows: :meth:`rows`).
 
     Parameters
     ----------
@@ -108,10 +159,12 @@ class TruthPeakTracker:
         self._amp: np.ndarray | None = None
         self._rev: np.ndarray | None = None
         self._omega: np.ndarray | None = None
+        self._rows: dict[int, tuple[np.ndarray, float]] = {}
 
     def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float) -> None:
         """Add one revolution: ``d_eqv_pkpk_m`` (n_blades,) m, mean speed rad/s."""
         a = np.asarray(d_eqv_pkpk_m, dtype=float)
+        self._rows[int(revolution)] = (a.copy(), float(omega_mean_rad_s))
         if self._amp is None:
             self._amp = np.full(a.shape, -np.inf)
             self._rev = np.full(a.shape, -1, dtype=np.int64)
@@ -127,6 +180,20 @@ class TruthPeakTracker:
             return None
         return TruthPeaks(revolution=self._rev.copy(), amp_pkpk_m=self._amp.copy(),
                           freq_hz=self.engine_order * self._omega / TWO_PI)
+
+    def rows(self, first_revolution: int, n_revolutions: int) -> TruthRows | None:
+        """The truth of revolutions ``first_revolution ..`` (``n_revolutions`` rows; NaN where
+        none was received), None before any update."""
+        if self._amp is None:
+            return None
+        nb = self._amp.size
+        amp = np.full((int(n_revolutions), nb), np.nan)
+        om = np.full(int(n_revolutions), np.nan)
+        for rev, (a, w) in self._rows.items():
+            i = rev - int(first_revolution)
+            if 0 <= i < n_revolutions and a.shape == (nb,):
+                amp[i], om[i] = a, w
+        return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om)
 
 
 def _parabolic(amp: np.ndarray, peak: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -244,9 +311,162 @@ def resonance_errors(peaks: ResonancePeaks, truth: TruthPeaks) -> tuple[np.ndarr
     return e_a, e_f
 
 
+def _num(x) -> float | None:
+    """A JSON-safe float: None for NaN / inf."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _blade_rows(peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, extended: bool) -> list[dict]:
+    rows = []
+    opt = (("phase_rad", peaks.phase_rad), ("amp_std_m", peaks.amp_std_m), ("freq_std_hz", peaks.freq_std_hz),
+           ("damping_ratio", peaks.damping_ratio), ("steady_amp_pkpk_m", peaks.steady_amp_pkpk_m),
+           ("natural_freq_hz", peaks.natural_freq_hz))
+    for b in range(peaks.n_blades):
+        row = {"blade": b, "amp_pkpk_m": float(peaks.amp_pkpk_m[b]), "freq_hz": float(peaks.freq_hz[b])}
+        if extended:
+            for name, arr in opt:
+                if arr is not None and np.size(arr) == peaks.n_blades and np.isfinite(arr[b]):
+                    row[name] = float(arr[b])
+        if truth is not None:
+            row.update(truth_amp_pkpk_m=float(truth.amp_pkpk_m[b]), truth_freq_hz=float(truth.freq_hz[b]),
+                       E_A_pct=float(e_a[b]), E_f_pct=float(e_f[b]))
+        rows.append(row)
+    return rows
+
+
+def _error_stats(e_a, e_f) -> dict:
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return {"mean_E_A_pct": float(np.nanmean(e_a)), "max_E_A_pct": float(np.nanmax(e_a)),
+                    "mean_E_f_pct": float(np.nanmean(e_f)), "max_E_f_pct": float(np.nanmax(e_f))}
+
+
+@dataclass(frozen=True, slots=True)
+class Detection:
+    """Why a resonance (or a steady response) was reported.
+
+    Attributes
+    ----------
+    statistic : str
+        ``"prominence_ratio"`` for a crossing (peak of the blade-RMS amplitude over the higher
+        of its two bases, see :mod:`~bttsim_stream.process.detect`), ``"amplitude_snr"`` for a
+        dwell (mean amplitude over its standard uncertainty).
+    value, threshold : float
+    snr, snr_threshold : float
+        Signal-to-noise ratio of the crossing's peak over its base, and its threshold
+        (for a dwell, the same as ``value`` / ``threshold``).
+    """
+
+    statistic: str
+    value: float
+    threshold: float
+    snr: float
+    snr_threshold: float
+
+    @property
+    def detected(self) -> bool:
+        return bool(self.value >= self.threshold and self.snr >= self.snr_threshold)
+
+    def to_dict(self) -> dict:
+        return {"statistic": self.statistic, "value": _num(self.value), "threshold": _num(self.threshold),
+                "snr": _num(self.snr), "snr_threshold": _num(self.snr_threshold)}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ResonanceEntry:
+    """One (engine order, crossing) or one steady-state dwell, with its blade table.
+
+    Attributes
+    ----------
+    kind : {"crossing", "dwell"}
+    eo, nd : int
+        Engine order and identified nodal diameter (signed: negative for a backward wave).
+    cn : float
+        Condition number of ``B`` (Eq. 16) of the fit.
+    method : str
+        ``"peak"``, ``"sdof"`` or ``"cff"`` for a crossing, ``"mean"`` for a dwell.
+    rpm : float
+        Speed at the crossing's peak (or the dwell's mean speed), rpm.
+    freq_hz : float
+        Blade mean of the resonant (or dwell) frequency ``EO Omega / 2 pi``, Hz.
+    damping_ratio : float
+        Blade mean, from the SDOF method (NaN otherwise).
+    detection : Detection
+    first_revolution, last_revolution : int
+        Revolutions used (inclusive, numbered as in the run).
+    peak_revolution : int
+        Revolution of the crossing's detection peak (-1 for a dwell).
+    peaks : ResonancePeaks
+    truth : TruthPeaks or None
+    e_a_pct, e_f_pct : ndarray or None
+    sweep_rate : float
+        Dimensionless sweep rate ``|d omega / dt| / omega_n^2`` of the SDOF method (NaN otherwise).
+    zeroing_correction : float
+        The response the zeroing reference held, added back to this crossing's responses, as a
+        fraction of the peak response (blade mean; NaN: none applied).
+    """
+
+    kind: str
+    eo: int
+    nd: int
+    cn: float
+    method: str
+    rpm: float
+    freq_hz: float
+    damping_ratio: float
+    detection: Detection
+    first_revolution: int
+    last_revolution: int
+    peak_revolution: int
+    peaks: ResonancePeaks
+    truth: TruthPeaks | None = None
+    e_a_pct: np.ndarray | None = None
+    e_f_pct: np.ndarray | None = None
+    sweep_rate: float = math.nan
+    zeroing_correction: float = math.nan
+
+    @property
+    def mean_amp_pkpk_m(self) -> float:
+        a = np.asarray(self.peaks.amp_pkpk_m, float)
+        return float(np.nanmean(a)) if a.size and np.isfinite(a).any() else 0.0
+
+    def with_truth(self, truth: TruthPeaks | None) -> "ResonanceEntry":
+        """The same entry scored against ``truth`` (E_A, E_f; Eq. 18-19)."""
+        if truth is None:
+            return replace(self, truth=None, e_a_pct=None, e_f_pct=None)
+        e_a, e_f = resonance_errors(self.peaks, truth)
+        return replace(self, truth=truth, e_a_pct=e_a, e_f_pct=e_f)
+
+    def to_summary(self) -> dict:
+        """This entry as one element of the summary's ``resonances`` / ``steady`` lists."""
+        out = {"kind": self.kind, "eo": int(self.eo), "nd": int(self.nd), "rpm": _num(self.rpm),
+               "freq_hz": _num(self.freq_hz), "method": self.method, "cn": _num(self.cn),
+               "detection": self.detection.to_dict(),
+               "revolutions": {"first": int(self.first_revolution), "last": int(self.last_revolution),
+                               "peak": int(self.peak_revolution)}}
+        if math.isfinite(self.damping_ratio):
+            out["damping_ratio"] = float(self.damping_ratio)
+        if math.isfinite(self.sweep_rate):
+            out["sweep_rate"] = float(self.sweep_rate)
+        if math.isfinite(self.zeroing_correction):
+            out["zeroing_correction_pct"] = 100.0 * float(self.zeroing_correction)
+        out["blades"] = _blade_rows(self.peaks, self.truth, self.e_a_pct, self.e_f_pct, extended=True)
+        if self.truth is not None:
+            out.update(_error_stats(self.e_a_pct, self.e_f_pct))
+        return out
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class ResonanceReport:
-    """The resonance of every blade, with errors when the truth is known.
+    """What the run shows: resonances, steady dwells, or nothing; with errors when the
+    truth is known.
+
+    The first seven fields are the legacy top-level report (the strongest resonance, or
+    the strongest dwell when the run crosses none; no blade at all when ``status`` is
+    ``"none"``).
 
     Attributes
     ----------
@@ -259,6 +479,13 @@ class ResonanceReport:
     peaks : ResonancePeaks
     truth : TruthPeaks or None
     e_a_pct, e_f_pct : ndarray, shape (n_blades,), or None
+    status : {"resonance", "steady", "none"} or ""
+        ``""``: a legacy report (e.g. decoded from an old recording) that did not say.
+    resonances, steady : tuple of ResonanceEntry
+    reference : dict or None
+        The zeroing reference: ``{"method", "first", "last", "contamination_pct", "reason"}``.
+    notes : tuple of str
+        Why nothing (or less than expected) is reported.
     """
 
     nd: int
@@ -268,22 +495,53 @@ class ResonanceReport:
     truth: TruthPeaks | None = None
     e_a_pct: np.ndarray | None = None
     e_f_pct: np.ndarray | None = None
+    status: str = ""
+    resonances: tuple = ()
+    steady: tuple = ()
+    reference: dict | None = None
+    notes: tuple = ()
+
+    @classmethod
+    def from_entries(cls, resonances, steady, *, eo: int, cn: float, reference: dict | None = None,
+                     notes=()) -> "ResonanceReport":
+        """Build the report: status, and the legacy fields from the strongest entry
+        (largest blade-mean amplitude among the resonances, else among the dwells whose
+        response was detected; none: ``eo``, ``cn`` given, ND 0, no blade)."""
+        resonances, steady = tuple(resonances), tuple(steady)
+        live = [e for e in steady if e.detection.detected]
+        if resonances:
+            status, top = "resonance", max(resonances, key=lambda e: e.mean_amp_pkpk_m)
+        elif live:
+            status, top = "steady", max(live, key=lambda e: e.mean_amp_pkpk_m)
+        else:
+            status, top = "none", None
+        if top is None:
+            return cls(nd=0, eo=int(eo), cn=float(cn), peaks=ResonancePeaks.empty(), status=status,
+                       resonances=resonances, steady=steady, reference=reference, notes=tuple(notes))
+        return cls(nd=top.nd, eo=top.eo, cn=top.cn, peaks=top.peaks, truth=top.truth, e_a_pct=top.e_a_pct,
+                   e_f_pct=top.e_f_pct, status=status, resonances=resonances, steady=steady,
+                   reference=reference, notes=tuple(notes))
 
     def to_summary(self) -> dict:
-        """The brief's summary JSON dict (truth fields only when the truth is known)."""
-        blades = []
-        for b in range(self.peaks.amp_pkpk_m.size):
-            row = {"blade": b, "amp_pkpk_m": float(self.peaks.amp_pkpk_m[b]),
-                   "freq_hz": float(self.peaks.freq_hz[b])}
-            if self.truth is not None:
-                row.update(truth_amp_pkpk_m=float(self.truth.amp_pkpk_m[b]),
-                           truth_freq_hz=float(self.truth.freq_hz[b]),
-                           E_A_pct=float(self.e_a_pct[b]), E_f_pct=float(self.e_f_pct[b]))
-            blades.append(row)
-        out = {"nd": int(self.nd), "eo": int(self.eo), "cn": float(self.cn), "blades": blades}
-        if self.truth is not None:
-            out.update(mean_E_A_pct=float(np.nanmean(self.e_a_pct)), max_E_A_pct=float(np.nanmax(self.e_a_pct)),
-                       mean_E_f_pct=float(np.nanmean(self.e_f_pct)), max_E_f_pct=float(np.nanmax(self.e_f_pct)))
+        """The brief's summary JSON dict (truth fields only when the truth is known).
+
+        Legacy keys (``nd``, ``eo``, ``cn``, ``blades`` and the error statistics) describe the
+        strongest resonance; with ``status == "steady"`` the strongest dwell; with
+        ``status == "none"`` ``blades`` is empty, ``nd`` is 0 and there are no error
+        statistics (no amplitude is claimed). Then ``status``, ``resonances``, ``steady``,
+        ``reference`` and ``notes``.
+        """
+        out = {"nd": int(self.nd), "eo": int(self.eo), "cn": _num(self.cn),
+               "blades": _blade_rows(self.peaks, self.truth, self.e_a_pct, self.e_f_pct, extended=False)}
+        if self.truth is not None and self.peaks.n_blades:
+            out.update(_error_stats(self.e_a_pct, self.e_f_pct))
+        status = self.status or ("resonance" if self.peaks.n_blades else "none")
+        out["status"] = status
+        out["resonances"] = [e.to_summary() for e in self.resonances]
+        out["steady"] = [e.to_summary() for e in self.steady]
+        if self.reference is not None:
+            out["reference"] = dict(self.reference)
+        out["notes"] = list(self.notes)
         return out
 
     def table(self) -> str:
@@ -291,22 +549,79 @@ class ResonanceReport:
         return summary_table(self.to_summary())
 
 
-def summary_table(summary: dict) -> str:
-    """Format a summary dict (the brief's JSON form) as a text table."""
-    truth = "mean_E_A_pct" in summary
-    head = f"{'blade':>5}  {'amp mm pk-pk':>12}  {'freq Hz':>9}"
+def _blade_table(title: str, entry: dict) -> list[str]:
+    truth = "mean_E_A_pct" in entry
+    unc = any("amp_std_m" in r for r in entry["blades"])
+    head = f"{'blade':>5}  {'amp mm pk-pk':>12}"
+    if unc:
+        head += f"  {'+- mm':>7}"
+    head += f"  {'freq Hz':>9}"
     if truth:
         head += f"  {'truth mm':>9}  {'truth Hz':>9}  {'E_A %':>7}  {'E_f %':>7}"
-    lines = [f"EO {summary['eo']}  ND {summary['nd']}  CN {summary['cn']:.3g}", head]
-    for r in summary["blades"]:
-        s = f"{r['blade']:>5}  {1e3 * r['amp_pkpk_m']:>12.4f}  {r['freq_hz']:>9.3f}"
+    lines = [title, head]
+    for r in entry["blades"]:
+        s = f"{r['blade']:>5}  {1e3 * r['amp_pkpk_m']:>12.4f}"
+        if unc:
+            s += f"  {1e3 * r.get('amp_std_m', math.nan):>7.4f}"
+        s += f"  {r['freq_hz']:>9.3f}"
         if truth:
             s += (f"  {1e3 * r['truth_amp_pkpk_m']:>9.4f}  {r['truth_freq_hz']:>9.3f}"
                   f"  {r['E_A_pct']:>7.3f}  {r['E_f_pct']:>7.4f}")
         lines.append(s)
     if truth:
-        lines.append(f"E_A mean {summary['mean_E_A_pct']:.3f} %  max {summary['max_E_A_pct']:.3f} %   "
-                     f"E_f mean {summary['mean_E_f_pct']:.4f} %  max {summary['max_E_f_pct']:.4f} %")
+        lines.append(f"E_A mean {entry['mean_E_A_pct']:.3f} %  max {entry['max_E_A_pct']:.3f} %   "
+                     f"E_f mean {entry['mean_E_f_pct']:.4f} %  max {entry['max_E_f_pct']:.4f} %")
+    return lines
+
+
+def _entry_title(e: dict) -> str:
+    det = e["detection"]
+    rev = e["revolutions"]
+    cn = e["cn"] if e["cn"] is not None else math.inf
+    if e["kind"] == "dwell":
+        head = (f"STEADY  EO {e['eo']}  ND {e['nd']}  CN {cn:.3g}  {e['rpm']:.1f} rpm  {e['freq_hz']:.3f} Hz  "
+                f"revolutions {rev['first']}-{rev['last']}  amplitude/uncertainty {det['value']:.3g} "
+                f"(threshold {det['threshold']:g})")
+    else:
+        head = (f"RESONANCE  EO {e['eo']}  ND {e['nd']}  CN {cn:.3g}  {e['rpm']:.1f} rpm  {e['freq_hz']:.3f} Hz  "
+                f"method {e['method']}  revolutions {rev['first']}-{rev['last']} (peak {rev['peak']})  "
+                f"prominence ratio {det['value']:.3g} (>= {det['threshold']:g}), SNR {det['snr']:.3g} "
+                f"(>= {det['snr_threshold']:g})")
+        if "damping_ratio" in e:
+            head += f"  damping ratio {e['damping_ratio']:.5f}"
+    return head
+
+
+def summary_table(summary: dict) -> str:
+    """Format a summary dict (the brief's JSON form) as a text table: every resonance and
+    dwell found, or a line saying that none was found and why; then the ``INCOMPLETE``
+    line when the result is not the whole run."""
+    lines: list[str] = []
+    legacy = "status" not in summary or (summary["blades"] and not summary.get("resonances")
+                                         and not summary.get("steady"))
+    if legacy:  # a legacy summary (or report without entries): the one table
+        truth = "mean_E_A_pct" in summary
+        lines += _blade_table(f"EO {summary['eo']}  ND {summary['nd']}  CN {summary['cn']:.3g}",
+                              dict(summary, **({} if truth else {})))
+    else:
+        for e in summary.get("resonances", []):
+            lines += _blade_table(_entry_title(e), e) + [""]
+        for e in summary.get("steady", []):
+            lines += _blade_table(_entry_title(e), e) + [""]
+        ref = summary.get("reference")
+        if ref:
+            where = (f"revolutions {ref['first']}-{ref['last']}" if ref.get("first") is not None
+                     else "no reference window")
+            lines.append(f"zeroing: {ref['method']}, {where}: {ref['reason']}")
+        if summary["status"] == "none":
+            why = "; ".join(summary.get("notes", [])) or "no crossing passed the detection thresholds"
+            lines.append(f"NO RESONANCE FOUND (status none, no amplitude claimed): {why}")
+        else:
+            for n in summary.get("notes", []):
+                lines.append(f"note: {n}")
+            k = len(summary.get("resonances", []))
+            lines.append(f"status {summary['status']}: {k} resonance{'s' if k != 1 else ''}, "
+                         f"{len(summary.get('steady', []))} dwell(s)")
     if summary.get("complete") is False:
         lines.append(f"INCOMPLETE: {summary['revolutions_processed']} of {summary['revolutions_expected']} "
                      f"revolutions processed, {summary['lost']} messages lost, {summary['duplicates']} "
@@ -316,9 +631,63 @@ def summary_table(summary: dict) -> str:
 
 def resonance_report(peaks: ResonancePeaks, *, nd: int, eo: int, cn: float,
                      truth: TruthPeaks | None = None) -> ResonanceReport:
-    """Bundle peaks (and errors against ``truth`` when given) into a :class:`ResonanceReport`."""
+    """Bundle one set of peaks (and errors against ``truth`` when given) into a legacy
+    :class:`ResonanceReport` (no detection: ``status`` is left unsaid)."""
     if truth is None:
         return ResonanceReport(nd=int(nd), eo=int(eo), cn=float(cn), peaks=peaks)
     e_a, e_f = resonance_errors(peaks, truth)
     return ResonanceReport(nd=int(nd), eo=int(eo), cn=float(cn), peaks=peaks, truth=truth,
                            e_a_pct=e_a, e_f_pct=e_f)
+
+
+def window_truth(truth, engine_order: int, first: int, last: int, *, mean: bool = False) -> TruthPeaks | None:
+    """The truth attributable to one crossing (or dwell): per blade, the largest (``mean``:
+    the average) truth envelope ``d_eqv_pkpk`` over revolutions ``first .. last`` (indices of
+    the truth's rows), and ``EO Omega / 2 pi`` there.
+
+    Parameters
+    ----------
+    truth : Truth-like or TruthPeaks
+        Anything with ``d_eqv_pkpk_m`` (n_rev, n_blades) and ``omega_mean`` (n_rev,); rows
+        may be NaN (revolutions without truth). A :class:`TruthPeaks` (peaks only) applies
+        to the blades whose peak revolution lies in the window (NaN elsewhere).
+    engine_order : int
+    first, last : int
+    mean : bool
+
+    Returns
+    -------
+    TruthPeaks or None
+        None when the window holds no truth.
+
+    Notes
+    -----
+    The simulator's envelope sums the responses to every excitation (``2 sum_m |G_m|``):
+    with several engine orders, the window's truth includes the other orders' off-resonance
+    response.
+    """
+    if truth is None:
+        return None
+    if isinstance(truth, TruthPeaks):
+        rev = np.asarray(truth.revolution)
+        inside = (rev >= first) & (rev <= last)
+        if not inside.any():
+            return None
+        nan = np.full(rev.shape, np.nan)
+        return TruthPeaks(revolution=np.where(inside, rev, -1), amp_pkpk_m=np.where(inside, truth.amp_pkpk_m, nan),
+                          freq_hz=np.where(inside, truth.freq_hz, nan))
+    pk = np.asarray(truth.d_eqv_pkpk_m, dtype=float)[first:last + 1]
+    om = np.asarray(truth.omega_mean, dtype=float)[first:last + 1]
+    if pk.size == 0 or not np.isfinite(pk).any():
+        return None
+    nb = pk.shape[1]
+    if mean:
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            amp = np.nanmean(pk, axis=0)
+            f = int(engine_order) * np.nanmean(om) / TWO_PI
+        return TruthPeaks(revolution=np.full(nb, first, np.int64), amp_pkpk_m=amp, freq_hz=np.full(nb, f))
+    i = np.argmax(np.where(np.isfinite(pk), pk, -np.inf), axis=0)
+    return TruthPeaks(revolution=(first + i).astype(np.int64), amp_pkpk_m=pk[i, np.arange(nb)],
+                      freq_hz=int(engine_order) * om[i] / TWO_PI)

@@ -1,0 +1,89 @@
+"""Issue 12: impossible input to ``bttsim cn``, ``probes``, ``process`` and ``scenario --check``
+ends in one line and exit status 2 (never a traceback, never ``inf`` with status 0)."""
+
+import pytest
+
+from bttsim_stream import cli
+from bttsim_stream.scenario import default_toml
+
+SINGULAR = "[probes]\nangles_deg = [0.0, 45.0, 90.0, 135.0]\n"
+
+
+def _error(capsys, *argv) -> str:
+    assert cli.main(list(argv)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bttsim: error:") and err.count("\n") == 1, err
+    return err
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["cn", "--eo", "0"], "engine order must be >= 1"),
+    (["cn", "--eo", "-8"], "engine order must be >= 1"),
+    (["cn", "--eo", "8.5"], "whole numbers"),
+    (["cn", "--probes", "5,15"], "cannot separate the 3 unknowns"),
+    (["cn", "--eo", "8,9", "--probes", "5,15,25,35"], "cannot separate the 5 unknowns"),
+    (["cn", "--probes", "0,400,20,30,40"], "[0, 360)"),
+    (["cn", "--probes=-5,15,25"], "[0, 360)"),
+    (["cn", "--probes", "1,1,2,3"], "distinct"),
+    (["cn", "--probes", "5,x,3"], "comma-separated degrees"),
+    (["cn", "--probes", "0,45,90,135"], "singular"),
+    (["probes", "--n", "2"], "at least 3 probes"),
+    (["probes", "--n", "20"], "only 11 candidate angles"),
+    (["probes", "--eo", "0"], "engine order must be >= 1"),
+    (["probes", "--top", "0"], "--top must be >= 1"),
+    (["probes", "--candidates", "0,45,90,135", "--n", "4"], "every layout"),
+    (["probes", "--candidates", "10,20,400", "--n", "3"], "[0, 360)"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_layout_commands_refuse_impossible_input(capsys, argv, words):
+    assert words in _error(capsys, *argv)
+
+
+def test_layout_commands_still_answer(capsys):
+    assert cli.main(["cn"]) == 0
+    assert capsys.readouterr().out.strip() == "1.433"
+    assert cli.main(["cn", "--probes", "1,2,3"]) == 0  # computable, but poor: a warning
+    out = capsys.readouterr()
+    assert float(out.out) > 100 and "warning" in out.err
+    assert cli.main(["probes", "--top", "2"]) == 0
+    assert "462 layouts" in capsys.readouterr().out
+
+
+def test_scenario_check_refuses_a_singular_layout_and_warns_on_a_poor_one(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SINGULAR)
+    err = _error(capsys, "scenario", "--check", str(bad))
+    assert "singular at EO 8" in err and "condition number inf" in err and "add probes or move them" in err
+    poor = tmp_path / "poor.toml"
+    poor.write_text("[probes]\nangles_deg = [5.0, 10.6, 15.15, 148.5, 190.35]\n")  # Table 3's CN 16.7
+    assert cli.main(["scenario", "--check", str(poor)]) == 0
+    out = capsys.readouterr()
+    assert "CN 16.7 at EO 8" in out.out and "warning" in out.err and "above 10" in out.err
+    ok = tmp_path / "ok.toml"
+    ok.write_text(default_toml())
+    assert cli.main(["scenario", "--check", str(ok)]) == 0
+    assert "CN 1.43 at EO 8" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def singular_mcap(tmp_path_factory):
+    from bttsim_stream.acquisition import simulate_to_mcap
+    from bttsim_stream.paper.validate_processing import default_model
+    from bttsim_stream.scenario import scenario_from_dict
+
+    path = tmp_path_factory.mktemp("singular") / "singular.mcap"
+    scn = scenario_from_dict({"probes": {"angles_deg": [0.0, 45.0, 90.0, 135.0]},
+                              "speed": {"start_rpm": 2450.0, "end_rpm": 2500.0, "duration_s": 2.0}})
+    simulate_to_mcap(scn, path, model=default_model())
+    return path
+
+
+def test_process_error_paths(capsys, singular_mcap, tmp_path):
+    err = _error(capsys, "process", str(singular_mcap))
+    assert "cannot separate EO 8" in err and "add or move probes" in err
+    sample = "recordings/resonance_window.mcap"
+    assert "engine order must be >= 1" in _error(capsys, "process", sample, "--eo", "0")
+    assert "--eo-range" in _error(capsys, "process", sample, "--eo-range", "9-3")
+    assert "--eo-range" in _error(capsys, "process", sample, "--eo-range", "nine")
+    assert "window" in _error(capsys, "process", sample, "--window", "0")
+    assert "cannot write" in _error(capsys, "process", sample, "--summary", str(tmp_path / "no" / "dir.json"))
+    _error(capsys, "process", str(tmp_path / "missing.mcap"))
