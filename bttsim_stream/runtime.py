@@ -166,6 +166,13 @@ class NodeContext:
         a simulator waiting for the token then finds them)."""
         self.declare(self.session.liveliness().declare_token(keys.alive_key(self.rig, self.name)))
 
+    def ready(self) -> None:
+        """Declare (once) the token ``bttsim/<rig>/ready/<name>``: this node has received the run
+        metadata on the bus, so its subscriptions reach the simulator, which waits for it."""
+        if not getattr(self, "_ready", False):
+            self._ready = True
+            self.declare(self.session.liveliness().declare_token(keys.ready_key(self.rig, self.name)))
+
     def watch_nodes(self, names, grace_s: float = 5.0) -> NodeWatch:
         """Follow the named nodes' liveliness: :meth:`samples` ends once they are gone."""
         self.watch = NodeWatch(self.session, self.rig, names, grace_s=grace_s)

@@ -51,6 +51,9 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         asked_meta = 0.0
         for sample in node.samples(stop):
             if sample is None:
+                if run is None and time.monotonic() - asked_meta > 1.0:  # missed the sample? ask
+                    asked_meta = time.monotonic()
+                    node.query(keys.meta_key(rig))
                 continue
             key, payload = str(sample.key_expr), sample.payload.to_bytes()
             att = unpack_attachment(sample.attachment)
@@ -70,6 +73,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                     except ValueError as exc:  # the layout cannot separate an engine order: say so, once
                         raise BttsimError(f"cannot process rig {rig}: {exc}") from None
                     run.rejected += bad
+                    node.ready()
                     for e in early:
                         publish(run.add(*e))
                     early.clear()

@@ -61,6 +61,7 @@ def main(conf, args: argparse.Namespace) -> dict:
                 info = codec.decode_run_metadata(payload, key).body
                 rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
                 meta_done.add(key)
+                node.ready()
             rec.write(key, payload, t_ns, seq=seq or 0)
         summary = dict(stats.summary(), rejected=rejected + stats.implausible)
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})

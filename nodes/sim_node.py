@@ -28,6 +28,9 @@ from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, node_session
 from bttsim_stream.scenario import Scenario, load_scenario
 
 log = logging.getLogger("bttsim.sim")
+#: How long the simulator waits, after the metadata, for the nodes it waited for to confirm it
+#: (``bttsim/<rig>/ready/<node>``; the project's nodes do; a foreign subscriber may not).
+READY_TIMEOUT_S = 5.0
 
 
 def main(conf, args: argparse.Namespace) -> dict:
@@ -61,6 +64,11 @@ def main(conf, args: argparse.Namespace) -> dict:
         # recorder stores it in stream order; the queryable answers on demand
         node.publisher(meta.key, lossy=args.lossy).put(meta.payload, attachment=pack_attachment(meta.seq, 0))
         sent += 1
+        if args.wait_for:  # and for them to have it: then their subscriptions reach us
+            ready = wait_for_liveliness(node.session, f"{keys.PREFIX}/{stream.rig}/ready/*", args.wait_for,
+                                        min(args.wait_timeout, READY_TIMEOUT_S), stop)
+            if ready < args.wait_for and not stop:
+                log.warning("%d of %d node(s) confirmed the run metadata; publishing anyway", ready, args.wait_for)
         t_wall0 = time.monotonic()
         for batch, msgs in stream.batches():
             if stop:

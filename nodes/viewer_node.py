@@ -47,6 +47,8 @@ def main(conf, args: argparse.Namespace) -> None:
                     live.poll()
                 else:
                     live.feed(str(sample.key_expr), sample.payload.to_bytes())
+                    if live.meta is not None:
+                        node.ready()
         live.close()
         log.info("showed %d messages (%d revolutions, %d fits, %d travelling waves)", live.stats["messages"],
                  live.stats["revolutions"], live.stats["fits"], live.stats["tw"])

@@ -91,7 +91,7 @@ def test_assembler_gives_complete_revolutions_in_order_despite_reordering():
     rng = np.random.default_rng(0)
     order = np.argsort([d.header.revolution + rng.uniform(0.0, 1.9) for _, d in frags])
     assert not np.all(np.diff(order) > 0)
-    asm = RevolutionAssembler(NB, NP)
+    asm = RevolutionAssembler(NB, NP, reorder=2)
     got = []
     for i in order:
         asm.add(*frags[i])
@@ -106,7 +106,7 @@ def test_assembler_gives_complete_revolutions_in_order_despite_reordering():
 
 def test_assembler_waits_for_missing_probes_until_a_revolution_two_later_is_complete():
     batch, frags = _fragments(drop={("toa", 1, 3)})
-    asm = RevolutionAssembler(NB, NP)
+    asm = RevolutionAssembler(NB, NP, reorder=2)
     released = {}
     for kind, d in frags:
         asm.add(kind, d)

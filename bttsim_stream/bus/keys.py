@@ -149,6 +149,14 @@ def alive_key(rig: str, node: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/alive/{node}"
 
 
+def ready_key(rig: str, node: str) -> str:
+    """Liveliness token of a node that has the run's metadata (``bttsim/<rig>/ready/<node>``):
+    its subscriptions demonstrably reach the publisher, so the simulator may start."""
+    if not _NAME_RE.fullmatch(str(node)):
+        raise BttsimError(f"invalid node name {node!r} (expected [A-Za-z0-9_-]+)")
+    return f"{PREFIX}/{validate_rig(rig)}/ready/{node}"
+
+
 def alive_all_key(rig: str) -> str:
     """``bttsim/<rig>/alive/*``: every node's liveliness token."""
     return f"{PREFIX}/{validate_rig(rig)}/alive/*"

@@ -44,6 +44,15 @@ def add_session_args(parser: argparse.ArgumentParser) -> None:
                    help="enable multicast scouting (off by default: loopback-only runs)")
 
 
+#: Zenoh's defaults close a link whose receiver has not drained a blocking (lossless) message
+#: within 5 s, or that was silent for 10 s: on a loaded machine (or a consumer stopped for a
+#: while) that loses messages mid-run. We would rather stall the publisher than lose data.
+_PATIENCE = {
+    "transport/link/tx/queue/congestion_control/block/wait_before_close": "60000000",  # us
+    "transport/link/tx/lease": "30000",  # ms
+}
+
+
 def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | None = None,
                 multicast_scouting: bool = False) -> "zenoh.Config":
     """A Zenoh configuration; a bad file or endpoint is a one-line :class:`BttsimError`.
@@ -54,7 +63,8 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
     endpoints...), but where it says nothing about listen endpoints the node listens only
     where ``listen`` says (not on every interface, zenoh's own default), multicast scouting
     stays off unless the file or ``multicast_scouting`` turns it on, and ``-e``/``-l`` given
-    on the command line are added.
+    on the command line are added. Links are patient (:data:`_PATIENCE`): a slow consumer
+    slows the publisher down (lossless) instead of being cut off after 5 s.
     """
     try:
         if config_file:
@@ -81,6 +91,10 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
                 raise BttsimError("client mode needs -e/--connect ENDPOINT")
         if connect:
             conf.insert_json5("connect/endpoints", _json_list(connect))
+        defaults = zenoh.Config()
+        for key, value in _PATIENCE.items():  # unless the file chose otherwise
+            if conf.get_json(key) == defaults.get_json(key):
+                conf.insert_json5(key, value)
         conf.insert_json5("timestamping/enabled", "true")  # needed by the advanced publishers
         return conf
     except BttsimError:

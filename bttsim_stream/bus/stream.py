@@ -286,8 +286,9 @@ class RevolutionAssembler:
 
     Revolutions come out in increasing order from :meth:`pop`: a revolution as soon as its
     OPR and every probe's batch are in; an incomplete one (probe batches lost, NaN TOAs)
-    once a revolution two or more ahead is complete (the stream is in order, so nothing more
-    will come for it), or at the end (``final``). A revolution without an OPR
+    once a revolution ``reorder`` or more ahead is complete (messages of different keys may
+    overtake each other, through a router under load by several revolutions; beyond that
+    nothing more will come for it), or at the end (``final``). A revolution without an OPR
     pulse cannot be placed and is dropped (counted in :attr:`dropped`).
 
     Every fragment is untrusted: one for a revolution already given out, outside
@@ -305,14 +306,17 @@ class RevolutionAssembler:
         The run's revolution count (from the run metadata), if known.
     max_ahead : int
         Largest accepted distance beyond the last revolution given out.
+    reorder : int
+        How far (revolutions) fragments may arrive out of order.
     """
 
     def __init__(self, n_blades: int, n_probes: int, *, n_revolutions: int | None = None,
-                 max_ahead: int = 64) -> None:
+                 max_ahead: int = 64, reorder: int = 8) -> None:
         self.n_blades = int(n_blades)
         self.n_probes = int(n_probes)
         self.n_revolutions = None if not n_revolutions else int(n_revolutions)
         self.max_ahead = int(max_ahead)
+        self.reorder = max(1, int(reorder))
         self.duplicates = 0
         self._opr: dict[int, float] = {}
         self._toa: dict[int, np.ndarray] = {}
@@ -385,7 +389,7 @@ class RevolutionAssembler:
         for k in sorted(set(self._opr) | set(self._toa)):  # nothing is added while popping
             has_opr = k in self._opr
             complete = self._complete(k)
-            if not (complete or final or self._max_complete >= k + 2):
+            if not (complete or final or self._max_complete >= k + self.reorder):
                 break
             toa = self._toa.pop(k, None)
             self._seen.pop(k, None)
