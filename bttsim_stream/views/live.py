@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import rerun as rr
 
 from ..bus import codec, keys
+from ..bus.stream import SequenceTracker
 from ..errors import BttsimError
 from ..process.pipeline import ProcessOptions, engine_orders_of
 from ._common import ViewOutput
@@ -55,7 +56,7 @@ class MessageDecoder:
     def __init__(self) -> None:
         self.ignored = 0
         self.bad = 0
-        self._next_seq: dict[str, int] = {}
+        self._seqs = SequenceTracker()
         self._keys: dict[str, keys.KeyInfo | None] = {}  # a bus has few keys: parse each once
 
     def decode(self, key: str, payload: bytes) -> Incoming | None:
@@ -77,11 +78,9 @@ class MessageDecoder:
             if self.bad <= 3:
                 log.warning("skipped a message: %s", exc)
             return None
-        seq = decoded.header.seq
-        if seq < self._next_seq.get(key, 0):
+        if not self._seqs.accept(key, decoded.header.seq):  # history already received live
             self.ignored += 1
             return None
-        self._next_seq[key] = seq + 1
         return Incoming(info.kind, info.rig, decoded)
 
 
