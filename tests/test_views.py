@@ -41,8 +41,8 @@ from bttsim_stream.views.resonance import resonance_markdown  # noqa: E402
 from bttsim_stream.views.revolutions import CALIBRATION_REVOLUTIONS, RevolutionDisplacements  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-SHORT = "[speed]\nstart_rpm = 2500.0\nend_rpm = 2600.0\nduration_s = 3.0\n"
-N_REV = 127  # revolutions of SHORT
+SHORT = "[speed]\nstart_rpm = 2450.0\nend_rpm = 2700.0\nduration_s = 3.0\n"  # through the resonance (2581.5 rpm)
+N_REV = 128  # revolutions of SHORT
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -221,7 +221,9 @@ def test_views_eq1_without_sensing_angles_is_calibrated_on_the_first_revolutions
     # window's vibration (this run starts near resonance) becomes the zero
     reference = np.median(d_eq1[:CALIBRATION_REVOLUTIONS], axis=0)
     assert np.abs(reference).max() > 1e-4
-    np.testing.assert_allclose(d[:-1], (d_eq1 - reference)[:-1], rtol=0, atol=1e-8)
+    # the calibration shifts an arrival angle, which is the displacement R dpsi only up to the
+    # ratio of the revolution's mean to its instantaneous speed (1e-4 in this sweep): 1e-8 m
+    np.testing.assert_allclose(d[:-1], (d_eq1 - reference)[:-1], rtol=0, atol=5e-8)
 
 
 @pytest.mark.unit
@@ -301,7 +303,7 @@ def test_campbell_labels_do_not_overlap(short_run, changes):
     assert all(f"EO {e}" in texts for e in info.engine_orders)  # the excited EOs always
     assert sum(t.startswith("EO ") and " x ND" not in t for t in texts) >= 10
     if not changes:  # the short run: every EO line, the crossing, the run range and the family
-        assert texts.count("EO 12") == 1 and "run 2500-2600 rpm" in texts
+        assert texts.count("EO 12") == 1 and "run 2450-2700 rpm" in texts
         assert any(t.startswith("EO 8 x ND 1: ") for t in texts) and any(t.startswith("family 1") for t in texts)
 
 
