@@ -21,7 +21,7 @@ from ..errors import BttsimError
 from ..model import build_model, load_model
 from .modal import EnvelopeIntegrator, build_grid, modal_forcing, tip_basis
 from .speed import SpeedProfile, speed_profile_from_scenario
-from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_coefficients, hp_crossings,
+from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
                   project_planes, stage_b)
 
 __all__ = ["RunInfo", "Truth", "RevolutionBatch", "RunUpSimulator", "load_scenario_model",
@@ -279,43 +279,54 @@ class RunUpSimulator:
         -------
         t : ndarray, shape (n,)
             Grid times.
-        GD : ndarray, complex, shape (n, 2, n_exc, n_blades, r)
-            Envelopes ``G`` and derivatives ``dG`` of every blade.
+        GD : ndarray, shape (cap, n_blades, 4 * n_exc * r)
+            The buffer: per grid point and blade, envelopes ``G`` then derivatives ``dG``,
+            real then imaginary parts, each ``(n_exc, r)``; grid point ``k`` of ``t`` is at
+            index ``lo + k``.
+        lo : int
         """
         i_end = min(int(np.searchsorted(self.grid, t_end)) + 1, self.grid.size - 1)
         while self._i_grid < i_end or self._hi == 0:
             stop = min((self._i_grid // self._block + 1) * self._block, self.grid.size - 1)
-            t_new, GD = self.integrator.advance(self.grid[self._i_grid:stop + 1], rows=True)
+            t_blk = self.grid[self._i_grid:stop + 1]
             first = 0 if self._hi == 0 else 1  # the block's first point is the last one kept
-            self._store(t_new[first:], GD[first:], t_start)
+            n_new = t_blk.size - first
+            self._reserve(n_new, t_start)
+            hi = self._hi
+            n_exc, nb = self.eo.size, self.model.n_blades
+            planes = np.empty((2, n_exc, 2, n_new, nb * self.basis.nodes.shape[0]))
+            self.integrator.advance(t_blk, out=planes, first=first)
+            # one row of (G, dG) x (re, im) x r per grid point and blade
+            self._buf[hi:hi + n_new] = planes.reshape(4 * n_exc, n_new, nb, -1).transpose(1, 2, 0, 3).reshape(
+                n_new, nb, -1)
+            self._buf_t[hi:hi + n_new] = t_blk[first:]
+            self._hi = hi + n_new
             self._i_grid = stop
             if stop == self.grid.size - 1:
                 break
         lo, hi = self._lo, self._hi
         self._lo = max(lo, lo + int(np.searchsorted(self._buf_t[lo:hi], t_start, side="right")) - 2)
-        return self._buf_t[self._lo:hi], self._buf[self._lo:hi]
+        return self._buf_t[self._lo:hi], self._buf, self._lo
 
-    def _store(self, t_new: np.ndarray, GD: np.ndarray, t_start: float) -> None:
-        """Append grid points to the buffer, first moving the ones still needed (from
-        ``t_start`` on) to its front when it is full."""
-        n = t_new.size
-        if self._buf is None or self._hi + n > self._buf_t.size:
-            lo, hi = self._lo, self._hi
-            if self._buf is not None:
-                lo = max(lo, lo + int(np.searchsorted(self._buf_t[lo:hi], t_start, side="right")) - 2)
-            keep = hi - lo
-            cap = max(2 * (keep + n), 4 * self._block + 8)
-            if self._buf is None or cap > self._buf_t.size:
-                buf_t, buf = np.empty(cap), np.empty((cap,) + GD.shape[1:], complex)
-            else:
-                buf_t, buf = self._buf_t, self._buf
-            if keep:
-                buf_t[:keep] = self._buf_t[lo:hi]
-                buf[:keep] = self._buf[lo:hi]
-            self._buf_t, self._buf, self._lo, self._hi = buf_t, buf, 0, keep
-        self._buf_t[self._hi:self._hi + n] = t_new
-        self._buf[self._hi:self._hi + n] = GD
-        self._hi += n
+    def _reserve(self, n: int, t_start: float) -> None:
+        """Room for ``n`` more grid points: when the buffer is full, the points still needed
+        (from ``t_start`` on) move to its front (it grows only if they do not fit)."""
+        if self._buf is not None and self._hi + n <= self._buf_t.size:
+            return
+        lo, hi = self._lo, self._hi
+        if self._buf is not None:
+            lo = max(lo, lo + int(np.searchsorted(self._buf_t[lo:hi], t_start, side="right")) - 2)
+        keep = hi - lo
+        cap = max(2 * (keep + n), 4 * self._block + 8)
+        n_exc, r, nb = self.eo.size, self.basis.nodes.shape[0], self.model.n_blades
+        if self._buf is None or cap > self._buf_t.size:
+            buf_t, buf = np.empty(cap), np.empty((cap, nb, 4 * n_exc * r))
+        else:
+            buf_t, buf = self._buf_t, self._buf
+        if keep:
+            buf_t[:keep] = self._buf_t[lo:hi]
+            buf[:keep] = self._buf[lo:hi]
+        self._buf_t, self._buf, self._lo, self._hi = buf_t, buf, 0, keep
 
     # -- one chunk -------------------------------------------------------------------------
     def _chunk(self, revs: np.ndarray) -> RevolutionBatch:
@@ -342,7 +353,7 @@ class RunUpSimulator:
         blade = np.tile(np.repeat(np.arange(nb), npr), nr)
         margin = 2 * self.h_env + 2e-3
         t_clock = time.process_time()
-        env_t, GD = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
+        env_t, GD, lo = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
         self.timing["envelopes_s"] += time.process_time() - t_clock
         t_clock = time.process_time()
         # 2. Hermite coefficients of each crossing's blade envelope, crossings last
@@ -350,11 +361,11 @@ class RunUpSimulator:
         t0 = env_t[i]
         n_exc, r = self.eo.size, self.basis.nodes.shape[0]
         # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
-        flat = ((2 * n_exc * nb) * i + blade)[None, :] + (nb * np.arange(4 * n_exc))[:, None]
-        g = GD.reshape(-1, r).take(flat.ravel(), axis=0)  # (4 n_exc * n, r)
-        g = np.ascontiguousarray(g.view(float).reshape(4 * n_exc, -1, r, 2).transpose(0, 2, 3, 1))
-        g0, g1 = g.reshape(2, 2, n_exc, r, 2, -1)
-        CPr = hermite_coefficients(g0[0], g1[0], g0[1], g1[1], env_t[i + 1] - t0)  # (4, n_exc, r, 2, n)
+        row = (lo + i) * nb + blade
+        g = GD.reshape(-1, GD.shape[-1]).take(np.concatenate([row, row + nb]), axis=0)
+        # [G0, dG0, G1, dG1] -> cubic Hermite coefficients in tau = t - t0, (4, n_exc, r, 2, n)
+        CPr = hermite_in_place(np.ascontiguousarray(g.reshape(2, -1, 2, n_exc, 2, r).transpose(0, 2, 3, 5, 4, 1))
+                               .reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
         frame = crossing_frame(self.speed, t0, t_r, self.eo)
         phi_r, om_r = frame.phi_ref, frame.om_ref
         tau = t_r - t0

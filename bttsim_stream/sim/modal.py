@@ -297,10 +297,15 @@ class EnvelopeIntegrator:
     initial : {"steady", "rest"}
         ``"steady"`` starts every mode in its quasi-steady forced response at the start
         speed (the rotor was running before the run-up); ``"rest"`` starts at rest.
+    quasi_steady : bool
+        Take the quasi-steady series where it is exact to round-off
+        (:meth:`quasi_steady_terms`); False: the exact recursion everywhere (the reference
+        of the tests).
     """
 
     def __init__(self, freq_hz, damping_ratio, C, eo, basis: TipBasis, speed: SpeedProfile,
-                 initial: str = "steady") -> None:
+                 initial: str = "steady", quasi_steady: bool = True) -> None:
+        self.quasi_steady = bool(quasi_steady)
         w = 2.0 * np.pi * np.asarray(freq_hz, float)
         zeta = np.asarray(damping_ratio, float)
         active = np.max(np.abs(C), axis=1) > 1e-14 * max(np.max(np.abs(C)), 1e-300)
@@ -356,22 +361,33 @@ class EnvelopeIntegrator:
         acc = np.concatenate([np.zeros_like(g[:1]), np.cumsum(g * np.exp(-L[1:]), axis=0)])
         return np.exp(L) * (a0[None] + acc)
 
-    def advance(self, t_grid: np.ndarray, keep_modal: bool = False, rows: bool = False):
+    def advance(self, t_grid: np.ndarray, keep_modal: bool = False, out: np.ndarray | None = None,
+                first: int = 0):
         """Integrate from the current time (``t_grid[0]``) over ``t_grid``; return envelopes.
 
         ``t_grid`` must come from :func:`build_grid` (no step straddles a speed knot).
-        Returns an :class:`EnvelopeGrid`, or with ``rows`` the pair ``(t_grid, GD)`` with
-        ``GD`` of shape ``(n, 2, n_exc, n_blades, r)`` (``G`` then ``dG``).
 
-        Both carriers of every excitation are advanced together. Within a run of equal steps
-        ``h`` in one speed segment (constant ``alpha``), the exact one-step recursion
-        ``a_n = exp(lambda h) P_n a_{n-1} + c h I(u_n, v)`` (``P_n = exp(-+ i EO dphi_n)``,
-        paper Eq. 5-7 forcing) is summed in closed form as
-        ``a_n = E_n Phi_n (a_0 + sum_j E_j^-1 conj(Phi_j) c h I_j)`` with ``E_n = exp(lambda h n)``
-        (per mode, shared by both carriers) and ``Phi_n = exp(-+ i EO (phi_n - phi_0))`` (per
-        step, shared by all modes), and ``exp(u_n) = exp(lambda h) exp(-+ i EO Omega_n h)``
-        enters :func:`_chirp_given_exp` as a product: no transcendental function is evaluated
-        per mode and step.
+        Both carriers of every excitation are advanced together, speed segment by speed
+        segment (:meth:`_run`): the quasi-steady series where it is exact to round-off, the
+        exact recursion elsewhere. The modal envelopes are then summed into blade envelopes
+        ``G = sum_k Psi_k (a_+ - conj(a_-))_k / w_dk`` and their exact derivatives
+        ``dG = sum_k Psi_k ((mu_+ a_+ + c_+) - conj(mu_- a_- + c_-))_k / w_dk``.
+
+        Parameters
+        ----------
+        t_grid : ndarray, shape (n,)
+        keep_modal : bool
+            Keep the modal envelopes in the result (for tests).
+        out : ndarray, shape (2, n_exc, 2, n - first, n_blades * r), optional
+            Receives ``G`` and ``dG`` (real and imaginary parts) at ``t_grid[first:]``, each
+            ``(n - first, n_blades * r)`` plane contiguous (written by the matrix products
+            themselves); nothing is returned then.
+        first : int
+            First grid point written to ``out``.
+
+        Returns
+        -------
+        EnvelopeGrid or None
         """
         t_grid = np.asarray(t_grid, float)
         if abs(t_grid[0] - self.t) > 1e-12 * max(1.0, abs(self.t)):
@@ -393,11 +409,18 @@ class EnvelopeIntegrator:
         D = mu * A
         D += self._c_s[None]
         Ap, Am = A[..., :n_exc], A[..., n_exc:]
-        X = np.stack([Ap - np.conj(Am), D[..., :n_exc] - np.conj(D[..., n_exc:])], axis=1)  # (n, 2, n_act, n_exc)
+        XG = Ap - np.conj(Am)  # (n, n_act, n_exc)
+        XD = D[..., :n_exc] - np.conj(D[..., n_exc:])
+        if out is not None:
+            for g, X in enumerate((XG, XD)):
+                for m in range(n_exc):
+                    Xm = X[first:, :, m]
+                    np.matmul(np.ascontiguousarray(Xm.real), self.W, out=out[g, m, 0])
+                    np.matmul(np.ascontiguousarray(Xm.imag), self.W, out=out[g, m, 1])
+            return None
+        X = np.stack([XG, XD], axis=1)  # (n, 2, n_act, n_exc)
         GD = self._to_blades(X.transpose(0, 1, 3, 2).reshape(n * 2 * n_exc, -1))  # (n * 2 * n_exc, nb * r)
         GD = GD.reshape(n, 2, n_exc, self.n_blades, self.r)
-        if rows:
-            return t_grid, GD
         return EnvelopeGrid(t=t_grid, G=GD[:, 0], dG=GD[:, 1],
                             a_plus=Ap.copy() if keep_modal else None,
                             a_minus=Am.copy() if keep_modal else None)
@@ -457,7 +480,7 @@ class EnvelopeIntegrator:
         allows (plus the exact homogeneous part where it is not negligible), the exact
         recursion (:meth:`_run_exact`) elsewhere."""
         mu_s = mu[start:stop + 1]
-        K = self.quasi_steady_terms(mu_s, alpha)
+        K = self.quasi_steady_terms(mu_s, alpha) if self.quasi_steady else np.zeros(mu_s.shape[1], int)
         qs = K > 0
         n_qs = int(np.count_nonzero(qs))
         self.stats["quasi_steady"] += n_qs

@@ -39,7 +39,7 @@ from .modal import EnvelopeGrid
 from .speed import SpeedProfile
 
 __all__ = ["CrossingSet", "prepare_crossings", "eval_compressed", "node_displacement", "eval_nodes", "stage_a_hp",
-           "stage_a_grid", "stage_b", "hermite_coefficients", "LocalMotion", "crossing_frame", "project_planes", "eval_planes", "eval_local",
+           "stage_a_grid", "stage_b", "hermite_coefficients", "hermite_in_place", "LocalMotion", "crossing_frame", "project_planes", "eval_planes", "eval_local",
            "node_angle_residual", "hp_crossings", "grid_crossings"]
 
 
@@ -225,13 +225,27 @@ def hermite_coefficients(G0, G1, D0, D1, h):
     """Cubic Hermite coefficients ``(P0, P1, P2, P3)`` in ``tau = t - t0`` of an envelope
     with values ``G0, G1`` and derivatives ``D0, D1`` at ``t0`` and ``t0 + h`` (``h``
     broadcasts against the last axis). Returns an array of shape ``(4,) + G0.shape``."""
-    inv = 1.0 / h
-    dG = (G1 - G0) * inv
     P = np.empty((4,) + np.shape(G0), np.result_type(G0, D0))
-    P[0] = G0
-    P[1] = D0
-    P[2] = (3.0 * dG - 2.0 * D0 - D1) * inv
-    P[3] = (D0 + D1 - 2.0 * dG) * (inv * inv)
+    P[0], P[1], P[2], P[3] = G0, D0, G1, D1
+    return hermite_in_place(P, h)
+
+
+def hermite_in_place(P: np.ndarray, h) -> np.ndarray:
+    """:func:`hermite_coefficients` of ``P = [G0, D0, G1, D1]`` (first axis), in place.
+
+    With ``s = (G1 - G0) / h`` and ``e = D0 + D1 - 2 s``: ``P2 = (s - D0 - e) / h``
+    (``= (3 s - 2 D0 - D1) / h``) and ``P3 = e / h^2``."""
+    inv = 1.0 / h
+    s = P[2] - P[0]
+    s *= inv
+    e = P[1] + P[3]
+    e -= s
+    e -= s
+    np.subtract(s, P[1], out=P[2])
+    P[2] -= e
+    P[2] *= inv
+    e *= inv
+    np.multiply(e, inv, out=P[3])
     return P
 
 
@@ -302,7 +316,7 @@ class LocalMotion:
         d += self.om_ref
         d *= dt
         om += self.om_ref
-        if float(np.max(np.abs(dt), initial=0.0)) < self.margin:
+        if dt.size == 0 or max(float(dt.max()), -float(dt.min())) < self.margin:
             return d, om
         out = (t < self.seg_lo) | (t >= self.seg_hi)
         if np.any(out):
