@@ -9,6 +9,7 @@ from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
 from bttsim_stream.sim.modal import (
     EnvelopeIntegrator,
+    GridPoints,
     TipBasis,
     build_grid,
     chirp_integral,
@@ -278,3 +279,15 @@ def test_chunking_is_bit_for_bit():
         np.testing.assert_array_equal(other.opr_s, runs[0].opr_s)
         for f in ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m", "d_eqv_pkpk_m"):
             np.testing.assert_array_equal(getattr(other.truth, f), getattr(runs[0].truth, f), err_msg=f)
+
+
+def test_grid_points_on_demand_are_build_grid():
+    speed = SpeedProfile(np.array([0.0, 1.0, 3.0, 3.01, 4.0]), np.array([100.0, 200.0, 200.0, 190.0, 50.0]))
+    for h in (2e-3, 7e-3, 1.0):
+        g = build_grid(speed, h)
+        pts = GridPoints(speed, h)
+        assert pts.size == g.size
+        np.testing.assert_array_equal(pts.points(0, g.size), g)
+        np.testing.assert_array_equal(pts.points(5, 17), g[5:17])
+        for t in np.concatenate([g[::7], np.linspace(-1.0, 5.0, 101)]):
+            assert pts.searchsorted(t) == np.searchsorted(g, t)

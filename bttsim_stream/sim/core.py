@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from .modal import EnvelopeIntegrator, build_grid, modal_forcing, tip_basis
+from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, tip_basis
 from .speed import SpeedProfile, speed_profile_from_scenario
 from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
                   project_planes, stage_b)
@@ -231,7 +231,7 @@ class RunUpSimulator:
         self.basis = tip_basis(m.tip_shapes)
         self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
                                              self.speed, initial=initial)
-        self.grid = build_grid(self.speed, envelope_step_s)
+        self.grid = GridPoints(self.speed, envelope_step_s)
         self.h_env = envelope_step_s
         self._i_grid = 0
         self._buf_t: np.ndarray | None = None  # envelope grid points kept: [_lo, _hi)
@@ -253,7 +253,7 @@ class RunUpSimulator:
         self._dtheta = self.theta_p[:, None] - m.tip_ref[..., 1]  # theta_Pnom - theta_node
         # envelope integration block (global grid steps): longer for fewer responding modes
         n_act = max(int(self.integrator.active.size), 1)
-        self._block = int(np.clip(2 ** int(np.log2(max(16384 // n_act, 1))), 64, 1024))
+        self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 1024))
         acq = scn.acquisition
         self.info = RunInfo(
             n_blades=nb, n_probes=probes.size, n_revolutions=self.n_revolutions,
@@ -279,16 +279,16 @@ class RunUpSimulator:
         -------
         t : ndarray, shape (n,)
             Grid times.
-        GD : ndarray, shape (cap, n_blades, 4 * n_exc * r)
-            The buffer: per grid point and blade, envelopes ``G`` then derivatives ``dG``,
-            real then imaginary parts, each ``(n_exc, r)``; grid point ``k`` of ``t`` is at
-            index ``lo + k``.
+        GD : ndarray, shape (cap, 4 * n_exc, n_blades * r)
+            The buffer: per grid point, envelopes ``G`` then derivatives ``dG``, per
+            excitation, real then imaginary parts, each ``(n_blades, r)``; grid point ``k``
+            of ``t`` is at index ``lo + k``.
         lo : int
         """
-        i_end = min(int(np.searchsorted(self.grid, t_end)) + 1, self.grid.size - 1)
+        i_end = min(self.grid.searchsorted(t_end) + 1, self.grid.size - 1)
         while self._i_grid < i_end or self._hi == 0:
             stop = min((self._i_grid // self._block + 1) * self._block, self.grid.size - 1)
-            t_blk = self.grid[self._i_grid:stop + 1]
+            t_blk = self.grid.points(self._i_grid, stop + 1)
             first = 0 if self._hi == 0 else 1  # the block's first point is the last one kept
             n_new = t_blk.size - first
             self._reserve(n_new, t_start)
@@ -296,9 +296,8 @@ class RunUpSimulator:
             n_exc, nb = self.eo.size, self.model.n_blades
             planes = np.empty((2, n_exc, 2, n_new, nb * self.basis.nodes.shape[0]))
             self.integrator.advance(t_blk, out=planes, first=first)
-            # one row of (G, dG) x (re, im) x r per grid point and blade
-            self._buf[hi:hi + n_new] = planes.reshape(4 * n_exc, n_new, nb, -1).transpose(1, 2, 0, 3).reshape(
-                n_new, nb, -1)
+            # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r)
+            self._buf[hi:hi + n_new] = planes.reshape(4 * n_exc, n_new, -1).transpose(1, 0, 2)
             self._buf_t[hi:hi + n_new] = t_blk[first:]
             self._hi = hi + n_new
             self._i_grid = stop
@@ -320,7 +319,7 @@ class RunUpSimulator:
         cap = max(2 * (keep + n), 4 * self._block + 8)
         n_exc, r, nb = self.eo.size, self.basis.nodes.shape[0], self.model.n_blades
         if self._buf is None or cap > self._buf_t.size:
-            buf_t, buf = np.empty(cap), np.empty((cap, nb, 4 * n_exc * r))
+            buf_t, buf = np.empty(cap), np.empty((cap, 4 * n_exc, nb * r))
         else:
             buf_t, buf = self._buf_t, self._buf
         if keep:
@@ -361,10 +360,11 @@ class RunUpSimulator:
         t0 = env_t[i]
         n_exc, r = self.eo.size, self.basis.nodes.shape[0]
         # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
-        row = (lo + i) * nb + blade
-        g = GD.reshape(-1, GD.shape[-1]).take(np.concatenate([row, row + nb]), axis=0)
+        w = 4 * n_exc * nb  # rows of r values per grid point
+        row = ((lo + i) * w + blade)[None, :] + (nb * np.arange(4 * n_exc))[:, None]  # (4 n_exc, n)
+        g = GD.reshape(-1, r).take(np.concatenate([row, row + w]).ravel(), axis=0)
         # [G0, dG0, G1, dG1] -> cubic Hermite coefficients in tau = t - t0, (4, n_exc, r, 2, n)
-        CPr = hermite_in_place(np.ascontiguousarray(g.reshape(2, -1, 2, n_exc, 2, r).transpose(0, 2, 3, 5, 4, 1))
+        CPr = hermite_in_place(np.ascontiguousarray(g.reshape(2, 2, n_exc, 2, -1, r).transpose(0, 1, 2, 5, 3, 4))
                                .reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
         frame = crossing_frame(self.speed, t0, t_r, self.eo)
         phi_r, om_r = frame.phi_ref, frame.om_ref

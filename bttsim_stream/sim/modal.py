@@ -46,6 +46,7 @@ __all__ = [
     "EnvelopeIntegrator",
     "EnvelopeGrid",
     "build_grid",
+    "GridPoints",
 ]
 
 
@@ -249,6 +250,55 @@ def tip_basis(tip_shapes: np.ndarray, rtol: float = 1e-12) -> TipBasis:
     V = Vt[:r]
     psi = (X @ V.T).reshape(n_modes, n_b, r)
     return TipBasis(psi=np.ascontiguousarray(psi), nodes=np.ascontiguousarray(V.reshape(r, n_tip, 3)))
+
+
+class GridPoints:
+    """The envelope grid of :func:`build_grid`, point by point on demand (memory independent of
+    the run's length): uniform steps <= ``h_max`` in every speed segment, knots included.
+
+    Parameters
+    ----------
+    speed : SpeedProfile
+    h_max : float
+        Largest step, s.
+    """
+
+    def __init__(self, speed: SpeedProfile, h_max: float) -> None:
+        t = speed.t_s
+        self._t0, self._t1 = t[:-1], t[1:]
+        self._n = np.maximum(1, np.ceil((self._t1 - self._t0) / h_max - 1e-9).astype(np.int64))
+        self._off = np.concatenate(([0], np.cumsum(self._n)))  # first point of each segment
+        self._end = float(t[-1])
+        #: number of grid points
+        self.size = int(self._off[-1]) + 1
+
+    def points(self, start: int, stop: int) -> np.ndarray:
+        """Grid points ``start .. stop - 1`` (the same numbers as ``build_grid(...)[start:stop]``)."""
+        j = np.arange(max(start, 0), min(stop, self.size))
+        out = np.empty(j.size)
+        last = j == self.size - 1
+        jj = j[~last]
+        k = np.searchsorted(self._off, jj, side="right") - 1
+        n = self._n[k]
+        t0 = self._t0[k]
+        out[~last] = t0 + (self._t1[k] - t0) * (jj - self._off[k]) / n
+        out[last] = self._end
+        return out
+
+    def searchsorted(self, t: float) -> int:
+        """``np.searchsorted(build_grid(...), t)``: the first point >= ``t``."""
+        if t > self._end:
+            return self.size
+        k = int(np.clip(np.searchsorted(self._t0, t, side="right") - 1, 0, self._t0.size - 1))
+        guess = int(self._off[k] + np.floor((t - self._t0[k]) / (self._t1[k] - self._t0[k]) * self._n[k]))
+        lo = max(0, guess - 2)
+        window = self.points(lo, guess + 3)
+        i = lo + int(np.searchsorted(window, t))
+        while i > 0 and self.points(i - 1, i)[0] >= t:  # (only if the estimate was off)
+            i -= 1
+        while i < self.size and self.points(i, i + 1)[0] < t:
+            i += 1
+        return i
 
 
 def build_grid(speed: SpeedProfile, h_max: float) -> np.ndarray:
@@ -463,16 +513,21 @@ class EnvelopeIntegrator:
         alpha : float
             Angular acceleration of the segment, rad/s^2.
         """
-        amu2 = mu.real * mu.real + mu.imag * mu.imag
-        mn, mx = amu2.min(axis=0), amu2.max(axis=0)
+        K, _ = self._quasi_steady_terms(mu, alpha)
+        return K
+
+    def _quasi_steady_terms(self, mu: np.ndarray, alpha: float):
+        """:meth:`quasi_steady_terms` and ``|mu|_max`` of every column."""
+        amu2 = mu.real * mu.real
+        amu2 += mu.imag * mu.imag
+        mn, mx = amu2.min(axis=0), np.sqrt(amu2.max(axis=0))
         q = np.abs(self._eo_col) * abs(alpha) / mn
-        ratio = np.sqrt(mx) / self._zw_col
         K = np.zeros(q.shape, int)
-        bound = ratio.copy()
+        bound = mx / self._zw_col
         for k in range(1, 9):
             bound *= (2 * k - 1) * q  # (2k - 1)!! q^k |mu|_max / (zeta w)
-            K = np.where((K == 0) & (bound <= QUASI_STEADY_TOL), k, K)
-        return K
+            K[(K == 0) & (bound <= QUASI_STEADY_TOL)] = k
+        return K, mx
 
     def _run(self, A, start, stop, t, phi, om, mu, alpha):
         """The envelopes over the steps ``start .. stop`` of one speed segment (in place in
@@ -480,7 +535,10 @@ class EnvelopeIntegrator:
         allows (plus the exact homogeneous part where it is not negligible), the exact
         recursion (:meth:`_run_exact`) elsewhere."""
         mu_s = mu[start:stop + 1]
-        K = self.quasi_steady_terms(mu_s, alpha) if self.quasi_steady else np.zeros(mu_s.shape[1], int)
+        if self.quasi_steady:
+            K, mu_max = self._quasi_steady_terms(mu_s, alpha)
+        else:
+            K = np.zeros(mu_s.shape[1], int)
         qs = K > 0
         n_qs = int(np.count_nonzero(qs))
         self.stats["quasi_steady"] += n_qs
@@ -500,8 +558,7 @@ class EnvelopeIntegrator:
             e0 = A[start] - ap[0]
             A[start + 1:stop + 1] = ap[1:]
             # the homogeneous part from a(t_start) - a_p(t_start), where it is not negligible
-            keep = qs & (np.abs(e0) > QUASI_STEADY_TOL * self._cabs_col / np.sqrt(
-                (mu_s.real * mu_s.real + mu_s.imag * mu_s.imag).max(axis=0)))
+            keep = qs & (np.abs(e0) * mu_max > QUASI_STEADY_TOL * self._cabs_col)
             cols = np.flatnonzero(keep)
             if cols.size:
                 E, Phi = self._propagators(cols, t[start:stop + 1], self._dphi(t, start, stop))
