@@ -251,9 +251,15 @@ class RunUpSimulator:
         self._radius = np.ascontiguousarray(m.tip_ref[..., 0])  # (nb, nt)
         self._z_ref = np.ascontiguousarray(m.tip_ref[..., 2])
         self._dtheta = self.theta_p[:, None] - m.tip_ref[..., 1]  # theta_Pnom - theta_node
+        # offsets of a crossing's envelope values in the buffer (see _envelopes), in the order
+        # (grid point i / i + 1, G / dG, excitation, r, re / im)
+        n_exc, nb = self.eo.size, m.n_blades
+        w = 4 * n_exc * nb * r  # values per grid point
+        pt, g, mm, j, c = np.ix_(np.arange(2), np.arange(2), np.arange(n_exc), np.arange(r), np.arange(2))
+        self._gather_off = (pt * w + ((g * n_exc + mm) * 2 + c) * (nb * r) + j)[..., None]
         # envelope integration block (global grid steps): longer for fewer responding modes
         n_act = max(int(self.integrator.active.size), 1)
-        self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 1024))
+        self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 512))
         acq = scn.acquisition
         self.info = RunInfo(
             n_blades=nb, n_probes=probes.size, n_revolutions=self.n_revolutions,
@@ -360,12 +366,10 @@ class RunUpSimulator:
         t0 = env_t[i]
         n_exc, r = self.eo.size, self.basis.nodes.shape[0]
         # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
-        w = 4 * n_exc * nb  # rows of r values per grid point
-        row = ((lo + i) * w + blade)[None, :] + (nb * np.arange(4 * n_exc))[:, None]  # (4 n_exc, n)
-        g = GD.reshape(-1, r).take(np.concatenate([row, row + w]).ravel(), axis=0)
-        # [G0, dG0, G1, dG1] -> cubic Hermite coefficients in tau = t - t0, (4, n_exc, r, 2, n)
-        CPr = hermite_in_place(np.ascontiguousarray(g.reshape(2, 2, n_exc, 2, -1, r).transpose(0, 1, 2, 5, 3, 4))
-                               .reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
+        # [G0, dG0, G1, dG1] x (n_exc, r, re/im), crossings last, gathered element by element
+        # straight into the layout of the Hermite coefficients (4, n_exc, r, 2, n)
+        idx = ((lo + i) * (4 * n_exc * nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
+        CPr = hermite_in_place(np.take(GD.reshape(-1), idx).reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
         frame = crossing_frame(self.speed, t0, t_r, self.eo)
         phi_r, om_r = frame.phi_ref, frame.om_ref
         tau = t_r - t0
