@@ -12,8 +12,12 @@ Simulates the default scenario once (not timed), then times
 * the streaming processor: one ``push`` per revolution (fits and travelling-wave spectra per
   revolution) plus ``flush``; then ``finish`` (the final report over the history);
 
-and reports TOAs per second (target >= 1e6 on one core) and the streaming latency in
-revolutions (revolution pushed when an output appeared minus the output's revolution).
+and reports TOAs per CPU second (user + system; the machine is shared, wall time would
+measure the neighbours) and the streaming latency in revolutions (revolution pushed when an
+output appeared minus the output's revolution).
+
+Targets on one core: offline >= 1e6 TOA/s; streaming >= 2.4e6 TOA/s, a whole engine's BTT
+(10 stages x 16 probes x 60 blades at 15,000 rpm).
 """
 
 from __future__ import annotations
@@ -32,9 +36,9 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 def _best(fn, repeat: int) -> tuple[float, object]:
     best, out = float("inf"), None
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         out = fn()
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     return best, out
 
 
@@ -51,38 +55,38 @@ def main(method: str = "HP", repeat: int = 3) -> dict:
                  "simulation_wall_s": round(run.wall_s, 2)}
     with threadpool_limits(1):
         for name, opts in (("offline_default", ProcessOptions()), ("offline_no_prep", ProcessOptions(prep=False))):
-            wall, res = _best(lambda opts=opts: process_arrays(run.opr_s, run.toa_s, run.info, opts, truth=run.truth),
+            cpu, res = _best(lambda opts=opts: process_arrays(run.opr_s, run.toa_s, run.info, opts, truth=run.truth),
                               repeat)
-            out[name] = {"wall_s": round(wall, 4), "toas_per_s": round(n_toa / wall),
+            out[name] = {"cpu_s": round(cpu, 4), "toas_per_s": round(n_toa / cpu),
                          "mean_E_A_pct": round(res.summary["mean_E_A_pct"], 4)}
 
         def stream():
             proc = StreamingProcessor(run.info)
             latency = 0
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             n_out = 0
             for n in range(run.opr_s.size):
                 for o in proc.push(n, run.opr_s[n], run.toa_s[n]):
                     latency = max(latency, n - o.revolution)
                     n_out += 1
             n_out += len(proc.flush())
-            t_push = time.perf_counter() - t0
+            t_push = time.process_time() - t0
             summary = proc.finish(run.truth)
-            return t_push, time.perf_counter() - t0, latency, n_out, summary
+            return t_push, time.process_time() - t0, latency, n_out, summary
 
         best = None
         for _ in range(repeat):
             r = stream()
             best = r if best is None or r[0] < best[0] else best
         t_push, t_total, latency, n_out, summary = best
-        out["streaming"] = {"push_wall_s": round(t_push, 4), "toas_per_s": round(n_toa / t_push),
+        out["streaming"] = {"push_cpu_s": round(t_push, 4), "toas_per_s": round(n_toa / t_push),
                             "us_per_revolution": round(1e6 * t_push / run.opr_s.size, 1),
-                            "with_final_report_wall_s": round(t_total, 4),
+                            "with_final_report_cpu_s": round(t_total, 4),
                             "toas_per_s_with_final_report": round(n_toa / t_total),
                             "latency_revolutions": latency, "outputs": n_out,
                             "mean_E_A_pct": round(summary["mean_E_A_pct"], 4)}
-    out["target_toas_per_s"] = 1_000_000
-    out["ok"] = all(out[k]["toas_per_s"] >= 1_000_000 for k in ("offline_default", "streaming"))
+    out["target_toas_per_s"] = {"offline_default": 1_000_000, "streaming": 2_400_000}
+    out["ok"] = all(out[k]["toas_per_s"] >= v for k, v in out["target_toas_per_s"].items())
     return out
 
 

@@ -88,7 +88,7 @@ def simulate_to_mcap(scn: Scenario, out: str | Path, *, model=None, include_trut
     publishes them. ``progress(revolutions_done, n_revolutions)`` is called per chunk.
     Returns counts.
     """
-    stream = AcquisitionStream(scn, model, include_truth=include_truth)
+    stream = AcquisitionStream(scn, model, include_truth=include_truth, chunk_revolutions=32)
     n = 0
     with McapRecorder(out, run_metadata=stream.run_metadata_record) as rec:
         rec.write_message(stream.meta)

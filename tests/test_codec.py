@@ -379,3 +379,56 @@ def test_generated_code_is_byte_identical(tmp_path):
         pytest.skip(f"grpcio-tools {version} is not the pinned {gen_proto.PINNED_GRPC_TOOLS}x")
     path = gen_proto.generate(tmp_path)
     assert path.read_bytes() == GENERATED.read_bytes(), "regenerate: python scripts/gen_proto.py"
+
+
+# --- batch encoders: the same bytes as one message at a time ------------------------------
+
+_EDGE_T = [0.0, -0.0, 1.5, -2.25, float("nan"), float("inf"), -float("inf"), 5e-324, 1e300, 130.0 + 1e-14]
+_EDGE_I = [0, 1, 127, 128, 16383, 16384, 2 ** 35, 2 ** 62, -1, -(2 ** 40)]
+
+
+def _edge_rows(rng, n):
+    """n values mixing the edge cases and random ones."""
+    t = np.array([_EDGE_T[i % len(_EDGE_T)] if i < 2 * len(_EDGE_T) else rng.normal() * 100 for i in range(n)])
+    k = np.array([_EDGE_I[i % len(_EDGE_I)] if i < 2 * len(_EDGE_I) else int(rng.integers(-5, 10 ** 9))
+                  for i in range(n)], dtype=np.int64)
+    return t, k
+
+
+@pytest.mark.parametrize("run_id", ["", "run-a", "r" * 200])
+def test_batch_encoders_are_byte_identical_to_the_message_encoders(run_id):
+    rng = np.random.default_rng(7)
+    n, nb, npr = 40, 3, 2
+    t, k = _edge_rows(rng, n)
+    seq = np.abs(k[::-1])
+    rev = k
+    opr, ticks = t[::-1].copy(), k[::-1].copy()
+    for tk in (None, ticks):
+        got = codec.encode_opr_batch(run_id, seq, rev, t, opr, tk)
+        for i in range(n):
+            ref = codec.encode_opr(codec.Header(run_id, int(seq[i]), int(rev[i]), float(t[i])),
+                                   codec.OprPulse(float(opr[i]), None if tk is None else int(tk[i])))
+            assert got[i] == ref, i
+    toa = np.concatenate([t, t[::-1], rng.normal(size=n) * 1e3])[: n * nb].reshape(n, nb)
+    toa_ticks = np.concatenate([k, k[::-1], rng.integers(-3, 2 ** 40, n)])[: n * nb].reshape(n, nb)
+    probe = np.abs(k) % 7
+    for tk in (None, toa_ticks):
+        got = codec.encode_toa_batches(run_id, seq, rev, t, probe, toa, tk)
+        for i in range(n):
+            ref = codec.encode_toa_batch(codec.Header(run_id, int(seq[i]), int(rev[i]), float(t[i])), int(probe[i]),
+                                         toa[i].tolist(), None if tk is None else tk[i].tolist())
+            assert got[i] == ref, i
+    arrays = {name: rng.normal(size=(n, nb, npr)) for name in TRUTH_2D}
+    arrays["toa_s"].flat[: len(_EDGE_T)] = _EDGE_T
+    truth = Truth(opr_s=opr, omega_mean=t, d_eqv_pkpk_m=rng.normal(size=(n, nb)), **arrays)
+    got = codec.encode_truth_batch(run_id, seq, rev, t, truth)
+    for i in range(n):
+        ref = codec.encode_truth(codec.Header(run_id, int(seq[i]), int(rev[i]), float(t[i])), truth, i)
+        assert got[i] == ref, i
+
+
+def test_log_times_ns_is_log_time_ns():
+    t, _ = _edge_rows(np.random.default_rng(2), 60)
+    t = np.concatenate([t, [0.5e-9, 1.5e-9, 2.5e-9, -0.4e-9, 9.3e9, 9.2e9, 1e-10]])
+    t = t[~(np.abs(t) > 1e299)]  # log_time_ns overflows there (OverflowError); log_times_ns clamps
+    assert codec.log_times_ns(t).tolist() == [codec.log_time_ns(x) for x in t]

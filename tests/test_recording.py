@@ -290,3 +290,22 @@ def test_sigkill_loses_at_most_the_open_chunk(tmp_path):
     assert list(rec.messages) == expected[:len(rec.messages)]
     open_chunk = 8000 // min(len(m.payload) for m in expected) + 1
     assert n_written - open_chunk <= len(rec.messages) <= n_written
+
+
+@pytest.mark.parametrize("chunk_size", [mcap_io.DEFAULT_CHUNK_SIZE, 4000, 300, 1])
+def test_write_all_is_message_by_message_byte_for_byte(messages, tmp_path, chunk_size):
+    """write_all lays out a batch's records in bulk: the same file as one message at a time
+    (chunk boundaries, message indexes, statistics), channels appearing mid-batch included."""
+    one = tmp_path / "one.mcap"
+    with McapRecorder(one, chunk_size=chunk_size) as rec:
+        rec.write_run_metadata(**RUN_META)
+        for m in messages:
+            rec.write_message(m)
+    bulk = tmp_path / "bulk.mcap"
+    with McapRecorder(bulk, chunk_size=chunk_size) as rec:
+        rec.write_run_metadata(**RUN_META)
+        rec.write_all(messages[:4])  # new channels inside a batch
+        for k in range(4, len(messages), 9):
+            rec.write_all(messages[k:k + 9])
+        assert rec.n_messages == len(messages)
+    assert bulk.read_bytes() == one.read_bytes()

@@ -166,3 +166,45 @@ def test_sequence_tracker_does_not_believe_a_far_jump():
     t = SequenceTracker(max_jump=100)
     assert [t.accept("a", s) for s in (0, 1, 10**6, 2, 3, 50)] == [True, True, False, True, True, True]
     assert (t.implausible, t.duplicates, t.lost) == (1, 0, 46)
+
+
+def _reference_acquisition(stream, batch, include_truth=True):
+    """The acquisition messages encoded one at a time with the per-message encoders, numbered by
+    the stream's sequencer (what MessageStream.acquisition produced before it encoded batches)."""
+    from bttsim_stream.bus import keys
+    from bttsim_stream.bus.stream import Message
+
+    out = []
+    toa = np.asarray(batch.toa_s)
+    nr, nb, npr = toa.shape
+
+    def msg(key, rev, t, encode, *args):
+        seq = stream.sequencer.next(key)
+        return Message(key, encode(codec.Header(stream.run_id, seq, rev, t), *args), codec.log_time_ns(t), seq)
+
+    for i in range(nr):
+        rev, t_opr = int(batch.revolution[i]), float(batch.opr_s[i])
+        ticks = None if batch.opr_ticks is None else int(batch.opr_ticks[i])
+        out.append(msg(keys.opr_key(stream.rig), rev, t_opr, codec.encode_opr, codec.OprPulse(t_opr, ticks)))
+        for j in range(npr):
+            col = toa[i, :, j]
+            latest = float(np.fmax.reduce(col)) if not np.all(np.isnan(col)) else t_opr
+            tt = None if batch.toa_ticks is None else batch.toa_ticks[i, :, j].tolist()
+            out.append(msg(keys.toa_key(stream.rig, j), rev, latest, codec.encode_toa_batch, j, col.tolist(), tt))
+        if include_truth:
+            out.append(msg(keys.truth_key(stream.rig), rev, t_opr, codec.encode_truth, batch.truth, i))
+    return out
+
+
+@pytest.mark.parametrize("ticks", [False, True], ids=["float-clock", "ticks"])
+@pytest.mark.parametrize("include_truth", [True, False], ids=["truth", "blind"])
+def test_acquisition_is_the_message_by_message_encoding(ticks, include_truth):
+    a, b = MessageStream("run-a", "rig1"), MessageStream("run-a", "rig1")
+    for seed, rev0 in ((1, 0), (2, NR)):
+        batch = make_batch(seed=seed, ticks=ticks, rev0=rev0)
+        toa = batch.toa_s.copy()
+        toa[0, :, 1] = np.nan  # a probe that saw nothing: its header time is the OPR
+        toa[1, 2, 0] = np.nan
+        batch = type(batch)(**{f: getattr(batch, f) for f in batch.__dataclass_fields__ if f != "toa_s"}, toa_s=toa)
+        got = a.acquisition(batch, include_truth=include_truth)
+        assert got == _reference_acquisition(b, batch, include_truth)

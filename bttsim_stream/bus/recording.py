@@ -23,10 +23,13 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 from mcap.exceptions import EndOfFile
+from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
+from mcap.records import MessageIndex as McapMessageIndex
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
+import numpy as np
 
 from .. import __version__
 from ..errors import BttsimError
@@ -55,6 +58,7 @@ MAX_SEQ = 1 << 32
 #: Target uncompressed chunk size, bytes: a killed recorder loses at most about this much.
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 _ENCODING = "protobuf"
+_MESSAGE_OPCODE = int(Opcode.MESSAGE)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -245,9 +249,89 @@ class McapRecorder:
         self.write(message.key, message.payload, message.log_time_ns, seq=message.seq)
 
     def write_all(self, messages: Iterable[Message]) -> None:
-        """Append :class:`~bttsim_stream.bus.stream.Message` records in order."""
-        for m in messages:
+        """Append :class:`~bttsim_stream.bus.stream.Message` records in order.
+
+        The same file as :meth:`write_message` one message at a time, byte for byte; once a
+        batch's keys all have their channel, its message records are laid out together
+        (:meth:`_append_records`) instead of one ``mcap`` call per message.
+        """
+        msgs = messages if isinstance(messages, list) else list(messages)
+        first_fast = 0
+        for i, m in enumerate(msgs):  # new keys: their channel records go in at their place
+            if m.key not in self._channels:
+                first_fast = i + 1
+        for m in msgs[:first_fast]:
             self.write_message(m)
+        if first_fast < len(msgs):
+            if not self._append_records(msgs[first_fast:]):
+                for m in msgs[first_fast:]:
+                    self.write_message(m)
+
+    def _append_records(self, msgs: list) -> bool:
+        """Append messages on known channels as :meth:`mcap.writer.Writer.add_message` would,
+        in bulk: the same records, message indexes, statistics and chunk boundaries.
+
+        Uses the writer's internal state (mcap 1.6's chunk builder and statistics); returns
+        False, having written nothing, when that state is not there (another mcap version),
+        chunking is off, or a value does not fit its field (the caller then writes the
+        messages one by one, which reports the problem).
+        """
+        w = self._writer
+        cb = getattr(w, "_Writer__chunk_builder", None)
+        st = getattr(w, "_Writer__statistics", None)
+        chunk_size = getattr(w, "_Writer__chunk_size", None)
+        finalize = getattr(w, "_Writer__finalize_chunk", None)
+        rb = getattr(cb, "record_writer", None)
+        if cb is None or st is None or chunk_size is None or finalize is None or rb is None:
+            return False
+        self._check_open()
+        n = len(msgs)
+        channel = np.fromiter((self._channels[m.key] for m in msgs), np.int64, n)
+        log = np.fromiter((m.log_time_ns for m in msgs), np.int64, n)
+        seq = np.fromiter((m.seq for m in msgs), np.int64, n)
+        data = [bytes(m.payload) for m in msgs]
+        size = np.fromiter((len(d) for d in data), np.int64, n)
+        if (log.min() < 0 or seq.min() < 0 or seq.max() > 0xFFFFFFFF or channel.max() > 0xFFFF):
+            return False
+        head = np.zeros(n, np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"),
+                                     ("pub", "<u8")]))
+        head["op"] = _MESSAGE_OPCODE
+        head["len"] = 22 + size
+        head["ch"] = channel
+        head["seq"] = seq
+        head["log"] = log
+        head["pub"] = log
+        hb = head.tobytes()
+        rec = 31 + size
+        log_l, ch_l = log.tolist(), channel.tolist()
+        i = 0
+        while i < n:
+            start = rb.count
+            ends = start + np.cumsum(rec[i:])
+            over = np.flatnonzero(ends > chunk_size)
+            j = i + (int(over[0]) + 1 if over.size else n - i)  # messages [i, j) go in this chunk
+            offsets = (ends - rec[i:])[: j - i].tolist()
+            t = log_l[i:j]
+            t_min, t_max = min(t), max(t)
+            cb.message_start_time = t_min if cb.num_messages == 0 else min(cb.message_start_time, t_min)
+            cb.message_end_time = max(cb.message_end_time, t_max)
+            for k in range(i, j):
+                c = ch_l[k]
+                index = cb.message_indices.get(c)
+                if not index:
+                    index = cb.message_indices[c] = McapMessageIndex(channel_id=c, records=[])
+                index.records.append((log_l[k], offsets[k - i]))
+                st.channel_message_counts[c] += 1
+            cb.num_messages += j - i
+            st.message_start_time = t_min if st.message_count == 0 else min(st.message_start_time, t_min)
+            st.message_end_time = max(st.message_end_time, t_max)
+            st.message_count += j - i
+            rb.write(b"".join([x for k in range(i, j) for x in (hb[31 * k:31 * k + 31], data[k])]))
+            if rb.count > chunk_size:
+                self._guard(finalize)
+            i = j
+        self.n_messages += n
+        return True
 
     def flush(self) -> None:
         """Finish the chunk in progress (if it holds messages) and hand it to the OS."""

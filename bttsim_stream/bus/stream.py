@@ -65,6 +65,12 @@ class Sequencer:
         self._next[key] = seq + 1
         return seq
 
+    def take(self, key: str, count: int) -> np.ndarray:
+        """Take the next ``count`` numbers of ``key`` (int64 array)."""
+        seq = self._next.get(key, 0)
+        self._next[key] = seq + int(count)
+        return np.arange(seq, seq + int(count), dtype=np.int64)
+
     def count(self, key: str) -> int:
         """How many numbers ``key`` has taken."""
         return self._next.get(key, 0)
@@ -218,26 +224,41 @@ class MessageStream:
             toa_ticks = np.asarray(batch.toa_ticks, dtype=np.int64)
             if toa_ticks.shape != toa.shape:
                 raise ValueError(f"toa_ticks: expected shape {toa.shape}, got {toa_ticks.shape}")
-            ticks_l = toa_ticks.transpose(0, 2, 1).tolist()
-            opr_ticks_l = np.asarray(batch.opr_ticks, dtype=np.int64).tolist()
         if include_truth and np.shape(batch.truth.toa_s) != toa.shape:
             raise ValueError(f"truth: expected shape {toa.shape}, got {np.shape(batch.truth.toa_s)}")
         while len(self._k_toa) < npr:
             self._k_toa.append(keys.toa_key(self.rig, len(self._k_toa)))
+        if nr == 0:
+            return []
         latest = np.fmax.reduce(toa, axis=1)  # (nr, np), ignores NaN
-        latest = np.where(np.isnan(latest), opr[:, None], latest).tolist()
-        toa_l = toa.transpose(0, 2, 1).tolist()  # (nr, np, nb) nested lists: fast to extend
-        opr_l = opr.tolist()
+        latest = np.where(np.isnan(latest), opr[:, None], latest)
+        revs_a = np.asarray(revs, dtype=np.int64)
+        # every message of the batch encoded at once (codec's batch encoders: the same bytes
+        # as one message at a time); numbers taken per key in publication order
+        seq_opr = self.sequencer.take(self._k_opr, nr)
+        seq_toa = np.stack([self.sequencer.take(self._k_toa[j], nr) for j in range(npr)], axis=1)  # (nr, np)
+        opr_pl = codec.encode_opr_batch(self.run_id, seq_opr, revs_a, opr, opr,
+                                        np.asarray(batch.opr_ticks, dtype=np.int64) if ticked else None)
+        toa_pl = codec.encode_toa_batches(
+            self.run_id, seq_toa.ravel(), np.repeat(revs_a, npr), latest.ravel(), np.tile(np.arange(npr), nr),
+            toa.transpose(0, 2, 1).reshape(nr * npr, nb), toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None)
+        t_opr = codec.log_times_ns(opr).tolist()
+        t_toa = codec.log_times_ns(latest).tolist()
+        seq_opr_l, seq_toa_l = seq_opr.tolist(), seq_toa.tolist()
+        k_opr, k_toa = self._k_opr, self._k_toa
+        if include_truth:
+            seq_tr = self.sequencer.take(self._k_truth, nr)
+            tr_pl = codec.encode_truth_batch(self.run_id, seq_tr, revs_a, opr, batch.truth)
+            seq_tr_l, k_tr = seq_tr.tolist(), self._k_truth
         out: list[Message] = []
         for i in range(nr):
-            rev, t_opr = revs[i], opr_l[i]
-            out.append(self._message(self._k_opr, rev, t_opr, codec.encode_opr,
-                                     codec.OprPulse(t_opr, opr_ticks_l[i] if ticked else None)))
+            out.append(Message(k_opr, opr_pl[i], t_opr[i], seq_opr_l[i]))
+            row = seq_toa_l[i]
+            t_row = t_toa[i]
             for j in range(npr):
-                out.append(self._message(self._k_toa[j], rev, latest[i][j], codec.encode_toa_batch, j,
-                                         toa_l[i][j], ticks_l[i][j] if ticked else None))
+                out.append(Message(k_toa[j], toa_pl[i * npr + j], t_row[j], row[j]))
             if include_truth:
-                out.append(self._message(self._k_truth, rev, t_opr, codec.encode_truth, batch.truth, i))
+                out.append(Message(k_tr, tr_pl[i], t_opr[i], seq_tr_l[i]))
         return out
 
     # -- processing results --------------------------------------------------------------

@@ -949,6 +949,7 @@ class StreamingProcessor:
         i1 = np.arange(1, B.shape[1], 2)
         self._i1 = i1
         self._ginv = None if gi is None else (gi[i1, i1], gi[i1 + 1, i1 + 1], gi[i1, i1 + 1])
+        self._g12x2 = None if gi is None else 2.0 * gi[i1, i1 + 1]
         self._cn = float(np.linalg.cond(B))
         self._eo_arr = np.asarray(self.engine_orders, float)
         npr, p = B.shape
@@ -1060,10 +1061,16 @@ class StreamingProcessor:
         lo = max(0, k - 2) if final else max(0, k - 1)
         row = k - lo
         hi = k + 1 if final else max(k + 2, 3)
-        phase = rotor_phase_from_opr(opr[lo:hi]).rows(slice(row, row + 1))
-        d, _ = displacements_from_phase(phase, self._toa.array[k][None], self._psi, self.geometry.tip_radius_m)
-        self._d.append(d[0])
-        self._omega.append(float(phase.omega_mean_rad_s[0]))
+        fast = _phase_row(opr, lo, hi, row)
+        if fast is None:  # a degenerate OPR window (e.g. repeated pulses): the array code
+            phase = rotor_phase_from_opr(opr[lo:hi]).rows(slice(row, row + 1))
+            d, _ = displacements_from_phase(phase, self._toa.array[k][None], self._psi, self.geometry.tip_radius_m)
+            d, om = d[0], float(phase.omega_mean_rad_s[0])
+        else:
+            d, om = _displacement_row(float(opr[k]), *fast, self._toa.array[k], self._psi,
+                                      self.geometry.tip_radius_m)
+        self._d.append(d)
+        self._omega.append(om)
         self._was_calibrated.append(self._calibrated or self._cal_window is None)
 
     def _solver(self, present: tuple):
@@ -1127,19 +1134,21 @@ class StreamingProcessor:
             missing = np.isnan(d_k.sum())
             if missing:
                 a, rss, s2, g11, g22, g12, n_used = self._fit_patterns(d_k)
+                g12x2 = 2.0 * g12
             else:
                 a = d_k @ self._pinvT  # (nb, p)
                 r = d_k @ self._residual  # (I - B B^+) applied to each blade's samples
                 rss = (r * r).sum(axis=1)
                 s2 = rss * self._inv_dof
                 g11, g22, g12 = self._ginv
+                g12x2 = self._g12x2
                 n_used = self._B.shape[0]
             a1, a2 = a[:, 1::2], a[:, 2::2]
             amp2 = a1 * a1 + a2 * a2
-            num = a1 * (g11 * a1 + (2.0 * g12) * a2) + g22 * a2 * a2  # (a1, a2) G (a1, a2)^T
+            num = a1 * (g11 * a1 + g12x2 * a2) + g22 * a2 * a2  # (a1, a2) G (a1, a2)^T
             amp = np.sqrt(amp2)
-            zero = amp2 == 0
-            if zero.any():  # no direction: the mean of the two variances
+            if not amp2.all():  # no direction: the mean of the two variances
+                zero = amp2 == 0
                 num = np.where(zero, 0.5 * (g11 + g22), num)
                 amp2 = np.where(zero, 1.0, amp2)
             amp_pkpk, phase = 2.0 * amp, np.arctan2(a2, a1)
@@ -1177,6 +1186,48 @@ class StreamingProcessor:
             engine_orders=self.engine_orders, freq_hz=om * self._freq_per_omega, cn=self._cn,
             d_m=d_k, amp_pkpk_m=amp_pkpk, phase_rad=phase, amp_std_m=amp_std, dc_m=dc,
             residual_rms_m=res, probe_tw=probe_tw, fit_tw=fit_tw, calibrated=self._was_calibrated[k])
+
+
+def _phase_row(opr: np.ndarray, lo: int, hi: int, row: int):
+    """Rotor phase of row ``row`` of ``rotor_phase_from_opr(opr[lo:hi])`` (2 or 3 pulses), as
+    Python floats ``(omega0, alpha, omega_mean)``, by the same floating-point operations in the
+    same order (so the streamed displacements stay the offline ones bit for bit); None when
+    the window is degenerate (the array code then handles it)."""
+    o = opr[lo:hi].tolist()
+    n = len(o)
+    try:
+        om = [TWO_PI / (o[j + 1] - o[j]) for j in range(n - 1)]  # mean_speed_from_opr
+        om.append(2.0 * om[-1] - om[-2] if len(om) >= 2 else om[-1])
+        period = [TWO_PI / w for w in om]
+
+        def coeff(s_, t_):  # _phase_coefficients
+            alpha = 2.0 * TWO_PI * (s_ - t_) / (t_ * s_ * (t_ + s_))
+            if not math.isfinite(alpha):
+                alpha = 0.0
+            return (TWO_PI - 0.5 * alpha * t_ * t_) / t_, alpha
+
+        if row == 0:  # the first revolution takes the second one's acceleration
+            alpha = coeff(period[0], period[1])[1] if n >= 2 else 0.0
+            w0 = (TWO_PI - 0.5 * alpha * period[0] ** 2) / period[0]
+        else:
+            w0, alpha = coeff(period[row - 1], period[row])
+    except (ZeroDivisionError, OverflowError, IndexError):
+        return None
+    if not all(math.isfinite(v) for v in (w0, alpha, om[row])):
+        return None
+    return w0, alpha, om[row]
+
+
+def _displacement_row(opr_k: float, w0: float, alpha: float, om: float, toa: np.ndarray, psi: np.ndarray,
+                      tip_radius_m: float) -> tuple[np.ndarray, float]:
+    """Eq. 1 displacements of one revolution: :func:`displacements_from_phase` of one row,
+    with the rotor phase as scalars (the same operations in the same order)."""
+    tau = toa - opr_k
+    ang = tau * (w0 + 0.5 * alpha * tau)  # RotorPhase.angle
+    k = np.round((ang - psi) / TWO_PI)
+    a = psi + TWO_PI * np.where(np.isfinite(k), k, 0.0)
+    tau_exp = 2.0 * a / (w0 + np.sqrt(w0 * w0 + 2.0 * alpha * a))  # RotorPhase.delay_at_angle
+    return (om * float(tip_radius_m)) * (tau_exp - tau), om
 
 
 def _spectrum_matrices(g: Geometry, eo: int) -> tuple[np.ndarray, np.ndarray, int]:

@@ -19,15 +19,15 @@ import numpy as np
 
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from .modal import EnvelopeIntegrator, EnvelopeGrid, build_grid, modal_forcing, tip_basis
+from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, tip_basis
 from .speed import SpeedProfile, speed_profile_from_scenario
-from .toa import CrossingSet, eval_compressed, eval_nodes, prepare_crossings, stage_a_grid, stage_a_hp, stage_b
+from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
+                  project_planes, stage_b)
 
 __all__ = ["RunInfo", "Truth", "RevolutionBatch", "RunUpSimulator", "load_scenario_model",
            "collect"]
 
 TWO_PI = 2.0 * np.pi
-_BLOCK = 64  # envelope grid steps per integration block
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -231,17 +231,35 @@ class RunUpSimulator:
         self.basis = tip_basis(m.tip_shapes)
         self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
                                              self.speed, initial=initial)
-        self.grid = build_grid(self.speed, envelope_step_s)
+        self.grid = GridPoints(self.speed, envelope_step_s)
         self.h_env = envelope_step_s
         self._i_grid = 0
-        self._env: EnvelopeGrid | None = None
-        #: wall time spent integrating envelopes (per simulated second, scales with the
+        self._buf_t: np.ndarray | None = None  # envelope grid points kept: [_lo, _hi)
+        self._buf: np.ndarray | None = None
+        self._lo = self._hi = 0
+        #: CPU time spent integrating envelopes (per simulated second, scales with the
         #: responding modes) and on the crossings (per TOA, independent of the modes)
         self.timing = {"envelopes_s": 0.0, "crossings_s": 0.0}
         total = int(np.floor((self.speed.angle(self.speed.duration_s) - self.theta_opr) / TWO_PI))
         self.n_revolutions = max(0, total if n_revolutions is None else min(total, n_revolutions))
         v = self.basis.nodes[:, p, :]  # (r, 3)
         self._v_eqv = v[:, 1] + v[:, 2] / np.tan(self.stagger)  # (r,)
+        r = self.basis.nodes.shape[0]
+        self._VT = np.ascontiguousarray(self.basis.nodes.reshape(r, -1).T)  # (nt * 3, r)
+        # P_nom tangential, axial and d_eqv direction (Eq. 3-4)
+        self._V_truth = np.stack([v[:, 1], v[:, 2], self._v_eqv], axis=1)[:, None, :]  # (r, 1, 3)
+        self._radius = np.ascontiguousarray(m.tip_ref[..., 0])  # (nb, nt)
+        self._z_ref = np.ascontiguousarray(m.tip_ref[..., 2])
+        self._dtheta = self.theta_p[:, None] - m.tip_ref[..., 1]  # theta_Pnom - theta_node
+        # offsets of a crossing's envelope values in the buffer (see _envelopes), in the order
+        # (grid point i / i + 1, G / dG, excitation, r, re / im)
+        n_exc, nb = self.eo.size, m.n_blades
+        w = 4 * n_exc * nb * r  # values per grid point
+        pt, g, mm, j, c = np.ix_(np.arange(2), np.arange(2), np.arange(n_exc), np.arange(r), np.arange(2))
+        self._gather_off = (pt * w + ((g * n_exc + mm) * 2 + c) * (nb * r) + j)[..., None]
+        # envelope integration block (global grid steps): longer for fewer responding modes
+        n_act = max(int(self.integrator.active.size), 1)
+        self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 512))
         acq = scn.acquisition
         self.info = RunInfo(
             n_blades=nb, n_probes=probes.size, n_revolutions=self.n_revolutions,
@@ -256,111 +274,204 @@ class RunUpSimulator:
             speed_range_rpm=self.speed.rpm_range())
 
     # -- envelopes -------------------------------------------------------------------------
-    def _envelopes(self, t_start: float, t_end: float) -> EnvelopeGrid:
+    def _envelopes(self, t_start: float, t_end: float) -> tuple[np.ndarray, np.ndarray]:
         """Envelopes covering ``[t_start, t_end]``; earlier grid points are dropped.
 
         The integration advances in whole blocks of the global grid, so that the arithmetic
-        (and so every bit of the output) does not depend on how revolutions are chunked.
+        (and so every bit of the output) does not depend on how revolutions are chunked. The
+        grid points are kept in a buffer that is reused (memory does not grow with the run).
+
+        Returns
+        -------
+        t : ndarray, shape (n,)
+            Grid times.
+        GD : ndarray, shape (cap, 4 * n_exc, n_blades * r)
+            The buffer: per grid point, envelopes ``G`` then derivatives ``dG``, per
+            excitation, real then imaginary parts, each ``(n_blades, r)``; grid point ``k``
+            of ``t`` is at index ``lo + k``.
+        lo : int
         """
-        i_end = min(int(np.searchsorted(self.grid, t_end)) + 1, self.grid.size - 1)
-        parts = [] if self._env is None else [self._env]
-        while self._i_grid < i_end or not parts:
-            stop = min((self._i_grid // _BLOCK + 1) * _BLOCK, self.grid.size - 1)
-            new = self.integrator.advance(self.grid[self._i_grid:stop + 1])
-            parts.append(new if not parts else EnvelopeGrid(t=new.t[1:], G=new.G[1:], dG=new.dG[1:]))
+        i_end = min(self.grid.searchsorted(t_end) + 1, self.grid.size - 1)
+        while self._i_grid < i_end or self._hi == 0:
+            stop = min((self._i_grid // self._block + 1) * self._block, self.grid.size - 1)
+            t_blk = self.grid.points(self._i_grid, stop + 1)
+            first = 0 if self._hi == 0 else 1  # the block's first point is the last one kept
+            n_new = t_blk.size - first
+            self._reserve(n_new, t_start)
+            hi = self._hi
+            n_exc, nb = self.eo.size, self.model.n_blades
+            planes = np.empty((2, n_exc, 2, n_new, nb * self.basis.nodes.shape[0]))
+            self.integrator.advance(t_blk, out=planes, first=first)
+            # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r)
+            self._buf[hi:hi + n_new] = planes.reshape(4 * n_exc, n_new, -1).transpose(1, 0, 2)
+            self._buf_t[hi:hi + n_new] = t_blk[first:]
+            self._hi = hi + n_new
             self._i_grid = stop
             if stop == self.grid.size - 1:
                 break
-        env = parts[0] if len(parts) == 1 else EnvelopeGrid(
-            t=np.concatenate([q.t for q in parts]), G=np.concatenate([q.G for q in parts]),
-            dG=np.concatenate([q.dG for q in parts]))
-        first = max(0, int(np.searchsorted(env.t, t_start, side="right")) - 2)
-        self._env = EnvelopeGrid(t=env.t[first:], G=env.G[first:], dG=env.dG[first:])
-        return self._env
+        lo, hi = self._lo, self._hi
+        self._lo = max(lo, lo + int(np.searchsorted(self._buf_t[lo:hi], t_start, side="right")) - 2)
+        return self._buf_t[self._lo:hi], self._buf, self._lo
+
+    def _reserve(self, n: int, t_start: float) -> None:
+        """Room for ``n`` more grid points: when the buffer is full, the points still needed
+        (from ``t_start`` on) move to its front (it grows only if they do not fit)."""
+        if self._buf is not None and self._hi + n <= self._buf_t.size:
+            return
+        lo, hi = self._lo, self._hi
+        if self._buf is not None:
+            lo = max(lo, lo + int(np.searchsorted(self._buf_t[lo:hi], t_start, side="right")) - 2)
+        keep = hi - lo
+        cap = max(2 * (keep + n), 4 * self._block + 8)
+        n_exc, r, nb = self.eo.size, self.basis.nodes.shape[0], self.model.n_blades
+        if self._buf is None or cap > self._buf_t.size:
+            buf_t, buf = np.empty(cap), np.empty((cap, 4 * n_exc, nb * r))
+        else:
+            buf_t, buf = self._buf_t, self._buf
+        if keep:
+            buf_t[:keep] = self._buf_t[lo:hi]
+            buf[:keep] = self._buf[lo:hi]
+        self._buf_t, self._buf, self._lo, self._hi = buf_t, buf, 0, keep
 
     # -- one chunk -------------------------------------------------------------------------
     def _chunk(self, revs: np.ndarray) -> RevolutionBatch:
+        """One batch of revolutions, every blade and probe at once (crossings on the last axis).
+
+        1. Rigid crossing time ``t_r`` of P_nom at each probe (exact inverse of Eq. 6).
+        2. The blade's compressed envelope around ``t_r``: cubic Hermite coefficients,
+           evaluated at ``t_r`` and projected onto every tip node (axial: which two nodes
+           straddle the probe's z, Eq. 10; radial and tangential: first-order start).
+        3. Once per batch, the Hermite coefficients are projected onto the (radial,
+           tangential, axial) components of the two candidate nodes and of P_nom
+           (:func:`~bttsim_stream.sim.toa.local_motion`); stage A (HP Newton, Eq. 8; AD / PAD,
+           Eq. 12-14) and the truth then evaluate short complex cubics only.
+        4. Stage B (Eq. 9-11); crossings whose pair did not straddle the probe are redone
+           with every node.
+        """
         m, scn = self.model, self.scn
         nb, npr, nt, p = m.n_blades, self.psi.shape[1], m.n_tip, self.p
         nr = revs.size
-        opr_edges = self.speed.time_at_angle(self.theta_opr + TWO_PI * np.arange(revs[0], revs[-1] + 2))
-        phi_c = self.theta_opr + TWO_PI * revs[:, None, None] + self.psi[None]  # (nr, nb, np)
-        t_r = self.speed.time_at_angle(phi_c).ravel()
-        blade = np.broadcast_to(np.arange(nb)[None, :, None], phi_c.shape).ravel()
-        phi_c = phi_c.ravel()
-        margin = 2 * self.h_env + 2e-3
-        t_clock = time.perf_counter()
-        env = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
-        self.timing["envelopes_s"] += time.perf_counter() - t_clock
-        t_clock = time.perf_counter()
-        cs = prepare_crossings(env, blade, t_r, self.basis.nodes)
-        theta_n = self.tip_ref[blade][:, :, 1]  # (n_c, nt)
-        radius = self.tip_ref[blade][:, :, 0]
-        z_ref = self.tip_ref[blade][:, :, 2]
-        w_r, dw_r = eval_compressed(cs, self.speed, self.eo, t_r[:, None])
-        flat = self.basis.nodes.reshape(self.basis.nodes.shape[0], -1)
-        u_all = (w_r[:, 0, :] @ flat).reshape(-1, nt, 3)
-        du_all = (dw_r[:, 0, :] @ flat).reshape(-1, nt, 3)
-        target_all = phi_c[:, None] + self.theta_p[blade][:, None] - theta_n
-        # the two nodes predicted to straddle the probe's z (Eq. 10); checked after stage A
-        dz_est = z_ref + u_all[..., 2] - self.z_probe
-        k = np.clip(np.sum(dz_est >= 0, axis=1) - 1, 0, nt - 2)  # dz >= 0 for nodes <= k
-        cand = k[:, None] + np.arange(2)[None, :]
-        t_det, u, dz, residual = self._stage_a(cs, cand, t_r, target_all, radius, z_ref,
-                                                u_all, du_all)
-        toa, _, bracketed = stage_b(t_det, dz, scn.toa.axial_interpolation)
-        bad = ~bracketed
-        if np.any(bad):  # the deflection moved the straddling pair: take every node there
-            sub = np.flatnonzero(bad)
-            cs_b = CrossingSet(blade=cs.blade[sub], t0=cs.t0[sub], P=cs.P[:, sub], nodes=cs.nodes)
-            cand_b = np.ascontiguousarray(np.broadcast_to(np.arange(nt), (sub.size, nt)))
-            t_b, _, dz_b, res_b = self._stage_a(cs_b, cand_b, t_r[sub], target_all[sub], radius[sub],
-                                                z_ref[sub], u_all[sub], du_all[sub])
-            residual = max(residual, res_b)
-            toa[sub], _, bracketed[sub] = stage_b(t_b, dz_b, scn.toa.axial_interpolation)
-        # truth at the TOA: P_nom displacements, d_eqv (Eq. 3-4), Eq. 1 with exact t_exp
-        up, _ = eval_nodes(cs, self.speed, self.eo, toa[:, None], np.full((toa.size, 1), p),
-                           derivative=False)
-        d_tang, d_z = up[:, 0, 1], up[:, 0, 2]
-        d_eqv = d_tang + d_z / np.tan(self.stagger)
-        omega_mean = TWO_PI / np.diff(opr_edges)
         shape = (nr, nb, npr)
+        opr_edges = self.speed.time_at_angle(self.theta_opr + TWO_PI * np.arange(revs[0], revs[-1] + 2))
+        phi_c = (self.theta_opr + TWO_PI * revs[:, None, None] + self.psi[None]).ravel()  # (n,)
+        t_r = self.speed.time_at_angle(phi_c)
+        blade = np.tile(np.repeat(np.arange(nb), npr), nr)
+        margin = 2 * self.h_env + 2e-3
+        t_clock = time.process_time()
+        env_t, GD, lo = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
+        self.timing["envelopes_s"] += time.process_time() - t_clock
+        t_clock = time.process_time()
+        # 2. Hermite coefficients of each crossing's blade envelope, crossings last
+        i = np.clip(np.searchsorted(env_t, t_r, side="right") - 1, 0, env_t.size - 2)
+        t0 = env_t[i]
+        n_exc, r = self.eo.size, self.basis.nodes.shape[0]
+        # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
+        # [G0, dG0, G1, dG1] x (n_exc, r, re/im), crossings last, gathered element by element
+        # straight into the layout of the Hermite coefficients (4, n_exc, r, 2, n)
+        idx = ((lo + i) * (4 * n_exc * nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
+        CPr = hermite_in_place(np.take(GD.reshape(-1), idx).reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
+        frame = crossing_frame(self.speed, t0, t_r, self.eo)
+        phi_r, om_r = frame.phi_ref, frame.om_ref
+        tau = t_r - t0
+        c0, s0 = frame.rot[:, 0, None, :], frame.rot[:, 1, None, :]  # (n_exc, 1, n)
+        Gr = eval_planes(CPr, tau)  # (n_exc, r, 2, n) at t_r, no carrier
+        dGr = (3.0 * CPr[3] * tau + 2.0 * CPr[2]) * tau + CPr[1]
+        # Im(G e^{i th}) and Im((G' + i EO Omega G) e^{i th}) at t_r
+        w_r = Gr[:, :, 1] * c0 + Gr[:, :, 0] * s0
+        dw_r = dGr[:, :, 1] * c0 + dGr[:, :, 0] * s0 + (self.eo[:, None] * om_r)[:, None, :] * (
+            Gr[:, :, 0] * c0 - Gr[:, :, 1] * s0)
+        u_r = (self._VT @ w_r.sum(axis=0)).reshape(nt, 3, -1)  # (nt, 3, n) at t_r
+        du_r = (self._VT @ dw_r.sum(axis=0)).reshape(nt, 3, -1)
+        dz_est = self._z_ref[blade].T + u_r[:, 2] - self.z_probe  # (nt, n)
+        k = np.clip(np.sum(dz_est >= 0, axis=0) - 1, 0, nt - 2)  # dz >= 0 for nodes <= k (Eq. 10)
+        # 3. the two candidate nodes k, k+1 of every crossing, from one projection onto the
+        # nodes k_min .. k_max + 1 of the batch
+        k_lo, k_hi = int(k.min()), int(k.max())
+        P_u = project_planes(CPr, self.basis.nodes[:, k_lo:k_hi + 2, :])  # (4, n_exc, q_u, 3, 2, n)
+        if k_hi == k_lo:
+            P2 = P_u
+        else:
+            off = k - k_lo
+            P2 = P_u[:, :, 0:2]
+            for o in range(1, k_hi - k_lo + 1):
+                P2 = np.where(off == o, P_u[:, :, o:o + 2], P2)
+        cand = k[None, :] + np.arange(2)[:, None]  # (2, n)
+        bl = blade[None, :]
+        lm = frame.with_P(P2)
+        tgt = (phi_c - phi_r)[None, :] + self._dtheta[bl, cand]  # rotor-angle target minus phi(t_r)
+        t_det, dz, residual = self._stage_a(lm, self._radius[bl, cand], self._z_ref[bl, cand], tgt,
+                                            t_r, om_r, np.take_along_axis(u_r, cand[:, None, :], axis=0),
+                                            np.take_along_axis(du_r, cand[:, None, :], axis=0))
+        if scn.toa.axial_interpolation:  # stage B for a pair (Eq. 9-11), as stage_b does
+            pos0 = dz[0] >= 0
+            bracketed = pos0 != (dz[1] >= 0)
+            t1, t2 = np.where(pos0, t_det[0], t_det[1]), np.where(pos0, t_det[1], t_det[0])
+            z1, z2 = np.where(pos0, dz[0], dz[1]), np.where(pos0, dz[1], dz[0])
+            toa = t1 - z1 * (t2 - t1) / (z2 - z1)
+        else:
+            toa, _, bracketed = stage_b(t_det.T, dz.T, False)
+        bad = np.flatnonzero(~bracketed)
+        if bad.size:  # the deflection moved the straddling pair: take every node there
+            lm_b = frame.take(bad).with_P(project_planes(CPr[..., bad], self.basis.nodes))
+            bb = blade[bad]
+            t_b, dz_b, res_b = self._stage_a(lm_b, self._radius[bb].T, self._z_ref[bb].T,
+                                             (phi_c - phi_r)[bad][None, :] + self._dtheta[bb].T, t_r[bad],
+                                             om_r[bad], u_r[..., bad], du_r[..., bad])
+            residual = max(residual, res_b)
+            toa[bad], _, bracketed[bad] = stage_b(t_b.T, dz_b.T, scn.toa.axial_interpolation)
+        # truth at the TOA: P_nom displacements, d_eqv (Eq. 3-4), Eq. 1 with exact t_exp;
+        # pk-pk envelope of d_eqv: 2 sum_m |G_eqv,m(t_TOA)|
+        P_t = project_planes(CPr, self._V_truth)[:, :, 0]  # (4, n_exc, 3, 2, n): tang, axial, eqv
+        X = eval_planes(P_t, toa - t0)  # (n_exc, 3, 2, n)
+        th = self.eo[:, None] * frame.angle_change(self.speed, toa[None, :])[0]  # (n_exc, n)
+        cd, sd = np.cos(th), np.sin(th)
+        c0, s0 = frame.rot[:, 0], frame.rot[:, 1]
+        cr, ci = cd * c0 - sd * s0, sd * c0 + cd * s0  # exp(i EO phi(t_TOA))
+        d_tang = np.sum(X[:, 0, 1] * cr + X[:, 0, 0] * ci, axis=0)
+        d_z = np.sum(X[:, 1, 1] * cr + X[:, 1, 0] * ci, axis=0)
+        d_eqv = d_tang + d_z / np.tan(self.stagger)
+        amp = 2.0 * np.sum(np.hypot(X[:, 2, 0], X[:, 2, 1]), axis=0)
+        omega_mean = TWO_PI / np.diff(opr_edges)
         r_p = self.tip_ref[:, p, 0][None, :, None]
         d_eq1 = omega_mean[:, None, None] * r_p * (t_r.reshape(shape) - toa.reshape(shape))
-        tau = (toa - cs.t0)[:, None, None]
-        G = cs.P[0] + tau * (cs.P[1] + tau * (cs.P[2] + tau * cs.P[3]))  # (n_c, n_exc, r)
-        amp = 2.0 * np.sum(np.abs(G @ self._v_eqv), axis=1)
         pkpk = amp.reshape(shape).max(axis=2)
         truth = Truth(opr_s=opr_edges[:-1], toa_s=toa.reshape(shape), t_exp_s=t_r.reshape(shape),
                       d_eqv_m=d_eqv.reshape(shape), d_tang_m=d_tang.reshape(shape),
                       d_z_m=d_z.reshape(shape), d_eq1_m=d_eq1, d_eqv_pkpk_m=pkpk,
                       omega_mean=omega_mean)
         out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape))
-        self.timing["crossings_s"] += time.perf_counter() - t_clock
+        self.timing["crossings_s"] += time.process_time() - t_clock
         return out
 
-    def _stage_a(self, cs, cand, t_r, target_all, radius, z_ref, u_all, du_all):
-        """Stage A for the candidate nodes: HP Newton, then AD/PAD on the grid if asked."""
-        rows = np.arange(cand.shape[0])[:, None]
-        target = target_all[rows, cand]
-        rad = radius[rows, cand]
-        ur, ut = u_all[rows, cand, 0], u_all[rows, cand, 1]
-        dur, dut = du_all[rows, cand, 0], du_all[rows, cand, 1]
-        x = rad + ur
+    def _stage_a(self, lm, rad, z_ref, target_rel, t_r, om_r, u_r, du_r):
+        """Stage A for the candidate nodes (q per crossing): first-order start, HP Newton,
+        then AD / PAD on the grid if asked.
+
+        Parameters
+        ----------
+        lm : LocalMotion
+            The candidates' (radial, tangential, axial) motion.
+        rad, z_ref, target_rel : ndarray, shape (q, n)
+            Reference radius and axial position of each candidate, and the rotor angle at
+            which it would reach the probe rigidly, minus ``phi(t_r)``.
+        u_r, du_r : ndarray, shape (q, 3, n)
+            Displacements and velocities at ``t_r``.
+
+        Returns the crossing times, ``z_node(t) - z_probe`` (both (q, n)) and the largest
+        final Newton step."""
+        x = rad + u_r[:, 0]
+        ut = u_r[:, 1]
         delta = np.arctan2(ut, x)
-        ddelta = (x * dut - ut * dur) / (x * x + ut * ut)
-        phi_r, om_r, _ = self.speed.state(t_r)
+        ddelta = (x * du_r[:, 1] - ut * du_r[:, 0]) / (x * x + ut * ut)
         # first-order start: rigid node time corrected by the deflection and its rate at t_r
-        g0 = phi_r[:, None] + delta - target
-        t0 = t_r[:, None] - g0 / (om_r[:, None] + ddelta)
-        t_det, u, residual = stage_a_hp(cs, self.speed, self.eo, cand, target, rad, t0)
+        t_start = t_r - (delta - target_rel) / (om_r + ddelta)
+        t_det, u, residual = hp_crossings(lm, self.speed, target_rel, rad, t_start)
         method = self.scn.toa.method
         if method in ("AD", "PAD"):
-            t_det = stage_a_grid(cs, self.speed, self.eo, cand, target, rad, t_det,
-                                 self.scn.toa.grid_step_s, method)
-            u, _ = eval_nodes(cs, self.speed, self.eo, t_det, cand, derivative=False)
-        dz = z_ref[rows, cand] + u[..., 2] - self.z_probe
-        return t_det, u, dz, residual
+            t_det = grid_crossings(lm, self.speed, target_rel, rad, t_det, self.scn.toa.grid_step_s, method)
+            u, _, _, _ = eval_local(lm, self.speed, t_det, derivative=False)
+        dz = z_ref + u[:, 2] - self.z_probe
+        return t_det, dz, residual
 
     def _acquire(self, revs, truth: Truth, residual: float, bracketed) -> RevolutionBatch:
         acq = self.scn.acquisition

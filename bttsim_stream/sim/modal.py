@@ -38,6 +38,7 @@ from ..errors import BttsimError
 from .speed import SpeedProfile
 
 __all__ = [
+    "QUASI_STEADY_TOL",
     "chirp_integral",
     "modal_forcing",
     "TipBasis",
@@ -45,8 +46,15 @@ __all__ = [
     "EnvelopeIntegrator",
     "EnvelopeGrid",
     "build_grid",
+    "GridPoints",
 ]
 
+
+
+#: Bound on the part of a modal envelope left out by the quasi-steady series, relative to
+#: the mode's smallest quasi-steady amplitude ``|c| / |mu|`` over the stretch (one unit in
+#: the last place): see :meth:`EnvelopeIntegrator.quasi_steady_terms`.
+QUASI_STEADY_TOL = 2.0 ** -52
 
 
 def _j_series(u: np.ndarray, kmax: int, radius: float) -> np.ndarray:
@@ -108,6 +116,73 @@ def chirp_integral(u, v) -> np.ndarray:
     for n in range(1, n_v):
         vn = vn * v
         out = out + vn * J[..., 2 * n] / factorial(n)
+    return out
+
+
+def _chirp_given_exp(u: np.ndarray, eu: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``I(u, v) = int_0^1 exp(u x + v x^2) dx`` with ``exp(u)`` supplied (``eu``).
+
+    The same sums as :func:`chirp_integral` -- ``I = sum_n v^n / n! J_2n(u)`` with the
+    moments ``J_k`` by the forward recurrence ``J_k = (e^u - k J_k-1) / u`` wherever
+    ``|u| >= 1/4`` and ``|v| <= |u|^2 / 10`` (round-off stays at the level of ``e^u``,
+    see :func:`_j_moments`) -- but ``e^u`` is given: the recursion forms it as a product of
+    per-mode and per-step factors (two roundings instead of a complex exponential).
+    Elsewhere (``|u| < 0.32`` there) the Taylor series of the integrand,
+    ``I = sum_m c_m / (m + 1)`` with ``(m + 1) c_m+1 = u c_m + 2 v c_m-1``, is summed to
+    round-off.
+
+    Parameters
+    ----------
+    u, eu : ndarray, complex
+        ``u`` and ``exp(u)`` (same shape).
+    v : ndarray, complex
+        Broadcastable to ``u``; ``|v| < 1e-2``.
+    """
+    vabs = np.abs(v)
+    vmax = float(np.max(vabs)) if vabs.size else 0.0
+    n_v = 1
+    while vmax ** n_v / factorial(n_v) > 1e-18 and n_v < 12:
+        n_v += 1
+    with np.errstate(all="ignore"):
+        inv = np.divide(1.0, u)
+        j = np.subtract(eu, 1.0)
+        j *= inv  # J_0
+        if n_v == 1:
+            out = j
+        else:
+            even = [j.copy()]
+            tmp = np.empty_like(j)
+            for k in range(1, 2 * n_v - 1):
+                np.multiply(j, -float(k), out=tmp)
+                tmp += eu
+                np.multiply(tmp, inv, out=j)
+                if k % 2 == 0:
+                    even.append(j.copy())
+            out = even[-1]
+            for n in range(n_v - 1, 0, -1):  # Horner in v: sum_n v^n / n! J_2n
+                out *= v / n
+                out += even[n - 1]
+    au2 = np.multiply(u.real, u.real)
+    au2 += u.imag * u.imag
+    series = au2 < 0.0625
+    if vmax > 0.0:
+        series |= np.broadcast_to(vabs, u.shape) > 0.1 * au2
+    idx = np.flatnonzero(series)
+    if idx.size:
+        us = u.ravel()[idx]
+        vs = np.broadcast_to(v, u.shape).ravel()[idx]
+        # terms of e^{u x + v x^2} are below those of e^{(|u| + |v|) x} (|x| <= 1)
+        radius = float(np.max(np.abs(us) + np.abs(vs)))
+        n_terms = 4
+        while radius ** n_terms / factorial(n_terms) > 1e-18:
+            n_terms += 1
+        c_prev = np.zeros_like(us)
+        c = np.ones_like(us)
+        acc = np.ones_like(us)
+        for m in range(1, n_terms + 2):
+            c_prev, c = c, (us * c + 2.0 * vs * c_prev) / m
+            acc += c / (m + 1)
+        out.ravel()[idx] = acc
     return out
 
 
@@ -177,6 +252,55 @@ def tip_basis(tip_shapes: np.ndarray, rtol: float = 1e-12) -> TipBasis:
     return TipBasis(psi=np.ascontiguousarray(psi), nodes=np.ascontiguousarray(V.reshape(r, n_tip, 3)))
 
 
+class GridPoints:
+    """The envelope grid of :func:`build_grid`, point by point on demand (memory independent of
+    the run's length): uniform steps <= ``h_max`` in every speed segment, knots included.
+
+    Parameters
+    ----------
+    speed : SpeedProfile
+    h_max : float
+        Largest step, s.
+    """
+
+    def __init__(self, speed: SpeedProfile, h_max: float) -> None:
+        t = speed.t_s
+        self._t0, self._t1 = t[:-1], t[1:]
+        self._n = np.maximum(1, np.ceil((self._t1 - self._t0) / h_max - 1e-9).astype(np.int64))
+        self._off = np.concatenate(([0], np.cumsum(self._n)))  # first point of each segment
+        self._end = float(t[-1])
+        #: number of grid points
+        self.size = int(self._off[-1]) + 1
+
+    def points(self, start: int, stop: int) -> np.ndarray:
+        """Grid points ``start .. stop - 1`` (the same numbers as ``build_grid(...)[start:stop]``)."""
+        j = np.arange(max(start, 0), min(stop, self.size))
+        out = np.empty(j.size)
+        last = j == self.size - 1
+        jj = j[~last]
+        k = np.searchsorted(self._off, jj, side="right") - 1
+        n = self._n[k]
+        t0 = self._t0[k]
+        out[~last] = t0 + (self._t1[k] - t0) * (jj - self._off[k]) / n
+        out[last] = self._end
+        return out
+
+    def searchsorted(self, t: float) -> int:
+        """``np.searchsorted(build_grid(...), t)``: the first point >= ``t``."""
+        if t > self._end:
+            return self.size
+        k = int(np.clip(np.searchsorted(self._t0, t, side="right") - 1, 0, self._t0.size - 1))
+        guess = int(self._off[k] + np.floor((t - self._t0[k]) / (self._t1[k] - self._t0[k]) * self._n[k]))
+        lo = max(0, guess - 2)
+        window = self.points(lo, guess + 3)
+        i = lo + int(np.searchsorted(window, t))
+        while i > 0 and self.points(i - 1, i)[0] >= t:  # (only if the estimate was off)
+            i -= 1
+        while i < self.size and self.points(i, i + 1)[0] < t:
+            i += 1
+        return i
+
+
 def build_grid(speed: SpeedProfile, h_max: float) -> np.ndarray:
     """Envelope grid: uniform steps <= ``h_max`` in every speed segment, knots included."""
     parts = []
@@ -223,10 +347,15 @@ class EnvelopeIntegrator:
     initial : {"steady", "rest"}
         ``"steady"`` starts every mode in its quasi-steady forced response at the start
         speed (the rotor was running before the run-up); ``"rest"`` starts at rest.
+    quasi_steady : bool
+        Take the quasi-steady series where it is exact to round-off
+        (:meth:`quasi_steady_terms`); False: the exact recursion everywhere (the reference
+        of the tests).
     """
 
     def __init__(self, freq_hz, damping_ratio, C, eo, basis: TipBasis, speed: SpeedProfile,
-                 initial: str = "steady") -> None:
+                 initial: str = "steady", quasi_steady: bool = True) -> None:
+        self.quasi_steady = bool(quasi_steady)
         w = 2.0 * np.pi * np.asarray(freq_hz, float)
         zeta = np.asarray(damping_ratio, float)
         active = np.max(np.abs(C), axis=1) > 1e-14 * max(np.max(np.abs(C)), 1e-300)
@@ -238,16 +367,29 @@ class EnvelopeIntegrator:
         Ca = C[active]
         self.c_plus = Ca / 2j
         self.c_minus = -np.conj(Ca) / 2j
+        # both carriers side by side (+ for every excitation, then -)
+        self._lam_row = self.lam[:, 0]
+        self._eo_s = np.concatenate([self.eo[0], -self.eo[0]])
+        self._c_s = np.concatenate([self.c_plus, self.c_minus], axis=1)
         n_b, r = basis.psi.shape[1:]
         self.n_blades, self.r = n_b, r
-        self.W = (basis.psi[active] / wd[:, None, None]).reshape(len(self.active), n_b * r)
+        self.W = np.ascontiguousarray((basis.psi[active] / wd[:, None, None]).reshape(len(self.active), n_b * r))
         self.speed = speed
         self.t = 0.0
         phi0, om0, al0 = (float(x) for x in speed.state(0.0))
         self.a_plus = self._initial(self.c_plus, om0, al0, +1, initial)
         self.a_minus = self._initial(self.c_minus, om0, al0, -1, initial)
-        # longest sub-chunk keeping exp(-lambda t) within range
-        self._max_span = 400.0 / max(float(np.max(zeta * w)) if w.size else 1.0, 1e-9)
+        # columns (mode k, carrier c) flattened as k * n_car + c
+        n_car = self._eo_s.size
+        self._k_col = np.repeat(np.arange(len(self.active)), n_car)
+        self._car_col = np.tile(np.arange(n_car), len(self.active))
+        self._lam_col = self._lam_row[self._k_col]
+        self._eo_col = self._eo_s[self._car_col]
+        self._c_col = self._c_s.ravel()
+        self._zw_col = (zeta * w)[self._k_col]
+        self._cabs_col = np.abs(self._c_col)
+        #: per advance: columns integrated by the quasi-steady series / by the exact recursion
+        self.stats = {"quasi_steady": 0, "exact": 0}
 
     def _initial(self, c, omega, alpha, sign, initial):
         if initial == "rest" or c.size == 0:
@@ -269,47 +411,229 @@ class EnvelopeIntegrator:
         acc = np.concatenate([np.zeros_like(g[:1]), np.cumsum(g * np.exp(-L[1:]), axis=0)])
         return np.exp(L) * (a0[None] + acc)
 
-    def advance(self, t_grid: np.ndarray, keep_modal: bool = False) -> EnvelopeGrid:
+    def advance(self, t_grid: np.ndarray, keep_modal: bool = False, out: np.ndarray | None = None,
+                first: int = 0):
         """Integrate from the current time (``t_grid[0]``) over ``t_grid``; return envelopes.
 
         ``t_grid`` must come from :func:`build_grid` (no step straddles a speed knot).
+
+        Both carriers of every excitation are advanced together, speed segment by speed
+        segment (:meth:`_run`): the quasi-steady series where it is exact to round-off, the
+        exact recursion elsewhere. The modal envelopes are then summed into blade envelopes
+        ``G = sum_k Psi_k (a_+ - conj(a_-))_k / w_dk`` and their exact derivatives
+        ``dG = sum_k Psi_k ((mu_+ a_+ + c_+) - conj(mu_- a_- + c_-))_k / w_dk``.
+
+        Parameters
+        ----------
+        t_grid : ndarray, shape (n,)
+        keep_modal : bool
+            Keep the modal envelopes in the result (for tests).
+        out : ndarray, shape (2, n_exc, 2, n - first, n_blades * r), optional
+            Receives ``G`` and ``dG`` (real and imaginary parts) at ``t_grid[first:]``, each
+            ``(n - first, n_blades * r)`` plane contiguous (written by the matrix products
+            themselves); nothing is returned then.
+        first : int
+            First grid point written to ``out``.
+
+        Returns
+        -------
+        EnvelopeGrid or None
         """
         t_grid = np.asarray(t_grid, float)
         if abs(t_grid[0] - self.t) > 1e-12 * max(1.0, abs(self.t)):
             raise ValueError("advance() must start at the integrator's current time")
         phi, om, _ = self.speed.state(t_grid)
-        seg = self.speed.segment(0.5 * (t_grid[:-1] + t_grid[1:])) if t_grid.size > 1 else np.zeros(0, int)
-        alpha_step = self.speed.alpha[seg]
         n = t_grid.size
-        ap = np.empty((n, len(self.active), self.eo.shape[1]), complex)
-        am = np.empty_like(ap)
-        start = 0
-        while start < n - 1:
-            stop = start + 1
-            while stop < n - 1 and t_grid[stop + 1] - t_grid[start] <= self._max_span:
-                stop += 1
-            sl = slice(start, stop + 1)
-            ap[sl] = self._envelopes(+1, ap[start] if start else self.a_plus, self.c_plus,
-                                     t_grid[sl], phi[sl], om[start + 1:stop + 1], alpha_step[start:stop])
-            am[sl] = self._envelopes(-1, am[start] if start else self.a_minus, self.c_minus,
-                                     t_grid[sl], phi[sl], om[start + 1:stop + 1], alpha_step[start:stop])
-            start = stop
-        if n == 1:
-            ap[0], am[0] = self.a_plus, self.a_minus
-        self.a_plus, self.a_minus, self.t = ap[-1].copy(), am[-1].copy(), float(t_grid[-1])
-        mu_p = self.lam[None] - 1j * self.eo[None] * om[:, None, None]
-        mu_m = self.lam[None] + 1j * self.eo[None] * om[:, None, None]
-        A = ap - np.conj(am)
-        dA = (mu_p * ap + self.c_plus[None]) - np.conj(mu_m * am + self.c_minus[None])
-        return EnvelopeGrid(t=t_grid, G=self._to_blades(A), dG=self._to_blades(dA),
-                            a_plus=ap if keep_modal else None, a_minus=am if keep_modal else None)
+        n_exc = self.eo.shape[1]
+        A = np.empty((n, len(self.active), 2 * n_exc), complex)
+        A[0, :, :n_exc] = self.a_plus
+        A[0, :, n_exc:] = self.a_minus
+        mu = self._lam_row[None, :, None] - 1j * self._eo_s[None, None, :] * om[:, None, None]
+        if n > 1:
+            seg = self.speed.segment(0.5 * (t_grid[:-1] + t_grid[1:]))
+            A2, mu2 = A.reshape(n, -1), mu.reshape(n, -1)
+            for start, stop in self._segments(seg):
+                self._run(A2, start, stop, t_grid, phi, om, mu2, float(self.speed.alpha[seg[start]]))
+        self.a_plus, self.a_minus = A[-1, :, :n_exc].copy(), A[-1, :, n_exc:].copy()
+        self.t = float(t_grid[-1])
+        D = mu * A
+        D += self._c_s[None]
+        Ap, Am = A[..., :n_exc], A[..., n_exc:]
+        XG = Ap - np.conj(Am)  # (n, n_act, n_exc)
+        XD = D[..., :n_exc] - np.conj(D[..., n_exc:])
+        if out is not None:
+            for g, X in enumerate((XG, XD)):
+                for m in range(n_exc):
+                    Xm = X[first:, :, m]
+                    np.matmul(np.ascontiguousarray(Xm.real), self.W, out=out[g, m, 0])
+                    np.matmul(np.ascontiguousarray(Xm.imag), self.W, out=out[g, m, 1])
+            return None
+        X = np.stack([XG, XD], axis=1)  # (n, 2, n_act, n_exc)
+        GD = self._to_blades(X.transpose(0, 1, 3, 2).reshape(n * 2 * n_exc, -1))  # (n * 2 * n_exc, nb * r)
+        GD = GD.reshape(n, 2, n_exc, self.n_blades, self.r)
+        return EnvelopeGrid(t=t_grid, G=GD[:, 0], dG=GD[:, 1],
+                            a_plus=Ap.copy() if keep_modal else None,
+                            a_minus=Am.copy() if keep_modal else None)
 
-    def _to_blades(self, A: np.ndarray) -> np.ndarray:
-        """(n, n_act, n_exc) modal envelopes -> (n, n_exc, n_blades, r) blade envelopes."""
-        n, _, n_exc = A.shape
-        X = A.transpose(0, 2, 1).reshape(n * n_exc, -1)
-        out = (X.real @ self.W) + 1j * (X.imag @ self.W)
-        return out.reshape(n, n_exc, self.n_blades, self.r)
+    @staticmethod
+    def _segments(seg: np.ndarray):
+        """Step ranges ``[start, stop)`` within one speed segment (constant acceleration)."""
+        cuts = np.flatnonzero(np.diff(seg)) + 1
+        bounds = np.concatenate(([0], cuts, [seg.size])).tolist()
+        return list(zip(bounds[:-1], bounds[1:]))
+
+    @staticmethod
+    def _spans(t: np.ndarray, start: int, stop: int, span: float):
+        """Split steps ``[start, stop)`` into ranges no longer than ``span`` seconds (one step
+        at least)."""
+        k = start
+        while k < stop:
+            end = k + 1 + int(np.searchsorted(t[k + 1:stop + 1], t[k] + span, side="right"))
+            end = min(max(end - 1, k + 1), stop)
+            yield k, end
+            k = end
+
+    def quasi_steady_terms(self, mu: np.ndarray, alpha: float) -> np.ndarray:
+        """Terms of the quasi-steady series each column needs over a stretch (0: none suffices).
+
+        Over a stretch of one speed segment, ``mu = lambda -+ i EO Omega(t)`` is linear in
+        time with slope ``m1 = -+ i EO alpha``. The series
+        ``a_p = -(c / mu) sum_{j<K} (2j - 1)!! (-q)^j``, ``q = m1 / mu^2``, satisfies
+        ``a_p' = mu a_p + c + mu a_K`` with ``a_K`` its first omitted term, so the exact
+        envelope is ``a = a_p + e`` with ``e' = mu e - mu a_K``: ``e`` is the homogeneous
+        solution from ``a(t_start) - a_p(t_start)`` plus at most
+        ``|c| (2K - 1)!! q_max^K / (zeta w)`` (``Re mu = -zeta w``). ``K`` is the smallest
+        number of terms (at most 8) for which that bound is below :data:`QUASI_STEADY_TOL`
+        times the column's smallest quasi-steady amplitude ``|c| / |mu|_max``.
+
+        Parameters
+        ----------
+        mu : ndarray, complex, shape (n, n_cols)
+            ``mu`` of every column at the stretch's grid points.
+        alpha : float
+            Angular acceleration of the segment, rad/s^2.
+        """
+        K, _ = self._quasi_steady_terms(mu, alpha)
+        return K
+
+    def _quasi_steady_terms(self, mu: np.ndarray, alpha: float):
+        """:meth:`quasi_steady_terms` and ``|mu|_max`` of every column."""
+        amu2 = mu.real * mu.real
+        amu2 += mu.imag * mu.imag
+        mn, mx = amu2.min(axis=0), np.sqrt(amu2.max(axis=0))
+        q = np.abs(self._eo_col) * abs(alpha) / mn
+        K = np.zeros(q.shape, int)
+        bound = mx / self._zw_col
+        for k in range(1, 9):
+            bound *= (2 * k - 1) * q  # (2k - 1)!! q^k |mu|_max / (zeta w)
+            K[(K == 0) & (bound <= QUASI_STEADY_TOL)] = k
+        return K, mx
+
+    def _run(self, A, start, stop, t, phi, om, mu, alpha):
+        """The envelopes over the steps ``start .. stop`` of one speed segment (in place in
+        ``A``, shape (n, n_cols)): quasi-steady series where :meth:`quasi_steady_terms`
+        allows (plus the exact homogeneous part where it is not negligible), the exact
+        recursion (:meth:`_run_exact`) elsewhere."""
+        mu_s = mu[start:stop + 1]
+        if self.quasi_steady:
+            K, mu_max = self._quasi_steady_terms(mu_s, alpha)
+        else:
+            K = np.zeros(mu_s.shape[1], int)
+        qs = K > 0
+        n_qs = int(np.count_nonzero(qs))
+        self.stats["quasi_steady"] += n_qs
+        self.stats["exact"] += K.size - n_qs
+        if n_qs:
+            with np.errstate(all="ignore"):
+                inv = np.divide(1.0, mu_s)
+                mq = inv * inv
+                mq *= 1j * self._eo_col * alpha  # -q = -m1 / mu^2, m1 = -i EO_c alpha
+                S = np.ones_like(mq)
+                for j in range(int(K.max()) - 1, 0, -1):  # Horner: sum_j (2j-1)!! (-q)^j
+                    S *= (2 * j - 1) * mq
+                    S += 1.0
+                ap = inv
+                ap *= -self._c_col
+                ap *= S  # (N + 1, n_cols)
+            e0 = A[start] - ap[0]
+            A[start + 1:stop + 1] = ap[1:]
+            # the homogeneous part from a(t_start) - a_p(t_start), where it is not negligible
+            keep = qs & (np.abs(e0) * mu_max > QUASI_STEADY_TOL * self._cabs_col)
+            cols = np.flatnonzero(keep)
+            if cols.size:
+                E, Phi = self._propagators(cols, t[start:stop + 1], self._dphi(t, start, stop))
+                A[start + 1:stop + 1, cols] += (E[1:] * Phi[1:]) * e0[cols]
+        if n_qs < K.size:
+            cols = np.flatnonzero(~qs) if n_qs else slice(None)
+            # longest stretch keeping exp(-lambda (t - t_start)) of these columns in range
+            span = 400.0 / max(float(np.max(self._zw_col[cols])), 1e-9)
+            for a, b in self._spans(t, start, stop, span):
+                self._run_exact(A, cols, a, b, t, phi, om, alpha)
+
+    def _dphi(self, t, start, stop):
+        """Rotor angle turned from ``t[start]`` at ``t[start:stop + 1]``, formed without the
+        large rotor angles (:meth:`SpeedProfile.angle_change`): phase steps from rounded
+        rotor angles would carry their absolute error (1e-12 rad and more) into every step."""
+        return self.speed.angle_change(t[start], t[start:stop + 1])[0]
+
+    def _propagators(self, cols, ts, dphi):
+        """``exp(lambda (t - t_0))`` and ``exp(-+ i EO (phi - phi_0))`` of columns ``cols``."""
+        k = self._k_col[cols]
+        car = self._car_col[cols]
+        modes, inv_k = np.unique(k, return_inverse=True)
+        E = np.exp(self._lam_row[modes][None, :] * (ts - ts[0])[:, None])[:, inv_k]
+        Phi = np.exp(-1j * self._eo_s[None, :] * dphi[:, None])[:, car]
+        return E, Phi
+
+    def _run_exact(self, A, cols, start, stop, t, phi, om, alpha):
+        """Exact recursion over the steps ``start .. stop`` of one speed segment for the
+        columns ``cols`` of ``A`` (in place).
+
+        ``a_n = exp(lambda h_n) P_n a_n-1 + c h_n I(u_n, v_n)`` summed in closed form as
+        ``a_n = E_n Phi_n (a_0 + sum_j E_j^-1 conj(Phi_j) c h_j I_j)`` with
+        ``E_n = exp(lambda (t_n - t_0))`` and ``Phi_n = exp(-+ i EO (phi_n - phi_0))``; every
+        step uses its own length ``h_n = t_n - t_n-1`` (grid times are rounded: the steps
+        differ in their last digits), so the recursion is consistent with the grid times at
+        which the envelopes are interpolated.
+        """
+        allc = isinstance(cols, slice)
+        idx = np.arange(self._c_col.size) if allc else cols
+        k = self._k_col[idx]
+        car = self._car_col[idx]
+        lam = self._lam_col[idx]
+        eo = self._eo_col[idx]
+        ts = t[start:stop + 1]
+        h = np.diff(ts)  # (N,)
+        h0 = float(h[0])
+        modes, inv_k = np.unique(k, return_inverse=True)
+        lam_m = self._lam_row[modes]
+        E = np.exp(lam_m[None, :] * (ts - ts[0])[:, None])[:, inv_k]  # (N+1, Q)
+        Einv = 1.0 / E[1:]
+        Phi = np.exp(-1j * self._eo_s[None, :] * self._dphi(t, start, stop)[:, None])[:, car]
+        om_end = om[start + 1:stop + 1]
+        rot = np.exp(-1j * self._eo_s[None, :] * (om_end * h)[:, None])[:, car]  # (N, Q)
+        # exp(lambda h_n) = exp(lambda h_0) (1 + lambda (h_n - h_0)): |lambda (h_n - h_0)| < 1e-9
+        elh = (np.exp(lam_m * h0)[None, :] * (1.0 + lam_m[None, :] * (h - h0)[:, None]))[:, inv_k]
+        eu = elh * rot
+        u = (lam[None, :] - 1j * eo[None, :] * om_end[:, None]) * h[:, None]
+        v = 0.5j * eo[None, :] * (alpha * h * h)[:, None]  # (N, Q)
+        g = _chirp_given_exp(u, eu, v)
+        g *= self._c_col[idx][None, :] * h[:, None]
+        g *= Einv * np.conj(Phi[1:])
+        acc = np.cumsum(g, axis=0)
+        acc += A[start, idx][None]
+        acc *= E[1:] * Phi[1:]
+        if allc:
+            A[start + 1:stop + 1] = acc
+        else:
+            A[start + 1:stop + 1, idx] = acc
+
+    def _to_blades(self, X: np.ndarray) -> np.ndarray:
+        """(m, n_act) complex modal envelopes -> (m, n_blades * r) blade envelopes."""
+        out = np.empty((X.shape[0], self.W.shape[1]), complex)
+        out.real = X.real @ self.W
+        out.imag = X.imag @ self.W
+        return out
 
     def modal_state(self, t: float, t_grid_point: float, a_plus, a_minus) -> np.ndarray:
         """Exact complex modal state ``z`` (n_act,) at ``t`` from envelopes at a grid point.

@@ -78,6 +78,45 @@ class SpeedProfile:
         w = self.omega[k]
         return self._phi[k] + s * (w + 0.5 * a * s), w + a * s, a
 
+    def angle_change(self, t_ref, t, seg_ref=None) -> tuple[np.ndarray, np.ndarray]:
+        """Rotor angle turned from ``t_ref`` to ``t`` (rad) and the speed at ``t`` (rad/s).
+
+        Within the segment of ``t_ref`` the change is formed without the large rotor
+        angles, ``(t - t_ref) (Omega_k + alpha_k (s_ref + s) / 2)`` (Eq. 6), so it keeps the
+        relative precision of a small number; a time in another segment takes the difference
+        of :meth:`state` (absolute precision of the rotor angle).
+
+        Parameters
+        ----------
+        t_ref : ndarray
+            Reference times, broadcastable against ``t``.
+        t : ndarray
+        seg_ref : ndarray of int, optional
+            ``segment(t_ref)`` when already known.
+        """
+        t_ref = np.asarray(t_ref, float)
+        t = np.asarray(t, float)
+        k = self.segment(t_ref) if seg_ref is None else seg_ref
+        t_k = self.t_s[k]
+        a = self._alpha[k]
+        s_ref = t_ref - t_k
+        s = t - t_k
+        d = (t - t_ref) * (self.omega[k] + 0.5 * a * (s_ref + s))
+        om = self.omega[k] + a * s
+        last = self.t_s.size - 2  # state() extends the first and last segments beyond the ends
+        out = ((s < 0.0) & (k > 0)) | ((t >= self.t_s[k + 1]) & (k < last))
+        if np.any(out):
+            # another segment (a speed knot between t_ref and t): exact angles of both
+            out = np.broadcast_to(out, d.shape)
+            tb = np.broadcast_to(t, d.shape)[out]
+            trb = np.broadcast_to(t_ref, d.shape)[out]
+            phi_b, om_b, _ = self.state(tb)
+            d = np.array(d, copy=True)
+            om = np.array(np.broadcast_to(om, d.shape), copy=True)
+            d[out] = phi_b - self.state(trb)[0]
+            om[out] = om_b
+        return d, om
+
     def angle(self, t) -> np.ndarray:
         return self.state(t)[0]
 
