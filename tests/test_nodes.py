@@ -236,6 +236,9 @@ def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")  # the recorder stops when it goes
             assert wait_for_subscribers(session, ["bttsim/rig1/opr"], 120, StopFlag(install=False))
             pubs = {m.key: session.declare_publisher(m.key) for m in msgs}
+            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
+            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+                time.sleep(0.02)
             pubs[msgs[1].key].put(msgs[1].payload, attachment=pack_attachment(1 << 62, 10))  # forged
             for m in msgs:
                 pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
@@ -278,6 +281,9 @@ def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(sc
             assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
             pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
                     for k in {m.key for m in msgs} | {k for k, _, _ in bad}}
+            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
+            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+                time.sleep(0.02)
             for i, m in enumerate(msgs):
                 pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
                 if i == 40:  # in the middle of the run, after revolution 0 is in
