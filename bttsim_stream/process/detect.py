@@ -46,8 +46,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.ndimage import median_filter, uniform_filter1d
-from scipy.signal import find_peaks
+
+from .prep import median_then_mean
 
 __all__ = ["DetectOptions", "SpeedSegment", "Sweep", "RunSegments", "Crossing", "Reference",
            "speed_segments", "detection_curve", "detect_crossings", "choose_reference", "resolve_engine_orders",
@@ -294,7 +294,7 @@ def speed_segments(opr_s: np.ndarray, omega_rad_s: np.ndarray,
                            float(t[-1] - t[0]) if n else 0.0)
         return RunSegments((seg,), (Sweep(0, n, seg.direction),), (), om.copy())
     size = min(11, n)
-    om_s = uniform_filter1d(median_filter(om, size=size, mode="nearest"), size, mode="nearest")
+    om_s = median_then_mean(om, size)
     d2 = np.diff(om, 2)
     noise = 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if d2.size else 0.0
     tol = max(options.knot_tolerance * float(np.median(om_s)), 4.0 * noise / math.sqrt(size))
@@ -364,7 +364,7 @@ def _smooth(x: np.ndarray, size: int) -> np.ndarray:
         return np.zeros_like(x)
     xf = np.where(ok, x, np.interp(np.arange(x.size), np.flatnonzero(ok), x[ok]))
     size = max(1, min(int(size), x.size))
-    return uniform_filter1d(median_filter(xf, size=size, mode="nearest"), size, mode="nearest")
+    return median_then_mean(xf, size)
 
 
 def _run_around(above: np.ndarray, i: int) -> tuple[int, int]:
@@ -407,6 +407,10 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
         resid = a_raw - a
         resid = resid[np.isfinite(resid)]
         sigma = 1.4826 * float(np.median(np.abs(resid))) / math.sqrt(m) if resid.size else 0.0
+        # scipy.signal takes 0.5 s to import: only when a run is searched for crossings, not
+        # at the start of every command and node
+        from scipy.signal import find_peaks
+
         peaks, props = find_peaks(a, prominence=0.0)
         for p, prom, lb, rb in zip(peaks, props["prominences"], props["left_bases"], props["right_bases"]):
             top = float(a[p])

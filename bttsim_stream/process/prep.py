@@ -39,7 +39,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import median_filter, uniform_filter1d
 
 from .fit import fit_revolutions
 
@@ -154,6 +153,18 @@ class PreparedData:
     options: PrepOptions
 
 
+def median_then_mean(x: np.ndarray, size: int) -> np.ndarray:
+    """A running median, then a running mean, of ``size`` samples along axis 0 (edges:
+    nearest value): robust smoothing of per-revolution curves, shape kept.
+
+    scipy.ndimage takes 0.16 s to import: it is imported on first use, not by every command.
+    """
+    from scipy.ndimage import median_filter, uniform_filter1d
+
+    x = np.asarray(x, dtype=float)
+    shape = (int(size),) + (1,) * (x.ndim - 1)
+    return uniform_filter1d(median_filter(x, size=shape, mode="nearest"), int(size), axis=0, mode="nearest")
+
 def _contiguous(above: np.ndarray, peak: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First and last index of the run of ``above`` (n, m) that contains ``peak`` (m,)."""
     n = above.shape[0]
@@ -211,8 +222,7 @@ def locate_resonance(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
     amp = np.sqrt(np.sum(fit.amp_pkpk_m ** 2, axis=2))
     n_rev, nb = amp.shape
     size = max(1, min(int(filter_revolutions), n_rev))
-    amp_s = uniform_filter1d(median_filter(_fill_nan(amp), size=(size, 1), mode="nearest"),
-                             size, axis=0, mode="nearest")
+    amp_s = median_then_mean(_fill_nan(amp), size)
     peak = np.argmax(amp_s, axis=0)
     p_val = amp_s[peak, np.arange(nb)]
     background = np.median(amp_s, axis=0)
