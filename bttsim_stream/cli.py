@@ -23,11 +23,12 @@ from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
-from .offline import add_processing_arguments, completeness, load_run, processing_options, with_processing
+from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
+                      with_processing)
 from .orchestrate import run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
-                             check_engine_orders, check_layout, layout_report, rank_layouts)
+                             check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed
@@ -171,7 +172,7 @@ def _cmd_view(args: argparse.Namespace) -> None:
 def _cmd_cn(args: argparse.Namespace) -> None:
     # impossible input (EO < 1, too few probes, angles outside [0, 360), a singular layout):
     # LayoutError, one line, exit 2
-    eos = _engine_orders(args.eo)
+    eos = parse_engine_orders(args.eo)
     cn = check_layout(eos, _angles(args.probes))
     print(f"{cn:.4g}")
     if cn > CN_WARN:
@@ -180,7 +181,7 @@ def _cmd_cn(args: argparse.Namespace) -> None:
 
 
 def _cmd_probes(args: argparse.Namespace) -> None:
-    eos = _engine_orders(args.eo)
+    eos = parse_engine_orders(args.eo)
     cands = _angles(args.candidates, "candidate angles") if args.candidates else PAPER_CANDIDATES_DEG
     unknowns = 1 + 2 * len(eos)
     label = "EO " + "+".join(str(e) for e in eos)
@@ -201,14 +202,6 @@ def _cmd_probes(args: argparse.Namespace) -> None:
           + (f" ({len(ranked) - len(finite)} singular)" if len(finite) < len(ranked) else ""))
     for r in ranked[: args.top]:
         print(f"  CN {r.cn:8.3f}   " + ", ".join(f"{a:g}" for a in r.probe_angles_deg))
-
-
-def _engine_orders(text: str) -> tuple:
-    try:
-        vals = [int(x) for x in str(text).split(",") if x.strip()]
-    except ValueError:
-        raise BttsimError(f"--eo must be comma-separated whole numbers, got {text!r}") from None
-    return check_engine_orders(vals)
 
 
 def _angles(text: str, what: str = "probe angles") -> tuple:

@@ -28,7 +28,7 @@ from .processor import ProcessorSession
 from .sim.core import RunInfo, Truth
 
 __all__ = ["RecordedRun", "load_run", "completeness", "processing_messages", "with_processing",
-           "add_processing_arguments", "processing_options"]
+           "add_processing_arguments", "processing_options", "parse_engine_orders"]
 
 
 def add_processing_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +47,7 @@ def add_processing_arguments(p: argparse.ArgumentParser) -> None:
 def processing_options(args: argparse.Namespace, **extra) -> ProcessOptions:
     """:class:`ProcessOptions` from the flags of :func:`add_processing_arguments` (``extra``:
     further options); a bad value is a :class:`BttsimError`."""
-    eos = _engine_orders(args.eo) if getattr(args, "eo", None) else None
+    eos = parse_engine_orders(args.eo) if getattr(args, "eo", None) else None
     eo_range = _eo_range(args.eo_range) if getattr(args, "eo_range", None) else None
     try:
         return ProcessOptions(prep=not args.no_prep, window=args.window, method=args.method, engine_orders=eos,
@@ -67,7 +67,8 @@ def _eo_range(text: str) -> tuple:
     return lo, hi
 
 
-def _engine_orders(text: str) -> tuple:
+def parse_engine_orders(text: str) -> tuple:
+    """``--eo 8`` or ``--eo 8,9``: the engine orders, checked (:class:`BttsimError` otherwise)."""
     try:
         vals = [int(x) for x in str(text).split(",") if x.strip()]
     except ValueError:

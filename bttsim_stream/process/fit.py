@@ -223,18 +223,31 @@ def fit_revolutions(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
         residual_rms = np.sqrt(rss / n_tot)
         s2 = np.where(n_tot > p, rss / (n_tot - p), np.nan)
     c11, c22, c12 = (ginv[..., k, :] * s2[..., None] for k in range(3))
+    return _sine_fit(eos, window, coeffs, (c11, c22, c12), residual_rms, n_tot, omega_rad_s,
+                     float(np.linalg.cond(B)))
+
+
+def _sine_fit(eos: tuple, window: int, coeffs: np.ndarray, cov: tuple, residual_rms: np.ndarray,
+              n_samples: np.ndarray, omega_rad_s, cn: float) -> SineFit:
+    """Amplitude, phase and the amplitude's standard deviation from the fitted coefficients.
+
+    ``coeffs`` (..., 1 + 2 n_eo) are ``a`` of Eq. 16; ``cov`` holds the variances of the sine
+    and cosine coefficients and their covariance, each (..., n_eo), m^2. The amplitude's
+    variance is their projection on the amplitude's direction (the mean of the two
+    variances where the amplitude is 0).
+    """
+    c11, c22, c12 = cov
     a1, a2 = coeffs[..., 1::2], coeffs[..., 2::2]
     amp = np.hypot(a1, a2)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(all="ignore"):
         var = np.where(amp > 0, (a1 * a1 * c11 + 2 * a1 * a2 * c12 + a2 * a2 * c22) / (amp * amp),
                        0.5 * (c11 + c22))
     omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
     freq = None if omega is None else omega[:, None] * np.asarray(eos, float)[None, :] / TWO_PI
     return SineFit(engine_orders=eos, window=window, coeffs=coeffs, amp_pkpk_m=2.0 * amp,
                    phase_rad=np.arctan2(a2, a1), amp_std_m=2.0 * np.sqrt(np.maximum(var, 0.0)),
-                   dc_m=coeffs[..., 0], residual_rms_m=residual_rms,
-                   n_samples=n_tot.astype(np.int64), omega_rad_s=omega, freq_hz=freq,
-                   cn=float(np.linalg.cond(B)))
+                   dc_m=coeffs[..., 0], residual_rms_m=residual_rms, n_samples=n_samples.astype(np.int64),
+                   omega_rad_s=omega, freq_hz=freq, cn=cn)
 
 
 def _fit_sampled(d: np.ndarray, th: np.ndarray, eos: tuple, radius: float, omega_rad_s, window: int,
@@ -277,20 +290,8 @@ def _fit_sampled(d: np.ndarray, th: np.ndarray, eos: tuple, radius: float, omega
         residual_rms = np.sqrt(rss / C)
         s2 = np.where(C > p, rss / (C - p), np.nan)
     i1 = np.arange(1, p, 2)
-    c11 = Ginv[..., i1, i1] * s2[..., None]
-    c22 = Ginv[..., i1 + 1, i1 + 1] * s2[..., None]
-    c12 = Ginv[..., i1, i1 + 1] * s2[..., None]
-    a1, a2 = coeffs[..., 1::2], coeffs[..., 2::2]
-    amp = np.hypot(a1, a2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        var = np.where(amp > 0, (a1 * a1 * c11 + 2 * a1 * a2 * c12 + a2 * a2 * c22) / (amp * amp),
-                       0.5 * (c11 + c22))
-    omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
-    freq = None if omega is None else omega[:, None] * np.asarray(eos, float)[None, :] / TWO_PI
-    return SineFit(engine_orders=eos, window=window, coeffs=coeffs, amp_pkpk_m=2.0 * amp,
-                   phase_rad=np.arctan2(a2, a1), amp_std_m=2.0 * np.sqrt(np.maximum(var, 0.0)),
-                   dc_m=coeffs[..., 0], residual_rms_m=residual_rms, n_samples=C.astype(np.int64),
-                   omega_rad_s=omega, freq_hz=freq, cn=cn)
+    cov = tuple(Ginv[..., i, j] * s2[..., None] for i, j in ((i1, i1), (i1 + 1, i1 + 1), (i1, i1 + 1)))
+    return _sine_fit(eos, window, coeffs, cov, residual_rms, C, omega_rad_s, cn)
 
 
 def _fit_sampled_one(x: np.ndarray, ok: np.ndarray, te: np.ndarray, eos: tuple, omega_rad_s, cn: float) -> SineFit:
@@ -329,17 +330,9 @@ def _fit_sampled_one(x: np.ndarray, ok: np.ndarray, te: np.ndarray, eos: tuple, 
         rss = np.maximum(Q - (a0 * R0 + a1 * R1 + a2 * R2), 0.0)
         residual_rms = np.sqrt(rss / C)
         s2 = np.where(C > 3, rss / (C - 3), np.nan)
-        c11, c22, c12 = A11 * inv * s2, A22 * inv * s2, A12 * inv * s2
-        amp = np.hypot(a1, a2)
-        var = np.where(amp > 0, (a1 * a1 * c11 + 2 * a1 * a2 * c12 + a2 * a2 * c22) / (amp * amp),
-                       0.5 * (c11 + c22))
+        cov = (A11 * inv * s2, A22 * inv * s2, A12 * inv * s2)
     coeffs = np.stack([a0, a1, a2], axis=-1)
-    omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
-    freq = None if omega is None else omega[:, None] * float(eos[0]) / TWO_PI
-    return SineFit(engine_orders=eos, window=1, coeffs=coeffs, amp_pkpk_m=2.0 * amp[..., None],
-                   phase_rad=np.arctan2(a2, a1)[..., None], amp_std_m=2.0 * np.sqrt(np.maximum(var, 0.0))[..., None],
-                   dc_m=a0, residual_rms_m=residual_rms, n_samples=C.astype(np.int64), omega_rad_s=omega,
-                   freq_hz=freq, cn=cn)
+    return _sine_fit(eos, 1, coeffs, tuple(c[..., None] for c in cov), residual_rms, C, omega_rad_s, cn)
 
 
 def _sym_inv(G: np.ndarray) -> np.ndarray:
