@@ -25,7 +25,7 @@ from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
 from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
                       with_processing)
-from .orchestrate import run_all
+from .orchestrate import describe_exit, run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
                              check_layout, layout_report, rank_layouts)
@@ -131,13 +131,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
     res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
                   connect=args.connect, config=args.config, quiet=args.quiet, mode=args.mode)
     summary, files = res["summary"], res["files"]
-    if summary is not None:
+    if summary is not None and "error" in summary:
+        print(f"NO REPORT: {summary['error']}")
+    elif summary is not None:
         print(summary_table(summary))
     print(f"wrote {files['mcap']}, {files['rrd']}, {files['summary']} in {res['wall_s']:.1f} s"
           + (" (interrupted)" if res["interrupted"] else ""))
     if res["interrupted"]:
         return 130
-    problems = []
+    problems = [f"the {n} node failed ({describe_exit(rc)}; see {Path(args.out) / (n + '.log')})"
+                for n, rc in res["failed"].items()]
     if summary is None:
         problems.append("no summary (the processor gave no report; see processor.log)")
     elif not summary.get("complete", False):

@@ -87,6 +87,8 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     progress = Progress(not quiet, period_s=5.0)
     summary = None
     recorder: dict = {}
+    failed: dict = {}
+    n_rev = 0
     try:
         started: list[str] = []
         for n in NODES:
@@ -130,11 +132,12 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             except subprocess.TimeoutExpired:
                 procs[n].send_signal(signal.SIGTERM)
                 procs[n].wait(timeout=30)
-        bad = {n: p.returncode for n, p in procs.items() if p.returncode not in (0, None)}
-        if bad and not interrupted:
-            raise BttsimError(f"node(s) failed: {bad}; see the logs in {out}")
+        failed = {n: p.returncode for n, p in procs.items() if p.returncode not in (0, None)}
         if files["summary"].exists():
             summary = json.loads(files["summary"].read_text())
+        elif "processor" in failed:  # no report: say so in the file a reader looks at
+            summary = _no_report_summary(n_rev, failed["processor"])
+            files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
         recorder = _last_json_line(out / "recorder.log")
     finally:
         progress.close()
@@ -151,7 +154,26 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         for s, h in old.items():
             signal.signal(s, h)
     return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder,
-            "interrupted": interrupted, "wall_s": time.monotonic() - t0}
+            "interrupted": interrupted, "failed": failed, "wall_s": time.monotonic() - t0}
+
+
+def describe_exit(returncode: int) -> str:
+    """``"exit 1"`` or ``"killed by SIGKILL"``."""
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit {returncode}"
+
+
+def _no_report_summary(n_revolutions: int, returncode: int) -> dict:
+    """The summary of a run whose processor ended without its report: nothing claimed."""
+    return {"status": "none", "complete": False, "revolutions_expected": int(n_revolutions),
+            "revolutions_processed": 0, "lost": None, "duplicates": None, "rejected": None,
+            "resonances": [], "steady": [], "blades": [],
+            "error": f"the processor ended ({describe_exit(returncode)}) before its report; "
+                     "the recording may still hold the run: bttsim process run.mcap"}
 
 
 def _last_json_line(path: Path) -> dict:

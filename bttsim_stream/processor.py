@@ -19,7 +19,7 @@ import logging
 import numpy as np
 
 from .bus.codec import Decoded
-from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker
+from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker, StreamEnd
 from .errors import BttsimError
 from .process.pipeline import ProcessOptions, StreamingProcessor
 from .process.resonance import TruthPeakTracker
@@ -56,6 +56,12 @@ class ProcessorSession:
         self.seqs = SequenceTracker()
         self.out = MessageStream(meta.run_id, meta.rig)
         self.rejected = 0
+        self.end = StreamEnd(meta)
+
+    @property
+    def received_all(self) -> bool:
+        """Has the whole acquisition stream come in (:class:`StreamEnd`)?"""
+        return self.end.done
 
     def reject(self, exc: Exception) -> None:
         """Count a refused message (logged: the first three, then every 1000th)."""
@@ -66,8 +72,9 @@ class ProcessorSession:
     def add(self, kind: str, key: str, decoded: Decoded, seq: int | None = None) -> list[Message]:
         """Add a decoded ``opr``, ``toa`` or ``truth`` message (``seq``: its sequence number, if
         known); returns the result messages that became ready."""
-        if kind in ("opr", "toa") and not self.seqs.accept(key, seq):
+        if kind in ("opr", "toa", "truth") and not self.seqs.accept(key, seq):
             return []  # already received, or an implausible sequence number (counted)
+        self.end.note(key, seq)
         try:
             self._check(kind, decoded)
         except BttsimError as exc:

@@ -81,9 +81,30 @@ def main(conf, args: argparse.Namespace) -> dict:
             progress.update(f"revolution {int(batch.revolution[-1]) + 1}/{stream.info.n_revolutions}")
         progress.close()
         log.info("published %d messages (run %s)", sent, stream.run_id)
+        if args.wait_for and not stop:  # what went out may still be on its way: stay until it is in
+            waiting = wait_for_done(node.session, stream.rig, args.drain_timeout, stop)
+            if waiting:
+                log.warning("leaving before %s confirmed the whole stream (%g s)", ", ".join(sorted(waiting)),
+                            args.drain_timeout)
         if args.linger and not stop:
             stop.wait(args.linger)
     return {"run_id": stream.run_id, "messages": sent, "stopped_by_signal": stop.signal}
+
+
+def wait_for_done(session, rig: str, timeout_s: float, stop: StopFlag) -> set[str]:
+    """Wait until every node that confirmed the run (``ready``) has confirmed the whole stream
+    (``done``), or time runs out; returns the nodes still missing. A node that dies drops its
+    tokens and is no longer waited for."""
+    def names(what: str) -> set[str]:
+        return {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                for r in session.liveliness().get(f"{keys.PREFIX}/{rig}/{what}/*", timeout=1.0) if r.ok is not None}
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        waiting = names("ready") - names("done")
+        if not waiting or stop or time.monotonic() >= deadline:
+            return waiting
+        stop.wait(0.05)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -97,6 +118,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="give up waiting for --wait-for nodes after S seconds (30)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--revolutions", type=int, metavar="N", help="stop after N revolutions")
+    p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
+                   help="after the run, wait up to S seconds for the --wait-for nodes to confirm the whole stream (120)")
     p.add_argument("--linger", type=float, default=0.0, metavar="S",
                    help="keep serving the metadata and the late-joiner cache S seconds after the run")
     p.add_argument("--progress", action="store_true", help="show a progress line on stderr")

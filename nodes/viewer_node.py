@@ -19,6 +19,7 @@ import sys
 
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag
+from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
@@ -42,13 +43,18 @@ def main(conf, args: argparse.Namespace) -> None:
             node.subscribe(keys.all_key(rig), history=True)
             node.watch_nodes(tuple(n for n in args.until.split(",") if n) or ("sim",))
             node.announce()
+            end = None  # has the whole acquisition stream come in?
             for sample in node.samples(stop, poll_s=0.02):
                 if sample is None:
                     live.poll()
                 else:
-                    live.feed(str(sample.key_expr), sample.payload.to_bytes())
+                    live.feed(sample.key, sample.payload)
                     if live.meta is not None:
                         node.ready()
+                        end = end or StreamEnd(live.meta)
+                        end.note(sample.key, sample.att[0] if sample.att else None)
+                        if end.done:
+                            node.done()
         live.close()
         log.info("showed %d messages (%d revolutions, %d fits, %d travelling waves)", live.stats["messages"],
                  live.stats["revolutions"], live.stats["fits"], live.stats["tw"])

@@ -16,6 +16,7 @@ import socket
 import struct
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
@@ -24,7 +25,7 @@ import zenoh.ext as zx
 from ..errors import BttsimError
 
 __all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
-           "unpack_attachment", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
+           "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
            "open_session", "free_port", "declare_publisher", "declare_subscriber"]
 
 log = logging.getLogger("bttsim.session")
@@ -135,13 +136,36 @@ def pack_attachment(seq: int, log_time_ns: int) -> bytes:
 
 
 def unpack_attachment(att) -> tuple[int, int] | None:
-    """``(seq, log_time_ns)`` from a sample's attachment, or None."""
+    """``(seq, log_time_ns)`` from a sample's attachment (or its bytes), or None."""
     if att is None:
         return None
-    raw = att.to_bytes()
+    raw = att if isinstance(att, bytes) else att.to_bytes()
     if len(raw) != _ATT.size:
         return None
     return _ATT.unpack(raw)
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    """A sample (or query reply) as received, copied out of Zenoh's buffers.
+
+    Attributes
+    ----------
+    key : str
+    payload : bytes
+    att : tuple of (int, int) or None
+        ``(seq, log_time_ns)`` from the attachment (None if missing or malformed).
+    """
+
+    key: str
+    payload: bytes
+    att: tuple[int, int] | None
+
+    @classmethod
+    def of(cls, sample) -> "Received":
+        """Copy ``sample`` while Zenoh still owns it (inside its callback: a sample kept past
+        the callback that delivered it on Zenoh's own thread can see its buffer reused)."""
+        return cls(str(sample.key_expr), sample.payload.to_bytes(), unpack_attachment(sample.attachment))
 
 
 class StopFlag:
@@ -188,7 +212,15 @@ def declare_publisher(session, key: str, *, cache_samples: int = 64, lossy: bool
 
 def declare_subscriber(session, key_expr: str, handler, *, history: bool = True):
     """A subscriber calling ``handler(sample)``; with ``history`` it also receives the
-    cached samples of publishers that were there before it (late joiner)."""
+    cached samples of publishers that were there before it (late joiner).
+
+    ``handler`` runs in Zenoh's own receiving thread (``indirect=False``), in the order the
+    samples arrive on the link. Zenoh-python's default runs each subscriber's callback in a
+    thread of its own, and then the samples of different keys (a revolution's OPR pulse and its
+    TOA batches) overtake each other by hundreds of revolutions on a loaded machine. A
+    handler that blocks (a full inbox) slows the link down: back-pressure, not loss.
+    """
+    handler = zenoh.handlers.Callback(handler, indirect=False)
     if not history:
         return session.declare_subscriber(key_expr, handler)
     return zx.declare_advanced_subscriber(
