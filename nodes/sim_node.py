@@ -22,7 +22,8 @@ import time
 
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
-from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness, wait_for_subscribers
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_liveliness, \
+    wait_for_subscribers
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
@@ -89,22 +90,6 @@ def main(conf, args: argparse.Namespace) -> dict:
         if args.linger and not stop:
             stop.wait(args.linger)
     return {"run_id": stream.run_id, "messages": sent, "stopped_by_signal": stop.signal}
-
-
-def wait_for_done(session, rig: str, timeout_s: float, stop: StopFlag) -> set[str]:
-    """Wait until every node that confirmed the run (``ready``) has confirmed the whole stream
-    (``done``), or time runs out; returns the nodes still missing. A node that dies drops its
-    tokens and is no longer waited for."""
-    def names(what: str) -> set[str]:
-        return {str(r.ok.key_expr).rsplit("/", 1)[-1]
-                for r in session.liveliness().get(f"{keys.PREFIX}/{rig}/{what}/*", timeout=1.0) if r.ok is not None}
-
-    deadline = time.monotonic() + timeout_s
-    while True:
-        waiting = names("ready") - names("done")
-        if not waiting or stop or time.monotonic() >= deadline:
-            return waiting
-        stop.wait(0.05)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

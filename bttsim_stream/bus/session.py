@@ -23,9 +23,10 @@ import zenoh
 import zenoh.ext as zx
 
 from ..errors import BttsimError
+from . import keys
 
 __all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
-           "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
+           "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers", "wait_for_done",
            "open_session", "free_port", "declare_publisher", "declare_subscriber"]
 
 log = logging.getLogger("bttsim.session")
@@ -239,6 +240,22 @@ def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, st
             break
         stop.wait(0.1)
     return seen
+
+
+def wait_for_done(session, rig: str, timeout_s: float, stop: StopFlag) -> set[str]:
+    """Wait until every node that confirmed the run (``ready``) has confirmed the whole stream
+    (``done``), or time runs out; returns the nodes still missing. A node that dies drops its
+    tokens and is no longer waited for."""
+    def names(what: str) -> set[str]:
+        return {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                for r in session.liveliness().get(f"{keys.PREFIX}/{rig}/{what}/*", timeout=1.0) if r.ok is not None}
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        waiting = names("ready") - names("done")
+        if not waiting or stop or time.monotonic() >= deadline:
+            return waiting
+        stop.wait(0.05)
 
 
 def wait_for_subscribers(session, key_exprs, timeout_s: float, stop: StopFlag, *, every: bool = True) -> bool:
