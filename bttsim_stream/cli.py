@@ -18,7 +18,7 @@ import numpy as np
 from . import scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
-from .defaults import DEFAULT_WEB_PORT
+from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
@@ -127,16 +127,32 @@ def _cmd_process(args: argparse.Namespace) -> None:
         print(f"wrote {args.summary}")
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
-                  connect=args.connect, config=args.config, quiet=args.quiet, mode=args.mode)
+def _print_run(res: dict) -> None:
     summary, files = res["summary"], res["files"]
     if summary is not None and "error" in summary:
         print(f"NO REPORT: {summary['error']}")
     elif summary is not None:
         print(summary_table(summary))
     print(f"wrote {files['mcap']}, {files['rrd']}, {files['summary']} in {res['wall_s']:.1f} s"
-          + (" (interrupted)" if res["interrupted"] else ""))
+          + (" (interrupted)" if res["interrupted"] else ""), flush=True)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    served: list[dict] = []
+
+    def on_serving(res: dict) -> None:  # --web: the result now, while the viewer serves on
+        _print_run(res)
+        print("bttsim: the web viewer keeps serving until Ctrl-C", file=sys.stderr, flush=True)
+        served.append(res)
+
+    res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, grpc_port=args.grpc_port,
+                  bind=args.bind, realtime=args.realtime, connect=args.connect, config=args.config,
+                  quiet=args.quiet, mode=args.mode, on_serving=on_serving)
+    if served:
+        res = served[0]  # the run's result: the Ctrl-C after it only ended the serving
+    else:
+        _print_run(res)
+    summary = res["summary"]
     if res["interrupted"]:
         return 130
     problems = [f"the {n} node failed ({describe_exit(rc)}; see {Path(args.out) / (n + '.log')})"
@@ -159,7 +175,8 @@ def _cmd_view(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
         src = with_processing(args.mcap, Path(tmp) / "processed.mcap")
-        session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port)
+        session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
+                                grpc_port=args.grpc_port, bind=args.bind)
         if args.web:
             from .bus.session import StopFlag
 
@@ -232,6 +249,16 @@ def _cmd_validate(args: argparse.Namespace) -> None:
     print(json.dumps(validate(), indent=2))
 
 
+def _add_web_arguments(p: argparse.ArgumentParser) -> None:
+    """``--web-port``, ``--grpc-port``, ``--bind``: the same as the viewer node's."""
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
+                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
+                   help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
+    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
+                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -239,9 +266,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="the main job: simulator, processor, recorder and viewer on Zenoh")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output folder: run.mcap, views.rrd, summary.json")
-    p.add_argument("--web", action="store_true", help="serve the Rerun web viewer and print its URL")
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
-                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    p.add_argument("--web", action="store_true",
+                   help="serve the Rerun web viewer, print its URL, keep serving after the run until Ctrl-C")
+    _add_web_arguments(p)
     p.add_argument("--realtime", action="store_true", help="pace the simulator like real hardware")
     p.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
                    help="join an existing Zenoh network instead of the embedded one")
@@ -296,8 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
     p.add_argument("--rrd", help="write the views to this .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
-                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    _add_web_arguments(p)
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("study", help="reproduce one of the paper's studies (NAME.md, NAME.json, PNGs) into --out")

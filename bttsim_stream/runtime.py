@@ -292,6 +292,17 @@ class Progress:
         self.stream.flush()
         self._shown = text
 
+    def note(self, text: str) -> None:
+        """Print ``text`` on a line of its own (above the progress line on a terminal), also
+        when the progress line is off."""
+        redraw = self.tty and self._shown
+        if redraw:
+            self.stream.write("\r" + " " * len(self._shown) + "\r")
+        self.stream.write(text + "\n")
+        if redraw and self.enabled:
+            self.stream.write(self._shown)
+        self.stream.flush()
+
     def close(self) -> None:
         """Show the last state and end the line."""
         if not self.enabled:

@@ -7,8 +7,10 @@ blade fits, travelling waves, resonance reports), fed to
 ``bttsim/<rig>/alive/viewer`` (a simulator started with ``--wait-for`` counts it).
 
 Stops when the nodes named by ``--until`` (default: the simulator) have gone and the bus is
-drained (with ``--web`` it keeps serving until stopped), after ``--duration`` seconds, or on
-SIGINT / SIGTERM; the .rrd is finalised in every case.
+drained (with ``--web`` it then finalises the .rrd, logs "serving the web viewer until
+stopped" and keeps serving), after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
+the .rrd is finalised in every case. The web viewer (page and data server) listens on
+``--bind`` (127.0.0.1) only.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import sys
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from bttsim_stream.defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
@@ -33,7 +35,7 @@ def main(conf, args: argparse.Namespace) -> None:
     rig = keys.validate_rig(args.rig)
     stop = StopFlag(args.duration)
     rec, sinks = views.open_recording(rrd_path=args.rrd, grpc_url=args.rerun_url, serve_web=args.web,
-                                      web_port=args.web_port, grpc_port=args.grpc_port)
+                                      web_port=args.web_port, grpc_port=args.grpc_port, bind=args.bind)
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
@@ -59,12 +61,14 @@ def main(conf, args: argparse.Namespace) -> None:
         log.info("showed %d messages (%d revolutions, %d fits, %d travelling waves)", live.stats["messages"],
                  live.stats["revolutions"], live.stats["fits"], live.stats["tw"])
         if args.web and not stop:
+            views.finish_files(rec)  # the .rrd is complete while we serve
             log.info("run ended; serving the web viewer until stopped (Ctrl-C)")
             while not stop.wait(0.2):
                 pass
     finally:
         rec.flush()
         rec.disconnect()
+        sinks.close()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,11 +76,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rrd", metavar="OUT.rrd", help="write an .rrd file (open it with: rerun OUT.rrd)")
     p.add_argument("--rerun-url", metavar="URL",
                    help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
-    p.add_argument("--web", action="store_true", help="serve the web viewer on loopback (prints its URL)")
+    p.add_argument("--web", action="store_true", help="serve the web viewer (prints its URL)")
     p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
                    help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
     p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
                    help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
+    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
+                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")

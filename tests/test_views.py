@@ -690,19 +690,6 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     if CHROMIUM is None:
         pytest.skip("Chromium not installed (apt-get install chromium)")
     pytest.importorskip("playwright", reason="Playwright not installed (pip install playwright)")
-    if os.environ.get("BTTSIM_NETNS") != "1":
-        # Rerun's web page server binds every interface (no bind option in 0.41): run the
-        # server and the browser in a private network namespace that has only loopback
-        if shutil.which("unshare") is None or subprocess.run(
-                ["unshare", "-n", "true"], capture_output=True).returncode != 0:
-            pytest.skip("needs 'unshare -n' (a loopback-only network namespace) for the web viewer")
-        test_id = f"{Path(__file__).resolve()}::test_web_viewer_draws_the_plots"
-        res = subprocess.run(["unshare", "-n", "sh", "-c", "ip link set lo up && exec \"$@\"", "sh",
-                              "env", "BTTSIM_NETNS=1", sys.executable, "-m", "pytest", "-q", "-p",
-                              "no:cacheprovider", test_id], cwd=REPO, capture_output=True, text=True,
-                             timeout=900)
-        assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
-        return
     web_port, grpc_port = free_port(), free_port()
     log_path = tmp_path / "server.log"
     with open(log_path, "w") as log_file:  # a file, not a pipe: the server logs for minutes
@@ -712,6 +699,10 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     try:
         url = server.stdout.readline().strip()
         assert url.startswith(f"http://127.0.0.1:{web_port}/"), log_path.read_text()[-2000:]
+        from _net import is_loopback, listening_of
+
+        served = listening_of([server.pid])  # our page server and Rerun's data server: loopback only
+        assert ("127.0.0.1", web_port) in served and all(is_loopback(addr) for addr, _ in served), served
         blank = _capture(None, tmp_path / "blank.png", tmp_path / "profile-blank", budget_s=0, first_wait_s=1)
         shot = tmp_path / "views.png"
         pixels = _capture(url, shot, tmp_path / "profile", budget_s=420,

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import select
 import signal
 import socket
 import struct
@@ -170,34 +172,59 @@ class Received:
 
 
 class StopFlag:
-    """Set by SIGINT / SIGTERM (installed in the main thread) or by a deadline."""
+    """Set by SIGINT / SIGTERM / SIGHUP (installed in the main thread) or by a deadline.
+
+    SIGHUP (the terminal closed) stops like SIGTERM, so files are finalised and servers
+    released instead of the default abrupt end. The signal handler takes no lock: it runs in
+    the main thread, which may hold one (a ``threading.Event``'s, while waiting on it), and
+    it may run nested when signals come in quick succession (Ctrl-C twice, a parent-death
+    SIGTERM and the orchestrator's own). Waiters sleep on a pipe that :meth:`set` writes to.
+    """
 
     def __init__(self, duration_s: float | None = None, install: bool = True) -> None:
-        self._event = threading.Event()
+        self._stopped = False
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
         self._deadline = None if duration_s is None else time.monotonic() + duration_s
         self.signal: int | None = None
         if install and threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 signal.signal(sig, self._handler)
 
     def _handler(self, signum, _frame) -> None:
         self.signal = signum
-        self._event.set()
+        self.set()
 
     def set(self) -> None:
-        self._event.set()
+        if not self._stopped:
+            self._stopped = True
+            try:
+                os.write(self._wake_w, b"\0")  # the pipe stays readable: every waiter wakes
+            except OSError:
+                pass
 
     def __bool__(self) -> bool:
         if self._deadline is not None and time.monotonic() >= self._deadline:
-            self._event.set()
-        return self._event.is_set()
+            self._stopped = True
+        return self._stopped
 
     def wait(self, timeout: float) -> bool:
         """Sleep up to ``timeout`` s; True if stopped."""
         if self._deadline is not None:
             timeout = min(timeout, max(0.0, self._deadline - time.monotonic()))
-        self._event.wait(timeout)
+        if not self._stopped:
+            poller = select.poll()  # one per call: threads may wait at once
+            poller.register(self._wake_r, select.POLLIN)
+            poller.poll(max(0, int(timeout * 1000.0 + 0.999)))
         return bool(self)
+
+    def __del__(self) -> None:
+        for fd in (getattr(self, "_wake_r", None), getattr(self, "_wake_w", None)):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
 
 
 def declare_publisher(session, key: str, *, cache_samples: int = 64, lossy: bool = False):
