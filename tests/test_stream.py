@@ -1,5 +1,7 @@
 """The message stream: sequence numbers, results to messages, revolution assembly."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -237,3 +239,37 @@ def test_acquisition_is_the_message_by_message_encoding(ticks, include_truth):
         batch = type(batch)(**{f: getattr(batch, f) for f in batch.__dataclass_fields__ if f != "toa_s"}, toa_s=toa)
         got = a.acquisition(batch, include_truth=include_truth)
         assert got == _reference_acquisition(b, batch, include_truth)
+
+
+def test_processor_session_refuses_messages_of_another_run_before_they_take_a_number():
+    """A forger who knows the next sequence numbers but not the run: its TOA batch and truth
+    are refused and counted, the real messages with those numbers are kept, and the result is
+    the clean one, bit for bit."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.processor import ProcessorSession
+    from bttsim_stream.scenario import Scenario, Speed
+
+    acq = AcquisitionStream(Scenario(speed=Speed(start_rpm=2400.0, end_rpm=2800.0, duration_s=12.0)))
+    msgs = [m for _, ms in acq.batches() for m in ms]
+    meta = codec.decode_message(acq.meta.key, acq.meta.payload).body
+
+    def run(messages):
+        s = ProcessorSession(meta)
+        for m in messages:
+            kind = m.key.split("/")[2]
+            s.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+        assert s.received_all
+        return s, s.finish()[1]
+
+    _, clean = run(msgs)
+    i = next(k for k, m in enumerate(msgs) if m.key.endswith("/toa/0") and m.seq == 5)
+    j = next(k for k, m in enumerate(msgs) if m.key.endswith("/truth") and m.seq == 300)
+    d, t = codec.decode_message(msgs[i].key, msgs[i].payload), codec.decode_message(msgs[j].key, msgs[j].payload)
+    toa = codec.encode_toa_batch(codec.Header("forged", 5, 5, d.header.t_s), 0, (d.body.toa_s + 1e-6).tolist())
+    truth = codec.encode_truth(codec.Header("forged", 300, 300, t.header.t_s),
+                               dataclasses.replace(t.body, d_eqv_pkpk_m=t.body.d_eqv_pkpk_m * 10))
+    forged = (msgs[:i] + [msgs[i].__class__(msgs[i].key, toa, msgs[i].log_time_ns, 5)] + msgs[i:j]
+              + [msgs[j].__class__(msgs[j].key, truth, msgs[j].log_time_ns, 300)] + msgs[j:])
+    s, got = run(forged)
+    assert got["rejected"] == 2 and got["duplicates"] == 0 and got["complete"]
+    assert got["blades"] == clean["blades"] and got["resonances"] == clean["resonances"]
