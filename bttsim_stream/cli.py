@@ -163,6 +163,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         problems.append("the result is incomplete")
     if res["recorder"].get("gaps"):
         problems.append(f"the recording misses {res['recorder']['gaps']} messages")
+    if res["viewer"].get("gaps"):
+        problems.append(f"the views miss {res['viewer']['gaps']} messages")
     if problems:
         print(f"bttsim: warning: {'; '.join(problems)}", file=sys.stderr)
         return EXIT_INCOMPLETE

@@ -117,6 +117,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     progress = Progress(not quiet, period_s=5.0)
     summary = None
     recorder: dict = {}
+    viewer: dict = {}
     failed: dict = {}
     n_rev = 0
     try:
@@ -176,10 +177,11 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             summary = _no_report_summary(n_rev, failed["processor"])
             files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
         recorder = _last_json_line(out / "recorder.log")
+        viewer = _last_json_line(out / "viewer.log")  # its own counts: what the views lost
         finished = True
         if serving:
             if on_serving is not None:
-                on_serving(_result(summary, files, recorder, interrupted, failed, t0))
+                on_serving(_result(summary, files, recorder, viewer, interrupted, failed, t0))
             procs["viewer"].wait()  # until a signal: the handler stops it
     finally:
         progress.close()
@@ -195,11 +197,11 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             f.close()
         for s, h in old.items():
             signal.signal(s, h)
-    return _result(summary, files, recorder, interrupted, failed, t0)
+    return _result(summary, files, recorder, viewer, interrupted, failed, t0)
 
 
-def _result(summary, files: dict, recorder: dict, interrupted: bool, failed: dict, t0: float) -> dict:
-    return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder,
+def _result(summary, files: dict, recorder: dict, viewer: dict, interrupted: bool, failed: dict, t0: float) -> dict:
+    return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder, "viewer": viewer,
             "interrupted": interrupted, "failed": failed, "wall_s": time.monotonic() - t0}
 
 

@@ -16,12 +16,13 @@ the .rrd is finalised in every case. The web viewer (page and data server) liste
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.bus.stream import StreamEnd
+from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
 from bttsim_stream.defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
@@ -39,6 +40,7 @@ def main(conf, args: argparse.Namespace) -> None:
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
+    seqs = SequenceTracker()  # what was lost on the way, per key (duplicates are not shown twice)
     try:
         with node_session(conf, rig, "viewer") as node:
             # subscriber before the token: a simulator waiting for our token finds our subscription
@@ -49,7 +51,7 @@ def main(conf, args: argparse.Namespace) -> None:
             for sample in node.samples(stop, poll_s=0.02):
                 if sample is None:
                     live.poll()
-                else:
+                elif seqs.accept(sample.key, sample.att[0] if sample.att else None):
                     live.feed(sample.key, sample.payload)
                     if live.meta is not None:
                         node.ready()
@@ -58,8 +60,13 @@ def main(conf, args: argparse.Namespace) -> None:
                         if end.done:
                             node.done()
         live.close()
-        log.info("showed %d messages (%d revolutions, %d fits, %d travelling waves)", live.stats["messages"],
-                 live.stats["revolutions"], live.stats["fits"], live.stats["tw"])
+        st = live.stats
+        counts = dict(seqs.summary(), rejected=st["bad"] + st["ignored"] + seqs.implausible)
+        log.log(logging.WARNING if counts["gaps"] else logging.INFO,
+                "showed %d messages (%d revolutions, %d fits, %d travelling waves); %d sequence gaps, "
+                "%d duplicates, %d rejected", st["messages"], st["revolutions"], st["fits"], st["tw"],
+                counts["gaps"], counts["duplicates_skipped"], counts["rejected"])
+        print(json.dumps(counts), flush=True)
         if args.web and not stop:
             views.finish_files(rec)  # the .rrd is complete while we serve
             log.info("run ended; serving the web viewer until stopped (Ctrl-C)")
