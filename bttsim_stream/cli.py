@@ -32,6 +32,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed
+from .sim.core import check_tip_amplitude, load_scenario_model
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
 # paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
@@ -53,7 +54,12 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
         except LayoutError as exc:
             raise BttsimError(f"{args.check}: [probes] angles_deg: {exc}") from None
         cns = ", ".join(f"CN {cn:.3g} at {label}" for label, cn in rows)
-        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns})")
+        try:  # the model too: an absurd force is refused here, not after a run
+            amp = check_tip_amplitude(scn, load_scenario_model(scn))
+        except BttsimError as exc:
+            raise BttsimError(f"{args.check}: {exc}") from None
+        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns}; "
+              f"tip amplitude up to {amp * 1e3:.3g} mm)")
         for w in warns:
             print(f"bttsim: warning: {args.check}: {w}", file=sys.stderr)
         return

@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from .defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from .errors import ScenarioError
 
 __all__ = [
@@ -63,7 +64,6 @@ __all__ = [
 BUILTIN_MODEL = "builtin"
 TOA_METHODS = ("HP", "AD", "PAD")
 FORCE_NODES = ("leading_edge", "trailing_edge")
-MAX_PROBES = 64
 MAX_FAMILIES = 20
 _RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
 _BARE_KEY_RE = re.compile(r"[A-Za-z0-9_-]+")
@@ -287,7 +287,9 @@ class Rotor:
     Attributes
     ----------
     n_blades : int
-        Number of blades, default 29 (the paper's rotor); integer >= 1.
+        Number of blades, default 29 (the paper's rotor); integer in [2, 200]
+        (:data:`~bttsim_stream.defaults.MAX_BLADES`: the built-in model's memory grows as
+        ``n_families * n_blades**2``).
     tip_radius_m : float
         Blade tip radius, m, default 0.19; > 0. Our choice (the first compressor stage of
         a small turbojet): the paper does not give it.
@@ -308,7 +310,7 @@ class Rotor:
     """
 
     n_blades: int = field(default=29, metadata=_doc(
-        "number of blades (the paper's rotor has 29); integer >= 1"))
+        "number of blades (the paper's rotor has 29); integer in [2, 200]"))
     tip_radius_m: float = field(default=0.19, metadata=_doc(
         "blade tip radius, m; > 0 (our choice, small turbojet 1st compressor stage)"))
     stagger_deg: float = field(default=41.5, metadata=_doc(
@@ -325,7 +327,7 @@ class Rotor:
 
     def __post_init__(self) -> None:
         w = "[rotor]"
-        _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=1))
+        _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=2, hi=MAX_BLADES))
         _set(self, "tip_radius_m", _real(w, "tip_radius_m", self.tip_radius_m, lo=0,
                                          lo_open=True))
         _set(self, "stagger_deg", _real(w, "stagger_deg", self.stagger_deg, lo=0,
@@ -441,9 +443,9 @@ class Speed:
     Attributes
     ----------
     start_rpm : float
-        Speed at t = 0, rpm, default 1000.0; > 0.
+        Speed at t = 0, rpm, default 1000.0; in (0, 1e6].
     end_rpm : float
-        Speed at the end of the profile, rpm, default 4000.0; > 0. With ``segments`` it is
+        Speed at the end of the profile, rpm, default 4000.0; in (0, 1e6]. With ``segments`` it is
         derived (the last segment's ``end_rpm``) and must be absent from the file.
     duration_s : float
         Duration of the profile, s, default 130.0; > 0. With ``segments`` it is derived
@@ -451,22 +453,26 @@ class Speed:
     segments : tuple of (float, float)
         ``(duration_s, end_rpm)`` pairs, default empty (plain ramp). In a file, an array
         of inline tables ``{duration_s = 10.0, end_rpm = 2000.0}``. Durations > 0, speeds
-        > 0. Programmatically, pairs or such mappings are accepted.
+        in (0, 1e6].
+        Programmatically, pairs or such mappings are accepted.
+
+    The whole profile makes at most 1,000,000 revolutions
+    (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`).
     """
 
     start_rpm: float = field(default=1000.0, metadata=_doc(
-        "speed at t = 0, rpm; > 0 (paper Eq. 6: linear run-up)"))
+        "speed at t = 0, rpm; in (0, 1e6] (paper Eq. 6: linear run-up)"))
     end_rpm: float = field(default=4000.0, metadata=_doc(
-        "speed at the end of the run-up, rpm; > 0. Leave out when segments is given"))
+        "speed at the end of the run-up, rpm; in (0, 1e6]. Leave out when segments is given"))
     duration_s: float = field(default=130.0, metadata=_doc(
         "duration of the run-up, s; > 0. Leave out when segments is given"))
     segments: tuple[tuple[float, float], ...] = field(default=(), metadata=_doc(
         "piecewise-linear profile: segments from start_rpm, each {duration_s (s, > 0),\n"
-        "end_rpm (rpm, > 0)}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
+        "end_rpm (rpm, in (0, 1e6])}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
 
     def __post_init__(self) -> None:
         w = "[speed]"
-        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True))
+        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True, hi=MAX_RPM))
         items = _sequence(w, "segments", self.segments,
                           "an array of {duration_s = ..., end_rpm = ...} tables")
         segments = tuple(_segment(w, f"segments[{i}]", s) for i, s in enumerate(items))
@@ -475,9 +481,14 @@ class Speed:
             _set(self, "end_rpm", segments[-1][1])
             _set(self, "duration_s", math.fsum(d for d, _ in segments))
         else:
-            _set(self, "end_rpm", _real(w, "end_rpm", self.end_rpm, lo=0, lo_open=True))
+            _set(self, "end_rpm", _real(w, "end_rpm", self.end_rpm, lo=0, lo_open=True, hi=MAX_RPM))
             _set(self, "duration_s", _real(w, "duration_s", self.duration_s, lo=0,
                                            lo_open=True))
+        t_s, rpm = self.breakpoints()
+        revolutions = math.fsum(0.5 * (a + b) * d for a, b, d in zip(rpm[:-1], rpm[1:], np.diff(t_s))) / 60.0
+        if not revolutions <= MAX_REVOLUTIONS:
+            raise _FieldError(w, "", f"makes {revolutions:.3g} revolutions, more than the "
+                              f"{MAX_REVOLUTIONS:,} of one run: shorten duration_s or the segments")
 
     @property
     def total_duration_s(self) -> float:
@@ -523,7 +534,7 @@ def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
         raise _FieldError(where, key, f"must be a table {{duration_s = ..., end_rpm = ...}}, "
                           f"{_got(value)}")
     return (_real(where, f"{key}.duration_s", d, lo=0, lo_open=True),
-            _real(where, f"{key}.end_rpm", r, lo=0, lo_open=True))
+            _real(where, f"{key}.end_rpm", r, lo=0, lo_open=True, hi=MAX_RPM))
 
 
 @dataclass(frozen=True, slots=True)
@@ -533,7 +544,7 @@ class Excitation:
     Attributes
     ----------
     engine_order : int
-        Engine order EO (force cycles per revolution), default 8; integer >= 1.
+        Engine order EO (force cycles per revolution), default 8; integer in [1, 1000].
     nodal_diameter : int
         Nodal diameter ND of the force pattern across the blades (inter-blade phase
         2*pi*ND/n_blades), default 1; integer in [0, n_blades) (checked by
@@ -550,7 +561,7 @@ class Excitation:
     """
 
     engine_order: int = field(default=8, metadata=_doc(
-        "engine order EO (force cycles per revolution); integer >= 1"))
+        "engine order EO (force cycles per revolution); integer in [1, 1000]"))
     nodal_diameter: int = field(default=1, metadata=_doc(
         "nodal diameter ND of the force pattern (inter-blade phase 2*pi*ND/n_blades);\n"
         "integer in [0, n_blades)"))
@@ -564,7 +575,8 @@ class Excitation:
 
     def __post_init__(self) -> None:
         w = "[[excitation]]"
-        _set(self, "engine_order", _integer(w, "engine_order", self.engine_order, lo=1))
+        _set(self, "engine_order", _integer(w, "engine_order", self.engine_order, lo=1,
+                                                   hi=MAX_ENGINE_ORDER))
         _set(self, "nodal_diameter", _integer(w, "nodal_diameter", self.nodal_diameter, lo=0))
         _set(self, "amplitude_n", _real(w, "amplitude_n", self.amplitude_n, lo=0))
         direction = _real_tuple(w, "direction", self.direction)
