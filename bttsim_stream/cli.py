@@ -24,7 +24,7 @@ from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
 from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
-                      with_processing)
+                      result_warnings, with_processing)
 from .orchestrate import describe_exit, run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
@@ -129,6 +129,8 @@ def _cmd_process(args: argparse.Namespace) -> None:
         except OSError as exc:
             raise BttsimError(f"{args.summary}: cannot write ({exc.strerror or exc})") from None
     print(summary_table(summary))
+    for w in result_warnings(summary, run.meta.tip_radius_m):
+        print(f"bttsim: warning: {args.mcap}: {w}", file=sys.stderr)
     if args.summary:
         print(f"wrote {args.summary}")
 

@@ -21,13 +21,14 @@ import numpy as np
 from .bus import codec, keys
 from .bus.recording import McapRecorder, read_recording
 from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
+from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
 from .processor import ProcessorSession
 from .sim.core import RunInfo, Truth
 
-__all__ = ["RecordedRun", "load_run", "completeness", "processing_messages", "with_processing",
+__all__ = ["RecordedRun", "load_run", "completeness", "result_warnings", "processing_messages", "with_processing",
            "add_processing_arguments", "processing_options", "parse_engine_orders"]
 
 
@@ -183,6 +184,27 @@ def completeness(run: RecordedRun) -> Completeness:
             seqs.accept(m.key, m.seq)
     return Completeness(revolutions_expected=run.meta.n_revolutions, revolutions_processed=int(run.revolution.size),
                         lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+
+
+def result_warnings(summary: dict, tip_radius_m: float) -> list[str]:
+    """What a reader of the summary must not miss: a NaN where a resonance or dwell claims an
+    amplitude or a frequency, and an amplitude beyond the linear model's reach
+    (:data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` of the tip radius)."""
+    out = []
+    limit = 2.0 * MAX_TIP_AMPLITUDE_FRACTION * float(tip_radius_m)  # pk-pk
+    for e in [*summary.get("resonances", []), *summary.get("steady", [])]:
+        label = f"the {'dwell' if e.get('kind') == 'dwell' else 'resonance'} at EO {e.get('eo')}"
+        rows = e.get("blades", [])
+        nan = [r["blade"] for r in rows
+               if not (np.isfinite(r.get("amp_pkpk_m", np.nan)) and np.isfinite(r.get("freq_hz", np.nan)))]
+        if nan:
+            out.append(f"{label}: no estimate (NaN) for {len(nan)} of {len(rows)} blade(s) "
+                       f"({', '.join(map(str, nan[:10]))}{' ...' if len(nan) > 10 else ''}): treat them as unmeasured")
+        big = [r["blade"] for r in rows if np.isfinite(r.get("amp_pkpk_m", np.nan)) and r["amp_pkpk_m"] > limit]
+        if big:
+            out.append(f"{label}: amplitude above {2 * MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius pk-pk "
+                       f"({limit * 1e3:.3g} mm) for {len(big)} blade(s): physically absurd for this linear model")
+    return out
 
 
 def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptions()) -> tuple[list[Message], dict]:

@@ -65,6 +65,11 @@ BUILTIN_MODEL = "builtin"
 TOA_METHODS = ("HP", "AD", "PAD")
 FORCE_NODES = ("leading_edge", "trailing_edge")
 MAX_FAMILIES = 20
+MAX_TIP_NODES = 100
+MIN_CLOCK_HZ, MAX_CLOCK_HZ = 1e3, 1e12
+MAX_PROBE_ANGLE_ERROR_DEG = 5.0
+MAX_TIP_RADIUS_M = 10.0
+MAX_SEED = 2**63 - 1
 _RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
 _BARE_KEY_RE = re.compile(r"[A-Za-z0-9_-]+")
 
@@ -161,7 +166,10 @@ def _real(where: str, key: str, value: Any, *, lo: float | None = None, lo_open:
     """Check a finite real number within optional bounds; return it as a float."""
     if not _is_real(value):
         raise _FieldError(where, key, f"must be a number, {_got(value)}")
-    x = float(value)
+    try:
+        x = float(value)
+    except OverflowError:  # an integer beyond any float
+        raise _FieldError(where, key, f"must be finite, got an integer of {len(str(int(value)))} digits") from None
     if not math.isfinite(x):
         raise _FieldError(where, key, f"must be finite, got {_show(x)}")
     too_low = lo is not None and (x <= lo if lo_open else x < lo)
@@ -192,7 +200,7 @@ def _integer(where: str, key: str, value: Any, *, lo: int | None = None,
         raise _FieldError(where, key, f"must be {what}, {_got(value)}")
     n = int(value)
     if (lo is not None and n < lo) or (hi is not None and n > hi):
-        raise _FieldError(where, key, f"must be {what}, got {n}")
+        raise _FieldError(where, key, f"must be {what}, got {_show(n)}")
     return n
 
 
@@ -258,13 +266,13 @@ class Run:
         non-empty and use only ``A-Z a-z 0-9 _ -``.
     seed : int
         Seed of every random choice of the run (random mistuning, acquisition errors),
-        default 0; integer >= 0. The same scenario and seed give the same run.
+        default 0; integer in [0, 2**63 - 1]. The same scenario and seed give the same run.
     """
 
     rig: str = field(default="rig1", metadata=_doc(
         "rig name, used as a Zenoh key segment: non-empty, only A-Z a-z 0-9 _ -"))
     seed: int = field(default=0, metadata=_doc(
-        "seed of every random choice (random mistuning, acquisition errors); integer >= 0"))
+        "seed of every random choice (random mistuning, acquisition errors); integer in [0, 2**63 - 1]"))
 
     def __post_init__(self) -> None:
         w = "[run]"
@@ -273,7 +281,7 @@ class Run:
             raise _FieldError(w, "rig", "must be non-empty and use only letters, digits, "
                               f"'_' and '-', got {_show(rig)}")
         _set(self, "rig", rig)
-        _set(self, "seed", _integer(w, "seed", self.seed, lo=0))
+        _set(self, "seed", _integer(w, "seed", self.seed, lo=0, hi=MAX_SEED))
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,15 +299,17 @@ class Rotor:
         (:data:`~bttsim_stream.defaults.MAX_BLADES`: the built-in model's memory grows as
         ``n_families * n_blades**2``).
     tip_radius_m : float
-        Blade tip radius, m, default 0.19; > 0. Our choice (the first compressor stage of
+        Blade tip radius, m, default 0.19; in (0, 10]; the built-in model also needs it
+        beyond its rim (0.115 m). Our choice (the first compressor stage of
         a small turbojet): the paper does not give it.
     stagger_deg : float
         Tip stagger angle eta_tip, deg: angle of the tip chord from the tangential
         direction. Default 41.5; in (0, 90).
     tip_chord_m : float
-        Chord length of the tip section, m, default 0.0202523; > 0.
+        Chord length of the tip section, m, default 0.0202523; > 0 and at most
+        ``tip_radius_m``.
     n_tip_nodes : int
-        Number of tip nodes along the chord, default 9; integer >= 2.
+        Number of tip nodes along the chord, default 9; integer in [2, 100].
     tip_node_spacing_m : float
         Spacing of the tip nodes along the chord, m, starting at the TE; default
         0.0004375; > 0. The nodes must fit on the chord:
@@ -312,13 +322,13 @@ class Rotor:
     n_blades: int = field(default=29, metadata=_doc(
         "number of blades (the paper's rotor has 29); integer in [2, 200]"))
     tip_radius_m: float = field(default=0.19, metadata=_doc(
-        "blade tip radius, m; > 0 (our choice, small turbojet 1st compressor stage)"))
+        "blade tip radius, m; in (0, 10] (our choice, small turbojet 1st compressor stage)"))
     stagger_deg: float = field(default=41.5, metadata=_doc(
         "tip stagger eta_tip, deg: tip chord angle from the tangential direction; in (0, 90)"))
     tip_chord_m: float = field(default=0.0202523, metadata=_doc(
-        "tip chord length, m; > 0. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
+        "tip chord length, m; in (0, tip_radius_m]. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
     n_tip_nodes: int = field(default=9, metadata=_doc(
-        "number of tip nodes along the chord; integer >= 2"))
+        "number of tip nodes along the chord; integer in [2, 100]"))
     tip_node_spacing_m: float = field(default=0.0004375, metadata=_doc(
         "tip node spacing along the chord from the TE, m; > 0;\n"
         "(n_tip_nodes - 1) * tip_node_spacing_m <= tip_chord_m"))
@@ -329,12 +339,12 @@ class Rotor:
         w = "[rotor]"
         _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=2, hi=MAX_BLADES))
         _set(self, "tip_radius_m", _real(w, "tip_radius_m", self.tip_radius_m, lo=0,
-                                         lo_open=True))
+                                         lo_open=True, hi=MAX_TIP_RADIUS_M))
         _set(self, "stagger_deg", _real(w, "stagger_deg", self.stagger_deg, lo=0,
                                         lo_open=True, hi=90, hi_open=True))
         _set(self, "tip_chord_m", _real(w, "tip_chord_m", self.tip_chord_m, lo=0,
-                                        lo_open=True))
-        _set(self, "n_tip_nodes", _integer(w, "n_tip_nodes", self.n_tip_nodes, lo=2))
+                                        lo_open=True, hi=self.tip_radius_m))
+        _set(self, "n_tip_nodes", _integer(w, "n_tip_nodes", self.n_tip_nodes, lo=2, hi=MAX_TIP_NODES))
         _set(self, "tip_node_spacing_m", _real(w, "tip_node_spacing_m",
                                                self.tip_node_spacing_m, lo=0, lo_open=True))
         _set(self, "nominal_node", _integer(w, "nominal_node", self.nominal_node, lo=1))
@@ -675,35 +685,41 @@ class Acquisition:
     Attributes
     ----------
     clock_hz : float
-        TOA counter clock, Hz. 0 (default) = no quantisation; else > 0 and the TOAs are
-        whole ticks of this clock.
+        TOA counter clock, Hz. 0 (default) = no quantisation; else in [1e3, 1e12] and the
+        TOAs are whole ticks of this clock (which must count the whole run in 62 bits).
     trigger_jitter_s : float
-        Standard deviation of a Gaussian jitter on each TOA, s; >= 0.
+        Standard deviation of a Gaussian jitter on each TOA, s; >= 0 and at most 1 % of the
+        shortest revolution period (checked by :class:`Scenario`).
     probe_angle_error_deg : float
         Standard deviation of static random errors of the probe angular positions, deg
-        (drawn once per run); >= 0.
+        (drawn once per run); in [0, 5].
     opr_jitter_s : float
-        Standard deviation of a Gaussian jitter on each OPR timestamp, s; >= 0.
+        Standard deviation of a Gaussian jitter on each OPR timestamp, s; as
+        ``trigger_jitter_s``.
     speed_fluctuation_rpm : float
         Standard deviation of a random speed fluctuation about the speed profile, rpm;
-        >= 0.
+        >= 0 and at most 10 % of the slowest speed (checked by :class:`Scenario`).
     """
 
     clock_hz: float = field(default=0.0, metadata=_doc(
-        "TOA counter clock, Hz; 0 = no quantisation, else > 0 (TOAs become whole ticks)"))
+        "TOA counter clock, Hz; 0 = no quantisation, else in [1e3, 1e12] (TOAs become whole ticks)"))
     trigger_jitter_s: float = field(default=0.0, metadata=_doc(
-        "std of the Gaussian jitter on each TOA, s; >= 0"))
+        "std of the Gaussian jitter on each TOA, s; >= 0, at most 1 % of the shortest revolution"))
     probe_angle_error_deg: float = field(default=0.0, metadata=_doc(
-        "std of static random probe angular position errors, deg; >= 0"))
+        "std of static random probe angular position errors, deg; in [0, 5]"))
     opr_jitter_s: float = field(default=0.0, metadata=_doc(
-        "std of the Gaussian jitter on each OPR timestamp, s; >= 0"))
+        "std of the Gaussian jitter on each OPR timestamp, s; >= 0, at most 1 % of the shortest\nrevolution"))
     speed_fluctuation_rpm: float = field(default=0.0, metadata=_doc(
-        "std of the random speed fluctuation about the speed profile, rpm; >= 0"))
+        "std of the random speed fluctuation about the speed profile, rpm; >= 0, at most 10 %\nof the slowest speed"))
 
     def __post_init__(self) -> None:
         w = "[acquisition]"
         for f in dataclasses.fields(self):
-            _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0))
+            _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0,
+                                     hi=MAX_PROBE_ANGLE_ERROR_DEG if f.name == "probe_angle_error_deg" else None))
+        if self.clock_hz and not MIN_CLOCK_HZ <= self.clock_hz <= MAX_CLOCK_HZ:
+            raise _FieldError(w, "clock_hz", f"must be 0 (no quantisation) or in [{_num(MIN_CLOCK_HZ)}, "
+                              f"{_num(MAX_CLOCK_HZ)}], got {_show(self.clock_hz)}")
 
 
 def _default_excitation() -> tuple[Excitation, ...]:
@@ -785,6 +801,19 @@ class Scenario:
             if factors and len(factors) != n:
                 raise _FieldError("[model]", kind, f"must hold [rotor] n_blades = {n} values "
                                   f"(or be empty), got {len(factors)}")
+        acq, (_, rpm) = self.acquisition, self.speed.breakpoints()
+        shortest = 60.0 / float(np.max(rpm))  # s, the shortest revolution
+        for name in ("trigger_jitter_s", "opr_jitter_s"):
+            if getattr(acq, name) > 0.01 * shortest:
+                raise _FieldError("[acquisition]", name, f"must be at most 1 % of the shortest revolution "
+                                  f"({0.01 * shortest:.3g} s at {float(np.max(rpm)):g} rpm), got "
+                                  f"{_show(getattr(acq, name))}")
+        if acq.speed_fluctuation_rpm > 0.1 * float(np.min(rpm)):
+            raise _FieldError("[acquisition]", "speed_fluctuation_rpm", "must be at most 10 % of the slowest "
+                              f"speed ({0.1 * float(np.min(rpm)):g} rpm), got {_show(acq.speed_fluctuation_rpm)}")
+        if acq.clock_hz * self.speed.duration_s >= 2.0**62:
+            raise _FieldError("[acquisition]", "clock_hz", f"cannot count a run of {self.speed.duration_s:g} s "
+                              f"in 62 bits, got {_show(acq.clock_hz)}")
 
 
 #: Section name -> dataclass, in file order (``excitation`` is an array of tables).
@@ -987,6 +1016,10 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
         d = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    except RecursionError:
+        raise ScenarioError(f"{name}: malformed TOML: arrays or tables nested too deep") from None
     return scenario_from_dict(d, source=name, base_dir=p.absolute().parent)
 
 

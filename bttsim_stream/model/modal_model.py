@@ -28,7 +28,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import __version__
 from ..defaults import MAX_BLADES
-from ..errors import ModelFileError
+from ..errors import ModelFileError, ScenarioError
 from ..scenario import Scenario
 from .bladed_disk import (
     BladedDiskDesign,
@@ -243,6 +243,10 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         if scn is None:
             scn = Scenario()
         design = design_from_scenario(scn)
+    if design.span_m < 0.1 * design.rim_radius_m:
+        raise ScenarioError(f"[rotor] tip_radius_m = {design.tip_radius_m:g} m: the built-in model's blades start "
+                            f"at its rim ({design.rim_radius_m:g} m), so the tip radius must be at least "
+                            f"{1.1 * design.rim_radius_m:.4g} m")
     if damping_beta_s is None:
         damping_beta_s = scn.model.damping_beta_s if scn is not None else 9e-6
     N = design.n_blades
