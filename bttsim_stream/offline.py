@@ -140,6 +140,9 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
                f"non-finite OPR time)" if asm.ignored else "")
         raise BttsimError(f"{path}: fewer than 3 complete revolutions recorded{why}")
     numbers = np.array([r.revolution for r in revs], dtype=np.int64)
+    if meta.n_revolutions and numbers[-1] >= meta.n_revolutions:
+        raise BttsimError(f"{path}: revolution {int(numbers[-1])} recorded, but the run metadata says the run has "
+                          f"{meta.n_revolutions} revolution(s)")
     if np.any(np.diff(numbers) != 1):
         missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
         raise BttsimError(f"{path}: {missing} revolution(s) missing in the recording")

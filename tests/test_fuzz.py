@@ -631,3 +631,94 @@ def test_fuzz_sample_in_subprocesses(workdir, base_mcap):
         o = Outcome(f"subprocess {argv[0]}", argv, p.returncode, p.stdout, p.stderr)
         o.problem = judge(o)
         assert o.problem is None, report([o])
+
+
+# --------------------------------------------------------------------------------------
+# The issue's own reproductions, by name
+# --------------------------------------------------------------------------------------
+
+
+def _edit(messages: list[Message], kind: str, change) -> list[Message]:
+    """Messages with ``change(protobuf, header_revolution)`` applied to every message of ``kind``."""
+    out = []
+    for m in messages:
+        if keys.parse_key(m.key).kind == kind:
+            p = _PB[kind]()
+            p.ParseFromString(m.payload)
+            change(p, p.header.revolution)
+            m = Message(m.key, p.SerializeToString(), m.log_time_ns, m.seq)
+        out.append(m)
+    return out
+
+
+def _set_meta(**values):
+    def change(p, _rev):
+        for k, v in values.items():
+            if isinstance(v, list):
+                del getattr(p, k)[:]
+                getattr(p, k).extend(v)
+            else:
+                setattr(p, k, v)
+    return change
+
+
+RECORDING_CASES = {
+    "extra blade in the metadata": ("meta", _set_meta(n_blades=30, sensing_angles_rad=[], n_families=0,
+                                                      family_freq_hz=[]), "30"),
+    "wrong blade count in the TOA batches": ("toa", lambda p, r: p.toa_s.append(p.toa_s[-1] + 1e-4), "ignored"),
+    "NaN OPR times": ("opr", lambda p, r: setattr(p, "opr_s", math.nan) if r % 7 == 3 else None, "missing"),
+    "negative OPR times": ("opr", lambda p, r: setattr(p, "opr_s", -p.opr_s), "OPR times must increase"),
+    "non-monotonic OPR times": ("opr", lambda p, r: setattr(p, "opr_s", p.opr_s - 0.5) if r % 5 == 4 else None,
+                                "OPR times must increase"),
+    "zero tip radius": ("meta", _set_meta(tip_radius_m=0.0), "tip_radius_m"),
+    "huge probe angle": ("meta", _set_meta(probe_angles_rad=[1e10, 0.26, 0.41, 3.8, 5.2]), "probe_angles_rad"),
+    "huge engine order": ("meta", _set_meta(engine_orders=[2**31]), "engine order"),
+    "huge revolution count": ("meta", _set_meta(n_revolutions=2**62), "n_revolutions"),
+    "infinite TOA": ("toa", lambda p, r: p.toa_s.__setitem__(3, math.inf), "TOA(s) not within a revolution"),
+}
+
+
+@pytest.mark.parametrize("command", ["process", "view"])
+@pytest.mark.parametrize("name", list(RECORDING_CASES))
+def test_issue_recordings_give_one_line_errors(workdir, base_mcap, name, command):
+    kind, change, words = RECORDING_CASES[name]
+    path = workdir / f"issue-{command}-{name.replace(' ', '_')}.mcap"
+    _write(path, _edit(read_recording(base_mcap).messages, kind, change))
+    argv = [command, path] + (["--rrd", path.with_suffix(".rrd")] if command == "view" else [])
+    o = run_case(name, argv)
+    assert o.problem is None and o.status == 2, report([o]) if o.problem else o.err
+    assert words in o.err, o.err
+
+
+SCENARIO_CASES = {
+    "engine_order = 4294967296": ("[[excitation]]\nengine_order = 4294967296\n", "engine_order"),
+    "1 blade": ("[rotor]\nn_blades = 1\n[[excitation]]\nnodal_diameter = 0\n", "n_blades"),
+    "1000 blades": ("[rotor]\nn_blades = 1000\n", "n_blades must be an integer in [2, 200]"),
+    "1 probe": ("[probes]\nangles_deg = [5.0]\n", "cannot separate"),
+    "amplitude_n = 1e300": ("[[excitation]]\namplitude_n = 1e300\n", "above 5% of the tip radius"),
+    "amplitude_n = 1e6": ("[[excitation]]\namplitude_n = 1e6\n", "above 5% of the tip radius"),
+    "a year-long run": ("[speed]\nduration_s = 3.2e7\n", "revolutions"),
+}
+
+
+@pytest.mark.parametrize("name", list(SCENARIO_CASES))
+def test_issue_scenarios_are_refused_by_the_check(workdir, name):
+    text, words = SCENARIO_CASES[name]
+    path = workdir / f"issue-{name.replace(' ', '_').replace('=', '')}.toml"
+    path.write_text(BASE_TOML + text if not text.startswith("[speed]") else text)
+    o = run_case(name, ["scenario", "--check", path])
+    assert o.problem is None and o.status == 2 and words in o.err, report([o]) if o.problem else o.err
+    o = run_case(name, ["simulate", path, "--out", path.with_suffix(".mcap"), "-q"])
+    if o.status == 0:  # an acquisition the simulator can make (1 probe): its processing is refused
+        o = run_case(name, ["process", path.with_suffix(".mcap")])
+    assert o.problem is None and o.status == 2 and words in o.err, report([o]) if o.problem else o.err
+
+
+def test_issue_model_without_blade_alone_frequencies(workdir):
+    path = workdir / "no-blade-alone.npz"
+    model = build_model(Scenario())
+    arrays = {k: v for k, v in model.as_arrays().items()}
+    arrays["blade_alone_freq_hz"] = np.zeros(0)
+    _save(path, arrays)
+    o = run_case("empty blade_alone_freq_hz", ["model", "show", path, "--png", workdir / "x.png"])
+    assert o.problem is None and o.status == 2 and "blade_alone_freq_hz" in o.err, o.err
