@@ -189,9 +189,14 @@ def completeness(run: RecordedRun) -> Completeness:
                         lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
 
 
+_OTHER_COLUMNS = ("amp_std_m", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct")
+_MEAN_COLUMNS = ("mean_E_A_pct", "max_E_A_pct", "mean_E_f_pct", "max_E_f_pct")
+
+
 def result_warnings(summary: dict, tip_radius_m: float) -> list[str]:
     """What a reader of the summary must not miss: a NaN where a resonance or dwell claims an
-    amplitude or a frequency, and an amplitude beyond the linear model's reach
+    amplitude or a frequency (or in its uncertainty, truth and errors), and an amplitude beyond
+    the linear model's reach
     (:data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` of the tip radius)."""
     out = []
     limit = 2.0 * MAX_TIP_AMPLITUDE_FRACTION * float(tip_radius_m)  # pk-pk
@@ -203,6 +208,11 @@ def result_warnings(summary: dict, tip_radius_m: float) -> list[str]:
         if nan:
             out.append(f"{label}: no estimate (NaN) for {len(nan)} of {len(rows)} blade(s) "
                        f"({', '.join(map(str, nan[:10]))}{' ...' if len(nan) > 10 else ''}): treat them as unmeasured")
+        other = sorted({k for r in rows if r["blade"] not in nan for k in _OTHER_COLUMNS
+                        if k in r and not np.isfinite(r[k])}
+                       | {k for k in _MEAN_COLUMNS if k in e and not np.isfinite(e[k])})
+        if other:
+            out.append(f"{label}: NaN in {', '.join(other)} (an uncertainty, or the recording's truth, unusable there)")
         big = [r["blade"] for r in rows if np.isfinite(r.get("amp_pkpk_m", np.nan)) and r["amp_pkpk_m"] > limit]
         if big:
             out.append(f"{label}: amplitude above {2 * MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius pk-pk "

@@ -544,6 +544,8 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     for name in _TRUTH_2D:
         _check_len(where, m, name, nb * npr, f"({nb}, {npr})")
     _check_len(where, m, "d_eqv_pkpk_m", nb, f"({nb},)")
+    if not (math.isfinite(m.opr_s) and math.isfinite(m.omega_mean_rad_s) and m.omega_mean_rad_s > 0):
+        raise _corrupt(where, m, f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
     arrays = {name: _array(getattr(m, name)).reshape(1, nb, npr) for name in _TRUTH_2D}
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
                   d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays)

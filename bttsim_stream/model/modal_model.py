@@ -460,8 +460,8 @@ def _validate(a: dict, where: str) -> dict:
         if k in ("family", "nodal_diameter"):
             if v.dtype.kind not in "iu":
                 raise ModelFileError(f"{where}: {k} must be integers, got {v.dtype}")
-        elif v.dtype.kind != "f":
-            raise ModelFileError(f"{where}: {k} must be floating point, got {v.dtype}")
+        elif v.dtype.kind != "f" or v.dtype.itemsize not in (4, 8):
+            raise ModelFileError(f"{where}: {k} must be floating point (float32 or float64), got {v.dtype}")
         if not np.all(np.isfinite(v)):
             raise ModelFileError(f"{where}: {k} holds non-finite values")
     try:
