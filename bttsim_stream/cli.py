@@ -24,7 +24,7 @@ from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
 from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
-                      with_processing)
+                      result_warnings, with_processing)
 from .orchestrate import describe_exit, run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
@@ -32,6 +32,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed
+from .sim.core import check_tip_amplitude, load_scenario_model
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
 # paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
@@ -53,7 +54,12 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
         except LayoutError as exc:
             raise BttsimError(f"{args.check}: [probes] angles_deg: {exc}") from None
         cns = ", ".join(f"CN {cn:.3g} at {label}" for label, cn in rows)
-        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns})")
+        try:  # the model too: an absurd force is refused here, not after a run
+            amp = check_tip_amplitude(scn, load_scenario_model(scn))
+        except BttsimError as exc:
+            raise BttsimError(f"{args.check}: {exc}") from None
+        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns}; "
+              f"tip amplitude up to {amp * 1e3:.3g} mm)")
         for w in warns:
             print(f"bttsim: warning: {args.check}: {w}", file=sys.stderr)
         return
@@ -123,6 +129,8 @@ def _cmd_process(args: argparse.Namespace) -> None:
         except OSError as exc:
             raise BttsimError(f"{args.summary}: cannot write ({exc.strerror or exc})") from None
     print(summary_table(summary))
+    for w in result_warnings(summary, run.meta.tip_radius_m):
+        print(f"bttsim: warning: {args.mcap}: {w}", file=sys.stderr)
     if args.summary:
         print(f"wrote {args.summary}")
 
