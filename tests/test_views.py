@@ -477,13 +477,17 @@ def test_live_views_fed_message_by_message(processed_mcap, tmp_path):
     out = tmp_path / "live.rrd"
     rec, _ = views.open_recording(rrd_path=out)
     live = views.LiveViews(rec, live=True, flush_period_s=0.01, tw_window=32, tw_period_s=0.0)
-    for m in read_recording(processed_mcap).messages:
+    msgs = read_recording(processed_mcap).messages
+    for m in msgs:
         live.feed(m.key, m.payload)
     live.feed("bttsim/rig1/alive/sim", b"")           # not a message: ignored
     live.feed("bttsim/rig1/opr", b"\xff\xff garbage")  # counted, skipped
+    report = next(m for m in msgs if m.key.endswith("/resonance"))  # another run's report: not shown
+    d = codec.decode_message(report.key, report.payload)
+    live.feed(report.key, codec.encode_resonance_report(codec.Header("forged", 99, -1, 0.0), d.body))
     live.close()
     rec.disconnect()
-    assert live.stats["revolutions"] == N_REV and live.stats["bad"] == 1 and live.stats["ignored"] == 1
+    assert live.stats["revolutions"] == N_REV and live.stats["bad"] == 1 and live.stats["ignored"] == 2
     assert live.stats["fits"] == N_REV and live.stats["resonance"] == 1
     rrd_verify(out)
     ent = rrd_entities(out)
