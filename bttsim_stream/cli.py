@@ -100,6 +100,16 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
           f"run {out['run_id']}, {time.perf_counter() - t0:.1f} s")
 
 
+def _cmd_export(args: argparse.Namespace) -> None:
+    from .export import export_run
+
+    t0 = time.perf_counter()
+    counts = export_run(args.mcap, args.out, args.format)
+    rows = ", ".join(f"{name} {n}" for name, n in counts.items())
+    print(f"wrote {args.out}: {len(counts)} {args.format} tables ({rows} rows) and run.json in "
+          f"{time.perf_counter() - t0:.1f} s")
+
+
 def _cmd_node(args: argparse.Namespace) -> None:
     run_parsed(args)
 
@@ -318,6 +328,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use the truth's exact expected arrival times (reproduces the paper)")
     add_processing_arguments(p)
     p.set_defaults(func=_cmd_process)
+
+    p = sub.add_parser("export", help="tidy tables of a recording (OPR, TOAs, displacements, fits, truth) as CSV or Parquet")
+    p.add_argument("mcap", help="recording (MCAP)")
+    p.add_argument("--format", choices=("csv", "parquet"), default="csv",
+                   help="csv (always available) or parquet (the parquet extra: pyarrow)")
+    p.add_argument("--out", required=True, help="output folder: one file per table and run.json")
+    p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser("view", help="Rerun views of a recording (.rrd file and/or web viewer)")
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
