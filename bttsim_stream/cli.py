@@ -11,6 +11,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +81,44 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
         print(f"bttsim: note: no plot written: {exc}", file=sys.stderr)  # the table is what was asked
         return
     print(f"wrote {png}")
+
+
+def _cmd_model_import(args: argparse.Namespace) -> None:
+    from .model.importers import ImportOptions, format_report, import_model, load_import_options
+
+    opts = load_import_options(args.options) if args.options else ImportOptions()
+    flags = {"format": args.format, "deck": args.deck, "n_sectors": args.n_sectors, "tip_nset": args.tip_nset,
+             "force_node": args.force_node, "nominal_node": args.nominal_node}
+    if args.tip_nodes:
+        flags["tip_nodes"] = tuple(_ints(args.tip_nodes, "--tip-nodes"))
+    if args.force_xyz:
+        flags["force_xyz"] = tuple(_floats(args.force_xyz, "--force-xyz", 3))
+    try:
+        opts = replace(opts, **{k: v for k, v in flags.items() if v is not None})
+    except TypeError as exc:
+        raise BttsimError(str(exc)) from None
+    model, report = import_model(args.results, opts)
+    print(format_report(report), flush=True)
+    save_model(model, args.out)
+    print(f"wrote {args.out}: {model.n_modes} modes, {model.n_blades} blades; `bttsim model show {args.out}`:\n")
+    print(family_table(model))
+
+
+def _ints(text: str, what: str) -> list:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise BttsimError(f"{what} must be comma-separated whole numbers, got {text!r}") from None
+
+
+def _floats(text: str, what: str, n: int) -> list:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise BttsimError(f"{what} must be {n} comma-separated numbers, got {text!r}")
+    return vals
 
 
 def _scenario(path):
@@ -302,6 +341,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", help="model file (.npz)")
     s.add_argument("--png", help="frequency vs ND plot (default: MODEL.png)")
     s.set_defaults(func=_cmd_model_show)
+    i = msub.add_parser("import", help="a cyclic-symmetry FE sector solution (CalculiX .frd, neutral .npz) "
+                                       "to the model file",
+                        description="Expand a cyclic-symmetry sector solution to the full-wheel model file; "
+                                    "see schemas/cyclic_sector.md.")
+    i.add_argument("results", help="sector results: CalculiX .frd or the neutral sector .npz")
+    i.add_argument("--out", required=True, help="output model file (.npz)")
+    i.add_argument("--format", choices=("frd", "npz"), help="results format (default: from the extension)")
+    i.add_argument("--options", metavar="IMPORT.toml", help="import options (nodes, units, damping)")
+    i.add_argument("--deck", help="CalculiX input deck for node sets and N (default: RESULTS with .inp)")
+    i.add_argument("--n-sectors", type=int, help="number of sectors (default: from the deck)")
+    i.add_argument("--tip-nset", help="node set of the tip nodes")
+    i.add_argument("--tip-nodes", help="tip node numbers, comma-separated")
+    i.add_argument("--force-node", type=int, help="excitation node number")
+    i.add_argument("--force-xyz", help="excitation node: the node nearest to x,y,z")
+    i.add_argument("--nominal-node", type=int, help="0-based tip node of P_nom (default: the middle one)")
+    i.set_defaults(func=_cmd_model_import)
     p = sub.add_parser("simulate", help="simulate a scenario straight to MCAP (no Zenoh)")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output MCAP file")
