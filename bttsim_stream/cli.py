@@ -347,7 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "see schemas/cyclic_sector.md.")
     i.add_argument("results", help="sector results: CalculiX .frd or the neutral sector .npz")
     i.add_argument("--out", required=True, help="output model file (.npz)")
-    i.add_argument("--format", choices=("frd", "npz"), help="results format (default: from the extension)")
+    i.add_argument("--format", choices=("frd", "npz", "rst"),
+                   help="results format (default: from the extension; rst: not read yet, see schemas/cyclic_sector.md)")
     i.add_argument("--options", metavar="IMPORT.toml", help="import options (nodes, units, damping)")
     i.add_argument("--deck", help="CalculiX input deck for node sets and N (default: RESULTS with .inp)")
     i.add_argument("--n-sectors", type=int, help="number of sectors (default: from the deck)")

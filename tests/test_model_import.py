@@ -18,6 +18,8 @@ from bttsim_stream.model.modal_model import to_cartesian
 
 REPO = Path(__file__).resolve().parents[1]
 
+pytestmark = pytest.mark.integration  # gmsh and two ccx solves: about 15 s
+
 
 def _example():
     spec = importlib.util.spec_from_file_location("ccx_sector", REPO / "examples" / "calculix_sector" / "sector.py")

@@ -407,6 +407,10 @@ def import_model(path, options: ImportOptions = ImportOptions()):
         :func:`~bttsim_stream.model.cyclic.expand_sector`'s report plus the import notes.
     """
     fmt = options.format or Path(path).suffix.lower().lstrip(".")
+    if fmt == "rst":
+        raise ModelFileError(f"{path}: ANSYS .rst results are not read yet (no cyclic-symmetry .rst file was "
+                             "available to test a reader on): write the sector to the neutral .npz format, "
+                             "see schemas/cyclic_sector.md")
     if fmt not in FORMATS:
         raise ModelFileError(f"{path}: unknown results format {fmt!r} (give --format {' or '.join(FORMATS)}; "
                              "ANSYS .rst is not supported yet, see schemas/cyclic_sector.md)")

@@ -299,7 +299,7 @@ def write_import_options(d: SectorDesign, out: Path) -> Path:
 
 
 def write_scenario(d: SectorDesign, out: Path, model, *, engine_order: int = 8, family: int = 0,
-                   duration_s: float = 4.0, span: float = 0.03) -> tuple[Path, float]:
+                   duration_s: float = 6.0, span: float = 0.06) -> tuple[Path, float]:
     """``scenario.toml``: a run-up through the crossing of ``engine_order`` with ``family``
     (its nodal diameter ``EO mod N``, folded) at ``60 f / EO`` rpm, +-``span``; returns the
     path and the crossing speed (rpm)."""
