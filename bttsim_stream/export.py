@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -43,6 +44,7 @@ from .errors import BttsimError
 __all__ = ["FORMATS", "COLUMNS", "RunTables", "run_tables", "export_run", "read_tables"]
 
 FORMATS = ("csv", "parquet")
+_NAN = re.compile(r"(?<![^,\n])nan(?![^,\n])")  # a whole CSV field "nan"
 
 #: Column -> (unit, meaning), shared by every table; units "" for counts and labels.
 COLUMNS: dict[str, tuple[str, str]] = {
@@ -244,28 +246,24 @@ def run_tables(run, result=None) -> RunTables:
     return RunTables(tables=t, meta=meta)
 
 
-def _column_strings(a: np.ndarray) -> np.ndarray:
-    if a.dtype.kind in "iub":
-        return a.astype(str)
-    if a.dtype.kind == "f":
-        s = np.char.mod("%.17g", a)
-        return np.where(np.isnan(a), "NaN", s)
-    return a.astype(str)
-
-
 def _write_csv(path: Path, cols: dict) -> None:
+    """One table as CSV: ints as integers, floats with 17 significant digits (``repr`` exact),
+    ``NaN`` for missing values; rows formatted in C by one ``%`` format per row."""
     names = list(cols)
-    n = len(next(iter(cols.values()))) if cols else 0
+    arrays = [np.asarray(cols[k]) for k in names]
+    fmt = ",".join("%d" if a.dtype.kind in "iub" else "%.17g" if a.dtype.kind == "f" else "%s" for a in arrays)
+    n = arrays[0].shape[0] if arrays else 0
+    int_first = bool(arrays) and arrays[0].dtype.kind in "iu"
+    step = 100_000
     with open(path, "w", newline="") as fh:
         fh.write(",".join(names) + "\n")
-        if n:
-            parts = [_column_strings(np.asarray(cols[k])) for k in names]
-            step = 200_000
-            for lo in range(0, n, step):
-                rows = parts[0][lo:lo + step].astype(object)
-                for p in parts[1:]:
-                    rows = rows + "," + p[lo:lo + step].astype(object)
-                fh.write("\n".join(rows.tolist()) + "\n")
+        for lo in range(0, n, step):
+            rows = zip(*(a[lo:lo + step].tolist() for a in arrays))
+            text = "\n".join(fmt % r for r in rows)
+            # a whole field "nan" -> "NaN"; with an integer first column (every table here) it
+            # always follows a comma, which str.replace finds 3x faster than the regex
+            text = text.replace(",nan", ",NaN") if int_first else _NAN.sub("NaN", text)
+            fh.write(text + "\n")
 
 
 def _pyarrow():
