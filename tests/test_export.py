@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.cli import main
+from bttsim_stream.export import read_tables
 from bttsim_stream.offline import load_run
 from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
 from bttsim_stream.scenario import load_scenario
@@ -120,6 +121,27 @@ def test_parquet_round_trip_bit_for_bit(recording, exported_csv):
     run = load_run(recording / "run.mcap")
     toa = pq.read_table(out / "toa.parquet").column("toa_s").to_numpy()
     assert toa.dtype == np.float64 and np.array_equal(toa, run.toa_s.ravel(), equal_nan=True)
+    # the library's reader gives the same columns from either format
+    a, b = read_tables(out), read_tables(exported_csv)
+    assert a.keys() == b.keys()
+    for name in a:
+        for col in a[name]:
+            if a[name][col].dtype.kind == "f":
+                np.testing.assert_array_equal(a[name][col], b[name][col], err_msg=f"{name}.{col}")
+            else:
+                assert a[name][col].tolist() == b[name][col].tolist(), f"{name}.{col}"
+
+
+def test_a_recording_without_truth_exports_no_truth(recording, exported_csv, tmp_path):
+    assert main(["simulate", str(recording / "s.toml"), "--out", str(tmp_path / "blind.mcap"), "-q",
+                 "--no-truth"]) == 0
+    assert main(["export", str(tmp_path / "blind.mcap"), "--out", str(tmp_path / "o")]) == 0
+    doc = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert "truth" not in doc["tables"] and not (tmp_path / "o" / "truth.csv").exists()
+    rt = _csv(tmp_path / "o" / "resonance.csv")
+    assert rt["E_A_pct"] and set(rt["E_A_pct"]) == {"NaN"} and set(rt["truth_amp_pkpk_m"]) == {"NaN"}
+    # the same acquisition as the recording with truth
+    assert _csv(tmp_path / "o" / "toa.csv") == _csv(exported_csv / "toa.csv")
 
 
 def test_parquet_without_pyarrow_names_the_extra(recording, monkeypatch, capsys, tmp_path):
