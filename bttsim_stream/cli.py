@@ -84,7 +84,7 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_import(args: argparse.Namespace) -> None:
-    from .model.importers import ImportOptions, format_report, import_model, load_import_options
+    from .model.importers import ImportOptions, check_options, format_report, import_model, load_import_options
 
     opts = load_import_options(args.options) if args.options else ImportOptions()
     flags = {"format": args.format, "deck": args.deck, "n_sectors": args.n_sectors, "tip_nset": args.tip_nset,
@@ -93,8 +93,13 @@ def _cmd_model_import(args: argparse.Namespace) -> None:
         flags["tip_nodes"] = tuple(_ints(args.tip_nodes, "--tip-nodes"))
     if args.force_xyz:
         flags["force_xyz"] = tuple(_floats(args.force_xyz, "--force-xyz", 3))
+    flags = {k: v for k, v in flags.items() if v is not None}
+    if {"tip_nset", "tip_nodes"} & set(flags):  # a flag replaces the options file's choice
+        opts = replace(opts, tip_nodes=(), tip_nset=None, tip_xyz=())
+    if {"force_node", "force_xyz"} & set(flags):
+        opts = replace(opts, force_node=None, force_nset=None, force_xyz=None)
     try:
-        opts = replace(opts, **{k: v for k, v in flags.items() if v is not None})
+        opts = check_options(replace(opts, **flags), "options")
     except TypeError as exc:
         raise BttsimError(str(exc)) from None
     model, report = import_model(args.results, opts)

@@ -31,7 +31,7 @@ from ..errors import ModelFileError
 from .cyclic import CyclicSector, expand_sector, load_sector, tip_geometry
 from .frd import read_frd
 
-__all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "import_model", "read_deck_sets",
+__all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "check_options", "import_model", "read_deck_sets",
            "sector_from_frd", "format_report", "FORMATS"]
 
 FORMATS = ("frd", "npz")
@@ -116,6 +116,11 @@ def load_import_options(path) -> ImportOptions:
         return _checked(ImportOptions(**data), where)
     except TypeError as exc:
         raise ModelFileError(f"{where}: {exc}") from None
+
+
+def check_options(o: ImportOptions, where: str = "import options") -> ImportOptions:
+    """``o`` if its values are possible, else a one-line :class:`ModelFileError`."""
+    return _checked(o, where)
 
 
 def _checked(o: ImportOptions, where: str) -> ImportOptions:
@@ -290,8 +295,6 @@ def _order_from_te(xyz: np.ndarray) -> np.ndarray:
     s = c @ vt[0]
     if vt[0][2] > 0:  # walk towards smaller z
         s = -s
-    elif vt[0][2] == 0:
-        pass
     return np.argsort(s, kind="stable")
 
 
