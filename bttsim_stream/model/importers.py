@@ -127,7 +127,7 @@ def _checked(o: ImportOptions, where: str) -> ImportOptions:
     def bad(msg):
         raise ModelFileError(f"{where}: {msg}")
 
-    if o.format is not None and o.format not in FORMATS:
+    if o.format is not None and o.format not in FORMATS + ("rst",):  # rst: import_model says why not
         bad(f"format must be one of {', '.join(FORMATS)}, got {o.format!r}")
     if o.units not in _UNITS:
         bad(f"units must be one of {', '.join(_UNITS)}, got {o.units!r}")
