@@ -11,6 +11,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,49 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
     print(f"wrote {png}")
 
 
+def _cmd_model_import(args: argparse.Namespace) -> None:
+    from .model.importers import ImportOptions, check_options, format_report, import_model, load_import_options
+
+    opts = load_import_options(args.options) if args.options else ImportOptions()
+    flags = {"format": args.format, "deck": args.deck, "n_sectors": args.n_sectors, "tip_nset": args.tip_nset,
+             "force_node": args.force_node, "nominal_node": args.nominal_node}
+    if args.tip_nodes:
+        flags["tip_nodes"] = tuple(_ints(args.tip_nodes, "--tip-nodes"))
+    if args.force_xyz:
+        flags["force_xyz"] = tuple(_floats(args.force_xyz, "--force-xyz", 3))
+    flags = {k: v for k, v in flags.items() if v is not None}
+    if {"tip_nset", "tip_nodes"} & set(flags):  # a flag replaces the options file's choice
+        opts = replace(opts, tip_nodes=(), tip_nset=None, tip_xyz=())
+    if {"force_node", "force_xyz"} & set(flags):
+        opts = replace(opts, force_node=None, force_nset=None, force_xyz=None)
+    try:
+        opts = check_options(replace(opts, **flags), "options")
+    except TypeError as exc:
+        raise BttsimError(str(exc)) from None
+    model, report = import_model(args.results, opts)
+    print(format_report(report), flush=True)
+    save_model(model, args.out)
+    print(f"wrote {args.out}: {model.n_modes} modes, {model.n_blades} blades; `bttsim model show {args.out}`:\n")
+    print(family_table(model))
+
+
+def _ints(text: str, what: str) -> list:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise BttsimError(f"{what} must be comma-separated whole numbers, got {text!r}") from None
+
+
+def _floats(text: str, what: str, n: int) -> list:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise BttsimError(f"{what} must be {n} comma-separated numbers, got {text!r}")
+    return vals
+
+
 def _scenario(path):
 
     return scenario.load_scenario(path) if path else scenario.Scenario()
@@ -104,6 +148,16 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
     progress.close()
     print(f"wrote {args.out}: {out['messages']} messages, {out['revolutions']} revolutions, "
           f"run {out['run_id']}, {time.perf_counter() - t0:.1f} s")
+
+
+def _cmd_export(args: argparse.Namespace) -> None:
+    from .export import export_run
+
+    t0 = time.perf_counter()
+    counts = export_run(args.mcap, args.out, args.format)
+    rows = ", ".join(f"{name} {n}" for name, n in counts.items())
+    print(f"wrote {args.out}: {len(counts)} {args.format} tables ({rows} rows) and run.json in "
+          f"{time.perf_counter() - t0:.1f} s")
 
 
 def _cmd_node(args: argparse.Namespace) -> None:
@@ -302,6 +356,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", help="model file (.npz)")
     s.add_argument("--png", help="frequency vs ND plot (default: MODEL.png)")
     s.set_defaults(func=_cmd_model_show)
+    i = msub.add_parser("import", help="a cyclic-symmetry FE sector solution (CalculiX .frd, neutral .npz) "
+                                       "to the model file",
+                        description="Expand a cyclic-symmetry sector solution to the full-wheel model file; "
+                                    "see schemas/cyclic_sector.md.")
+    i.add_argument("results", help="sector results: CalculiX .frd or the neutral sector .npz")
+    i.add_argument("--out", required=True, help="output model file (.npz)")
+    i.add_argument("--format", choices=("frd", "npz", "rst"),
+                   help="results format (default: from the extension; rst: not read yet, see schemas/cyclic_sector.md)")
+    i.add_argument("--options", metavar="IMPORT.toml", help="import options (nodes, units, damping)")
+    i.add_argument("--deck", help="CalculiX input deck for node sets and N (default: RESULTS with .inp)")
+    i.add_argument("--n-sectors", type=int, help="number of sectors (default: from the deck)")
+    i.add_argument("--tip-nset", help="node set of the tip nodes")
+    i.add_argument("--tip-nodes", help="tip node numbers, comma-separated")
+    i.add_argument("--force-node", type=int, help="excitation node number")
+    i.add_argument("--force-xyz", help="excitation node: the node nearest to x,y,z")
+    i.add_argument("--nominal-node", type=int, help="0-based tip node of P_nom (default: the middle one)")
+    i.set_defaults(func=_cmd_model_import)
     p = sub.add_parser("simulate", help="simulate a scenario straight to MCAP (no Zenoh)")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output MCAP file")
@@ -328,6 +399,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use the truth's exact expected arrival times (reproduces the paper)")
     add_processing_arguments(p)
     p.set_defaults(func=_cmd_process)
+
+    p = sub.add_parser("export", help="tidy tables of a recording (OPR, TOAs, displacements, fits, truth) as CSV or Parquet")
+    p.add_argument("mcap", help="recording (MCAP)")
+    p.add_argument("--format", choices=("csv", "parquet"), default="csv",
+                   help="csv (always available) or parquet (the parquet extra: pyarrow)")
+    p.add_argument("--out", required=True, help="output folder: one file per table and run.json")
+    p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser("view", help="Rerun views of a recording (.rrd file and/or web viewer)")
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")

@@ -25,7 +25,7 @@ FORBIDDEN = {
     ("bttsim_stream.views",): ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.paper",
                                "bttsim_stream.orchestrate", "bttsim_stream.cli", "bttsim_stream.model",
                                "bttsim_stream.scenario"),
-    ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline",
+    ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline", "bttsim_stream.export",
      "bttsim_stream.processor", "bttsim_stream.orchestrate", "bttsim_stream.testing"): ("bttsim_stream.paper",),
 }
 

@@ -1,0 +1,399 @@
+"""Cyclic-symmetry sector results and their expansion to the full wheel.
+
+The neutral sector format (``schemas/cyclic_sector.md``, schema ``bttsim.cyclic_sector``
+version 1) holds what any FE package's cyclic-symmetry modal analysis gives for one sector
+(one blade with its disk segment), at the points BTT needs:
+
+* ``harmonic_index`` (n_sol,) int, 0 .. n_sectors // 2, and ``freq_hz`` (n_sol,);
+* the reference sector's tip nodes ``tip_xyz`` (n_tip, 3) and excitation node
+  ``force_xyz`` (3,), Cartesian, m, ``+z`` the rotation axis, the rotor turning anticlockwise
+  seen from ``+z``; sector ``s`` is the reference sector turned by ``2 pi s / n_sectors``
+  about ``+z``;
+* complex sector shapes ``tip_shapes`` (n_sol, n_tip, 3) and ``force_shapes`` (n_sol, 3)
+  (UX, UY, UZ in the reference sector's Cartesian frame), or their real and imaginary parts
+  as ``*_cos`` / ``*_sin`` arrays.
+
+Conventions (written once)
+--------------------------
+A solution of harmonic index ``k`` with complex sector shape ``u`` moves sector ``s``
+(``theta_s = 2 pi s / N``) by ``R(theta_s) u e^{i k theta_s}`` (``R``: rotation about ``+z``):
+its real part is the "cosine" standing wave, its imaginary part the "sine" one.
+
+Normalisation ``"sector"`` (the default, what a cyclic eigen-solver returns): ``u^H M_k u = 1``
+with ``M_k`` the cyclic-reduced sector mass matrix. The real full-wheel modes are then
+
+* ``k = 0`` (and ``k = N/2``, even N): ``phi_s = R(theta_s) Re(u e^{i k theta_s}) / sqrt(N)``
+  (``u`` first turned real: these solutions are standing waves);
+* ``0 < k < N/2``: the pair ``sqrt(2/N) R(theta_s) Re(u e^{i k theta_s})`` and
+  ``sqrt(2/N) R(theta_s) Im(u e^{i k theta_s})``,
+
+which satisfy ``Phi^T M Phi = I`` on the full wheel (``sum_s e^{2 i k theta_s} = 0`` for
+``0 < k < N/2``). Normalisation ``"wheel"``: the shapes are already the full-wheel
+mass-normalised cosine / sine modes of sector 0 (factors 1 instead of ``sqrt(2/N)``,
+``sqrt(1/N)``).
+
+The numerical functions here never import the bus; the file readers live in
+:mod:`bttsim_stream.model.importers`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ModelFileError
+from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
+from .modal_model import ModalModel, model_from_cartesian
+
+__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "save_sector",
+           "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
+
+SECTOR_SCHEMA = "bttsim.cyclic_sector"
+SECTOR_SCHEMA_VERSION = 1
+NORMALISATIONS = ("sector", "wheel")
+
+
+def _rz(theta) -> np.ndarray:
+    """Rotation matrices about +z, shape (..., 3, 3)."""
+    c, s = np.cos(theta), np.sin(theta)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CyclicSector:
+    """One sector's cyclic-symmetry modal solution at the tip and excitation nodes.
+
+    Attributes
+    ----------
+    n_sectors : int
+        Sectors (blades) of the full wheel.
+    harmonic_index : ndarray of int, shape (n_sol,)
+        Harmonic index (nodal diameter) ``0 <= k <= n_sectors // 2`` of each solution.
+    freq_hz : ndarray, shape (n_sol,)
+        Natural frequencies, Hz.
+    tip_xyz : ndarray, shape (n_tip, 3)
+        Reference sector's tip nodes, m, ordered from the trailing edge.
+    tip_shapes : ndarray of complex, shape (n_sol, n_tip, 3)
+        Complex sector shapes (UX, UY, UZ) at the tip nodes (module conventions).
+    force_xyz : ndarray, shape (3,)
+    force_shapes : ndarray of complex, shape (n_sol, 3)
+    nominal_node : int
+        0-based tip node index of the nominal sensing point P_nom.
+    stagger_deg : float or None
+        Tip stagger; None: measured from the tip nodes (:func:`tip_geometry`).
+    normalisation : {"sector", "wheel"}
+    provenance : dict
+    """
+
+    n_sectors: int
+    harmonic_index: np.ndarray
+    freq_hz: np.ndarray
+    tip_xyz: np.ndarray
+    tip_shapes: np.ndarray
+    force_xyz: np.ndarray
+    force_shapes: np.ndarray
+    nominal_node: int = 0
+    stagger_deg: float | None = None
+    normalisation: str = "sector"
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        N = int(self.n_sectors)
+        k, f = np.asarray(self.harmonic_index), np.asarray(self.freq_hz)
+        n = f.shape[0] if f.ndim == 1 else -1
+        problems = []
+        if N < 2:
+            problems.append(f"n_sectors must be >= 2, got {N}")
+        if f.ndim != 1 or n == 0:
+            problems.append(f"freq_hz must be a non-empty 1-D array, got shape {f.shape}")
+        elif not np.all(np.isfinite(f)) or np.any(f <= 0):
+            problems.append("freq_hz must be finite and > 0")
+        if k.shape != (n,) or k.dtype.kind not in "iu":
+            problems.append(f"harmonic_index must be ({n},) integers, got {k.shape} {k.dtype}")
+        elif k.size and (k.min() < 0 or k.max() > N // 2):
+            problems.append(f"harmonic_index must lie in 0..{N // 2} for {N} sectors, got {k.min()}..{k.max()}")
+        t = np.asarray(self.tip_xyz)
+        if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] < 2:
+            problems.append(f"tip_xyz must be (n_tip >= 2, 3), got {t.shape}")
+        elif np.asarray(self.tip_shapes).shape != (n, t.shape[0], 3):
+            problems.append(f"tip_shapes must be ({n}, {t.shape[0]}, 3), got {np.asarray(self.tip_shapes).shape}")
+        if np.asarray(self.force_xyz).shape != (3,):
+            problems.append(f"force_xyz must be (3,), got {np.asarray(self.force_xyz).shape}")
+        if np.asarray(self.force_shapes).shape != (n, 3):
+            problems.append(f"force_shapes must be ({n}, 3), got {np.asarray(self.force_shapes).shape}")
+        for name in ("tip_xyz", "tip_shapes", "force_xyz", "force_shapes"):
+            if not np.all(np.isfinite(np.asarray(getattr(self, name)))):
+                problems.append(f"{name} holds NaN or inf")
+        if self.normalisation not in NORMALISATIONS:
+            problems.append(f"normalisation must be one of {NORMALISATIONS}, got {self.normalisation!r}")
+        if not problems and not 0 <= int(self.nominal_node) < t.shape[0]:
+            problems.append(f"nominal_node must be in 0..{t.shape[0] - 1}, got {self.nominal_node}")
+        if problems:
+            raise ModelFileError("; ".join(problems))
+
+    @property
+    def n_tip(self) -> int:
+        return int(np.asarray(self.tip_xyz).shape[0])
+
+    def families(self) -> dict[int, np.ndarray]:
+        """Harmonic index -> indices of its solutions, by increasing frequency."""
+        k = np.asarray(self.harmonic_index)
+        return {int(h): np.flatnonzero(k == h)[np.argsort(self.freq_hz[k == h], kind="stable")]
+                for h in np.unique(k)}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TipGeometry:
+    """What the tip nodes say about the blade tip.
+
+    Attributes
+    ----------
+    chord_m : float
+        Distance from the first (trailing-edge) to the last tip node, m.
+    stagger_deg : float
+        Angle of the chord from the tangential direction (module :mod:`modal_model` convention:
+        TE -> LE is ``(tang, axial) = (cos eta, -sin eta)``), deg.
+    radius_m : float
+        Mean radius of the tip nodes, m.
+    axial_m : tuple of float
+        Axial extent (min, max) of the tip nodes, m.
+    """
+
+    chord_m: float
+    stagger_deg: float
+    radius_m: float
+    axial_m: tuple
+
+
+def tip_geometry(tip_xyz: np.ndarray) -> TipGeometry:
+    """Chord, stagger and radius of a tip node line ordered from the trailing edge.
+
+    Parameters
+    ----------
+    tip_xyz : ndarray, shape (n_tip, 3)
+        Tip nodes of one blade, m, node 0 at the trailing edge.
+    """
+    p = np.asarray(tip_xyz, float)
+    te, le = p[0], p[-1]
+    mid = 0.5 * (te + le)
+    ang = math.atan2(mid[1], mid[0])
+    t_dir = np.array([-math.sin(ang), math.cos(ang), 0.0])
+    d = le - te
+    stagger = math.degrees(math.atan2(-d[2], float(d @ t_dir)))
+    return TipGeometry(chord_m=float(np.linalg.norm(d)), stagger_deg=stagger,
+                       radius_m=float(np.mean(np.hypot(p[:, 0], p[:, 1]))),
+                       axial_m=(float(p[:, 2].min()), float(p[:, 2].max())))
+
+
+def _real_standing(u_tip: np.ndarray, u_force: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Turn a standing-wave solution's complex shape real (the phase of its largest entry)."""
+    allv = np.concatenate([u_tip.ravel(), u_force.ravel()])
+    ph = np.exp(-1j * np.angle(allv[np.argmax(np.abs(allv))]))
+    return u_tip * ph, u_force * ph
+
+
+def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: float | None = 9e-6,
+                  n_families: int | None = None) -> tuple[ModalModel, dict]:
+    """Expand a cyclic sector solution to the full-wheel modal model.
+
+    Parameters
+    ----------
+    sector : CyclicSector
+    damping_ratio : array_like, shape (n_modes,), optional
+        Modal damping ratios of the expanded modes; default stiffness-proportional with
+        ``damping_beta_s`` (``zeta = beta omega / 2``).
+    n_families : int, optional
+        Modes kept per harmonic index (default: the fewest any harmonic index has).
+
+    Returns
+    -------
+    model : ModalModel
+        Mass-normalised full-wheel modes (module conventions), labelled with family and ND,
+        with the Campbell table (family x ND) of the sector solution.
+    report : dict
+        ``families_per_nd`` (harmonic index -> solutions read), ``n_families``, ``tip``
+        (:class:`TipGeometry` as a dict), ``dropped`` (solutions left out).
+
+    Raises
+    ------
+    ModelFileError
+        A harmonic index missing, no mode left.
+    """
+    N = int(sector.n_sectors)
+    fams = sector.families()
+    missing = [k for k in range(N // 2 + 1) if k not in fams]
+    if missing:
+        shown = ", ".join(map(str, missing[:8])) + (" ..." if len(missing) > 8 else "")
+        raise ModelFileError(f"harmonic indices missing from the sector results: {shown} "
+                             f"(a {N}-sector wheel needs 0..{N // 2}; select them all in the FE solution)")
+    n_fam = min(len(v) for v in fams.values()) if n_families is None else int(n_families)
+    if n_fam < 1 or any(len(v) < n_fam for v in fams.values()):
+        raise ModelFileError(f"{n_fam} families requested but some harmonic index has only "
+                             f"{min(len(v) for v in fams.values())} solutions")
+    theta = 2.0 * np.pi * np.arange(N) / N
+    R = _rz(theta)                                                     # (N, 3, 3)
+    tip_xyz = np.einsum("sij,pj->spi", R, sector.tip_xyz)             # (N, n_tip, 3)
+    force_xyz = np.einsum("sij,j->si", R, sector.force_xyz)           # (N, 3)
+    wheel = sector.normalisation == "wheel"
+    freqs, tips, forces, fam_of, nd_of = [], [], [], [], []
+    for k, idx in fams.items():
+        for f, i in enumerate(idx[:n_fam]):
+            ut, uf = np.asarray(sector.tip_shapes[i], complex), np.asarray(sector.force_shapes[i], complex)
+            standing = k == 0 or 2 * k == N
+            if standing:
+                ut, uf = _real_standing(ut, uf)
+            ph = np.exp(1j * k * theta)                                # (N,)
+            wt = np.einsum("sij,spj->spi", R, ph[:, None, None] * ut[None])
+            wf = np.einsum("sij,sj->si", R, ph[:, None] * uf[None])
+            scale = 1.0 if wheel else math.sqrt((1.0 if standing else 2.0) / N)
+            parts = (np.real,) if standing else (np.real, np.imag)
+            for part in parts:
+                freqs.append(float(sector.freq_hz[i])); fam_of.append(f); nd_of.append(k)
+                tips.append(scale * part(wt)); forces.append(scale * part(wf))
+    freqs = np.array(freqs)
+    fam_of, nd_of = np.array(fam_of, np.int64), np.array(nd_of, np.int64)
+    order = np.lexsort((nd_of, freqs, fam_of))
+    geo = tip_geometry(sector.tip_xyz)
+    stagger = geo.stagger_deg if sector.stagger_deg is None else float(sector.stagger_deg)
+    campbell = np.array([[sector.freq_hz[fams[k][f]] for k in range(N // 2 + 1)] for f in range(n_fam)])
+    freq_sorted = freqs[order]
+    if damping_ratio is None:
+        damping_ratio = 0.5 * float(damping_beta_s) * 2.0 * np.pi * freq_sorted
+    prov = dict(sector.provenance)
+    prov.setdefault("builder", "cyclic sector import")
+    prov["method"] = (f"cyclic symmetry ({N} sectors, harmonic indices 0..{N // 2}, {n_fam} families), "
+                      f"expanded to the full wheel ({sector.normalisation} normalisation)")
+    model = model_from_cartesian(
+        freq_sorted, tip_xyz, np.array(tips)[order], force_xyz, np.array(forces)[order],
+        nominal_node=int(sector.nominal_node), stagger_deg=stagger, damping_ratio=damping_ratio,
+        damping_beta_s=damping_beta_s, provenance=prov, family=fam_of[order], nodal_diameter=nd_of[order])
+    model = ModalModel(**{**{f: getattr(model, f) for f in ("freq_hz", "damping_ratio", "tip_ref", "tip_shapes",
+                                                            "force_ref", "force_shapes", "meta", "family",
+                                                            "nodal_diameter", "extra")},
+                          "campbell_freq_hz": campbell})
+    report = {"n_sectors": N, "families_per_nd": {k: int(len(v)) for k, v in fams.items()},
+              "n_families": n_fam, "n_modes": model.n_modes, "campbell_freq_hz": campbell,
+              "tip": {"chord_m": geo.chord_m, "stagger_deg": geo.stagger_deg, "radius_m": geo.radius_m,
+                      "axial_m": geo.axial_m, "n_tip": sector.n_tip, "nominal_node": int(sector.nominal_node)},
+              "dropped": int(sum(max(0, len(v) - n_fam) for v in fams.values()))}
+    return model, report
+
+
+# ---- the neutral file ---------------------------------------------------------------------
+
+_ARRAYS = ("harmonic_index", "freq_hz", "tip_xyz", "force_xyz")
+
+
+def save_sector(sector: CyclicSector, path) -> None:
+    """Write ``sector`` in the neutral format (uncompressed ``.npz``, complex shapes)."""
+    meta = {"schema": SECTOR_SCHEMA, "schema_version": SECTOR_SCHEMA_VERSION, "n_sectors": int(sector.n_sectors),
+            "nominal_node": int(sector.nominal_node), "normalisation": sector.normalisation,
+            "units": "SI: Hz, m; shapes in m per unit modal coordinate",
+            "provenance": sector.provenance}
+    if sector.stagger_deg is not None:
+        meta["stagger_deg"] = float(sector.stagger_deg)
+    with open(path, "wb") as fh:
+        np.savez(fh, meta=np.array(json.dumps(meta, sort_keys=True)),
+                 harmonic_index=np.asarray(sector.harmonic_index, np.int64),
+                 freq_hz=np.asarray(sector.freq_hz, float), tip_xyz=np.asarray(sector.tip_xyz, float),
+                 force_xyz=np.asarray(sector.force_xyz, float),
+                 tip_shapes=np.asarray(sector.tip_shapes, complex), force_shapes=np.asarray(sector.force_shapes, complex))
+
+
+def _shapes(z, name: str, where: str) -> np.ndarray:
+    if name in z.files:
+        return np.asarray(z[name])
+    if f"{name}_cos" in z.files and f"{name}_sin" in z.files:
+        c, s = np.asarray(z[f"{name}_cos"]), np.asarray(z[f"{name}_sin"])
+        if c.shape != s.shape or c.dtype.kind != "f" or s.dtype.kind != "f":
+            raise ModelFileError(f"{where}: {name}_cos and {name}_sin must be real arrays of one shape")
+        return c + 1j * s
+    raise ModelFileError(f"{where}: missing {name} (complex) or {name}_cos + {name}_sin")
+
+
+def load_sector(path) -> CyclicSector:
+    """Read a neutral-format sector file (``np.load(allow_pickle=False)``); any problem is a
+    one-line :class:`ModelFileError`."""
+    where = str(path)
+    try:
+        z = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise ModelFileError(f"{where}: no such file") from None
+    except (ValueError, OSError, EOFError) as exc:
+        raise ModelFileError(f"{where}: not a readable .npz sector file ({exc})") from None
+    with z:
+        try:
+            missing = [k for k in ("meta",) + _ARRAYS if k not in z.files]
+            if missing:
+                raise ModelFileError(f"{where}: missing {', '.join(missing)} (schema {SECTOR_SCHEMA})")
+            try:
+                meta = json.loads(str(z["meta"]))
+            except (json.JSONDecodeError, ValueError) as exc:
+                raise ModelFileError(f"{where}: meta is not JSON ({exc})") from None
+            if not isinstance(meta, dict) or meta.get("schema") != SECTOR_SCHEMA:
+                raise ModelFileError(f"{where}: meta.schema must be {SECTOR_SCHEMA!r}")
+            if meta.get("schema_version") != SECTOR_SCHEMA_VERSION:
+                raise ModelFileError(f"{where}: schema_version {meta.get('schema_version')!r} is not supported "
+                                     f"(this reader knows {SECTOR_SCHEMA_VERSION})")
+            if not isinstance(meta.get("n_sectors"), int):
+                raise ModelFileError(f"{where}: meta.n_sectors must be an integer")
+            arrays = {k: np.asarray(z[k]) for k in _ARRAYS}
+            tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
+        except ValueError as exc:  # pickled object arrays and damaged members
+            raise ModelFileError(f"{where}: unreadable array ({exc})") from None
+    try:
+        return CyclicSector(n_sectors=meta["n_sectors"], harmonic_index=arrays["harmonic_index"],
+                            freq_hz=arrays["freq_hz"], tip_xyz=arrays["tip_xyz"], tip_shapes=tip,
+                            force_xyz=arrays["force_xyz"], force_shapes=force,
+                            nominal_node=int(meta.get("nominal_node", arrays["tip_xyz"].shape[0] // 2)),
+                            stagger_deg=meta.get("stagger_deg"), normalisation=meta.get("normalisation", "sector"),
+                            provenance=meta.get("provenance", {}))
+    except ModelFileError as exc:
+        raise ModelFileError(f"{where}: {exc}") from None
+
+
+def builtin_sector(scn=None) -> CyclicSector:
+    """The built-in parametric model's cyclic solution as a neutral sector (leading-edge
+    excitation node), e.g. to try the importer or as a template for one's own export.
+
+    The complex sector vectors of :func:`~bttsim_stream.model.bladed_disk.solve_cyclic`
+    (``v^H M_k v = 1``: ``"sector"`` normalisation) are mapped to the tip and force nodes and
+    written in the reference sector's Cartesian frame.
+    """
+    from threadpoolctl import threadpool_limits
+
+    from ..scenario import Scenario
+    from .bladed_disk import assemble_sector, solve_cyclic
+    from .modal_model import design_from_scenario
+
+    scn = Scenario() if scn is None else scn
+    d = design_from_scenario(scn)
+    with threadpool_limits(limits=1):
+        sec = assemble_sector(d)
+        sol = solve_cyclic(d, sec)
+    N = d.n_blades
+
+    def cart(ref, maps, v):
+        """(n_pts, 3) polar refs, (n_pts, 3, m) maps, (m, n) vectors -> xyz (n_pts, 3), u (n, n_pts, 3)."""
+        r, a, zz = ref.T
+        xyz = np.stack([r * np.cos(a), r * np.sin(a), zz], -1)
+        pol = np.einsum("pcm,mn->npc", maps, v)
+        c, s = np.cos(a), np.sin(a)
+        u = np.stack([pol[..., 0] * c - pol[..., 1] * s, pol[..., 0] * s + pol[..., 1] * c, pol[..., 2]], -1)
+        return xyz, u
+
+    ks, fs, tips, forces = [], [], [], []
+    for k, (f_k, v_k) in enumerate(zip(sol.freq_hz, sol.vectors)):
+        tip_xyz, ut = cart(sec.tip_ref, sec.tip_map, v_k)
+        force_xyz, uf = cart(sec.force_ref[:1], sec.force_map[:1], v_k)
+        ks += [k] * len(f_k); fs += list(f_k); tips.append(ut); forces.append(uf[:, 0])
+    return CyclicSector(n_sectors=N, harmonic_index=np.array(ks, np.int64), freq_hz=np.array(fs),
+                        tip_xyz=tip_xyz, tip_shapes=np.concatenate(tips), force_xyz=force_xyz[0],
+                        force_shapes=np.concatenate(forces), nominal_node=d.nominal_node,
+                        stagger_deg=float(np.rad2deg(d.stagger_rad)), normalisation="sector",
+                        provenance={"builder": "bttsim_stream built-in parametric bladed disk (cyclic sector)",
+                                    "model_schema_version": MODEL_SCHEMA_VERSION})

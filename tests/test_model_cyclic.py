@@ -1,0 +1,181 @@
+"""Cyclic sector -> full wheel: against a direct full-wheel solve of an exact spring-mass wheel,
+and against the built-in model's own cyclic expansion (a sector export re-imported)."""
+
+import json
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from bttsim_stream.errors import ModelFileError
+from bttsim_stream.model import build_model
+from bttsim_stream.model.cyclic import (CyclicSector, builtin_sector, expand_sector, load_sector, save_sector,
+                                        tip_geometry)
+from bttsim_stream.model.modal_model import to_cartesian
+
+N_NODES = 4  # nodes per sector: the "tip" line of 4 nodes; node 0 is also the force node
+
+
+def _rz(t):
+    c, s = np.cos(t), np.sin(t)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _spring_wheel(N, seed=1):
+    """A rotationally periodic spring-mass wheel: full K, M in global Cartesian DOFs, node
+    positions of sector 0 and the DOF map of sector s = R(theta_s) applied to sector 0."""
+    rng = np.random.default_rng(seed)
+    c = 0.004 * np.arange(N_NODES)  # along a 40 deg staggered chord, a little off it
+    xyz = np.column_stack([0.18 + 0.0005 * rng.standard_normal(N_NODES), c * np.cos(0.7), 0.012 - c * np.sin(0.7)])
+    masses = rng.uniform(0.5, 2.0, N_NODES) * 1e-3
+    springs = []  # (node a in sector 0, node b, sector offset of b, 3x3 SPD in sector-0 frame)
+    for a in range(N_NODES):
+        springs.append((a, a, None, np.diag(rng.uniform(1, 3, 3)) * 1e5))  # to ground
+        for b in range(a + 1, N_NODES):
+            A = rng.standard_normal((3, 3))
+            springs.append((a, b, 0, (A @ A.T + np.eye(3)) * 1e5))
+        A = rng.standard_normal((3, 3))
+        springs.append((a, (a + 1) % N_NODES, 1, (A @ A.T + np.eye(3)) * 3e4))  # to the next sector
+    n = 3 * N_NODES * N
+    K, M = np.zeros((n, n)), np.zeros((n, n))
+    dof = lambda s, a: slice(3 * (N_NODES * (s % N) + a), 3 * (N_NODES * (s % N) + a) + 3)  # noqa: E731
+    for s in range(N):
+        R = _rz(2 * np.pi * s / N)
+        for a in range(N_NODES):
+            M[dof(s, a), dof(s, a)] += masses[a] * np.eye(3)
+        for a, b, off, k in springs:
+            kg = R @ k @ R.T
+            if off is None:
+                K[dof(s, a), dof(s, a)] += kg
+                continue
+            for i, j, sign in ((dof(s, a), dof(s, a), 1), (dof(s + off, b), dof(s + off, b), 1),
+                               (dof(s, a), dof(s + off, b), -1), (dof(s + off, b), dof(s, a), -1)):
+                K[i, j] += sign * kg
+    return xyz, K, M
+
+
+def _sector_solution(N, xyz, K, M, n_fam):
+    """Solve every harmonic index on the cyclic-reduced matrices (u^H M_k u = 1)."""
+    ks, fs, us = [], [], []
+    for k in range(N // 2 + 1):
+        T = np.concatenate([np.kron(np.eye(N_NODES), _rz(2 * np.pi * s / N)) * np.exp(2j * np.pi * k * s / N)
+                            for s in range(N)])
+        Kk, Mk = T.conj().T @ K @ T / N, T.conj().T @ M @ T / N
+        w2, v = sla.eigh(Kk, Mk, subset_by_index=[0, n_fam - 1])
+        ks += [k] * n_fam; fs += list(np.sqrt(w2) / (2 * np.pi)); us.append(v.T.reshape(n_fam, N_NODES, 3))
+    u = np.concatenate(us)
+    return CyclicSector(n_sectors=N, harmonic_index=np.array(ks), freq_hz=np.array(fs), tip_xyz=xyz,
+                        tip_shapes=u, force_xyz=xyz[0], force_shapes=u[:, 0], nominal_node=1)
+
+
+@pytest.mark.parametrize("N", [7, 8], ids=["odd", "even"])
+def test_expansion_is_the_full_wheel_solution(N, tmp_path):
+    xyz, K, M = _spring_wheel(N)
+    n_fam = 3
+    sector = _sector_solution(N, xyz, K, M, n_fam)
+    save_sector(sector, tmp_path / "s.npz")
+    model, report = expand_sector(load_sector(tmp_path / "s.npz"), damping_beta_s=0.0)
+    assert model.n_modes == n_fam * N and report["n_families"] == n_fam
+    # the lowest families of the direct solve: each cyclic family spans N full-wheel modes
+    w2 = sla.eigh(K, M, eigvals_only=True)
+    fam_direct = np.sort(np.concatenate([np.sqrt(w2) / (2 * np.pi)]))
+    np.testing.assert_allclose(np.sort(model.freq_hz), np.sort(sector.freq_hz[np.repeat(
+        np.arange(sector.freq_hz.size), [1 if k in (0, N / 2) else 2 for k in sector.harmonic_index])]), rtol=0)
+    for f in model.freq_hz:  # every expanded frequency is a full-wheel eigenfrequency
+        assert np.min(np.abs(fam_direct - f)) < 1e-9 * f
+    # Phi^T M Phi = I and Phi^T K Phi = diag(omega^2) on the full wheel's DOFs
+    _, u = to_cartesian(model.tip_ref, model.tip_shapes)   # (n_modes, N, n_nodes, 3)
+    Phi = u.reshape(model.n_modes, -1).T
+    np.testing.assert_allclose(Phi.T @ M @ Phi, np.eye(model.n_modes), atol=1e-10)
+    np.testing.assert_allclose(Phi.T @ K @ Phi / np.outer(2 * np.pi * model.freq_hz, 2 * np.pi * model.freq_hz),
+                               np.eye(model.n_modes), atol=1e-9)
+    # the force node is node 0 of each sector
+    np.testing.assert_allclose(model.force_shapes, model.tip_shapes[:, :, 0, :], atol=1e-15)
+    assert set(model.nodal_diameter.tolist()) == set(range(N // 2 + 1))
+
+
+def test_cos_sin_and_wheel_normalisation_give_the_same_model(tmp_path):
+    N = 7
+    xyz, K, M = _spring_wheel(N)
+    s = _sector_solution(N, xyz, K, M, 2)
+    ref, _ = expand_sector(s)
+    wheel = CyclicSector(**{**{f: getattr(s, f) for f in s.__slots__},
+                            "tip_shapes": s.tip_shapes * np.where(s.harmonic_index == 0, 1 / np.sqrt(N),
+                                                                  np.sqrt(2 / N))[:, None, None],
+                            "force_shapes": s.force_shapes * np.where(s.harmonic_index == 0, 1 / np.sqrt(N),
+                                                                      np.sqrt(2 / N))[:, None],
+                            "normalisation": "wheel"})
+    save_sector(wheel, tmp_path / "w.npz")
+    with np.load(tmp_path / "w.npz") as z:  # rewrite with the real cos / sin pairs
+        d = {k: z[k] for k in z.files}
+    meta = json.loads(str(d["meta"]))
+    for name in ("tip_shapes", "force_shapes"):
+        c = d.pop(name)
+        d[name + "_cos"], d[name + "_sin"] = c.real.copy(), c.imag.copy()
+    d["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "cs.npz", **d)
+    m2, _ = expand_sector(load_sector(tmp_path / "cs.npz"))
+    np.testing.assert_allclose(m2.tip_shapes, ref.tip_shapes, atol=1e-14)
+    np.testing.assert_array_equal(m2.freq_hz, ref.freq_hz)
+
+
+def _frf(model, f_hz):
+    w = 2 * np.pi * f_hz
+    wr, z = 2 * np.pi * model.freq_hz, model.damping_ratio
+    h = 1 / (wr**2 - w**2 + 2j * z * wr * w)
+    return np.einsum("k,kbpc,kd->bpcd", h, model.tip_shapes, model.force_shapes[:, 0, :])
+
+
+def test_builtin_sector_reimported_reproduces_the_builtin_model(tmp_path):
+    ref = build_model()
+    save_sector(builtin_sector(), tmp_path / "sector.npz")
+    model, report = expand_sector(load_sector(tmp_path / "sector.npz"), damping_beta_s=9e-6)
+    np.testing.assert_allclose(model.freq_hz, ref.freq_hz, rtol=1e-14)
+    np.testing.assert_array_equal(model.family, ref.family)
+    np.testing.assert_array_equal(model.nodal_diameter, ref.nodal_diameter)
+    np.testing.assert_allclose(model.campbell_freq_hz, ref.campbell_freq_hz, rtol=1e-14)
+    np.testing.assert_allclose(model.tip_ref, ref.tip_ref, atol=1e-15)
+    np.testing.assert_allclose(model.damping_ratio, ref.damping_ratio, rtol=1e-14)
+    # shapes up to the rotation of each degenerate pair: per-ND projectors and the tip FRF
+    for fam in range(5):
+        for nd in range(15):
+            sel = (model.family == fam) & (model.nodal_diameter == nd)
+            a = model.tip_shapes[sel].reshape(sel.sum(), -1)
+            b = ref.tip_shapes[sel].reshape(sel.sum(), -1)
+            np.testing.assert_allclose(a.T @ a, b.T @ b, atol=1e-12 * np.abs(b.T @ b).max())
+    for f in (300.0, 343.9, 344.2, 347.45, 1148.9, 1717.0):
+        a, b = _frf(model, f), _frf(ref, f)
+        np.testing.assert_allclose(a, b, atol=1e-12 * np.abs(b).max())
+    assert report["families_per_nd"] == {k: 5 for k in range(15)}
+    assert abs(report["tip"]["stagger_deg"] - 41.5) < 0.05 and report["tip"]["n_tip"] == 9
+
+
+def test_tip_geometry_of_a_straight_chord():
+    eta = np.deg2rad(41.5)
+    r, c = 0.19, 0.02
+    s = np.linspace(0, c, 9)  # TE at larger z; TE -> LE = (tang, axial) (cos eta, -sin eta)
+    xyz = np.column_stack([np.full(9, r), s * np.cos(eta), 0.02 - s * np.sin(eta)])
+    g = tip_geometry(xyz)
+    assert abs(g.stagger_deg - 41.5) < 0.05 and abs(g.chord_m - c) < 1e-12
+
+
+def test_missing_harmonic_index_and_bad_files(tmp_path):
+    N = 7
+    xyz, K, M = _spring_wheel(N)
+    s = _sector_solution(N, xyz, K, M, 2)
+    keep = s.harmonic_index != 2
+    cut = CyclicSector(**{**{f: getattr(s, f) for f in s.__slots__}, "harmonic_index": s.harmonic_index[keep],
+                          "freq_hz": s.freq_hz[keep], "tip_shapes": s.tip_shapes[keep],
+                          "force_shapes": s.force_shapes[keep]})
+    with pytest.raises(ModelFileError, match="harmonic indices missing.*2"):
+        expand_sector(cut)
+    with pytest.raises(ModelFileError, match="harmonic_index must lie in 0..3"):
+        CyclicSector(**{**{f: getattr(s, f) for f in s.__slots__}, "harmonic_index": s.harmonic_index + 2})
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ModelFileError, match="not a readable"):
+        load_sector(bad)
+    np.savez(tmp_path / "pickled.npz", meta=np.array([{"a": 1}], dtype=object), harmonic_index=np.arange(2),
+             freq_hz=np.ones(2), tip_xyz=np.ones((2, 3)), force_xyz=np.ones(3))
+    with pytest.raises(ModelFileError):
+        load_sector(tmp_path / "pickled.npz")
