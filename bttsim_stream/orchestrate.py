@@ -5,7 +5,10 @@ listening on its own free port and connecting to the ones started before it (a f
 no router needed; ``-e/--connect`` joins an existing Zenoh network instead). The simulator
 waits for the other three nodes' liveliness tokens, publishes the run, and the others end
 when it (and the processor's final report) is done. Progress (revolution, rpm, elapsed and
-remaining time) comes from the OPR stream. Ctrl-C stops the simulator first; every other
+remaining time) comes from the OPR stream. With ``tls_dir`` (``bttsim run --tls-dir DIR``,
+certificates from ``bttsim certs DIR``) every node, and the run's own session (identity
+``run``), speaks mutual TLS on ``tls/127.0.0.1`` endpoints under the access-control policy of
+:mod:`bttsim_stream.bus.security`. Ctrl-C stops the simulator first; every other
 node then finalises its file, so ``run.mcap``, ``views.rrd`` and ``summary.json`` stay valid.
 """
 
@@ -19,7 +22,8 @@ import time
 from pathlib import Path
 
 from .bus import codec, keys
-from .bus.session import free_port, make_config, open_session
+from .bus.security import TlsFiles
+from .bus.session import CONNECT_TIMEOUT_S, free_port, make_config, open_session
 from .defaults import DEFAULT_WEB_PORT
 from .errors import BttsimError
 from .runtime import Progress
@@ -31,8 +35,9 @@ __all__ = ["run_all", "NODES"]
 NODES = ("recorder", "processor", "viewer", "sim")
 
 
-def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str) -> list[str]:
-    out: list[str] = ["-m", mode]
+def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str,
+                   security: list[str]) -> list[str]:
+    out: list[str] = ["-m", mode, *security]
     if listen:
         out += ["-l", listen]
     for e in connect:
@@ -44,10 +49,23 @@ def _session_flags(listen: str | None, connect: list[str], config: str | None, m
 
 def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = DEFAULT_WEB_PORT,
             realtime: bool = False, connect: list[str] | None = None, config: str | None = None,
-            quiet: bool = False, mode: str = "peer") -> dict:
-    """Run the main job; returns the summary dict (also written to ``OUT/summary.json``)."""
+            quiet: bool = False, mode: str = "peer", tls_dir: str | None = None, access_control: bool = True,
+            connect_timeout_s: float = CONNECT_TIMEOUT_S) -> dict:
+    """Run the main job; returns the summary dict (also written to ``OUT/summary.json``).
+
+    ``tls_dir``: mutual TLS (and, with ``access_control``, the access-control policy) with the
+    certificates of that folder; ``connect_timeout_s``: how long every node tries to reach its
+    endpoints before it gives up with an error."""
     if mode == "client" and not connect:
         raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
+    tls = None
+    security: list[str] = ["--connect-timeout", f"{connect_timeout_s:g}"]
+    if tls_dir:
+        d = Path(tls_dir).resolve()
+        tls = TlsFiles(d / "ca.pem", d / "run.pem", d / "run-key.pem", access_control)
+        for n in NODES:  # every identity there before anything starts
+            TlsFiles(d / "ca.pem", d / f"{n}.pem", d / f"{n}-key.pem")
+        security += ["--tls-dir", str(d)] + ([] if access_control else ["--no-access-control"])
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
     out = Path(out_dir)
     try:
@@ -63,7 +81,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
 
     embedded = not connect  # a -c file is merged with each node's own loopback endpoint
     ports = {n: free_port() for n in NODES} if embedded else {}
-    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in ports.items()}
+    endpoints = {n: f"{'tls' if tls else 'tcp'}/127.0.0.1:{p}" for n, p in ports.items()}
     args = {
         "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
         "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
@@ -91,13 +109,13 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         started: list[str] = []
         for n in NODES:
             flags = _session_flags(endpoints.get(n), [endpoints[m] for m in started] if embedded else
-                                   list(connect or []), config, mode)
+                                   list(connect or []), config, mode, security)
             procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *map(str, args[n]), *flags],
                                         stdout=logs[n], stderr=subprocess.STDOUT,
                                         start_new_session=True)  # Ctrl-C reaches only us
             started.append(n)
         conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
-                           config_file=config)
+                           config_file=config, tls=tls, connect_timeout_s=connect_timeout_s)
         with open_session(conf) as session:
             n_rev = _revolutions(procs, session, rig)
             state = {"rev": 0, "rpm": 0.0, "last": None}
