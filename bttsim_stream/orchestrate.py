@@ -115,7 +115,10 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
                                         start_new_session=True)  # Ctrl-C reaches only us
             started.append(n)
         conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
-                           config_file=config, tls=tls, connect_timeout_s=connect_timeout_s)
+                           config_file=config, tls=tls,
+                           # our own nodes may be done before we reach the last of them (a short
+                           # run): follow them from the background; a router must answer
+                           connect_timeout_s=None if embedded else connect_timeout_s)
         with open_session(conf) as session:
             n_rev = _revolutions(procs, session, rig)
             state = {"rev": 0, "rpm": 0.0, "last": None}

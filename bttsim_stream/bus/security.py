@@ -19,8 +19,8 @@ any other name / no cert    refused (default: deny)                nothing
 ==========================  =====================================  ===========================
 
 Every member may subscribe, query, declare queryables and follow liveliness under
-``bttsim/**``; each declares only its own liveliness tokens (``bttsim/<rig>/alive/<name>``,
-``bttsim/<rig>/ready/<name>``), so nobody can pose as the simulator and end a run early. Each
+``bttsim/**``; each declares only its own liveliness tokens (``bttsim/<rig>/<what>/<name>``:
+``alive``, ``ready``...), so nobody can pose as the simulator and end a run early. Each
 node checks what comes in from (ingress) and goes out to (egress) each neighbour: with a
 router, the router is the neighbour of every client, and it enforces the policy on the
 clients' links.
@@ -145,9 +145,9 @@ def access_control_policy(identities=IDENTITIES) -> dict:
          "subjects": [n for n in ("processor", "router") if n in members]},
         {"id": "router", "rules": ["relay tokens"], "subjects": [n for n in ("router",) if n in members]},
     ]
-    for n in members:  # each one's own liveliness tokens
+    for n in members:  # each one's own liveliness tokens (alive, ready, done...)
         rules.append({"id": f"tokens of {n}", "permission": "allow", "flows": ["ingress"],
-                      "messages": ["liveliness_token"], "key_exprs": [f"bttsim/*/alive/{n}", f"bttsim/*/ready/{n}"]})
+                      "messages": ["liveliness_token"], "key_exprs": [f"bttsim/*/*/{n}"]})
         policies.append({"id": f"own tokens of {n}", "rules": [f"tokens of {n}"], "subjects": [n]})
     policies = [p for p in policies if p["subjects"]]
     return {"enabled": True, "default_permission": "deny", "rules": rules,

@@ -125,6 +125,9 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
             ms = int(connect_timeout_s * 1000)
             conf.insert_json5("connect/timeout_ms", f'{{"router": -1, "peer": {ms}, "client": {ms}}}')
             conf.insert_json5("connect/exit_on_failure", '{"router": false, "peer": true, "client": true}')
+            if conf.get_json("connect/retry") in (None, "null"):  # zenoh's first retry comes after 1 s
+                conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 1000, '
+                                                   '"period_increase_factor": 2}')
         if tls is not None:
             apply_security(conf, tls)
         conf.insert_json5("timestamping/enabled", "true")  # needed by the advanced publishers
@@ -256,12 +259,15 @@ def declare_subscriber(session, key_expr: str, handler, *, history: bool = True)
         recovery=None, subscriber_detection=False, allowed_origin=None)
 
 
-def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, stop: StopFlag) -> int:
-    """Wait until ``count`` liveliness tokens match ``key_expr``; returns how many were seen."""
+def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, stop: StopFlag,
+                        exclude=()) -> int:
+    """Wait until ``count`` liveliness tokens match ``key_expr`` (those whose last chunk is in
+    ``exclude`` aside); returns how many were seen."""
     deadline = time.monotonic() + timeout_s
     seen = 0
     while not stop and time.monotonic() < deadline:
-        seen = sum(1 for r in session.liveliness().get(key_expr, timeout=1.0) if r.ok is not None)
+        seen = sum(1 for r in session.liveliness().get(key_expr, timeout=1.0)
+                   if r.ok is not None and str(r.ok.key_expr).rsplit("/", 1)[-1] not in exclude)
         if seen >= count:
             break
         stop.wait(0.1)
