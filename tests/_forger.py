@@ -4,7 +4,9 @@
 scenario's real acquisition messages (metadata, OPR, TOA batches, truth) with the payload of a
 revolution 50 later on each key and sequence number, TOA batches on a probe that does not
 exist (``toa/7``), garbage on the result keys (fit, travelling wave, resonance), and (``--pose-as-sim``) a
-liveliness token posing as the simulator. Prints ``forger connected`` once its session is
+liveliness token posing as the simulator; ``--only toa/7`` keeps the keys so named; ``--once`` puts each message once, as soon as
+its key has a subscriber (a flood that never stops keeps the consumers from ever seeing the
+end of a run). Prints ``forger connected`` once its session is
 open, then puts a message every 4 ms until SIGTERM, and finally one JSON line:
 how many messages it put and how many of them while a subscriber matched (they would have
 been delivered without access control). A session that cannot be opened (refused) is the
@@ -47,7 +49,8 @@ def forged_messages(scenario_path: str) -> list[tuple[str, bytes, int]]:
 
 
 def main(args) -> None:
-    forged = forged_messages(args.scenario)
+    forged = [f for f in forged_messages(args.scenario)
+              if not args.only or any(f[0].endswith("/" + k) for k in args.only)]
     conf = make_config("client", args.connect, tls=tls_from_args(args, "intruder"),
                        connect_timeout_s=args.connect_timeout)
     stop = StopFlag()
@@ -61,12 +64,16 @@ def main(args) -> None:
         while not stop:
             for key, payload, seq in forged:
                 time.sleep(PERIOD_S)  # not stop.wait: a signal during Event.wait can deadlock its handler
+                while args.once and not stop and not pubs[key].matching_status.matching:
+                    time.sleep(0.01)
                 if stop:
                     break
                 pub = pubs[key]
                 pub.put(payload, attachment=pack_attachment(seq, 0))
                 put += 1
                 matched += bool(pub.matching_status.matching)
+            while args.once and not stop:  # once through, then wait for the end
+                time.sleep(0.05)
         if token is not None:
             token.undeclare()
     print(json.dumps({"put": put, "matched": matched}), flush=True)
@@ -80,4 +87,6 @@ if __name__ == "__main__":
     p.add_argument("--tls-dir")
     p.add_argument("--tls-name")
     p.add_argument("--pose-as-sim", action="store_true")
+    p.add_argument("--once", action="store_true", help="each message once, as soon as its key has a subscriber")
+    p.add_argument("--only", action="append", metavar="KEY", help="only the keys ending in /KEY (e.g. toa/7)")
     sys.exit(exit_status(main, p.parse_args()))
