@@ -19,6 +19,7 @@ from . import scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
 from .bus.certs import IDENTITIES, generate_certificates
+from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
 from .defaults import DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
@@ -131,9 +132,11 @@ def _cmd_process(args: argparse.Namespace) -> None:
 
 def _cmd_certs(args: argparse.Namespace) -> None:
     names = [n.strip() for n in args.names.split(",") if n.strip()]
-    made = generate_certificates(args.dir, names, hosts=args.host, days=args.days, overwrite=args.force)
-    print(f"wrote {args.dir}: ca.pem (keep ca-key.pem off the nodes) and certificates for "
-          f"{', '.join(n for n in made if n != 'ca')}")
+    made = [n for n in generate_certificates(args.dir, names, hosts=args.host, days=args.days,
+                                             overwrite=args.force) if n != "ca"]
+    write_config_files(args.dir, made)
+    print(f"wrote {args.dir}: ca.pem (keep ca-key.pem off the nodes), NAME.pem, NAME-key.pem and the "
+          f"Zenoh configuration NAME.json5 (for -c) of {', '.join(made)}")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -265,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("certs", help="make a CA and per-node certificates for --tls-dir (docs/security.md)")
-    p.add_argument("dir", help="output folder: ca.pem, ca-key.pem, NAME.pem, NAME-key.pem")
+    p.add_argument("dir", help="output folder: ca.pem, ca-key.pem, NAME.pem, NAME-key.pem, NAME.json5")
     p.add_argument("--names", default=",".join(IDENTITIES),
                    help=f"comma-separated identities ({','.join(IDENTITIES)})")
     p.add_argument("--host", action="append", default=[], metavar="NAME_OR_IP",

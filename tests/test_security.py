@@ -88,7 +88,7 @@ def test_certs_command_and_bad_security_flags_are_one_line_errors(tmp_path):
     res = bttsim("certs", tmp_path / "c", "--host", "10.0.0.1", "--host", "bttsim-router")
     assert res.returncode == 0, res.stderr
     assert {p.name for p in (tmp_path / "c").iterdir()} == {"ca.pem", "ca-key.pem"} | {
-        f"{n}{s}" for n in IDENTITIES for s in (".pem", "-key.pem")}
+        f"{n}{s}" for n in IDENTITIES for s in (".pem", "-key.pem", ".json5")}
     assert (tmp_path / "c" / "ca-key.pem").stat().st_mode & 0o077 == 0  # private
     cases = [
         (("certs", tmp_path / "c"), "exists"),  # a new CA would invalidate the old certificates
@@ -177,11 +177,14 @@ def test_without_security_the_same_forger_changes_the_recording(scenario, clean,
 
 
 def test_a_node_refused_by_an_mtls_peer_fails_instead_of_recording_nothing(scenario, certs, foreign_certs, tmp_path):
-    """A recorder without a certificate, or with one of another CA, against an mTLS simulator:
-    exit 2 with one line within the connect timeout (it used to record 0 messages and exit 0);
-    the simulator, which finds nobody, fails too."""
+    """A recorder without a certificate, or with one of another CA, against an mTLS simulator
+    (configured with the file ``bttsim certs`` writes): exit 2 with one line within the connect
+    timeout (it used to record 0 messages and exit 0); the simulator, which finds nobody, fails too."""
     endpoint = f"tls/127.0.0.1:{free_port()}"
-    sim = start("bttsim_stream.nodes", "sim", scenario, "-l", endpoint, "--tls-dir", certs, "--wait-for", "1",
+    from bttsim_stream.bus.security import write_config_files
+
+    template = write_config_files(certs, ["sim"])[0]  # as bttsim certs writes it: -c, not --tls-dir
+    sim = start("bttsim_stream.nodes", "sim", scenario, "-l", endpoint, "-c", template, "--wait-for", "1",
                 "--wait-timeout", "15")
     try:
         for flags in ([], ["--tls-dir", foreign_certs]):

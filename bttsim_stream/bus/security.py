@@ -37,7 +37,7 @@ from ..errors import BttsimError
 from .certs import IDENTITIES
 
 __all__ = ["TlsFiles", "add_security_args", "tls_from_args", "access_control_policy", "apply_security",
-           "TRUTH_READERS"]
+           "security_config", "write_config_files", "TRUTH_READERS"]
 
 #: Identities allowed to receive ``bttsim/<rig>/truth`` (the router relays it).
 TRUTH_READERS = ("processor", "recorder", "viewer", "router")
@@ -164,8 +164,33 @@ def tls_section(tls: TlsFiles) -> dict:
             "verify_name_on_connect": True}
 
 
+def security_config(tls: TlsFiles) -> dict:
+    """The sections the security flags add to a node's Zenoh configuration (a dict to dump as
+    JSON / JSON5): ``transport/link/tls`` and, unless switched off, ``access_control``."""
+    out: dict = {"transport": {"link": {"tls": tls_section(tls)}}}
+    if tls.access_control:
+        out["access_control"] = access_control_policy()
+    return out
+
+
 def apply_security(conf, tls: TlsFiles) -> None:
     """Insert TLS (and, unless switched off, access control) into a ``zenoh.Config``."""
-    conf.insert_json5("transport/link/tls", json.dumps(tls_section(tls)))
-    if tls.access_control:
-        conf.insert_json5("access_control", json.dumps(access_control_policy()))
+    sections = security_config(tls)
+    conf.insert_json5("transport/link/tls", json.dumps(sections["transport"]["link"]["tls"]))
+    if "access_control" in sections:
+        conf.insert_json5("access_control", json.dumps(sections["access_control"]))
+
+
+def write_config_files(folder, names) -> list[Path]:
+    """``folder/NAME.json5`` for every name with a certificate there: a Zenoh configuration
+    with the security sections of that identity (``-c FILE`` is then the same as
+    ``--tls-dir folder --tls-name NAME``; add mode and endpoints to it or on the command line)."""
+    folder = Path(folder)
+    out = []
+    for name in names:
+        tls = TlsFiles(folder / "ca.pem", folder / f"{name}.pem", folder / f"{name}-key.pem")
+        path = folder / f"{name}.json5"
+        path.write_text(f"// bttsim: mutual TLS and access control of identity {name!r} (docs/security.md)\n"
+                        + json.dumps(security_config(tls), indent=2) + "\n")
+        out.append(path)
+    return out
