@@ -6,8 +6,9 @@ endpoints given with ``-l/--listen`` and ``-e/--connect`` (use loopback addresse
 Zenoh network with a router. A node that cannot reach every ``-e`` endpoint within
 ``--connect-timeout`` seconds (nobody there, a TLS handshake refused) stops with a one-line
 error instead of running alone. Security (mutual TLS, access control) is off unless a
-certificate is given: :mod:`bttsim_stream.bus.security`. Every sample carries a 16-byte attachment (sequence number and
-log time in ns, little-endian) so recorders need not decode payloads.
+certificate is given: :mod:`bttsim_stream.bus.security`. Every sample carries a 16-byte
+attachment (sequence number and log time in ns, little-endian) so recorders need not decode
+payloads.
 """
 
 from __future__ import annotations
