@@ -7,7 +7,7 @@ exist (``toa/7``), garbage on the result keys (fit, travelling wave, resonance),
 liveliness token posing as the simulator; ``--only toa/7`` keeps the keys so named; ``--once`` puts each message once, as soon as
 its key has a subscriber (a flood that never stops keeps the consumers from ever seeing the
 end of a run). Prints ``forger connected`` once its session is
-open, then puts a message every 4 ms until SIGTERM, and finally one JSON line:
+open, then puts a message every 10 ms until SIGTERM, and finally one JSON line:
 how many messages it put and how many of them while a subscriber matched (they would have
 been delivered without access control). A session that cannot be opened (refused) is the
 one-line error of every node, exit 2.
@@ -27,7 +27,7 @@ from bttsim_stream.errors import exit_status
 from bttsim_stream.scenario import load_scenario
 
 SHIFT = 50  # revolutions
-PERIOD_S = 0.004  # between two puts: a flood would only slow the machine down
+PERIOD_S = 0.01  # between two puts: a flood would only load the machine (and the router)
 
 
 def forged_messages(scenario_path: str) -> list[tuple[str, bytes, int]]:
