@@ -200,3 +200,55 @@ def test_a_node_refused_by_an_mtls_peer_fails_instead_of_recording_nothing(scena
     finally:
         stop(sim)
     assert sim.returncode == 2 and "found 0 of the 1 node(s)" in err, err
+
+
+def _listen_endpoint(out: Path, node: str, timeout_s: float = 120) -> str:
+    """The ``-l`` endpoint of a node process of the run writing into ``out`` (from /proc)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for proc in Path("/proc").iterdir():
+            if not proc.name.isdigit():
+                continue
+            try:
+                argv = (proc / "cmdline").read_bytes().decode(errors="replace").split("\0")
+            except OSError:
+                continue
+            if "bttsim_stream.nodes" in argv and node in argv and any(str(out) in a for a in argv) and "-l" in argv:
+                return argv[argv.index("-l") + 1]
+        time.sleep(0.05)
+    raise AssertionError(f"no {node} process of {out}")
+
+
+def test_forgers_on_a_nodes_own_port_change_nothing_in_a_secured_run(scenario, certs, clean, tmp_path):
+    """The attack of issue 16 (any local process connects to a node's loopback port), against
+    ``bttsim run --tls-dir`` (a mesh of peers, no router): each node enforces the policy on its
+    own links, so forgers with valid certificates of other identities, connected to the
+    processor's and the recorder's own ports while the run goes on (real time, 12 s), change
+    nothing, and one without a certificate is refused."""
+    out = tmp_path / "out"
+    run = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "run", str(scenario), "--out", str(out), "-q",
+                            "--realtime", "--tls-dir", str(certs)], cwd=REPO, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    forgers = {}
+    try:
+        ends = {n: _listen_endpoint(out, n) for n in ("processor", "recorder")}
+        forgers = {"viewer": start_forger(scenario, ends["processor"], "--tls-dir", certs, "--tls-name", "viewer",
+                                          "--pose-as-sim"),
+                   "intruder": start_forger(scenario, ends["recorder"], "--tls-dir", certs, "--tls-name", "intruder"),
+                   "no certificate": start_forger(scenario, ends["processor"], "--connect-timeout", 3)}
+        stdout, stderr = run.communicate(timeout=600)
+        stats = {}
+        for name, f in forgers.items():
+            if name == "no certificate":
+                _, err = f.communicate(timeout=60)
+                assert f.returncode == 2 and "cannot reach" in err, err
+            else:
+                assert stop(f) == 0, f.stderr.read()
+                stats[name] = json.loads(f.stdout.read().strip().splitlines()[-1])
+    finally:
+        for f in forgers.values():
+            stop(f)
+        stop(run)
+    assert run.returncode == 0, stdout + stderr
+    assert stats["viewer"]["matched"] > 100 and stats["intruder"]["put"] > 100, stats
+    assert result(out) == clean
