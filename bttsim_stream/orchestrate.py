@@ -89,6 +89,13 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         + (["--web", "--web-port", str(web_port)] if web else []),
         "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
     }
+    # our own session's configuration first: bad endpoints, files or certificates end the run
+    # before any node starts
+    conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
+                       config_file=config, tls=tls,
+                       # our own nodes may be done before we reach the last of them (a short
+                       # run): follow them from the background; a router must answer
+                       connect_timeout_s=None if embedded else connect_timeout_s)
     procs: dict[str, subprocess.Popen] = {}
     logs = {n: open(out / f"{n}.log", "w") for n in NODES}
     interrupted = False
@@ -114,11 +121,6 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
                                         stdout=logs[n], stderr=subprocess.STDOUT,
                                         start_new_session=True)  # Ctrl-C reaches only us
             started.append(n)
-        conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
-                           config_file=config, tls=tls,
-                           # our own nodes may be done before we reach the last of them (a short
-                           # run): follow them from the background; a router must answer
-                           connect_timeout_s=None if embedded else connect_timeout_s)
         with open_session(conf) as session:
             n_rev = _revolutions(procs, session, rig)
             state = {"rev": 0, "rpm": 0.0, "last": None}
