@@ -252,3 +252,43 @@ def test_forgers_on_a_nodes_own_port_change_nothing_in_a_secured_run(scenario, c
     assert run.returncode == 0, stdout + stderr
     assert stats["viewer"]["matched"] > 100 and stats["intruder"]["put"] > 100, stats
     assert result(out) == clean
+
+
+def test_only_named_consumers_receive_truth(scenario, certs):
+    """From a secured simulator's late-joiner cache (replies, as live samples are puts under
+    the same rules): the viewer's identity gets OPR and truth, ``run`` (bttsim run's own
+    session) OPR only, an unknown identity of the same CA nothing."""
+    import zenoh
+    import zenoh.ext as zx
+
+    from bttsim_stream.bus.security import TlsFiles
+    from bttsim_stream.bus.session import make_config
+
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    sim = start("bttsim_stream.nodes", "sim", scenario, "--revolutions", "30", "--linger", "60", "-l", endpoint,
+                "--tls-dir", certs)
+    got = {}
+    try:
+        LineWatch(sim.stderr).wait_for(lambda line: "published" in line)  # the run is over: its cache remains
+        for who in ("viewer", "run", "intruder"):
+            tls = TlsFiles(certs / "ca.pem", certs / f"{who}.pem", certs / f"{who}-key.pem")
+            with zenoh.open(make_config("client", connect=[endpoint], tls=tls)) as session:
+                subs = {k: zx.declare_advanced_subscriber(
+                    session, f"bttsim/rig1/{k}", handler=zenoh.handlers.FifoChannel(1000),
+                    history=zx.HistoryConfig(detect_late_publishers=True, max_samples=None, max_age=None),
+                    recovery=None, subscriber_detection=False, allowed_origin=None) for k in ("opr", "truth")}
+                counts = dict.fromkeys(subs, 0)
+                deadline = time.monotonic() + 5  # what is allowed comes at once; wait for the rest
+                while time.monotonic() < deadline and (who != "viewer" or min(counts.values()) < 30):
+                    idle = True
+                    for k, sub in subs.items():
+                        if sub.try_recv() is not None:
+                            counts[k] += 1
+                            idle = False
+                    if idle:
+                        time.sleep(0.01)
+                got[who] = counts
+    finally:
+        stop(sim)
+    assert got == {"viewer": {"opr": 30, "truth": 30}, "run": {"opr": 30, "truth": 0},
+                   "intruder": {"opr": 0, "truth": 0}}, got
