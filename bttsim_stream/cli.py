@@ -21,20 +21,21 @@ from .acquisition import simulate_to_mcap
 from .bus.certs import IDENTITIES, generate_certificates
 from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
-from .defaults import DEFAULT_WEB_PORT
+from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
 from .nodes import program, programs
 from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
-                      with_processing)
-from .orchestrate import run_all
+                      result_warnings, with_processing)
+from .orchestrate import describe_exit, run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, run_parsed
+from .sim.core import check_tip_amplitude, load_scenario_model
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
 # paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
@@ -56,7 +57,12 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
         except LayoutError as exc:
             raise BttsimError(f"{args.check}: [probes] angles_deg: {exc}") from None
         cns = ", ".join(f"CN {cn:.3g} at {label}" for label, cn in rows)
-        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns})")
+        try:  # the model too: an absurd force is refused here, not after a run
+            amp = check_tip_amplitude(scn, load_scenario_model(scn))
+        except BttsimError as exc:
+            raise BttsimError(f"{args.check}: {exc}") from None
+        print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns}; "
+              f"tip amplitude up to {amp * 1e3:.3g} mm)")
         for w in warns:
             print(f"bttsim: warning: {args.check}: {w}", file=sys.stderr)
         return
@@ -126,6 +132,8 @@ def _cmd_process(args: argparse.Namespace) -> None:
         except OSError as exc:
             raise BttsimError(f"{args.summary}: cannot write ({exc.strerror or exc})") from None
     print(summary_table(summary))
+    for w in result_warnings(summary, run.meta.tip_radius_m):
+        print(f"bttsim: warning: {args.mcap}: {w}", file=sys.stderr)
     if args.summary:
         print(f"wrote {args.summary}")
 
@@ -139,25 +147,45 @@ def _cmd_certs(args: argparse.Namespace) -> None:
           f"Zenoh configuration NAME.json5 (for -c) of {', '.join(made)}")
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, realtime=args.realtime,
-                  connect=args.connect, config=args.config, quiet=args.quiet, mode=args.mode,
-                  tls_dir=args.tls_dir, access_control=not args.no_access_control,
-                  connect_timeout_s=args.connect_timeout)
+def _print_run(res: dict) -> None:
     summary, files = res["summary"], res["files"]
-    if summary is not None:
+    if summary is not None and "error" in summary:
+        print(f"NO REPORT: {summary['error']}")
+    elif summary is not None:
         print(summary_table(summary))
     print(f"wrote {files['mcap']}, {files['rrd']}, {files['summary']} in {res['wall_s']:.1f} s"
-          + (" (interrupted)" if res["interrupted"] else ""))
+          + (" (interrupted)" if res["interrupted"] else ""), flush=True)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    served: list[dict] = []
+
+    def on_serving(res: dict) -> None:  # --web: the result now, while the viewer serves on
+        _print_run(res)
+        print("bttsim: the web viewer keeps serving until Ctrl-C", file=sys.stderr, flush=True)
+        served.append(res)
+
+    res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, grpc_port=args.grpc_port,
+                  bind=args.bind, realtime=args.realtime, connect=args.connect, config=args.config,
+                  quiet=args.quiet, mode=args.mode, on_serving=on_serving, tls_dir=args.tls_dir,
+                  access_control=not args.no_access_control, connect_timeout_s=args.connect_timeout)
+    if served:
+        res = served[0]  # the run's result: the Ctrl-C after it only ended the serving
+    else:
+        _print_run(res)
+    summary = res["summary"]
     if res["interrupted"]:
         return 130
-    problems = []
+    problems = [f"the {n} node failed ({describe_exit(rc)}; see {Path(args.out) / (n + '.log')})"
+                for n, rc in res["failed"].items()]
     if summary is None:
         problems.append("no summary (the processor gave no report; see processor.log)")
     elif not summary.get("complete", False):
         problems.append("the result is incomplete")
     if res["recorder"].get("gaps"):
         problems.append(f"the recording misses {res['recorder']['gaps']} messages")
+    if res["viewer"].get("gaps"):
+        problems.append(f"the views miss {res['viewer']['gaps']} messages")
     if problems:
         print(f"bttsim: warning: {'; '.join(problems)}", file=sys.stderr)
         return EXIT_INCOMPLETE
@@ -170,7 +198,8 @@ def _cmd_view(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
         src = with_processing(args.mcap, Path(tmp) / "processed.mcap")
-        session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port)
+        session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
+                                grpc_port=args.grpc_port, bind=args.bind)
         if args.web:
             from .bus.session import StopFlag
 
@@ -243,6 +272,16 @@ def _cmd_validate(args: argparse.Namespace) -> None:
     print(json.dumps(validate(), indent=2))
 
 
+def _add_web_arguments(p: argparse.ArgumentParser) -> None:
+    """``--web-port``, ``--grpc-port``, ``--bind``: the same as the viewer node's."""
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
+                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
+                   help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
+    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
+                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -250,9 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="the main job: simulator, processor, recorder and viewer on Zenoh")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output folder: run.mcap, views.rrd, summary.json")
-    p.add_argument("--web", action="store_true", help="serve the Rerun web viewer and print its URL")
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
-                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    p.add_argument("--web", action="store_true",
+                   help="serve the Rerun web viewer, print its URL, keep serving after the run until Ctrl-C")
+    _add_web_arguments(p)
     p.add_argument("--realtime", action="store_true", help="pace the simulator like real hardware")
     p.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
                    help="join an existing Zenoh network instead of the embedded one")
@@ -322,8 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
     p.add_argument("--rrd", help="write the views to this .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
-                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    _add_web_arguments(p)
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("study", help="reproduce one of the paper's studies (NAME.md, NAME.json, PNGs) into --out")

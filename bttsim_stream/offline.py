@@ -21,13 +21,14 @@ import numpy as np
 from .bus import codec, keys
 from .bus.recording import McapRecorder, read_recording
 from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
+from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
 from .processor import ProcessorSession
 from .sim.core import RunInfo, Truth
 
-__all__ = ["RecordedRun", "load_run", "completeness", "processing_messages", "with_processing",
+__all__ = ["RecordedRun", "load_run", "completeness", "result_warnings", "processing_messages", "with_processing",
            "add_processing_arguments", "processing_options", "parse_engine_orders"]
 
 
@@ -102,22 +103,31 @@ class RecordedRun:
 
 
 def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
-    """Read and decode a recording; a corrupt, truncated or foreign file is a one-line error."""
+    """Read and decode a recording; a corrupt, truncated, foreign or impossible file is a
+    one-line error (:class:`BttsimError` naming the file).
+
+    Beyond the decoders' checks, the acquisition must make sense as a run: OPR times strictly
+    increasing, and every TOA either NaN (no pulse) or a finite time within a revolution of
+    its own OPR pulse (``[OPR_n - T_n, OPR_n + 2 T_n]``, ``T_n`` the revolution's period).
+    """
     rec = read_recording(path)
     if rec.truncated and not allow_truncated:
         raise BttsimError(f"{path}: truncated MCAP (no footer; {len(rec.messages)} messages readable)")
     meta = None
     decoded: list[tuple[str, codec.Decoded]] = []
     truth: dict[int, Truth] = {}
-    for m in rec.messages:
-        kind = keys.parse_key(m.key).kind
-        if kind == "meta" and meta is None:
-            meta = codec.decode_run_metadata(m.payload, m.key).body
-        elif kind in ("opr", "toa"):
-            decoded.append((kind, codec.decode_message(m.key, m.payload)))
-        elif kind == "truth":
-            t = codec.decode_truth(m.payload, m.key)
-            truth[t.header.revolution] = t.body
+    try:
+        for m in rec.messages:
+            kind = keys.parse_key(m.key).kind
+            if kind == "meta" and meta is None:
+                meta = codec.decode_run_metadata(m.payload, m.key).body
+            elif kind in ("opr", "toa"):
+                decoded.append((kind, codec.decode_message(m.key, m.payload)))
+            elif kind == "truth":
+                t = codec.decode_truth(m.payload, m.key)
+                truth[t.header.revolution] = t.body
+    except BttsimError as exc:
+        raise BttsimError(f"{path}: {exc}") from None
     if meta is None:
         raise BttsimError(f"{path}: no run metadata ({keys.PREFIX}/<rig>/meta) in the recording")
     asm = RevolutionAssembler(meta.n_blades, meta.n_probes)
@@ -125,17 +135,47 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
         asm.add(kind, d)
     revs = [r for r in asm.pop(final=True) if r.complete]
     if len(revs) < 3:
-        raise BttsimError(f"{path}: fewer than 3 complete revolutions recorded")
+        why = (f" ({asm.ignored} OPR/TOA message(s) ignored: a blade count other than the metadata's "
+               f"{meta.n_blades}, a probe index beyond {meta.n_probes - 1}, a revolution out of range or a "
+               f"non-finite OPR time)" if asm.ignored else "")
+        raise BttsimError(f"{path}: fewer than 3 complete revolutions recorded{why}")
     numbers = np.array([r.revolution for r in revs], dtype=np.int64)
+    if meta.n_revolutions and numbers[-1] >= meta.n_revolutions:
+        raise BttsimError(f"{path}: revolution {int(numbers[-1])} recorded, but the run metadata says the run has "
+                          f"{meta.n_revolutions} revolution(s)")
     if np.any(np.diff(numbers) != 1):
         missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
         raise BttsimError(f"{path}: {missing} revolution(s) missing in the recording")
+    opr_s = np.array([r.opr_s for r in revs])
+    toa_s = np.stack([r.toa_s for r in revs])
+    _check_times(path, numbers, opr_s, toa_s)
     tr = None
     if truth and all(r in truth for r in numbers.tolist()):
         rows = [truth[r] for r in numbers.tolist()]
-        tr = Truth(**{f.name: np.concatenate([getattr(t, f.name) for t in rows]) for f in fields(Truth)})
-    return RecordedRun(meta=meta, revolution=numbers, opr_s=np.array([r.opr_s for r in revs]),
-                       toa_s=np.stack([r.toa_s for r in revs]), truth=tr, messages=rec.messages)
+        if all(t.toa_s.shape[1:] == toa_s.shape[1:] for t in rows):  # truth of another rotor: left out
+            tr = Truth(**{f.name: np.concatenate([getattr(t, f.name) for t in rows]) for f in fields(Truth)})
+    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=rec.messages)
+
+
+def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray) -> None:
+    """OPR times strictly increasing; TOAs NaN or finite within a revolution of their OPR."""
+    period = np.diff(opr_s)
+    bad = np.flatnonzero(~(period > 0))
+    if bad.size:
+        i = int(bad[0])
+        raise BttsimError(f"{path}: OPR times must increase: revolution {int(revolution[i + 1])} at "
+                          f"{float(opr_s[i + 1])!r} s after revolution {int(revolution[i])} at {float(opr_s[i])!r} s")
+    if not np.isfinite(period).all():
+        raise BttsimError(f"{path}: OPR times must be finite")
+    period = np.append(period, period[-1])[:, None, None]
+    rel = toa_s - opr_s[:, None, None]
+    with np.errstate(invalid="ignore"):
+        wrong = ~np.isnan(toa_s) & ~((rel >= -period) & (rel <= 2.0 * period))
+    if wrong.any():
+        n, b, p = (int(x[0]) for x in np.nonzero(wrong))
+        raise BttsimError(f"{path}: {int(wrong.sum())} TOA(s) not within a revolution of their OPR pulse (first: "
+                          f"revolution {int(revolution[n])}, blade {b}, probe {p}: {float(toa_s[n, b, p])!r} s, OPR at "
+                          f"{float(opr_s[n])!r} s)")
 
 
 def completeness(run: RecordedRun) -> Completeness:
@@ -147,6 +187,37 @@ def completeness(run: RecordedRun) -> Completeness:
             seqs.accept(m.key, m.seq)
     return Completeness(revolutions_expected=run.meta.n_revolutions, revolutions_processed=int(run.revolution.size),
                         lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+
+
+_OTHER_COLUMNS = ("amp_std_m", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct")
+_MEAN_COLUMNS = ("mean_E_A_pct", "max_E_A_pct", "mean_E_f_pct", "max_E_f_pct")
+
+
+def result_warnings(summary: dict, tip_radius_m: float) -> list[str]:
+    """What a reader of the summary must not miss: a NaN where a resonance or dwell claims an
+    amplitude or a frequency (or in its uncertainty, truth and errors), and an amplitude beyond
+    the linear model's reach
+    (:data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` of the tip radius)."""
+    out = []
+    limit = 2.0 * MAX_TIP_AMPLITUDE_FRACTION * float(tip_radius_m)  # pk-pk
+    for e in [*summary.get("resonances", []), *summary.get("steady", [])]:
+        label = f"the {'dwell' if e.get('kind') == 'dwell' else 'resonance'} at EO {e.get('eo')}"
+        rows = e.get("blades", [])
+        nan = [r["blade"] for r in rows
+               if not (np.isfinite(r.get("amp_pkpk_m", np.nan)) and np.isfinite(r.get("freq_hz", np.nan)))]
+        if nan:
+            out.append(f"{label}: no estimate (NaN) for {len(nan)} of {len(rows)} blade(s) "
+                       f"({', '.join(map(str, nan[:10]))}{' ...' if len(nan) > 10 else ''}): treat them as unmeasured")
+        other = sorted({k for r in rows if r["blade"] not in nan for k in _OTHER_COLUMNS
+                        if k in r and not np.isfinite(r[k])}
+                       | {k for k in _MEAN_COLUMNS if k in e and not np.isfinite(e[k])})
+        if other:
+            out.append(f"{label}: NaN in {', '.join(other)} (an uncertainty, or the recording's truth, unusable there)")
+        big = [r["blade"] for r in rows if np.isfinite(r.get("amp_pkpk_m", np.nan)) and r["amp_pkpk_m"] > limit]
+        if big:
+            out.append(f"{label}: amplitude above {2 * MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius pk-pk "
+                       f"({limit * 1e3:.3g} mm) for {len(big)} blade(s): physically absurd for this linear model")
+    return out
 
 
 def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptions()) -> tuple[list[Message], dict]:

@@ -5,11 +5,20 @@ listening on its own free port and connecting to the ones started before it (a f
 no router needed; ``-e/--connect`` joins an existing Zenoh network instead). The simulator
 waits for the other three nodes' liveliness tokens, publishes the run, and the others end
 when it (and the processor's final report) is done. Progress (revolution, rpm, elapsed and
-remaining time) comes from the OPR stream. With ``tls_dir`` (``bttsim run --tls-dir DIR``,
-certificates from ``bttsim certs DIR``) every node, and the run's own session (identity
-``run``), speaks mutual TLS on ``tls/127.0.0.1`` endpoints under the access-control policy of
-:mod:`bttsim_stream.bus.security`. Ctrl-C stops the simulator first; every other
-node then finalises its file, so ``run.mcap``, ``views.rrd`` and ``summary.json`` stay valid.
+remaining time) comes from the OPR stream. Ctrl-C (or SIGTERM, SIGHUP) stops the simulator
+first; every other node then finalises its file, so ``run.mcap``, ``views.rrd`` and
+``summary.json`` stay valid; a second signal, or one after the simulator has ended, stops
+every node at once.
+
+With ``--web`` the viewer serves the Rerun web viewer on ``--bind`` (127.0.0.1) at
+``--web-port`` and ``--grpc-port``, both checked free before anything starts. After the run
+the result is reported and the viewer keeps serving until Ctrl-C. The nodes get SIGTERM
+when the orchestrator dies, however it dies (:mod:`bttsim_stream.children`): no node
+outlives it.
+
+With ``tls_dir`` (``bttsim run --tls-dir DIR``, certificates from ``bttsim certs DIR``) every
+node, and the run's own session (identity ``run``), speaks mutual TLS on ``tls/127.0.0.1``
+endpoints under the access-control policy of :mod:`bttsim_stream.bus.security`.
 """
 
 from __future__ import annotations
@@ -22,9 +31,11 @@ import time
 from pathlib import Path
 
 from .bus import codec, keys
+from .bus.ports import check_port_free, parse_bind
 from .bus.security import TlsFiles
 from .bus.session import CONNECT_TIMEOUT_S, free_port, make_config, open_session
-from .defaults import DEFAULT_WEB_PORT
+from .children import die_with_parent
+from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError
 from .runtime import Progress
 from .scenario import Scenario, dumps_toml, load_scenario
@@ -33,6 +44,8 @@ __all__ = ["run_all", "NODES"]
 
 #: The node programs of a run, in start order (the simulator last: it waits for the others).
 NODES = ("recorder", "processor", "viewer", "sim")
+#: The viewer node's log line once its views are complete and it only serves the web viewer.
+SERVING_LINE = "serving the web viewer until stopped"
 
 
 def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str,
@@ -48,14 +61,19 @@ def _session_flags(listen: str | None, connect: list[str], config: str | None, m
 
 
 def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = DEFAULT_WEB_PORT,
-            realtime: bool = False, connect: list[str] | None = None, config: str | None = None,
-            quiet: bool = False, mode: str = "peer", tls_dir: str | None = None, access_control: bool = True,
+            grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
+            connect: list[str] | None = None, config: str | None = None, quiet: bool = False,
+            mode: str = "peer", on_serving=None, tls_dir: str | None = None, access_control: bool = True,
             connect_timeout_s: float = CONNECT_TIMEOUT_S) -> dict:
     """Run the main job; returns the summary dict (also written to ``OUT/summary.json``).
 
-    ``tls_dir``: mutual TLS (and, with ``access_control``, the access-control policy) with the
-    certificates of that folder; ``connect_timeout_s``: how long every node tries to reach its
-    endpoints before it gives up with an error."""
+    With ``web``, once the run's result is known and the viewer only serves, ``on_serving``
+    (if given) is called with the result (the dict this function returns) and the web viewer
+    is served until a signal (Ctrl-C, SIGTERM, SIGHUP) stops it. ``tls_dir``: mutual TLS (and,
+    with ``access_control``, the access-control policy) with the certificates of that folder;
+    ``connect_timeout_s``: how long every node tries to reach its endpoints before it gives up
+    with an error.
+    """
     if mode == "client" and not connect:
         raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
     tls = None
@@ -67,6 +85,12 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             TlsFiles(d / "ca.pem", d / f"{n}.pem", d / f"{n}-key.pem")
         security += ["--tls-dir", str(d)] + ([] if access_control else ["--no-access-control"])
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
+    if web:  # a busy port is an error now, not after the run (Rerun would only log it)
+        bind = parse_bind(bind)
+        if int(web_port) == int(grpc_port):
+            raise BttsimError(f"--web-port and --grpc-port are both {int(web_port)}: give two ports")
+        check_port_free(bind, int(grpc_port), "web viewer's data server (--grpc-port)")
+        check_port_free(bind, int(web_port), "web viewer (--web-port)")
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -86,7 +110,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
         "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
         "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor"]
-        + (["--web", "--web-port", str(web_port)] if web else []),
+        + (["--web", "--web-port", str(web_port), "--grpc-port", str(grpc_port), "--bind", bind] if web else []),
         "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
     }
     # our own session's configuration first: bad endpoints, files or certificates end the run
@@ -98,20 +122,29 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
                        connect_timeout_s=None if embedded else connect_timeout_s)
     procs: dict[str, subprocess.Popen] = {}
     logs = {n: open(out / f"{n}.log", "w") for n in NODES}
-    interrupted = False
+    interrupted = finished = False
+    n_signals = 0
 
-    def on_sigint(signum, frame):
-        nonlocal interrupted
-        interrupted = True
+    def on_signal(signum, frame):
+        nonlocal interrupted, n_signals
+        n_signals += 1
+        interrupted = interrupted or not finished
         sim = procs.get("sim")
-        if sim is not None and sim.poll() is None:
-            sim.send_signal(signal.SIGTERM)
+        if n_signals == 1 and sim is not None and sim.poll() is None:
+            sim.send_signal(signal.SIGTERM)  # the others end after it, finalising their files
+            return
+        for p in procs.values():  # the run is over (or a second signal): stop every node now
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
 
-    old = {s: signal.signal(s, on_sigint) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     t0 = time.monotonic()
     progress = Progress(not quiet, period_s=5.0)
     summary = None
     recorder: dict = {}
+    viewer: dict = {}
+    failed: dict = {}
+    n_rev = 0
     try:
         started: list[str] = []
         for n in NODES:
@@ -119,10 +152,15 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
                                    list(connect or []), config, mode, security)
             procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *map(str, args[n]), *flags],
                                         stdout=logs[n], stderr=subprocess.STDOUT,
-                                        start_new_session=True)  # Ctrl-C reaches only us
+                                        start_new_session=True,  # Ctrl-C reaches only us
+                                        preexec_fn=die_with_parent())  # and they end when we do
             started.append(n)
         with open_session(conf) as session:
             n_rev = _revolutions(procs, session, rig)
+            if web:  # printed by the viewer before it joined: the simulator waited for it
+                url = _log_line(out / "viewer.log", "web viewer: ")
+                if url:
+                    progress.note(url)
             state = {"rev": 0, "rpm": 0.0, "last": None}
 
             def on_opr(sample):
@@ -147,18 +185,27 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             progress.update(line(), force=True)
             sub.undeclare()
         progress.close()
-        for n in ("processor", "recorder", "viewer"):
-            try:
-                procs[n].wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                procs[n].send_signal(signal.SIGTERM)
-                procs[n].wait(timeout=30)
-        bad = {n: p.returncode for n, p in procs.items() if p.returncode not in (0, None)}
-        if bad and not interrupted:
-            raise BttsimError(f"node(s) failed: {bad}; see the logs in {out}")
+        for n in ("processor", "recorder"):
+            _wait_or_stop(procs[n], 120)
+        serving = web and _wait_serving(procs["viewer"], out / "viewer.log", 120)
+        if serving and interrupted:  # its .rrd is complete: no serving after Ctrl-C
+            procs["viewer"].send_signal(signal.SIGTERM)
+            serving = False
+        if not serving:
+            _wait_or_stop(procs["viewer"], 120)
+        failed = {n: p.returncode for n, p in procs.items() if p.returncode not in (0, None)}
         if files["summary"].exists():
             summary = json.loads(files["summary"].read_text())
+        elif "processor" in failed:  # no report: say so in the file a reader looks at
+            summary = _no_report_summary(n_rev, failed["processor"])
+            files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
         recorder = _last_json_line(out / "recorder.log")
+        viewer = _last_json_line(out / "viewer.log")  # its own counts: what the views lost
+        finished = True
+        if serving:
+            if on_serving is not None:
+                on_serving(_result(summary, files, recorder, viewer, interrupted, failed, t0))
+            procs["viewer"].wait()  # until a signal: the handler stops it
     finally:
         progress.close()
         for p in procs.values():
@@ -173,8 +220,64 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             f.close()
         for s, h in old.items():
             signal.signal(s, h)
-    return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder,
-            "interrupted": interrupted, "wall_s": time.monotonic() - t0}
+    return _result(summary, files, recorder, viewer, interrupted, failed, t0)
+
+
+def _result(summary, files: dict, recorder: dict, viewer: dict, interrupted: bool, failed: dict, t0: float) -> dict:
+    return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder, "viewer": viewer,
+            "interrupted": interrupted, "failed": failed, "wall_s": time.monotonic() - t0}
+
+
+def describe_exit(returncode: int) -> str:
+    """``"exit 1"`` or ``"killed by SIGKILL"``."""
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit {returncode}"
+
+
+def _no_report_summary(n_revolutions: int, returncode: int) -> dict:
+    """The summary of a run whose processor ended without its report: nothing claimed."""
+    return {"status": "none", "complete": False, "revolutions_expected": int(n_revolutions),
+            "revolutions_processed": 0, "lost": None, "duplicates": None, "rejected": None,
+            "resonances": [], "steady": [], "blades": [],
+            "error": f"the processor ended ({describe_exit(returncode)}) before its report; "
+                     "the recording may still hold the run: bttsim process run.mcap"}
+
+
+def _wait_or_stop(proc: subprocess.Popen, timeout_s: float) -> None:
+    """Wait for ``proc`` to end; SIGTERM it after ``timeout_s`` (SIGKILL 30 s later)."""
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _wait_serving(viewer: subprocess.Popen, log_path: Path, timeout_s: float) -> bool:
+    """Wait until the viewer has finished its views and only serves (True: its log says so)
+    or has ended (False); False after ``timeout_s`` too."""
+    deadline = time.monotonic() + timeout_s
+    while viewer.poll() is None and time.monotonic() < deadline:
+        if _log_line(log_path, SERVING_LINE):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _log_line(path: Path, text: str) -> str | None:
+    """The first line of the log ``path`` that contains ``text`` (None if none yet)."""
+    try:
+        content = path.read_text(errors="replace")
+    except OSError:
+        return None
+    return next((line.strip() for line in content.splitlines() if text in line), None)
 
 
 def _last_json_line(path: Path) -> dict:

@@ -19,7 +19,7 @@ import logging
 import numpy as np
 
 from .bus.codec import Decoded
-from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker
+from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker, StreamEnd
 from .errors import BttsimError
 from .process.pipeline import ProcessOptions, StreamingProcessor
 from .process.resonance import TruthPeakTracker
@@ -56,6 +56,12 @@ class ProcessorSession:
         self.seqs = SequenceTracker()
         self.out = MessageStream(meta.run_id, meta.rig)
         self.rejected = 0
+        self.end = StreamEnd(meta)
+
+    @property
+    def received_all(self) -> bool:
+        """Has the whole acquisition stream come in (:class:`StreamEnd`)?"""
+        return self.end.done
 
     def reject(self, exc: Exception) -> None:
         """Count a refused message (logged: the first three, then every 1000th)."""
@@ -66,13 +72,14 @@ class ProcessorSession:
     def add(self, kind: str, key: str, decoded: Decoded, seq: int | None = None) -> list[Message]:
         """Add a decoded ``opr``, ``toa`` or ``truth`` message (``seq``: its sequence number, if
         known); returns the result messages that became ready."""
-        if kind in ("opr", "toa") and not self.seqs.accept(key, seq):
-            return []  # already received, or an implausible sequence number (counted)
-        try:
+        try:  # what does not fit the run is refused before it can take a sequence number
             self._check(kind, decoded)
         except BttsimError as exc:
             self.reject(exc)
             return []
+        if kind in ("opr", "toa", "truth") and not self.seqs.accept(key, seq):
+            return []  # already received, or an implausible sequence number (counted)
+        self.end.note(key, seq)
         if kind == "truth":
             t = decoded.body
             self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]))
@@ -82,6 +89,8 @@ class ProcessorSession:
 
     def _check(self, kind: str, d: Decoded) -> None:
         g = self.proc.geometry
+        if d.header.run_id != self.meta.run_id:  # (run, key, seq) names a message: another run's is foreign
+            raise BttsimError(f"a {kind} message of run {d.header.run_id!r} in run {self.meta.run_id!r}")
         if kind == "toa" and d.body.toa_s.size != g.n_blades:
             raise BttsimError(f"TOA batch of {d.body.toa_s.size} blades in a run of {g.n_blades}")
         if kind == "truth" and d.body.d_eqv_pkpk_m.shape != (1, g.n_blades):

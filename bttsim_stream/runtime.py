@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from .bus import keys
-from .bus.session import NodeWatch, StopFlag, add_session_args, config_from_args, declare_publisher, \
+from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
     declare_subscriber, open_session
 from .errors import BttsimError, exit_status
 
@@ -138,7 +138,8 @@ class NodeContext:
     # -- declarations --------------------------------------------------------------------
     def subscribe(self, key_expr: str, *, history: bool = False) -> None:
         """Receive ``key_expr`` into the inbox (``history``: also late-joiner history)."""
-        self._subs.append(declare_subscriber(self.session, key_expr, self._inbox.put, history=history))
+        put = self._inbox.put
+        self._subs.append(declare_subscriber(self.session, key_expr, lambda s: put(Received.of(s)), history=history))
 
     def publisher(self, key: str, *, cache_samples: int = 64, lossy: bool = False):
         """The publisher of ``key`` (declared on first use)."""
@@ -157,7 +158,7 @@ class NodeContext:
         n = 0
         for reply in self.session.get(key_expr, timeout=timeout_s):
             if reply.ok is not None:
-                self._inbox.put(reply.ok)
+                self._inbox.put(Received.of(reply.ok))
                 n += 1
         return n
 
@@ -173,17 +174,31 @@ class NodeContext:
             self._ready = True
             self.declare(self.session.liveliness().declare_token(keys.ready_key(self.rig, self.name)))
 
+    def done(self, rig: str | None = None) -> None:
+        """Declare (once per rig) the token ``bttsim/<rig>/done/<name>``: this node has the
+        whole acquisition stream (:class:`~bttsim_stream.bus.stream.StreamEnd`); the
+        simulator waits for it before it closes its session."""
+        rig = rig or self.rig
+        done = self.__dict__.setdefault("_done", set())
+        if rig not in done:
+            done.add(rig)
+            self.declare(self.session.liveliness().declare_token(keys.done_key(rig, self.name)))
+
     def watch_nodes(self, names, grace_s: float = 5.0) -> NodeWatch:
         """Follow the named nodes' liveliness: :meth:`samples` ends once they are gone."""
         self.watch = NodeWatch(self.session, self.rig, names, grace_s=grace_s)
         return self.watch
 
     # -- the loop ------------------------------------------------------------------------
-    def samples(self, stop: StopFlag, *, idle_s: float = 0.5, poll_s: float = 0.05) -> Iterator:
+    def samples(self, stop: StopFlag, *, idle_s: float = 0.5, poll_s: float = 0.05, done=None,
+                patience_s: float = 10.0) -> Iterator:
         """Yield received samples; ``None`` about every ``poll_s`` while idle (time to flush).
 
         Ends on ``stop`` once what was already received has been handed out, or once the
-        watched nodes have ended and the inbox has been empty for ``idle_s`` (drained).
+        watched nodes have ended and the inbox has been empty for ``idle_s`` (drained). A
+        node's liveliness token travels ahead of its last data (declarations go first), so a
+        node that can tell whether it has everything (``done()``: e.g. every revolution of the
+        run) waits up to ``patience_s`` of silence for the rest before it gives up.
         """
         idle_since = None
         left = None  # samples still to hand out once stopped
@@ -206,7 +221,8 @@ class NodeContext:
                 continue
             if self.watch is not None and self.watch.ended():
                 idle_since = idle_since or time.monotonic()
-                if time.monotonic() - idle_since > idle_s:
+                wait = idle_s if done is None or done() else patience_s
+                if time.monotonic() - idle_since > wait:
                     return
             yield None
 
@@ -275,6 +291,17 @@ class Progress:
             self.stream.write(text + "\n")
         self.stream.flush()
         self._shown = text
+
+    def note(self, text: str) -> None:
+        """Print ``text`` on a line of its own (above the progress line on a terminal), also
+        when the progress line is off."""
+        redraw = self.tty and self._shown
+        if redraw:
+            self.stream.write("\r" + " " * len(self._shown) + "\r")
+        self.stream.write(text + "\n")
+        if redraw and self.enabled:
+            self.stream.write(self._shown)
+        self.stream.flush()
 
     def close(self) -> None:
         """Show the last state and end the line."""

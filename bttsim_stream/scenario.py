@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from .defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from .errors import ScenarioError
 
 __all__ = [
@@ -63,8 +64,12 @@ __all__ = [
 BUILTIN_MODEL = "builtin"
 TOA_METHODS = ("HP", "AD", "PAD")
 FORCE_NODES = ("leading_edge", "trailing_edge")
-MAX_PROBES = 64
 MAX_FAMILIES = 20
+MAX_TIP_NODES = 100
+MIN_CLOCK_HZ, MAX_CLOCK_HZ = 1e3, 1e12
+MAX_PROBE_ANGLE_ERROR_DEG = 5.0
+MAX_TIP_RADIUS_M = 10.0
+MAX_SEED = 2**63 - 1
 _RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
 _BARE_KEY_RE = re.compile(r"[A-Za-z0-9_-]+")
 
@@ -161,7 +166,10 @@ def _real(where: str, key: str, value: Any, *, lo: float | None = None, lo_open:
     """Check a finite real number within optional bounds; return it as a float."""
     if not _is_real(value):
         raise _FieldError(where, key, f"must be a number, {_got(value)}")
-    x = float(value)
+    try:
+        x = float(value)
+    except OverflowError:  # an integer beyond any float
+        raise _FieldError(where, key, f"must be finite, got an integer of {len(str(int(value)))} digits") from None
     if not math.isfinite(x):
         raise _FieldError(where, key, f"must be finite, got {_show(x)}")
     too_low = lo is not None and (x <= lo if lo_open else x < lo)
@@ -192,7 +200,7 @@ def _integer(where: str, key: str, value: Any, *, lo: int | None = None,
         raise _FieldError(where, key, f"must be {what}, {_got(value)}")
     n = int(value)
     if (lo is not None and n < lo) or (hi is not None and n > hi):
-        raise _FieldError(where, key, f"must be {what}, got {n}")
+        raise _FieldError(where, key, f"must be {what}, got {_show(n)}")
     return n
 
 
@@ -258,13 +266,13 @@ class Run:
         non-empty and use only ``A-Z a-z 0-9 _ -``.
     seed : int
         Seed of every random choice of the run (random mistuning, acquisition errors),
-        default 0; integer >= 0. The same scenario and seed give the same run.
+        default 0; integer in [0, 2**63 - 1]. The same scenario and seed give the same run.
     """
 
     rig: str = field(default="rig1", metadata=_doc(
         "rig name, used as a Zenoh key segment: non-empty, only A-Z a-z 0-9 _ -"))
     seed: int = field(default=0, metadata=_doc(
-        "seed of every random choice (random mistuning, acquisition errors); integer >= 0"))
+        "seed of every random choice (random mistuning, acquisition errors); integer in [0, 2**63 - 1]"))
 
     def __post_init__(self) -> None:
         w = "[run]"
@@ -273,7 +281,7 @@ class Run:
             raise _FieldError(w, "rig", "must be non-empty and use only letters, digits, "
                               f"'_' and '-', got {_show(rig)}")
         _set(self, "rig", rig)
-        _set(self, "seed", _integer(w, "seed", self.seed, lo=0))
+        _set(self, "seed", _integer(w, "seed", self.seed, lo=0, hi=MAX_SEED))
 
 
 @dataclass(frozen=True, slots=True)
@@ -287,17 +295,21 @@ class Rotor:
     Attributes
     ----------
     n_blades : int
-        Number of blades, default 29 (the paper's rotor); integer >= 1.
+        Number of blades, default 29 (the paper's rotor); integer in [2, 200]
+        (:data:`~bttsim_stream.defaults.MAX_BLADES`: the built-in model's memory grows as
+        ``n_families * n_blades**2``).
     tip_radius_m : float
-        Blade tip radius, m, default 0.19; > 0. Our choice (the first compressor stage of
+        Blade tip radius, m, default 0.19; in (0, 10]; the built-in model also needs it
+        beyond its rim (0.115 m). Our choice (the first compressor stage of
         a small turbojet): the paper does not give it.
     stagger_deg : float
         Tip stagger angle eta_tip, deg: angle of the tip chord from the tangential
         direction. Default 41.5; in (0, 90).
     tip_chord_m : float
-        Chord length of the tip section, m, default 0.0202523; > 0.
+        Chord length of the tip section, m, default 0.0202523; > 0 and at most
+        ``tip_radius_m``.
     n_tip_nodes : int
-        Number of tip nodes along the chord, default 9; integer >= 2.
+        Number of tip nodes along the chord, default 9; integer in [2, 100].
     tip_node_spacing_m : float
         Spacing of the tip nodes along the chord, m, starting at the TE; default
         0.0004375; > 0. The nodes must fit on the chord:
@@ -308,15 +320,15 @@ class Rotor:
     """
 
     n_blades: int = field(default=29, metadata=_doc(
-        "number of blades (the paper's rotor has 29); integer >= 1"))
+        "number of blades (the paper's rotor has 29); integer in [2, 200]"))
     tip_radius_m: float = field(default=0.19, metadata=_doc(
-        "blade tip radius, m; > 0 (our choice, small turbojet 1st compressor stage)"))
+        "blade tip radius, m; in (0, 10] (our choice, small turbojet 1st compressor stage)"))
     stagger_deg: float = field(default=41.5, metadata=_doc(
         "tip stagger eta_tip, deg: tip chord angle from the tangential direction; in (0, 90)"))
     tip_chord_m: float = field(default=0.0202523, metadata=_doc(
-        "tip chord length, m; > 0. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
+        "tip chord length, m; in (0, tip_radius_m]. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
     n_tip_nodes: int = field(default=9, metadata=_doc(
-        "number of tip nodes along the chord; integer >= 2"))
+        "number of tip nodes along the chord; integer in [2, 100]"))
     tip_node_spacing_m: float = field(default=0.0004375, metadata=_doc(
         "tip node spacing along the chord from the TE, m; > 0;\n"
         "(n_tip_nodes - 1) * tip_node_spacing_m <= tip_chord_m"))
@@ -325,14 +337,14 @@ class Rotor:
 
     def __post_init__(self) -> None:
         w = "[rotor]"
-        _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=1))
+        _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=2, hi=MAX_BLADES))
         _set(self, "tip_radius_m", _real(w, "tip_radius_m", self.tip_radius_m, lo=0,
-                                         lo_open=True))
+                                         lo_open=True, hi=MAX_TIP_RADIUS_M))
         _set(self, "stagger_deg", _real(w, "stagger_deg", self.stagger_deg, lo=0,
                                         lo_open=True, hi=90, hi_open=True))
         _set(self, "tip_chord_m", _real(w, "tip_chord_m", self.tip_chord_m, lo=0,
-                                        lo_open=True))
-        _set(self, "n_tip_nodes", _integer(w, "n_tip_nodes", self.n_tip_nodes, lo=2))
+                                        lo_open=True, hi=self.tip_radius_m))
+        _set(self, "n_tip_nodes", _integer(w, "n_tip_nodes", self.n_tip_nodes, lo=2, hi=MAX_TIP_NODES))
         _set(self, "tip_node_spacing_m", _real(w, "tip_node_spacing_m",
                                                self.tip_node_spacing_m, lo=0, lo_open=True))
         _set(self, "nominal_node", _integer(w, "nominal_node", self.nominal_node, lo=1))
@@ -441,9 +453,9 @@ class Speed:
     Attributes
     ----------
     start_rpm : float
-        Speed at t = 0, rpm, default 1000.0; > 0.
+        Speed at t = 0, rpm, default 1000.0; in (0, 1e6].
     end_rpm : float
-        Speed at the end of the profile, rpm, default 4000.0; > 0. With ``segments`` it is
+        Speed at the end of the profile, rpm, default 4000.0; in (0, 1e6]. With ``segments`` it is
         derived (the last segment's ``end_rpm``) and must be absent from the file.
     duration_s : float
         Duration of the profile, s, default 130.0; > 0. With ``segments`` it is derived
@@ -451,22 +463,26 @@ class Speed:
     segments : tuple of (float, float)
         ``(duration_s, end_rpm)`` pairs, default empty (plain ramp). In a file, an array
         of inline tables ``{duration_s = 10.0, end_rpm = 2000.0}``. Durations > 0, speeds
-        > 0. Programmatically, pairs or such mappings are accepted.
+        in (0, 1e6].
+        Programmatically, pairs or such mappings are accepted.
+
+    The whole profile makes at most 1,000,000 revolutions
+    (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`).
     """
 
     start_rpm: float = field(default=1000.0, metadata=_doc(
-        "speed at t = 0, rpm; > 0 (paper Eq. 6: linear run-up)"))
+        "speed at t = 0, rpm; in (0, 1e6] (paper Eq. 6: linear run-up)"))
     end_rpm: float = field(default=4000.0, metadata=_doc(
-        "speed at the end of the run-up, rpm; > 0. Leave out when segments is given"))
+        "speed at the end of the run-up, rpm; in (0, 1e6]. Leave out when segments is given"))
     duration_s: float = field(default=130.0, metadata=_doc(
         "duration of the run-up, s; > 0. Leave out when segments is given"))
     segments: tuple[tuple[float, float], ...] = field(default=(), metadata=_doc(
         "piecewise-linear profile: segments from start_rpm, each {duration_s (s, > 0),\n"
-        "end_rpm (rpm, > 0)}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
+        "end_rpm (rpm, in (0, 1e6])}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
 
     def __post_init__(self) -> None:
         w = "[speed]"
-        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True))
+        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True, hi=MAX_RPM))
         items = _sequence(w, "segments", self.segments,
                           "an array of {duration_s = ..., end_rpm = ...} tables")
         segments = tuple(_segment(w, f"segments[{i}]", s) for i, s in enumerate(items))
@@ -475,9 +491,14 @@ class Speed:
             _set(self, "end_rpm", segments[-1][1])
             _set(self, "duration_s", math.fsum(d for d, _ in segments))
         else:
-            _set(self, "end_rpm", _real(w, "end_rpm", self.end_rpm, lo=0, lo_open=True))
+            _set(self, "end_rpm", _real(w, "end_rpm", self.end_rpm, lo=0, lo_open=True, hi=MAX_RPM))
             _set(self, "duration_s", _real(w, "duration_s", self.duration_s, lo=0,
                                            lo_open=True))
+        t_s, rpm = self.breakpoints()
+        revolutions = math.fsum(0.5 * (a + b) * d for a, b, d in zip(rpm[:-1], rpm[1:], np.diff(t_s))) / 60.0
+        if not revolutions <= MAX_REVOLUTIONS:
+            raise _FieldError(w, "", f"makes {revolutions:.3g} revolutions, more than the "
+                              f"{MAX_REVOLUTIONS:,} of one run: shorten duration_s or the segments")
 
     @property
     def total_duration_s(self) -> float:
@@ -523,7 +544,7 @@ def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
         raise _FieldError(where, key, f"must be a table {{duration_s = ..., end_rpm = ...}}, "
                           f"{_got(value)}")
     return (_real(where, f"{key}.duration_s", d, lo=0, lo_open=True),
-            _real(where, f"{key}.end_rpm", r, lo=0, lo_open=True))
+            _real(where, f"{key}.end_rpm", r, lo=0, lo_open=True, hi=MAX_RPM))
 
 
 @dataclass(frozen=True, slots=True)
@@ -533,7 +554,7 @@ class Excitation:
     Attributes
     ----------
     engine_order : int
-        Engine order EO (force cycles per revolution), default 8; integer >= 1.
+        Engine order EO (force cycles per revolution), default 8; integer in [1, 1000].
     nodal_diameter : int
         Nodal diameter ND of the force pattern across the blades (inter-blade phase
         2*pi*ND/n_blades), default 1; integer in [0, n_blades) (checked by
@@ -550,7 +571,7 @@ class Excitation:
     """
 
     engine_order: int = field(default=8, metadata=_doc(
-        "engine order EO (force cycles per revolution); integer >= 1"))
+        "engine order EO (force cycles per revolution); integer in [1, 1000]"))
     nodal_diameter: int = field(default=1, metadata=_doc(
         "nodal diameter ND of the force pattern (inter-blade phase 2*pi*ND/n_blades);\n"
         "integer in [0, n_blades)"))
@@ -564,7 +585,8 @@ class Excitation:
 
     def __post_init__(self) -> None:
         w = "[[excitation]]"
-        _set(self, "engine_order", _integer(w, "engine_order", self.engine_order, lo=1))
+        _set(self, "engine_order", _integer(w, "engine_order", self.engine_order, lo=1,
+                                                   hi=MAX_ENGINE_ORDER))
         _set(self, "nodal_diameter", _integer(w, "nodal_diameter", self.nodal_diameter, lo=0))
         _set(self, "amplitude_n", _real(w, "amplitude_n", self.amplitude_n, lo=0))
         direction = _real_tuple(w, "direction", self.direction)
@@ -663,35 +685,41 @@ class Acquisition:
     Attributes
     ----------
     clock_hz : float
-        TOA counter clock, Hz. 0 (default) = no quantisation; else > 0 and the TOAs are
-        whole ticks of this clock.
+        TOA counter clock, Hz. 0 (default) = no quantisation; else in [1e3, 1e12] and the
+        TOAs are whole ticks of this clock (which must count the whole run in 62 bits).
     trigger_jitter_s : float
-        Standard deviation of a Gaussian jitter on each TOA, s; >= 0.
+        Standard deviation of a Gaussian jitter on each TOA, s; >= 0 and at most 1 % of the
+        shortest revolution period (checked by :class:`Scenario`).
     probe_angle_error_deg : float
         Standard deviation of static random errors of the probe angular positions, deg
-        (drawn once per run); >= 0.
+        (drawn once per run); in [0, 5].
     opr_jitter_s : float
-        Standard deviation of a Gaussian jitter on each OPR timestamp, s; >= 0.
+        Standard deviation of a Gaussian jitter on each OPR timestamp, s; as
+        ``trigger_jitter_s``.
     speed_fluctuation_rpm : float
         Standard deviation of a random speed fluctuation about the speed profile, rpm;
-        >= 0.
+        >= 0 and at most 10 % of the slowest speed (checked by :class:`Scenario`).
     """
 
     clock_hz: float = field(default=0.0, metadata=_doc(
-        "TOA counter clock, Hz; 0 = no quantisation, else > 0 (TOAs become whole ticks)"))
+        "TOA counter clock, Hz; 0 = no quantisation, else in [1e3, 1e12] (TOAs become whole ticks)"))
     trigger_jitter_s: float = field(default=0.0, metadata=_doc(
-        "std of the Gaussian jitter on each TOA, s; >= 0"))
+        "std of the Gaussian jitter on each TOA, s; >= 0, at most 1 % of the shortest revolution"))
     probe_angle_error_deg: float = field(default=0.0, metadata=_doc(
-        "std of static random probe angular position errors, deg; >= 0"))
+        "std of static random probe angular position errors, deg; in [0, 5]"))
     opr_jitter_s: float = field(default=0.0, metadata=_doc(
-        "std of the Gaussian jitter on each OPR timestamp, s; >= 0"))
+        "std of the Gaussian jitter on each OPR timestamp, s; >= 0, at most 1 % of the shortest\nrevolution"))
     speed_fluctuation_rpm: float = field(default=0.0, metadata=_doc(
-        "std of the random speed fluctuation about the speed profile, rpm; >= 0"))
+        "std of the random speed fluctuation about the speed profile, rpm; >= 0, at most 10 %\nof the slowest speed"))
 
     def __post_init__(self) -> None:
         w = "[acquisition]"
         for f in dataclasses.fields(self):
-            _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0))
+            _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0,
+                                     hi=MAX_PROBE_ANGLE_ERROR_DEG if f.name == "probe_angle_error_deg" else None))
+        if self.clock_hz and not MIN_CLOCK_HZ <= self.clock_hz <= MAX_CLOCK_HZ:
+            raise _FieldError(w, "clock_hz", f"must be 0 (no quantisation) or in [{_num(MIN_CLOCK_HZ)}, "
+                              f"{_num(MAX_CLOCK_HZ)}], got {_show(self.clock_hz)}")
 
 
 def _default_excitation() -> tuple[Excitation, ...]:
@@ -773,6 +801,19 @@ class Scenario:
             if factors and len(factors) != n:
                 raise _FieldError("[model]", kind, f"must hold [rotor] n_blades = {n} values "
                                   f"(or be empty), got {len(factors)}")
+        acq, (_, rpm) = self.acquisition, self.speed.breakpoints()
+        shortest = 60.0 / float(np.max(rpm))  # s, the shortest revolution
+        for name in ("trigger_jitter_s", "opr_jitter_s"):
+            if getattr(acq, name) > 0.01 * shortest:
+                raise _FieldError("[acquisition]", name, f"must be at most 1 % of the shortest revolution "
+                                  f"({0.01 * shortest:.3g} s at {float(np.max(rpm)):g} rpm), got "
+                                  f"{_show(getattr(acq, name))}")
+        if acq.speed_fluctuation_rpm > 0.1 * float(np.min(rpm)):
+            raise _FieldError("[acquisition]", "speed_fluctuation_rpm", "must be at most 10 % of the slowest "
+                              f"speed ({0.1 * float(np.min(rpm)):g} rpm), got {_show(acq.speed_fluctuation_rpm)}")
+        if acq.clock_hz * self.speed.duration_s >= 2.0**62:
+            raise _FieldError("[acquisition]", "clock_hz", f"cannot count a run of {self.speed.duration_s:g} s "
+                              f"in 62 bits, got {_show(acq.clock_hz)}")
 
 
 #: Section name -> dataclass, in file order (``excitation`` is an array of tables).
@@ -975,6 +1016,10 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
         d = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    except RecursionError:
+        raise ScenarioError(f"{name}: malformed TOML: arrays or tables nested too deep") from None
     return scenario_from_dict(d, source=name, base_dir=p.absolute().parent)
 
 

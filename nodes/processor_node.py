@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from bttsim_stream.bus import codec, keys
-from bttsim_stream.bus.session import StopFlag, pack_attachment, unpack_attachment
+from bttsim_stream.bus.session import StopFlag, pack_attachment
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import add_processing_arguments, processing_options
 from bttsim_stream.process.resonance import summary_table
@@ -49,14 +49,13 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         early: list = []  # data that came before the metadata (callbacks of different keys race)
         bad = 0
         asked_meta = 0.0
-        for sample in node.samples(stop):
+        for sample in node.samples(stop, done=lambda: run is not None and run.received_all):
             if sample is None:
                 if run is None and time.monotonic() - asked_meta > 1.0:  # missed the sample? ask
                     asked_meta = time.monotonic()
                     node.query(keys.meta_key(rig))
                 continue
-            key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            att = unpack_attachment(sample.attachment)
+            key, payload, att = sample.key, sample.payload, sample.att
             try:  # every sample is untrusted: a bad one is counted and skipped
                 kind = keys.parse_key(key).kind
                 item = (kind, key, codec.decode_message(key, payload), att[0] if att else None)
@@ -79,6 +78,8 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                     early.clear()
             elif run is not None:
                 publish(run.add(*item))
+                if run.received_all:
+                    node.done()
             elif len(early) < MAX_EARLY:
                 early.append(item)
                 if time.monotonic() - asked_meta > 1.0:  # joined late: ask the queryable

@@ -22,8 +22,8 @@ import time
 
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.recording import MAX_SEQ, McapRecorder
-from bttsim_stream.bus.session import StopFlag, unpack_attachment
-from bttsim_stream.bus.stream import SequenceTracker
+from bttsim_stream.bus.session import StopFlag
+from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
@@ -37,6 +37,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     stats = SequenceTracker()
     rejected = 0
     meta_done: set[str] = set()
+    ends: dict[str, StreamEnd] = {}  # per rig: has the whole acquisition stream come in?
     with McapRecorder(args.out) as rec, \
             node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue) as node:
         node.subscribe(keys.all_key(rig), history=True)
@@ -46,8 +47,7 @@ def main(conf, args: argparse.Namespace) -> dict:
         for sample in node.samples(stop):
             if sample is None:
                 continue
-            key = str(sample.key_expr)
-            att = unpack_attachment(sample.attachment)
+            key, att = sample.key, sample.att
             seq, t_ns = att if att is not None else (None, time.time_ns())
             if (seq is not None and seq >= MAX_SEQ) or t_ns < 0:  # untrusted: MCAP cannot hold it
                 rejected += 1
@@ -56,13 +56,19 @@ def main(conf, args: argparse.Namespace) -> dict:
                 continue
             if not stats.accept(key, seq):
                 continue
-            payload = sample.payload.to_bytes()
+            payload = sample.payload
             if key.endswith("/meta") and key not in meta_done:
                 info = codec.decode_run_metadata(payload, key).body
                 rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
                 meta_done.add(key)
+                ends[info.rig] = StreamEnd(info)
                 node.ready()
             rec.write(key, payload, t_ns, seq=seq or 0)
+            end = ends.get(key.split("/", 2)[1])
+            if end is not None and not end.done:
+                end.note(key, seq)
+                if end.done:
+                    node.done(key.split("/", 2)[1])
         summary = dict(stats.summary(), rejected=rejected + stats.implausible)
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
     level = logging.WARNING if summary["gaps"] else logging.INFO

@@ -16,9 +16,10 @@ import logging
 import sys
 import time
 
-from bttsim_stream.bus import keys
+from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.recording import read_recording
-from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_subscribers
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_subscribers
+from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, node_session, parse_rate, run_node
 
@@ -39,6 +40,13 @@ def main(conf, args: argparse.Namespace) -> dict:
     rigs = sorted({keys.parse_key(m.key).rig for m in data})
     stop = StopFlag(args.duration)
     sent = 0
+    # a consumer confirms (done token) only a whole stream: wait for that only if it is whole
+    whole = bool(metas)
+    for meta in metas:
+        end = StreamEnd(codec.decode_run_metadata(meta.payload, meta.key).body)
+        for m in data:
+            end.note(m.key, m.seq)
+        whole &= end.done
     with node_session(conf, rigs[0], "sim") as node:
         for r in rigs:
             node.declare(node.session.liveliness().declare_token(keys.alive_key(r, "sim")))
@@ -62,6 +70,12 @@ def main(conf, args: argparse.Namespace) -> dict:
                 break
             node.publisher(m.key).put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
             sent += 1
+        if not stop and whole:  # what went out may still be on its way: stay until it is in
+            for r in rigs:
+                waiting = wait_for_done(node.session, r, args.drain_timeout, stop)
+                if waiting:
+                    log.warning("leaving before %s confirmed the whole stream of %s (%g s)",
+                                ", ".join(sorted(waiting)), r, args.drain_timeout)
     print(f"replayed {sent} of {len(data)} messages from {args.mcap}", flush=True)
     return {"messages": sent, "of": len(data)}
 
@@ -71,6 +85,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", default="max", help=RATE_HELP)
     p.add_argument("--wait", type=float, default=5.0, metavar="S",
                    help="seconds to wait for a subscriber before replaying (5)")
+    p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
+                   help="after a whole run, wait up to S seconds for the nodes that took it to confirm it (120)")
     p.add_argument("--allow-truncated", action="store_true", help="replay a file without its footer")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
 

@@ -22,7 +22,8 @@ import time
 
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
-from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness, wait_for_subscribers
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_liveliness, \
+    wait_for_subscribers
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
@@ -82,6 +83,11 @@ def main(conf, args: argparse.Namespace) -> dict:
             progress.update(f"revolution {int(batch.revolution[-1]) + 1}/{stream.info.n_revolutions}")
         progress.close()
         log.info("published %d messages (run %s)", sent, stream.run_id)
+        if args.wait_for and not stop:  # what went out may still be on its way: stay until it is in
+            waiting = wait_for_done(node.session, stream.rig, args.drain_timeout, stop)
+            if waiting:
+                log.warning("leaving before %s confirmed the whole stream (%g s)", ", ".join(sorted(waiting)),
+                            args.drain_timeout)
         if args.linger and not stop:
             stop.wait(args.linger)
     return {"run_id": stream.run_id, "messages": sent, "stopped_by_signal": stop.signal}
@@ -98,6 +104,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="give up waiting for --wait-for nodes after S seconds (30)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--revolutions", type=int, metavar="N", help="stop after N revolutions")
+    p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
+                   help="after the run, wait up to S seconds for the --wait-for nodes to confirm the whole stream (120)")
     p.add_argument("--linger", type=float, default=0.0, metavar="S",
                    help="keep serving the metadata and the late-joiner cache S seconds after the run")
     p.add_argument("--progress", action="store_true", help="show a progress line on stderr")

@@ -7,19 +7,23 @@ blade fits, travelling waves, resonance reports), fed to
 ``bttsim/<rig>/alive/viewer`` (a simulator started with ``--wait-for`` counts it).
 
 Stops when the nodes named by ``--until`` (default: the simulator) have gone and the bus is
-drained (with ``--web`` it keeps serving until stopped), after ``--duration`` seconds, or on
-SIGINT / SIGTERM; the .rrd is finalised in every case.
+drained (with ``--web`` it then finalises the .rrd, logs "serving the web viewer until
+stopped" and keeps serving), after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
+the .rrd is finalised in every case. The web viewer (page and data server) listens on
+``--bind`` (127.0.0.1) only.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
+from bttsim_stream.defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
@@ -32,33 +36,46 @@ def main(conf, args: argparse.Namespace) -> None:
     rig = keys.validate_rig(args.rig)
     stop = StopFlag(args.duration)
     rec, sinks = views.open_recording(rrd_path=args.rrd, grpc_url=args.rerun_url, serve_web=args.web,
-                                      web_port=args.web_port, grpc_port=args.grpc_port)
+                                      web_port=args.web_port, grpc_port=args.grpc_port, bind=args.bind)
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
+    seqs = SequenceTracker()  # what was lost on the way, per key (duplicates are not shown twice)
     try:
         with node_session(conf, rig, "viewer") as node:
             # subscriber before the token: a simulator waiting for our token finds our subscription
             node.subscribe(keys.all_key(rig), history=True)
             node.watch_nodes(tuple(n for n in args.until.split(",") if n) or ("sim",))
             node.announce()
+            end = None  # has the whole acquisition stream come in?
             for sample in node.samples(stop, poll_s=0.02):
                 if sample is None:
                     live.poll()
-                else:
-                    live.feed(str(sample.key_expr), sample.payload.to_bytes())
+                elif seqs.accept(sample.key, sample.att[0] if sample.att else None):
+                    live.feed(sample.key, sample.payload)
                     if live.meta is not None:
                         node.ready()
+                        end = end or StreamEnd(live.meta)
+                        end.note(sample.key, sample.att[0] if sample.att else None)
+                        if end.done:
+                            node.done()
         live.close()
-        log.info("showed %d messages (%d revolutions, %d fits, %d travelling waves)", live.stats["messages"],
-                 live.stats["revolutions"], live.stats["fits"], live.stats["tw"])
+        st = live.stats
+        counts = dict(seqs.summary(), rejected=st["bad"] + st["ignored"] + seqs.implausible)
+        log.log(logging.WARNING if counts["gaps"] else logging.INFO,
+                "showed %d messages (%d revolutions, %d fits, %d travelling waves); %d sequence gaps, "
+                "%d duplicates, %d rejected", st["messages"], st["revolutions"], st["fits"], st["tw"],
+                counts["gaps"], counts["duplicates_skipped"], counts["rejected"])
+        print(json.dumps(counts), flush=True)
         if args.web and not stop:
+            views.finish_files(rec)  # the .rrd is complete while we serve
             log.info("run ended; serving the web viewer until stopped (Ctrl-C)")
             while not stop.wait(0.2):
                 pass
     finally:
         rec.flush()
         rec.disconnect()
+        sinks.close()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,11 +83,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rrd", metavar="OUT.rrd", help="write an .rrd file (open it with: rerun OUT.rrd)")
     p.add_argument("--rerun-url", metavar="URL",
                    help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
-    p.add_argument("--web", action="store_true", help="serve the web viewer on loopback (prints its URL)")
+    p.add_argument("--web", action="store_true", help="serve the web viewer (prints its URL)")
     p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
                    help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
     p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
                    help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
+    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
+                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")

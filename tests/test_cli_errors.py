@@ -87,3 +87,18 @@ def test_process_error_paths(capsys, singular_mcap, tmp_path):
     assert "window" in _error(capsys, "process", sample, "--window", "0")
     assert "cannot write" in _error(capsys, "process", sample, "--summary", str(tmp_path / "no" / "dir.json"))
     _error(capsys, "process", str(tmp_path / "missing.mcap"))
+
+
+def test_nan_or_absurd_amplitudes_in_a_result_are_said():
+    """Issue 16: NaN in a claimed result, or an amplitude beyond the linear model, is a warning."""
+    from bttsim_stream.offline import result_warnings
+
+    rows = [{"blade": 0, "amp_pkpk_m": 2e-3, "freq_hz": 344.0}, {"blade": 1, "amp_pkpk_m": float("nan"),
+                                                                "freq_hz": 344.0},
+            {"blade": 2, "amp_pkpk_m": 0.5, "freq_hz": float("nan")}]
+    summary = {"resonances": [{"kind": "crossing", "eo": 8, "blades": rows}], "steady": []}
+    warnings = result_warnings(summary, 0.19)
+    assert len(warnings) == 2
+    assert "NaN" in warnings[0] and "2 of 3 blade(s) (1, 2)" in warnings[0]
+    assert "above 10% of the tip radius pk-pk" in warnings[1] and "1 blade(s)" in warnings[1]
+    assert result_warnings({"resonances": [{"kind": "crossing", "eo": 8, "blades": rows[:1]}]}, 0.19) == []

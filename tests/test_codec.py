@@ -137,6 +137,28 @@ def test_run_metadata_refuses_a_wrong_family_table():
         codec.encode_run_metadata(_header(), make_info(family_freq_hz=np.ones((2, 3))))
 
 
+@pytest.mark.parametrize("changes,words", [
+    (dict(tip_radius_m=0.0), "tip_radius_m"),
+    (dict(tip_radius_m=math.nan), "tip_radius_m"),
+    (dict(probe_angles_rad=np.array([1e10, 0.26, 0.41, 3.8, 5.2])), "probe_angles_rad"),
+    (dict(probe_angles_rad=np.array([0.1, 0.1, 0.41, 3.8, 5.2])), "distinct"),
+    (dict(stagger_deg=90.0), "stagger_deg"),
+    (dict(clock_hz=-5.0), "clock_hz"),
+    (dict(engine_orders=(0,)), "engine order 0"),
+    (dict(engine_orders=(2**31,)), "engine order"),
+    (dict(nodal_diameters=(NB,)), "nodal diameter"),
+    (dict(n_revolutions=2**62), "n_revolutions"),
+    (dict(n_blades=1000, sensing_angles_rad=None), "n_blades = 1000"),
+    (dict(speed_range_rpm=(math.nan, 1.0)), "speed_min_rpm"),
+    (dict(family_freq_hz=-np.ones((2, NB // 2 + 1))), "family_freq_hz"),
+], ids=lambda v: next(iter(v)) if isinstance(v, dict) else None)
+def test_run_metadata_refuses_an_impossible_run(changes, words):
+    payload = codec.encode_run_metadata(_header(), make_info(**changes))
+    with pytest.raises(BttsimError, match="corrupt RunMetadata") as info:
+        codec.decode_run_metadata(payload, "bttsim/rig1/meta")
+    assert words in str(info.value) and "\n" not in str(info.value)
+
+
 def test_fit_round_trip():
     rng = np.random.default_rng(5)
     arrays = {name: rng.standard_normal(NB) for name in

@@ -222,15 +222,15 @@ def test_readme_subscriber_listens_to_a_replay():
 
 def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(tmp_path):
     """A forged attachment (sequence 2^62) used to crash the recorder and leave no readable file."""
-    from bttsim_stream.bus.session import pack_attachment, wait_for_subscribers, StopFlag
+    from bttsim_stream.bus.session import pack_attachment, wait_for_liveliness, wait_for_subscribers, StopFlag
     from bttsim_stream.bus.stream import MessageStream
-    from _io_helpers import make_batch, make_info
+    from _io_helpers import NR, make_batch, make_info
 
     port = free_port()
     out = tmp_path / "forged.mcap"
     rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
     stream = MessageStream("run-a", "rig1")
-    msgs = [stream.run_metadata(make_info())] + stream.acquisition(make_batch())
+    msgs = [stream.run_metadata(make_info(n_revolutions=NR))] + stream.acquisition(make_batch())
     try:
         with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")  # the recorder stops when it goes
@@ -242,6 +242,7 @@ def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(
             pubs[msgs[1].key].put(msgs[1].payload, attachment=pack_attachment(1 << 62, 10))  # forged
             for m in msgs:
                 pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+            assert wait_for_liveliness(session, "bttsim/rig1/done/recorder", 1, 120, StopFlag(install=False))
             token.undeclare()
         out_text, err = rec.communicate(timeout=120)
     finally:
@@ -289,6 +290,8 @@ def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(sc
                 if i == 40:  # in the middle of the run, after revolution 0 is in
                     for key, payload, (seq, t_ns) in bad:
                         pubs[key].put(payload, attachment=pack_attachment(seq, t_ns))
+            # as the simulator does: leave once the processor has the whole stream
+            assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
             token.undeclare()
         out, err = proc.communicate(timeout=120)
     finally:

@@ -139,3 +139,11 @@ def test_amplitude_noise_ignores_the_resonance_shape():
     rng = np.random.default_rng(2)
     a = _lorentz(2000, 1000, 200)[:, None] + 1e-5 * rng.standard_normal((2000, 3))
     np.testing.assert_allclose(amplitude_noise(a), 1e-5, rtol=0.1)
+
+
+def test_speed_segments_end_on_nonsense_speeds():
+    """Negative or NaN speeds (a forged recording) must not loop forever (issue 16)."""
+    opr = np.linspace(0.0, -1.0, 200)
+    for om in (-np.linspace(100.0, 200.0, 200), np.full(200, np.nan)):
+        seg = speed_segments(opr, om)
+        assert seg.segments

@@ -1,6 +1,7 @@
 """The main job, end to end: ``bttsim run`` as a new user runs it (separate node processes)."""
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -113,3 +114,146 @@ def test_run_through_a_zenoh_router_in_client_mode(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is True and summary["lost"] == 0 and summary["mean_E_A_pct"] < 5.0
     assert '"gaps": 0' in (out / "recorder.log").read_text()
+
+
+# --------------------------------------------------------------------------------------
+# bttsim run --web: loopback only, no orphan, Ctrl-C at once, ports checked first
+# --------------------------------------------------------------------------------------
+
+
+def _start_web_run(tmp_path: Path, name: str, *extra: str):
+    """`bttsim run SHORT --web` on free ports; (process, stderr watch, out dir, web port, gRPC port)."""
+    from bttsim_stream.bus.session import free_port
+
+    scn = tmp_path / "short.toml"
+    scn.write_text(SHORT)
+    out = tmp_path / name
+    web_port, grpc_port = free_port(), free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "run", scn, "--out", out, "--web",
+                             "--web-port", str(web_port), "--grpc-port", str(grpc_port), *extra],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, LineWatch(proc.stderr), out, web_port, grpc_port
+
+
+def _kill(proc) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+
+
+def _wait_gone(pids, timeout_s: float) -> list[int]:
+    """Wait until none of ``pids`` runs (zombies count as gone); those still running."""
+    from _net import alive
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        left = [p for p in pids if alive(p)]
+        if not left:
+            return []
+        time.sleep(0.1)
+    return [p for p in pids if alive(p)]
+
+
+def test_web_run_listens_on_loopback_only_and_ctrl_c_ends_the_serving_at_once(tmp_path):
+    """What `ss -ltnp` shows for the run's processes, during the run and while it serves
+    afterwards: loopback only; the web page and its data server answer; Ctrl-C then ends it in
+    seconds, with the run's own exit status."""
+    from _net import children, is_loopback, listening_of
+
+    proc, err, out, web_port, grpc_port = _start_web_run(tmp_path, "out", "--realtime")
+    try:
+        url = err.wait_for(lambda line: line.startswith("web viewer:"), timeout=180)
+        assert f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}" in url
+        nodes = children(proc.pid)
+        assert len(nodes) == 4
+        during = listening_of([proc.pid, *nodes])
+        assert ("127.0.0.1", web_port) in during and ("127.0.0.1", grpc_port) in during
+        assert len(during) >= 6 and all(is_loopback(addr) for addr, _ in during), during  # + 4 zenoh
+        err.wait_for(lambda line: "keeps serving until Ctrl-C" in line, timeout=300)
+        after = listening_of([proc.pid, *children(proc.pid)])
+        assert ("127.0.0.1", web_port) in after and all(is_loopback(addr) for addr, _ in after), after
+        import urllib.request
+
+        with urllib.request.urlopen(f"http://127.0.0.1:{web_port}/re_viewer_bg.wasm", timeout=60) as r:
+            assert r.status == 200 and r.headers["Content-Type"] == "application/wasm"
+        _rrd_verify(out / "views.rrd")  # complete while it serves
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        stdout = proc.stdout.read()
+        proc.wait(timeout=60)
+        assert time.monotonic() - t0 < 20
+    finally:
+        _kill(proc)
+    assert proc.returncode == 0, err.text()  # a complete run; the Ctrl-C only ended the serving
+    assert "E_A" in stdout and "interrupted" not in stdout
+    assert _wait_gone(nodes, 30) == [] and _node_pids(out) == []
+    from _net import can_connect
+
+    assert not can_connect("127.0.0.1", web_port) and not can_connect("127.0.0.1", grpc_port)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGHUP, signal.SIGTERM], ids=["SIGKILL", "SIGHUP", "SIGTERM"])
+def test_killing_a_web_run_leaves_no_node_behind(tmp_path, sig):
+    """SIGKILL of the orchestrator: every node gets its parent-death SIGTERM and ends (the web
+    viewer stops serving). SIGHUP and SIGTERM: handled like Ctrl-C (exit 130)."""
+    from _net import can_connect, children
+
+    proc, err, out, web_port, _ = _start_web_run(tmp_path, "out", "--realtime")
+    nodes: list[int] = []
+    try:
+        err.wait_for(lambda line: line.startswith("revolution") and int(line.split()[1].split("/")[0]) >= 10,
+                     timeout=180)
+        nodes = children(proc.pid)
+        assert len(nodes) == 4 and can_connect("127.0.0.1", web_port)
+        proc.send_signal(sig)
+        proc.wait(timeout=120)
+        left = _wait_gone(nodes, 60)
+        assert left == [], [Path(f"/proc/{p}/cmdline").read_bytes()[:120] for p in left]
+    finally:
+        _kill(proc)
+        for pid in _wait_gone(nodes, 0):  # a failed test leaves no orphan either
+            os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == (-signal.SIGKILL if sig == signal.SIGKILL else 130)
+    assert _node_pids(out) == [] and not can_connect("127.0.0.1", web_port)
+    rec = read_recording(out / "run.mcap")  # finalised by the recorder, even after a SIGKILL of the run
+    assert not rec.truncated and len(rec.messages) > 10
+
+
+def test_two_web_runs_with_their_own_ports_do_not_clash(tmp_path):
+    runs = [_start_web_run(tmp_path, f"out{i}") for i in range(2)]
+    try:
+        for proc, err, *_ in runs:
+            err.wait_for(lambda line: "keeps serving until Ctrl-C" in line, timeout=400)
+        for proc, *_ in runs:
+            proc.send_signal(signal.SIGINT)
+        for proc, *_ in runs:
+            proc.wait(timeout=60)
+    finally:
+        for proc, *_ in runs:
+            _kill(proc)
+    for proc, err, out, *_ in runs:
+        assert proc.returncode == 0, err.text()
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["complete"] is True and summary["lost"] == 0
+        _rrd_verify(out / "views.rrd")
+
+
+@pytest.mark.parametrize("which", ["--web-port", "--grpc-port"])
+def test_a_busy_web_port_is_a_one_line_error_before_the_run(tmp_path, which):
+    import socket
+
+    from bttsim_stream.bus.session import free_port
+
+    ports = {"--web-port": free_port(), "--grpc-port": free_port()}
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", ports[which]))
+        busy.listen()
+        t0 = time.monotonic()
+        res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "run", "--out", tmp_path / "out", "--web",
+                              "--web-port", str(ports["--web-port"]), "--grpc-port", str(ports["--grpc-port"])],
+                             cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stdout + res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("bttsim: error:") and which in lines[0]
+    assert f"127.0.0.1:{ports[which]}" in lines[0] and "in use" in lines[0]
+    assert time.monotonic() - t0 < 30 and not (tmp_path / "out").exists()  # nothing started

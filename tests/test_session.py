@@ -50,3 +50,75 @@ def test_bad_configuration_is_a_one_line_error(kwargs, match):
     with pytest.raises(BttsimError, match=match) as exc:
         make_config(**kwargs)
     assert "\n" not in str(exc.value)
+
+
+# --------------------------------------------------------------------------------------
+# StopFlag: signals, nested signals, waiters in threads
+# --------------------------------------------------------------------------------------
+
+_WAITER = """
+import sys, time
+from bttsim_stream.bus.session import StopFlag
+stop = StopFlag()
+print("ready", flush=True)
+n = 0
+while not stop.wait(float(sys.argv[1])):
+    n += 1
+import signal
+signal.signal(stop.signal, signal.SIG_IGN)  # the rest of a burst must not end the interpreter's exit
+print("stopped by", stop.signal, flush=True)
+"""
+
+
+@pytest.mark.parametrize("sig_name, flood_s, wait_s", [("SIGTERM", 0, 30.0), ("SIGHUP", 0, 30.0),
+                                                       ("SIGINT", 0, 30.0), ("SIGTERM", 1.0, 0.0005)],
+                         ids=["SIGTERM", "SIGHUP", "SIGINT", "a flood of SIGTERMs for 1 s while it polls"])
+def test_stop_flag_wakes_at_once_on_a_signal_and_survives_a_flood(sig_name, flood_s, wait_s):
+    """The handler takes no lock: signals in quick succession (handlers nested in the main
+    thread) cannot deadlock it (a threading.Event did), and a long wait ends at once."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    sig = getattr(signal, sig_name)
+    proc = subprocess.Popen([sys.executable, "-c", _WAITER, str(wait_s)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        t0 = time.monotonic()
+        os.kill(proc.pid, sig)
+        while time.monotonic() - t0 < flood_s and proc.poll() is None:
+            os.kill(proc.pid, sig)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and f"stopped by {int(sig)}" in out
+    assert time.monotonic() - t0 < 10
+
+
+def test_stop_flag_wakes_every_waiting_thread_and_keeps_its_deadline():
+    import threading
+    import time
+
+    from bttsim_stream.bus.session import StopFlag
+
+    stop = StopFlag(install=False)
+    woke = []
+    threads = [threading.Thread(target=lambda: woke.append(stop.wait(60.0))) for _ in range(3)]
+    for t in threads:
+        t.start()
+    t0 = time.monotonic()
+    stop.set()
+    for t in threads:
+        t.join(10)
+    assert woke == [True, True, True] and time.monotonic() - t0 < 5
+    assert stop.wait(60.0) is True  # stays set
+
+    timed = StopFlag(0.2, install=False)
+    assert not timed
+    t0 = time.monotonic()
+    assert timed.wait(60.0) is True
+    assert 0.15 < time.monotonic() - t0 < 5

@@ -6,7 +6,7 @@ import pytest
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.model import build_model
 from bttsim_stream.scenario import Scenario, scenario_from_dict
-from bttsim_stream.sim.core import RunUpSimulator, collect
+from bttsim_stream.sim.core import RunUpSimulator, check_tip_amplitude, collect
 
 WINDOW = {"speed": {"start_rpm": 2450.0, "segments": [{"duration_s": 10.0, "end_rpm": 2700.0}]}}
 
@@ -156,3 +156,25 @@ def test_probe_outside_the_tip_nodes_is_refused(model):
     scn = scenario_from_dict({"probes": {"axial_position_m": 0.005}})
     with pytest.raises(BttsimError, match="axial_position_m"):
         RunUpSimulator(scn, model)
+
+
+def test_predicted_tip_amplitude_bounds_the_run_and_refuses_absurd_forces(model, default_run):
+    """The upfront estimate (steady resonance, sweep-capped) is the simulated truth's largest
+    P_nom amplitude to 1 %, and a force that would move the tip beyond 5 % of the radius is
+    refused before anything runs (issue 16)."""
+    t = default_run.truth
+    simulated = float(np.nanmax(np.hypot(t.d_tang_m, t.d_z_m)))
+    predicted = check_tip_amplitude(Scenario(), model)
+    assert simulated <= predicted * 1.001 and predicted == pytest.approx(simulated, rel=0.01)
+    for force in (1e3, 1e6, 1e300):
+        with pytest.raises(BttsimError, match=r"above 5% of the tip radius"):
+            RunUpSimulator(scenario_from_dict({"excitation": [{"amplitude_n": force}]}), model)
+    # undamped: a ramp through resonance stays finite (sweep-limited), a dwell on it does not
+    undamped = build_model(damping_beta_s=0.0)
+    ramp = scenario_from_dict({"speed": {"start_rpm": 2450.0, "end_rpm": 2700.0, "duration_s": 1.0}})
+    assert check_tip_amplitude(ramp, undamped) < 0.05 * 0.19
+    rpm = float(undamped.freq_hz[(undamped.family == 0) & (undamped.nodal_diameter == 1)][0]) * 60.0 / 8.0
+    dwell = scenario_from_dict({"speed": {"start_rpm": 2450.0, "segments": [{"duration_s": 1.0, "end_rpm": rpm},
+                                                                           {"duration_s": 5.0, "end_rpm": rpm}]}})
+    with pytest.raises(BttsimError, match="tip amplitude"):
+        check_tip_amplitude(dwell, undamped)

@@ -477,13 +477,17 @@ def test_live_views_fed_message_by_message(processed_mcap, tmp_path):
     out = tmp_path / "live.rrd"
     rec, _ = views.open_recording(rrd_path=out)
     live = views.LiveViews(rec, live=True, flush_period_s=0.01, tw_window=32, tw_period_s=0.0)
-    for m in read_recording(processed_mcap).messages:
+    msgs = read_recording(processed_mcap).messages
+    for m in msgs:
         live.feed(m.key, m.payload)
     live.feed("bttsim/rig1/alive/sim", b"")           # not a message: ignored
     live.feed("bttsim/rig1/opr", b"\xff\xff garbage")  # counted, skipped
+    report = next(m for m in msgs if m.key.endswith("/resonance"))  # another run's report: not shown
+    d = codec.decode_message(report.key, report.payload)
+    live.feed(report.key, codec.encode_resonance_report(codec.Header("forged", 99, -1, 0.0), d.body))
     live.close()
     rec.disconnect()
-    assert live.stats["revolutions"] == N_REV and live.stats["bad"] == 1 and live.stats["ignored"] == 1
+    assert live.stats["revolutions"] == N_REV and live.stats["bad"] == 1 and live.stats["ignored"] == 2
     assert live.stats["fits"] == N_REV and live.stats["resonance"] == 1
     rrd_verify(out)
     ent = rrd_entities(out)
@@ -690,19 +694,6 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     if CHROMIUM is None:
         pytest.skip("Chromium not installed (apt-get install chromium)")
     pytest.importorskip("playwright", reason="Playwright not installed (pip install playwright)")
-    if os.environ.get("BTTSIM_NETNS") != "1":
-        # Rerun's web page server binds every interface (no bind option in 0.41): run the
-        # server and the browser in a private network namespace that has only loopback
-        if shutil.which("unshare") is None or subprocess.run(
-                ["unshare", "-n", "true"], capture_output=True).returncode != 0:
-            pytest.skip("needs 'unshare -n' (a loopback-only network namespace) for the web viewer")
-        test_id = f"{Path(__file__).resolve()}::test_web_viewer_draws_the_plots"
-        res = subprocess.run(["unshare", "-n", "sh", "-c", "ip link set lo up && exec \"$@\"", "sh",
-                              "env", "BTTSIM_NETNS=1", sys.executable, "-m", "pytest", "-q", "-p",
-                              "no:cacheprovider", test_id], cwd=REPO, capture_output=True, text=True,
-                             timeout=900)
-        assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
-        return
     web_port, grpc_port = free_port(), free_port()
     log_path = tmp_path / "server.log"
     with open(log_path, "w") as log_file:  # a file, not a pipe: the server logs for minutes
@@ -712,6 +703,10 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     try:
         url = server.stdout.readline().strip()
         assert url.startswith(f"http://127.0.0.1:{web_port}/"), log_path.read_text()[-2000:]
+        from _net import is_loopback, listening_of
+
+        served = listening_of([server.pid])  # our page server and Rerun's data server: loopback only
+        assert ("127.0.0.1", web_port) in served and all(is_loopback(addr) for addr, _ in served), served
         blank = _capture(None, tmp_path / "blank.png", tmp_path / "profile-blank", budget_s=0, first_wait_s=1)
         shot = tmp_path / "views.png"
         pixels = _capture(url, shot, tmp_path / "profile", budget_s=420,

@@ -28,7 +28,11 @@ Conventions:
   gives the same bytes.
 * Decoders refuse payloads above :data:`MAX_PAYLOAD_BYTES`, unparsable bytes, a missing
   header, and arrays whose lengths contradict the declared shape, with a one-line
-  :class:`~bttsim_stream.errors.BttsimError` naming the key (or the message type).
+  :class:`~bttsim_stream.errors.BttsimError` naming the key (or the message type). The run
+  metadata must also be physically possible (the limits of :mod:`bttsim_stream.defaults`;
+  finite angles in [0, 2 pi), distinct probes, a tip radius > 0, a stagger in (0, 90) deg,
+  engine orders in [1, 1000], nodal diameters below the blade count...): every consumer
+  computes with it.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import numpy as np
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError
 
+from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS
 from ..errors import BttsimError
 from ..process.pipeline import RevolutionFit
 from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport,
@@ -89,6 +94,7 @@ MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
 PROTO_FILE = "bttsim/v1/bttsim.proto"
 _PACKAGE = "bttsim.v1"
 _MAX_NS = (1 << 63) - 1
+TWO_PI = 2.0 * math.pi
 
 
 @dataclass(frozen=True, slots=True)
@@ -344,6 +350,43 @@ def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
     return _serialize(m)
 
 
+def _run_metadata_problem(m) -> str | None:
+    """What makes a parsed ``RunMetadata`` physically impossible (None: nothing). Every
+    consumer computes with these values, so a forged or corrupt one is refused here."""
+    angles = np.array(m.probe_angles_rad, dtype=float)
+    if not np.all((angles >= 0) & (angles < TWO_PI)):
+        return f"probe_angles_rad must be finite angles in [0, 2 pi), got {angles.tolist()}"
+    if np.unique(angles).size != angles.size:
+        return "probe_angles_rad must be distinct"
+    for name, lo, hi in (("tip_radius_m", 0.0, None), ("stagger_deg", 0.0, 90.0)):
+        v = getattr(m, name)
+        if not (math.isfinite(v) and v > lo and (hi is None or v < hi)):
+            return f"{name} = {v!r} out of range"
+    if not (math.isfinite(m.opr_angle_rad) and 0.0 <= m.opr_angle_rad < TWO_PI):
+        return f"opr_angle_rad = {m.opr_angle_rad!r} must be in [0, 2 pi)"
+    for name in ("probe_axial_m", "clock_hz", "duration_s", "speed_min_rpm", "speed_max_rpm"):
+        v = getattr(m, name)
+        if not math.isfinite(v) or (name != "probe_axial_m" and v < 0):
+            return f"{name} = {v!r} must be finite" + ("" if name == "probe_axial_m" else " and >= 0")
+    if m.n_revolutions > MAX_REVOLUTIONS:
+        return f"n_revolutions = {m.n_revolutions} is above the {MAX_REVOLUTIONS} of one run"
+    if not len(m.engine_orders):
+        return "no engine order"
+    for eo, nd in zip(m.engine_orders, m.nodal_diameters):
+        if not 1 <= eo <= MAX_ENGINE_ORDER:
+            return f"engine order {eo} out of [1, {MAX_ENGINE_ORDER}]"
+        if nd >= m.n_blades:
+            return f"nodal diameter {nd} >= n_blades = {m.n_blades}"
+    if not np.all(np.isfinite(np.array(m.sensing_angles_rad, dtype=float))):
+        return "sensing_angles_rad must be finite"
+    if m.n_families > 64:
+        return f"n_families = {m.n_families} (at most 64)"
+    fam = np.array(m.family_freq_hz, dtype=float)
+    if not np.all(np.isfinite(fam) & (fam >= 0)):
+        return "family_freq_hz must be finite and >= 0"
+    return None
+
+
 def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
     """Decode a :class:`bttsim.v1.RunMetadata` payload into ``(Header, RunInfo)``.
 
@@ -353,12 +396,16 @@ def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
         Unparsable, oversized or inconsistent payload (one line, naming ``key``).
     """
     m, where = _parse(_pb.RunMetadata, payload, key)
+    if not (1 <= m.n_blades <= MAX_BLADES and 1 <= m.n_probes <= MAX_PROBES):
+        raise _corrupt(where, m, f"n_blades = {m.n_blades}, n_probes = {m.n_probes} (1..{MAX_BLADES} blades, "
+                                 f"1..{MAX_PROBES} probes)")
     _check_len(where, m, "probe_angles_rad", m.n_probes, "(n_probes,)")
     if len(m.engine_orders) != len(m.nodal_diameters):
         raise _corrupt(where, m, f"{len(m.engine_orders)} engine_orders but "
                                  f"{len(m.nodal_diameters)} nodal_diameters")
-    if m.n_blades < 1 or m.n_probes < 1:
-        raise _corrupt(where, m, f"n_blades = {m.n_blades}, n_probes = {m.n_probes}")
+    problem = _run_metadata_problem(m)
+    if problem:
+        raise _corrupt(where, m, problem)
     if m.header.run_id and m.run_id and m.header.run_id != m.run_id:
         raise _corrupt(where, m, f"run_id {m.run_id!r} differs from header {m.header.run_id!r}")
     try:
@@ -497,6 +544,8 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     for name in _TRUTH_2D:
         _check_len(where, m, name, nb * npr, f"({nb}, {npr})")
     _check_len(where, m, "d_eqv_pkpk_m", nb, f"({nb},)")
+    if not (math.isfinite(m.opr_s) and math.isfinite(m.omega_mean_rad_s) and m.omega_mean_rad_s > 0):
+        raise _corrupt(where, m, f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
     arrays = {name: _array(getattr(m, name)).reshape(1, nb, npr) for name in _TRUTH_2D}
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
                   d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays)

@@ -157,6 +157,15 @@ def ready_key(rig: str, node: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/ready/{node}"
 
 
+def done_key(rig: str, node: str) -> str:
+    """Liveliness token of a node that has received the whole acquisition stream of the run
+    (``bttsim/<rig>/done/<node>``): the simulator waits for it before it leaves, since what it
+    published is still on its way until then."""
+    if not _NAME_RE.fullmatch(str(node)):
+        raise BttsimError(f"invalid node name {node!r} (expected [A-Za-z0-9_-]+)")
+    return f"{PREFIX}/{validate_rig(rig)}/done/{node}"
+
+
 def alive_all_key(rig: str) -> str:
     """``bttsim/<rig>/alive/*``: every node's liveliness token."""
     return f"{PREFIX}/{validate_rig(rig)}/alive/*"

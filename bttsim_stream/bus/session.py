@@ -15,21 +15,25 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import select
 import signal
 import socket
 import struct
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
 import zenoh.ext as zx
 
 from ..errors import BttsimError
+from . import keys
 from .security import TlsFiles, add_security_args, apply_security, tls_from_args
 
 __all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
-           "unpack_attachment", "StopFlag", "wait_for_liveliness", "wait_for_subscribers",
+           "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers", "wait_for_done",
            "open_session", "free_port", "declare_publisher", "declare_subscriber"]
 
 log = logging.getLogger("bttsim.session")
@@ -198,44 +202,92 @@ def pack_attachment(seq: int, log_time_ns: int) -> bytes:
 
 
 def unpack_attachment(att) -> tuple[int, int] | None:
-    """``(seq, log_time_ns)`` from a sample's attachment, or None."""
+    """``(seq, log_time_ns)`` from a sample's attachment (or its bytes), or None."""
     if att is None:
         return None
-    raw = att.to_bytes()
+    raw = att if isinstance(att, bytes) else att.to_bytes()
     if len(raw) != _ATT.size:
         return None
     return _ATT.unpack(raw)
 
 
+@dataclass(frozen=True, slots=True)
+class Received:
+    """A sample (or query reply) as received, copied out of Zenoh's buffers.
+
+    Attributes
+    ----------
+    key : str
+    payload : bytes
+    att : tuple of (int, int) or None
+        ``(seq, log_time_ns)`` from the attachment (None if missing or malformed).
+    """
+
+    key: str
+    payload: bytes
+    att: tuple[int, int] | None
+
+    @classmethod
+    def of(cls, sample) -> "Received":
+        """Copy ``sample`` while Zenoh still owns it (inside its callback: a sample kept past
+        the callback that delivered it on Zenoh's own thread can see its buffer reused)."""
+        return cls(str(sample.key_expr), sample.payload.to_bytes(), unpack_attachment(sample.attachment))
+
+
 class StopFlag:
-    """Set by SIGINT / SIGTERM (installed in the main thread) or by a deadline."""
+    """Set by SIGINT / SIGTERM / SIGHUP (installed in the main thread) or by a deadline.
+
+    SIGHUP (the terminal closed) stops like SIGTERM, so files are finalised and servers
+    released instead of the default abrupt end. The signal handler takes no lock: it runs in
+    the main thread, which may hold one (a ``threading.Event``'s, while waiting on it), and
+    it may run nested when signals come in quick succession (Ctrl-C twice, a parent-death
+    SIGTERM and the orchestrator's own). Waiters sleep on a pipe that :meth:`set` writes to.
+    """
 
     def __init__(self, duration_s: float | None = None, install: bool = True) -> None:
-        self._event = threading.Event()
+        self._stopped = False
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
         self._deadline = None if duration_s is None else time.monotonic() + duration_s
         self.signal: int | None = None
         if install and threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 signal.signal(sig, self._handler)
 
     def _handler(self, signum, _frame) -> None:
         self.signal = signum
-        self._event.set()
+        self.set()
 
     def set(self) -> None:
-        self._event.set()
+        if not self._stopped:
+            self._stopped = True
+            try:
+                os.write(self._wake_w, b"\0")  # the pipe stays readable: every waiter wakes
+            except OSError:
+                pass
 
     def __bool__(self) -> bool:
         if self._deadline is not None and time.monotonic() >= self._deadline:
-            self._event.set()
-        return self._event.is_set()
+            self._stopped = True
+        return self._stopped
 
     def wait(self, timeout: float) -> bool:
         """Sleep up to ``timeout`` s; True if stopped."""
         if self._deadline is not None:
             timeout = min(timeout, max(0.0, self._deadline - time.monotonic()))
-        self._event.wait(timeout)
+        if not self._stopped:
+            poller = select.poll()  # one per call: threads may wait at once
+            poller.register(self._wake_r, select.POLLIN)
+            poller.poll(max(0, int(timeout * 1000.0 + 0.999)))
         return bool(self)
+
+    def __del__(self) -> None:
+        for fd in (getattr(self, "_wake_r", None), getattr(self, "_wake_w", None)):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
 
 
 def declare_publisher(session, key: str, *, cache_samples: int = 64, lossy: bool = False):
@@ -251,7 +303,15 @@ def declare_publisher(session, key: str, *, cache_samples: int = 64, lossy: bool
 
 def declare_subscriber(session, key_expr: str, handler, *, history: bool = True):
     """A subscriber calling ``handler(sample)``; with ``history`` it also receives the
-    cached samples of publishers that were there before it (late joiner)."""
+    cached samples of publishers that were there before it (late joiner).
+
+    ``handler`` runs in Zenoh's own receiving thread (``indirect=False``), in the order the
+    samples arrive on the link. Zenoh-python's default runs each subscriber's callback in a
+    thread of its own, and then the samples of different keys (a revolution's OPR pulse and its
+    TOA batches) overtake each other by hundreds of revolutions on a loaded machine. A
+    handler that blocks (a full inbox) slows the link down: back-pressure, not loss.
+    """
+    handler = zenoh.handlers.Callback(handler, indirect=False)
     if not history:
         return session.declare_subscriber(key_expr, handler)
     return zx.declare_advanced_subscriber(
@@ -273,6 +333,22 @@ def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, st
             break
         stop.wait(0.1)
     return seen
+
+
+def wait_for_done(session, rig: str, timeout_s: float, stop: StopFlag) -> set[str]:
+    """Wait until every node that confirmed the run (``ready``) has confirmed the whole stream
+    (``done``), or time runs out; returns the nodes still missing. A node that dies drops its
+    tokens and is no longer waited for."""
+    def names(what: str) -> set[str]:
+        return {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                for r in session.liveliness().get(f"{keys.PREFIX}/{rig}/{what}/*", timeout=1.0) if r.ok is not None}
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        waiting = names("ready") - names("done")
+        if not waiting or stop or time.monotonic() >= deadline:
+            return waiting
+        stop.wait(0.05)
 
 
 def wait_for_subscribers(session, key_exprs, timeout_s: float, stop: StopFlag, *, every: bool = True) -> bool:

@@ -25,7 +25,7 @@ from ..sim.core import RevolutionBatch, RunInfo
 from . import codec, keys
 
 __all__ = ["Message", "Sequencer", "SequenceTracker", "MessageStream", "Revolution", "RevolutionAssembler",
-           "Completeness"]
+           "StreamEnd", "Completeness"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -302,15 +302,50 @@ class Revolution:
     complete: bool
 
 
+class StreamEnd:
+    """Has a consumer received the whole acquisition stream of a run?
+
+    The simulator numbers each acquisition key 0, 1, ... one message per revolution
+    (:class:`Sequencer`): the stream is whole once the OPR key, every probe's TOA key and
+    (if the run has it) the truth key have delivered number ``n_revolutions - 1``. Feed it
+    the sequence numbers a :class:`SequenceTracker` accepted.
+
+    Parameters
+    ----------
+    meta : RunInfo
+    """
+
+    def __init__(self, meta) -> None:
+        rig, n = meta.rig, int(meta.n_revolutions)
+        wanted = [keys.opr_key(rig)] + [keys.toa_key(rig, j) for j in range(int(meta.n_probes))]
+        if meta.has_truth:
+            wanted.append(keys.truth_key(rig))
+        self._last = n - 1
+        self._waiting = set(wanted)
+
+    def note(self, key: str, seq: int | None) -> None:
+        """A message of ``key`` numbered ``seq`` came in."""
+        if seq == self._last:
+            self._waiting.discard(key)
+
+    @property
+    def done(self) -> bool:
+        return not self._waiting
+
+
 class RevolutionAssembler:
     """Regroup OPR pulses and per-probe TOA batches (decoded, in any order) into revolutions.
 
     Revolutions come out in increasing order from :meth:`pop`: a revolution as soon as its
-    OPR and every probe's batch are in; an incomplete one (probe batches lost, NaN TOAs)
-    once a revolution ``reorder`` or more ahead is complete (messages of different keys may
-    overtake each other, through a router under load by several revolutions; beyond that
-    nothing more will come for it), or at the end (``final``). A revolution without an OPR
-    pulse cannot be placed and is dropped (counted in :attr:`dropped`).
+    OPR and every probe's batch are in. An incomplete one (probe batches or its OPR pulse
+    lost) comes out once nothing more can come for it: each missing source (the OPR stream,
+    each probe's stream) has already delivered a later revolution (one source's messages
+    arrive in order: one publisher, one reliable link), or a revolution ``reorder`` or more
+    ahead is complete, or more than ``reorder`` revolutions are waiting (a source that went
+    silent), or at the end (``final``). Different sources may be far apart (hundreds of
+    revolutions on a loaded machine), so nothing is decided from the distance between them
+    alone. A revolution without an OPR pulse cannot be placed and is dropped (counted in
+    :attr:`dropped`).
 
     Every fragment is untrusted: one for a revolution already given out, outside
     ``[0, n_revolutions)``, more than ``max_ahead`` revolutions beyond the last one given out,
@@ -318,7 +353,7 @@ class RevolutionAssembler:
     :attr:`ignored`); a second batch for the same (revolution, probe) or a second OPR pulse
     for a revolution is a duplicate (counted in :attr:`duplicates`; the first one stays). So a
     forged far-ahead revolution neither flushes the revolutions in progress nor makes memory
-    grow.
+    grow beyond ``max_ahead`` revolutions.
 
     Parameters
     ----------
@@ -328,16 +363,19 @@ class RevolutionAssembler:
     max_ahead : int
         Largest accepted distance beyond the last revolution given out.
     reorder : int
-        How far (revolutions) fragments may arrive out of order.
+        How far (revolutions) a complete revolution, or the number of revolutions waiting, may
+        run ahead of an incomplete one before it is given out.
     """
 
     def __init__(self, n_blades: int, n_probes: int, *, n_revolutions: int | None = None,
-                 max_ahead: int = 64, reorder: int = 8) -> None:
+                 max_ahead: int = 2048, reorder: int = 1024) -> None:
         self.n_blades = int(n_blades)
         self.n_probes = int(n_probes)
         self.n_revolutions = None if not n_revolutions else int(n_revolutions)
         self.max_ahead = int(max_ahead)
         self.reorder = max(1, int(reorder))
+        self.max_ahead = max(self.max_ahead, self.reorder + 1)
+        self._newest = np.full(self.n_probes + 1, -1, dtype=np.int64)  # per source; [-1]: OPR
         self.duplicates = 0
         self._opr: dict[int, float] = {}
         self._toa: dict[int, np.ndarray] = {}
@@ -359,6 +397,7 @@ class RevolutionAssembler:
             self.duplicates += 1
             return
         self._opr[revolution] = float(opr_s)
+        self._newest[-1] = max(self._newest[-1], revolution)
         self._note_complete(revolution)
 
     def add_toa(self, revolution: int, probe: int, toa_s: np.ndarray) -> None:
@@ -376,6 +415,7 @@ class RevolutionAssembler:
             row = self._toa[revolution] = np.full((self.n_blades, self.n_probes), np.nan)
         self._seen.setdefault(revolution, set()).add(probe)
         row[:, probe] = toa
+        self._newest[probe] = max(self._newest[probe], revolution)
         self._note_complete(revolution)
 
     def add(self, kind: str, decoded: codec.Decoded) -> None:
@@ -392,12 +432,25 @@ class RevolutionAssembler:
         if self._complete(revolution):
             self._max_complete = max(self._max_complete, revolution)
 
+    def _passed(self, revolution: int) -> bool:
+        """Has every source missing from ``revolution`` delivered a later revolution?"""
+        seen = self._seen.get(revolution, ())
+        missing = [p for p in range(self.n_probes) if p not in seen]
+        if revolution not in self._opr:
+            missing.append(-1)
+        return bool(np.all(self._newest[missing] > revolution))
+
     def _acceptable(self, revolution: int) -> bool:
         if revolution < 0 or (self.n_revolutions is not None and revolution >= self.n_revolutions):
             return False
         if self._last_out is None:
             return True
         return self._last_out < revolution <= self._last_out + self.max_ahead
+
+    @property
+    def finished(self) -> bool:
+        """Has the run's last revolution been given out (``n_revolutions`` known)?"""
+        return self.n_revolutions is not None and self._last_out == self.n_revolutions - 1
 
     @property
     def pending(self) -> int:
@@ -407,10 +460,12 @@ class RevolutionAssembler:
     def pop(self, final: bool = False) -> list[Revolution]:
         """Revolutions ready now, in increasing order (``final``: everything left)."""
         out: list[Revolution] = []
-        for k in sorted(set(self._opr) | set(self._toa)):  # nothing is added while popping
+        waiting = sorted(set(self._opr) | set(self._toa))  # nothing is added while popping
+        for i, k in enumerate(waiting):
             has_opr = k in self._opr
             complete = self._complete(k)
-            if not (complete or final or self._max_complete >= k + self.reorder):
+            if not (complete or final or self._max_complete >= k + self.reorder
+                    or len(waiting) - i > self.reorder or self._passed(k)):
                 break
             toa = self._toa.pop(k, None)
             self._seen.pop(k, None)

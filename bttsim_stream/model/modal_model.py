@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import time
 import zipfile
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -26,7 +27,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .. import __version__
-from ..errors import ModelFileError
+from ..defaults import MAX_BLADES
+from ..errors import ModelFileError, ScenarioError
 from ..scenario import Scenario
 from .bladed_disk import (
     BladedDiskDesign,
@@ -241,6 +243,10 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         if scn is None:
             scn = Scenario()
         design = design_from_scenario(scn)
+    if design.span_m < 0.1 * design.rim_radius_m:
+        raise ScenarioError(f"[rotor] tip_radius_m = {design.tip_radius_m:g} m: the built-in model's blades start "
+                            f"at its rim ({design.rim_radius_m:g} m), so the tip radius must be at least "
+                            f"{1.1 * design.rim_radius_m:.4g} m")
     if damping_beta_s is None:
         damping_beta_s = scn.model.damping_beta_s if scn is not None else 9e-6
     N = design.n_blades
@@ -403,6 +409,10 @@ def load_model(path) -> ModalModel:
         with np.load(path, allow_pickle=False) as z:
             if not isinstance(z, np.lib.npyio.NpzFile):
                 raise ModelFileError(f"{path}: not an .npz archive")
+            unpacked = sum(info.file_size for info in z.zip.infolist())
+            if unpacked > _MAX_FILE_BYTES:  # a compressed archive may unpack to far more than its size
+                raise ModelFileError(f"{path}: unpacks to {unpacked} bytes, more than {_MAX_FILE_BYTES}, "
+                                     "refusing to load")
             for name in z.files:
                 arrays[name] = z[name]
     except ModelFileError:
@@ -412,7 +422,8 @@ def load_model(path) -> ModalModel:
         if "pickle" in msg.lower():
             raise ModelFileError(f"{path}: holds pickled objects, which are refused") from None
         raise ModelFileError(f"{path}: corrupt model file ({msg.splitlines()[0]})") from None
-    except (OSError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+    except (OSError, zipfile.BadZipFile, EOFError, KeyError, RuntimeError, NotImplementedError,
+            zlib.error, UnicodeDecodeError) as exc:
         raise ModelFileError(f"{path}: corrupt or truncated model file ({type(exc).__name__}: "
                              f"{str(exc).splitlines()[0] if str(exc) else 'unreadable'})") from None
     meta = _validate(arrays, str(path))
@@ -449,8 +460,8 @@ def _validate(a: dict, where: str) -> dict:
         if k in ("family", "nodal_diameter"):
             if v.dtype.kind not in "iu":
                 raise ModelFileError(f"{where}: {k} must be integers, got {v.dtype}")
-        elif v.dtype.kind != "f":
-            raise ModelFileError(f"{where}: {k} must be floating point, got {v.dtype}")
+        elif v.dtype.kind != "f" or v.dtype.itemsize not in (4, 8):
+            raise ModelFileError(f"{where}: {k} must be floating point (float32 or float64), got {v.dtype}")
         if not np.all(np.isfinite(v)):
             raise ModelFileError(f"{where}: {k} holds non-finite values")
     try:
@@ -481,12 +492,28 @@ def _validate(a: dict, where: str) -> dict:
             raise ModelFileError(f"{where}: {k} has shape {tuple(a[k].shape)}, expected {shape}")
     if n_modes < 1 or n_blades < 1 or n_tip < 2:
         raise ModelFileError(f"{where}: needs at least 1 mode, 1 blade and 2 tip nodes")
+    if n_blades > MAX_BLADES:
+        raise ModelFileError(f"{where}: {n_blades} blades, more than the {MAX_BLADES} of a run")
     if meta["n_blades"] != n_blades:
         raise ModelFileError(f"{where}: meta.n_blades = {meta['n_blades']} but tip_ref has {n_blades} blades")
     if not (isinstance(meta["nominal_node"], int) and 0 <= meta["nominal_node"] < n_tip):
         raise ModelFileError(f"{where}: meta.nominal_node must be an index 0..{n_tip - 1}")
-    if not 0.0 < float(meta["stagger_deg"]) < 90.0:
-        raise ModelFileError(f"{where}: meta.stagger_deg must be in (0, 90)")
+    stagger = meta["stagger_deg"]
+    if isinstance(stagger, bool) or not isinstance(stagger, (int, float)) or not 0.0 < float(stagger) < 90.0:
+        raise ModelFileError(f"{where}: meta.stagger_deg must be a number in (0, 90)")
+    if not isinstance(meta.get("provenance", {}), dict):
+        raise ModelFileError(f"{where}: meta.provenance must be a JSON object")
+    if "blade_alone_freq_hz" in a and (a["blade_alone_freq_hz"].size == 0 or np.any(a["blade_alone_freq_hz"] <= 0)):
+        raise ModelFileError(f"{where}: blade_alone_freq_hz must hold at least one frequency, all > 0")
+    if "nodal_diameter" in a and np.any((a["nodal_diameter"] < 0) | (a["nodal_diameter"] > n_blades // 2)):
+        raise ModelFileError(f"{where}: nodal_diameter must lie in [0, n_blades // 2 = {n_blades // 2}]")
+    if "family" in a and np.any((a["family"] < 0) | (a["family"] >= n_modes)):
+        raise ModelFileError(f"{where}: family must lie in [0, n_modes)")
+    if "campbell_freq_hz" in a and (a["campbell_freq_hz"].shape[1] != n_blades // 2 + 1
+                                     or not 1 <= a["campbell_freq_hz"].shape[0] <= 64
+                                     or np.any(a["campbell_freq_hz"] <= 0)):
+        raise ModelFileError(f"{where}: campbell_freq_hz must have shape (n_families <= 64, {n_blades // 2 + 1}), "
+                             "frequencies > 0")
     if np.any(a["freq_hz"] <= 0):
         raise ModelFileError(f"{where}: freq_hz must be > 0")
     if np.any(a["damping_ratio"] < 0) or np.any(a["damping_ratio"] >= 1):

@@ -260,11 +260,11 @@ def _rdp(t: np.ndarray, y: np.ndarray, tol: float) -> list[int]:
         a, b = stack.pop()
         if b - a < 2:
             continue
-        tt = t[a:b + 1]
+        tt = t[a + 1:b]
         line = y[a] + (y[b] - y[a]) * (tt - t[a]) / max(t[b] - t[a], 1e-300)
-        dev = np.abs(y[a:b + 1] - line)
-        k = int(np.argmax(dev))
-        if dev[k] > tol:
+        dev = np.abs(y[a + 1:b] - line)
+        k = 1 + int(np.argmax(dev))  # an interior point: every split shrinks (ends even on NaN)
+        if dev[k - 1] > tol:
             keep.add(a + k)
             stack += [(a, a + k), (a + k, b)]
     return sorted(keep)

@@ -17,15 +17,16 @@ from typing import Iterator
 
 import numpy as np
 
+from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, tip_basis
+from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
 from .speed import SpeedProfile, speed_profile_from_scenario
 from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
                   project_planes, stage_b)
 
 __all__ = ["RunInfo", "Truth", "RevolutionBatch", "RunUpSimulator", "load_scenario_model",
-           "collect"]
+           "check_tip_amplitude", "collect"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -173,6 +174,36 @@ def load_scenario_model(scn):
     return load_model(scn.model.source)
 
 
+def check_tip_amplitude(scn, model) -> float:
+    """Refuse a scenario whose tip amplitude would leave the linear model's validity.
+
+    The largest amplitude of P_nom over the speed profile
+    (:func:`~bttsim_stream.sim.modal.steady_tip_amplitude`, an upper estimate of the run-up's)
+    must stay within :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` (5 %) of the
+    tip radius.
+
+    Returns
+    -------
+    float
+        The predicted largest amplitude, m.
+
+    Raises
+    ------
+    BttsimError
+        One line naming the amplitude, the limit and the force to lower.
+    """
+    amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed_profile_from_scenario(scn))))
+    radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
+    limit = MAX_TIP_AMPLITUDE_FRACTION * radius
+    if not amp <= limit:
+        forces = ", ".join(f"{e.amplitude_n:g}" for e in scn.excitation)
+        raise BttsimError(
+            f"[[excitation]] amplitude_n = {forces} N: the predicted tip amplitude is {amp * 1e3:.3g} mm, above "
+            f"{MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius ({limit * 1e3:.3g} mm of {radius * 1e3:.4g} mm), "
+            f"where the linear modal model no longer holds: lower the force")
+    return amp
+
+
 class RunUpSimulator:
     """Simulate the scenario's run-up and yield :class:`RevolutionBatch` chunks.
 
@@ -201,6 +232,7 @@ class RunUpSimulator:
             pass  # a user's model defines the blade count
         if np.any(m.damping_ratio >= 1.0):
             raise BttsimError("model: damping ratios must be < 1 (underdamped modes)")
+        check_tip_amplitude(scn, m)
         self.chunk = int(chunk_revolutions)
         self.speed: SpeedProfile = speed_profile_from_scenario(scn)
         seed = scn.run.seed

@@ -36,7 +36,7 @@ from .live import LiveViews
 from .paths import displacement_path, fit_path, fit_rpm_path, tw_path
 from .recording import ViewSession, log_recording
 from .rotor import DEFAULT_EXAGGERATION
-from .sinks import APPLICATION_ID, ViewSinks, open_recording
+from .sinks import APPLICATION_ID, ViewSinks, finish_files, open_recording
 
 __all__ = [
     "APPLICATION_ID",
@@ -46,6 +46,7 @@ __all__ = [
     "LiveViews",
     "build_blueprint",
     "open_recording",
+    "finish_files",
     "log_recording",
     "tw_path",
     "displacement_path",

@@ -220,7 +220,7 @@ class LiveViews:
 
     def _route(self, msg: Incoming) -> None:
         """Hand a message to the views that show it."""
-        if msg.rig != self.meta.rig:
+        if msg.rig != self.meta.rig or msg.decoded.header.run_id != self.meta.run_id:  # another run's
             self._ignored += 1
             return
         v, kind, d = self._views, msg.kind, msg.decoded

@@ -10,12 +10,12 @@ from dataclasses import dataclass, field
 import rerun as rr
 
 from ..bus.recording import read_recording
-from ..defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from ..process.pipeline import ProcessOptions, engine_orders_of
 from .blueprint import build_blueprint
 from .live import LiveViews, MessageDecoder
 from .rotor import DEFAULT_EXAGGERATION
-from .sinks import ViewSinks, open_recording
+from .sinks import ViewSinks, finish_files, open_recording
 
 __all__ = ["ViewSession", "log_recording"]
 
@@ -44,13 +44,14 @@ class ViewSession:
     elapsed_s: float = 0.0
 
     def close(self) -> None:
-        """Flush and disconnect every sink (finalises the ``.rrd``, stops a hosted server)."""
+        """Flush and disconnect every sink (finalises the ``.rrd``, stops the hosted servers)."""
         self.recording.flush()
         self.recording.disconnect()
+        self.sinks.close()
 
 
 def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web_port: int = DEFAULT_WEB_PORT,
-                  grpc_port: int = DEFAULT_GRPC_PORT, grpc_url: str | None = None,
+                  grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, grpc_url: str | None = None,
                   blades: Sequence[int] | None = None, exaggeration: float = DEFAULT_EXAGGERATION) -> ViewSession:
     """Log every view of an MCAP recording to Rerun in one pass.
 
@@ -59,11 +60,13 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
     recording_path : path
         An MCAP recording of the bus (``bttsim simulate``, the recorder node, ``bttsim run``).
     rrd_path : path, optional
-        Write an ``.rrd`` file (finalised before returning unless ``serve_web``).
+        Write an ``.rrd`` file (finalised before returning, also while serving).
     serve_web : bool
-        Host the web viewer on ``web_port`` (gRPC server on ``grpc_port``, loopback); the
+        Host the web viewer on ``bind:web_port`` (gRPC server on ``bind:grpc_port``); the
         URL is in ``session.sinks.web_url``. Keep the process (and the returned session)
         alive while it is viewed, then ``session.close()``.
+    bind : str
+        IP address of both servers (default 127.0.0.1: this machine only).
     grpc_url : str, optional
         Also stream to a running viewer.
     blades : sequence of int, optional
@@ -91,7 +94,7 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
         (msg.decoded.body.probe for msg in messages if msg.kind in ("toa", "tw")), default=0)
     blueprint = build_blueprint(n_probes, n_blades=meta.n_blades if meta else None, engine_orders=eos, live=False)
     rec, sinks = open_recording(rrd_path=rrd_path, grpc_url=grpc_url, serve_web=serve_web, web_port=web_port,
-                                grpc_port=grpc_port, blueprint=blueprint,
+                                grpc_port=grpc_port, bind=bind, blueprint=blueprint,
                                 recording_id=meta.run_id if meta is not None else None)
     views = LiveViews(rec, live=False, blades=blades, exaggeration=exaggeration, send_blueprint=False,
                       engine_orders=eos, decoder=decoder)
@@ -101,7 +104,9 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
     session = ViewSession(recording=rec, sinks=sinks, stats=views.stats, elapsed_s=time.perf_counter() - t_start)
     if recording.truncated:
         session.stats["truncated"] = True
-    if not serve_web:
+    if serve_web:
+        finish_files(rec)  # the .rrd is complete while the page is served
+    else:
         session.close()
     log.info("logged %d messages (%d revolutions) in %.1f s", session.stats["messages"],
              session.stats["revolutions"], session.elapsed_s)

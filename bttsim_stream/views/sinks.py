@@ -1,25 +1,27 @@
 """Where the views go: an ``.rrd`` file, a running viewer, and/or a web viewer served from here.
 
 Ports default to :data:`~bttsim_stream.defaults.DEFAULT_WEB_PORT` and
-:data:`~bttsim_stream.defaults.DEFAULT_GRPC_PORT`. The data server binds to 127.0.0.1;
-Rerun 0.41's ``serve_web_viewer`` has no bind option, so the (static) web page server
-listens on every interface.
+:data:`~bttsim_stream.defaults.DEFAULT_GRPC_PORT`, the address to
+:data:`~bttsim_stream.defaults.DEFAULT_BIND` (127.0.0.1). Both servers of the web viewer
+listen on that one address: the gRPC data server (Rerun's server sink) and the page
+(:mod:`.webviewer`, our own server: Rerun 0.41's ``serve_web_viewer`` binds every interface).
 """
 
 from __future__ import annotations
 
-import socket
 import urllib.parse
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..defaults import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from ..bus.ports import check_port_free, parse_bind, url_host
+from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from ..errors import BttsimError
+from .webviewer import WebViewerServer
 
-__all__ = ["APPLICATION_ID", "ViewSinks", "open_recording"]
+__all__ = ["APPLICATION_ID", "ViewSinks", "finish_files", "open_recording"]
 
 #: Rerun application id of every bttsim recording (blueprints are stored per application).
 APPLICATION_ID = "bttsim"
@@ -40,17 +42,25 @@ class ViewSinks:
         ``rerun+http://127.0.0.1:9876/proxy``.
     web_url : str or None
         The web viewer page, connected to ``server_url``.
+    web_server : WebViewerServer or None
+        The page's server (stopped by :meth:`close`).
     """
 
     rrd_path: str | None = None
     grpc_url: str | None = None
     server_url: str | None = None
     web_url: str | None = None
+    web_server: WebViewerServer | None = field(default=None, repr=False)
+
+    def close(self) -> None:
+        """Stop serving the web viewer page (the stream's ``disconnect`` stops the data server)."""
+        if self.web_server is not None:
+            self.web_server.close()
 
 
 def open_recording(*, rrd_path=None, grpc_url: str | None = None, serve_web: bool = False,
                    web_port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT,
-                   blueprint: rrb.Blueprint | None = None, recording_id: str | None = None,
+                   bind: str = DEFAULT_BIND, blueprint: rrb.Blueprint | None = None, recording_id: str | None = None,
                    server_memory_limit: str = "512MiB") -> tuple[rr.RecordingStream, ViewSinks]:
     """A Rerun recording stream teed to the requested sinks.
 
@@ -62,9 +72,12 @@ def open_recording(*, rrd_path=None, grpc_url: str | None = None, serve_web: boo
     grpc_url : str, optional
         Connect to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
     serve_web : bool
-        Host a gRPC server on ``127.0.0.1:grpc_port`` and the web viewer on ``web_port``.
-        Both stop with the process (and the server when the stream is disconnected).
+        Host a gRPC server on ``bind:grpc_port`` and the web viewer page on ``bind:web_port``.
+        Both stop with the process (the data server when the stream is disconnected, the
+        page with ``sinks.close()``).
     web_port, grpc_port : int
+    bind : str
+        IP address both servers listen on (127.0.0.1: this machine only).
     blueprint : Blueprint, optional
         Default blueprint (else send one later with ``send_blueprint``).
     recording_id : str, optional
@@ -80,42 +93,47 @@ def open_recording(*, rrd_path=None, grpc_url: str | None = None, serve_web: boo
     Raises
     ------
     BttsimError
-        No sink requested, or a port in use (one line).
+        No sink requested, a bad address, or a port in use (one line).
     """
     if not (rrd_path or grpc_url or serve_web):
         raise BttsimError("no Rerun output: give an .rrd file, a viewer URL or the web viewer")
     if serve_web:
-        for port, what in ((grpc_port, "gRPC"), (web_port, "web viewer")):
-            _check_port_free(int(port), what)
+        bind = parse_bind(bind)
+        if int(web_port) == int(grpc_port):
+            raise BttsimError(f"--web-port and --grpc-port are both {int(web_port)}: give two ports")
+        for port, what in ((grpc_port, "web viewer's data server (--grpc-port)"),
+                           (web_port, "web viewer (--web-port)")):
+            check_port_free(bind, int(port), what)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
     sinks: list = []
-    server_url = web_url = None
+    server_url = web_url = web_server = None
     if rrd_path:
         Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(str(rrd_path)))
     if grpc_url:
         sinks.append(rr.GrpcSink(grpc_url))
     if serve_web:
-        server = rr.GrpcServerSink("127.0.0.1", int(grpc_port), server_memory_limit=server_memory_limit)
-        server_url = server.uri
+        # Rerun joins "ip:port" as given: an IPv6 address needs its brackets
+        server = rr.GrpcServerSink(f"[{bind}]" if ":" in bind else bind, int(grpc_port),
+                                   server_memory_limit=server_memory_limit)
+        server_url = f"rerun+http://{url_host(bind)}:{int(grpc_port)}/proxy"
         sinks.append(server)
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     if serve_web:
         try:
-            rr.serve_web_viewer(web_port=int(web_port), open_browser=False, connect_to=server_url)
-        except RuntimeError as exc:
+            web_server = WebViewerServer(bind, int(web_port))
+        except BttsimError:
             rec.disconnect()
-            raise BttsimError(f"cannot serve the web viewer: {' '.join(str(exc).split())}") from None
-        web_url = f"http://127.0.0.1:{int(web_port)}/?url={urllib.parse.quote(server_url, safe='')}"
+            raise
+        web_url = f"{web_server.url}?url={urllib.parse.quote(server_url, safe='')}"
     return rec, ViewSinks(rrd_path=str(rrd_path) if rrd_path else None, grpc_url=grpc_url,
-                          server_url=server_url, web_url=web_url)
+                          server_url=server_url, web_url=web_url, web_server=web_server)
 
 
-def _check_port_free(port: int, what: str) -> None:
-    """Rerun reports a busy server port only in its log: check first (one-line error)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers do: TIME_WAIT is fine
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            raise BttsimError(f"cannot serve the {what} on port {port}: address in use") from None
+def finish_files(rec: rr.RecordingStream) -> None:
+    """Finalise the stream's ``.rrd`` file (its footer) and keep its servers running: a
+    viewer that keeps serving after the run leaves a complete file behind at once."""
+    import rerun_bindings
+
+    rec.flush()
+    rerun_bindings.finalize_deferred_sinks(recording=rec.to_native())

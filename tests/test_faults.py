@@ -1,0 +1,139 @@
+"""The fault matrix of ``bttsim run`` at max rate: a node stalled 10 s (SIGSTOP, then SIGCONT)
+costs nothing; a node killed (SIGKILL) makes the run say so (non-zero exit), with the files
+that were written still valid and the summary marked incomplete.
+
+Each fault is applied mid-run: once the recorder has written its first MCAP chunk (the
+simulator is publishing), found by waiting on the file, not on a clock.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from bttsim_stream.bus.recording import read_recording
+
+pytestmark = pytest.mark.integration
+
+REPO = Path(__file__).resolve().parents[1]
+# about 1300 revolutions through the EO 8 crossing near 2580 rpm: a few seconds at max rate
+SCENARIO = "[speed]\nstart_rpm = 2400.0\nend_rpm = 2800.0\nduration_s = 30.0\n"
+STALL_S = 10.0
+
+
+def _node_pid(out: Path, name: str) -> int | None:
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                cmd = (proc / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"bttsim_stream.nodes" in cmd and name.encode() in cmd and any(str(out).encode() in c for c in cmd):
+                return int(proc.name)
+    return None
+
+
+def _start(tmp_path: Path, tag: str):
+    scn = tmp_path / "scn.toml"
+    scn.write_text(SCENARIO)
+    out = tmp_path / tag
+    proc = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "run", str(scn), "--out", str(out), "--quiet"],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    return proc, out
+
+
+def _wait_mid_run(proc, out: Path, deadline_s: float = 120.0) -> None:
+    """Until the recorder has written a chunk with messages (data are flowing) -- or fail."""
+    mcap = out / "run.mcap"
+    deadline = time.monotonic() + deadline_s
+    size = 0
+    while time.monotonic() < deadline:
+        if mcap.exists() and mcap.stat().st_size != size:
+            size = mcap.stat().st_size
+            if len(read_recording(mcap).messages) > 0:
+                return
+        assert proc.poll() is None, proc.stdout.read()
+        time.sleep(0.02)
+    pytest.fail("the run never started publishing")
+
+
+def _finish(proc) -> tuple[int, str]:
+    try:
+        text, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc.returncode, text
+
+
+def _result(summary: dict) -> tuple:
+    return tuple((b["blade"], b["amp_pkpk_m"], b["freq_hz"], b["E_A_pct"]) for b in summary["blades"])
+
+
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory):
+    proc, out = _start(tmp_path_factory.mktemp("clean"), "clean")
+    rc, text = _finish(proc)
+    assert rc == 0, text
+    s = json.loads((out / "summary.json").read_text())
+    assert s["complete"] and s["lost"] == 0 and s["status"] == "resonance"
+    return s
+
+
+@pytest.mark.parametrize("node", ["processor", "recorder", "viewer"])
+def test_a_node_stalled_10_s_costs_nothing(tmp_path, clean_run, node):
+    """Under the default (blocking) policy a stalled consumer stalls the simulator; nothing is
+    dropped, and the result is the clean run's, bit for bit."""
+    proc, out = _start(tmp_path, node)
+    try:
+        _wait_mid_run(proc, out)
+        pid = _node_pid(out, node)
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            time.sleep(STALL_S)  # the fault itself lasts 10 s
+        finally:
+            os.kill(pid, signal.SIGCONT)
+    finally:
+        rc, text = _finish(proc)
+    assert rc == 0, text
+    s = json.loads((out / "summary.json").read_text())
+    assert s["complete"] and (s["lost"], s["duplicates"], s["rejected"]) == (0, 0, 0), text
+    assert s["revolutions_processed"] == s["revolutions_expected"] == clean_run["revolutions_expected"]
+    assert _result(s) == _result(clean_run)
+    for log in ("recorder.log", "viewer.log"):  # each consumer's own count of what it lost
+        counts = json.loads([ln for ln in (out / log).read_text().splitlines() if ln.startswith("{")][-1])
+        assert counts["gaps"] == 0 and counts["rejected"] == 0, (log, counts)
+    run = read_recording(out / "run.mcap")
+    assert not run.truncated and sum(m.key.endswith("/opr") for m in run.messages) == s["revolutions_expected"]
+
+
+@pytest.mark.parametrize("node", ["sim", "processor", "recorder", "viewer"])
+def test_a_killed_node_makes_the_run_say_so(tmp_path, node):
+    """SIGKILL of any node mid-run: exit 3 naming the node, the MCAP readable (up to its last
+    chunk if the recorder died), and a summary complete only if it holds the whole run."""
+    proc, out = _start(tmp_path, node)
+    try:
+        _wait_mid_run(proc, out)
+        pid = _node_pid(out, node)
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+    finally:
+        rc, text = _finish(proc)
+    assert rc == 3, text
+    assert f"the {node} node failed (killed by SIGKILL" in text
+    assert "Traceback" not in text
+    run = read_recording(out / "run.mcap")
+    assert len(run.messages) > 0 and run.truncated == (node == "recorder")
+    s = json.loads((out / "summary.json").read_text())
+    # honest either way: a simulator killed while it waited for its consumers had sent it all
+    assert s["complete"] == (s["revolutions_processed"] == s["revolutions_expected"] and s["lost"] == 0)
+    if node == "processor":
+        assert s["status"] == "none" and s["blades"] == [] and "killed by SIGKILL" in s["error"]
