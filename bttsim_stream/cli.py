@@ -19,6 +19,9 @@ import numpy as np
 from . import scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
+from .bus.certs import IDENTITIES, generate_certificates
+from .bus.security import write_config_files
+from .bus.session import CONNECT_TIMEOUT_S
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
@@ -189,6 +192,15 @@ def _cmd_process(args: argparse.Namespace) -> None:
         print(f"wrote {args.summary}")
 
 
+def _cmd_certs(args: argparse.Namespace) -> None:
+    names = [n.strip() for n in args.names.split(",") if n.strip()]
+    made = [n for n in generate_certificates(args.dir, names, hosts=args.host, days=args.days,
+                                             overwrite=args.force) if n != "ca"]
+    write_config_files(args.dir, made)
+    print(f"wrote {args.dir}: ca.pem (keep ca-key.pem off the nodes), NAME.pem, NAME-key.pem and the "
+          f"Zenoh configuration NAME.json5 (for -c) of {', '.join(made)}")
+
+
 def _print_run(res: dict) -> None:
     summary, files = res["summary"], res["files"]
     if summary is not None and "error" in summary:
@@ -209,7 +221,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, grpc_port=args.grpc_port,
                   bind=args.bind, realtime=args.realtime, connect=args.connect, config=args.config,
-                  quiet=args.quiet, mode=args.mode, on_serving=on_serving)
+                  quiet=args.quiet, mode=args.mode, on_serving=on_serving, tls_dir=args.tls_dir,
+                  access_control=not args.no_access_control, connect_timeout_s=args.connect_timeout)
     if served:
         res = served[0]  # the run's result: the Ctrl-C after it only ended the serving
     else:
@@ -339,8 +352,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration for every node")
     p.add_argument("-m", "--mode", choices=("peer", "client"), default="peer",
                    help="session mode of every node (peer; client: through a Zenoh router given with -e)")
+    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="S",
+                   help=f"a node that cannot reach its endpoints after S seconds fails ({CONNECT_TIMEOUT_S:g})")
+    p.add_argument("--tls-dir", metavar="DIR",
+                   help="mutual TLS and access control for every node, certificates from DIR (bttsim certs DIR)")
+    p.add_argument("--no-access-control", action="store_true", help="with --tls-dir, authenticate only")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("certs", help="make a CA and per-node certificates for --tls-dir (docs/security.md)")
+    p.add_argument("dir", help="output folder: ca.pem, ca-key.pem, NAME.pem, NAME-key.pem, NAME.json5")
+    p.add_argument("--names", default=",".join(IDENTITIES),
+                   help=f"comma-separated identities ({','.join(IDENTITIES)})")
+    p.add_argument("--host", action="append", default=[], metavar="NAME_OR_IP",
+                   help="a host name or address the certificates are valid for, besides loopback (repeatable)")
+    p.add_argument("--days", type=int, default=365, help="validity in days (365)")
+    p.add_argument("--force", action="store_true", help="replace the files of an existing folder")
+    p.set_defaults(func=_cmd_certs)
 
     p = sub.add_parser("scenario", help="print the default scenario (TOML) or check one")
     p.add_argument("--check", metavar="SCENARIO.toml", help="validate a scenario file and report")

@@ -15,6 +15,10 @@ With ``--web`` the viewer serves the Rerun web viewer on ``--bind`` (127.0.0.1) 
 the result is reported and the viewer keeps serving until Ctrl-C. The nodes get SIGTERM
 when the orchestrator dies, however it dies (:mod:`bttsim_stream.children`): no node
 outlives it.
+
+With ``tls_dir`` (``bttsim run --tls-dir DIR``, certificates from ``bttsim certs DIR``) every
+node, and the run's own session (identity ``run``), speaks mutual TLS on ``tls/127.0.0.1``
+endpoints under the access-control policy of :mod:`bttsim_stream.bus.security`.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ from pathlib import Path
 
 from .bus import codec, keys
 from .bus.ports import check_port_free, parse_bind
-from .bus.session import free_port, make_config, open_session
+from .bus.security import TlsFiles
+from .bus.session import CONNECT_TIMEOUT_S, free_port, make_config, open_session
 from .children import die_with_parent
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError
@@ -43,8 +48,9 @@ NODES = ("recorder", "processor", "viewer", "sim")
 SERVING_LINE = "serving the web viewer until stopped"
 
 
-def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str) -> list[str]:
-    out: list[str] = ["-m", mode]
+def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str,
+                   security: list[str]) -> list[str]:
+    out: list[str] = ["-m", mode, *security]
     if listen:
         out += ["-l", listen]
     for e in connect:
@@ -57,15 +63,27 @@ def _session_flags(listen: str | None, connect: list[str], config: str | None, m
 def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = DEFAULT_WEB_PORT,
             grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
             connect: list[str] | None = None, config: str | None = None, quiet: bool = False,
-            mode: str = "peer", on_serving=None) -> dict:
+            mode: str = "peer", on_serving=None, tls_dir: str | None = None, access_control: bool = True,
+            connect_timeout_s: float = CONNECT_TIMEOUT_S) -> dict:
     """Run the main job; returns the summary dict (also written to ``OUT/summary.json``).
 
     With ``web``, once the run's result is known and the viewer only serves, ``on_serving``
     (if given) is called with the result (the dict this function returns) and the web viewer
-    is served until a signal (Ctrl-C, SIGTERM, SIGHUP) stops it.
+    is served until a signal (Ctrl-C, SIGTERM, SIGHUP) stops it. ``tls_dir``: mutual TLS (and,
+    with ``access_control``, the access-control policy) with the certificates of that folder;
+    ``connect_timeout_s``: how long every node tries to reach its endpoints before it gives up
+    with an error.
     """
     if mode == "client" and not connect:
         raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
+    tls = None
+    security: list[str] = ["--connect-timeout", f"{connect_timeout_s:g}"]
+    if tls_dir:
+        d = Path(tls_dir).resolve()
+        tls = TlsFiles(d / "ca.pem", d / "run.pem", d / "run-key.pem", access_control)
+        for n in NODES:  # every identity there before anything starts
+            TlsFiles(d / "ca.pem", d / f"{n}.pem", d / f"{n}-key.pem")
+        security += ["--tls-dir", str(d)] + ([] if access_control else ["--no-access-control"])
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
     if web:  # a busy port is an error now, not after the run (Rerun would only log it)
         bind = parse_bind(bind)
@@ -87,7 +105,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
 
     embedded = not connect  # a -c file is merged with each node's own loopback endpoint
     ports = {n: free_port() for n in NODES} if embedded else {}
-    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in ports.items()}
+    endpoints = {n: f"{'tls' if tls else 'tcp'}/127.0.0.1:{p}" for n, p in ports.items()}
     args = {
         "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
         "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
@@ -95,6 +113,13 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         + (["--web", "--web-port", str(web_port), "--grpc-port", str(grpc_port), "--bind", bind] if web else []),
         "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
     }
+    # our own session's configuration first: bad endpoints, files or certificates end the run
+    # before any node starts
+    conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
+                       config_file=config, tls=tls,
+                       # our own nodes may be done before we reach the last of them (a short
+                       # run): follow them from the background; a router must answer
+                       connect_timeout_s=None if embedded else connect_timeout_s)
     procs: dict[str, subprocess.Popen] = {}
     logs = {n: open(out / f"{n}.log", "w") for n in NODES}
     interrupted = finished = False
@@ -124,14 +149,12 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         started: list[str] = []
         for n in NODES:
             flags = _session_flags(endpoints.get(n), [endpoints[m] for m in started] if embedded else
-                                   list(connect or []), config, mode)
+                                   list(connect or []), config, mode, security)
             procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *map(str, args[n]), *flags],
                                         stdout=logs[n], stderr=subprocess.STDOUT,
                                         start_new_session=True,  # Ctrl-C reaches only us
                                         preexec_fn=die_with_parent())  # and they end when we do
             started.append(n)
-        conf = make_config(mode, connect=list(endpoints.values()) if embedded else list(connect or []),
-                           config_file=config)
         with open_session(conf) as session:
             n_rev = _revolutions(procs, session, rig)
             if web:  # printed by the viewer before it joined: the simulator waited for it

@@ -49,8 +49,9 @@ def main(conf, args: argparse.Namespace) -> dict:
         node.declare(node.session.declare_queryable(
             meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0))))
         if args.wait_for:
-            seen = wait_for_liveliness(node.session, keys.alive_all_key(stream.rig), args.wait_for + 1,
-                                       args.wait_timeout, stop) - 1
+            # the others: not this node, nor a router (which routes, and consumes nothing)
+            seen = wait_for_liveliness(node.session, keys.alive_all_key(stream.rig), args.wait_for,
+                                       args.wait_timeout, stop, exclude=("sim", "router"))
             log.info("%d other node(s) alive on %s", seen, stream.rig)
             if seen < args.wait_for and not stop:
                 raise BttsimError(f"found {seen} of the {args.wait_for} node(s) to wait for on {stream.rig} after "

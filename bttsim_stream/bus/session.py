@@ -3,8 +3,12 @@
 Defaults keep everything on this machine: peer mode, multicast scouting off, and only the
 endpoints given with ``-l/--listen`` and ``-e/--connect`` (use loopback addresses such as
 ``tcp/127.0.0.1:7447``). ``-c/--config`` loads a Zenoh JSON5 configuration file to join a real
-Zenoh network with a router. Every sample carries a 16-byte attachment (sequence number and
-log time in ns, little-endian) so recorders need not decode payloads.
+Zenoh network with a router. A node that cannot reach every ``-e`` endpoint within
+``--connect-timeout`` seconds (nobody there, a TLS handshake refused) stops with a one-line
+error instead of running alone. Security (mutual TLS, access control) is off unless a
+certificate is given: :mod:`bttsim_stream.bus.security`. Every sample carries a 16-byte
+attachment (sequence number and log time in ns, little-endian) so recorders need not decode
+payloads.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import zenoh.ext as zx
 
 from ..errors import BttsimError
 from . import keys
+from .security import TlsFiles, add_security_args, apply_security, tls_from_args
 
 __all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
            "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers", "wait_for_done",
@@ -46,6 +51,14 @@ def add_session_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration file")
     g.add_argument("--multicast-scouting", action="store_true",
                    help="enable multicast scouting (off by default: loopback-only runs)")
+    g.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="S",
+                   help=f"give up (error) when the -e endpoints are not all reached after S seconds "
+                        f"({CONNECT_TIMEOUT_S:g})")
+    add_security_args(parser)
+
+
+#: How long a node tries to reach its ``-e`` endpoints before it gives up with an error (s).
+CONNECT_TIMEOUT_S = 30.0
 
 
 #: Zenoh's defaults close a link whose receiver has not drained a blocking (lossless) message
@@ -58,7 +71,8 @@ _PATIENCE = {
 
 
 def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | None = None,
-                multicast_scouting: bool = False) -> "zenoh.Config":
+                multicast_scouting: bool = False, *, tls: TlsFiles | None = None,
+                connect_timeout_s: float | None = CONNECT_TIMEOUT_S) -> "zenoh.Config":
     """A Zenoh configuration; a bad file or endpoint is a one-line :class:`BttsimError`.
 
     Without a file: ``mode``, only the given listen and connect endpoints, multicast
@@ -69,7 +83,19 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
     stays off unless the file or ``multicast_scouting`` turns it on, and ``-e``/``-l`` given
     on the command line are added. Links are patient (:data:`_PATIENCE`): a slow consumer
     slows the publisher down (lossless) instead of being cut off after 5 s.
+
+    ``connect_timeout_s``: opening the session waits until every ``connect`` endpoint is
+    reached, and fails after that long (None: zenoh's default, retry in the background
+    forever; a router node always retries). ``tls``: mutual TLS and access control
+    (:func:`~bttsim_stream.bus.security.apply_security`); every endpoint given must then be
+    ``tls/...``.
     """
+    if tls is not None:
+        plain = [e for e in [*connect, *listen] if not str(e).startswith("tls/")]
+        if plain:
+            raise BttsimError(f"with TLS on, endpoints must be tls/HOST:PORT, got {plain[0]!r}")
+    if connect_timeout_s is not None and not connect_timeout_s > 0:
+        raise BttsimError(f"--connect-timeout must be positive, got {connect_timeout_s:g}")
     try:
         if config_file:
             if not Path(config_file).is_file():
@@ -99,6 +125,16 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
         for key, value in _PATIENCE.items():  # unless the file chose otherwise
             if conf.get_json(key) == defaults.get_json(key):
                 conf.insert_json5(key, value)
+        if connect and connect_timeout_s is not None and mode != "router" and \
+                conf.get_json("connect/timeout_ms") in (None, "null"):
+            ms = int(connect_timeout_s * 1000)
+            conf.insert_json5("connect/timeout_ms", f'{{"router": -1, "peer": {ms}, "client": {ms}}}')
+            conf.insert_json5("connect/exit_on_failure", '{"router": false, "peer": true, "client": true}')
+            if conf.get_json("connect/retry") in (None, "null"):  # zenoh's first retry comes after 1 s
+                conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 1000, '
+                                                   '"period_increase_factor": 2}')
+        if tls is not None:
+            apply_security(conf, tls)
         conf.insert_json5("timestamping/enabled", "true")  # needed by the advanced publishers
         return conf
     except BttsimError:
@@ -114,16 +150,43 @@ def _json_list(items) -> str:
     return "[" + ",".join(f'"{e}"' for e in items) + "]"
 
 
-def config_from_args(args: argparse.Namespace) -> "zenoh.Config":
-    return make_config(args.mode, args.connect, args.listen, args.config, args.multicast_scouting)
+def config_from_args(args: argparse.Namespace, name: str | None = None, mode: str | None = None,
+                     listen=None) -> "zenoh.Config":
+    """The configuration the session flags ask for; ``name`` is the node's identity for
+    ``--tls-dir`` (default: the node program's name), ``mode``/``listen`` override the flags."""
+    if name is None:
+        name = args.node_program.name if hasattr(args, "node_program") else "run"
+        name = {"replay": "sim"}.get(name, name)  # a replay publishes what a simulator does
+    return make_config(mode or args.mode, args.connect, args.listen if listen is None else listen, args.config,
+                       args.multicast_scouting, tls=tls_from_args(args, name),
+                       connect_timeout_s=getattr(args, "connect_timeout", CONNECT_TIMEOUT_S))
 
 
 def open_session(conf: "zenoh.Config") -> "zenoh.Session":
-    """Open a session; an endpoint already in use or unreachable is a one-line error."""
+    """Open a session; an endpoint already in use or unreachable (nobody listening, a TLS
+    handshake refused) is a one-line error."""
     try:
         return zenoh.open(conf)
     except Exception as exc:
-        raise BttsimError(f"cannot open the zenoh session: {str(exc).splitlines()[0]}") from None
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if "Unable to connect" in text:
+            ends = ", ".join(_json_loads(conf.get_json("connect/endpoints")))
+            raise BttsimError(f"cannot reach {ends} (nobody listening there, or the TLS handshake was "
+                              "refused: check the endpoints and certificates)") from None
+        text = text.split(" at /")[0]  # zenoh appends its source location
+        raise BttsimError(f"cannot open the zenoh session: {text}") from None
+
+
+def _json_loads(text) -> list:
+    import json
+
+    try:
+        value = json.loads(text)
+    except (TypeError, ValueError):
+        return []
+    if isinstance(value, dict):  # per-mode lists
+        return sorted({e for v in value.values() for e in (v or [])})
+    return list(value or [])
 
 
 def free_port() -> int:
@@ -257,12 +320,15 @@ def declare_subscriber(session, key_expr: str, handler, *, history: bool = True)
         recovery=None, subscriber_detection=False, allowed_origin=None)
 
 
-def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, stop: StopFlag) -> int:
-    """Wait until ``count`` liveliness tokens match ``key_expr``; returns how many were seen."""
+def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, stop: StopFlag,
+                        exclude=()) -> int:
+    """Wait until ``count`` liveliness tokens match ``key_expr`` (those whose last chunk is in
+    ``exclude`` aside); returns how many were seen."""
     deadline = time.monotonic() + timeout_s
     seen = 0
     while not stop and time.monotonic() < deadline:
-        seen = sum(1 for r in session.liveliness().get(key_expr, timeout=1.0) if r.ok is not None)
+        seen = sum(1 for r in session.liveliness().get(key_expr, timeout=1.0)
+                   if r.ok is not None and str(r.ok.key_expr).rsplit("/", 1)[-1] not in exclude)
         if seen >= count:
             break
         stop.wait(0.1)
