@@ -727,8 +727,11 @@ class Signal:
         Tangential width of the tip at the probe, m, default 1 mm; in (0, 0.05].
     clearance_m : float
         Cold tip clearance, m, default 0.5 mm; in (0, 0.05], larger than the centrifugal growth.
+    reference_clearance_m : float
+        Clearance at which the capacitive pulse height scale is ``height_v``, m, default 0.5 mm;
+        in (0, 0.05] (the height falls as ``1 / clearance``).
     height_v : float
-        Pulse height scale, V, default 1.0 (capacitive: at the cold clearance); > 0.
+        Pulse height scale, V, default 1.0; > 0.
     fringe_factor : float
         Capacitive kernel spreading with clearance, default 0.5; in [0, 10].
     bandwidth_hz : float
@@ -770,8 +773,10 @@ class Signal:
         "tangential width of the blade tip at the probe, m; in (0, 0.05]"))
     clearance_m: float = field(default=0.5e-3, metadata=_doc(
         "cold tip clearance, m; in (0, 0.05], above the centrifugal growth"))
+    reference_clearance_m: float = field(default=0.5e-3, metadata=_doc(
+        "clearance at which the capacitive pulse height scale is height_v, m; in (0, 0.05]"))
     height_v: float = field(default=1.0, metadata=_doc(
-        "pulse height scale, V (capacitive: at the cold clearance, falls as 1 / clearance); > 0"))
+        "pulse height scale, V (capacitive: at reference_clearance_m, falls as 1 / clearance); > 0"))
     fringe_factor: float = field(default=0.5, metadata=_doc(
         "capacitive field spreading with clearance (kernel sigma^2 = (D/4)^2 + (k g)^2); in [0, 10]"))
     bandwidth_hz: float = field(default=1.0e6, metadata=_doc(
@@ -803,7 +808,8 @@ class Signal:
         bounds = {"fraction": dict(lo=0, lo_open=True, hi=1, hi_open=True),
                   "sample_rate_hz": dict(lo=1e5, hi=1e9), "fringe_factor": dict(lo=0, hi=10),
                   "lf_corner_hz": dict(lo=0, lo_open=True, hi=1e6)}
-        for name in ("spot_diameter_m", "electrode_diameter_m", "tip_thickness_m", "clearance_m"):
+        for name in ("spot_diameter_m", "electrode_diameter_m", "tip_thickness_m", "clearance_m",
+                     "reference_clearance_m"):
             bounds[name] = dict(lo=0, lo_open=True, hi=0.05)
         for name in ("height_v", "density_kg_m3", "youngs_modulus_pa"):
             bounds[name] = dict(lo=0, lo_open=True)

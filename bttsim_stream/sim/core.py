@@ -586,7 +586,8 @@ class _SignalChain:
             return (v,) * n_probes if isinstance(v, str) else tuple(v)
 
         self.probes = [ProbeModel(kind=k, diameter_m=sig.spot_diameter_m if k == "optical" else sig.electrode_diameter_m,
-                                  tip_thickness_m=sig.tip_thickness_m, clearance_m=sig.clearance_m,
+                                  tip_thickness_m=sig.tip_thickness_m,
+                                  reference_clearance_m=sig.reference_clearance_m,
                                   height_v=sig.height_v, fringe_factor=sig.fringe_factor,
                                   bandwidth_hz=sig.bandwidth_hz) for k in per_probe(sig.probe_type)]
         self.triggers = [Trigger(kind=k, level_v=sig.level_v, hysteresis_v=sig.hysteresis_v, edge=sig.edge,

@@ -32,7 +32,7 @@ is the centre of the pulse). Its peak is ``H tanh(T / (4 s))``.
 * **capacitive**: the field of an electrode of diameter ``D_e`` spreads with the gap ``g``:
   ``sigma(g) = sqrt((D_e / 4)^2 + (kappa g)^2)`` (``kappa``: fringe factor) and the
   capacitance change, hence the pulse height, falls as ``1 / g``:
-  ``H(g) = height_v g_0 / g`` (``g_0``: the cold clearance, where ``H = height_v``). Both the
+  ``H(g) = height_v g_ref / g`` (``g_ref``: the reference clearance, where ``H = height_v``). Both the
   height and the width of the pulse depend on the clearance; a pulse whose peak
   ``H(g) tanh(T / (4 s(g)))`` drops below the trigger level goes missing
   (:func:`missing_clearance_m`).
@@ -124,8 +124,8 @@ class ProbeModel:
         Optical: 1/e^2 spot diameter; capacitive: electrode diameter, m.
     tip_thickness_m : float
         Tangential width ``T`` of the blade tip at the probe's axial station, m.
-    clearance_m : float
-        Cold tip clearance ``g_0``, m (the capacitive pulse has ``height_v`` there).
+    reference_clearance_m : float
+        Clearance ``g_ref`` at which the capacitive pulse height scale is ``height_v``, m.
     height_v : float
         Pulse height scale ``H``, V.
     fringe_factor : float
@@ -137,7 +137,7 @@ class ProbeModel:
     kind: str
     diameter_m: float
     tip_thickness_m: float
-    clearance_m: float
+    reference_clearance_m: float
     height_v: float
     fringe_factor: float = 0.5
     bandwidth_hz: float = 0.0
@@ -312,7 +312,7 @@ def pulse_parameters(probe: ProbeModel, clearance_m, speed_m_s) -> PulseParamete
         height = np.full_like(g, probe.height_v)
     else:
         s_x = np.hypot(probe.diameter_m / 4.0, probe.fringe_factor * g) * _LOGISTIC_PER_SIGMA
-        height = probe.height_v * probe.clearance_m / g
+        height = probe.height_v * probe.reference_clearance_m / g
     return PulseParameters(height_v=height, half_width_s=0.5 * probe.tip_thickness_m / v, scale_s=s_x / v)
 
 
