@@ -861,7 +861,8 @@ class Acquisition:
         "std of the Gaussian jitter on each OPR timestamp, s; >= 0, at most 1 % of the shortest\nrevolution"))
     speed_fluctuation_rpm: float = field(default=0.0, metadata=_doc(
         "std of the random speed fluctuation about the speed profile, rpm; >= 0, at most 10 %\nof the slowest speed"))
-    signal: Signal = field(default_factory=Signal, metadata=_doc(""))
+    signal: Signal = field(default_factory=Signal, metadata=_doc(
+        "the probe signal and trigger chain: the [acquisition.signal] table"))
 
     def __post_init__(self) -> None:
         w = "[acquisition]"
