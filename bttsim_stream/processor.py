@@ -45,6 +45,9 @@ class ProcessorSession:
     ----------
     rejected : int
         Messages refused (malformed, not fitting the run, implausible sequence numbers).
+    missing_toas : int
+        TOAs received as NaN (no pulse triggered: the signal chain's missing pulses); they
+        stay NaN through the processing, which fits the probes present.
     """
 
     def __init__(self, meta: RunInfo, options: ProcessOptions = ProcessOptions(), *, score: bool = True) -> None:
@@ -56,6 +59,7 @@ class ProcessorSession:
         self.seqs = SequenceTracker()
         self.out = MessageStream(meta.run_id, meta.rig)
         self.rejected = 0
+        self.missing_toas = 0
         self.end = StreamEnd(meta)
 
     @property
@@ -84,6 +88,8 @@ class ProcessorSession:
             t = decoded.body
             self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]))
             return []
+        if kind == "toa":
+            self.missing_toas += int(np.count_nonzero(np.isnan(decoded.body.toa_s)))
         self.asm.add(kind, decoded)
         return self._push(self.asm.pop())
 
@@ -130,6 +136,7 @@ class ProcessorSession:
         except (ValueError, np.linalg.LinAlgError) as exc:  # fewer than three revolutions, ...
             raise BttsimError(f"no resonance report: {exc}") from None
         summary.update(self.completeness().to_summary())
+        summary["missing_toas"] = self.missing_toas
         msgs.append(self.out.resonance(self.proc.result.report))
         a = self.asm
         log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "

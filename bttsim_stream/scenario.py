@@ -52,6 +52,7 @@ __all__ = [
     "Probes",
     "Toa",
     "Acquisition",
+    "Signal",
     "Scenario",
     "SECTIONS",
     "load_scenario",
@@ -678,6 +679,153 @@ class Toa:
                                                    self.axial_interpolation))
 
 
+SIGNAL_PROBES = ("optical", "capacitive")
+SIGNAL_TRIGGERS = ("threshold", "constant_fraction", "peak")
+SIGNAL_EDGES = ("rising", "falling")
+MAX_WINDOW_SAMPLES = 4096
+
+
+def _choices(where: str, key: str, value: Any, choices: Sequence[str]) -> str | tuple[str, ...]:
+    """One of ``choices``, or an array of them (one per probe, checked by :class:`Scenario`)."""
+    if isinstance(value, str):
+        return _string(where, key, value, choices=choices)
+    items = _sequence(where, key, value, "a string or an array of strings (one per probe)")
+    if not items:
+        raise _FieldError(where, key, "must not be an empty array")
+    return tuple(_string(where, f"{key}[{i}]", v, choices=choices) for i, v in enumerate(items))
+
+
+@dataclass(frozen=True, slots=True)
+class Signal:
+    """``[acquisition.signal]``: probe signals, digitisation and triggers (off by default).
+
+    When ``enabled``, every published TOA comes out of the chain of
+    :mod:`bttsim_stream.sim.signal` (probe pulse around the exact passage, front-end
+    low-pass, noise, ADC, trigger, counter clock) instead of the exact TOA plus
+    ``trigger_jitter_s``; the truth keeps the exact TOA of the same passage. A pulse that
+    does not trigger is a missing TOA (NaN).
+
+    Attributes
+    ----------
+    enabled : bool
+        Default false.
+    probe_type : str or tuple of str
+        ``"optical"`` (default) or ``"capacitive"``; one value for every probe or one per probe.
+    trigger : str or tuple of str
+        ``"threshold"`` (default), ``"constant_fraction"`` or ``"peak"``; one or one per probe.
+    edge : str
+        Threshold trigger edge, ``"rising"`` (default) or ``"falling"``.
+    level_v, hysteresis_v : float
+        Trigger level (arming level of constant fraction and peak), V, default 0.5, and the
+        threshold trigger's hysteresis, V, default 0.05; the level within the ADC range.
+    fraction : float
+        Constant fraction, default 0.5; in (0, 1).
+    spot_diameter_m, electrode_diameter_m : float
+        Optical 1/e^2 spot diameter (default 0.5 mm) and capacitive electrode diameter
+        (default 1.5 mm), m; in (0, 0.05].
+    tip_thickness_m : float
+        Tangential width of the tip at the probe, m, default 1 mm; in (0, 0.05].
+    clearance_m : float
+        Cold tip clearance, m, default 0.5 mm; in (0, 0.05], larger than the centrifugal growth.
+    reference_clearance_m : float
+        Clearance at which the capacitive pulse height scale is ``height_v``, m, default 0.5 mm;
+        in (0, 0.05] (the height falls as ``1 / clearance``).
+    height_v : float
+        Pulse height scale, V, default 1.0; > 0.
+    fringe_factor : float
+        Capacitive kernel spreading with clearance, default 0.5; in [0, 10].
+    bandwidth_hz : float
+        Front-end bandwidth, Hz, default 1e6; 0 = unlimited.
+    sample_rate_hz : float
+        ADC sample rate, Hz, default 2e6; in [1e5, 1e9].
+    bits : int
+        ADC resolution, default 12; in [4, 24].
+    range_lo_v, range_hi_v : float
+        ADC input range, V, default -0.5 .. 1.5.
+    noise_v, lf_noise_v : float
+        rms of the band-limited white noise (default 0.005 V) and of the low-frequency noise
+        (default 0), V; >= 0.
+    lf_corner_hz : float
+        Highest frequency of the low-frequency noise, Hz, default 10; > 0.
+    offset_v, offset_drift_v_per_s, gain_drift_per_s : float
+        Baseline offset, V, its drift, V/s, and the relative gain drift, 1/s; default 0.
+    density_kg_m3, youngs_modulus_pa : float
+        Rotor material for the centrifugal tip growth ``rho Omega^2 R^3 / (3 E)``; default
+        titanium, 4430 kg/m^3 and 1.14e11 Pa.
+    """
+
+    enabled: bool = field(default=False, metadata=_doc(
+        "true: TOAs come from probe signals and triggers (truth keeps the exact TOAs)"))
+    probe_type: Any = field(default="optical", metadata=_doc(
+        '"optical" or "capacitive"; one value, or an array with one per probe'))
+    trigger: Any = field(default="threshold", metadata=_doc(
+        '"threshold", "constant_fraction" or "peak"; one value, or an array with one per probe'))
+    edge: str = field(default="rising", metadata=_doc('threshold trigger edge: "rising" or "falling"'))
+    level_v: float = field(default=0.5, metadata=_doc(
+        "trigger level (arming level of constant_fraction and peak), V; within the ADC range"))
+    hysteresis_v: float = field(default=0.05, metadata=_doc("threshold trigger hysteresis, V; >= 0"))
+    fraction: float = field(default=0.5, metadata=_doc("constant fraction; in (0, 1)"))
+    spot_diameter_m: float = field(default=0.5e-3, metadata=_doc(
+        "optical probe 1/e^2 spot diameter, m; in (0, 0.05]"))
+    electrode_diameter_m: float = field(default=1.5e-3, metadata=_doc(
+        "capacitive probe electrode diameter, m; in (0, 0.05]"))
+    tip_thickness_m: float = field(default=1.0e-3, metadata=_doc(
+        "tangential width of the blade tip at the probe, m; in (0, 0.05]"))
+    clearance_m: float = field(default=0.5e-3, metadata=_doc(
+        "cold tip clearance, m; in (0, 0.05], above the centrifugal growth"))
+    reference_clearance_m: float = field(default=0.5e-3, metadata=_doc(
+        "clearance at which the capacitive pulse height scale is height_v, m; in (0, 0.05]"))
+    height_v: float = field(default=1.0, metadata=_doc(
+        "pulse height scale, V (capacitive: at reference_clearance_m, falls as 1 / clearance); > 0"))
+    fringe_factor: float = field(default=0.5, metadata=_doc(
+        "capacitive field spreading with clearance (kernel sigma^2 = (D/4)^2 + (k g)^2); in [0, 10]"))
+    bandwidth_hz: float = field(default=1.0e6, metadata=_doc(
+        "front-end bandwidth (first-order low-pass), Hz; 0 = unlimited"))
+    sample_rate_hz: float = field(default=2.0e6, metadata=_doc("ADC sample rate, Hz; in [1e5, 1e9]"))
+    bits: int = field(default=12, metadata=_doc("ADC resolution, bits; in [4, 24]"))
+    range_lo_v: float = field(default=-0.5, metadata=_doc("ADC input range low end, V"))
+    range_hi_v: float = field(default=1.5, metadata=_doc("ADC input range high end, V; > range_lo_v"))
+    noise_v: float = field(default=0.005, metadata=_doc(
+        "rms of the white noise at the ADC input (band-limited by the front end), V; >= 0"))
+    lf_noise_v: float = field(default=0.0, metadata=_doc("rms of the low-frequency noise, V; >= 0"))
+    lf_corner_hz: float = field(default=10.0, metadata=_doc(
+        "highest frequency of the low-frequency noise, Hz; > 0"))
+    offset_v: float = field(default=0.0, metadata=_doc("baseline offset, V"))
+    offset_drift_v_per_s: float = field(default=0.0, metadata=_doc("baseline drift, V/s"))
+    gain_drift_per_s: float = field(default=0.0, metadata=_doc("relative gain drift, 1/s"))
+    density_kg_m3: float = field(default=4430.0, metadata=_doc(
+        "rotor density for the centrifugal tip growth, kg/m^3; > 0"))
+    youngs_modulus_pa: float = field(default=1.14e11, metadata=_doc(
+        "rotor Young's modulus for the centrifugal tip growth, Pa; > 0"))
+
+    def __post_init__(self) -> None:
+        w = "[acquisition.signal]"
+        _set(self, "enabled", _boolean(w, "enabled", self.enabled))
+        _set(self, "probe_type", _choices(w, "probe_type", self.probe_type, SIGNAL_PROBES))
+        _set(self, "trigger", _choices(w, "trigger", self.trigger, SIGNAL_TRIGGERS))
+        _set(self, "edge", _string(w, "edge", self.edge, choices=SIGNAL_EDGES))
+        _set(self, "bits", _integer(w, "bits", self.bits, lo=4, hi=24))
+        bounds = {"fraction": dict(lo=0, lo_open=True, hi=1, hi_open=True),
+                  "sample_rate_hz": dict(lo=1e5, hi=1e9), "fringe_factor": dict(lo=0, hi=10),
+                  "lf_corner_hz": dict(lo=0, lo_open=True, hi=1e6)}
+        for name in ("spot_diameter_m", "electrode_diameter_m", "tip_thickness_m", "clearance_m",
+                     "reference_clearance_m"):
+            bounds[name] = dict(lo=0, lo_open=True, hi=0.05)
+        for name in ("height_v", "density_kg_m3", "youngs_modulus_pa"):
+            bounds[name] = dict(lo=0, lo_open=True)
+        for name in ("hysteresis_v", "noise_v", "lf_noise_v", "bandwidth_hz"):
+            bounds[name] = dict(lo=0)
+        for f in dataclasses.fields(self):
+            if f.name not in ("enabled", "probe_type", "trigger", "edge", "bits"):
+                _set(self, f.name, _real(w, f.name, getattr(self, f.name), **bounds.get(f.name, {})))
+        if not self.range_hi_v > self.range_lo_v:
+            raise _FieldError(w, "range_hi_v", f"must be above range_lo_v = {_show(self.range_lo_v)}, "
+                              f"got {_show(self.range_hi_v)}")
+        if not self.range_lo_v < self.level_v < self.range_hi_v:
+            raise _FieldError(w, "level_v", f"must lie inside the ADC range ({_show(self.range_lo_v)}, "
+                              f"{_show(self.range_hi_v)}), got {_show(self.level_v)}")
+
+
 @dataclass(frozen=True, slots=True)
 class Acquisition:
     """``[acquisition]``: errors of the acquisition system; all off (0) by default.
@@ -699,6 +847,8 @@ class Acquisition:
     speed_fluctuation_rpm : float
         Standard deviation of a random speed fluctuation about the speed profile, rpm;
         >= 0 and at most 10 % of the slowest speed (checked by :class:`Scenario`).
+    signal : Signal
+        ``[acquisition.signal]``: the probe signal and trigger chain (off by default).
     """
 
     clock_hz: float = field(default=0.0, metadata=_doc(
@@ -711,10 +861,19 @@ class Acquisition:
         "std of the Gaussian jitter on each OPR timestamp, s; >= 0, at most 1 % of the shortest\nrevolution"))
     speed_fluctuation_rpm: float = field(default=0.0, metadata=_doc(
         "std of the random speed fluctuation about the speed profile, rpm; >= 0, at most 10 %\nof the slowest speed"))
+    signal: Signal = field(default_factory=Signal, metadata=_doc(
+        "the probe signal and trigger chain: the [acquisition.signal] table"))
 
     def __post_init__(self) -> None:
         w = "[acquisition]"
+        if isinstance(self.signal, Mapping):
+            _check_keys("[acquisition.signal]", self.signal, Signal)
+            _set(self, "signal", Signal(**self.signal))
+        elif not isinstance(self.signal, Signal):
+            raise _FieldError(w, "signal", f"must be a table ([acquisition.signal]), {_got(self.signal)}")
         for f in dataclasses.fields(self):
+            if f.name == "signal":
+                continue
             _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0,
                                      hi=MAX_PROBE_ANGLE_ERROR_DEG if f.name == "probe_angle_error_deg" else None))
         if self.clock_hz and not MIN_CLOCK_HZ <= self.clock_hz <= MAX_CLOCK_HZ:
@@ -811,9 +970,42 @@ class Scenario:
         if acq.speed_fluctuation_rpm > 0.1 * float(np.min(rpm)):
             raise _FieldError("[acquisition]", "speed_fluctuation_rpm", "must be at most 10 % of the slowest "
                               f"speed ({0.1 * float(np.min(rpm)):g} rpm), got {_show(acq.speed_fluctuation_rpm)}")
+        sig = acq.signal
+        if sig.enabled:
+            self._check_signal(sig, float(np.min(rpm)), float(np.max(rpm)))
         if acq.clock_hz * self.speed.duration_s >= 2.0**62:
             raise _FieldError("[acquisition]", "clock_hz", f"cannot count a run of {self.speed.duration_s:g} s "
                               f"in 62 bits, got {_show(acq.clock_hz)}")
+
+
+    def _check_signal(self, sig: Signal, rpm_min: float, rpm_max: float) -> None:
+        w = "[acquisition.signal]"
+        n = len(self.probes.angles_deg)
+        for name in ("probe_type", "trigger"):
+            value = getattr(sig, name)
+            if isinstance(value, tuple) and len(value) != n:
+                raise _FieldError(w, name, f"must be one value or one per probe ({n}), got {len(value)}")
+        if self.acquisition.trigger_jitter_s > 0:
+            raise _FieldError("[acquisition]", "trigger_jitter_s", "must be 0 when [acquisition.signal] is enabled "
+                              "(the trigger chain makes its own jitter)")
+        radius = self.rotor.tip_radius_m
+        omega = rpm_max * math.pi / 30.0
+        growth = sig.density_kg_m3 * omega**2 * radius**3 / (3.0 * sig.youngs_modulus_pa)
+        if growth >= sig.clearance_m:
+            raise _FieldError(w, "clearance_m", f"must exceed the centrifugal tip growth at {rpm_max:g} rpm "
+                              f"({growth * 1e3:.4g} mm): the tip would rub, got {_show(sig.clearance_m)}")
+        # the longest window: slowest tip speed, widest kernel (see bttsim_stream.sim.signal)
+        types = (sig.probe_type,) if isinstance(sig.probe_type, str) else sig.probe_type
+        d = max(sig.spot_diameter_m if t == "optical" else math.hypot(sig.electrode_diameter_m,
+                4 * sig.fringe_factor * sig.clearance_m) for t in types)
+        scale = d / 4.0 * math.sqrt(3.0) / math.pi
+        v = max(rpm_min * math.pi / 30.0 * radius, 1e-9)
+        tau = 1.0 / (2 * math.pi * sig.bandwidth_hz) if sig.bandwidth_hz > 0 else 0.0
+        samples = (2.0 * (0.5 * sig.tip_thickness_m + 9.0 * scale) / v + 7.0 * tau) * sig.sample_rate_hz
+        if samples > MAX_WINDOW_SAMPLES:
+            raise _FieldError(w, "sample_rate_hz", f"gives windows of {samples:.0f} samples per blade passage at "
+                              f"{rpm_min:g} rpm, above {MAX_WINDOW_SAMPLES}: lower it, or the spot, electrode or "
+                              f"tip size, got {_show(sig.sample_rate_hz)}")
 
 
 #: Section name -> dataclass, in file order (``excitation`` is an array of tables).
@@ -837,6 +1029,8 @@ _SECTION_COMMENTS: dict[str, str] = {
     "probes": "BTT probes and once-per-revolution (OPR) sensor.",
     "toa": "Time-of-arrival computation (paper Sec. 2.2).",
     "acquisition": "Acquisition errors (all off by default).",
+    "acquisition.signal": "Probe signals, digitisation and triggers (off by default): the TOAs as\n"
+                          "hardware extracts them; the truth keeps the exact TOAs.",
 }
 
 _SEGMENTS_EXAMPLE = """\
@@ -1057,6 +1251,8 @@ def scenario_to_dict(scn: Scenario) -> dict[str, Any]:
             out[name] = [_section_dict(e) for e in scn.excitation]
             continue
         table = _section_dict(getattr(scn, name))
+        if name == "acquisition":
+            table["signal"] = _section_dict(scn.acquisition.signal)
         if name == "speed":
             table["segments"] = [{"duration_s": d, "end_rpm": r} for d, r in scn.speed.segments]
             if table["segments"]:
@@ -1159,7 +1355,17 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
         if comments:
             lines.extend(_comment(_SECTION_COMMENTS[name]))
         lines.append(f"[{name}]")
-        _emit_table(lines, cls, d[name], comments)
+        table = dict(d[name])
+        sub = table.pop("signal", None)
+        _emit_table(lines, cls, table, comments)
+        # only a changed [acquisition.signal] is written (the run id of a default run, a hash
+        # of this text, stays what it was before the section existed); the commented file shows it
+        if sub is not None and (comments or scn.acquisition.signal != Signal()):
+            lines.append("")
+            if comments:
+                lines.extend(_comment(_SECTION_COMMENTS["acquisition.signal"]))
+            lines.append("[acquisition.signal]")
+            _emit_table(lines, Signal, sub, comments)
     if lines and lines[0] == "":
         lines.pop(0)
     return "\n".join(lines) + "\n"

@@ -622,6 +622,8 @@ def summary_table(summary: dict) -> str:
             k = len(summary.get("resonances", []))
             lines.append(f"status {summary['status']}: {k} resonance{'s' if k != 1 else ''}, "
                          f"{len(summary.get('steady', []))} dwell(s)")
+    if summary.get("missing_toas"):
+        lines.append(f"missing pulses: {summary['missing_toas']} TOAs did not trigger (NaN, left out of the fits)")
     if summary.get("complete") is False:
         lines.append(f"INCOMPLETE: {summary['revolutions_processed']} of {summary['revolutions_expected']} "
                      f"revolutions processed, {summary['lost']} messages lost, {summary['duplicates']} "

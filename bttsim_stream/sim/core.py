@@ -21,6 +21,8 @@ from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
 from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, Trigger, apply_triggers,
+                     centrifugal_growth_m, pulse_parameters, synthesise)
 from .speed import SpeedProfile, speed_profile_from_scenario
 from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
                   project_planes, stage_b)
@@ -155,6 +157,12 @@ class RevolutionBatch:
         Largest final HP Newton step in the batch, s.
     bracketed : ndarray of bool, shape (n_rev, n_blades, n_probes)
         False where no tip-node pair straddled the probe (extrapolated).
+    n_edges : ndarray of int64, shape (n_rev, n_blades, n_probes), or None
+        With ``[acquisition.signal]``: trigger edges in each passage's window (0: a missing
+        pulse, NaN TOA and tick -1; above 1: a double pulse, of which the first edge is
+        latched). None without the signal chain.
+    clearance_m : ndarray, shape (n_rev, n_blades, n_probes), or None
+        With ``[acquisition.signal]``: the tip clearance at each passage, m.
     """
 
     revolution: np.ndarray
@@ -165,6 +173,8 @@ class RevolutionBatch:
     truth: Truth
     residual_s: float
     bracketed: np.ndarray
+    n_edges: np.ndarray | None = None
+    clearance_m: np.ndarray | None = None
 
 
 def load_scenario_model(scn):
@@ -293,6 +303,7 @@ class RunUpSimulator:
         n_act = max(int(self.integrator.active.size), 1)
         self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 512))
         acq = scn.acquisition
+        self._signal = _SignalChain(scn, probes.size, float(np.mean(m.tip_ref[:, p, 0]))) if acq.signal.enabled else None
         self.info = RunInfo(
             n_blades=nb, n_probes=probes.size, n_revolutions=self.n_revolutions,
             probe_angles_rad=probes, probe_axial_m=self.z_probe,
@@ -462,6 +473,12 @@ class RunUpSimulator:
         d_tang = np.sum(X[:, 0, 1] * cr + X[:, 0, 0] * ci, axis=0)
         d_z = np.sum(X[:, 1, 1] * cr + X[:, 1, 0] * ci, axis=0)
         d_eqv = d_tang + d_z / np.tan(self.stagger)
+        sig = None
+        if self._signal is not None:  # radial displacement of P_nom at the TOA: the tip clearance
+            X_r = eval_planes(project_planes(CPr, self.basis.nodes[:, p:p + 1, 0:1])[:, :, 0], toa - t0)
+            d_rad = np.sum(X_r[:, 0, 1] * cr + X_r[:, 0, 0] * ci, axis=0)
+            probe_of = np.tile(np.arange(npr), nr * nb)
+            sig = self._signal(toa, blade, probe_of, d_rad, self.speed.speed(toa), self.tip_ref[blade, p, 0])
         amp = 2.0 * np.sum(np.hypot(X[:, 2, 0], X[:, 2, 1]), axis=0)
         omega_mean = TWO_PI / np.diff(opr_edges)
         r_p = self.tip_ref[:, p, 0][None, :, None]
@@ -471,7 +488,7 @@ class RunUpSimulator:
                       d_eqv_m=d_eqv.reshape(shape), d_tang_m=d_tang.reshape(shape),
                       d_z_m=d_z.reshape(shape), d_eq1_m=d_eq1, d_eqv_pkpk_m=pkpk,
                       omega_mean=omega_mean)
-        out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape))
+        out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape), sig)
         self.timing["crossings_s"] += time.process_time() - t_clock
         return out
 
@@ -505,9 +522,9 @@ class RunUpSimulator:
         dz = z_ref + u[:, 2] - self.z_probe
         return t_det, dz, residual
 
-    def _acquire(self, revs, truth: Truth, residual: float, bracketed) -> RevolutionBatch:
+    def _acquire(self, revs, truth: Truth, residual: float, bracketed, sig=None) -> RevolutionBatch:
         acq = self.scn.acquisition
-        toa = truth.toa_s.copy()
+        toa = truth.toa_s.copy() if sig is None else sig[0].reshape(truth.toa_s.shape)
         opr = truth.opr_s.copy()
         if acq.trigger_jitter_s > 0:
             toa += acq.trigger_jitter_s * self._rng["jitter"].standard_normal(toa.shape)
@@ -515,13 +532,20 @@ class RunUpSimulator:
             opr += acq.opr_jitter_s * self._rng["opr"].standard_normal(opr.shape)
         toa_ticks = opr_ticks = None
         if acq.clock_hz > 0:
-            toa_ticks = np.floor(toa * acq.clock_hz).astype(np.int64)
+            if sig is None:
+                toa_ticks = np.floor(toa * acq.clock_hz).astype(np.int64)
+            else:  # the counter latches the trigger; no pulse: tick -1 and TOA NaN
+                found = np.isfinite(toa)
+                toa_ticks = np.where(found, np.floor(np.where(found, toa, 0.0) * acq.clock_hz), -1).astype(np.int64)
             opr_ticks = np.floor(opr * acq.clock_hz).astype(np.int64)
             toa = toa_ticks / acq.clock_hz
+            if sig is not None:
+                toa[toa_ticks < 0] = np.nan
             opr = opr_ticks / acq.clock_hz
+        extra = {} if sig is None else {"n_edges": sig[1].reshape(toa.shape), "clearance_m": sig[2].reshape(toa.shape)}
         return RevolutionBatch(revolution=revs.astype(np.int64), opr_s=opr, toa_s=toa,
                                opr_ticks=opr_ticks, toa_ticks=toa_ticks, truth=truth,
-                               residual_s=residual, bracketed=bracketed)
+                               residual_s=residual, bracketed=bracketed, **extra)
 
     def __iter__(self) -> Iterator[RevolutionBatch]:
         for n0 in range(0, self.n_revolutions, self.chunk):
@@ -541,4 +565,58 @@ def collect(batches) -> RevolutionBatch:
                            toa_s=cat(lambda b: b.toa_s), opr_ticks=cat(lambda b: b.opr_ticks),
                            toa_ticks=cat(lambda b: b.toa_ticks), truth=truth,
                            residual_s=max(b.residual_s for b in batches),
-                           bracketed=cat(lambda b: b.bracketed))
+                           bracketed=cat(lambda b: b.bracketed), n_edges=cat(lambda b: b.n_edges),
+                           clearance_m=cat(lambda b: b.clearance_m))
+
+
+class _SignalChain:
+    """The scenario's ``[acquisition.signal]``: exact passages in, triggered TOAs out.
+
+    Random streams of their own (``SeedSequence([seed, 3])`` for the white noise,
+    ``[seed, 4]`` for the low-frequency noise), so the other acquisition errors draw what
+    they drew before; the white noise is drawn passage by passage, so the TOAs do not
+    depend on how revolutions are batched.
+    """
+
+    def __init__(self, scn, n_probes: int, radius_m: float) -> None:
+        sig, seed = scn.acquisition.signal, scn.run.seed
+        self.sig = sig
+
+        def per_probe(v):
+            return (v,) * n_probes if isinstance(v, str) else tuple(v)
+
+        self.probes = [ProbeModel(kind=k, diameter_m=sig.spot_diameter_m if k == "optical" else sig.electrode_diameter_m,
+                                  tip_thickness_m=sig.tip_thickness_m,
+                                  reference_clearance_m=sig.reference_clearance_m,
+                                  height_v=sig.height_v, fringe_factor=sig.fringe_factor,
+                                  bandwidth_hz=sig.bandwidth_hz) for k in per_probe(sig.probe_type)]
+        self.triggers = [Trigger(kind=k, level_v=sig.level_v, hysteresis_v=sig.hysteresis_v, edge=sig.edge,
+                                 fraction=sig.fraction) for k in per_probe(sig.trigger)]
+        self.dig = Digitiser(sample_rate_hz=sig.sample_rate_hz, bits=sig.bits, range_lo_v=sig.range_lo_v,
+                             range_hi_v=sig.range_hi_v, noise_v=sig.noise_v, lf_noise_v=sig.lf_noise_v,
+                             lf_corner_hz=sig.lf_corner_hz, offset_v=sig.offset_v,
+                             offset_drift_v_per_s=sig.offset_drift_v_per_s, gain_drift_per_s=sig.gain_drift_per_s)
+        self.rng = np.random.default_rng(np.random.SeedSequence([seed, 3]))
+        self.lf = (LowFrequencyNoise(sig.lf_noise_v, sig.lf_corner_hz, n_probes,
+                                     np.random.default_rng(np.random.SeedSequence([seed, 4])))
+                   if sig.lf_noise_v > 0 else None)
+        self.radius_m = radius_m
+        self.tau_s = np.array([p.tau_s for p in self.probes])
+
+    def __call__(self, toa, blade, probe, d_rad_m, omega, radius_m):
+        """Triggered TOAs, edge counts and clearances of passages (all shape (n,))."""
+        sig = self.sig
+        growth = centrifugal_growth_m(omega, self.radius_m, sig.density_kg_m3, sig.youngs_modulus_pa)
+        clearance = sig.clearance_m - growth - d_rad_m
+        speed = omega * (radius_m + growth + d_rad_m)
+        height = np.empty(toa.size)
+        half = np.empty(toa.size)
+        scale = np.empty(toa.size)
+        for j, pm in enumerate(self.probes):
+            cols = probe == j
+            pp = pulse_parameters(pm, clearance[cols], speed[cols])
+            height[cols], half[cols], scale[cols] = pp.height_v, pp.half_width_s, pp.scale_s
+        win = synthesise(toa, PulseParameters(height, half, scale), self.tau_s[probe], probe, self.dig, self.rng,
+                         self.lf)
+        out = apply_triggers(win, self.triggers, probe)
+        return out.toa_s, out.n_edges, clearance
