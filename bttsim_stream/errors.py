@@ -23,7 +23,7 @@ def exit_status(fn, *args) -> int:
     """Run ``fn(*args)`` for a program: its return value if that is an int (an exit status),
     else 0; a
     :class:`BttsimError` becomes one line ``bttsim: error: ...`` on stderr and status 2;
-    Ctrl-C status 130 (no traceback)."""
+    Ctrl-C status 130, a closed output pipe 141 (no traceback)."""
     try:
         status = fn(*args)
     except BttsimError as exc:
@@ -31,4 +31,19 @@ def exit_status(fn, *args) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # ``bttsim process F.mcap | head``: the reader has all it wanted
+        _quiet_stdout()
+        return 141  # as a shell tool killed by SIGPIPE
     return status if isinstance(status, int) and not isinstance(status, bool) else 0
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: Python's flush at exit would fail on the closed pipe again."""
+    import os
+
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, sys.stdout.fileno())
+        os.close(fd)
+    except (OSError, ValueError):
+        pass

@@ -102,3 +102,15 @@ def test_nan_or_absurd_amplitudes_in_a_result_are_said():
     assert "NaN" in warnings[0] and "2 of 3 blade(s) (1, 2)" in warnings[0]
     assert "above 10% of the tip radius pk-pk" in warnings[1] and "1 blade(s)" in warnings[1]
     assert result_warnings({"resonances": [{"kind": "crossing", "eo": 8, "blades": rows[:1]}]}, 0.19) == []
+
+
+def test_a_closed_output_pipe_is_not_a_traceback():
+    """``bttsim scenario | head -0``: the reader is gone before anything is written."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "scenario"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()  # before the command writes (its imports take far longer than this)
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141 and "Traceback" not in err, err
