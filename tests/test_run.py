@@ -60,6 +60,9 @@ def test_run_writes_the_three_files(tmp_path):
     assert {"meta", "opr", "toa", "truth", "fit", "tw", "resonance"} <= kinds
     assert '"gaps": 0' in (out / "recorder.log").read_text()
     _rrd_verify(out / "views.rrd")
+    from test_views import rrd_entities  # the views got the processor's final report too
+    from bttsim_stream.views import paths
+    assert rrd_entities(out / "views.rrd")[f"/{paths.RESONANCE_TABLE}"]["rows"] == 1
     assert _node_pids(out) == []
 
 
