@@ -134,6 +134,8 @@ class NodeContext:
         self._pubs: dict[str, object] = {}
         self._others: list = []
         self.watch: NodeWatch | None = None
+        self._ready = False
+        self._done: set[str] = set()  # rigs whose whole stream this node has confirmed
 
     # -- declarations --------------------------------------------------------------------
     def subscribe(self, key_expr: str, *, history: bool = False) -> None:
@@ -170,7 +172,7 @@ class NodeContext:
     def ready(self) -> None:
         """Declare (once) the token ``bttsim/<rig>/ready/<name>``: this node has received the run
         metadata on the bus, so its subscriptions reach the simulator, which waits for it."""
-        if not getattr(self, "_ready", False):
+        if not self._ready:
             self._ready = True
             self.declare(self.session.liveliness().declare_token(keys.ready_key(self.rig, self.name)))
 
@@ -179,9 +181,8 @@ class NodeContext:
         whole acquisition stream (:class:`~bttsim_stream.bus.stream.StreamEnd`); the
         simulator waits for it before it closes its session."""
         rig = rig or self.rig
-        done = self.__dict__.setdefault("_done", set())
-        if rig not in done:
-            done.add(rig)
+        if rig not in self._done:
+            self._done.add(rig)
             self.declare(self.session.liveliness().declare_token(keys.done_key(rig, self.name)))
 
     def watch_nodes(self, names, grace_s: float = 5.0) -> NodeWatch:
