@@ -22,7 +22,6 @@ from .acquisition import simulate_to_mcap
 from .bus.certs import IDENTITIES, generate_certificates
 from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
-from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import family_table, plot_family_frequencies
@@ -35,7 +34,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
-from .runtime import Progress, add_node_parser, run_parsed
+from .runtime import Progress, add_node_parser, add_web_arguments, run_parsed
 from .sim.core import check_tip_amplitude, load_scenario_model
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
@@ -327,16 +326,6 @@ def _cmd_validate(args: argparse.Namespace) -> None:
     print(json.dumps(validate(), indent=2))
 
 
-def _add_web_arguments(p: argparse.ArgumentParser) -> None:
-    """``--web-port``, ``--grpc-port``, ``--bind``: the same as the viewer node's."""
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
-                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
-    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
-                   help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
-    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
-                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -346,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder: run.mcap, views.rrd, summary.json")
     p.add_argument("--web", action="store_true",
                    help="serve the Rerun web viewer, print its URL, keep serving after the run until Ctrl-C")
-    _add_web_arguments(p)
+    add_web_arguments(p)
     p.add_argument("--realtime", action="store_true", help="pace the simulator like real hardware")
     p.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
                    help="join an existing Zenoh network instead of the embedded one")
@@ -440,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
     p.add_argument("--rrd", help="write the views to this .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
-    _add_web_arguments(p)
+    add_web_arguments(p)
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("study", help="reproduce one of the paper's studies (NAME.md, NAME.json, PNGs) into --out")

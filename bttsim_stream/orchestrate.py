@@ -210,12 +210,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         progress.close()
         for p in procs.values():
             if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-                try:
-                    p.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+                _wait_or_stop(p, 0)
         for f in logs.values():
             f.close()
         for s, h in old.items():

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from .bus import keys
 from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
     declare_subscriber, open_session
+from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
@@ -117,6 +118,17 @@ def parse_rate(text: str) -> float | None:
         raise BttsimError(f"--rate must be positive, got {text!r}")
     return value
 
+
+
+def add_web_arguments(p: argparse.ArgumentParser) -> None:
+    """``--web-port``, ``--grpc-port``, ``--bind``: where the Rerun web viewer is served (the
+    viewer node, ``bttsim run`` and ``bttsim view`` alike)."""
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
+                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
+    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
+                   help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
+    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
+                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
 
 class NodeContext:
     """A node's presence on the bus (see :func:`node_session`).

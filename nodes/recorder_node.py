@@ -64,11 +64,12 @@ def main(conf, args: argparse.Namespace) -> dict:
                 ends[info.rig] = StreamEnd(info)
                 node.ready()
             rec.write(key, payload, t_ns, seq=seq or 0)
-            end = ends.get(key.split("/", 2)[1])
+            key_rig = key.split("/", 2)[1]
+            end = ends.get(key_rig)
             if end is not None and not end.done:
                 end.note(key, seq)
                 if end.done:
-                    node.done(key.split("/", 2)[1])
+                    node.done(key_rig)
         summary = dict(stats.summary(), rejected=rejected + stats.implausible)
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
     level = logging.WARNING if summary["gaps"] else logging.INFO

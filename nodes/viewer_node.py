@@ -23,8 +23,7 @@ import sys
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
-from bttsim_stream.defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
-from bttsim_stream.runtime import NodeProgram, node_session, run_node
+from bttsim_stream.runtime import NodeProgram, add_web_arguments, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
 
@@ -84,12 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rerun-url", metavar="URL",
                    help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
     p.add_argument("--web", action="store_true", help="serve the web viewer (prints its URL)")
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
-                   help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
-    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
-                   help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
-    p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
-                   help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
+    add_web_arguments(p)
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
