@@ -5,6 +5,7 @@ Run ``python examples/subscribe_toas.py ENDPOINT [N] [--listen]``: connect to EN
 ``bttsim replay ... -e ENDPOINT``, which connects); stop after N batches if given.
 """
 import sys
+import threading
 
 import zenoh
 
@@ -22,4 +23,8 @@ with zenoh.open(conf) as session:
         msg = codec.decode_toa_batch(sample.payload.to_bytes(), str(sample.key_expr))
         print(msg.header.revolution, msg.body.probe, msg.body.toa_s[:3], flush=True)
         if len(args) > 1 and i + 1 == int(args[1]):
-            break  # optional: stop after N batches
+            # optional: stop after N batches. A publisher may still be sending (it blocks rather
+            # than drops): keep emptying the channel while the session closes, or zenoh's
+            # receiving thread stays blocked on the full channel and the close times out
+            threading.Thread(target=lambda: [None for _ in sub], daemon=True).start()
+            break
