@@ -236,14 +236,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
         problems.append("no summary (the processor gave no report; see processor.log)")
     elif not summary.get("complete", False):
         problems.append("the result is incomplete")
-    if res["recorder"].get("gaps"):
-        problems.append(f"the recording misses {res['recorder']['gaps']} messages")
-    if res["viewer"].get("gaps"):
-        problems.append(f"the views miss {res['viewer']['gaps']} messages")
+    for node, what in (("recorder", "the recording misses"), ("viewer", "the views miss")):
+        if res[node].get("gaps"):
+            problems.append(f"{what} {res[node]['gaps']} messages{_by_key(res[node].get('gaps_by_key'))}")
     if problems:
         print(f"bttsim: warning: {'; '.join(problems)}", file=sys.stderr)
         return EXIT_INCOMPLETE
     return 0
+
+
+def _by_key(counts) -> str:
+    """`` (truth 60, fit 21)``: a count per key, the rig prefix left out."""
+    if not isinstance(counts, dict) or not counts:
+        return ""
+    return " (" + ", ".join(f"{str(k).split('/', 2)[-1]} {v}" for k, v in counts.items()) + ")"
 
 
 def _cmd_view(args: argparse.Namespace) -> None:

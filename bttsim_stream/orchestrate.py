@@ -185,14 +185,17 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             progress.update(line(), force=True)
             sub.undeclare()
         progress.close()
+        # a simulator that failed (it may never have published) leaves the others nothing to
+        # wait for: they get a short grace to notice, then SIGTERM (they finalise their files)
+        grace = 120 if procs["sim"].returncode == 0 else 15
         for n in ("processor", "recorder"):
-            _wait_or_stop(procs[n], 120)
+            _wait_or_stop(procs[n], grace)
         serving = web and _wait_serving(procs["viewer"], out / "viewer.log", 120)
         if serving and interrupted:  # its .rrd is complete: no serving after Ctrl-C
             procs["viewer"].send_signal(signal.SIGTERM)
             serving = False
         if not serving:
-            _wait_or_stop(procs["viewer"], 120)
+            _wait_or_stop(procs["viewer"], grace)
         failed = {n: p.returncode for n, p in procs.items() if p.returncode not in (0, None)}
         if files["summary"].exists():
             summary = json.loads(files["summary"].read_text())

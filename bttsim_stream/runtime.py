@@ -24,6 +24,8 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+import zenoh
+
 from .bus import keys
 from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
     declare_subscriber, open_session
@@ -95,6 +97,7 @@ def run_parsed(args: argparse.Namespace):
     """Run the node program of parsed arguments (from :func:`node_parser` or :func:`add_node_parser`),
     logging to stderr."""
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    zenoh.try_init_log_from_env()  # RUST_LOG=warn (or zenoh=debug...): Zenoh's own log too
     return args.node_program.main(config_from_args(args), args)
 
 
