@@ -911,7 +911,9 @@ class Scenario:
     Notes
     -----
     Cross-section checks: each ``nodal_diameter < n_blades``; the probes' axial position
-    within ``[0, rotor.tip_axial_extent_m]``; non-empty mistuning factor lists hold
+    within ``[0, rotor.tip_axial_extent_m]`` with the built-in model (a user's model: within
+    its tip nodes, checked by the simulator once the model is loaded); non-empty mistuning
+    factor lists hold
     ``n_blades`` values.
     """
 
@@ -951,7 +953,8 @@ class Scenario:
                 raise _FieldError(f"[[excitation]][{i}]", "nodal_diameter",
                                   f"must be < [rotor] n_blades = {n}, got {e.nodal_diameter}")
         z, z_max = self.probes.axial_position_m, self.rotor.tip_axial_extent_m
-        if not 0.0 <= z <= z_max:
+        # a user's model has its own tip nodes: the simulator checks z against them
+        if self.model.source == "builtin" and not 0.0 <= z <= z_max:
             raise _FieldError("[probes]", "axial_position_m", "must lie within the tip "
                               f"chord's axial extent [0, {z_max:.6g}] m ([rotor] tip_chord_m * "
                               f"sin(stagger_deg)), got {_show(z)}")

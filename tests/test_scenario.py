@@ -364,3 +364,31 @@ def test_cli_check_bad_file(tmp_path):
     assert "[rotor] n_blades" in lines[0]
     ok = _cli("scenario", "--check", str(_write(tmp_path, default_toml(), name="ok.toml")))
     assert ok.returncode == 0 and "ok" in ok.stdout
+
+
+def test_probe_axial_position_is_checked_against_a_user_models_tip_nodes(tmp_path):
+    """With a user's model the tip nodes, not ``[rotor]``, bound the probe's axial position:
+    a model built with a 30 mm chord at 60 deg stagger (axial extent 26 mm) takes a probe at
+    24 mm (its tip nodes span 23-26 mm) that the default ``[rotor]`` (about 13 mm) would refuse; a probe beyond its nodes is
+    one line naming them."""
+    from bttsim_stream.model.modal_model import build_model, save_model
+    from bttsim_stream.sim.core import RunUpSimulator
+    from bttsim_stream.scenario import scenario_from_dict
+
+    wide = scenario_from_dict({"rotor": {"tip_chord_m": 0.03, "stagger_deg": 60.0},
+                               "probes": {"axial_position_m": 0.024}})
+    path = tmp_path / "wide.npz"
+    save_model(build_model(wide), path)
+    z_max = float(np.max(np.load(path, allow_pickle=False)["tip_ref"][..., 2]))
+    assert z_max == pytest.approx(0.03 * np.sin(np.deg2rad(60.0)), rel=1e-9)
+    assert Scenario().rotor.tip_axial_extent_m < 0.0135
+
+    with pytest.raises(ScenarioError, match=r"\[probes\] axial_position_m"):
+        scenario_from_dict({"probes": {"axial_position_m": 0.024}})  # the built-in model: [rotor]
+    scn = scenario_from_dict({"model": {"source": str(path)}, "probes": {"axial_position_m": 0.024}})
+    sim = RunUpSimulator(scn, n_revolutions=1)
+    assert sim.z_probe == 0.024
+    far = scenario_from_dict({"model": {"source": str(path)}, "probes": {"axial_position_m": 0.027}})
+    with pytest.raises(BttsimError, match="outside the model's tip nodes") as err:
+        RunUpSimulator(far, n_revolutions=1)
+    assert "\n" not in str(err.value)
