@@ -2,6 +2,7 @@
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -16,7 +17,7 @@ from _procs import LineWatch, start as _start, stop as _stop
 from bttsim_stream.bus import codec
 from bttsim_stream.bus.recording import read_recording
 from bttsim_stream.testing import free_port, virtual_acquisition
-from bttsim_stream.bus.session import make_config, unpack_attachment
+from bttsim_stream.bus.session import declare_subscriber, make_config, unpack_attachment
 
 pytestmark = pytest.mark.integration
 
@@ -111,8 +112,18 @@ def test_late_joiner_receives_recent_history(scenario):
                     time.sleep(0.01)
                     continue
                 got.append(codec.decode_opr(s.payload.to_bytes()).header.revolution)
+            # our nodes' subscriber: a plain one plus one query of the publishers' caches
+            ours = queue.Queue()
+            own = declare_subscriber(session, "bttsim/rig1/**", ours.put, history=True)
+            mine = []
+            while sum(k == "bttsim/rig1/opr" for k, _ in mine) < 30 or ("bttsim/rig1/meta", 0) not in mine:
+                s = ours.get(timeout=10)  # the history comes at once: Empty here is a failure
+                mine.append((str(s.key_expr), unpack_attachment(s.attachment)[0]))
+            own.undeclare()
         assert daq.metadata.n_blades == 29 and daq.metadata.n_probes == 5
     assert got == list(range(30))  # all 30 OPR pulses from the publisher cache, in order
+    assert [seq for key, seq in mine if key == "bttsim/rig1/opr"] == list(range(30))
+    assert ("bttsim/rig1/meta", 0) in mine
 
 
 def test_recorder_killed_mid_run_leaves_a_readable_file(tmp_path):
