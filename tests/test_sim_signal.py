@@ -239,3 +239,29 @@ def test_a_large_clearance_loses_capacitive_pulses_as_nan_and_tick_minus_one():
     assert 0.05 < missing.mean() < 0.5  # pulses peaking near the level: noise decides
     assert np.sum(b.n_edges > 1) > 0  # and re-crossings of the level make double pulses
     assert np.all(b.toa_ticks[missing] == -1) and np.all(b.n_edges[missing] == 0)
+
+
+@pytest.mark.parametrize("clock_hz", [1e6, 1e8], ids=["1MHz", "100MHz"])
+def test_counter_latch_error_is_uniform_over_one_tick(clock_hz):
+    """The counter latches the trigger's TOA by rounding down to a tick: against the same
+    run without a counter (the same seed draws the same noise, so the same trigger TOAs)
+    the error in ticks is uniform on (-1, 0] -- Kolmogorov-Smirnov against that law, and
+    its mean -1/2 and variance 1/12 within their sampling errors (4 standard errors)."""
+    from scipy import stats
+
+    def run(clock):
+        scn = scenario_from_dict({"speed": {"start_rpm": 2000.0, "end_rpm": 2100.0, "duration_s": 2.0},
+                                  "acquisition": {"clock_hz": clock, "signal": {"enabled": True}}})
+        return collect(RunUpSimulator(scn, n_revolutions=24))
+
+    latched, free = run(clock_hz), run(0.0)
+    assert free.toa_ticks is None and np.all(np.isfinite(free.toa_s))
+    np.testing.assert_array_equal(latched.toa_s, latched.toa_ticks / clock_hz)
+    err = ((latched.toa_s - free.toa_s) * clock_hz).ravel()
+    n = err.size
+    assert n == 24 * 29 * 5
+    assert np.all((err > -1.0 - 1e-6) & (err <= 1e-6))
+    assert stats.kstest(err, stats.uniform(loc=-1.0, scale=1.0).cdf).pvalue > 0.01
+    assert abs(err.mean() + 0.5) < 4 * math.sqrt(1 / 12 / n)
+    # variance of the sample variance of a uniform law: (mu4 - sigma^4) / n = (1/80 - 1/144) / n
+    assert abs(err.var() - 1 / 12) < 4 * math.sqrt((1 / 80 - 1 / 144) / n)
