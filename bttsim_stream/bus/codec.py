@@ -9,6 +9,7 @@ parallel message classes and no dicts:
                                :class:`~bttsim_stream.sim.core.RevolutionBatch`)
 ``bttsim.v1.ToaBatch``         :class:`ToaBatch` (one probe's part of a revolution)
 ``bttsim.v1.TruthBatch``       :class:`~bttsim_stream.sim.core.Truth` (one revolution)
+``bttsim.v1.SignalBatch``      :class:`SignalBatch` (one probe's raw windows of a revolution)
 ``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.pipeline.RevolutionFit`
 ``bttsim.v1.TravellingWave``   :class:`~bttsim_stream.process.travelling_wave.ProbeWave`
 ``bttsim.v1.ResonanceReport``  :class:`~bttsim_stream.process.resonance.ResonanceReport`
@@ -53,6 +54,7 @@ from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonanceP
                                 TruthPeaks)
 from ..process.travelling_wave import ProbeWave
 from ..sim.core import RunInfo, Truth
+from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 
@@ -74,6 +76,11 @@ __all__ = [
     "encode_opr_batch",
     "encode_toa_batches",
     "encode_truth_batch",
+    "SignalBatch",
+    "MAX_WINDOW_SAMPLES",
+    "encode_signal_batch",
+    "encode_signal_batches",
+    "decode_signal_batch",
     "log_times_ns",
     "encode_fit",
     "decode_fit",
@@ -90,6 +97,8 @@ __all__ = [
 
 #: Largest payload a decoder accepts, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+#: Most samples a raw-signal window may hold (the scenario allows 4096 at the slowest speed).
+MAX_WINDOW_SAMPLES = 1 << 16
 #: Name of the schema file inside the descriptor (and path under ``schemas/``).
 PROTO_FILE = "bttsim/v1/bttsim.proto"
 _PACKAGE = "bttsim.v1"
@@ -148,6 +157,52 @@ class ToaBatch:
     probe: int
     toa_s: np.ndarray
     toa_ticks: np.ndarray | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SignalBatch:
+    """One probe's raw windows of one revolution (``bttsim.v1.SignalBatch``).
+
+    Window ``b`` holds the samples ``k = first_sample[b] .. first_sample[b] + n_samples[b] - 1``
+    taken at ``t_k = k / sample_rate_hz``; volts ``= range_lo_v + code * lsb_v``.
+
+    Attributes
+    ----------
+    probe : int
+    sample_rate_hz, range_lo_v, lsb_v : float
+    bits : int
+    trigger : str
+    level_v, hysteresis_v : float
+    edge : str
+    first_sample, n_samples : ndarray of int64, shape (n_blades,)
+    codes : ndarray of int64, shape (sum(n_samples),)
+        The windows' ADC codes, concatenated in blade order.
+    toa_s : ndarray, shape (n_blades,)
+        The TOAs published on the probe's TOA key, s (NaN: missing).
+    n_edges : ndarray of int64, shape (n_blades,)
+    """
+
+    probe: int
+    sample_rate_hz: float
+    range_lo_v: float
+    lsb_v: float
+    bits: int
+    trigger: str
+    level_v: float
+    hysteresis_v: float
+    edge: str
+    first_sample: np.ndarray
+    n_samples: np.ndarray
+    codes: np.ndarray
+    toa_s: np.ndarray
+    n_edges: np.ndarray
+
+    def window(self, blade: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sample times (s) and volts (V) of one blade's window, each shape (n_samples[blade],)."""
+        start = int(self.n_samples[:blade].sum())
+        n = int(self.n_samples[blade])
+        k = self.first_sample[blade] + np.arange(n)
+        return k / self.sample_rate_hz, self.range_lo_v + self.codes[start:start + n] * self.lsb_v
 
 
 _TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
@@ -550,6 +605,110 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
                   d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays)
     return Decoded(_header(m.header), truth)
+
+
+# --------------------------------------------------------------------------------------
+# Raw probe signals
+# --------------------------------------------------------------------------------------
+
+
+def encode_signal_batch(header: Header, batch: SignalBatch) -> bytes:
+    """Encode one probe's raw windows of one revolution (:class:`bttsim.v1.SignalBatch`)."""
+    m = _pb.SignalBatch()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.probe = int(batch.probe)
+    m.sample_rate_hz, m.range_lo_v, m.lsb_v = float(batch.sample_rate_hz), float(batch.range_lo_v), float(batch.lsb_v)
+    m.bits, m.trigger, m.edge = int(batch.bits), batch.trigger, batch.edge
+    m.level_v, m.hysteresis_v = float(batch.level_v), float(batch.hysteresis_v)
+    m.first_sample.extend(np.asarray(batch.first_sample, dtype=np.int64).tolist())
+    m.n_samples.extend(np.asarray(batch.n_samples, dtype=np.int64).tolist())
+    m.codes.extend(np.asarray(batch.codes, dtype=np.int64).tolist())
+    m.toa_s.extend(np.asarray(batch.toa_s, dtype=np.float64).tolist())
+    m.n_edges.extend(np.asarray(batch.n_edges, dtype=np.int64).tolist())
+    return _serialize(m)
+
+
+def encode_signal_batches(run_id: str, seq, revolution, t_s, raw: RawSignals, toa_s, n_edges) -> list[bytes]:
+    """Every probe's :class:`bttsim.v1.SignalBatch` of a batch of revolutions, in
+    ``(revolution, probe)`` order (the same bytes as :func:`encode_signal_batch` one at a time).
+
+    Parameters
+    ----------
+    run_id : str
+    seq, revolution, t_s : array_like, shape (n_rev * n_probes,)
+        Header of each message, in ``(revolution, probe)`` order.
+    raw : RawSignals
+        Windows of the batch's passages, ``(revolution, blade, probe)`` order.
+    toa_s, n_edges : ndarray, shape (n_rev, n_blades, n_probes)
+        The published TOAs and the trigger's edge counts.
+    """
+    nr, nb, npr = np.shape(toa_s)
+    order = np.arange(nr * nb * npr).reshape(nr, nb, npr).transpose(0, 2, 1).ravel()  # (rev, probe, blade)
+    first = raw.first_sample[order].reshape(nr * npr, nb)
+    n_samp = raw.n_samples[order].reshape(nr * npr, nb)
+    codes = raw.codes[:, order]
+    valid = np.arange(codes.shape[0])[:, None] < n_samp.ravel()[None, :]
+    flat = codes.T[valid.T]  # windows concatenated in (revolution, probe, blade) order
+    ends = np.cumsum(n_samp.sum(axis=1))
+    starts = ends - n_samp.sum(axis=1)
+    toa = np.asarray(toa_s, dtype=np.float64).transpose(0, 2, 1).reshape(nr * npr, nb)
+    edges = np.asarray(n_edges, dtype=np.int64).transpose(0, 2, 1).reshape(nr * npr, nb)
+    seq, revolution, t_s = (np.asarray(a).ravel().tolist() for a in (seq, revolution, t_s))
+    out = []
+    for i in range(nr * npr):
+        j = i % npr
+        out.append(encode_signal_batch(Header(run_id, seq[i], revolution[i], t_s[i]), SignalBatch(
+            probe=j, sample_rate_hz=raw.sample_rate_hz, range_lo_v=raw.range_lo_v, lsb_v=raw.lsb_v, bits=raw.bits,
+            trigger=raw.trigger[j], level_v=raw.level_v, hysteresis_v=raw.hysteresis_v, edge=raw.edge,
+            first_sample=first[i], n_samples=n_samp[i], codes=flat[starts[i]:ends[i]], toa_s=toa[i],
+            n_edges=edges[i])))
+    return out
+
+
+def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.SignalBatch` payload into ``(Header, SignalBatch)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, inconsistent lengths, a window longer
+        than :data:`MAX_WINDOW_SAMPLES`, codes outside ``[0, 2^bits - 1]``, a non-positive or
+        non-finite sample rate or code size, an unknown trigger or edge.
+    """
+    m, where = _parse(_pb.SignalBatch, payload, key)
+    n = len(m.first_sample)
+    if n == 0:
+        raise _corrupt(where, m, "first_sample is empty")
+    if n_blades is not None and n != n_blades:
+        raise _corrupt(where, m, f"first_sample has {n} values, expected n_blades = {n_blades}")
+    for name in ("n_samples", "toa_s", "n_edges"):
+        _check_len(where, m, name, n, "(n_blades,)")
+    n_samp = _array(m.n_samples, np.int64)
+    if n_samp.min() < 1 or n_samp.max() > MAX_WINDOW_SAMPLES:
+        raise _corrupt(where, m, f"n_samples must be in [1, {MAX_WINDOW_SAMPLES}]")
+    _check_len(where, m, "codes", int(n_samp.sum()), "(sum(n_samples),)")
+    if not 1 <= m.bits <= 31:
+        raise _corrupt(where, m, f"bits = {m.bits} (1..31)")
+    codes = _array(m.codes, np.int64)
+    if codes.size and codes.max() >= (1 << m.bits):
+        raise _corrupt(where, m, f"an ADC code above 2^{m.bits} - 1")
+    first = _array(m.first_sample, np.int64)
+    if first.min() < 0:
+        raise _corrupt(where, m, "a negative first_sample")
+    for name in ("sample_rate_hz", "lsb_v"):
+        v = getattr(m, name)
+        if not (math.isfinite(v) and v > 0):
+            raise _corrupt(where, m, f"{name} = {v!r} (finite, > 0)")
+    for name in ("range_lo_v", "level_v", "hysteresis_v"):
+        if not math.isfinite(getattr(m, name)):
+            raise _corrupt(where, m, f"{name} = {getattr(m, name)!r} (finite)")
+    if m.trigger not in TRIGGER_KINDS or m.edge not in EDGES:
+        raise _corrupt(where, m, f"trigger {m.trigger!r}, edge {m.edge!r}")
+    _check_probe_key(where, m, key, "signal")
+    return Decoded(_header(m.header), SignalBatch(
+        probe=int(m.probe), sample_rate_hz=m.sample_rate_hz, range_lo_v=m.range_lo_v, lsb_v=m.lsb_v, bits=int(m.bits),
+        trigger=m.trigger, level_v=m.level_v, hysteresis_v=m.hysteresis_v, edge=m.edge, first_sample=first,
+        n_samples=n_samp, codes=codes, toa_s=_array(m.toa_s), n_edges=_array(m.n_edges, np.int64)))
 
 
 # --------------------------------------------------------------------------------------
@@ -1009,6 +1168,7 @@ def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
 _DECODERS = {
     "bttsim.v1.Opr": decode_opr,
     "bttsim.v1.ToaBatch": decode_toa_batch,
+    "bttsim.v1.SignalBatch": decode_signal_batch,
     "bttsim.v1.TruthBatch": decode_truth,
     "bttsim.v1.RunMetadata": decode_run_metadata,
     "bttsim.v1.BladeFits": decode_fit,

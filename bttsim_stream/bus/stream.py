@@ -188,6 +188,7 @@ class MessageStream:
         self._k_truth = keys.truth_key(self.rig)
         self._k_fit = keys.fits_key(self.rig)
         self._k_toa: list[str] = []
+        self._k_signal: list[str] = []
         self._k_tw: list[str] = []
 
     def _message(self, key: str, revolution: int, t_s: float, encode, *args) -> Message:
@@ -205,9 +206,12 @@ class MessageStream:
     def acquisition(self, batch: RevolutionBatch, *, include_truth: bool = True) -> list[Message]:
         """Messages of a batch of revolutions, in publication order.
 
-        Per revolution: one ``Opr`` (header time: the OPR as acquired), one ``ToaBatch`` per
-        probe 0..n_probes-1 (header time: its latest TOA, the OPR time if all are missing),
-        then one ``TruthBatch`` (header time: the acquired OPR; if ``include_truth``).
+        Per revolution: one ``Opr`` (header time: the OPR as acquired), with raw signals
+        (``batch.signal``) one ``SignalBatch`` per probe, one ``ToaBatch`` per probe
+        0..n_probes-1 (header time, also the ``SignalBatch``'s: its latest TOA, the OPR time if
+        all are missing), then one ``TruthBatch`` (header time: the acquired OPR; if
+        ``include_truth``). The raw windows go before the TOAs, so a consumer that has a
+        run's last TOAs (:class:`StreamEnd`) has its signals too.
         """
         toa = np.asarray(batch.toa_s, dtype=np.float64)
         if toa.ndim != 3:
@@ -246,6 +250,14 @@ class MessageStream:
         t_toa = codec.log_times_ns(latest).tolist()
         seq_opr_l, seq_toa_l = seq_opr.tolist(), seq_toa.tolist()
         k_opr, k_toa = self._k_opr, self._k_toa
+        raw = batch.signal
+        if raw is not None:
+            while len(self._k_signal) < npr:
+                self._k_signal.append(keys.signal_key(self.rig, len(self._k_signal)))
+            seq_sig = np.stack([self.sequencer.take(self._k_signal[j], nr) for j in range(npr)], axis=1)
+            sig_pl = codec.encode_signal_batches(self.run_id, seq_sig.ravel(), np.repeat(revs_a, npr), latest.ravel(),
+                                                 raw, toa, batch.n_edges)
+            seq_sig_l, k_sig = seq_sig.tolist(), self._k_signal
         if include_truth:
             seq_tr = self.sequencer.take(self._k_truth, nr)
             tr_pl = codec.encode_truth_batch(self.run_id, seq_tr, revs_a, opr, batch.truth)
@@ -255,6 +267,9 @@ class MessageStream:
             out.append(Message(k_opr, opr_pl[i], t_opr[i], seq_opr_l[i]))
             row = seq_toa_l[i]
             t_row = t_toa[i]
+            if raw is not None:
+                for j in range(npr):
+                    out.append(Message(k_sig[j], sig_pl[i * npr + j], t_row[j], seq_sig_l[i][j]))
             for j in range(npr):
                 out.append(Message(k_toa[j], toa_pl[i * npr + j], t_row[j], row[j]))
             if include_truth:

@@ -94,7 +94,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["PROBE_KINDS", "TRIGGER_KINDS", "EDGES", "ProbeModel", "Digitiser", "Trigger", "PulseParameters",
-           "SignalWindows", "TriggerResult", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
+           "SignalWindows", "TriggerResult", "RawSignals", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
            "edge_crossing_s", "missing_clearance_m", "lowpass", "synthesise", "apply_triggers",
            "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise"]
 
@@ -265,6 +265,58 @@ class SignalWindows:
     volts: np.ndarray
     codes: np.ndarray
     sample_rate_hz: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RawSignals:
+    """The digitiser's windows of a batch of passages, as a raw-signal channel carries them.
+
+    Passages in the simulator's row-major ``(revolution, blade, probe)`` order; window ``i``
+    holds samples ``k = first_sample[i] .. first_sample[i] + n_samples[i] - 1`` at
+    ``t_k = k / sample_rate_hz`` with volts ``range_lo_v + code * lsb_v``.
+
+    Attributes
+    ----------
+    first_sample, n_samples : ndarray of int64, shape (n,)
+    codes : ndarray of int32, shape (n_max, n)
+        ADC codes (rows beyond a window repeat its last sample).
+    sample_rate_hz, range_lo_v, lsb_v : float
+    bits : int
+    trigger : tuple of str, one per probe
+    level_v, hysteresis_v : float
+        Trigger (or arming) level and threshold hysteresis, V.
+    edge : str
+    """
+
+    first_sample: np.ndarray
+    n_samples: np.ndarray
+    codes: np.ndarray
+    sample_rate_hz: float
+    range_lo_v: float
+    lsb_v: float
+    bits: int
+    trigger: tuple
+    level_v: float
+    hysteresis_v: float
+    edge: str
+
+    def __post_init__(self) -> None:
+        n = self.first_sample.shape[0]
+        if self.n_samples.shape != (n,) or self.codes.ndim != 2 or self.codes.shape[1] != n:
+            raise ValueError(f"RawSignals: first_sample {self.first_sample.shape}, n_samples "
+                             f"{self.n_samples.shape}, codes {self.codes.shape} do not agree")
+
+    @staticmethod
+    def concatenate(parts) -> "RawSignals":
+        """Join batches along the passage axis (shorter windows padded by their last sample)."""
+        parts = list(parts)
+        n_max = max(p.codes.shape[0] for p in parts)
+        codes = np.concatenate([np.pad(p.codes, ((0, n_max - p.codes.shape[0]), (0, 0)), mode="edge")
+                                for p in parts], axis=1)
+        p0 = parts[0]
+        return RawSignals(np.concatenate([p.first_sample for p in parts]),
+                          np.concatenate([p.n_samples for p in parts]), codes, p0.sample_rate_hz,
+                          p0.range_lo_v, p0.lsb_v, p0.bits, p0.trigger, p0.level_v, p0.hysteresis_v, p0.edge)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
