@@ -692,9 +692,7 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
     codes = _array(m.codes, np.int64)
     if codes.size and codes.max() >= (1 << m.bits):
         raise _corrupt(where, m, f"an ADC code above 2^{m.bits} - 1")
-    first = _array(m.first_sample, np.int64)
-    if first.min() < 0:
-        raise _corrupt(where, m, "a negative first_sample")
+    first = _array(m.first_sample, np.int64)  # negative: a window opened before t = 0
     for name in ("sample_rate_hz", "lsb_v"):
         v = getattr(m, name)
         if not (math.isfinite(v) and v > 0):
