@@ -466,7 +466,7 @@ def _signal_batch(**changes) -> codec.SignalBatch:
                   level_v=0.3155, hysteresis_v=0.05, edge="rising", first_sample=rng.integers(0, 1 << 40, NB),
                   n_samples=n_samp, codes=rng.integers(0, 4096, int(n_samp.sum())),
                   toa_s=np.where(np.arange(NB) == 4, np.nan, rng.uniform(1, 2, NB)),
-                  n_edges=np.where(np.arange(NB) == 4, 0, 1 + (np.arange(NB) == 7)))
+                  n_edges=np.where(np.arange(NB) == 4, 0, 1 + (np.arange(NB) == 7)), fraction=0.4)
     fields.update(changes)
     return codec.SignalBatch(**fields)
 
@@ -494,7 +494,8 @@ def test_signal_batch_round_trip_and_windows():
     (dict(level_v=math.inf), "level_v = inf (finite)"),
     (dict(trigger="cfd"), "trigger 'cfd'"),
     (dict(bits=0), "bits = 0"),
-], ids=["code", "count", "window", "toa", "rate", "lsb", "level", "trigger", "bits"])
+    (dict(fraction=1.5), "fraction = 1.5"),
+], ids=["code", "count", "window", "toa", "rate", "lsb", "level", "trigger", "bits", "fraction"])
 def test_inconsistent_signal_batch_is_refused(changes, words):
     payload = codec.encode_signal_batch(_header(), _signal_batch(**changes))
     with pytest.raises(BttsimError) as excinfo:

@@ -283,7 +283,7 @@ def test_published_windows_are_what_the_trigger_saw():
     from bttsim_stream.sim.signal import SignalWindows
 
     g = 1.05 * missing_clearance_m(CAPACITIVE, 0.2)
-    signal = dict(probe_type="capacitive", trigger=["threshold", "constant_fraction", "peak", "threshold", "threshold"],
+    signal = dict(probe_type="capacitive", fraction=0.4, trigger=["threshold", "constant_fraction", "peak", "threshold", "threshold"],
                   clearance_m=g, level_v=0.2, hysteresis_v=0.01, noise_v=0.02)
     scn, msgs = _stream_messages(True, **signal)
     sig = {(m.key.rsplit("/", 1)[1], codec.decode_message(m.key, m.payload).header.revolution):
@@ -298,7 +298,8 @@ def test_published_windows_are_what_the_trigger_saw():
         rows = np.minimum(np.arange(n_max)[:, None], s.n_samples[None, :] - 1) + starts[None, :]
         volts = s.range_lo_v + s.codes[rows] * s.lsb_v
         win = SignalWindows(s.first_sample, s.n_samples, volts, s.codes[rows].astype(np.int32), s.sample_rate_hz)
-        trig = Trigger(s.trigger, s.level_v, s.hysteresis_v, s.edge, scn.acquisition.signal.fraction)
+        assert s.fraction == scn.acquisition.signal.fraction
+        trig = Trigger(s.trigger, s.level_v, s.hysteresis_v, s.edge, s.fraction)
         out = apply_triggers(win, [trig], np.zeros(s.first_sample.size, np.int64))
         latched = np.where(np.isfinite(out.toa_s), np.floor(np.nan_to_num(out.toa_s) * 1e8) / 1e8, np.nan)
         np.testing.assert_array_equal(latched, toa[key].toa_s, err_msg=str(key))

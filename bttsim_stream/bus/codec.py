@@ -180,6 +180,8 @@ class SignalBatch:
     toa_s : ndarray, shape (n_blades,)
         The TOAs published on the probe's TOA key, s (NaN: missing).
     n_edges : ndarray of int64, shape (n_blades,)
+    fraction : float
+        The constant-fraction trigger's fraction.
     """
 
     probe: int
@@ -196,6 +198,7 @@ class SignalBatch:
     codes: np.ndarray
     toa_s: np.ndarray
     n_edges: np.ndarray
+    fraction: float = 0.5
 
     def window(self, blade: int) -> tuple[np.ndarray, np.ndarray]:
         """Sample times (s) and volts (V) of one blade's window, each shape (n_samples[blade],)."""
@@ -619,7 +622,7 @@ def encode_signal_batch(header: Header, batch: SignalBatch) -> bytes:
     m.probe = int(batch.probe)
     m.sample_rate_hz, m.range_lo_v, m.lsb_v = float(batch.sample_rate_hz), float(batch.range_lo_v), float(batch.lsb_v)
     m.bits, m.trigger, m.edge = int(batch.bits), batch.trigger, batch.edge
-    m.level_v, m.hysteresis_v = float(batch.level_v), float(batch.hysteresis_v)
+    m.level_v, m.hysteresis_v, m.fraction = float(batch.level_v), float(batch.hysteresis_v), float(batch.fraction)
     m.first_sample.extend(np.asarray(batch.first_sample, dtype=np.int64).tolist())
     m.n_samples.extend(np.asarray(batch.n_samples, dtype=np.int64).tolist())
     m.codes.extend(np.asarray(batch.codes, dtype=np.int64).tolist())
@@ -661,7 +664,7 @@ def encode_signal_batches(run_id: str, seq, revolution, t_s, raw: RawSignals, to
             probe=j, sample_rate_hz=raw.sample_rate_hz, range_lo_v=raw.range_lo_v, lsb_v=raw.lsb_v, bits=raw.bits,
             trigger=raw.trigger[j], level_v=raw.level_v, hysteresis_v=raw.hysteresis_v, edge=raw.edge,
             first_sample=first[i], n_samples=n_samp[i], codes=flat[starts[i]:ends[i]], toa_s=toa[i],
-            n_edges=edges[i])))
+            n_edges=edges[i], fraction=raw.fraction)))
     return out
 
 
@@ -700,13 +703,16 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
     for name in ("range_lo_v", "level_v", "hysteresis_v"):
         if not math.isfinite(getattr(m, name)):
             raise _corrupt(where, m, f"{name} = {getattr(m, name)!r} (finite)")
+    if not 0.0 <= m.fraction <= 1.0:
+        raise _corrupt(where, m, f"fraction = {m.fraction!r} (in [0, 1])")
     if m.trigger not in TRIGGER_KINDS or m.edge not in EDGES:
         raise _corrupt(where, m, f"trigger {m.trigger!r}, edge {m.edge!r}")
     _check_probe_key(where, m, key, "signal")
     return Decoded(_header(m.header), SignalBatch(
         probe=int(m.probe), sample_rate_hz=m.sample_rate_hz, range_lo_v=m.range_lo_v, lsb_v=m.lsb_v, bits=int(m.bits),
         trigger=m.trigger, level_v=m.level_v, hysteresis_v=m.hysteresis_v, edge=m.edge, first_sample=first,
-        n_samples=n_samp, codes=codes, toa_s=_array(m.toa_s), n_edges=_array(m.n_edges, np.int64)))
+        n_samples=n_samp, codes=codes, toa_s=_array(m.toa_s), n_edges=_array(m.n_edges, np.int64),
+        fraction=m.fraction))
 
 
 # --------------------------------------------------------------------------------------

@@ -629,5 +629,5 @@ class _SignalChain:
         if sig.publish:
             raw = RawSignals(win.first_sample, win.n_samples, win.codes, win.sample_rate_hz, self.dig.range_lo_v,
                              self.dig.lsb_v, self.dig.bits, tuple(t.kind for t in self.triggers), sig.level_v,
-                             sig.hysteresis_v, sig.edge)
+                             sig.hysteresis_v, sig.edge, sig.fraction)
         return out.toa_s, out.n_edges, clearance, raw

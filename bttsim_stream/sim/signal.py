@@ -96,7 +96,7 @@ import numpy as np
 __all__ = ["PROBE_KINDS", "TRIGGER_KINDS", "EDGES", "ProbeModel", "Digitiser", "Trigger", "PulseParameters",
            "SignalWindows", "TriggerResult", "RawSignals", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
            "edge_crossing_s", "missing_clearance_m", "lowpass", "synthesise", "apply_triggers",
-           "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise"]
+           "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise", "constant_fraction_level"]
 
 PROBE_KINDS = ("optical", "capacitive")
 TRIGGER_KINDS = ("threshold", "constant_fraction", "peak")
@@ -286,6 +286,8 @@ class RawSignals:
     level_v, hysteresis_v : float
         Trigger (or arming) level and threshold hysteresis, V.
     edge : str
+    fraction : float
+        Constant fraction.
     """
 
     first_sample: np.ndarray
@@ -299,6 +301,7 @@ class RawSignals:
     level_v: float
     hysteresis_v: float
     edge: str
+    fraction: float = 0.5
 
     def __post_init__(self) -> None:
         n = self.first_sample.shape[0]
@@ -316,7 +319,8 @@ class RawSignals:
         p0 = parts[0]
         return RawSignals(np.concatenate([p.first_sample for p in parts]),
                           np.concatenate([p.n_samples for p in parts]), codes, p0.sample_rate_hz,
-                          p0.range_lo_v, p0.lsb_v, p0.bits, p0.trigger, p0.level_v, p0.hysteresis_v, p0.edge)
+                          p0.range_lo_v, p0.lsb_v, p0.bits, p0.trigger, p0.level_v, p0.hysteresis_v, p0.edge,
+                          p0.fraction)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -584,10 +588,23 @@ def _threshold(y, level, hysteresis, t_first, dt):
     return np.where(n_edges > 0, toa, np.nan), n_edges
 
 
-def _constant_fraction(y, level, fraction, t_first, dt):
+def constant_fraction_level(y, fraction):
+    """The constant-fraction trigger's level of each window, V: ``b + f (max - b)`` with ``b``
+    the mean of the window's first 4 samples (its baseline).
+
+    Parameters
+    ----------
+    y : ndarray, shape (n_samples, ...)
+        Window samples, V.
+    fraction : float
+    """
     base = y[:_BASELINE_SAMPLES].mean(axis=0)
+    return base + fraction * (y.max(axis=0) - base)
+
+
+def _constant_fraction(y, level, fraction, t_first, dt):
     top = y.max(axis=0)
-    cfd = base + fraction * (top - base)
+    cfd = constant_fraction_level(y, fraction)
     k1 = np.argmax(y >= cfd, axis=0)
     toa = _interp_time(y, k1, cfd, t_first, dt)
     armed = top >= level
