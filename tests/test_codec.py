@@ -510,3 +510,36 @@ def test_signal_batch_on_another_probe_key_or_blade_count_is_refused():
         codec.decode_signal_batch(payload, "bttsim/rig1/signal/0")
     with pytest.raises(BttsimError, match="expected n_blades = 28"):
         codec.decode_signal_batch(payload, "bttsim/rig1/signal/3", n_blades=28)
+
+
+def test_toa_batch_extra_edges_round_trip_and_batch_bytes():
+    rng = np.random.default_rng(3)
+    toa = rng.uniform(1, 2, (4, NB))
+    ticks = np.floor(toa * 1e8).astype(np.int64)
+    extra = (np.array([0, 0, 2]), np.array([1.5, 1.6, 1.7]), np.array([150000000, 160000000, 170000000]))
+    batch = codec.encode_toa_batches("r", np.arange(4), np.arange(4), np.full(4, 2.0), np.zeros(4, int), toa, ticks,
+                                     extra)
+    for i in range(4):
+        sel = extra[0] == i
+        one = codec.encode_toa_batch(codec.Header("r", i, i, 2.0), 0, toa[i].tolist(), ticks[i].tolist(),
+                                     extra[1][sel], extra[2][sel])
+        assert batch[i] == one
+        d = codec.decode_toa_batch(one, "bttsim/rig1/toa/0").body
+        np.testing.assert_array_equal(d.extra_toa_s, extra[1][sel])
+        np.testing.assert_array_equal(d.extra_toa_ticks, extra[2][sel])
+    plain = codec.encode_toa_batch(codec.Header("r", 0, 0, 2.0), 0, toa[0].tolist(), ticks[0].tolist())
+    assert plain == codec.encode_toa_batches("r", [0], [0], [2.0], [0], toa[:1], ticks[:1])[0]  # none: no bytes
+    assert codec.decode_toa_batch(plain).body.extra_toa_s.size == 0
+
+
+@pytest.mark.parametrize("extra_s, extra_ticks, words", [
+    (np.full(8 * NB + 1, 1.5), np.full(8 * NB + 1, 1), f"{8 * NB + 1} extra edges for {NB} blades"),
+    (np.array([np.nan]), np.array([1]), "an extra edge time is not finite"),
+    (np.array([1.5, 1.6]), np.array([1]), "extra_toa_ticks has 1 values, expected 2"),
+], ids=["too-many", "nan", "ticks"])
+def test_toa_batch_with_bad_extra_edges_is_refused(extra_s, extra_ticks, words):
+    toa = np.full(NB, 1.0)
+    payload = codec.encode_toa_batch(_header(), 0, toa.tolist(), np.ones(NB, int).tolist(), extra_s, extra_ticks)
+    with pytest.raises(BttsimError) as excinfo:
+        codec.decode_toa_batch(payload, "bttsim/rig1/toa/0")
+    assert words in _one_line_error(excinfo)

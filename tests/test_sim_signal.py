@@ -311,3 +311,44 @@ def test_published_windows_are_what_the_trigger_saw():
     _, plain = _stream_messages(False, **signal)
     rest = [m for m in msgs if "/signal/" not in m.key and not m.key.endswith("/meta")]
     assert rest == [m for m in plain if not m.key.endswith("/meta")]
+
+
+def test_double_pulses_reach_the_processor_each_in_its_blades_window(tmp_path):
+    """A threshold without hysteresis on a noisy pulse: the acquisition publishes every extra
+    edge with its probe's TOAs; the live processor and ``bttsim process`` assign each to a
+    blade's window and count exactly the simulator's double pulses (passages with more than
+    one edge) and extra edges (sum of n_edges - 1), none stray; the TOAs stay the first edges."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.bus import codec, keys
+    from bttsim_stream.bus.recording import McapRecorder
+    from bttsim_stream.offline import load_run
+    from bttsim_stream.processor import ProcessorSession
+
+    scn = scenario_from_dict({"speed": {"start_rpm": 2000.0, "end_rpm": 2100.0, "duration_s": 2.0},
+                              "acquisition": {"clock_hz": 1e8, "signal": {
+                                  "enabled": True, "probe_type": "capacitive", "clearance_m": 1e-3, "level_v": 0.2,
+                                  "hysteresis_v": 0.0, "noise_v": 0.01}}})
+    stream = AcquisitionStream(scn, n_revolutions=24, chunk_revolutions=10)
+    batches, messages = [], [stream.meta]
+    for b, msgs in stream.batches():
+        batches.append(b)
+        messages += msgs
+    n_edges = np.concatenate([b.n_edges for b in batches])
+    assert 0 < np.mean(n_edges > 1) < 1 and np.all(n_edges > 0)
+    truth = {"double_pulses": int(np.sum(n_edges > 1)), "extra_edges": int(np.sum(n_edges - 1)), "stray_edges": 0}
+    meta = codec.decode_run_metadata(stream.meta.payload).body
+    session = ProcessorSession(meta)
+    for m in messages[1:]:
+        kind = keys.parse_key(m.key).kind
+        if kind in ("opr", "toa"):
+            session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+    assert session.doubles.to_summary() == truth and session.rejected == 0
+    path = tmp_path / "doubles.mcap"
+    with McapRecorder(path, run_metadata=stream.run_metadata_record) as rec:
+        rec.write_all(messages)
+    run = load_run(path)
+    assert run.doubles == truth
+    # extra edges come after their passage's first edge, within its window (tens of us)
+    extra = np.concatenate([b.extra_toa_s for b in batches])
+    first = np.concatenate([b.toa_s.ravel()[b.extra_passage] for b in batches])
+    assert np.all((extra >= first) & (extra - first < 100e-6))

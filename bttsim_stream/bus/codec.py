@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -78,6 +78,7 @@ __all__ = [
     "encode_truth_batch",
     "SignalBatch",
     "MAX_WINDOW_SAMPLES",
+    "MAX_EXTRA_EDGES_PER_BLADE",
     "encode_signal_batch",
     "encode_signal_batches",
     "decode_signal_batch",
@@ -97,6 +98,8 @@ __all__ = [
 
 #: Largest payload a decoder accepts, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+#: Most extra trigger edges (double pulses) a ``ToaBatch`` may carry per blade.
+MAX_EXTRA_EDGES_PER_BLADE = 8
 #: Most samples a raw-signal window may hold (the scenario allows 4096 at the slowest speed).
 MAX_WINDOW_SAMPLES = 1 << 16
 #: Name of the schema file inside the descriptor (and path under ``schemas/``).
@@ -152,11 +155,16 @@ class ToaBatch:
     probe : int
     toa_s : ndarray, shape (n_blades,)
     toa_ticks : ndarray of int64, shape (n_blades,), or None
+    extra_toa_s : ndarray, shape (n_extra,)
+        Trigger edges after the first in a blade's window (double pulses), time order, s.
+    extra_toa_ticks : ndarray of int64, shape (n_extra,), or None
     """
 
     probe: int
     toa_s: np.ndarray
     toa_ticks: np.ndarray | None = None
+    extra_toa_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    extra_toa_ticks: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -523,10 +531,12 @@ def decode_opr(payload: bytes, key: str | None = None) -> Decoded:
                                                opr_ticks=int(m.opr_ticks) if m.has_ticks else None))
 
 
-def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | None = None) -> bytes:
+def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | None = None,
+                     extra_toa_s=(), extra_toa_ticks=None) -> bytes:
     """Encode one probe's TOAs of one revolution (:class:`bttsim.v1.ToaBatch`).
 
-    ``toa_s`` (and ``toa_ticks``) are sequences of n_blades values (lists are fastest).
+    ``toa_s`` (and ``toa_ticks``) are sequences of n_blades values (lists are fastest);
+    ``extra_toa_s`` (and ``extra_toa_ticks`` when ticked) the later edges of double pulses.
     """
     m = _pb.ToaBatch()
     _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
@@ -535,6 +545,9 @@ def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | 
     if toa_ticks is not None:
         m.toa_ticks.extend(toa_ticks)
         m.has_ticks = True
+    m.extra_toa_s.extend(np.asarray(extra_toa_s, dtype=np.float64).tolist())
+    if toa_ticks is not None and extra_toa_ticks is not None:
+        m.extra_toa_ticks.extend(np.asarray(extra_toa_ticks, dtype=np.int64).tolist())
     return _serialize(m)
 
 
@@ -564,10 +577,21 @@ def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | 
         _check_len(where, m, "toa_ticks", n, "(n_blades,)")
     elif len(m.toa_ticks):
         raise _corrupt(where, m, "toa_ticks set but has_ticks is false")
+    n_extra = len(m.extra_toa_s)
+    if n_extra > MAX_EXTRA_EDGES_PER_BLADE * n:
+        raise _corrupt(where, m, f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
+    if m.has_ticks:
+        _check_len(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
+    elif len(m.extra_toa_ticks):
+        raise _corrupt(where, m, "extra_toa_ticks set but has_ticks is false")
+    extra = _array(m.extra_toa_s)
+    if not np.all(np.isfinite(extra)):
+        raise _corrupt(where, m, "an extra edge time is not finite")
     _check_probe_key(where, m, key, "toa")
     return Decoded(_header(m.header), ToaBatch(
         probe=int(m.probe), toa_s=_array(m.toa_s),
-        toa_ticks=_array(m.toa_ticks, np.int64) if m.has_ticks else None))
+        toa_ticks=_array(m.toa_ticks, np.int64) if m.has_ticks else None, extra_toa_s=extra,
+        extra_toa_ticks=_array(m.extra_toa_ticks, np.int64) if m.has_ticks else None))
 
 
 def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
@@ -895,7 +919,8 @@ def encode_opr_batch(run_id: str, seq, revolution, t_s, opr_s, opr_ticks=None) -
     return _assemble(parts)
 
 
-def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_ticks=None) -> list[bytes]:
+def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_ticks=None,
+                       extra=None) -> list[bytes]:
     """:func:`encode_toa_batch` of many (revolution, probe) batches at once (the same bytes).
 
     Parameters
@@ -905,6 +930,10 @@ def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_tick
         Header times.
     toa_s : ndarray, shape (n, n_blades)
     toa_ticks : ndarray of int, shape (n, n_blades), optional
+    extra : (message, extra_toa_s, extra_toa_ticks or None), optional
+        Later edges of double pulses: the message index (0..n-1, non-decreasing) of each,
+        its time and its ticks. Fields 6 and 7 are the last of ``ToaBatch``: appended to the
+        messages that have any, they give the bytes of a deterministic serialization.
     """
     seq = np.asarray(seq)
     n = seq.size
@@ -914,7 +943,31 @@ def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_tick
     if toa_ticks is not None:
         parts += _packed_varints(_tag(_pb.ToaBatch, "toa_ticks"), np.asarray(toa_ticks).reshape(n, -1))
         parts.append(_const(n, bytes([_tag(_pb.ToaBatch, "has_ticks"), 1])))
-    return _assemble(parts)
+    out = _assemble(parts)
+    if extra is not None and len(extra[0]):
+        msg, times, ticks = (np.asarray(extra[0], np.int64), np.asarray(extra[1], np.float64),
+                             None if extra[2] is None or toa_ticks is None else np.asarray(extra[2], np.int64))
+        bounds = np.searchsorted(msg, np.arange(n + 1))
+        tag_s, tag_k = _tag(_pb.ToaBatch, "extra_toa_s"), _tag(_pb.ToaBatch, "extra_toa_ticks")
+        for i in np.flatnonzero(np.diff(bounds)).tolist():
+            lo, hi = bounds[i], bounds[i + 1]
+            body = times[lo:hi].astype("<f8").tobytes()
+            tail = _varint_bytes(tag_s) + _varint_bytes(len(body)) + body
+            if ticks is not None:
+                body = b"".join(_varint_bytes(int(v) & ((1 << 64) - 1)) for v in ticks[lo:hi].tolist())
+                tail += _varint_bytes(tag_k) + _varint_bytes(len(body)) + body
+            out[i] = out[i] + tail
+    return out
+
+
+def _varint_bytes(value: int) -> bytes:
+    """One protobuf varint (``value`` >= 0)."""
+    out = bytearray()
+    while True:
+        b, value = value & 0x7F, value >> 7
+        out.append(b | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
 
 
 def encode_truth_batch(run_id: str, seq, revolution, t_s, truth: Truth) -> list[bytes]:

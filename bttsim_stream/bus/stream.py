@@ -208,8 +208,9 @@ class MessageStream:
 
         Per revolution: one ``Opr`` (header time: the OPR as acquired), with raw signals
         (``batch.signal``) one ``SignalBatch`` per probe, one ``ToaBatch`` per probe
-        0..n_probes-1 (header time, also the ``SignalBatch``'s: its latest TOA, the OPR time if
-        all are missing), then one ``TruthBatch`` (header time: the acquired OPR; if
+        0..n_probes-1 (header time, also the ``SignalBatch``'s: its latest TOA or extra edge of a
+        double pulse, the OPR time if all are missing; the extra edges in the batch's
+        ``extra_toa_s``), then one ``TruthBatch`` (header time: the acquired OPR; if
         ``include_truth``). The raw windows go before the TOAs, so a consumer that has a
         run's last TOAs (:class:`StreamEnd`) has its signals too.
         """
@@ -236,6 +237,15 @@ class MessageStream:
             return []
         latest = np.fmax.reduce(toa, axis=1)  # (nr, np), ignores NaN
         latest = np.where(np.isnan(latest), opr[:, None], latest)
+        extra = None
+        if batch.extra_passage is not None and batch.extra_passage.size:
+            p = np.asarray(batch.extra_passage, dtype=np.int64)
+            msg = (p // (nb * npr)) * npr + p % npr  # (revolution, probe) message of each edge
+            order = np.lexsort((batch.extra_toa_s, msg))
+            ticks = None if batch.extra_toa_ticks is None else batch.extra_toa_ticks[order]
+            extra = (msg[order], batch.extra_toa_s[order], ticks)
+            flat = latest.reshape(-1)  # a batch goes out after its last edge
+            np.fmax.at(flat, msg, batch.extra_toa_s)
         revs_a = np.asarray(revs, dtype=np.int64)
         # every message of the batch encoded at once (codec's batch encoders: the same bytes
         # as one message at a time); numbers taken per key in publication order
@@ -245,7 +255,8 @@ class MessageStream:
                                         np.asarray(batch.opr_ticks, dtype=np.int64) if ticked else None)
         toa_pl = codec.encode_toa_batches(
             self.run_id, seq_toa.ravel(), np.repeat(revs_a, npr), latest.ravel(), np.tile(np.arange(npr), nr),
-            toa.transpose(0, 2, 1).reshape(nr * npr, nb), toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None)
+            toa.transpose(0, 2, 1).reshape(nr * npr, nb), toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None,
+            extra)
         t_opr = codec.log_times_ns(opr).tolist()
         t_toa = codec.log_times_ns(latest).tolist()
         seq_opr_l, seq_toa_l = seq_opr.tolist(), seq_toa.tolist()

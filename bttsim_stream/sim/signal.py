@@ -89,7 +89,7 @@ the crossing's uniformly distributed position between samples).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -333,10 +333,17 @@ class TriggerResult:
         Interpolated TOA, s (not yet latched on the counter clock); NaN: missing pulse.
     n_edges : ndarray of int64
         Edges in the window (threshold trigger; 0 or 1 for the others): 0 missing, > 1 double.
+    extra_passage : ndarray of int64, shape (m,)
+        Passage of each edge after its window's first (``m = sum(max(n_edges - 1, 0))``), in
+        passage then time order.
+    extra_toa_s : ndarray, shape (m,)
+        Interpolated time of each such edge, s (not latched).
     """
 
     toa_s: np.ndarray
     n_edges: np.ndarray
+    extra_passage: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    extra_toa_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def centrifugal_growth_m(omega_rad_s, radius_m: float, density_kg_m3: float, youngs_modulus_pa: float):
@@ -573,7 +580,9 @@ def _interp_time(y, k1, level, t_first, dt):
 
 
 def _threshold(y, level, hysteresis, t_first, dt):
-    """Schmitt trigger on rising ``y`` (columns are passages): (toa, n_edges)."""
+    """Schmitt trigger on rising ``y`` (columns are passages): (toa, n_edges, extra_column,
+    extra_toa) -- the first edge of each column, the edge counts, and every later edge's
+    column and interpolated time."""
     n_max, n = y.shape
     dec = np.where(y >= level, 1, np.where(y <= level - hysteresis, 0, -1)).astype(np.int8)
     idx = np.where(dec >= 0, np.arange(n_max)[:, None], -1)
@@ -585,7 +594,15 @@ def _threshold(y, level, hysteresis, t_first, dt):
     n_edges = edges.sum(axis=0).astype(np.int64)
     k1 = np.argmax(edges, axis=0)
     toa = _interp_time(y, k1, level, t_first, dt)
-    return np.where(n_edges > 0, toa, np.nan), n_edges
+    # the edges after the first (double pulses): column, sample, time, in column then time order
+    col, k = np.nonzero(edges.T)
+    later = k > k1[col]
+    col, k = col[later], k[later]
+    y0, y1 = y[k - 1, col], y[k, col]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(y1 != y0, (level - y0) / (y1 - y0), 0.0)
+    extra = t_first[col] + (k - 1 + np.clip(frac, 0.0, 1.0)) * dt
+    return np.where(n_edges > 0, toa, np.nan), n_edges, col.astype(np.int64), extra
 
 
 def constant_fraction_level(y, fraction):
@@ -640,6 +657,7 @@ def apply_triggers(win: SignalWindows, triggers, probe: np.ndarray) -> TriggerRe
     n = win.first_sample.size
     toa = np.full(n, np.nan)
     n_edges = np.zeros(n, dtype=np.int64)
+    extra_p, extra_t = [], []
     dt = 1.0 / win.sample_rate_hz
     t_first = win.first_sample / win.sample_rate_hz
     for j, trig in enumerate(triggers):
@@ -649,16 +667,19 @@ def apply_triggers(win: SignalWindows, triggers, probe: np.ndarray) -> TriggerRe
         y = win.volts[:, cols]
         tf = t_first[cols]
         if trig.kind == "threshold":
-            if trig.edge == "rising":
-                t, e = _threshold(y, trig.level_v, trig.hysteresis_v, tf, dt)
-            else:
-                t, e = _threshold(-y, -trig.level_v, trig.hysteresis_v, tf, dt)
+            sign = 1.0 if trig.edge == "rising" else -1.0
+            t, e, xc, xt = _threshold(sign * y, sign * trig.level_v, trig.hysteresis_v, tf, dt)
+            extra_p.append(cols[xc])
+            extra_t.append(xt)
         elif trig.kind == "constant_fraction":
             t, e = _constant_fraction(y, trig.level_v, trig.fraction, tf, dt)
         else:
             t, e = _peak(y, trig.level_v, tf, dt)
         toa[cols], n_edges[cols] = t, e
-    return TriggerResult(toa_s=toa, n_edges=n_edges)
+    ep = np.concatenate(extra_p) if extra_p else np.zeros(0, np.int64)
+    et = np.concatenate(extra_t) if extra_t else np.zeros(0)
+    order = np.lexsort((et, ep))
+    return TriggerResult(toa_s=toa, n_edges=n_edges, extra_passage=ep[order], extra_toa_s=et[order])
 
 
 def interpolation_error_bound_s(slope_v_s, curvature_v_s2, dt_s):
