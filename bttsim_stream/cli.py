@@ -180,6 +180,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
         raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None
     summary = dict(result.summary, **completeness(run).to_summary())
     summary["missing_toas"] = int(np.count_nonzero(np.isnan(run.toa_s)))  # pulses that did not trigger
+    summary.update(run.doubles)  # extra trigger edges, each in its blade's window
     if args.summary:  # before anything is printed: a closed stdout must not lose it
         try:
             Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")

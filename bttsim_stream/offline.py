@@ -14,7 +14,7 @@ shows what a live run would have shown.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -23,6 +23,7 @@ from .bus.recording import McapRecorder, read_recording
 from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
+from .process.displacement import DoublePulses
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
 from .processor import ProcessorSession
@@ -92,6 +93,9 @@ class RecordedRun:
         The simulator's truth of these revolutions, from the truth channel.
     messages : list of Message
         Every recorded message, in file order.
+    doubles : dict
+        Double pulses of the recorded TOA batches (``double_pulses``, ``extra_edges``,
+        ``stray_edges``; :class:`~bttsim_stream.process.displacement.DoublePulses`).
     """
 
     meta: RunInfo
@@ -100,6 +104,7 @@ class RecordedRun:
     toa_s: np.ndarray
     truth: Truth | None
     messages: list
+    doubles: dict = field(default_factory=lambda: DoublePulses().to_summary())
 
 
 def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
@@ -154,7 +159,13 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
         rows = [truth[r] for r in numbers.tolist()]
         if all(t.toa_s.shape[1:] == toa_s.shape[1:] for t in rows):  # truth of another rotor: left out
             tr = Truth(**{f.name: np.concatenate([getattr(t, f.name) for t in rows]) for f in fields(Truth)})
-    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=rec.messages)
+    doubles = DoublePulses()
+    batches = {(d.header.revolution, d.body.probe): d.body for kind, d in decoded if kind == "toa"}  # once each
+    for (rev, _), b in batches.items():
+        if b.extra_toa_s.size and numbers[0] <= rev <= numbers[-1]:
+            doubles.add(b.toa_s, b.extra_toa_s)
+    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=rec.messages,
+                       doubles=doubles.to_summary())
 
 
 def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray) -> None:

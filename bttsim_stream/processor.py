@@ -21,6 +21,7 @@ import numpy as np
 from .bus.codec import Decoded
 from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker, StreamEnd
 from .errors import BttsimError
+from .process.displacement import DoublePulses
 from .process.pipeline import ProcessOptions, StreamingProcessor
 from .process.resonance import TruthPeakTracker
 from .sim.core import RunInfo
@@ -48,6 +49,9 @@ class ProcessorSession:
     missing_toas : int
         TOAs received as NaN (no pulse triggered: the signal chain's missing pulses); they
         stay NaN through the processing, which fits the probes present.
+    doubles : DoublePulses
+        Extra trigger edges received (double pulses), each assigned to the blade whose window
+        it falls in; the first edge stays the TOA.
     """
 
     def __init__(self, meta: RunInfo, options: ProcessOptions = ProcessOptions(), *, score: bool = True) -> None:
@@ -60,6 +64,7 @@ class ProcessorSession:
         self.out = MessageStream(meta.run_id, meta.rig)
         self.rejected = 0
         self.missing_toas = 0
+        self.doubles = DoublePulses()
         self.end = StreamEnd(meta)
 
     @property
@@ -90,6 +95,7 @@ class ProcessorSession:
             return []
         if kind == "toa":
             self.missing_toas += int(np.count_nonzero(np.isnan(decoded.body.toa_s)))
+            self.doubles.add(decoded.body.toa_s, decoded.body.extra_toa_s)
         self.asm.add(kind, decoded)
         return self._push(self.asm.pop())
 
@@ -137,6 +143,7 @@ class ProcessorSession:
             raise BttsimError(f"no resonance report: {exc}") from None
         summary.update(self.completeness().to_summary())
         summary["missing_toas"] = self.missing_toas
+        summary.update(self.doubles.to_summary())
         msgs.append(self.out.resonance(self.proc.result.report))
         a = self.asm
         log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "

@@ -752,6 +752,9 @@ class Signal:
     density_kg_m3, youngs_modulus_pa : float
         Rotor material for the centrifugal tip growth ``rho Omega^2 R^3 / (3 E)``; default
         titanium, 4430 kg/m^3 and 1.14e11 Pa.
+    publish : bool
+        Also publish the digitised windows on ``bttsim/<rig>/signal/<probe>``
+        (``bttsim.v1.SignalBatch``); default false.
     """
 
     enabled: bool = field(default=False, metadata=_doc(
@@ -797,10 +800,13 @@ class Signal:
         "rotor density for the centrifugal tip growth, kg/m^3; > 0"))
     youngs_modulus_pa: float = field(default=1.14e11, metadata=_doc(
         "rotor Young's modulus for the centrifugal tip growth, Pa; > 0"))
+    publish: bool = field(default=False, metadata=_doc(
+        "true: also publish the raw windows (ADC codes) on bttsim/<rig>/signal/<probe>"))
 
     def __post_init__(self) -> None:
         w = "[acquisition.signal]"
         _set(self, "enabled", _boolean(w, "enabled", self.enabled))
+        _set(self, "publish", _boolean(w, "publish", self.publish))
         _set(self, "probe_type", _choices(w, "probe_type", self.probe_type, SIGNAL_PROBES))
         _set(self, "trigger", _choices(w, "trigger", self.trigger, SIGNAL_TRIGGERS))
         _set(self, "edge", _string(w, "edge", self.edge, choices=SIGNAL_EDGES))
@@ -816,7 +822,7 @@ class Signal:
         for name in ("hysteresis_v", "noise_v", "lf_noise_v", "bandwidth_hz"):
             bounds[name] = dict(lo=0)
         for f in dataclasses.fields(self):
-            if f.name not in ("enabled", "probe_type", "trigger", "edge", "bits"):
+            if f.name not in ("enabled", "probe_type", "trigger", "edge", "bits", "publish"):
                 _set(self, f.name, _real(w, f.name, getattr(self, f.name), **bounds.get(f.name, {})))
         if not self.range_hi_v > self.range_lo_v:
             raise _FieldError(w, "range_hi_v", f"must be above range_lo_v = {_show(self.range_lo_v)}, "

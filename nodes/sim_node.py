@@ -5,6 +5,8 @@ Keys (``schemas/bus.md``):
 * ``bttsim/<rig>/opr`` -- ``bttsim.v1.Opr``, one per revolution
 * ``bttsim/<rig>/toa/<probe>`` -- ``bttsim.v1.ToaBatch``, one per probe per revolution
 * ``bttsim/<rig>/truth`` -- ``bttsim.v1.TruthBatch``, one per revolution (``--no-truth`` drops it)
+* ``bttsim/<rig>/signal/<probe>`` -- ``bttsim.v1.SignalBatch``, one per probe per revolution, only
+  with ``[acquisition.signal] publish = true``
 * ``bttsim/<rig>/meta`` -- ``bttsim.v1.RunMetadata``: published once first, and a queryable
 * ``bttsim/<rig>/alive/sim`` -- liveliness token while the node runs
 

@@ -1,7 +1,7 @@
 """Viewer node: streams a rig's bus to Rerun views (an .rrd file, a native viewer, the web viewer).
 
 Inputs: every key of the rig, ``bttsim/<rig>/**`` (run metadata, OPR, TOA batches, truth,
-blade fits, travelling waves, resonance reports), fed to
+blade fits, travelling waves, resonance reports, raw probe signals when published), fed to
 :class:`bttsim_stream.views.LiveViews` (batched, flushed every 0.2 s). Outputs: Rerun only
 (``--rrd OUT.rrd``, ``--rerun-url URL``, ``--web``); its liveliness token
 ``bttsim/<rig>/alive/viewer`` (a simulator started with ``--wait-for`` counts it).

@@ -282,7 +282,7 @@ def _one_line_error(excinfo) -> str:
 
 def test_random_bytes_are_refused():
     payload = np.random.default_rng(6).bytes(200)
-    for decode in (codec.decode_opr, codec.decode_toa_batch, codec.decode_truth,
+    for decode in (codec.decode_opr, codec.decode_toa_batch, codec.decode_truth, codec.decode_signal_batch,
                    codec.decode_run_metadata, codec.decode_fit,
                    codec.decode_probe_wave, codec.decode_resonance_report):
         with pytest.raises(BttsimError) as excinfo:
@@ -454,3 +454,92 @@ def test_log_times_ns_is_log_time_ns():
     t = np.concatenate([t, [0.5e-9, 1.5e-9, 2.5e-9, -0.4e-9, 9.3e9, 9.2e9, 1e-10]])
     t = t[~(np.abs(t) > 1e299)]  # log_time_ns overflows there (OverflowError); log_times_ns clamps
     assert codec.log_times_ns(t).tolist() == [codec.log_time_ns(x) for x in t]
+
+
+# -- raw probe signals ---------------------------------------------------------------------
+
+
+def _signal_batch(**changes) -> codec.SignalBatch:
+    rng = np.random.default_rng(11)
+    n_samp = rng.integers(2, 40, NB)
+    fields = dict(probe=3, sample_rate_hz=2e6, range_lo_v=-0.5, lsb_v=2.0 / 4095, bits=12, trigger="constant_fraction",
+                  level_v=0.3155, hysteresis_v=0.05, edge="rising", first_sample=rng.integers(0, 1 << 40, NB),
+                  n_samples=n_samp, codes=rng.integers(0, 4096, int(n_samp.sum())),
+                  toa_s=np.where(np.arange(NB) == 4, np.nan, rng.uniform(1, 2, NB)),
+                  n_edges=np.where(np.arange(NB) == 4, 0, 1 + (np.arange(NB) == 7)), fraction=0.4)
+    fields.update(changes)
+    return codec.SignalBatch(**fields)
+
+
+def test_signal_batch_round_trip_and_windows():
+    b = _signal_batch()
+    d = codec.decode_message("bttsim/rig1/signal/3", codec.encode_signal_batch(_header(5, 12, 1.5), b))
+    assert d.header == _header(5, 12, 1.5)
+    for f in codec.SignalBatch.__slots__:
+        np.testing.assert_array_equal(getattr(d.body, f), getattr(b, f), err_msg=f)
+    t, v = d.body.window(2)
+    start = int(b.n_samples[:2].sum())
+    np.testing.assert_array_equal(t, (b.first_sample[2] + np.arange(b.n_samples[2])) / 2e6)
+    np.testing.assert_array_equal(v, -0.5 + b.codes[start:start + b.n_samples[2]] * (2.0 / 4095))
+
+
+@pytest.mark.parametrize("changes, words", [
+    (dict(codes=np.full(int(_signal_batch().n_samples.sum()), 4096)), "an ADC code above 2^12 - 1"),
+    (dict(codes=np.zeros(3, int)), "codes has 3 values, expected"),
+    (dict(n_samples=np.full(NB, codec.MAX_WINDOW_SAMPLES + 1), codes=np.zeros(NB * (codec.MAX_WINDOW_SAMPLES + 1), int)),
+     "n_samples must be in [1, 65536]"),
+    (dict(toa_s=np.zeros(NB - 1)), f"toa_s has {NB - 1} values, expected {NB}"),
+    (dict(sample_rate_hz=math.nan), "sample_rate_hz = nan (finite, > 0)"),
+    (dict(lsb_v=0.0), "lsb_v = 0.0 (finite, > 0)"),
+    (dict(level_v=math.inf), "level_v = inf (finite)"),
+    (dict(trigger="cfd"), "trigger 'cfd'"),
+    (dict(bits=0), "bits = 0"),
+    (dict(fraction=1.5), "fraction = 1.5"),
+], ids=["code", "count", "window", "toa", "rate", "lsb", "level", "trigger", "bits", "fraction"])
+def test_inconsistent_signal_batch_is_refused(changes, words):
+    payload = codec.encode_signal_batch(_header(), _signal_batch(**changes))
+    with pytest.raises(BttsimError) as excinfo:
+        codec.decode_signal_batch(payload, "bttsim/rig1/signal/3")
+    assert words in _one_line_error(excinfo)
+    assert str(excinfo.value).startswith("bttsim/rig1/signal/3: corrupt SignalBatch")
+
+
+def test_signal_batch_on_another_probe_key_or_blade_count_is_refused():
+    payload = codec.encode_signal_batch(_header(), _signal_batch())
+    with pytest.raises(BttsimError, match="probe 3 on the key of probe 0"):
+        codec.decode_signal_batch(payload, "bttsim/rig1/signal/0")
+    with pytest.raises(BttsimError, match="expected n_blades = 28"):
+        codec.decode_signal_batch(payload, "bttsim/rig1/signal/3", n_blades=28)
+
+
+def test_toa_batch_extra_edges_round_trip_and_batch_bytes():
+    rng = np.random.default_rng(3)
+    toa = rng.uniform(1, 2, (4, NB))
+    ticks = np.floor(toa * 1e8).astype(np.int64)
+    extra = (np.array([0, 0, 2]), np.array([1.5, 1.6, 1.7]), np.array([150000000, 160000000, 170000000]))
+    batch = codec.encode_toa_batches("r", np.arange(4), np.arange(4), np.full(4, 2.0), np.zeros(4, int), toa, ticks,
+                                     extra)
+    for i in range(4):
+        sel = extra[0] == i
+        one = codec.encode_toa_batch(codec.Header("r", i, i, 2.0), 0, toa[i].tolist(), ticks[i].tolist(),
+                                     extra[1][sel], extra[2][sel])
+        assert batch[i] == one
+        d = codec.decode_toa_batch(one, "bttsim/rig1/toa/0").body
+        np.testing.assert_array_equal(d.extra_toa_s, extra[1][sel])
+        np.testing.assert_array_equal(d.extra_toa_ticks, extra[2][sel])
+    plain = codec.encode_toa_batch(codec.Header("r", 0, 0, 2.0), 0, toa[0].tolist(), ticks[0].tolist())
+    assert plain == codec.encode_toa_batches("r", [0], [0], [2.0], [0], toa[:1], ticks[:1])[0]  # none: no bytes
+    assert codec.decode_toa_batch(plain).body.extra_toa_s.size == 0
+
+
+@pytest.mark.parametrize("extra_s, extra_ticks, words", [
+    (np.full(8 * NB + 1, 1.5), np.full(8 * NB + 1, 1), f"{8 * NB + 1} extra edges for {NB} blades"),
+    (np.array([np.nan]), np.array([1]), "an extra edge time is not finite"),
+    (np.array([1.5, 1.6]), np.array([1]), "extra_toa_ticks has 1 values, expected 2"),
+], ids=["too-many", "nan", "ticks"])
+def test_toa_batch_with_bad_extra_edges_is_refused(extra_s, extra_ticks, words):
+    toa = np.full(NB, 1.0)
+    payload = codec.encode_toa_batch(_header(), 0, toa.tolist(), np.ones(NB, int).tolist(), extra_s, extra_ticks)
+    with pytest.raises(BttsimError) as excinfo:
+        codec.decode_toa_batch(payload, "bttsim/rig1/toa/0")
+    assert words in _one_line_error(excinfo)

@@ -201,3 +201,16 @@ def test_identify_blades_relabels_the_simulator_stream():
         got = identify_blades(run.opr_s[:400], rng.permutation(np.concatenate([pulses, spurious])),
                               g.probe_angles_rad[j], g, tolerance=0.05)
         np.testing.assert_array_equal(got, labelled)
+
+
+def test_extra_edges_go_to_the_blade_whose_window_holds_them():
+    from bttsim_stream.process.displacement import DoublePulses, assign_extra_edges
+
+    toa = np.array([1.0, 2.0, np.nan, 4.0, 3.0])  # blade spacing 1 s (median gap), window +-0.5 s
+    edges = np.array([1.1, 3.9, 0.3, 2.45, 3.2, np.inf])
+    np.testing.assert_array_equal(assign_extra_edges(toa, edges), [0, 3, -1, 1, 4, -1])
+    np.testing.assert_array_equal(assign_extra_edges(np.array([1.0, np.nan]), np.array([1.01])), [-1])
+    count = DoublePulses()
+    count.add(toa, edges)
+    count.add(toa, np.zeros(0))
+    assert count.to_summary() == {"double_pulses": 4, "extra_edges": 4, "stray_edges": 2}

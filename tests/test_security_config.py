@@ -51,6 +51,8 @@ def test_policy_is_default_deny_and_names_only_what_it_defines():
     by_id = {r["id"]: r for r in acl["rules"]}
     assert by_id["publish acquisition"]["flows"] == ["ingress"]
     assert "bttsim/*/truth" in by_id["publish acquisition"]["key_exprs"]
+    assert "bttsim/*/signal/*" in by_id["publish acquisition"]["key_exprs"]  # raw signals: acquisition data
+    assert "bttsim/*/signal/*" in by_id["receive data"]["key_exprs"]
     assert "bttsim/*/truth" not in by_id["receive data"]["key_exprs"]
     assert by_id["tokens of sim"]["key_exprs"] == ["bttsim/*/*/sim"] and who("tokens of sim") == {"sim"}
 

@@ -197,7 +197,8 @@ def test_default_scenario_text_and_simulation_are_unchanged():
     ({"enabled": True, "sample_rate_hz": 1e9}, "[acquisition.signal] sample_rate_hz gives windows of"),
     ({"bits": 40}, "[acquisition.signal] bits must be an integer in [4, 24]"),
     ({"spot_size_m": 1e-3}, "unknown key [acquisition.signal] spot_size_m"),
-], ids=["bool", "trigger", "per-probe", "level", "window", "bits", "unknown"])
+    ({"publish": "yes"}, "[acquisition.signal] publish must be true or false"),
+], ids=["bool", "trigger", "per-probe", "level", "window", "bits", "unknown", "publish"])
 def test_bad_signal_tables_are_one_line_errors(table, message):
     with pytest.raises(ScenarioError) as exc:
         scenario_from_dict({"acquisition": {"signal": table}})
@@ -239,3 +240,116 @@ def test_a_large_clearance_loses_capacitive_pulses_as_nan_and_tick_minus_one():
     assert 0.05 < missing.mean() < 0.5  # pulses peaking near the level: noise decides
     assert np.sum(b.n_edges > 1) > 0  # and re-crossings of the level make double pulses
     assert np.all(b.toa_ticks[missing] == -1) and np.all(b.n_edges[missing] == 0)
+
+
+@pytest.mark.parametrize("clock_hz", [1e6, 1e8], ids=["1MHz", "100MHz"])
+def test_counter_latch_error_is_uniform_over_one_tick(clock_hz):
+    """The counter latches the trigger's TOA by rounding down to a tick: against the same
+    run without a counter (the same seed draws the same noise, so the same trigger TOAs)
+    the error in ticks is uniform on (-1, 0] -- Kolmogorov-Smirnov against that law, and
+    its mean -1/2 and variance 1/12 within their sampling errors (4 standard errors)."""
+    from scipy import stats
+
+    def run(clock):
+        scn = scenario_from_dict({"speed": {"start_rpm": 2000.0, "end_rpm": 2100.0, "duration_s": 2.0},
+                                  "acquisition": {"clock_hz": clock, "signal": {"enabled": True}}})
+        return collect(RunUpSimulator(scn, n_revolutions=24))
+
+    latched, free = run(clock_hz), run(0.0)
+    assert free.toa_ticks is None and np.all(np.isfinite(free.toa_s))
+    np.testing.assert_array_equal(latched.toa_s, latched.toa_ticks / clock_hz)
+    err = ((latched.toa_s - free.toa_s) * clock_hz).ravel()
+    n = err.size
+    assert n == 24 * 29 * 5
+    assert np.all((err > -1.0 - 1e-6) & (err <= 1e-6))
+    assert stats.kstest(err, stats.uniform(loc=-1.0, scale=1.0).cdf).pvalue > 0.01
+    assert abs(err.mean() + 0.5) < 4 * math.sqrt(1 / 12 / n)
+    # variance of the sample variance of a uniform law: (mu4 - sigma^4) / n = (1/80 - 1/144) / n
+    assert abs(err.var() - 1 / 12) < 4 * math.sqrt((1 / 80 - 1 / 144) / n)
+
+
+def _stream_messages(publish: bool, **signal):
+    from bttsim_stream.acquisition import AcquisitionStream
+    scn = scenario_from_dict({"speed": {"start_rpm": 2000.0, "end_rpm": 2100.0, "duration_s": 2.0},
+                              "acquisition": {"clock_hz": 1e8, "signal": dict(enabled=True, publish=publish, **signal)}})
+    stream = AcquisitionStream(scn, run_id="r", n_revolutions=12, chunk_revolutions=5)
+    return scn, [m for _, msgs in stream.batches() for m in msgs]
+
+
+def test_published_windows_are_what_the_trigger_saw():
+    """Re-running each probe's trigger on the decoded raw windows, then the counter latch,
+    gives back every published TOA (missing ones included) and its edge count; turning the
+    raw signals on changes no other message."""
+    from bttsim_stream.bus import codec
+    from bttsim_stream.sim.signal import SignalWindows
+
+    g = 1.05 * missing_clearance_m(CAPACITIVE, 0.2)
+    signal = dict(probe_type="capacitive", fraction=0.4, trigger=["threshold", "constant_fraction", "peak", "threshold", "threshold"],
+                  clearance_m=g, level_v=0.2, hysteresis_v=0.01, noise_v=0.02)
+    scn, msgs = _stream_messages(True, **signal)
+    sig = {(m.key.rsplit("/", 1)[1], codec.decode_message(m.key, m.payload).header.revolution):
+           codec.decode_message(m.key, m.payload).body for m in msgs if "/signal/" in m.key}
+    toa = {(m.key.rsplit("/", 1)[1], codec.decode_message(m.key, m.payload).header.revolution):
+           codec.decode_message(m.key, m.payload).body for m in msgs if "/toa/" in m.key}
+    assert sig.keys() == toa.keys() and len(sig) == 12 * 5
+    n_missing = n_double = 0
+    for key, s in sig.items():
+        n_max = int(s.n_samples.max())
+        starts = np.concatenate([[0], np.cumsum(s.n_samples)[:-1]])
+        rows = np.minimum(np.arange(n_max)[:, None], s.n_samples[None, :] - 1) + starts[None, :]
+        volts = s.range_lo_v + s.codes[rows] * s.lsb_v
+        win = SignalWindows(s.first_sample, s.n_samples, volts, s.codes[rows].astype(np.int32), s.sample_rate_hz)
+        assert s.fraction == scn.acquisition.signal.fraction
+        trig = Trigger(s.trigger, s.level_v, s.hysteresis_v, s.edge, s.fraction)
+        out = apply_triggers(win, [trig], np.zeros(s.first_sample.size, np.int64))
+        latched = np.where(np.isfinite(out.toa_s), np.floor(np.nan_to_num(out.toa_s) * 1e8) / 1e8, np.nan)
+        np.testing.assert_array_equal(latched, toa[key].toa_s, err_msg=str(key))
+        np.testing.assert_array_equal(s.toa_s, toa[key].toa_s)
+        np.testing.assert_array_equal(out.n_edges, s.n_edges)
+        n_missing += int(np.isnan(s.toa_s).sum())
+        n_double += int((s.n_edges > 1).sum())
+    assert n_missing > 0 and n_double > 0  # the cases that matter are exercised
+    _, plain = _stream_messages(False, **signal)
+    rest = [m for m in msgs if "/signal/" not in m.key and not m.key.endswith("/meta")]
+    assert rest == [m for m in plain if not m.key.endswith("/meta")]
+
+
+def test_double_pulses_reach_the_processor_each_in_its_blades_window(tmp_path):
+    """A threshold without hysteresis on a noisy pulse: the acquisition publishes every extra
+    edge with its probe's TOAs; the live processor and ``bttsim process`` assign each to a
+    blade's window and count exactly the simulator's double pulses (passages with more than
+    one edge) and extra edges (sum of n_edges - 1), none stray; the TOAs stay the first edges."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.bus import codec, keys
+    from bttsim_stream.bus.recording import McapRecorder
+    from bttsim_stream.offline import load_run
+    from bttsim_stream.processor import ProcessorSession
+
+    scn = scenario_from_dict({"speed": {"start_rpm": 2000.0, "end_rpm": 2100.0, "duration_s": 2.0},
+                              "acquisition": {"clock_hz": 1e8, "signal": {
+                                  "enabled": True, "probe_type": "capacitive", "clearance_m": 1e-3, "level_v": 0.2,
+                                  "hysteresis_v": 0.0, "noise_v": 0.01}}})
+    stream = AcquisitionStream(scn, n_revolutions=24, chunk_revolutions=10)
+    batches, messages = [], [stream.meta]
+    for b, msgs in stream.batches():
+        batches.append(b)
+        messages += msgs
+    n_edges = np.concatenate([b.n_edges for b in batches])
+    assert 0 < np.mean(n_edges > 1) < 1 and np.all(n_edges > 0)
+    truth = {"double_pulses": int(np.sum(n_edges > 1)), "extra_edges": int(np.sum(n_edges - 1)), "stray_edges": 0}
+    meta = codec.decode_run_metadata(stream.meta.payload).body
+    session = ProcessorSession(meta)
+    for m in messages[1:]:
+        kind = keys.parse_key(m.key).kind
+        if kind in ("opr", "toa"):
+            session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+    assert session.doubles.to_summary() == truth and session.rejected == 0
+    path = tmp_path / "doubles.mcap"
+    with McapRecorder(path, run_metadata=stream.run_metadata_record) as rec:
+        rec.write_all(messages)
+    run = load_run(path)
+    assert run.doubles == truth
+    # extra edges come after their passage's first edge, within its window (tens of us)
+    extra = np.concatenate([b.extra_toa_s for b in batches])
+    first = np.concatenate([b.toa_s.ravel()[b.extra_passage] for b in batches])
+    assert np.all((extra >= first) & (extra - first < 100e-6))

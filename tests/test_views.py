@@ -378,7 +378,7 @@ def test_log_recording_of_a_raw_acquisition(short_mcap, tmp_path):
         assert ent[f"/campbell/data/{path}"]["static"], path
     for path in ("/rotor/casing", "/rotor/probes", "/rotor/opr", "/campbell/data"):
         assert ent[path]["static"], path
-    assert not any(p.startswith(("/fit", "/tw", "/resonance")) for p in ent)  # no processing: empty views
+    assert not any(p.startswith(("/fit", "/tw", "/resonance", "/signal")) for p in ent)  # no processing: empty views
     assert [s.application_id for s in RrdReader(out).blueprints()] == [views.APPLICATION_ID]
 
 
@@ -719,3 +719,83 @@ def test_web_viewer_draws_the_plots(processed_mcap, tmp_path):
     target = os.environ.get("BTTSIM_SAVE_SCREENSHOT")
     if target:
         shutil.copyfile(shot, target)
+
+
+# --------------------------------------------------------------------------------------
+# The raw signal view
+# --------------------------------------------------------------------------------------
+
+
+def test_raw_signal_view_shows_the_selected_blades_window_level_and_toa(tmp_path):
+    """A run with raw signals on the bus: per revolution, probe 0's window of blade 0 (the
+    first selected blade) as logged is the decoded window, the trigger levels sit at the arming
+    level and at the window's own constant-fraction level (baseline of its first 4 samples +
+    f (max - baseline)), and the TOA line stands at the TOA published on toa/0 -- or is empty,
+    with a "missing pulse" label, where that TOA is NaN. A recording without raw signals logs
+    no signal entity (test_log_recording_of_a_raw_acquisition)."""
+    scn_text = SHORT + ("[acquisition]\nclock_hz = 1e8\n[acquisition.signal]\nenabled = true\npublish = true\n"
+                        'probe_type = "capacitive"\ntrigger = "constant_fraction"\nfraction = 0.4\n'
+                        "clearance_m = 1e-3\nnoise_v = 0.01\nlevel_v = 0.318\n")
+    path = tmp_path / "signal.toml"
+    path.write_text(scn_text)
+    stream = AcquisitionStream(load_scenario(path))
+    messages = [stream.meta] + [m for _, msgs in stream.batches() for m in msgs]
+    mcap = tmp_path / "signal.mcap"
+    with McapRecorder(mcap, run_metadata=stream.run_metadata_record) as rec:
+        rec.write_all(messages)
+    out = tmp_path / "signal.rrd"
+    session = views.log_recording(mcap, out)
+    assert session.stats["signal"] == N_REV and session.stats["bad"] == 0
+    rrd_verify(out)
+    data = f"/{paths.signal_path(0)}/data"
+    ent = rrd_entities(out)
+    for leaf in ("window", "samples", "level", "toa", "note"):
+        assert ent[f"{data}/{leaf}"]["rows"] == N_REV, leaf
+    assert ent[data]["static"] and ent[f"{data}/axes"]["static"]
+    assert not any(p.startswith(f"/{paths.signal_path(1)}") for p in ent)  # one probe shown
+    toa0 = {codec.decode_message(m.key, m.payload).header.revolution: codec.decode_message(m.key, m.payload).body
+            for m in messages if m.key == keys.toa_key("rig1", 0)}
+    sig0 = {codec.decode_message(m.key, m.payload).header.revolution: codec.decode_message(m.key, m.payload).body
+            for m in messages if m.key == keys.signal_key("rig1", 0)}
+    revs, windows = temporal(out, f"{data}/window", ":strips")
+    _, levels = temporal(out, f"{data}/level", ":strips")
+    _, toas = temporal(out, f"{data}/toa", ":strips")
+    _, notes = temporal(out, f"{data}/note", ":labels")
+    assert list(revs) == list(range(N_REV))
+    n_missing = 0
+    for r, win, lev, toa, note in zip(revs, windows, levels, toas, notes):
+        t, v = sig0[r].window(0)
+        xy = np.asarray(win[0])
+        np.testing.assert_allclose(xy[:, 0], (t - t[0]) * 1e6, atol=1e-4)
+        np.testing.assert_allclose(xy[:, 1], v, atol=1e-6)
+        base = v[:4].mean()
+        np.testing.assert_allclose([np.asarray(s)[0, 1] for s in lev], [0.318, base + 0.4 * (v.max() - base)],
+                                   atol=1e-6)
+        published = toa0[r].toa_s[0]
+        if np.isnan(published):
+            n_missing += 1
+            assert not toa
+            assert "missing pulse" in note[0]
+        else:
+            x = np.asarray(toa[0])[:, 0]
+            np.testing.assert_allclose(x, (published - t[0]) * 1e6, atol=1e-4)
+    assert n_missing > 0  # the case that matters is exercised
+
+
+def test_live_views_add_the_raw_signal_tab_when_signals_arrive(tmp_path, caplog):
+    path = tmp_path / "signal.toml"
+    path.write_text(SHORT + "[acquisition.signal]\nenabled = true\npublish = true\n")
+    stream = AcquisitionStream(load_scenario(path), n_revolutions=12)
+    messages = [stream.meta] + [m for _, msgs in stream.batches() for m in msgs]
+    rec, _ = views.open_recording(rrd_path=tmp_path / "live.rrd")
+    live = views.LiveViews(rec, live=True, flush_period_s=0.0, signal_probe=2, blades=[5])
+    with caplog.at_level("INFO", logger="bttsim.views"):
+        for m in messages:
+            live.feed(m.key, m.payload)
+        live.close()
+    rec.disconnect()
+    assert "raw signals on the bus: layout updated" in caplog.text and live.stats["signal"] == 12
+    ent = rrd_entities(tmp_path / "live.rrd")
+    assert ent[f"/{paths.signal_path(2)}/data/window"]["rows"] == 12
+    _, notes = temporal(tmp_path / "live.rrd", f"/{paths.signal_path(2)}/data/note", ":labels")
+    assert all("blade 5" in n[0] for n in notes)

@@ -9,6 +9,7 @@ parallel message classes and no dicts:
                                :class:`~bttsim_stream.sim.core.RevolutionBatch`)
 ``bttsim.v1.ToaBatch``         :class:`ToaBatch` (one probe's part of a revolution)
 ``bttsim.v1.TruthBatch``       :class:`~bttsim_stream.sim.core.Truth` (one revolution)
+``bttsim.v1.SignalBatch``      :class:`SignalBatch` (one probe's raw windows of a revolution)
 ``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.pipeline.RevolutionFit`
 ``bttsim.v1.TravellingWave``   :class:`~bttsim_stream.process.travelling_wave.ProbeWave`
 ``bttsim.v1.ResonanceReport``  :class:`~bttsim_stream.process.resonance.ResonanceReport`
@@ -39,7 +40,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,7 @@ from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonanceP
                                 TruthPeaks)
 from ..process.travelling_wave import ProbeWave
 from ..sim.core import RunInfo, Truth
+from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 
@@ -74,6 +76,12 @@ __all__ = [
     "encode_opr_batch",
     "encode_toa_batches",
     "encode_truth_batch",
+    "SignalBatch",
+    "MAX_WINDOW_SAMPLES",
+    "MAX_EXTRA_EDGES_PER_BLADE",
+    "encode_signal_batch",
+    "encode_signal_batches",
+    "decode_signal_batch",
     "log_times_ns",
     "encode_fit",
     "decode_fit",
@@ -90,6 +98,10 @@ __all__ = [
 
 #: Largest payload a decoder accepts, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+#: Most extra trigger edges (double pulses) a ``ToaBatch`` may carry per blade.
+MAX_EXTRA_EDGES_PER_BLADE = 8
+#: Most samples a raw-signal window may hold (the scenario allows 4096 at the slowest speed).
+MAX_WINDOW_SAMPLES = 1 << 16
 #: Name of the schema file inside the descriptor (and path under ``schemas/``).
 PROTO_FILE = "bttsim/v1/bttsim.proto"
 _PACKAGE = "bttsim.v1"
@@ -143,11 +155,65 @@ class ToaBatch:
     probe : int
     toa_s : ndarray, shape (n_blades,)
     toa_ticks : ndarray of int64, shape (n_blades,), or None
+    extra_toa_s : ndarray, shape (n_extra,)
+        Trigger edges after the first in a blade's window (double pulses), time order, s.
+    extra_toa_ticks : ndarray of int64, shape (n_extra,), or None
     """
 
     probe: int
     toa_s: np.ndarray
     toa_ticks: np.ndarray | None = None
+    extra_toa_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    extra_toa_ticks: np.ndarray | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SignalBatch:
+    """One probe's raw windows of one revolution (``bttsim.v1.SignalBatch``).
+
+    Window ``b`` holds the samples ``k = first_sample[b] .. first_sample[b] + n_samples[b] - 1``
+    taken at ``t_k = k / sample_rate_hz``; volts ``= range_lo_v + code * lsb_v``.
+
+    Attributes
+    ----------
+    probe : int
+    sample_rate_hz, range_lo_v, lsb_v : float
+    bits : int
+    trigger : str
+    level_v, hysteresis_v : float
+    edge : str
+    first_sample, n_samples : ndarray of int64, shape (n_blades,)
+    codes : ndarray of int64, shape (sum(n_samples),)
+        The windows' ADC codes, concatenated in blade order.
+    toa_s : ndarray, shape (n_blades,)
+        The TOAs published on the probe's TOA key, s (NaN: missing).
+    n_edges : ndarray of int64, shape (n_blades,)
+    fraction : float
+        The constant-fraction trigger's fraction.
+    """
+
+    probe: int
+    sample_rate_hz: float
+    range_lo_v: float
+    lsb_v: float
+    bits: int
+    trigger: str
+    level_v: float
+    hysteresis_v: float
+    edge: str
+    first_sample: np.ndarray
+    n_samples: np.ndarray
+    codes: np.ndarray
+    toa_s: np.ndarray
+    n_edges: np.ndarray
+    fraction: float = 0.5
+
+    def window(self, blade: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sample times (s) and volts (V) of one blade's window, each shape (n_samples[blade],)."""
+        start = int(self.n_samples[:blade].sum())
+        n = int(self.n_samples[blade])
+        k = self.first_sample[blade] + np.arange(n)
+        return k / self.sample_rate_hz, self.range_lo_v + self.codes[start:start + n] * self.lsb_v
 
 
 _TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
@@ -465,10 +531,12 @@ def decode_opr(payload: bytes, key: str | None = None) -> Decoded:
                                                opr_ticks=int(m.opr_ticks) if m.has_ticks else None))
 
 
-def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | None = None) -> bytes:
+def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | None = None,
+                     extra_toa_s=(), extra_toa_ticks=None) -> bytes:
     """Encode one probe's TOAs of one revolution (:class:`bttsim.v1.ToaBatch`).
 
-    ``toa_s`` (and ``toa_ticks``) are sequences of n_blades values (lists are fastest).
+    ``toa_s`` (and ``toa_ticks``) are sequences of n_blades values (lists are fastest);
+    ``extra_toa_s`` (and ``extra_toa_ticks`` when ticked) the later edges of double pulses.
     """
     m = _pb.ToaBatch()
     _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
@@ -477,6 +545,9 @@ def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | 
     if toa_ticks is not None:
         m.toa_ticks.extend(toa_ticks)
         m.has_ticks = True
+    m.extra_toa_s.extend(np.asarray(extra_toa_s, dtype=np.float64).tolist())
+    if toa_ticks is not None and extra_toa_ticks is not None:
+        m.extra_toa_ticks.extend(np.asarray(extra_toa_ticks, dtype=np.int64).tolist())
     return _serialize(m)
 
 
@@ -506,10 +577,21 @@ def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | 
         _check_len(where, m, "toa_ticks", n, "(n_blades,)")
     elif len(m.toa_ticks):
         raise _corrupt(where, m, "toa_ticks set but has_ticks is false")
+    n_extra = len(m.extra_toa_s)
+    if n_extra > MAX_EXTRA_EDGES_PER_BLADE * n:
+        raise _corrupt(where, m, f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
+    if m.has_ticks:
+        _check_len(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
+    elif len(m.extra_toa_ticks):
+        raise _corrupt(where, m, "extra_toa_ticks set but has_ticks is false")
+    extra = _array(m.extra_toa_s)
+    if not np.all(np.isfinite(extra)):
+        raise _corrupt(where, m, "an extra edge time is not finite")
     _check_probe_key(where, m, key, "toa")
     return Decoded(_header(m.header), ToaBatch(
         probe=int(m.probe), toa_s=_array(m.toa_s),
-        toa_ticks=_array(m.toa_ticks, np.int64) if m.has_ticks else None))
+        toa_ticks=_array(m.toa_ticks, np.int64) if m.has_ticks else None, extra_toa_s=extra,
+        extra_toa_ticks=_array(m.extra_toa_ticks, np.int64) if m.has_ticks else None))
 
 
 def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
@@ -550,6 +632,111 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
                   d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays)
     return Decoded(_header(m.header), truth)
+
+
+# --------------------------------------------------------------------------------------
+# Raw probe signals
+# --------------------------------------------------------------------------------------
+
+
+def encode_signal_batch(header: Header, batch: SignalBatch) -> bytes:
+    """Encode one probe's raw windows of one revolution (:class:`bttsim.v1.SignalBatch`)."""
+    m = _pb.SignalBatch()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    m.probe = int(batch.probe)
+    m.sample_rate_hz, m.range_lo_v, m.lsb_v = float(batch.sample_rate_hz), float(batch.range_lo_v), float(batch.lsb_v)
+    m.bits, m.trigger, m.edge = int(batch.bits), batch.trigger, batch.edge
+    m.level_v, m.hysteresis_v, m.fraction = float(batch.level_v), float(batch.hysteresis_v), float(batch.fraction)
+    m.first_sample.extend(np.asarray(batch.first_sample, dtype=np.int64).tolist())
+    m.n_samples.extend(np.asarray(batch.n_samples, dtype=np.int64).tolist())
+    m.codes.extend(np.asarray(batch.codes, dtype=np.int64).tolist())
+    m.toa_s.extend(np.asarray(batch.toa_s, dtype=np.float64).tolist())
+    m.n_edges.extend(np.asarray(batch.n_edges, dtype=np.int64).tolist())
+    return _serialize(m)
+
+
+def encode_signal_batches(run_id: str, seq, revolution, t_s, raw: RawSignals, toa_s, n_edges) -> list[bytes]:
+    """Every probe's :class:`bttsim.v1.SignalBatch` of a batch of revolutions, in
+    ``(revolution, probe)`` order (the same bytes as :func:`encode_signal_batch` one at a time).
+
+    Parameters
+    ----------
+    run_id : str
+    seq, revolution, t_s : array_like, shape (n_rev * n_probes,)
+        Header of each message, in ``(revolution, probe)`` order.
+    raw : RawSignals
+        Windows of the batch's passages, ``(revolution, blade, probe)`` order.
+    toa_s, n_edges : ndarray, shape (n_rev, n_blades, n_probes)
+        The published TOAs and the trigger's edge counts.
+    """
+    nr, nb, npr = np.shape(toa_s)
+    order = np.arange(nr * nb * npr).reshape(nr, nb, npr).transpose(0, 2, 1).ravel()  # (rev, probe, blade)
+    first = raw.first_sample[order].reshape(nr * npr, nb)
+    n_samp = raw.n_samples[order].reshape(nr * npr, nb)
+    codes = raw.codes[:, order]
+    valid = np.arange(codes.shape[0])[:, None] < n_samp.ravel()[None, :]
+    flat = codes.T[valid.T]  # windows concatenated in (revolution, probe, blade) order
+    ends = np.cumsum(n_samp.sum(axis=1))
+    starts = ends - n_samp.sum(axis=1)
+    toa = np.asarray(toa_s, dtype=np.float64).transpose(0, 2, 1).reshape(nr * npr, nb)
+    edges = np.asarray(n_edges, dtype=np.int64).transpose(0, 2, 1).reshape(nr * npr, nb)
+    seq, revolution, t_s = (np.asarray(a).ravel().tolist() for a in (seq, revolution, t_s))
+    out = []
+    for i in range(nr * npr):
+        j = i % npr
+        out.append(encode_signal_batch(Header(run_id, seq[i], revolution[i], t_s[i]), SignalBatch(
+            probe=j, sample_rate_hz=raw.sample_rate_hz, range_lo_v=raw.range_lo_v, lsb_v=raw.lsb_v, bits=raw.bits,
+            trigger=raw.trigger[j], level_v=raw.level_v, hysteresis_v=raw.hysteresis_v, edge=raw.edge,
+            first_sample=first[i], n_samples=n_samp[i], codes=flat[starts[i]:ends[i]], toa_s=toa[i],
+            n_edges=edges[i], fraction=raw.fraction)))
+    return out
+
+
+def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.SignalBatch` payload into ``(Header, SignalBatch)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, inconsistent lengths, a window longer
+        than :data:`MAX_WINDOW_SAMPLES`, codes outside ``[0, 2^bits - 1]``, a non-positive or
+        non-finite sample rate or code size, an unknown trigger or edge.
+    """
+    m, where = _parse(_pb.SignalBatch, payload, key)
+    n = len(m.first_sample)
+    if n == 0:
+        raise _corrupt(where, m, "first_sample is empty")
+    if n_blades is not None and n != n_blades:
+        raise _corrupt(where, m, f"first_sample has {n} values, expected n_blades = {n_blades}")
+    for name in ("n_samples", "toa_s", "n_edges"):
+        _check_len(where, m, name, n, "(n_blades,)")
+    n_samp = _array(m.n_samples, np.int64)
+    if n_samp.min() < 1 or n_samp.max() > MAX_WINDOW_SAMPLES:
+        raise _corrupt(where, m, f"n_samples must be in [1, {MAX_WINDOW_SAMPLES}]")
+    _check_len(where, m, "codes", int(n_samp.sum()), "(sum(n_samples),)")
+    if not 1 <= m.bits <= 31:
+        raise _corrupt(where, m, f"bits = {m.bits} (1..31)")
+    codes = _array(m.codes, np.int64)
+    if codes.size and codes.max() >= (1 << m.bits):
+        raise _corrupt(where, m, f"an ADC code above 2^{m.bits} - 1")
+    first = _array(m.first_sample, np.int64)  # negative: a window opened before t = 0
+    for name in ("sample_rate_hz", "lsb_v"):
+        v = getattr(m, name)
+        if not (math.isfinite(v) and v > 0):
+            raise _corrupt(where, m, f"{name} = {v!r} (finite, > 0)")
+    for name in ("range_lo_v", "level_v", "hysteresis_v"):
+        if not math.isfinite(getattr(m, name)):
+            raise _corrupt(where, m, f"{name} = {getattr(m, name)!r} (finite)")
+    if not 0.0 <= m.fraction <= 1.0:
+        raise _corrupt(where, m, f"fraction = {m.fraction!r} (in [0, 1])")
+    if m.trigger not in TRIGGER_KINDS or m.edge not in EDGES:
+        raise _corrupt(where, m, f"trigger {m.trigger!r}, edge {m.edge!r}")
+    _check_probe_key(where, m, key, "signal")
+    return Decoded(_header(m.header), SignalBatch(
+        probe=int(m.probe), sample_rate_hz=m.sample_rate_hz, range_lo_v=m.range_lo_v, lsb_v=m.lsb_v, bits=int(m.bits),
+        trigger=m.trigger, level_v=m.level_v, hysteresis_v=m.hysteresis_v, edge=m.edge, first_sample=first,
+        n_samples=n_samp, codes=codes, toa_s=_array(m.toa_s), n_edges=_array(m.n_edges, np.int64),
+        fraction=m.fraction))
 
 
 # --------------------------------------------------------------------------------------
@@ -732,7 +919,8 @@ def encode_opr_batch(run_id: str, seq, revolution, t_s, opr_s, opr_ticks=None) -
     return _assemble(parts)
 
 
-def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_ticks=None) -> list[bytes]:
+def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_ticks=None,
+                       extra=None) -> list[bytes]:
     """:func:`encode_toa_batch` of many (revolution, probe) batches at once (the same bytes).
 
     Parameters
@@ -742,6 +930,10 @@ def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_tick
         Header times.
     toa_s : ndarray, shape (n, n_blades)
     toa_ticks : ndarray of int, shape (n, n_blades), optional
+    extra : (message, extra_toa_s, extra_toa_ticks or None), optional
+        Later edges of double pulses: the message index (0..n-1, non-decreasing) of each,
+        its time and its ticks. Fields 6 and 7 are the last of ``ToaBatch``: appended to the
+        messages that have any, they give the bytes of a deterministic serialization.
     """
     seq = np.asarray(seq)
     n = seq.size
@@ -751,7 +943,31 @@ def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_tick
     if toa_ticks is not None:
         parts += _packed_varints(_tag(_pb.ToaBatch, "toa_ticks"), np.asarray(toa_ticks).reshape(n, -1))
         parts.append(_const(n, bytes([_tag(_pb.ToaBatch, "has_ticks"), 1])))
-    return _assemble(parts)
+    out = _assemble(parts)
+    if extra is not None and len(extra[0]):
+        msg, times, ticks = (np.asarray(extra[0], np.int64), np.asarray(extra[1], np.float64),
+                             None if extra[2] is None or toa_ticks is None else np.asarray(extra[2], np.int64))
+        bounds = np.searchsorted(msg, np.arange(n + 1))
+        tag_s, tag_k = _tag(_pb.ToaBatch, "extra_toa_s"), _tag(_pb.ToaBatch, "extra_toa_ticks")
+        for i in np.flatnonzero(np.diff(bounds)).tolist():
+            lo, hi = bounds[i], bounds[i + 1]
+            body = times[lo:hi].astype("<f8").tobytes()
+            tail = _varint_bytes(tag_s) + _varint_bytes(len(body)) + body
+            if ticks is not None:
+                body = b"".join(_varint_bytes(int(v) & ((1 << 64) - 1)) for v in ticks[lo:hi].tolist())
+                tail += _varint_bytes(tag_k) + _varint_bytes(len(body)) + body
+            out[i] = out[i] + tail
+    return out
+
+
+def _varint_bytes(value: int) -> bytes:
+    """One protobuf varint (``value`` >= 0)."""
+    out = bytearray()
+    while True:
+        b, value = value & 0x7F, value >> 7
+        out.append(b | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
 
 
 def encode_truth_batch(run_id: str, seq, revolution, t_s, truth: Truth) -> list[bytes]:
@@ -1009,6 +1225,7 @@ def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
 _DECODERS = {
     "bttsim.v1.Opr": decode_opr,
     "bttsim.v1.ToaBatch": decode_toa_batch,
+    "bttsim.v1.SignalBatch": decode_signal_batch,
     "bttsim.v1.TruthBatch": decode_truth,
     "bttsim.v1.RunMetadata": decode_run_metadata,
     "bttsim.v1.BladeFits": decode_fit,

@@ -9,6 +9,7 @@ key                                message                       notes
 ``bttsim/<rig>/opr``               ``bttsim.v1.Opr``             one per revolution
 ``bttsim/<rig>/toa/<probe>``       ``bttsim.v1.ToaBatch``        one per probe per revolution
 ``bttsim/<rig>/truth``             ``bttsim.v1.TruthBatch``      ground truth, on its own key
+``bttsim/<rig>/signal/<probe>``    ``bttsim.v1.SignalBatch``     raw windows, on request
 ``bttsim/<rig>/meta``              ``bttsim.v1.RunMetadata``     queryable (and recorded once)
 ``bttsim/<rig>/fit``               ``bttsim.v1.BladeFits``       one per revolution
 ``bttsim/<rig>/tw/<probe>``        ``bttsim.v1.TravellingWave``  one per probe per revolution
@@ -37,6 +38,8 @@ __all__ = [
     "toa_key",
     "toa_all_key",
     "truth_key",
+    "signal_key",
+    "signal_all_key",
     "meta_key",
     "fits_key",
     "tw_key",
@@ -61,6 +64,7 @@ _KINDS: dict[str, tuple[str | None, bool]] = {
     "opr": ("bttsim.v1.Opr", False),
     "toa": ("bttsim.v1.ToaBatch", True),
     "truth": ("bttsim.v1.TruthBatch", False),
+    "signal": ("bttsim.v1.SignalBatch", True),
     "meta": ("bttsim.v1.RunMetadata", False),
     "fit": ("bttsim.v1.BladeFits", False),
     "tw": ("bttsim.v1.TravellingWave", True),
@@ -115,6 +119,16 @@ def toa_all_key(rig: str) -> str:
 def truth_key(rig: str) -> str:
     """``bttsim/<rig>/truth``: ground truth (:class:`bttsim.v1.TruthBatch`)."""
     return f"{PREFIX}/{validate_rig(rig)}/truth"
+
+
+def signal_key(rig: str, probe: int) -> str:
+    """``bttsim/<rig>/signal/<probe>``: raw probe windows of one probe (:class:`bttsim.v1.SignalBatch`)."""
+    return f"{PREFIX}/{validate_rig(rig)}/signal/{_index(probe, 'probe')}"
+
+
+def signal_all_key(rig: str) -> str:
+    """``bttsim/<rig>/signal/*``: the raw windows of every probe."""
+    return f"{PREFIX}/{validate_rig(rig)}/signal/*"
 
 
 def meta_key(rig: str) -> str:
@@ -191,10 +205,10 @@ class KeyInfo:
     ----------
     rig : str
     kind : str
-        ``"opr"``, ``"toa"``, ``"truth"``, ``"meta"``, ``"fit"``, ``"tw"``, ``"resonance"`` or
-        ``"alive"``.
+        ``"opr"``, ``"toa"``, ``"truth"``, ``"signal"``, ``"meta"``, ``"fit"``, ``"tw"``,
+        ``"resonance"`` or ``"alive"``.
     probe : int or None
-        Probe index for ``toa`` and ``tw`` keys.
+        Probe index for ``toa``, ``signal`` and ``tw`` keys.
     node : str or None
         Node name for ``alive`` keys.
     message_type : str or None

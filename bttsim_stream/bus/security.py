@@ -10,7 +10,8 @@ the same CA is refused during the handshake) and enforces the access-control pol
 ==========================  =====================================  ===========================
 who                         may publish (put, reply)               may receive
 ==========================  =====================================  ===========================
-``sim``                     ``opr``, ``toa/*``, ``meta``, ``truth``  everything but ``truth``
+``sim``                     ``opr``, ``toa/*``, ``signal/*``,      everything but ``truth``
+                            ``meta``, ``truth``
 ``processor``               ``fit``, ``tw/*``, ``resonance``       everything
 ``recorder``, ``viewer``    nothing                                everything
 ``run``                     nothing                                everything but ``truth``
@@ -42,7 +43,7 @@ __all__ = ["TlsFiles", "add_security_args", "tls_from_args", "access_control_pol
 #: Identities allowed to receive ``bttsim/<rig>/truth`` (the router relays it).
 TRUTH_READERS = ("processor", "recorder", "viewer", "router")
 
-_ACQ = ["bttsim/*/opr", "bttsim/*/toa/*", "bttsim/*/meta"]
+_ACQ = ["bttsim/*/opr", "bttsim/*/toa/*", "bttsim/*/signal/*", "bttsim/*/meta"]
 _TRUTH = ["bttsim/*/truth"]
 _RESULTS = ["bttsim/*/fit", "bttsim/*/tw/*", "bttsim/*/resonance"]
 # zenoh-ext's advanced publishers and subscribers use keys under a verbatim chunk ``@adv``

@@ -188,6 +188,7 @@ class MessageStream:
         self._k_truth = keys.truth_key(self.rig)
         self._k_fit = keys.fits_key(self.rig)
         self._k_toa: list[str] = []
+        self._k_signal: list[str] = []
         self._k_tw: list[str] = []
 
     def _message(self, key: str, revolution: int, t_s: float, encode, *args) -> Message:
@@ -205,9 +206,13 @@ class MessageStream:
     def acquisition(self, batch: RevolutionBatch, *, include_truth: bool = True) -> list[Message]:
         """Messages of a batch of revolutions, in publication order.
 
-        Per revolution: one ``Opr`` (header time: the OPR as acquired), one ``ToaBatch`` per
-        probe 0..n_probes-1 (header time: its latest TOA, the OPR time if all are missing),
-        then one ``TruthBatch`` (header time: the acquired OPR; if ``include_truth``).
+        Per revolution: one ``Opr`` (header time: the OPR as acquired), with raw signals
+        (``batch.signal``) one ``SignalBatch`` per probe, one ``ToaBatch`` per probe
+        0..n_probes-1 (header time, also the ``SignalBatch``'s: its latest TOA or extra edge of a
+        double pulse, the OPR time if all are missing; the extra edges in the batch's
+        ``extra_toa_s``), then one ``TruthBatch`` (header time: the acquired OPR; if
+        ``include_truth``). The raw windows go before the TOAs, so a consumer that has a
+        run's last TOAs (:class:`StreamEnd`) has its signals too.
         """
         toa = np.asarray(batch.toa_s, dtype=np.float64)
         if toa.ndim != 3:
@@ -232,6 +237,15 @@ class MessageStream:
             return []
         latest = np.fmax.reduce(toa, axis=1)  # (nr, np), ignores NaN
         latest = np.where(np.isnan(latest), opr[:, None], latest)
+        extra = None
+        if batch.extra_passage is not None and batch.extra_passage.size:
+            p = np.asarray(batch.extra_passage, dtype=np.int64)
+            msg = (p // (nb * npr)) * npr + p % npr  # (revolution, probe) message of each edge
+            order = np.lexsort((batch.extra_toa_s, msg))
+            ticks = None if batch.extra_toa_ticks is None else batch.extra_toa_ticks[order]
+            extra = (msg[order], batch.extra_toa_s[order], ticks)
+            flat = latest.reshape(-1)  # a batch goes out after its last edge
+            np.fmax.at(flat, msg, batch.extra_toa_s)
         revs_a = np.asarray(revs, dtype=np.int64)
         # every message of the batch encoded at once (codec's batch encoders: the same bytes
         # as one message at a time); numbers taken per key in publication order
@@ -241,11 +255,20 @@ class MessageStream:
                                         np.asarray(batch.opr_ticks, dtype=np.int64) if ticked else None)
         toa_pl = codec.encode_toa_batches(
             self.run_id, seq_toa.ravel(), np.repeat(revs_a, npr), latest.ravel(), np.tile(np.arange(npr), nr),
-            toa.transpose(0, 2, 1).reshape(nr * npr, nb), toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None)
+            toa.transpose(0, 2, 1).reshape(nr * npr, nb), toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None,
+            extra)
         t_opr = codec.log_times_ns(opr).tolist()
         t_toa = codec.log_times_ns(latest).tolist()
         seq_opr_l, seq_toa_l = seq_opr.tolist(), seq_toa.tolist()
         k_opr, k_toa = self._k_opr, self._k_toa
+        raw = batch.signal
+        if raw is not None:
+            while len(self._k_signal) < npr:
+                self._k_signal.append(keys.signal_key(self.rig, len(self._k_signal)))
+            seq_sig = np.stack([self.sequencer.take(self._k_signal[j], nr) for j in range(npr)], axis=1)
+            sig_pl = codec.encode_signal_batches(self.run_id, seq_sig.ravel(), np.repeat(revs_a, npr), latest.ravel(),
+                                                 raw, toa, batch.n_edges)
+            seq_sig_l, k_sig = seq_sig.tolist(), self._k_signal
         if include_truth:
             seq_tr = self.sequencer.take(self._k_truth, nr)
             tr_pl = codec.encode_truth_batch(self.run_id, seq_tr, revs_a, opr, batch.truth)
@@ -255,6 +278,9 @@ class MessageStream:
             out.append(Message(k_opr, opr_pl[i], t_opr[i], seq_opr_l[i]))
             row = seq_toa_l[i]
             t_row = t_toa[i]
+            if raw is not None:
+                for j in range(npr):
+                    out.append(Message(k_sig[j], sig_pl[i * npr + j], t_row[j], seq_sig_l[i][j]))
             for j in range(npr):
                 out.append(Message(k_toa[j], toa_pl[i * npr + j], t_row[j], row[j]))
             if include_truth:

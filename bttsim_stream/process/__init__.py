@@ -23,7 +23,7 @@ frequencies), amplitudes peak-to-peak, blades and probes numbered from 0, NaN fo
 missing arrival. Nothing here imports the transport, codec or viewer layers.
 """
 
-from .displacement import (Displacements, Geometry, RotorPhase, btt_displacement, calibrate_arrival_angles,
+from .displacement import (Displacements, DoublePulses, Geometry, assign_extra_edges, RotorPhase, btt_displacement, calibrate_arrival_angles,
                            compute_displacements, expected_times, identify_blades, mean_speed_from_opr,
                            rotor_phase_from_opr)
 from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,

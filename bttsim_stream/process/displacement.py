@@ -42,6 +42,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "assign_extra_edges",
+    "DoublePulses",
     "Geometry",
     "RotorPhase",
     "Displacements",
@@ -439,6 +441,83 @@ def displacements_from_phase(phase: RotorPhase, toa_s: np.ndarray, arrival_angle
     # times relative to the OPR pulse: no cancellation of the absolute time (130 s) in Eq. 1
     tau = toa - phase.opr_s[:, None, None]
     return btt_displacement(phase.omega_mean_rad_s, tip_radius_m, tau_exp, tau), tau_exp
+
+
+def assign_extra_edges(toa_s: np.ndarray, edge_s: np.ndarray, *, tolerance: float = 0.5) -> np.ndarray:
+    """The blade whose window each extra trigger edge (a double pulse) falls in.
+
+    Parameters
+    ----------
+    toa_s : ndarray, shape (n_blades,)
+        One probe's TOAs of one revolution (the first edge latched in each blade's window),
+        s; NaN: missing.
+    edge_s : ndarray, shape (n_edges,)
+        The later edges the acquisition reported for that probe and revolution, s.
+    tolerance : float
+        Largest distance of an edge from its blade's TOA, as a fraction of the blade spacing
+        in time (the median gap between consecutive TOAs).
+
+    Returns
+    -------
+    ndarray of int64, shape (n_edges,)
+        The blade of each edge, -1 for an edge in no blade's window (spurious, or fewer than
+        two TOAs to size a window).
+
+    Notes
+    -----
+    Blade ``b``'s window is ``|t - toa_b| <= tolerance * median(diff(sort(toa)))``; an edge
+    goes to the nearest TOA within it. A double pulse is the noise re-crossing the trigger
+    level within one passage: its extra edges lie microseconds after the first, a blade
+    spacing is hundreds of microseconds, so the nearest TOA is the blade's own. The first
+    edge stays the blade's TOA (what the hardware latched); the extra ones are counted
+    (:class:`DoublePulses`), not used.
+    """
+    t = np.asarray(toa_s, dtype=float)
+    e = np.asarray(edge_s, dtype=float).ravel()
+    out = np.full(e.size, -1, dtype=np.int64)
+    blades = np.flatnonzero(np.isfinite(t))
+    if e.size == 0 or blades.size < 2:
+        return out
+    order = np.argsort(t[blades])
+    ts, bs = t[blades][order], blades[order]
+    window = tolerance * float(np.median(np.diff(ts)))
+    i = np.clip(np.searchsorted(ts, e), 1, ts.size - 1)
+    near = np.where(np.abs(e - ts[i - 1]) <= np.abs(ts[i] - e), i - 1, i)
+    ok = np.isfinite(e) & (np.abs(e - ts[near]) <= window)
+    out[ok] = bs[near[ok]]
+    return out
+
+
+class DoublePulses:
+    """Counts of double pulses in the TOA batches of a run (the summary's ``double_pulses``,
+    ``extra_edges``, ``stray_edges``).
+
+    Attributes
+    ----------
+    double_pulses : int
+        Passages (revolution, blade, probe) with at least one extra edge.
+    extra_edges : int
+        Extra edges assigned to a blade's window (:func:`assign_extra_edges`).
+    stray_edges : int
+        Extra edges in no blade's window.
+    """
+
+    def __init__(self) -> None:
+        self.double_pulses = self.extra_edges = self.stray_edges = 0
+
+    def add(self, toa_s: np.ndarray, edge_s: np.ndarray) -> None:
+        """One probe's TOAs of one revolution and the extra edges reported with them."""
+        if np.size(edge_s) == 0:
+            return
+        blade = assign_extra_edges(toa_s, edge_s)
+        mine = blade[blade >= 0]
+        self.extra_edges += int(mine.size)
+        self.stray_edges += int(blade.size - mine.size)
+        self.double_pulses += int(np.unique(mine).size)
+
+    def to_summary(self) -> dict:
+        return {"double_pulses": self.double_pulses, "extra_edges": self.extra_edges,
+                "stray_edges": self.stray_edges}
 
 
 def identify_blades(opr_s: np.ndarray, pulse_s: np.ndarray, probe_angle_rad: float,

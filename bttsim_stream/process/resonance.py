@@ -624,6 +624,10 @@ def summary_table(summary: dict) -> str:
                          f"{len(summary.get('steady', []))} dwell(s)")
     if summary.get("missing_toas"):
         lines.append(f"missing pulses: {summary['missing_toas']} TOAs did not trigger (NaN, left out of the fits)")
+    if summary.get("double_pulses") or summary.get("stray_edges"):
+        stray = f"; {summary['stray_edges']} in no blade's window" if summary.get("stray_edges") else ""
+        lines.append(f"double pulses: {summary['double_pulses']} TOAs had extra trigger edges "
+                     f"({summary['extra_edges']} edges in their blade's window{stray}; the first edge kept)")
     if summary.get("complete") is False:
         lines.append(f"INCOMPLETE: {summary['revolutions_processed']} of {summary['revolutions_expected']} "
                      f"revolutions processed, {summary['lost']} messages lost, {summary['duplicates']} "

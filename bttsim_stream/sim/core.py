@@ -21,7 +21,7 @@ from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
 from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
-from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, Trigger, apply_triggers,
+from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
                      centrifugal_growth_m, pulse_parameters, synthesise)
 from .speed import SpeedProfile, speed_profile_from_scenario
 from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
@@ -163,6 +163,16 @@ class RevolutionBatch:
         latched). None without the signal chain.
     clearance_m : ndarray, shape (n_rev, n_blades, n_probes), or None
         With ``[acquisition.signal]``: the tip clearance at each passage, m.
+    signal : RawSignals or None
+        With ``[acquisition.signal] publish``: the digitised window of every passage.
+    extra_passage : ndarray of int64, shape (m,), or None
+        With ``[acquisition.signal]``: the passage of every trigger edge after its window's
+        first (double pulses), as an index into the batch's ``(revolution, blade, probe)``
+        arrays flattened, in passage then time order.
+    extra_toa_s : ndarray, shape (m,), or None
+        Their times as acquired (latched on the clock like the TOAs), s.
+    extra_toa_ticks : ndarray of int64, shape (m,), or None
+        The same in clock ticks when the clock is quantised.
     """
 
     revolution: np.ndarray
@@ -175,6 +185,10 @@ class RevolutionBatch:
     bracketed: np.ndarray
     n_edges: np.ndarray | None = None
     clearance_m: np.ndarray | None = None
+    signal: RawSignals | None = None
+    extra_passage: np.ndarray | None = None
+    extra_toa_s: np.ndarray | None = None
+    extra_toa_ticks: np.ndarray | None = None
 
 
 def load_scenario_model(scn):
@@ -531,6 +545,8 @@ class RunUpSimulator:
         if acq.opr_jitter_s > 0:
             opr += acq.opr_jitter_s * self._rng["opr"].standard_normal(opr.shape)
         toa_ticks = opr_ticks = None
+        extra_t = None if sig is None else sig[5]
+        extra_ticks = None
         if acq.clock_hz > 0:
             if sig is None:
                 toa_ticks = np.floor(toa * acq.clock_hz).astype(np.int64)
@@ -538,11 +554,16 @@ class RunUpSimulator:
                 found = np.isfinite(toa)
                 toa_ticks = np.where(found, np.floor(np.where(found, toa, 0.0) * acq.clock_hz), -1).astype(np.int64)
             opr_ticks = np.floor(opr * acq.clock_hz).astype(np.int64)
+            if sig is not None:
+                extra_ticks = np.floor(extra_t * acq.clock_hz).astype(np.int64)
+                extra_t = extra_ticks / acq.clock_hz
             toa = toa_ticks / acq.clock_hz
             if sig is not None:
                 toa[toa_ticks < 0] = np.nan
             opr = opr_ticks / acq.clock_hz
-        extra = {} if sig is None else {"n_edges": sig[1].reshape(toa.shape), "clearance_m": sig[2].reshape(toa.shape)}
+        extra = {} if sig is None else {"n_edges": sig[1].reshape(toa.shape), "clearance_m": sig[2].reshape(toa.shape),
+                                        "signal": sig[3], "extra_passage": sig[4], "extra_toa_s": extra_t,
+                                        "extra_toa_ticks": extra_ticks}
         return RevolutionBatch(revolution=revs.astype(np.int64), opr_s=opr, toa_s=toa,
                                opr_ticks=opr_ticks, toa_ticks=toa_ticks, truth=truth,
                                residual_s=residual, bracketed=bracketed, **extra)
@@ -566,7 +587,12 @@ def collect(batches) -> RevolutionBatch:
                            toa_ticks=cat(lambda b: b.toa_ticks), truth=truth,
                            residual_s=max(b.residual_s for b in batches),
                            bracketed=cat(lambda b: b.bracketed), n_edges=cat(lambda b: b.n_edges),
-                           clearance_m=cat(lambda b: b.clearance_m))
+                           clearance_m=cat(lambda b: b.clearance_m),
+                           signal=None if batches[0].signal is None else RawSignals.concatenate(b.signal for b in batches),
+                           extra_passage=None if batches[0].extra_passage is None else np.concatenate(
+                               [b.extra_passage + off for b, off in zip(batches, np.cumsum(
+                                   [0] + [b.toa_s.size for b in batches[:-1]]))]),
+                           extra_toa_s=cat(lambda b: b.extra_toa_s), extra_toa_ticks=cat(lambda b: b.extra_toa_ticks))
 
 
 class _SignalChain:
@@ -604,7 +630,9 @@ class _SignalChain:
         self.tau_s = np.array([p.tau_s for p in self.probes])
 
     def __call__(self, toa, blade, probe, d_rad_m, omega, radius_m):
-        """Triggered TOAs, edge counts and clearances of passages (all shape (n,))."""
+        """Triggered TOAs, edge counts and clearances of passages (all shape (n,)), their
+        :class:`RawSignals` when the scenario publishes them (else None), and the later edges
+        of double pulses (passage, time)."""
         sig = self.sig
         growth = centrifugal_growth_m(omega, self.radius_m, sig.density_kg_m3, sig.youngs_modulus_pa)
         clearance = sig.clearance_m - growth - d_rad_m
@@ -619,4 +647,9 @@ class _SignalChain:
         win = synthesise(toa, PulseParameters(height, half, scale), self.tau_s[probe], probe, self.dig, self.rng,
                          self.lf)
         out = apply_triggers(win, self.triggers, probe)
-        return out.toa_s, out.n_edges, clearance
+        raw = None
+        if sig.publish:
+            raw = RawSignals(win.first_sample, win.n_samples, win.codes, win.sample_rate_hz, self.dig.range_lo_v,
+                             self.dig.lsb_v, self.dig.bits, tuple(t.kind for t in self.triggers), sig.level_v,
+                             sig.hysteresis_v, sig.edge, sig.fraction)
+        return out.toa_s, out.n_edges, clearance, raw, out.extra_passage, out.extra_toa_s

@@ -89,14 +89,14 @@ the crossing's uniformly distributed position between samples).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 __all__ = ["PROBE_KINDS", "TRIGGER_KINDS", "EDGES", "ProbeModel", "Digitiser", "Trigger", "PulseParameters",
-           "SignalWindows", "TriggerResult", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
+           "SignalWindows", "TriggerResult", "RawSignals", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
            "edge_crossing_s", "missing_clearance_m", "lowpass", "synthesise", "apply_triggers",
-           "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise"]
+           "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise", "constant_fraction_level"]
 
 PROBE_KINDS = ("optical", "capacitive")
 TRIGGER_KINDS = ("threshold", "constant_fraction", "peak")
@@ -268,6 +268,62 @@ class SignalWindows:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class RawSignals:
+    """The digitiser's windows of a batch of passages, as a raw-signal channel carries them.
+
+    Passages in the simulator's row-major ``(revolution, blade, probe)`` order; window ``i``
+    holds samples ``k = first_sample[i] .. first_sample[i] + n_samples[i] - 1`` at
+    ``t_k = k / sample_rate_hz`` with volts ``range_lo_v + code * lsb_v``.
+
+    Attributes
+    ----------
+    first_sample, n_samples : ndarray of int64, shape (n,)
+    codes : ndarray of int32, shape (n_max, n)
+        ADC codes (rows beyond a window repeat its last sample).
+    sample_rate_hz, range_lo_v, lsb_v : float
+    bits : int
+    trigger : tuple of str, one per probe
+    level_v, hysteresis_v : float
+        Trigger (or arming) level and threshold hysteresis, V.
+    edge : str
+    fraction : float
+        Constant fraction.
+    """
+
+    first_sample: np.ndarray
+    n_samples: np.ndarray
+    codes: np.ndarray
+    sample_rate_hz: float
+    range_lo_v: float
+    lsb_v: float
+    bits: int
+    trigger: tuple
+    level_v: float
+    hysteresis_v: float
+    edge: str
+    fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        n = self.first_sample.shape[0]
+        if self.n_samples.shape != (n,) or self.codes.ndim != 2 or self.codes.shape[1] != n:
+            raise ValueError(f"RawSignals: first_sample {self.first_sample.shape}, n_samples "
+                             f"{self.n_samples.shape}, codes {self.codes.shape} do not agree")
+
+    @staticmethod
+    def concatenate(parts) -> "RawSignals":
+        """Join batches along the passage axis (shorter windows padded by their last sample)."""
+        parts = list(parts)
+        n_max = max(p.codes.shape[0] for p in parts)
+        codes = np.concatenate([np.pad(p.codes, ((0, n_max - p.codes.shape[0]), (0, 0)), mode="edge")
+                                for p in parts], axis=1)
+        p0 = parts[0]
+        return RawSignals(np.concatenate([p.first_sample for p in parts]),
+                          np.concatenate([p.n_samples for p in parts]), codes, p0.sample_rate_hz,
+                          p0.range_lo_v, p0.lsb_v, p0.bits, p0.trigger, p0.level_v, p0.hysteresis_v, p0.edge,
+                          p0.fraction)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class TriggerResult:
     """Trigger output per passage (shape (n,)).
 
@@ -277,10 +333,17 @@ class TriggerResult:
         Interpolated TOA, s (not yet latched on the counter clock); NaN: missing pulse.
     n_edges : ndarray of int64
         Edges in the window (threshold trigger; 0 or 1 for the others): 0 missing, > 1 double.
+    extra_passage : ndarray of int64, shape (m,)
+        Passage of each edge after its window's first (``m = sum(max(n_edges - 1, 0))``), in
+        passage then time order.
+    extra_toa_s : ndarray, shape (m,)
+        Interpolated time of each such edge, s (not latched).
     """
 
     toa_s: np.ndarray
     n_edges: np.ndarray
+    extra_passage: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    extra_toa_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def centrifugal_growth_m(omega_rad_s, radius_m: float, density_kg_m3: float, youngs_modulus_pa: float):
@@ -517,7 +580,9 @@ def _interp_time(y, k1, level, t_first, dt):
 
 
 def _threshold(y, level, hysteresis, t_first, dt):
-    """Schmitt trigger on rising ``y`` (columns are passages): (toa, n_edges)."""
+    """Schmitt trigger on rising ``y`` (columns are passages): (toa, n_edges, extra_column,
+    extra_toa) -- the first edge of each column, the edge counts, and every later edge's
+    column and interpolated time."""
     n_max, n = y.shape
     dec = np.where(y >= level, 1, np.where(y <= level - hysteresis, 0, -1)).astype(np.int8)
     idx = np.where(dec >= 0, np.arange(n_max)[:, None], -1)
@@ -529,13 +594,34 @@ def _threshold(y, level, hysteresis, t_first, dt):
     n_edges = edges.sum(axis=0).astype(np.int64)
     k1 = np.argmax(edges, axis=0)
     toa = _interp_time(y, k1, level, t_first, dt)
-    return np.where(n_edges > 0, toa, np.nan), n_edges
+    # the edges after the first (double pulses): column, sample, time, in column then time order
+    col, k = np.nonzero(edges.T)
+    later = k > k1[col]
+    col, k = col[later], k[later]
+    y0, y1 = y[k - 1, col], y[k, col]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(y1 != y0, (level - y0) / (y1 - y0), 0.0)
+    extra = t_first[col] + (k - 1 + np.clip(frac, 0.0, 1.0)) * dt
+    return np.where(n_edges > 0, toa, np.nan), n_edges, col.astype(np.int64), extra
+
+
+def constant_fraction_level(y, fraction):
+    """The constant-fraction trigger's level of each window, V: ``b + f (max - b)`` with ``b``
+    the mean of the window's first 4 samples (its baseline).
+
+    Parameters
+    ----------
+    y : ndarray, shape (n_samples, ...)
+        Window samples, V.
+    fraction : float
+    """
+    base = y[:_BASELINE_SAMPLES].mean(axis=0)
+    return base + fraction * (y.max(axis=0) - base)
 
 
 def _constant_fraction(y, level, fraction, t_first, dt):
-    base = y[:_BASELINE_SAMPLES].mean(axis=0)
     top = y.max(axis=0)
-    cfd = base + fraction * (top - base)
+    cfd = constant_fraction_level(y, fraction)
     k1 = np.argmax(y >= cfd, axis=0)
     toa = _interp_time(y, k1, cfd, t_first, dt)
     armed = top >= level
@@ -571,6 +657,7 @@ def apply_triggers(win: SignalWindows, triggers, probe: np.ndarray) -> TriggerRe
     n = win.first_sample.size
     toa = np.full(n, np.nan)
     n_edges = np.zeros(n, dtype=np.int64)
+    extra_p, extra_t = [], []
     dt = 1.0 / win.sample_rate_hz
     t_first = win.first_sample / win.sample_rate_hz
     for j, trig in enumerate(triggers):
@@ -580,16 +667,19 @@ def apply_triggers(win: SignalWindows, triggers, probe: np.ndarray) -> TriggerRe
         y = win.volts[:, cols]
         tf = t_first[cols]
         if trig.kind == "threshold":
-            if trig.edge == "rising":
-                t, e = _threshold(y, trig.level_v, trig.hysteresis_v, tf, dt)
-            else:
-                t, e = _threshold(-y, -trig.level_v, trig.hysteresis_v, tf, dt)
+            sign = 1.0 if trig.edge == "rising" else -1.0
+            t, e, xc, xt = _threshold(sign * y, sign * trig.level_v, trig.hysteresis_v, tf, dt)
+            extra_p.append(cols[xc])
+            extra_t.append(xt)
         elif trig.kind == "constant_fraction":
             t, e = _constant_fraction(y, trig.level_v, trig.fraction, tf, dt)
         else:
             t, e = _peak(y, trig.level_v, tf, dt)
         toa[cols], n_edges[cols] = t, e
-    return TriggerResult(toa_s=toa, n_edges=n_edges)
+    ep = np.concatenate(extra_p) if extra_p else np.zeros(0, np.int64)
+    et = np.concatenate(extra_t) if extra_t else np.zeros(0)
+    order = np.lexsort((et, ep))
+    return TriggerResult(toa_s=toa, n_edges=n_edges, extra_passage=ep[order], extra_toa_s=et[order])
 
 
 def interpolation_error_bound_s(slope_v_s, curvature_v_s2, dt_s):

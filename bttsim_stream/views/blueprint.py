@@ -60,6 +60,11 @@ def _campbell_view() -> rrb.Spatial2DView:
                              visual_bounds=plot_bounds())
 
 
+def _signal_view(probe: int) -> rrb.Spatial2DView:
+    return rrb.Spatial2DView(origin=paths.signal_path(probe), visual_bounds=plot_bounds(),
+                             name=f"Raw signal (V against us), probe {probe}: samples, trigger level, TOA (red)")
+
+
 def _table_view() -> rrb.TextDocumentView:
     return rrb.TextDocumentView(origin=paths.RESONANCE_TABLE, name="Resonance per blade")
 
@@ -74,14 +79,15 @@ def _fits_tab(eo: int) -> rrb.Vertical:
 
 
 def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders: Sequence[int] = (8,),
-                    live: bool = False, active_tab: int = 0) -> rrb.Blueprint:
+                    live: bool = False, active_tab: int = 0, signal_probe: int | None = None) -> rrb.Blueprint:
     """The default layout of the bttsim views.
 
     Tabs: *Overview* (travelling wave of probe 0, amplitude of the first EO, rotor,
     displacement at probe 0, Campbell diagram, resonance table), one *Fits EO k* per engine
     order (amplitude against revolution and against speed, phase, speed, frequency),
     *Travelling wave* (every probe and the identified ND), *Displacement* (every probe),
-    *Rotor & Campbell*, *Resonance* (table and per-blade amplitude bars).
+    *Rotor & Campbell*, *Resonance* (table and per-blade amplitude bars), and *Raw signal*
+    when ``signal_probe`` is given (the bus carries raw probe signals).
 
     Parameters
     ----------
@@ -93,6 +99,8 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
     live : bool
         Names the travelling-wave views as rolling windows.
     active_tab : int
+    signal_probe : int, optional
+        Probe of the *Raw signal* tab (None: no such tab).
     """
     n_nd = n_blades // 2 + 1 if n_blades else None
     eos = list(dict.fromkeys(int(e) for e in engine_orders)) or [8]
@@ -108,6 +116,8 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
                          name="Resonant amplitude pk-pk (mm) per blade: BTT (left), d_eqv (right)"),
         name="Resonance")
     return rrb.Blueprint(
-        rrb.Tabs(overview, *[_fits_tab(e) for e in eos], tw, disp, rotor, resonance, active_tab=active_tab),
+        rrb.Tabs(overview, *[_fits_tab(e) for e in eos], tw, disp, rotor, resonance,
+                 *([] if signal_probe is None else [rrb.Horizontal(_signal_view(signal_probe), name="Raw signal")]),
+                 active_tab=active_tab),
         rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline="revolution"))

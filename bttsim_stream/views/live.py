@@ -22,11 +22,12 @@ from ..process.pipeline import ProcessOptions, engine_orders_of
 from ._common import ViewOutput
 from .blueprint import build_blueprint
 from .campbell import CampbellView
-from .displacement import DisplacementView
+from .displacement import DisplacementView, selected_blades
 from .fits import FitsView, SpeedView
 from .resonance import ResonanceView
 from .revolutions import RevolutionDisplacements
 from .rotor import DEFAULT_EXAGGERATION, RotorView
+from .signal import SignalView
 from .travelling_wave import TravellingWaveView
 
 __all__ = ["Incoming", "MessageDecoder", "LiveViews"]
@@ -94,6 +95,7 @@ class _Views:
     fits: FitsView
     tw: TravellingWaveView
     resonance: ResonanceView
+    signal: SignalView
 
 
 class LiveViews:
@@ -127,6 +129,9 @@ class LiveViews:
     decoder : MessageDecoder, optional
         The decoder of :meth:`feed`, whose counts go into :attr:`stats` (give the one that
         decoded what is fed with :meth:`feed_decoded`).
+    signal_probe : int
+        Probe of the raw signal view (shown for the first of ``blades``) when the bus
+        carries raw signals; its tab joins the layout when the first one arrives.
 
     Attributes
     ----------
@@ -134,7 +139,7 @@ class LiveViews:
         The run shown.
     stats : dict
         Counts: ``messages`` (decoded), ``ignored``, ``bad``, ``revolutions`` (shown),
-        ``fits``, ``tw``, ``truth``, ``resonance``.
+        ``fits``, ``tw``, ``truth``, ``resonance``, ``signal`` (raw windows shown).
 
     Notes
     -----
@@ -145,7 +150,8 @@ class LiveViews:
     def __init__(self, recording: rr.RecordingStream, *, live: bool = True, blades: Sequence[int] | None = None,
                  exaggeration: float = DEFAULT_EXAGGERATION, flush_period_s: float = 0.2, tw_window: int = 256,
                  tw_period_s: float = 1.0, send_blueprint: bool = True,
-                 engine_orders: Sequence[int] | None = None, decoder: MessageDecoder | None = None) -> None:
+                 engine_orders: Sequence[int] | None = None, decoder: MessageDecoder | None = None,
+                 signal_probe: int = 0) -> None:
         self.rec = recording
         self.out = ViewOutput(recording, live)
         self.live = bool(live)
@@ -153,6 +159,8 @@ class LiveViews:
         self._options = {"blades": blades, "exaggeration": float(exaggeration), "tw_window": int(tw_window),
                          "tw_period_s": float(tw_period_s)}
         self._send_blueprint = bool(send_blueprint)
+        self.signal_probe = int(signal_probe)
+        self._signal_shown = False
         self._eos = None if engine_orders is None else [int(e) for e in engine_orders]
         self.decoder = decoder or MessageDecoder()
         self.meta = None
@@ -168,7 +176,8 @@ class LiveViews:
     def stats(self) -> dict:
         v = self._views
         views = {"fits": v.fits.count["fits"], "tw": v.tw.count, "truth": v.fits.count["truth"],
-                 "resonance": v.resonance.count} if v else dict.fromkeys(("fits", "tw", "truth", "resonance"), 0)
+                 "resonance": v.resonance.count, "signal": v.signal.count} if v else dict.fromkeys(
+            ("fits", "tw", "truth", "resonance", "signal"), 0)
         return {"messages": self._messages, "ignored": self.decoder.ignored + self._ignored, "bad": self.decoder.bad,
                 "revolutions": self._revolutions, **views}
 
@@ -205,7 +214,8 @@ class LiveViews:
             revolutions=shown, speed=SpeedView(out), displacement=DisplacementView(out, meta, o["blades"]),
             rotor=RotorView(out, meta, shown.blade_angles_rad, o["exaggeration"]), campbell=CampbellView(out, meta),
             fits=FitsView(out, meta), tw=TravellingWaveView(out, window=o["tw_window"], period_s=o["tw_period_s"]),
-            resonance=ResonanceView(out))
+            resonance=ResonanceView(out),
+            signal=SignalView(out, meta, self.signal_probe, (selected_blades(meta.n_blades, o["blades"]) or (0,))[0]))
         if self._eos is None:
             self._eos = list(engine_orders_of(meta, ProcessOptions()))
         if self._send_blueprint:
@@ -216,7 +226,8 @@ class LiveViews:
 
     def _blueprint(self) -> None:
         self.rec.send_blueprint(build_blueprint(self.meta.n_probes, n_blades=self.meta.n_blades,
-                                                engine_orders=self._eos, live=self.live))
+                                                engine_orders=self._eos, live=self.live,
+                                                signal_probe=self.signal_probe if self._signal_shown else None))
 
     def _route(self, msg: Incoming) -> None:
         """Hand a message to the views that show it."""
@@ -235,6 +246,13 @@ class LiveViews:
             v.tw.add(d)
         elif kind == "resonance":
             v.resonance.add(d)
+        elif kind == "signal":
+            if not self._signal_shown:
+                self._signal_shown = True
+                if self._send_blueprint:
+                    log.info("raw signals on the bus: layout updated")
+                    self._blueprint()
+            v.signal.add(d)
 
     # -- output --------------------------------------------------------------------------
     def poll(self) -> bool:
@@ -255,7 +273,7 @@ class LiveViews:
             self._revolutions += len(rows)
             for view in (v.speed, v.displacement, v.rotor, v.campbell):
                 view.update(rows)
-        for view in (v.displacement, v.fits, v.tw, v.resonance):
+        for view in (v.displacement, v.fits, v.tw, v.resonance, v.signal):
             view.flush(final)
         new = [e for e in v.fits.engine_orders if e not in self._eos]
         if new:

@@ -7,7 +7,7 @@ The words are those of the bus keys and the library: ``tw``, ``probe``, ``fit``,
 
 from __future__ import annotations
 
-__all__ = ["tw_path", "displacement_path", "fit_path", "fit_rpm_path", "SPEED", "TRUTH_AMP", "TW_ND",
+__all__ = ["tw_path", "signal_path", "displacement_path", "fit_path", "fit_rpm_path", "SPEED", "TRUTH_AMP", "TW_ND",
            "ROTOR", "CAMPBELL", "RESONANCE_TABLE", "RESONANCE_BARS"]
 
 #: Speed of each revolution, rpm (time series).
@@ -29,6 +29,11 @@ RESONANCE_BARS = "resonance/amp_pkpk_mm"
 def tw_path(probe: int) -> str:
     """Travelling-wave matrix of one probe: ``tw/probe_<j>``."""
     return f"tw/probe_{int(probe)}"
+
+
+def signal_path(probe: int) -> str:
+    """Raw signal plot of one probe (2-D; data under ``data/``): ``signal/probe_<j>``."""
+    return f"signal/probe_{int(probe)}"
 
 
 def displacement_path(probe: int) -> str:

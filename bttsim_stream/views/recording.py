@@ -9,12 +9,14 @@ from dataclasses import dataclass, field
 
 import rerun as rr
 
+from ..bus import keys
 from ..bus.recording import read_recording
 from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from ..process.pipeline import ProcessOptions, engine_orders_of
 from .blueprint import build_blueprint
 from .live import LiveViews, MessageDecoder
 from .rotor import DEFAULT_EXAGGERATION
+from .signal import signal_stride
 from .sinks import ViewSinks, finish_files, open_recording
 
 __all__ = ["ViewSession", "log_recording"]
@@ -52,7 +54,8 @@ class ViewSession:
 
 def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web_port: int = DEFAULT_WEB_PORT,
                   grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, grpc_url: str | None = None,
-                  blades: Sequence[int] | None = None, exaggeration: float = DEFAULT_EXAGGERATION) -> ViewSession:
+                  blades: Sequence[int] | None = None, exaggeration: float = DEFAULT_EXAGGERATION,
+                  signal_probe: int = 0) -> ViewSession:
     """Log every view of an MCAP recording to Rerun in one pass.
 
     Parameters
@@ -73,6 +76,8 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
         Blades of the raw-displacement views (default 0 and ``n_blades // 2``).
     exaggeration : float
         Tip deflection gain of the rotor view.
+    signal_probe : int
+        Probe of the raw signal view (when the recording holds raw signals).
 
     Returns
     -------
@@ -86,18 +91,33 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
     t_start = time.perf_counter()
     recording = read_recording(recording_path)
     decoder = MessageDecoder()
-    messages = [msg for m in recording.messages if (msg := decoder.decode(m.key, m.payload)) is not None]
-    meta = next((msg.decoded.body for msg in messages if msg.kind == "meta"), None)
+    meta = next((d.decoded.body for m in recording.messages if m.key.endswith("/meta")
+                 and (d := decoder.decode(m.key, m.payload)) is not None), None)
+    decoder = MessageDecoder()
+    # raw signals: decode only the windows the signal view shows (one probe, every stride-th
+    # revolution; a signal key's sequence number is its revolution count)
+    stride = signal_stride(meta.n_revolutions) if meta is not None else 1
+    signal_key = keys.signal_key(meta.rig, signal_probe) if meta is not None else None
+    has_signal = False
+    messages = []
+    for m in recording.messages:
+        if "/signal/" in m.key:
+            has_signal = True
+            if m.key != signal_key or m.seq % stride:
+                continue
+        if (msg := decoder.decode(m.key, m.payload)) is not None:
+            messages.append(msg)
     fitted = [msg.decoded.body.engine_order for msg in messages if msg.kind == "fit"]
     eos = list(dict.fromkeys(fitted)) or (list(engine_orders_of(meta, ProcessOptions())) if meta else [8])
     n_probes = meta.n_probes if meta is not None else 1 + max(
         (msg.decoded.body.probe for msg in messages if msg.kind in ("toa", "tw")), default=0)
-    blueprint = build_blueprint(n_probes, n_blades=meta.n_blades if meta else None, engine_orders=eos, live=False)
+    blueprint = build_blueprint(n_probes, n_blades=meta.n_blades if meta else None, engine_orders=eos, live=False,
+                                signal_probe=signal_probe if has_signal else None)
     rec, sinks = open_recording(rrd_path=rrd_path, grpc_url=grpc_url, serve_web=serve_web, web_port=web_port,
                                 grpc_port=grpc_port, bind=bind, blueprint=blueprint,
                                 recording_id=meta.run_id if meta is not None else None)
     views = LiveViews(rec, live=False, blades=blades, exaggeration=exaggeration, send_blueprint=False,
-                      engine_orders=eos, decoder=decoder)
+                      engine_orders=eos, decoder=decoder, signal_probe=signal_probe)
     for msg in messages:
         views.feed_decoded(msg)
     views.close()
