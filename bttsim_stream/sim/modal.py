@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from math import factorial
 
 import numpy as np
-from scipy.special import wofz
 
 from ..errors import BttsimError
 from .speed import SpeedProfile
@@ -114,6 +113,8 @@ def quasi_steady_envelope(c, mu, m1) -> np.ndarray:
         out[series] = (-c / mu * S)[series]
         rest = ~series
         if np.any(rest):
+            from scipy.special import wofz  # only near a resonance (the default run never needs it)
+
             s = np.sqrt(0.5 * m1[rest])
             out[rest] = c[rest] * np.sqrt(np.pi) / (2.0 * s) * wofz(-1j * mu[rest] / (2.0 * s))
     return out
