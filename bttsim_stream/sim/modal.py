@@ -70,6 +70,8 @@ MAX_REFINED_POINTS = 2_000_000
 
 _log = logging.getLogger(__name__)
 
+_UNIT_GRID = np.linspace(0.0, 1.0, 400)  # log-spaced sample of a refined stretch (transient_grid)
+
 
 def quasi_steady_envelope(c, mu, m1) -> np.ndarray:
     """Quasi-steady envelope ``a = c int_0^inf exp(mu x - m1 x^2 / 2) dx`` (no free response).
@@ -631,11 +633,16 @@ class EnvelopeIntegrator:
         def qs(om, alpha):
             return quasi_steady_envelope(c, mu_at(om), -1j * eo_s * alpha)
 
+        n_seg = T.size - 1
         with np.errstate(all="ignore"):
             e = np.abs(a0 - qs(Om[0], al[0]))
-            for k in range(T.size - 1):
+            # jumps of the quasi-steady envelope at the inner knots, all at once
+            om_in = Om[1:n_seg][:, None]
+            jump = np.abs(qs(om_in, al[:n_seg - 1][:, None]) - qs(om_in, al[1:n_seg][:, None]))
+            decay = np.exp(-sig[None, :] * np.diff(T[:n_seg])[:, None])
+            for k in range(n_seg):
                 if k > 0:
-                    e = e * np.exp(-sig * (T[k] - T[k - 1])) + np.abs(qs(Om[k], al[k - 1]) - qs(Om[k], al[k]))
+                    e = e * decay[k - 1] + jump[k - 1]
                 e = np.where(np.isfinite(e), e, 0.0)
                 if not np.any(e * wn > 0):
                     continue
@@ -665,36 +672,50 @@ class EnvelopeIntegrator:
             amp = min(amp, 0.05 * radius_m)  # larger amplitudes are refused (check_tip_amplitude)
             D = (amp + reach_m) / (radius_m * om_min)
             tol_m = tol_s * radius_m * om_min
-            pts_l = [t_k]
-            s = 0.0
-            while True:
-                S = float(np.sum(S0 * np.exp(-sig * s)))
-                if not S > 0:
-                    break
-                G = tol_m / S
-                h1 = 2.0 * G**0.25
-                h2 = np.sqrt(G) / D - D if D > 0 else np.inf
+
+            def step(sv, D=D, tol_m=tol_m):
+                """The step the bound allows at ``sv`` (s after the knot)."""
+                S = np.exp(-sig[None, :] * sv[:, None]) @ S0
+                with np.errstate(divide="ignore", over="ignore"):
+                    G = tol_m / S
+                    h1 = 2.0 * G**0.25
+                    h2 = np.sqrt(G) / D - D if D > 0 else np.full(sv.shape, np.inf)
                 # steps below D cannot lower the extrapolation term (D^4 may alone exceed the
                 # bound: D is overestimated, from the steady amplitudes); the interpolation
                 # term is always met
-                h = max(min(h1, max(h2, D)), 1e-6)
-                if h >= h_max or t_k + s + h >= t_end:
-                    break
-                s += h
-                pts_l.append(t_k + s)
-                if len(pts_l) > MAX_REFINED_POINTS:
-                    if _ == 0:
-                        break
-                    msg = (f"speed segment {k}: the free response does not decay within "
-                           f"{MAX_REFINED_POINTS:,} refined envelope steps; later TOAs may differ from the exact "
-                           f"ones by more than {tol_s:g} s")
-                    self.warnings.append(msg)
-                    _log.warning(msg)
-                    break
-            pts = np.array(pts_l)
-            zone = max(s, 0.0) if pts.size > 1 else 0.0
-            if pts.size == 1:
+                return np.maximum(np.minimum(h1, np.maximum(h2, D)), 1e-6)
+
+            span = t_end - t_k
+            h0 = float(step(np.zeros(1))[0])
+            if not h0 < h_max:
+                pts = np.array([t_k])
                 break
+            # the step grows as the free response decays: steps h(s) by inverting
+            # n(s) = int_0^s ds' / h(s') (h varies by < 1 % over a step)
+            s_lo = min(h0 / 4.0, span)
+            sv = np.concatenate(([0.0], s_lo * np.exp(np.log(span / s_lo) * _UNIT_GRID)))
+            hv = step(sv)
+            done = np.flatnonzero(hv >= h_max)
+            if done.size:
+                sv, hv = sv[:done[0] + 1], hv[:done[0] + 1]
+            n_of_s = np.concatenate(([0.0], np.cumsum(np.diff(sv) * 0.5 * (1.0 / hv[1:] + 1.0 / hv[:-1]))))
+            n_pts = int(np.floor(n_of_s[-1]))
+            if _ == 1 and n_pts > MAX_REFINED_POINTS:
+                msg = (f"speed segment {k}: the free response does not decay within "
+                       f"{MAX_REFINED_POINTS:,} refined envelope steps; later TOAs may differ from the exact "
+                       f"ones by more than {tol_s:g} s")
+                self.warnings.append(msg)
+                _log.warning(msg)
+            n_pts = min(n_pts, MAX_REFINED_POINTS)
+            s_pts = np.interp(np.arange(n_pts + 1, dtype=float), n_of_s, sv)
+            pts = t_k + s_pts
+            pts = pts[pts < t_end]
+            if pts.size > 1:
+                pts = pts[np.concatenate(([True], np.diff(pts) > 0))]
+            zone_new = float(s_pts[-1]) if pts.size > 1 else 0.0
+            if pts.size == 1 or zone_new >= 0.5 * zone:  # D would hardly change
+                break
+            zone = zone_new
         return pts
 
     def _envelopes(self, sign, a0, c, t, phi, om_end, alpha):
