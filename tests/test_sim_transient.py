@@ -179,3 +179,24 @@ def test_undamped_mode_at_resonance_on_a_dwell_warns_and_starts_at_rest():
                                TipBasis(np.ones((1, 1, 1)), np.ones((1, 1, 3))), speed, "steady")
     assert integ.warnings and "no steady state" in integ.warnings[0]
     assert integ.a_plus[0, 0] == 0
+
+
+def test_refined_grid_points_on_demand():
+    """GridPoints with refined segment starts: points and searchsorted against the full array."""
+    from bttsim_stream.sim.modal import GridPoints, build_grid
+
+    speed = SpeedProfile(np.array([0.0, 1.0, 3.0, 3.01, 4.0]), np.array([100.0, 200.0, 200.0, 190.0, 50.0]))
+    refine = {0: np.array([0.0, 1e-4, 3e-4, 7e-4]), 2: 3.0 + np.array([0.0, 1e-4, 2.5e-4])}
+    g = build_grid(speed, 2e-3, refine)
+    pts = GridPoints(speed, 2e-3, refine)
+    assert pts.refined == 5 and pts.size == g.size
+    assert np.all(np.diff(g) > 0) and np.all(np.diff(g) <= 2e-3 + 1e-15)
+    np.testing.assert_array_equal(g[:4], refine[0])
+    np.testing.assert_array_equal(pts.points(3, 40), g[3:40])
+    for t in np.concatenate([g[::37], g[:8], np.linspace(-1.0, 5.0, 201), 3.0 + np.linspace(0, 1e-3, 17)]):
+        assert pts.searchsorted(t) == np.searchsorted(g, t)
+    plain = GridPoints(speed, 2e-3)
+    assert plain.refined == 0
+    np.testing.assert_array_equal(plain.points(0, plain.size), build_grid(speed, 2e-3))
+    with pytest.raises(ValueError):
+        GridPoints(speed, 2e-3, {1: np.array([1.5, 1.6])})  # must start at the segment's knot

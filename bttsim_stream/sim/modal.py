@@ -25,6 +25,11 @@ interpolating them (cubic Hermite, exact derivatives) gives the displacement of 
 any time at a cost independent of the number of modes:
 ``w_b(t) = sum_m Im(G_bm(t) exp(i EO_m phi(t)))``. ``Psi_b`` is a compressed basis of blade
 ``b``'s tip motion (SVD; rank 6 for a rigid tip chord).
+
+A free response (a start from rest, the jump of the quasi-steady envelope at a speed knot)
+turns in the envelope frame at up to ``w_d + EO Omega``: there the grid is refined until it
+has decayed (:meth:`EnvelopeIntegrator.transient_grid`, :class:`GridPoints`), so that the
+Hermite interpolation stays within :data:`TRANSIENT_TOL_S` in TOA.
 """
 
 from __future__ import annotations
@@ -504,8 +509,9 @@ class EnvelopeIntegrator:
     basis : TipBasis
     speed : SpeedProfile
     initial : {"steady", "rest"}
-        ``"steady"`` starts every mode in its quasi-steady forced response at the start
-        speed (the rotor was running before the run-up); ``"rest"`` starts at rest.
+        ``"steady"`` starts every (mode, carrier) column in its quasi-steady envelope
+        (:func:`quasi_steady_envelope`: the state the first speed segment's sweep, extended
+        back in time, leaves at t = 0, at or near resonance too); ``"rest"`` starts at rest.
     quasi_steady : bool
         Take the quasi-steady series where it is exact to round-off
         (:meth:`quasi_steady_terms`); False: the exact recursion everywhere (the reference
