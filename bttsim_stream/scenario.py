@@ -64,6 +64,7 @@ __all__ = [
 
 BUILTIN_MODEL = "builtin"
 TOA_METHODS = ("HP", "AD", "PAD")
+SPEED_INITIAL = ("steady", "rest")
 FORCE_NODES = ("leading_edge", "trailing_edge")
 MAX_FAMILIES = 20
 MAX_TIP_NODES = 100
@@ -466,6 +467,11 @@ class Speed:
         of inline tables ``{duration_s = 10.0, end_rpm = 2000.0}``. Durations > 0, speeds
         in (0, 1e6].
         Programmatically, pairs or such mappings are accepted.
+    initial : str
+        Modal state at t = 0, default ``"steady"``: every mode in its quasi-steady response
+        to the forcing (the first segment's sweep extended back in time; at or near a
+        resonance too); ``"rest"``: zero displacement and velocity (the free vibration of
+        the start is simulated exactly).
 
     The whole profile makes at most 1,000,000 revolutions
     (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`).
@@ -480,9 +486,13 @@ class Speed:
     segments: tuple[tuple[float, float], ...] = field(default=(), metadata=_doc(
         "piecewise-linear profile: segments from start_rpm, each {duration_s (s, > 0),\n"
         "end_rpm (rpm, in (0, 1e6])}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
+    initial: str = field(default="steady", metadata=_doc(
+        'modal state at t = 0: "steady" (every mode in its quasi-steady forced response,\n'
+        'near a resonance too) or "rest" (zero displacement and velocity)'))
 
     def __post_init__(self) -> None:
         w = "[speed]"
+        _set(self, "initial", _string(w, "initial", self.initial, choices=SPEED_INITIAL))
         _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True, hi=MAX_RPM))
         items = _sequence(w, "segments", self.segments,
                           "an array of {duration_s = ..., end_rpm = ...} tables")
@@ -1366,6 +1376,8 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
         lines.append(f"[{name}]")
         table = dict(d[name])
         sub = table.pop("signal", None)
+        if name == "speed" and not comments and table.get("initial") == "steady":
+            del table["initial"]  # written only when changed: a default run's id (a hash of this text) stays
         _emit_table(lines, cls, table, comments)
         # only a changed [acquisition.signal] is written (the run id of a default run, a hash
         # of this text, stays what it was before the section existed); the commented file shows it

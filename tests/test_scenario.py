@@ -206,6 +206,18 @@ def test_model_source_resolved_against_file_dir(tmp_path):
     assert Model(source="rel/disk.npz").source == "rel/disk.npz"
 
 
+def test_speed_initial_round_trip_and_default_text(tmp_path):
+    """``[speed] initial``: "steady" by default and not written then (a default scenario's text,
+    and so its run id, is what it was); "rest" round-trips."""
+    assert Scenario().speed.initial == "steady"
+    assert "initial" not in dumps_toml(Scenario())
+    assert 'initial = "steady"' in dumps_toml(Scenario(), comments=True)
+    s = scenario_from_dict({"speed": {"initial": "rest"}})
+    text = dumps_toml(s)
+    assert 'initial = "rest"' in text
+    _assert_same(load_scenario(_write(tmp_path, text)), s)
+
+
 # ----------------------------------------------------------------------------- errors
 
 BAD = [
@@ -213,6 +225,8 @@ BAD = [
                  id="unknown key"),
     pytest.param("[spede]\nstart_rpm = 1000.0\n", ["unknown section [spede]"],
                  id="unknown section"),
+    pytest.param('[speed]\ninitial = "still"\n', ['[speed] initial must be one of "steady", "rest", got "still"'],
+                 id="speed initial"),
     pytest.param("[[excitation]]\nengine_ordr = 3\n",
                  ["unknown key [[excitation]][0] engine_ordr"], id="unknown excitation key"),
     pytest.param('[speed]\nstart_rpm = "fast"\n', ["[speed] start_rpm", "string"],

@@ -241,14 +241,15 @@ class RunUpSimulator:
     envelope_step_s : float
         Grid step of the modal envelopes (exact integration; the step only sets the Hermite
         interpolation error of the envelopes, below 1e-9 relative at 2 ms).
-    initial : {"steady", "rest"}
-        Initial modal state (see :class:`~bttsim_stream.sim.modal.EnvelopeIntegrator`).
+    initial : {"steady", "rest"}, optional
+        Initial modal state (see :class:`~bttsim_stream.sim.modal.EnvelopeIntegrator`);
+        default the scenario's ``[speed] initial``.
     n_revolutions : int, optional
         Stop after this many revolutions.
     """
 
     def __init__(self, scn, model=None, *, chunk_revolutions: int = 32, envelope_step_s: float = 2e-3,
-                 initial: str = "steady", n_revolutions: int | None = None) -> None:
+                 initial: str | None = None, n_revolutions: int | None = None) -> None:
         self.scn = scn
         self.model = load_scenario_model(scn) if model is None else model
         m = self.model
@@ -286,8 +287,13 @@ class RunUpSimulator:
         self.eo = eo
         self.basis = tip_basis(m.tip_shapes)
         self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
-                                             self.speed, initial=initial)
-        self.grid = GridPoints(self.speed, envelope_step_s)
+                                             self.speed, initial=scn.speed.initial if initial is None else initial)
+        # shorter envelope steps where a free response is present (a start from rest, a speed knot)
+        radius = float(np.mean(m.tip_ref[:, p, 0]))
+        near = np.argsort(np.abs(m.tip_ref[..., 2] - self.z_probe), axis=1)[:, :4]  # candidate nodes
+        reach = radius * float(np.max(np.abs(self.theta_p[:, None] - np.take_along_axis(m.tip_ref[..., 1], near, 1))))
+        self.grid = GridPoints(self.speed, envelope_step_s,
+                               self.integrator.transient_grid(envelope_step_s, radius, reach))
         self.h_env = envelope_step_s
         self._i_grid = 0
         self._buf_t: np.ndarray | None = None  # envelope grid points kept: [_lo, _hi)

@@ -25,10 +25,16 @@ interpolating them (cubic Hermite, exact derivatives) gives the displacement of 
 any time at a cost independent of the number of modes:
 ``w_b(t) = sum_m Im(G_bm(t) exp(i EO_m phi(t)))``. ``Psi_b`` is a compressed basis of blade
 ``b``'s tip motion (SVD; rank 6 for a rigid tip chord).
+
+A free response (a start from rest, the jump of the quasi-steady envelope at a speed knot)
+turns in the envelope frame at up to ``w_d + EO Omega``: there the grid is refined until it
+has decayed (:meth:`EnvelopeIntegrator.transient_grid`, :class:`GridPoints`), so that the
+Hermite interpolation stays within :data:`TRANSIENT_TOL_S` in TOA.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from math import factorial
 
@@ -39,7 +45,9 @@ from .speed import SpeedProfile
 
 __all__ = [
     "QUASI_STEADY_TOL",
+    "TRANSIENT_TOL_S",
     "chirp_integral",
+    "quasi_steady_envelope",
     "modal_forcing",
     "steady_tip_amplitude",
     "TipBasis",
@@ -56,6 +64,67 @@ __all__ = [
 #: the mode's smallest quasi-steady amplitude ``|c| / |mu|`` over the stretch (one unit in
 #: the last place): see :meth:`EnvelopeIntegrator.quasi_steady_terms`.
 QUASI_STEADY_TOL = 2.0 ** -52
+
+#: Design bound on the TOA error (s) that the interpolation of a free response may add: the
+#: envelope grid is refined where free vibration is present (:meth:`EnvelopeIntegrator.transient_grid`).
+TRANSIENT_TOL_S = 1e-12
+
+#: At most this many refined envelope grid points per speed segment (a free response that
+#: never decays, e.g. zero damping, would otherwise refine the whole run): beyond it a warning.
+MAX_REFINED_POINTS = 2_000_000
+
+_log = logging.getLogger(__name__)
+
+_UNIT_GRID = np.linspace(0.0, 1.0, 400)  # log-spaced sample of a refined stretch (transient_grid)
+
+
+def quasi_steady_envelope(c, mu, m1) -> np.ndarray:
+    """Quasi-steady envelope ``a = c int_0^inf exp(mu x - m1 x^2 / 2) dx`` (no free response).
+
+    With ``mu(t) = mu + m1 (t - t0)`` linear in time (a speed segment of constant acceleration;
+    ``m1 = -+ i EO alpha``), this is the solution of ``a' = mu(t) a + c`` that the same linear
+    sweep, extended back to ``t = -inf``, leaves at ``t0``: the response of a mode that has been
+    forced for ever, including a mode at or near resonance at ``t0`` (finite for any damping
+    ``Re mu < 0``; at ``m1 = 0`` the harmonic steady state ``-c / mu``).
+
+    Far from resonance (``q = m1 / mu^2`` small) the asymptotic series
+    ``a = -(c / mu) sum_{j<K} (2j - 1)!! (-q)^j`` is summed with the fewest terms ``K <= 8``
+    whose first omitted term ``(2K - 1)!! |q|^K`` is below 2^-53; elsewhere the closed form
+    ``a = c sqrt(pi) / (2 s) w(-i mu / (2 s))``, ``s = sqrt(m1 / 2)`` (principal root),
+    ``w`` the Faddeeva function (``scipy.special.wofz``, relative accuracy ~1e-13).
+
+    Parameters
+    ----------
+    c, mu, m1 : array_like, complex
+        Broadcast together; ``Re mu <= 0``, ``Re m1 = 0``.
+
+    Returns
+    -------
+    ndarray, complex
+        ``inf`` / ``nan`` where no steady state exists (undamped at resonance on a dwell).
+    """
+    c, mu, m1 = np.broadcast_arrays(*(np.asarray(x, complex) for x in (c, mu, m1)))
+    out = np.empty(c.shape, complex)
+    with np.errstate(all="ignore"):
+        q = m1 / (mu * mu)
+        aq = np.abs(q)
+        K = np.zeros(c.shape, int)
+        bound = np.ones(c.shape)
+        for k in range(1, 9):
+            bound = bound * (2 * k - 1) * aq
+            K[(K == 0) & (bound <= 2.0 ** -53)] = k
+        series = (K > 0) | (m1 == 0)
+        S = np.ones(c.shape, complex)
+        for j in range(int(K.max(initial=1)) - 1, 0, -1):  # Horner: sum_j (2j-1)!! (-q)^j
+            S = np.where(j < K, 1.0 + S * ((2 * j - 1) * -q), S)
+        out[series] = (-c / mu * S)[series]
+        rest = ~series
+        if np.any(rest):
+            from scipy.special import wofz  # only near a resonance (the default run never needs it)
+
+            s = np.sqrt(0.5 * m1[rest])
+            out[rest] = c[rest] * np.sqrt(np.pi) / (2.0 * s) * wofz(-1j * mu[rest] / (2.0 * s))
+    return out
 
 
 def _j_series(u: np.ndarray, kmax: int, radius: float) -> np.ndarray:
@@ -312,23 +381,45 @@ def tip_basis(tip_shapes: np.ndarray, rtol: float = 1e-12) -> TipBasis:
 
 class GridPoints:
     """The envelope grid of :func:`build_grid`, point by point on demand (memory independent of
-    the run's length): uniform steps <= ``h_max`` in every speed segment, knots included.
+    the run's length): uniform steps <= ``h_max`` in every speed segment, knots included, after
+    an optional refined start of the segment.
 
     Parameters
     ----------
     speed : SpeedProfile
     h_max : float
         Largest step, s.
+    refine : dict of int -> ndarray, optional
+        Per speed segment ``k``, increasing grid points from the segment's first knot
+        ``t_s[k]`` (included) over the stretch where a free response needs shorter steps
+        (:meth:`EnvelopeIntegrator.transient_grid`); the segment continues from the last of
+        them in uniform steps <= ``h_max``. Without it, the plain uniform grid.
     """
 
-    def __init__(self, speed: SpeedProfile, h_max: float) -> None:
+    def __init__(self, speed: SpeedProfile, h_max: float, refine: dict | None = None) -> None:
         t = speed.t_s
-        self._t0, self._t1 = t[:-1], t[1:]
+        n_seg = t.size - 1
+        refine = refine or {}
+        pieces = [np.asarray(refine.get(k, t[k:k + 1]), float) for k in range(n_seg)]
+        for k, r in enumerate(pieces):
+            if r.size < 1 or r[0] != t[k] or np.any(np.diff(r) <= 0) or r[-1] >= t[k + 1]:
+                raise ValueError("refined grid points must increase from their segment's first knot")
+        self._nref = np.array([r.size - 1 for r in pieces], np.int64)  # refined points before u0
+        self._ref = np.concatenate([r[:-1] for r in pieces] + [np.zeros(1)])
+        self._roff = np.concatenate(([0], np.cumsum(self._nref)))[:-1]
+        self._t0 = np.array([r[-1] for r in pieces])  # start of each segment's uniform part
+        self._tk = t[:-1]
+        self._t1 = t[1:]
         self._n = np.maximum(1, np.ceil((self._t1 - self._t0) / h_max - 1e-9).astype(np.int64))
-        self._off = np.concatenate(([0], np.cumsum(self._n)))  # first point of each segment
+        self._off = np.concatenate(([0], np.cumsum(self._n + self._nref)))  # first point of each segment
         self._end = float(t[-1])
         #: number of grid points
         self.size = int(self._off[-1]) + 1
+
+    @property
+    def refined(self) -> int:
+        """Number of refined grid points (0: the plain uniform grid)."""
+        return int(np.sum(self._nref))
 
     def points(self, start: int, stop: int) -> np.ndarray:
         """Grid points ``start .. stop - 1`` (the same numbers as ``build_grid(...)[start:stop]``)."""
@@ -339,7 +430,13 @@ class GridPoints:
         k = np.searchsorted(self._off, jj, side="right") - 1
         n = self._n[k]
         t0 = self._t0[k]
-        out[~last] = t0 + (self._t1[k] - t0) * (jj - self._off[k]) / n
+        nref = self._nref[k]
+        loc = jj - self._off[k]
+        out[~last] = t0 + (self._t1[k] - t0) * (loc - nref) / n
+        if self._ref.size > 1:
+            is_ref = loc < nref
+            if np.any(is_ref):
+                out[np.flatnonzero(~last)[is_ref]] = self._ref[self._roff[k[is_ref]] + loc[is_ref]]
         out[last] = self._end
         return out
 
@@ -347,8 +444,13 @@ class GridPoints:
         """``np.searchsorted(build_grid(...), t)``: the first point >= ``t``."""
         if t > self._end:
             return self.size
-        k = int(np.clip(np.searchsorted(self._t0, t, side="right") - 1, 0, self._t0.size - 1))
-        guess = int(self._off[k] + np.floor((t - self._t0[k]) / (self._t1[k] - self._t0[k]) * self._n[k]))
+        k = int(np.clip(np.searchsorted(self._tk, t, side="right") - 1, 0, self._tk.size - 1))
+        if t < self._t0[k]:  # in the refined start of the segment
+            r = self._ref[self._roff[k]:self._roff[k] + self._nref[k]]
+            guess = int(self._off[k] + np.searchsorted(r, t))
+        else:
+            guess = int(self._off[k] + self._nref[k]
+                        + np.floor((t - self._t0[k]) / (self._t1[k] - self._t0[k]) * self._n[k]))
         lo = max(0, guess - 2)
         window = self.points(lo, guess + 3)
         i = lo + int(np.searchsorted(window, t))
@@ -359,8 +461,12 @@ class GridPoints:
         return i
 
 
-def build_grid(speed: SpeedProfile, h_max: float) -> np.ndarray:
-    """Envelope grid: uniform steps <= ``h_max`` in every speed segment, knots included."""
+def build_grid(speed: SpeedProfile, h_max: float, refine: dict | None = None) -> np.ndarray:
+    """Envelope grid: uniform steps <= ``h_max`` in every speed segment, knots included (after
+    the refined points ``refine`` of :class:`GridPoints`, if any)."""
+    if refine:
+        g = GridPoints(speed, h_max, refine)
+        return g.points(0, g.size)
     parts = []
     for k in range(speed.t_s.size - 1):
         t0, t1 = speed.t_s[k], speed.t_s[k + 1]
@@ -403,8 +509,9 @@ class EnvelopeIntegrator:
     basis : TipBasis
     speed : SpeedProfile
     initial : {"steady", "rest"}
-        ``"steady"`` starts every mode in its quasi-steady forced response at the start
-        speed (the rotor was running before the run-up); ``"rest"`` starts at rest.
+        ``"steady"`` starts every (mode, carrier) column in its quasi-steady envelope
+        (:func:`quasi_steady_envelope`: the state the first speed segment's sweep, extended
+        back in time, leaves at t = 0, at or near resonance too); ``"rest"`` starts at rest.
     quasi_steady : bool
         Take the quasi-steady series where it is exact to round-off
         (:meth:`quasi_steady_terms`); False: the exact recursion everywhere (the reference
@@ -434,6 +541,10 @@ class EnvelopeIntegrator:
         self.W = np.ascontiguousarray((basis.psi[active] / wd[:, None, None]).reshape(len(self.active), n_b * r))
         self.speed = speed
         self.t = 0.0
+        #: one-line warnings about the initial state and the transient step control
+        self.warnings: list[str] = []
+        self._zw = zeta * w
+        self._wd = wd
         phi0, om0, al0 = (float(x) for x in speed.state(0.0))
         self.a_plus = self._initial(self.c_plus, om0, al0, +1, initial)
         self.a_minus = self._initial(self.c_minus, om0, al0, -1, initial)
@@ -450,13 +561,168 @@ class EnvelopeIntegrator:
         self.stats = {"quasi_steady": 0, "exact": 0}
 
     def _initial(self, c, omega, alpha, sign, initial):
+        """Envelopes at t = 0: zero (``"rest"``) or the quasi-steady envelopes
+        (:func:`quasi_steady_envelope` with ``mu = lambda -+ i EO Omega(0)``,
+        ``m1 = -+ i EO alpha(0)``): the state the first speed segment's sweep, extended back in
+        time, leaves at t = 0 -- at resonance too. A mode with no steady state (undamped, at
+        resonance on a dwell) starts at rest, with a warning."""
+        if initial not in ("steady", "rest"):
+            raise ValueError(f"initial must be 'steady' or 'rest', got {initial!r}")
         if initial == "rest" or c.size == 0:
             return np.zeros_like(c)
-        mu = self.lam - sign * 1j * self.eo * omega
-        dmu = -sign * 1j * self.eo * alpha
-        ok = np.abs(dmu) < 1e-2 * np.abs(mu) ** 2
-        a = -c / mu + c * dmu / mu**3 - 3.0 * c * dmu**2 / mu**5
-        return np.where(ok, a, 0.0)
+        a = quasi_steady_envelope(c, self.lam - sign * 1j * self.eo * omega, -sign * 1j * self.eo * alpha)
+        bad = ~np.isfinite(a)
+        if np.any(bad):
+            modes = sorted({int(k) for k in self.active[np.nonzero(bad)[0]]})
+            msg = (f"initial = \"steady\": mode(s) {modes} have no steady state at the start speed (undamped "
+                   f"at resonance on a dwell); they start at rest")
+            self.warnings.append(msg)
+            _log.warning(msg)
+            a = np.where(bad, 0.0, a)
+        return a
+
+    def transient_grid(self, h_max: float, radius_m: float, reach_m: float = 0.0,
+                       tol_s: float = TRANSIENT_TOL_S) -> dict:
+        """Refined envelope grid points where a free response needs them (for :class:`GridPoints`).
+
+        Within a speed segment (``mu = lambda -+ i EO Omega(t)`` linear in time) every column's
+        envelope is its quasi-steady part (:func:`quasi_steady_envelope`, smooth on the scale of
+        the sweep) plus a free response ``e(t) = e_k exp(int mu)``, which turns at
+        ``|Im mu|`` -- up to ``w_d + EO Omega`` -- and decays as ``exp(-zeta w (t - t_k))``. The
+        cubic Hermite interpolant of ``e`` over a step ``h`` (exact values and derivatives at
+        both ends), evaluated at ``tau`` from the step's start, errs by at most
+        ``|e| |mu|^4 tau^2 (tau - h)^2 / 24``; a crossing is evaluated up to ``D`` outside its
+        step (the deflection and the candidate tip nodes' angular offset over the tip speed,
+        ``D = (A + reach) / (R Omega)``), so the bound is
+        ``sum_cols |W| |e| |mu|^4 max((h / 2)^4, D^2 (h + D)^2) / 24 <= tol_s R Omega`` (a TOA
+        error of ``tol_s`` at the tip speed ``R Omega``), with ``|W|`` the column's largest
+        tip-node displacement per unit envelope. The grid steps ``h(t)`` solve it from the
+        segment's first knot until they reach ``h_max`` (the free response has decayed).
+
+        ``e_k``: at t = 0 the initial envelope minus the quasi-steady one (zero for
+        ``initial = "steady"``, the whole quasi-steady envelope from rest); at a speed knot the
+        previous free response, decayed, plus the jump of the quasi-steady envelope between
+        the two accelerations (its value and slope stay continuous).
+
+        Parameters
+        ----------
+        h_max : float
+            The grid's uniform step, s.
+        radius_m : float
+            Tip radius ``R``, m.
+        reach_m : float
+            Largest tangential distance of a candidate tip node from P_nom, m.
+        tol_s : float
+            TOA error bound, s.
+
+        Returns
+        -------
+        dict of int -> ndarray
+            Per segment with a transient, its refined points from its first knot.
+        """
+        sp = self.speed
+        T, Om, al = sp.t_s, sp.omega, sp.alpha
+        n_act = self.active.size
+        out: dict = {}
+        if n_act == 0:
+            return out
+        eo_s = self._eo_col
+        lam = self._lam_col
+        sig = self._zw_col
+        c = self._c_col
+        wn = np.max(np.linalg.norm(self.W.reshape(n_act, self.n_blades, self.r), axis=2), axis=1)[self._k_col]
+        a0 = np.concatenate([self.a_plus, self.a_minus], axis=1).ravel()
+
+        def mu_at(om):
+            return lam - 1j * eo_s * om
+
+        def qs(om, alpha):
+            return quasi_steady_envelope(c, mu_at(om), -1j * eo_s * alpha)
+
+        n_seg = T.size - 1
+        with np.errstate(all="ignore"):
+            e = np.abs(a0 - qs(Om[0], al[0]))
+            # jumps of the quasi-steady envelope at the inner knots, all at once
+            om_in = Om[1:n_seg][:, None]
+            jump = np.abs(qs(om_in, al[:n_seg - 1][:, None]) - qs(om_in, al[1:n_seg][:, None]))
+            decay = np.exp(-sig[None, :] * np.diff(T[:n_seg])[:, None])
+            for k in range(n_seg):
+                if k > 0:
+                    e = e * decay[k - 1] + jump[k - 1]
+                e = np.where(np.isfinite(e), e, 0.0)
+                if not np.any(e * wn > 0):
+                    continue
+                pts = self._refine_segment(k, e, wn, h_max, radius_m, reach_m, tol_s)
+                if pts.size > 1:
+                    out[k] = pts
+        return out
+
+    def _refine_segment(self, k, e, wn, h_max, radius_m, reach_m, tol_s) -> np.ndarray:
+        """Refined points of speed segment ``k`` from its first knot (see :meth:`transient_grid`)."""
+        sp = self.speed
+        t_k, t_end = float(sp.t_s[k]), float(sp.t_s[k + 1])
+        om_k, alpha = float(sp.omega[k]), float(sp.alpha[k])
+        eo_s, lam, sig, c = self._eo_col, self._lam_col, self._zw_col, self._c_col
+        mu_abs = np.maximum(np.abs(lam - 1j * eo_s * om_k), np.abs(lam - 1j * eo_s * float(sp.omega[k + 1])))
+        S0 = wn * e * mu_abs**4 / 24.0
+        zone = t_end - t_k
+        pts = np.array([t_k])
+        for _ in range(2):  # the reach D from the amplitudes over the refined stretch
+            om_a, om_b = om_k, om_k + alpha * zone
+            im_a, im_b = (lam - 1j * eo_s * om_a).imag, (lam - 1j * eo_s * om_b).imag
+            mu_min = np.where(im_a * im_b <= 0, sig, np.minimum(np.abs(lam - 1j * eo_s * om_a),
+                                                                np.abs(lam - 1j * eo_s * om_b)))
+            with np.errstate(divide="ignore"):
+                amp = float(np.sum(wn * (np.abs(c) / mu_min + e)))
+            om_min = min(om_a, om_b)
+            amp = min(amp, 0.05 * radius_m)  # larger amplitudes are refused (check_tip_amplitude)
+            D = (amp + reach_m) / (radius_m * om_min)
+            tol_m = tol_s * radius_m * om_min
+
+            def step(sv, D=D, tol_m=tol_m):
+                """The step the bound allows at ``sv`` (s after the knot)."""
+                S = np.exp(-sig[None, :] * sv[:, None]) @ S0
+                with np.errstate(divide="ignore", over="ignore"):
+                    G = tol_m / S
+                    h1 = 2.0 * G**0.25
+                    h2 = np.sqrt(G) / D - D if D > 0 else np.full(sv.shape, np.inf)
+                # steps below D cannot lower the extrapolation term (D^4 may alone exceed the
+                # bound: D is overestimated, from the steady amplitudes); the interpolation
+                # term is always met
+                return np.maximum(np.minimum(h1, np.maximum(h2, D)), 1e-6)
+
+            span = t_end - t_k
+            h0 = float(step(np.zeros(1))[0])
+            if not h0 < h_max:
+                pts = np.array([t_k])
+                break
+            # the step grows as the free response decays: steps h(s) by inverting
+            # n(s) = int_0^s ds' / h(s') (h varies by < 1 % over a step)
+            s_lo = min(h0 / 4.0, span)
+            sv = np.concatenate(([0.0], s_lo * np.exp(np.log(span / s_lo) * _UNIT_GRID)))
+            hv = step(sv)
+            done = np.flatnonzero(hv >= h_max)
+            if done.size:
+                sv, hv = sv[:done[0] + 1], hv[:done[0] + 1]
+            n_of_s = np.concatenate(([0.0], np.cumsum(np.diff(sv) * 0.5 * (1.0 / hv[1:] + 1.0 / hv[:-1]))))
+            n_pts = int(np.floor(n_of_s[-1]))
+            if _ == 1 and n_pts > MAX_REFINED_POINTS:
+                msg = (f"speed segment {k}: the free response does not decay within "
+                       f"{MAX_REFINED_POINTS:,} refined envelope steps; later TOAs may differ from the exact "
+                       f"ones by more than {tol_s:g} s")
+                self.warnings.append(msg)
+                _log.warning(msg)
+            n_pts = min(n_pts, MAX_REFINED_POINTS)
+            s_pts = np.interp(np.arange(n_pts + 1, dtype=float), n_of_s, sv)
+            pts = t_k + s_pts
+            pts = pts[pts < t_end]
+            if pts.size > 1:
+                pts = pts[np.concatenate(([True], np.diff(pts) > 0))]
+            zone_new = float(s_pts[-1]) if pts.size > 1 else 0.0
+            if pts.size == 1 or zone_new >= 0.5 * zone:  # D would hardly change
+                break
+            zone = zone_new
+        return pts
 
     def _envelopes(self, sign, a0, c, t, phi, om_end, alpha):
         """Exact envelopes at grid times ``t`` (t[0] = current time) for one carrier."""
@@ -670,8 +936,13 @@ class EnvelopeIntegrator:
         Phi = np.exp(-1j * self._eo_s[None, :] * self._dphi(t, start, stop)[:, None])[:, car]
         om_end = om[start + 1:stop + 1]
         rot = np.exp(-1j * self._eo_s[None, :] * (om_end * h)[:, None])[:, car]  # (N, Q)
-        # exp(lambda h_n) = exp(lambda h_0) (1 + lambda (h_n - h_0)): |lambda (h_n - h_0)| < 1e-9
-        elh = (np.exp(lam_m * h0)[None, :] * (1.0 + lam_m[None, :] * (h - h0)[:, None]))[:, inv_k]
+        if float(np.max(np.abs(h - h0))) * float(np.max(np.abs(lam_m))) <= 1e-8:
+            # a uniform stretch (the steps differ in their last digits only):
+            # exp(lambda h_n) = exp(lambda h_0) (1 + lambda (h_n - h_0)), |lambda (h_n - h_0)|
+            # <= 1e-8, the omitted (lambda (h_n - h_0))^2 / 2 below round-off
+            elh = (np.exp(lam_m * h0)[None, :] * (1.0 + lam_m[None, :] * (h - h0)[:, None]))[:, inv_k]
+        else:  # refined steps of a transient (:meth:`transient_grid`)
+            elh = np.exp(lam_m[None, :] * h[:, None])[:, inv_k]
         eu = elh * rot
         u = (lam[None, :] - 1j * eo[None, :] * om_end[:, None]) * h[:, None]
         v = 0.5j * eo[None, :] * (alpha * h * h)[:, None]  # (N, Q)
