@@ -342,11 +342,11 @@ class RunUpSimulator:
             n_new = t_blk.size - first
             self._reserve(n_new, t_start)
             hi = self._hi
-            n_exc, nb = self.eo.size, self.model.n_blades
-            planes = np.empty((2, n_exc, 2, n_new, nb * self.basis.nodes.shape[0]))
+            n_exc = self.eo.size
+            # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r), written
+            # by the integrator's matrix products straight into the buffer
+            planes = self._buf[hi:hi + n_new].transpose(1, 0, 2).reshape(2, n_exc, 2, n_new, -1)
             self.integrator.advance(t_blk, out=planes, first=first)
-            # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r)
-            self._buf[hi:hi + n_new] = planes.reshape(4 * n_exc, n_new, -1).transpose(1, 0, 2)
             self._buf_t[hi:hi + n_new] = t_blk[first:]
             self._hi = hi + n_new
             self._i_grid = stop

@@ -443,6 +443,7 @@ class EnvelopeIntegrator:
         self._car_col = np.tile(np.arange(n_car), len(self.active))
         self._lam_col = self._lam_row[self._k_col]
         self._eo_col = self._eo_s[self._car_col]
+        self._ieo_col = 1j * self._eo_col
         self._c_col = self._c_s.ravel()
         self._zw_col = (zeta * w)[self._k_col]
         self._cabs_col = np.abs(self._c_col)
@@ -506,26 +507,32 @@ class EnvelopeIntegrator:
         A = np.empty((n, len(self.active), 2 * n_exc), complex)
         A[0, :, :n_exc] = self.a_plus
         A[0, :, n_exc:] = self.a_minus
-        mu = self._lam_row[None, :, None] - 1j * self._eo_s[None, None, :] * om[:, None, None]
+        # columns (mode k, carrier c) flattened: the broadcasts run along whole rows
+        mu2 = self._lam_col[None, :] - self._ieo_col[None, :] * om[:, None]
+        mu = mu2.reshape(n, len(self.active), 2 * n_exc)
         if n > 1:
             seg = self.speed.segment(0.5 * (t_grid[:-1] + t_grid[1:]))
-            A2, mu2 = A.reshape(n, -1), mu.reshape(n, -1)
+            A2 = A.reshape(n, -1)
             for start, stop in self._segments(seg):
                 self._run(A2, start, stop, t_grid, phi, om, mu2, float(self.speed.alpha[seg[start]]))
         self.a_plus, self.a_minus = A[-1, :, :n_exc].copy(), A[-1, :, n_exc:].copy()
         self.t = float(t_grid[-1])
+        if out is not None:
+            # G = a_+ - conj(a_-) and dG = (mu a + c)_+ - conj(mu a + c)_-, formed straight
+            # into contiguous real and imaginary planes for the matrix products
+            D = mu[first:] * A[first:]
+            D += self._c_s[None]
+            for g, X in enumerate((A[first:], D)):
+                for m in range(n_exc):
+                    Xp, Xm = X[:, :, m], X[:, :, n_exc + m]
+                    np.matmul(np.subtract(Xp.real, Xm.real), self.W, out=out[g, m, 0])
+                    np.matmul(np.add(Xp.imag, Xm.imag), self.W, out=out[g, m, 1])
+            return None
         D = mu * A
         D += self._c_s[None]
         Ap, Am = A[..., :n_exc], A[..., n_exc:]
         XG = Ap - np.conj(Am)  # (n, n_act, n_exc)
         XD = D[..., :n_exc] - np.conj(D[..., n_exc:])
-        if out is not None:
-            for g, X in enumerate((XG, XD)):
-                for m in range(n_exc):
-                    Xm = X[first:, :, m]
-                    np.matmul(np.ascontiguousarray(Xm.real), self.W, out=out[g, m, 0])
-                    np.matmul(np.ascontiguousarray(Xm.imag), self.W, out=out[g, m, 1])
-            return None
         X = np.stack([XG, XD], axis=1)  # (n, 2, n_act, n_exc)
         GD = self._to_blades(X.transpose(0, 1, 3, 2).reshape(n * 2 * n_exc, -1))  # (n * 2 * n_exc, nb * r)
         GD = GD.reshape(n, 2, n_exc, self.n_blades, self.r)
