@@ -613,9 +613,16 @@ class EnvelopeIntegrator:
                 inv = np.divide(1.0, mu_s)
                 mq = inv * inv
                 mq *= 1j * self._eo_col * alpha  # -q = -m1 / mu^2, m1 = -i EO_c alpha
-                S = np.ones_like(mq)
-                for j in range(int(K.max()) - 1, 0, -1):  # Horner: sum_j (2j-1)!! (-q)^j
-                    S *= (2 * j - 1) * mq
+                # Horner: sum_j (2j-1)!! (-q)^j (the innermost factor times 1 needs no product)
+                j_top = int(K.max()) - 1
+                S = np.multiply(mq, float(2 * j_top - 1)) if j_top > 0 else np.ones_like(mq)
+                if j_top > 0:
+                    S += 1.0
+                for j in range(j_top - 1, 0, -1):
+                    if j > 1:
+                        S *= (2 * j - 1) * mq
+                    else:
+                        S *= mq
                     S += 1.0
                 ap = inv
                 ap *= -self._c_col
