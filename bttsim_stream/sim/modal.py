@@ -343,18 +343,24 @@ class GridPoints:
         out[last] = self._end
         return out
 
+    def _point(self, j: int) -> float:
+        """Grid point ``j`` as a Python float (the arithmetic of :meth:`points`)."""
+        if j >= self.size - 1:
+            return self._end
+        k = int(np.searchsorted(self._off, j, side="right")) - 1
+        t0 = float(self._t0[k])
+        return t0 + (float(self._t1[k]) - t0) * (j - int(self._off[k])) / int(self._n[k])
+
     def searchsorted(self, t: float) -> int:
         """``np.searchsorted(build_grid(...), t)``: the first point >= ``t``."""
         if t > self._end:
             return self.size
         k = int(np.clip(np.searchsorted(self._t0, t, side="right") - 1, 0, self._t0.size - 1))
-        guess = int(self._off[k] + np.floor((t - self._t0[k]) / (self._t1[k] - self._t0[k]) * self._n[k]))
-        lo = max(0, guess - 2)
-        window = self.points(lo, guess + 3)
-        i = lo + int(np.searchsorted(window, t))
-        while i > 0 and self.points(i - 1, i)[0] >= t:  # (only if the estimate was off)
+        t0, t1, n, off = float(self._t0[k]), float(self._t1[k]), int(self._n[k]), int(self._off[k])
+        i = max(0, min(off + int(np.floor((t - t0) / (t1 - t0) * n)), self.size - 1))
+        while i > 0 and self._point(i - 1) >= t:  # (only if the estimate was off)
             i -= 1
-        while i < self.size and self.points(i, i + 1)[0] < t:
+        while i < self.size and self._point(i) < t:
             i += 1
         return i
 
