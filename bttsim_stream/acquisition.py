@@ -40,8 +40,8 @@ class AcquisitionStream:
         Publish truth on its own key (a blind run leaves it out).
     run_id : str, optional
         Defaults to :func:`scenario_run_id`.
-    chunk_revolutions : int
-        Revolutions simulated per batch (pacing granularity).
+    chunk_revolutions : int or None
+        Revolutions simulated per batch (pacing granularity); None: the simulator's default.
     n_revolutions : int, optional
         Stop early.
 
@@ -54,7 +54,7 @@ class AcquisitionStream:
     """
 
     def __init__(self, scn: Scenario, model=None, *, include_truth: bool = True,
-                 run_id: str | None = None, chunk_revolutions: int = 16,
+                 run_id: str | None = None, chunk_revolutions: int | None = 16,
                  n_revolutions: int | None = None) -> None:
         self.scn = scn
         self.sim = RunUpSimulator(scn, model, chunk_revolutions=chunk_revolutions,
@@ -99,13 +99,13 @@ def simulate_to_mcap(scn: Scenario, out: str | Path, *, model=None, include_trut
     publishes them. ``progress(revolutions_done, n_revolutions)`` is called per chunk.
     Returns counts.
     """
-    # chunks of 16 revolutions keep the crossings' arrays in cache; encoding and MCAP
-    # writing take 64 revolutions at a time
-    stream = AcquisitionStream(scn, model, include_truth=include_truth, chunk_revolutions=16)
+    # the simulator's own batch size (its crossings' arrays stay in cache); encoding and MCAP
+    # writing take about 64 revolutions at a time
+    stream = AcquisitionStream(scn, model, include_truth=include_truth, chunk_revolutions=None)
     n = 0
     with McapRecorder(out, run_metadata=stream.run_metadata_record) as rec:
         rec.write_message(stream.meta)
-        for batch, msgs in stream.batches(group=4):
+        for batch, msgs in stream.batches(group=max(1, 64 // stream.sim.chunk)):
             rec.write_all(msgs)
             n += len(msgs)
             if progress is not None:
