@@ -34,8 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .beam import BeamSection, beam_matrices, rigid_offset_matrix, rotation_matrix
 
@@ -493,6 +491,7 @@ def assemble_full_wheel(d: BladedDiskDesign, blade_k=None, blade_m=None, disk_k=
     blade_k, blade_m, disk_k : array_like, shape (n_blades,), optional
         Per-sector factors (mistuning of blade stiffness and mass; disk asymmetry).
     """
+    import scipy.sparse as sp  # only the full-wheel (mistuned) solve needs it
     N = d.n_blades
     ones = np.ones(N)
     blade_k = ones if blade_k is None else np.asarray(blade_k, float)
@@ -554,6 +553,7 @@ def solve_full_wheel(d: BladedDiskDesign, n_modes: int, blade_k=None, blade_m=No
     assigned by frequency rank (``rank // n_blades``); the ND by the spatial DFT of blade
     participation.
     """
+    import scipy.sparse.linalg as spla  # imported here: the tuned wheel never needs it
     K, M, sectors = assemble_full_wheel(d, blade_k, blade_m, disk_k)
     N = d.n_blades
     m = sectors[0].n_dof

@@ -440,23 +440,32 @@ class GridPoints:
         out[last] = self._end
         return out
 
+    def _point(self, j: int) -> float:
+        """Grid point ``j`` as a Python float (the arithmetic of :meth:`points`)."""
+        if j >= self.size - 1:
+            return self._end
+        k = int(np.searchsorted(self._off, j, side="right")) - 1
+        loc, nref = j - int(self._off[k]), int(self._nref[k])
+        if loc < nref:  # a refined point
+            return float(self._ref[int(self._roff[k]) + loc])
+        t0 = float(self._t0[k])
+        return t0 + (float(self._t1[k]) - t0) * (loc - nref) / int(self._n[k])
+
     def searchsorted(self, t: float) -> int:
         """``np.searchsorted(build_grid(...), t)``: the first point >= ``t``."""
         if t > self._end:
             return self.size
         k = int(np.clip(np.searchsorted(self._tk, t, side="right") - 1, 0, self._tk.size - 1))
-        if t < self._t0[k]:  # in the refined start of the segment
-            r = self._ref[self._roff[k]:self._roff[k] + self._nref[k]]
-            guess = int(self._off[k] + np.searchsorted(r, t))
+        t0, nref, off = float(self._t0[k]), int(self._nref[k]), int(self._off[k])
+        if t < t0:  # in the refined start of the segment
+            roff = int(self._roff[k])
+            i = off + int(np.searchsorted(self._ref[roff:roff + nref], t))
         else:
-            guess = int(self._off[k] + self._nref[k]
-                        + np.floor((t - self._t0[k]) / (self._t1[k] - self._t0[k]) * self._n[k]))
-        lo = max(0, guess - 2)
-        window = self.points(lo, guess + 3)
-        i = lo + int(np.searchsorted(window, t))
-        while i > 0 and self.points(i - 1, i)[0] >= t:  # (only if the estimate was off)
+            i = off + nref + int(np.floor((t - t0) / (float(self._t1[k]) - t0) * int(self._n[k])))
+        i = max(0, min(i, self.size - 1))
+        while i > 0 and self._point(i - 1) >= t:  # (only if the estimate was off)
             i -= 1
-        while i < self.size and self.points(i, i + 1)[0] < t:
+        while i < self.size and self._point(i) < t:
             i += 1
         return i
 
@@ -554,6 +563,7 @@ class EnvelopeIntegrator:
         self._car_col = np.tile(np.arange(n_car), len(self.active))
         self._lam_col = self._lam_row[self._k_col]
         self._eo_col = self._eo_s[self._car_col]
+        self._ieo_col = 1j * self._eo_col
         self._c_col = self._c_s.ravel()
         self._zw_col = (zeta * w)[self._k_col]
         self._cabs_col = np.abs(self._c_col)
@@ -772,26 +782,32 @@ class EnvelopeIntegrator:
         A = np.empty((n, len(self.active), 2 * n_exc), complex)
         A[0, :, :n_exc] = self.a_plus
         A[0, :, n_exc:] = self.a_minus
-        mu = self._lam_row[None, :, None] - 1j * self._eo_s[None, None, :] * om[:, None, None]
+        # columns (mode k, carrier c) flattened: the broadcasts run along whole rows
+        mu2 = self._lam_col[None, :] - self._ieo_col[None, :] * om[:, None]
+        mu = mu2.reshape(n, len(self.active), 2 * n_exc)
         if n > 1:
             seg = self.speed.segment(0.5 * (t_grid[:-1] + t_grid[1:]))
-            A2, mu2 = A.reshape(n, -1), mu.reshape(n, -1)
+            A2 = A.reshape(n, -1)
             for start, stop in self._segments(seg):
                 self._run(A2, start, stop, t_grid, phi, om, mu2, float(self.speed.alpha[seg[start]]))
         self.a_plus, self.a_minus = A[-1, :, :n_exc].copy(), A[-1, :, n_exc:].copy()
         self.t = float(t_grid[-1])
+        if out is not None:
+            # G = a_+ - conj(a_-) and dG = (mu a + c)_+ - conj(mu a + c)_-, formed straight
+            # into contiguous real and imaginary planes for the matrix products
+            D = mu[first:] * A[first:]
+            D += self._c_s[None]
+            for g, X in enumerate((A[first:], D)):
+                for m in range(n_exc):
+                    Xp, Xm = X[:, :, m], X[:, :, n_exc + m]
+                    np.matmul(np.subtract(Xp.real, Xm.real), self.W, out=out[g, m, 0])
+                    np.matmul(np.add(Xp.imag, Xm.imag), self.W, out=out[g, m, 1])
+            return None
         D = mu * A
         D += self._c_s[None]
         Ap, Am = A[..., :n_exc], A[..., n_exc:]
         XG = Ap - np.conj(Am)  # (n, n_act, n_exc)
         XD = D[..., :n_exc] - np.conj(D[..., n_exc:])
-        if out is not None:
-            for g, X in enumerate((XG, XD)):
-                for m in range(n_exc):
-                    Xm = X[first:, :, m]
-                    np.matmul(np.ascontiguousarray(Xm.real), self.W, out=out[g, m, 0])
-                    np.matmul(np.ascontiguousarray(Xm.imag), self.W, out=out[g, m, 1])
-            return None
         X = np.stack([XG, XD], axis=1)  # (n, 2, n_act, n_exc)
         GD = self._to_blades(X.transpose(0, 1, 3, 2).reshape(n * 2 * n_exc, -1))  # (n * 2 * n_exc, nb * r)
         GD = GD.reshape(n, 2, n_exc, self.n_blades, self.r)
@@ -872,9 +888,16 @@ class EnvelopeIntegrator:
                 inv = np.divide(1.0, mu_s)
                 mq = inv * inv
                 mq *= 1j * self._eo_col * alpha  # -q = -m1 / mu^2, m1 = -i EO_c alpha
-                S = np.ones_like(mq)
-                for j in range(int(K.max()) - 1, 0, -1):  # Horner: sum_j (2j-1)!! (-q)^j
-                    S *= (2 * j - 1) * mq
+                # Horner: sum_j (2j-1)!! (-q)^j (the innermost factor times 1 needs no product)
+                j_top = int(K.max()) - 1
+                S = np.multiply(mq, float(2 * j_top - 1)) if j_top > 0 else np.ones_like(mq)
+                if j_top > 0:
+                    S += 1.0
+                for j in range(j_top - 1, 0, -1):
+                    if j > 1:
+                        S *= (2 * j - 1) * mq
+                    else:
+                        S *= mq
                     S += 1.0
                 ap = inv
                 ap *= -self._c_col
