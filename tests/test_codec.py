@@ -489,13 +489,17 @@ def test_signal_batch_round_trip_and_windows():
     (dict(n_samples=np.full(NB, codec.MAX_WINDOW_SAMPLES + 1), codes=np.zeros(NB * (codec.MAX_WINDOW_SAMPLES + 1), int)),
      "n_samples must be in [1, 65536]"),
     (dict(toa_s=np.zeros(NB - 1)), f"toa_s has {NB - 1} values, expected {NB}"),
-    (dict(sample_rate_hz=math.nan), "sample_rate_hz = nan (finite, > 0)"),
+    (dict(sample_rate_hz=math.nan), "sample_rate_hz = nan (finite, >= 1)"),
     (dict(lsb_v=0.0), "lsb_v = 0.0 (finite, > 0)"),
     (dict(level_v=math.inf), "level_v = inf (finite)"),
     (dict(trigger="cfd"), "trigger 'cfd'"),
     (dict(bits=0), "bits = 0"),
     (dict(fraction=1.5), "fraction = 1.5"),
-], ids=["code", "count", "window", "toa", "rate", "lsb", "level", "trigger", "bits", "fraction"])
+    # finite fields whose plot does not fit a float (the viewer's axes overflowed and it died)
+    (dict(range_lo_v=-1e308, lsb_v=1e305), "ADC range"),
+    (dict(sample_rate_hz=1e-301, first_sample=np.zeros(NB, int)), "sample_rate_hz = 1e-301 (finite, >= 1)"),
+], ids=["code", "count", "window", "toa", "rate", "lsb", "level", "trigger", "bits", "fraction", "range-top",
+        "rate-tiny"])
 def test_inconsistent_signal_batch_is_refused(changes, words):
     payload = codec.encode_signal_batch(_header(), _signal_batch(**changes))
     with pytest.raises(BttsimError) as excinfo:

@@ -353,3 +353,28 @@ def test_double_pulses_reach_the_processor_each_in_its_blades_window(tmp_path):
     extra = np.concatenate([b.extra_toa_s for b in batches])
     first = np.concatenate([b.toa_s.ravel()[b.extra_passage] for b in batches])
     assert np.all((extra >= first) & (extra - first < 100e-6))
+
+
+def test_a_chattering_trigger_publishes_toa_batches_its_consumers_accept():
+    """A threshold at the baseline without hysteresis chatters on the noise: hundreds of edges
+    per window. The bus carries at most ``MAX_EXTRA_EDGES_PER_BLADE`` extra edges a passage
+    (its first ones, as a latch FIFO of that depth would), so every ``ToaBatch`` the simulator
+    publishes decodes; the edge counts (``SignalBatch.n_edges``) stay the trigger's own."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.bus import codec, keys
+
+    scn = scenario_from_dict({"speed": {"start_rpm": 2450.0, "end_rpm": 2700.0, "duration_s": 1.0},
+                              "acquisition": {"clock_hz": 1e8, "signal": {
+                                  "enabled": True, "level_v": 0.0, "hysteresis_v": 0.0, "noise_v": 0.05}}})
+    stream = AcquisitionStream(scn, n_revolutions=3)
+    batch, messages = next(iter(stream.batches()))
+    assert np.max(batch.n_edges) - 1 > codec.MAX_EXTRA_EDGES_PER_BLADE  # the case that matters
+    cap = np.minimum(batch.n_edges - 1, codec.MAX_EXTRA_EDGES_PER_BLADE)  # (revolution, blade, probe)
+    decoded = [codec.decode_toa_batch(m.payload, m.key, n_blades=29) for m in messages
+               if keys.parse_key(m.key).kind == "toa"]
+    assert len(decoded) == 3 * 5
+    for d in decoded:
+        r, j = d.header.revolution, d.body.probe
+        assert d.body.extra_toa_s.size == cap[r, :, j].sum() == d.body.extra_toa_ticks.size
+        assert np.all(np.diff(d.body.extra_toa_s) >= 0)  # time order
+        assert d.header.t_s == np.fmax.reduce(np.r_[d.body.toa_s, d.body.extra_toa_s])

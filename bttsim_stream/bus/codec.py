@@ -699,8 +699,9 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
     ------
     BttsimError
         Unparsable or oversized payload, missing header, inconsistent lengths, a window longer
-        than :data:`MAX_WINDOW_SAMPLES`, codes outside ``[0, 2^bits - 1]``, a non-positive or
-        non-finite sample rate or code size, an unknown trigger or edge.
+        than :data:`MAX_WINDOW_SAMPLES`, codes outside ``[0, 2^bits - 1]``, a non-finite sample
+        rate or one below 1 Hz, a non-positive or non-finite code size, an ADC range that
+        overflows a float, an unknown trigger or edge.
     """
     m, where = _parse(_pb.SignalBatch, payload, key)
     n = len(m.first_sample)
@@ -720,13 +721,17 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
     if codes.size and codes.max() >= (1 << m.bits):
         raise _corrupt(where, m, f"an ADC code above 2^{m.bits} - 1")
     first = _array(m.first_sample, np.int64)  # negative: a window opened before t = 0
-    for name in ("sample_rate_hz", "lsb_v"):
-        v = getattr(m, name)
-        if not (math.isfinite(v) and v > 0):
-            raise _corrupt(where, m, f"{name} = {v!r} (finite, > 0)")
+    # an ADC samples at >= 1 Hz: a window's times (and its plot) stay finite
+    if not (math.isfinite(m.sample_rate_hz) and m.sample_rate_hz >= 1.0):
+        raise _corrupt(where, m, f"sample_rate_hz = {m.sample_rate_hz!r} (finite, >= 1)")
+    if not (math.isfinite(m.lsb_v) and m.lsb_v > 0):
+        raise _corrupt(where, m, f"lsb_v = {m.lsb_v!r} (finite, > 0)")
     for name in ("range_lo_v", "level_v", "hysteresis_v"):
         if not math.isfinite(getattr(m, name)):
             raise _corrupt(where, m, f"{name} = {getattr(m, name)!r} (finite)")
+    span = ((1 << m.bits) - 1) * m.lsb_v
+    if not (math.isfinite(span) and math.isfinite(m.range_lo_v + span)):
+        raise _corrupt(where, m, f"ADC range {m.range_lo_v!r} + (2^{m.bits} - 1) * {m.lsb_v!r} V is not finite")
     if not 0.0 <= m.fraction <= 1.0:
         raise _corrupt(where, m, f"fraction = {m.fraction!r} (in [0, 1])")
     if m.trigger not in TRIGGER_KINDS or m.edge not in EDGES:

@@ -240,12 +240,20 @@ class MessageStream:
         extra = None
         if batch.extra_passage is not None and batch.extra_passage.size:
             p = np.asarray(batch.extra_passage, dtype=np.int64)
+            t_extra = np.asarray(batch.extra_toa_s, dtype=np.float64)
+            # a passage's first MAX_EXTRA_EDGES_PER_BLADE extra edges (a latch FIFO of that
+            # depth): a chattering trigger must not publish batches every decoder refuses
+            k = np.lexsort((t_extra, p))
+            start = np.r_[0, np.flatnonzero(np.diff(p[k])) + 1]
+            rank = np.arange(k.size) - np.repeat(start, np.diff(np.r_[start, k.size]))
+            keep = np.sort(k[rank < codec.MAX_EXTRA_EDGES_PER_BLADE])
+            p, t_extra = p[keep], t_extra[keep]
             msg = (p // (nb * npr)) * npr + p % npr  # (revolution, probe) message of each edge
-            order = np.lexsort((batch.extra_toa_s, msg))
-            ticks = None if batch.extra_toa_ticks is None else batch.extra_toa_ticks[order]
-            extra = (msg[order], batch.extra_toa_s[order], ticks)
+            order = np.lexsort((t_extra, msg))
+            ticks = None if batch.extra_toa_ticks is None else np.asarray(batch.extra_toa_ticks)[keep][order]
+            extra = (msg[order], t_extra[order], ticks)
             flat = latest.reshape(-1)  # a batch goes out after its last edge
-            np.fmax.at(flat, msg, batch.extra_toa_s)
+            np.fmax.at(flat, msg, t_extra)
         revs_a = np.asarray(revs, dtype=np.int64)
         # every message of the batch encoded at once (codec's batch encoders: the same bytes
         # as one message at a time); numbers taken per key in publication order
