@@ -817,6 +817,9 @@ class Signal:
         w = "[acquisition.signal]"
         _set(self, "enabled", _boolean(w, "enabled", self.enabled))
         _set(self, "publish", _boolean(w, "publish", self.publish))
+        if self.publish and not self.enabled:  # asked for signals that would never come
+            raise _FieldError(w, "publish", "= true needs enabled = true (no signal is synthesised with the "
+                              "chain off)")
         _set(self, "probe_type", _choices(w, "probe_type", self.probe_type, SIGNAL_PROBES))
         _set(self, "trigger", _choices(w, "trigger", self.trigger, SIGNAL_TRIGGERS))
         _set(self, "edge", _string(w, "edge", self.edge, choices=SIGNAL_EDGES))

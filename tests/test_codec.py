@@ -498,8 +498,10 @@ def test_signal_batch_round_trip_and_windows():
     # finite fields whose plot does not fit a float (the viewer's axes overflowed and it died)
     (dict(range_lo_v=-1e308, lsb_v=1e305), "ADC range"),
     (dict(sample_rate_hz=1e-301, first_sample=np.zeros(NB, int)), "sample_rate_hz = 1e-301 (finite, >= 1)"),
+    # a window index near the int64 limit wrapped silently into garbage times
+    (dict(first_sample=np.full(NB, (1 << 63) - 10)), "first_sample beyond +-2^52"),
 ], ids=["code", "count", "window", "toa", "rate", "lsb", "level", "trigger", "bits", "fraction", "range-top",
-        "rate-tiny"])
+        "rate-tiny", "first-sample"])
 def test_inconsistent_signal_batch_is_refused(changes, words):
     payload = codec.encode_signal_batch(_header(), _signal_batch(**changes))
     with pytest.raises(BttsimError) as excinfo:
@@ -514,6 +516,14 @@ def test_signal_batch_on_another_probe_key_or_blade_count_is_refused():
         codec.decode_signal_batch(payload, "bttsim/rig1/signal/0")
     with pytest.raises(BttsimError, match="expected n_blades = 28"):
         codec.decode_signal_batch(payload, "bttsim/rig1/signal/3", n_blades=28)
+
+
+def test_ticked_toa_batch_with_extra_edges_needs_their_ticks():
+    """The encoder refuses what its own decoder would: ticked TOAs whose extra edges have none."""
+    with pytest.raises(ValueError, match="extra_toa_ticks"):
+        codec.encode_toa_batch(_header(), 0, [1.0, 2.0], [10, 20], extra_toa_s=[1.5])
+    payload = codec.encode_toa_batch(_header(), 0, [1.0, 2.0], [10, 20], extra_toa_s=[1.5], extra_toa_ticks=[15])
+    assert codec.decode_toa_batch(payload, "bttsim/rig1/toa/0").body.extra_toa_ticks.tolist() == [15]
 
 
 def test_toa_batch_extra_edges_round_trip_and_batch_bytes():

@@ -198,7 +198,8 @@ def test_default_scenario_text_and_simulation_are_unchanged():
     ({"bits": 40}, "[acquisition.signal] bits must be an integer in [4, 24]"),
     ({"spot_size_m": 1e-3}, "unknown key [acquisition.signal] spot_size_m"),
     ({"publish": "yes"}, "[acquisition.signal] publish must be true or false"),
-], ids=["bool", "trigger", "per-probe", "level", "window", "bits", "unknown", "publish"])
+    ({"publish": True}, "[acquisition.signal] publish = true needs enabled = true"),
+], ids=["bool", "trigger", "per-probe", "level", "window", "bits", "unknown", "publish", "publish off"])
 def test_bad_signal_tables_are_one_line_errors(table, message):
     with pytest.raises(ScenarioError) as exc:
         scenario_from_dict({"acquisition": {"signal": table}})

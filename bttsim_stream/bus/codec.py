@@ -102,6 +102,8 @@ MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
 MAX_EXTRA_EDGES_PER_BLADE = 8
 #: Most samples a raw-signal window may hold (the scenario allows 4096 at the slowest speed).
 MAX_WINDOW_SAMPLES = 1 << 16
+#: Largest |first sample index| of a signal window: exact as a float, far from int64 overflow.
+MAX_FIRST_SAMPLE = 1 << 52
 #: Name of the schema file inside the descriptor (and path under ``schemas/``).
 PROTO_FILE = "bttsim/v1/bttsim.proto"
 _PACKAGE = "bttsim.v1"
@@ -546,7 +548,9 @@ def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | 
         m.toa_ticks.extend(toa_ticks)
         m.has_ticks = True
     m.extra_toa_s.extend(np.asarray(extra_toa_s, dtype=np.float64).tolist())
-    if toa_ticks is not None and extra_toa_ticks is not None:
+    if toa_ticks is not None and len(m.extra_toa_s):
+        if extra_toa_ticks is None:  # the decoder would refuse the message
+            raise ValueError("ticked TOAs with extra edges need their extra_toa_ticks")
         m.extra_toa_ticks.extend(np.asarray(extra_toa_ticks, dtype=np.int64).tolist())
     return _serialize(m)
 
@@ -721,6 +725,8 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
     if codes.size and codes.max() >= (1 << m.bits):
         raise _corrupt(where, m, f"an ADC code above 2^{m.bits} - 1")
     first = _array(m.first_sample, np.int64)  # negative: a window opened before t = 0
+    if np.abs(first).max() > MAX_FIRST_SAMPLE:  # sample indices stay exact as floats, and never wrap
+        raise _corrupt(where, m, "first_sample beyond +-2^52")
     # an ADC samples at >= 1 Hz: a window's times (and its plot) stay finite
     if not (math.isfinite(m.sample_rate_hz) and m.sample_rate_hz >= 1.0):
         raise _corrupt(where, m, f"sample_rate_hz = {m.sample_rate_hz!r} (finite, >= 1)")
