@@ -1,7 +1,6 @@
 """Issue 16: a bounded, seeded fuzz of every input the CLI reads -- scenario TOML, model
 ``.npz``, MCAP bytes and well-formed MCAP files with wrong content (raw probe signals and double
-pulses included) -- ends in 0 tracebacks and
-0 hangs.
+pulses included) -- ends in 0 tracebacks and 0 hangs.
 
 Every case runs ``bttsim`` in-process (:func:`bttsim_stream.cli.main`, a few through a real
 subprocess) under a per-case alarm, and must end with
