@@ -7,6 +7,7 @@ run, blades and probes 0-based. The tables (documented in ``schemas/export.md``)
 ========================  ================================================================
 ``opr``                   revolution, opr_s
 ``toa``                   revolution, blade, probe, toa_s (the acquisition's TOAs)
+``extra_edge``            revolution, probe, blade, toa_s (double pulses' later edges; when any)
 ``displacement``          revolution, blade, probe, d_m, t_exp_s (Eq. 1, offline processing)
 ``fit``                   revolution, blade, engine_order, amp_pkpk_m, phase_rad, ... (Eq. 16-17)
 ``tw``                    revolution, nd, forward_m, backward_m (from the fits, first EO)
@@ -204,6 +205,8 @@ def run_tables(run, result=None) -> RunTables:
     t: dict[str, dict] = {}
     t["opr"] = {"revolution": rev.copy(), "opr_s": _f(run.opr_s)}
     t["toa"] = dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev), toa_s=_f(run.toa_s))
+    if run.extra_edges["toa_s"].size:  # double pulses (the probe signal chain)
+        t["extra_edge"] = {k: np.array(v) for k, v in run.extra_edges.items()}
     disp = result.displacements
     t["displacement"] = dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
                              d_m=_f(disp.d_m), t_exp_s=_f(disp.t_exp_s))

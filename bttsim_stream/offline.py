@@ -23,7 +23,7 @@ from .bus.recording import McapRecorder, read_recording
 from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
-from .process.displacement import DoublePulses
+from .process.displacement import DoublePulses, assign_extra_edges
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
 from .processor import ProcessorSession
@@ -96,6 +96,11 @@ class RecordedRun:
     doubles : dict
         Double pulses of the recorded TOA batches (``double_pulses``, ``extra_edges``,
         ``stray_edges``; :class:`~bttsim_stream.process.displacement.DoublePulses`).
+    extra_edges : dict of ndarray
+        Every extra trigger edge of those batches, one row each: ``revolution``, ``probe``,
+        ``blade`` (the window it falls in,
+        :func:`~bttsim_stream.process.displacement.assign_extra_edges`; -1: in none) and
+        ``toa_s``, sorted by revolution, probe and time.
     """
 
     meta: RunInfo
@@ -105,6 +110,7 @@ class RecordedRun:
     truth: Truth | None
     messages: list
     doubles: dict = field(default_factory=lambda: DoublePulses().to_summary())
+    extra_edges: dict = field(default_factory=lambda: _edge_rows([]))
 
 
 def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
@@ -160,12 +166,24 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
         if all(t.toa_s.shape[1:] == toa_s.shape[1:] for t in rows):  # truth of another rotor: left out
             tr = Truth(**{f.name: np.concatenate([getattr(t, f.name) for t in rows]) for f in fields(Truth)})
     doubles = DoublePulses()
+    rows = []
     batches = {(d.header.revolution, d.body.probe): d.body for kind, d in decoded if kind == "toa"}  # once each
-    for (rev, _), b in batches.items():
+    for (rev, probe), b in sorted(batches.items()):
         if b.extra_toa_s.size and numbers[0] <= rev <= numbers[-1]:
             doubles.add(b.toa_s, b.extra_toa_s)
+            rows.append((rev, probe, assign_extra_edges(b.toa_s, b.extra_toa_s), b.extra_toa_s))
     return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=rec.messages,
-                       doubles=doubles.to_summary())
+                       doubles=doubles.to_summary(), extra_edges=_edge_rows(rows))
+
+
+def _edge_rows(rows: list) -> dict:
+    """The columns of :attr:`RecordedRun.extra_edges` from ``(revolution, probe, blade, toa_s)``
+    groups (one per TOA batch)."""
+    n = [r[3].size for r in rows]
+    return {"revolution": np.repeat(np.array([r[0] for r in rows], np.int64), n),
+            "probe": np.repeat(np.array([r[1] for r in rows], np.int64), n),
+            "blade": np.concatenate([np.asarray(r[2], np.int64) for r in rows] or [np.zeros(0, np.int64)]),
+            "toa_s": np.concatenate([np.asarray(r[3], float) for r in rows] or [np.zeros(0)])}
 
 
 def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray) -> None:

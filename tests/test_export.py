@@ -132,6 +132,33 @@ def test_parquet_round_trip_bit_for_bit(recording, exported_csv):
                 assert a[name][col].tolist() == b[name][col].tolist(), f"{name}.{col}"
 
 
+def test_double_pulses_export_one_row_per_extra_edge_against_the_simulator(exported_csv, tmp_path):
+    """The probe signal chain without hysteresis on a noisy pulse gives double pulses: the
+    ``extra_edge`` table holds every later edge the simulator's trigger published (its count
+    per window from ``RevolutionBatch.n_edges``, at most 8 a passage), each in its own blade's
+    window and after that blade's TOA; a run without double pulses has no such table."""
+    scn_text = SCENARIO.replace("trigger_jitter_s = 2e-8\n", "") + (
+        "[acquisition.signal]\nenabled = true\nhysteresis_v = 0.0\nnoise_v = 0.02\n")
+    (tmp_path / "s.toml").write_text(scn_text)
+    run_file = tmp_path / "run.mcap"
+    assert main(["simulate", str(tmp_path / "s.toml"), "--out", str(run_file), "-q"]) == 0
+    assert main(["export", str(run_file), "--out", str(tmp_path / "csv")]) == 0
+    t = _csv(tmp_path / "csv" / "extra_edge.csv")
+    rev, probe, blade = (_num(t[k], np.int64) for k in ("revolution", "probe", "blade"))
+    edge = _num(t["toa_s"])
+    batches = collect(RunUpSimulator(load_scenario(tmp_path / "s.toml")))
+    n_extra = np.minimum(batches.n_edges - 1, 8).clip(0)  # (revolution, blade, probe)
+    assert edge.size == n_extra.sum() > 0
+    assert np.all(blade >= 0)  # every edge in a blade's window
+    counts = np.zeros_like(n_extra)
+    np.add.at(counts, (rev, blade, probe), 1)
+    np.testing.assert_array_equal(counts, n_extra)
+    toa = load_run(run_file).toa_s
+    later = edge - toa[rev, blade, probe]
+    assert np.all((later > 0) & (later < 100e-6))  # microseconds after the blade's own TOA
+    assert not (exported_csv / "extra_edge.csv").exists()  # no double pulses, no table
+
+
 def test_a_recording_without_truth_exports_no_truth(recording, exported_csv, tmp_path):
     assert main(["simulate", str(recording / "s.toml"), "--out", str(tmp_path / "blind.mcap"), "-q",
                  "--no-truth"]) == 0
