@@ -29,6 +29,20 @@ def _messages(path):
     return sorted((m.key, m.seq, m.payload, m.log_time_ns) for m in read_recording(path).messages)
 
 
+def _record_a_replay(recording: Path, out: Path) -> Path:
+    """``bttsim replay`` of ``recording`` into a recorder node writing ``out`` (stopped by PID)."""
+    port = free_port()
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
+    try:  # the replay waits (up to --wait s) until the recorder subscribes to every key
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", recording, "--wait", "120",
+                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=180)
+        assert rep.returncode == 0, rep.stderr
+        rec.communicate(timeout=60)
+    finally:
+        _stop(rec)
+    return out
+
+
 @pytest.fixture
 def scenario(tmp_path):
     path = tmp_path / "short.toml"
@@ -83,17 +97,7 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     assert sorted((k, p, a[0], a[1]) for k, p, a in got) == \
         sorted((m.key, m.payload, m.seq, m.log_time_ns) for m in file_msgs)
     # and a recorder fed by the replay writes the same messages as the file
-    port = free_port()
-    out = tmp_path / "replayed.mcap"
-    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
-    try:  # the replay waits (up to --wait s) until the recorder subscribes to every key
-        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct, "--wait", "120",
-                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=180)
-        assert rep.returncode == 0, rep.stderr
-        rec.communicate(timeout=60)
-    finally:
-        _stop(rec)
-    assert _messages(out) == _messages(direct)
+    assert _messages(_record_a_replay(direct, tmp_path / "replayed.mcap")) == _messages(direct)
 
 
 def test_raw_signal_channels_are_recorded_and_replayed_bit_identically(tmp_path):
@@ -107,17 +111,7 @@ def test_raw_signal_channels_are_recorded_and_replayed_bit_identically(tmp_path)
     assert res.returncode == 0, res.stderr
     signals = [m for m in read_recording(direct).messages if "/signal/" in m.key]
     assert len(signals) == 85 * 5 and {m.key for m in signals} == {f"bttsim/rig1/signal/{j}" for j in range(5)}
-    port = free_port()
-    out = tmp_path / "replayed.mcap"
-    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
-    try:
-        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct, "--wait", "120",
-                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=180)
-        assert rep.returncode == 0, rep.stderr
-        rec.communicate(timeout=60)
-    finally:
-        _stop(rec)
-    assert _messages(out) == _messages(direct)
+    assert _messages(_record_a_replay(direct, tmp_path / "replayed.mcap")) == _messages(direct)
 
 
 def test_late_joiner_receives_recent_history(scenario):

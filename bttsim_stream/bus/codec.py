@@ -555,6 +555,14 @@ def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | 
     return _serialize(m)
 
 
+def _check_ticks(where: str, m, name: str, n: int, shape: str) -> None:
+    """A ticks field: ``n`` values with ``has_ticks``, none without."""
+    if m.has_ticks:
+        _check_len(where, m, name, n, shape)
+    elif len(getattr(m, name)):
+        raise _corrupt(where, m, f"{name} set but has_ticks is false")
+
+
 def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | None = None) -> Decoded:
     """Decode a :class:`bttsim.v1.ToaBatch` payload into ``(Header, ToaBatch)``.
 
@@ -577,17 +585,11 @@ def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | 
         raise _corrupt(where, m, "toa_s is empty")
     if n_blades is not None and n != n_blades:
         raise _corrupt(where, m, f"toa_s has {n} values, expected n_blades = {n_blades}")
-    if m.has_ticks:
-        _check_len(where, m, "toa_ticks", n, "(n_blades,)")
-    elif len(m.toa_ticks):
-        raise _corrupt(where, m, "toa_ticks set but has_ticks is false")
+    _check_ticks(where, m, "toa_ticks", n, "(n_blades,)")
     n_extra = len(m.extra_toa_s)
     if n_extra > MAX_EXTRA_EDGES_PER_BLADE * n:
         raise _corrupt(where, m, f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
-    if m.has_ticks:
-        _check_len(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
-    elif len(m.extra_toa_ticks):
-        raise _corrupt(where, m, "extra_toa_ticks set but has_ticks is false")
+    _check_ticks(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
     extra = _array(m.extra_toa_s)
     if not np.all(np.isfinite(extra)):
         raise _corrupt(where, m, "an extra edge time is not finite")
@@ -965,7 +967,8 @@ def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_tick
             body = times[lo:hi].astype("<f8").tobytes()
             tail = _varint_bytes(tag_s) + _varint_bytes(len(body)) + body
             if ticks is not None:
-                body = b"".join(_varint_bytes(int(v) & ((1 << 64) - 1)) for v in ticks[lo:hi].tolist())
+                v, lens = _varints(ticks[lo:hi])
+                body = v[np.arange(v.shape[1]) < lens[:, None]].tobytes()  # each varint's own bytes, in order
                 tail += _varint_bytes(tag_k) + _varint_bytes(len(body)) + body
             out[i] = out[i] + tail
     return out
