@@ -44,6 +44,7 @@ from .bladed_disk import (
 __all__ = [
     "SCHEMA",
     "SCHEMA_VERSION",
+    "SPEED_ARRAYS",
     "ModalModel",
     "build_model",
     "design_from_scenario",
@@ -70,7 +71,17 @@ _OPTIONAL = {
     "family": 1, "nodal_diameter": 1, "campbell_freq_hz": 2, "blade_alone_freq_hz": 1,
     "force_ref_trailing_edge": 2, "force_shapes_trailing_edge": 3,
     "stiffness_factors": 1, "mass_factors": 1,
+    # speed-dependent modes (centrifugal effects): see SPEED_ARRAYS
+    "speed_rad_s": 1, "freq_hz_at_speed": 2, "tip_shapes_at_speed": 5, "force_shapes_at_speed": 4,
+    "force_shapes_trailing_edge_at_speed": 4, "campbell_freq_hz_at_speed": 3,
 }
+#: Arrays of a speed-dependent model (all or none of the first four): the modes at speeds
+#: ``speed_rad_s`` (S,), strictly ascending from 0, S in [2, 64]; row ``s`` of each
+#: ``*_at_speed`` array holds the same quantity as its zero-speed array at speed ``s``
+#: (row 0 equal to it), in the same mode order (modes tracked across speeds), each mode
+#: mass-normalised and sign/phase-aligned with its zero-speed shape.
+SPEED_ARRAYS = ("speed_rad_s", "freq_hz_at_speed", "tip_shapes_at_speed", "force_shapes_at_speed")
+MAX_SPEEDS = 64
 _MAX_FILE_BYTES = 2 * 1024**3
 
 
@@ -487,6 +498,28 @@ def _validate(a: dict, where: str) -> dict:
         "force_ref_trailing_edge": (n_blades, 3), "force_shapes_trailing_edge": (n_modes, n_blades, 3),
         "stiffness_factors": (n_blades,), "mass_factors": (n_blades,),
     }
+    if any(k in a for k in _OPTIONAL if k.endswith("_at_speed") or k == "speed_rad_s"):
+        missing = [k for k in SPEED_ARRAYS if k not in a]
+        if missing:
+            raise ModelFileError(f"{where}: a speed-dependent model needs {', '.join(SPEED_ARRAYS)}; "
+                                 f"missing {', '.join(missing)}")
+        sp = np.asarray(a["speed_rad_s"], float)
+        S = sp.shape[0]
+        if not 2 <= S <= MAX_SPEEDS or sp[0] != 0.0 or np.any(np.diff(sp) <= 0):
+            raise ModelFileError(f"{where}: speed_rad_s must hold 2..{MAX_SPEEDS} speeds, strictly ascending "
+                                 "from 0")
+        expect.update({
+            "freq_hz_at_speed": (S, n_modes), "tip_shapes_at_speed": (S, n_modes, n_blades, n_tip, 3),
+            "force_shapes_at_speed": (S, n_modes, n_blades, 3),
+            "force_shapes_trailing_edge_at_speed": (S, n_modes, n_blades, 3),
+        })
+        if "campbell_freq_hz_at_speed" in a and (a["campbell_freq_hz_at_speed"].shape[0] != S
+                                                 or "campbell_freq_hz" not in a
+                                                 or a["campbell_freq_hz_at_speed"].shape[1:]
+                                                 != a["campbell_freq_hz"].shape):
+            raise ModelFileError(f"{where}: campbell_freq_hz_at_speed must have shape (S, *campbell_freq_hz.shape)")
+        if ("force_shapes_trailing_edge_at_speed" in a) != ("force_shapes_trailing_edge" in a):
+            raise ModelFileError(f"{where}: force_shapes_trailing_edge and its _at_speed array go together")
     for k, shape in expect.items():
         if k in a and tuple(a[k].shape) != shape:
             raise ModelFileError(f"{where}: {k} has shape {tuple(a[k].shape)}, expected {shape}")
@@ -516,6 +549,12 @@ def _validate(a: dict, where: str) -> dict:
                              "frequencies > 0")
     if np.any(a["freq_hz"] <= 0):
         raise ModelFileError(f"{where}: freq_hz must be > 0")
+    if "speed_rad_s" in a:
+        if np.any(a["freq_hz_at_speed"] <= 0):
+            raise ModelFileError(f"{where}: freq_hz_at_speed must be > 0")
+        for k in ("freq_hz", "tip_shapes", "force_shapes", "force_shapes_trailing_edge", "campbell_freq_hz"):
+            if k + "_at_speed" in a and not np.array_equal(a[k + "_at_speed"][0], a[k]):
+                raise ModelFileError(f"{where}: row 0 of {k}_at_speed (speed 0) differs from {k}")
     if np.any(a["damping_ratio"] < 0) or np.any(a["damping_ratio"] >= 1):
         raise ModelFileError(f"{where}: damping_ratio must be in [0, 1)")
     if np.any(a["tip_ref"][..., 0] <= 0) or np.any(a["force_ref"][..., 0] <= 0):
