@@ -67,6 +67,11 @@ TOA_METHODS = ("HP", "AD", "PAD")
 SPEED_INITIAL = ("steady", "rest")
 FORCE_NODES = ("leading_edge", "trailing_edge")
 MAX_FAMILIES = 20
+#: Most speeds of a speed-dependent model (``[model] centrifugal_speeds``; the model file's limit).
+MAX_MODEL_SPEEDS = 64
+#: ``[model]`` keys written only when ``centrifugal`` is on (a default run's id, a hash of the
+#: scenario text, stays what it was before they existed).
+_CENTRIFUGAL_KEYS = ("centrifugal", "centrifugal_speeds", "centrifugal_max_rpm")
 MAX_TIP_NODES = 100
 MIN_CLOCK_HZ, MAX_CLOCK_HZ = 1e3, 1e12
 MAX_PROBE_ANGLE_ERROR_DEG = 5.0
@@ -399,6 +404,17 @@ class Model:
         dimensionless; default 0.0; in [0, 0.5).
     mass_std : float
         As ``stiffness_std``, for the blade masses.
+    centrifugal : bool
+        Default false (the paper's zero-speed model). If true, the built-in model gains its
+        centrifugal effects (stress stiffening and spin softening; Coriolis neglected): modes
+        at ``centrifugal_speeds`` speeds from 0 to ``centrifugal_max_rpm``, tracked across
+        speeds (``schemas/modal_model.md``). Only with ``source = "builtin"`` and a tuned
+        wheel (no mistuning, no ``disk_asymmetry``).
+    centrifugal_speeds : int
+        Speeds at which the modes are solved, default 17; integer in [2, 64].
+    centrifugal_max_rpm : float
+        Highest of those speeds, rpm; default 0.0 = 1.2 times the speed profile's top speed
+        (rounded up to 100 rpm); else in [top speed, 1e6].
     """
 
     source: str = field(default=BUILTIN_MODEL, metadata=_doc(
@@ -420,9 +436,21 @@ class Model:
     mass_std: float = field(default=0.0, metadata=_doc(
         "std of seeded random per-blade mass factors 1 + N(0, std); in [0, 0.5);\n"
         "exclusive with mass_factors"))
+    centrifugal: bool = field(default=False, metadata=_doc(
+        "speed-dependent modes of the built-in model: centrifugal stiffening and spin\n"
+        "softening (Coriolis neglected); needs a tuned wheel (no mistuning, no disk_asymmetry)"))
+    centrifugal_speeds: int = field(default=17, metadata=_doc(
+        "speeds at which the modes are solved (0 .. centrifugal_max_rpm); in [2, 64]"))
+    centrifugal_max_rpm: float = field(default=0.0, metadata=_doc(
+        "highest of those speeds, rpm; 0 = 1.2 x the speed profile's top speed; else >= it"))
 
     def __post_init__(self) -> None:
         w = "[model]"
+        _set(self, "centrifugal", _boolean(w, "centrifugal", self.centrifugal))
+        _set(self, "centrifugal_speeds", _integer(w, "centrifugal_speeds", self.centrifugal_speeds, lo=2,
+                                                  hi=MAX_MODEL_SPEEDS))
+        _set(self, "centrifugal_max_rpm", _real(w, "centrifugal_max_rpm", self.centrifugal_max_rpm, lo=0,
+                                                hi=MAX_RPM))
         source = _string(w, "source", self.source)
         if not source:
             raise _FieldError(w, "source", 'must be "builtin" or a file path, got ""')
@@ -977,6 +1005,7 @@ class Scenario:
             raise _FieldError("[probes]", "axial_position_m", "must lie within the tip "
                               f"chord's axial extent [0, {z_max:.6g}] m ([rotor] tip_chord_m * "
                               f"sin(stagger_deg)), got {_show(z)}")
+        self._check_centrifugal()
         for kind in ("stiffness_factors", "mass_factors"):
             factors = getattr(self.model, kind)
             if factors and len(factors) != n:
@@ -999,6 +1028,30 @@ class Scenario:
             raise _FieldError("[acquisition]", "clock_hz", f"cannot count a run of {self.speed.duration_s:g} s "
                               f"in 62 bits, got {_show(acq.clock_hz)}")
 
+
+    def _check_centrifugal(self) -> None:
+        m = self.model
+        if not m.centrifugal:
+            return
+        if m.source != BUILTIN_MODEL:
+            raise _FieldError("[model]", "centrifugal", "applies to the built-in model only (a model file "
+                              "brings its own speed-dependent arrays, schemas/modal_model.md); got it with "
+                              f"source = {_show(m.source)}")
+        for kind in ("stiffness_factors", "mass_factors", "stiffness_std", "mass_std", "disk_asymmetry"):
+            if getattr(m, kind):
+                raise _FieldError("[model]", "centrifugal", f"needs a tuned wheel: set {kind} to its default "
+                                  "(mistuned or asymmetric wheels with centrifugal effects are not built yet)")
+        top = float(np.max(self.speed.breakpoints()[1]))
+        if m.centrifugal_max_rpm and m.centrifugal_max_rpm < top:
+            raise _FieldError("[model]", "centrifugal_max_rpm", f"must cover the speed profile's top speed "
+                              f"{top:g} rpm (or be 0 for 1.2 x it), got {_show(m.centrifugal_max_rpm)}")
+
+    def centrifugal_max_rpm(self) -> float:
+        """Top speed of a speed-dependent built-in model, rpm: ``[model] centrifugal_max_rpm``, or
+        1.2 times the speed profile's top speed rounded up to 100 rpm."""
+        if self.model.centrifugal_max_rpm:
+            return float(self.model.centrifugal_max_rpm)
+        return float(math.ceil(1.2 * float(np.max(self.speed.breakpoints()[1])) / 100.0 - 1e-9) * 100.0)
 
     def _check_signal(self, sig: Signal, rpm_min: float, rpm_max: float) -> None:
         w = "[acquisition.signal]"
@@ -1381,6 +1434,9 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
         sub = table.pop("signal", None)
         if name == "speed" and not comments and table.get("initial") == "steady":
             del table["initial"]  # written only when changed: a default run's id (a hash of this text) stays
+        if name == "model" and not comments and not scn.model.centrifugal:
+            for k in _CENTRIFUGAL_KEYS:  # written only when on: a default run's id stays
+                table.pop(k, None)
         _emit_table(lines, cls, table, comments)
         # only a changed [acquisition.signal] is written (the run id of a default run, a hash
         # of this text, stays what it was before the section existed); the commented file shows it

@@ -13,6 +13,14 @@ Stiffness and consistent mass are the textbook cubic-Hermite / linear-interpolat
 matrices (Przemieniecki, *Theory of Matrix Structural Analysis*, 1968, Ch. 5 and 11).
 Rotary inertia of the bending rotations is neglected; the torsional inertia uses the
 polar mass moment ``rho * I_p`` of the section.
+
+Centrifugal effects (rotation ``Omega`` about the assembly ``Z`` axis) use two more element
+matrices: the *geometric* (initial-stress) stiffness of an element carrying the axial force
+``N`` (Przemieniecki 1968, Ch. 15; the continuum form ``int N (u'^2 + v'^2 + w'^2) dx`` plus
+the torsion term ``N I_p / A``), and the *spin-softening* mass, the consistent mass of the
+displacement component in the plane of rotation, ``int rho A (P u)^T (P u) dx`` with
+``P = diag(1, 1, 0)`` (Geradin & Rixen, *Mechanical Vibrations*, Sec. 5.7). Coriolis
+coupling is not modelled.
 """
 
 from __future__ import annotations
@@ -21,7 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BeamSection", "beam_matrices", "rotation_matrix", "rigid_offset_matrix"]
+__all__ = ["BeamSection", "beam_matrices", "rotation_matrix", "rigid_offset_matrix", "beam_geometric_stiffness",
+           "beam_spin_mass", "beam_axial_force", "IN_PLANE"]
+
+#: Projector on the plane of rotation (rotation about the assembly Z axis).
+IN_PLANE = np.diag([1.0, 1.0, 0.0])
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,3 +137,100 @@ def rigid_offset_matrix(offset: np.ndarray) -> np.ndarray:
     r = np.asarray(offset, float)
     skew = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
     return np.hstack([np.eye(3), -skew])
+
+
+def _frame(p1: np.ndarray, p2: np.ndarray, y_hint: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    d = np.asarray(p2, float) - np.asarray(p1, float)
+    R = rotation_matrix(d, y_hint)
+    return float(np.linalg.norm(d)), R, np.kron(np.eye(4), R)
+
+
+def _local_geometric(L: float, s: BeamSection, N: float) -> np.ndarray:
+    kg = np.zeros((12, 12))
+    bar = np.array([[1.0, -1.0], [-1.0, 1.0]]) / L
+    kg[np.ix_((0, 6), (0, 6))] = N * bar
+    kg[np.ix_((3, 9), (3, 9))] = N * s.I_p / s.A * bar
+    kb = np.array([[36, 3 * L, -36, 3 * L],
+                   [3 * L, 4 * L * L, -3 * L, -L * L],
+                   [-36, -3 * L, 36, -3 * L],
+                   [3 * L, -L * L, -3 * L, 4 * L * L]]) * (N / (30.0 * L))
+    flip = np.diag([1.0, -1.0, 1.0, -1.0])
+    kg[np.ix_((1, 5, 7, 11), (1, 5, 7, 11))] = kb
+    kg[np.ix_((2, 4, 8, 10), (2, 4, 8, 10))] = flip @ kb @ flip
+    return kg
+
+
+def beam_geometric_stiffness(p1: np.ndarray, p2: np.ndarray, y_hint: np.ndarray, section: BeamSection,
+                             axial_force_n: float) -> np.ndarray:
+    """Geometric (initial-stress) stiffness (12x12, assembly coordinates) for an axial force.
+
+    Parameters
+    ----------
+    p1, p2, y_hint, section
+        As :func:`beam_matrices`.
+    axial_force_n : float
+        Axial force of the element, N (tension positive).
+
+    Notes
+    -----
+    Consistent with the element's own interpolation: ``N/L`` on the axial DOF,
+    ``N I_p / (A L)`` on the twist (Wagner's term for a doubly symmetric section) and
+    ``N / (30 L) [36, 3L, -36, 3L; 3L, 4L^2, -3L, -L^2; ...]`` in both bending planes
+    (Przemieniecki 1968, Eq. 15.23; McGuire, Gallagher & Ziemian 2000, Eq. 9.19).
+    """
+    L, _, T = _frame(p1, p2, y_hint)
+    return T.T @ _local_geometric(L, section, float(axial_force_n)) @ T
+
+
+_GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(4)
+
+
+def _translation_shapes(L: float, xi: float) -> np.ndarray:
+    """Local translations ``(u, v, w)`` at ``x = xi L`` from the 12 local DOF (3x12)."""
+    N1, N2, N3, N4 = 1 - 3 * xi**2 + 2 * xi**3, L * (xi - 2 * xi**2 + xi**3), 3 * xi**2 - 2 * xi**3, L * (xi**3 - xi**2)
+    Nl = np.zeros((3, 12))
+    Nl[0, [0, 6]] = [1 - xi, xi]
+    Nl[1, [1, 5, 7, 11]] = [N1, N2, N3, N4]
+    Nl[2, [2, 4, 8, 10]] = [N1, -N2, N3, -N4]
+    return Nl
+
+
+def beam_spin_mass(p1: np.ndarray, p2: np.ndarray, y_hint: np.ndarray, section: BeamSection,
+                   projector: np.ndarray = IN_PLANE) -> np.ndarray:
+    """Consistent mass of the projected translation, ``int rho A (P u)^T (P u) dx`` (12x12).
+
+    With ``P`` the projector on the plane of rotation this is the element's spin-softening
+    matrix ``K_s`` (the rotating frame's centrifugal term ``-Omega^2 K_s``); with ``P = I``
+    it is the translational part of :func:`beam_matrices`' mass. Integrated exactly
+    (4-point Gauss: the integrand is a degree-6 polynomial). Rotary inertia is left out, as
+    in the mass matrix.
+
+    Parameters
+    ----------
+    p1, p2, y_hint, section
+        As :func:`beam_matrices`.
+    projector : ndarray, shape (3, 3)
+        ``P`` in assembly coordinates.
+    """
+    L, R, T = _frame(p1, p2, y_hint)
+    C = R @ np.asarray(projector, float) @ R.T
+    m = np.zeros((12, 12))
+    for x, w in zip(_GAUSS_X, _GAUSS_W):
+        Nl = _translation_shapes(L, 0.5 * (x + 1.0))
+        m += (0.5 * w) * (Nl.T @ C @ Nl)
+    m *= section.rho * section.A * L
+    return T.T @ m @ T
+
+
+def beam_axial_force(p1: np.ndarray, p2: np.ndarray, y_hint: np.ndarray, section: BeamSection,
+                     u: np.ndarray) -> float:
+    """Axial force (N, tension positive) of an element under the nodal displacements ``u``.
+
+    Parameters
+    ----------
+    u : ndarray, shape (12,)
+        Element DOF in assembly coordinates.
+    """
+    L, R, _ = _frame(p1, p2, y_hint)
+    u = np.asarray(u, float)
+    return section.E * section.A / L * float(R[0] @ (u[6:9] - u[0:3]))

@@ -153,6 +153,18 @@ class BladedDiskDesign:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class BeamElement:
+    """One beam element of a sector: end points and section orientation in the sector frame,
+    its section, and its 12 sector DOF indices (-1: clamped)."""
+
+    p1: np.ndarray
+    p2: np.ndarray
+    y_hint: np.ndarray
+    section: BeamSection
+    dofs: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class SectorModel:
     """Matrices of one sector in its sector frame (see module notes).
 
@@ -175,6 +187,13 @@ class SectorModel:
         The same for the excitation nodes (leading edge, trailing edge).
     blade_dofs : ndarray, shape (n_blade_dofs,)
         Sector DOF indices that belong to the blade (for blade participation).
+    elements : tuple of BeamElement
+        The sector's own beam elements (disk web strips, then blade), for the centrifugal
+        matrices.
+    ring_elements : tuple of BeamElement
+        The ring beams, in the order of ``ring_dofs`` (``p2`` in the reference sector frame).
+    node_xyz : ndarray, shape (n_nodes, 3)
+        Undeformed position of every free node (node ``i`` owns DOF ``6 i .. 6 i + 5``).
     """
 
     K: np.ndarray
@@ -187,6 +206,9 @@ class SectorModel:
     force_map: np.ndarray
     force_ref: np.ndarray
     blade_dofs: np.ndarray
+    elements: tuple = ()
+    ring_elements: tuple = ()
+    node_xyz: np.ndarray | None = None
 
     @property
     def n_dof(self) -> int:
@@ -256,6 +278,8 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
     def dofs(node: int) -> np.ndarray:
         return np.arange(_DOF) + _DOF * (node - 1) if node >= 1 else -np.ones(_DOF, int)
 
+    elements, ring_elements = [], []
+
     # disk web strips (radial beams), section = sector arc x web thickness
     E_d = d.disk_E_pa * disk_k
     G_d = E_d / (2.0 * (1.0 + d.disk_nu))
@@ -265,9 +289,10 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
         w = 2.0 * np.pi * r_mid / d.n_blades
         sec = BeamSection(E=E_d, G=G_d, rho=d.disk_rho, A=w * h, I_y=w * h**3 / 12.0,
                           I_z=h * w**3 / 12.0, J=_rect_torsion(w, h), I_p=(w * h**3 + h * w**3) / 12.0)
-        k, mm = beam_matrices(np.array([r_disk[e], 0, z0]), np.array([r_disk[e + 1], 0, z0]),
-                              np.array([0.0, 1.0, 0.0]), sec)
+        p1, p2, yh = np.array([r_disk[e], 0, z0]), np.array([r_disk[e + 1], 0, z0]), np.array([0.0, 1.0, 0.0])
+        k, mm = beam_matrices(p1, p2, yh, sec)
         idx = np.concatenate([dofs(e), dofs(e + 1)])
+        elements.append(BeamElement(p1, p2, yh, sec, idx))
         _scatter(K, k, idx)
         _scatter(M, mm, idx)
 
@@ -276,9 +301,10 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
     for e in range(nb):
         r_mid = 0.5 * (r_blade[e] + r_blade[e + 1])
         sec, stagger = _blade_section(d, r_mid, blade_k, blade_m)
-        k, mm = beam_matrices(np.array([r_blade[e], 0, z0]), np.array([r_blade[e + 1], 0, z0]),
-                              _chord_dir(stagger), sec)
+        p1, p2, yh = np.array([r_blade[e], 0, z0]), np.array([r_blade[e + 1], 0, z0]), _chord_dir(stagger)
+        k, mm = beam_matrices(p1, p2, yh, sec)
         idx = np.concatenate([dofs(blade_nodes[e]), dofs(blade_nodes[e + 1])])
+        elements.append(BeamElement(p1, p2, yh, sec, idx))
         _scatter(K, k, idx)
         _scatter(M, mm, idx)
     blade_dofs = np.concatenate([dofs(n) for n in blade_nodes[1:]])
@@ -301,6 +327,7 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
         sec = BeamSection(E=E_d, G=G_d, rho=rho, A=b * t, I_y=b * t**3 / 12.0, I_z=t * b**3 / 12.0,
                           J=_rect_torsion(b, t), I_p=(b * t**3 + t * b**3) / 12.0)
         k, mm = beam_matrices(p1, p2, np.array([1.0, 0.0, 0.0]), sec)
+        ring_elements.append(BeamElement(p1, p2, np.array([1.0, 0.0, 0.0]), sec, np.concatenate([dofs(j), dofs(j)])))
         ring_dofs.append(dofs(j))
         ring_K.append(Q.T @ k @ Q)
         ring_M.append(Q.T @ mm @ Q)
@@ -332,7 +359,9 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
 
     return SectorModel(K=K, M=M, ring_dofs=np.array(ring_dofs), ring_K=np.array(ring_K),
                        ring_M=np.array(ring_M), tip_map=tip_map, tip_ref=tip_ref,
-                       force_map=force_map, force_ref=force_ref, blade_dofs=blade_dofs)
+                       force_map=force_map, force_ref=force_ref, blade_dofs=blade_dofs,
+                       elements=tuple(elements), ring_elements=tuple(ring_elements),
+                       node_xyz=np.array([[r, 0.0, z0] for r in np.concatenate([r_disk[1:], r_blade[1:]])]))
 
 
 def _beam_point_map(L: float, xi: float, y_hint: np.ndarray) -> np.ndarray:
@@ -448,8 +477,12 @@ class WheelModes:
     nodal_diameter: np.ndarray
 
 
-def expand_cyclic(d: BladedDiskDesign, sol: CyclicSolution) -> WheelModes:
-    """Expand per-ND complex modes to real full-wheel modes (ND 0 single, others pairs)."""
+def _fix_phase(v: np.ndarray) -> np.ndarray:
+    """The complex eigenvector with its largest entry turned real and positive."""
+    return v * np.exp(-1j * np.angle(v[np.argmax(np.abs(v))]))
+
+
+def _expand_unsorted(d: BladedDiskDesign, sol: CyclicSolution, fix_phase: bool = True):
     N = d.n_blades
     s = np.arange(N)
     freqs, shapes, fam, nds = [], [], [], []
@@ -457,19 +490,37 @@ def expand_cyclic(d: BladedDiskDesign, sol: CyclicSolution) -> WheelModes:
         for k in range(v_nd.shape[1]):
             v = v_nd[:, k]
             if nd == 0 or 2 * nd == N:
-                v = np.real(v * np.exp(-1j * np.angle(v[np.argmax(np.abs(v))])))
+                v = np.real(_fix_phase(v) if fix_phase else v)
                 shapes.append(np.tile(v, (N, 1)) / np.sqrt(N))
                 freqs.append(f_nd[k]); fam.append(k); nds.append(nd)
                 continue
             # fix the arbitrary complex phase so the expansion is deterministic
-            v = v * np.exp(-1j * np.angle(v[np.argmax(np.abs(v))]))
+            if fix_phase:
+                v = _fix_phase(v)
             u = np.exp(1j * 2 * np.pi * nd * s / N)[:, None] * v[None, :]
             for part in (u.real, u.imag):
                 shapes.append(part * np.sqrt(2.0 / N))
                 freqs.append(f_nd[k]); fam.append(k); nds.append(nd)
-    order = np.lexsort((np.array(nds), np.array(freqs), np.array(fam)))
-    return WheelModes(freq_hz=np.array(freqs)[order], shapes=np.array(shapes)[order],
-                      family=np.array(fam)[order], nodal_diameter=np.array(nds)[order])
+    return np.array(freqs), np.array(shapes), np.array(fam), np.array(nds)
+
+
+def expand_cyclic(d: BladedDiskDesign, sol: CyclicSolution, order: np.ndarray | None = None,
+                  fix_phase: bool = True) -> WheelModes:
+    """Expand per-ND complex modes to real full-wheel modes (ND 0 single, others pairs).
+
+    Parameters
+    ----------
+    order : ndarray of int, optional
+        Mode order (default: by family, frequency, ND). The speed-dependent model passes the
+        zero-speed order so that mode ``i`` is the same mode at every speed.
+    fix_phase : bool
+        Turn each complex vector's largest entry real (default); False keeps the phase of
+        vectors already aligned (:func:`solve_cyclic_speeds`).
+    """
+    freqs, shapes, fam, nds = _expand_unsorted(d, sol, fix_phase)
+    if order is None:
+        order = np.lexsort((nds, freqs, fam))
+    return WheelModes(freq_hz=freqs[order], shapes=shapes[order], family=fam[order], nodal_diameter=nds[order])
 
 
 def asymmetry_pattern(d: BladedDiskDesign) -> np.ndarray:

@@ -40,6 +40,8 @@ from .bladed_disk import (
     solve_cyclic,
     solve_full_wheel,
 )
+from .bladed_disk import _expand_unsorted
+from .centrifugal import N_SPARE, SUBSTEPS, centrifugal_sector, solve_cyclic_speeds, speed_grid
 
 __all__ = [
     "SCHEMA",
@@ -230,7 +232,7 @@ def _rotor_ref(ref: np.ndarray, n_blades: int) -> np.ndarray:
 
 
 def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s: float | None = None,
-                stiffness_factors=None, mass_factors=None) -> ModalModel:
+                stiffness_factors=None, mass_factors=None, speed_rad_s=None) -> ModalModel:
     """Build the parametric bladed-disk modal model.
 
     Tuned wheels (uniform blade factors, no disk asymmetry) are solved per nodal diameter
@@ -248,6 +250,11 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         Stiffness-proportional damping coefficient (``zeta = beta * omega / 2``).
     stiffness_factors, mass_factors : array_like, shape (n_blades,), optional
         Per-blade mistuning factors (override the scenario's).
+    speed_rad_s : array_like, shape (S,), optional
+        Build a speed-dependent model (centrifugal effects, :mod:`.centrifugal`) with the modes
+        at these speeds (ascending from 0; tuned wheels only). Default: the scenario's
+        ``[model] centrifugal`` option (``centrifugal_speeds`` speeds uniform in Omega from 0
+        to :meth:`~bttsim_stream.scenario.Scenario.centrifugal_max_rpm`), else none.
     """
     t0 = time.perf_counter()
     if design is None:
@@ -266,17 +273,30 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
     k_f = np.ones(N) if stiffness_factors is None else np.asarray(stiffness_factors, float)
     m_f = np.ones(N) if mass_factors is None else np.asarray(mass_factors, float)
     disk_f = asymmetry_pattern(design)
+    if speed_rad_s is None and scn is not None and scn.model.centrifugal:
+        speed_rad_s = speed_grid(scn.centrifugal_max_rpm() * np.pi / 30.0, scn.model.centrifugal_speeds)
+    if speed_rad_s is not None:
+        speed_rad_s = np.asarray(speed_rad_s, float)
+        if (speed_rad_s.ndim != 1 or not 2 <= speed_rad_s.size <= MAX_SPEEDS or speed_rad_s[0] != 0.0
+                or np.any(np.diff(speed_rad_s) <= 0) or not np.all(np.isfinite(speed_rad_s))):
+            raise ScenarioError(f"centrifugal speeds must be 2..{MAX_SPEEDS} finite speeds ascending from 0 rad/s")
 
     with threadpool_limits(limits=1):
         nominal = assemble_sector(design)
         campbell = solve_cyclic(design, nominal)
         blade_alone = blade_alone_frequencies(design, 3)
         uniform = (np.ptp(k_f) == 0 and np.ptp(m_f) == 0 and np.ptp(disk_f) == 0)
+        if speed_rad_s is not None and not uniform:
+            raise ScenarioError("[model] centrifugal: the speed-dependent model needs a tuned wheel (no mistuning, "
+                                "no disk asymmetry)")
         if uniform:
             sector = assemble_sector(design, k_f[0], m_f[0], disk_f[0])
             sol = campbell if (k_f[0] == 1 and m_f[0] == 1 and disk_f[0] == 1) else solve_cyclic(design, sector)
             modes: WheelModes = expand_cyclic(design, sol)
             method = "cyclic symmetry, expanded to the full wheel"
+            if speed_rad_s is not None:
+                at_speed = _speed_modes(design, nominal, campbell, sector, sol, speed_rad_s)
+                method += "; centrifugal stiffening and spin softening at speed (Coriolis neglected)"
         else:
             modes, _ = solve_full_wheel(design, design.n_families * N, k_f, m_f, disk_f)
             sector = nominal
@@ -317,7 +337,69 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
                "force_shapes_trailing_edge": force[:, :, 1, :].copy(),
                "stiffness_factors": k_f, "mass_factors": m_f},
     )
-    return model
+    if speed_rad_s is None:
+        return model
+    meta["provenance"]["centrifugal"] = at_speed.pop("provenance")
+    meta["provenance"]["build_time_s"] = time.perf_counter() - t0
+    tip_s, force_s = at_speed.pop("tip"), at_speed.pop("force")
+    arrays = {
+        "speed_rad_s": speed_rad_s,
+        "freq_hz_at_speed": at_speed["freq_hz"],
+        "tip_shapes_at_speed": tip_s,
+        "force_shapes_at_speed": force_s[..., 0, :],
+        "force_shapes_trailing_edge_at_speed": force_s[..., 1, :],
+        "campbell_freq_hz_at_speed": at_speed["campbell"],
+    }
+    # row 0 is the zero-speed model itself (the same solve; copied so that it is bit-identical)
+    for key, zero in (("freq_hz_at_speed", model.freq_hz), ("tip_shapes_at_speed", model.tip_shapes),
+                      ("force_shapes_at_speed", model.force_shapes),
+                      ("force_shapes_trailing_edge_at_speed", model.extra["force_shapes_trailing_edge"]),
+                      ("campbell_freq_hz_at_speed", model.campbell_freq_hz)):
+        arrays[key] = np.ascontiguousarray(arrays[key])
+        arrays[key][0] = zero
+    return replace(model, meta=meta, extra={**model.extra, **arrays})
+
+
+def _speed_modes(design: BladedDiskDesign, nominal, campbell, sector, sol, speed_rad_s: np.ndarray) -> dict:
+    """The tracked modes at ``speed_rad_s`` (:mod:`.centrifugal`), at the tip and force nodes.
+
+    Returns ``freq_hz`` (S, n_modes), ``tip`` (S, n_modes, n_blades, n_tip, 3), ``force``
+    (S, n_modes, n_blades, 2, 3), ``campbell`` (S, n_families, n_nd) and ``provenance``.
+    """
+    t0 = time.perf_counter()
+    cent = centrifugal_sector(sector, design.n_blades)
+    track = solve_cyclic_speeds(design, sector, cent, speed_rad_s, sol)
+    freqs, _, fam, nds = _expand_unsorted(design, sol)
+    order = np.lexsort((nds, freqs, fam))  # the zero-speed model's mode order, kept at every speed
+    S = speed_rad_s.size
+    tip, force, freq = [], [], []
+    for s in range(S):
+        modes = expand_cyclic(design, track.solutions[s], order=order, fix_phase=False)
+        tip.append(_sector_points(sector, modes.shapes, sector.tip_map))
+        force.append(_sector_points(sector, modes.shapes, sector.force_map))
+        freq.append(modes.freq_hz)
+    if sector is nominal:
+        camp_track = track
+    else:  # the Campbell table is the nominal wheel's (as at zero speed)
+        camp_track = solve_cyclic_speeds(design, nominal, centrifugal_sector(nominal, design.n_blades),
+                                         speed_rad_s, campbell)
+    camp = np.array([c.freq_hz.T for c in camp_track.solutions])
+    w = 2.0 * np.pi * np.asarray(campbell.freq_hz.T)
+    southwell = (np.square(2.0 * np.pi * camp[-1]) - w**2) / speed_rad_s[-1] ** 2
+    prov = {
+        "model": "K(Omega) = K_e + Omega^2 (K_g - K_s): linear centrifugal prestress (ND 0 static solve at "
+                 "1 rad/s), beam geometric stiffness of the element axial and ring hoop forces, spin softening "
+                 "(in-plane consistent mass); Coriolis and the sections' propeller moment neglected",
+        "speeds_rad_s": [float(v) for v in speed_rad_s],
+        "tracking": f"MAC assignment over {N_SPARE} spare modes, {SUBSTEPS} sub-steps per interval uniform in "
+                    "Omega^2; phase-aligned (v_prev^H M v > 0)",
+        "tracking_min_mac": track.min_mac,
+        "southwell_family1_nd0_nd_max": [float(southwell[0, 0]), float(southwell[0, -1])],
+        "root_force_n_at_1_rad_s": float(cent.axial_force_n[design.n_disk_elements]),
+        "build_time_s": time.perf_counter() - t0,
+    }
+    return {"freq_hz": np.array(freq), "tip": np.array(tip), "force": np.array(force), "campbell": camp,
+            "provenance": prov}
 
 
 def to_cartesian(ref: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,234 @@
+"""Centrifugal effects on the built-in bladed disk: stress stiffening and spin softening.
+
+In the frame turning with the rotor at ``Omega`` (rad/s) about ``+Z``, the small vibrations
+about the centrifugally loaded equilibrium obey (Coriolis coupling neglected)
+
+    M q'' + K(Omega) q = f,    K(Omega) = K_e + Omega^2 (K_g - K_s),
+
+* ``K_e``, ``M``: the elastic stiffness and mass (:mod:`.bladed_disk`);
+* ``K_g``: the geometric (stress) stiffness of the centrifugal prestress at unit speed. The
+  prestress is the *linear* static solution of the centrifugal load at ``Omega = 1`` rad/s,
+  ``K_e u_1 = K_s x`` (``x``: the undeformed node positions; the consistent load of the body
+  force ``rho Omega^2 (X, Y, 0)``, which the element interpolation represents exactly), solved
+  on the ND 0 (axisymmetric) cyclic matrices; each element's axial force ``N_1`` (blade and
+  web strips radial, ring beams hoop) gives its geometric stiffness, and at speed ``Omega``
+  the forces are ``Omega^2 N_1`` (linear prestress, as ``*STATIC`` without NLGEOM followed by a
+  perturbation step);
+* ``K_s``: spin softening, the consistent mass of the in-plane (X, Y) displacement
+  (:func:`~bttsim_stream.model.beam.beam_spin_mass`).
+
+Each of ``K_g`` and ``K_s`` is assembled like ``K_e`` (sector matrices plus ring couplings),
+so the cyclic reduction per nodal diameter is the same (Thomas 1979). Left out: Coriolis
+(gyroscopic) coupling, the propeller-moment (rotary inertia) term of the blade sections'
+torsion, and the change of geometry under the prestress; see ``docs/simulation.md``.
+
+Modes at several speeds are *tracked*: at each speed the eigenvectors of every ND are matched
+to the previous speed's by the mass-weighted MAC (optimal assignment over a few spare modes
+above the kept families, so that a mode entering the kept set by a crossing is followed), then
+phase-aligned (``v_prev^H M v`` real and positive), so that every quantity of mode ``i`` is
+the same physical mode at every speed and varies smoothly with speed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.optimize import linear_sum_assignment
+
+from .beam import beam_axial_force, beam_geometric_stiffness, beam_spin_mass
+from .bladed_disk import (BladedDiskDesign, CyclicSolution, SectorModel, _cyclic_matrices, _fix_phase, _rz,
+                          _scatter)
+
+__all__ = ["CentrifugalSector", "SpeedSolution", "centrifugal_sector", "cyclic_speed_matrices",
+           "solve_cyclic_speeds", "assemble_full_wheel_speed", "speed_grid"]
+
+#: Spare eigenpairs above the kept families that tracking may pick from.
+N_SPARE = 3
+#: Tracking sub-steps per interval between two output speeds (uniform in Omega^2).
+SUBSTEPS = 2
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CentrifugalSector:
+    """A sector's centrifugal matrices at unit speed (``Omega = 1`` rad/s), sector frame.
+
+    Attributes
+    ----------
+    K_g, K_s : ndarray, shape (m, m)
+        Geometric stiffness of the prestress and spin-softening matrix of the sector's own
+        elements, N/m per (rad/s)^2.
+    ring_K_g, ring_K_s : ndarray, shape (n_rings, 12, 12)
+        The same for the ring beams (as ``SectorModel.ring_K``).
+    static_u : ndarray, shape (m,)
+        Static displacement under the centrifugal load at unit speed, m / (rad/s)^2.
+    axial_force_n : ndarray, shape (n_elements,)
+        Axial force of each of ``SectorModel.elements`` at unit speed, N / (rad/s)^2.
+    hoop_force_n : ndarray, shape (n_rings,)
+        Axial (hoop) force of each ring beam at unit speed, N / (rad/s)^2.
+    """
+
+    K_g: np.ndarray
+    K_s: np.ndarray
+    ring_K_g: np.ndarray
+    ring_K_s: np.ndarray
+    static_u: np.ndarray
+    axial_force_n: np.ndarray
+    hoop_force_n: np.ndarray
+
+
+def _ring_transform(n_blades: int) -> np.ndarray:
+    """Ring element DOF (own sector, next sector's frame) -> reference sector frame."""
+    Q = np.eye(12)
+    Rn = _rz(2.0 * np.pi / n_blades)
+    Q[6:9, 6:9] = Rn
+    Q[9:12, 9:12] = Rn
+    return Q
+
+
+def _cyclic_one(A: np.ndarray, ring_dofs: np.ndarray, ring_A: np.ndarray, n_blades: int, nd: int) -> np.ndarray:
+    """The cyclic (ND ``nd``) matrix of one sector matrix and its ring couplings."""
+    phase = np.exp(2j * np.pi * nd / n_blades)
+    out = A.astype(complex)
+    for dofs, B in zip(ring_dofs, ring_A):
+        out[np.ix_(dofs, dofs)] += B[:6, :6] + B[6:, 6:] + B[:6, 6:] * phase + B[6:, :6] * np.conj(phase)
+    if nd == 0 or 2 * nd == n_blades:
+        return out.real.copy()
+    return out
+
+
+def centrifugal_sector(sec: SectorModel, n_blades: int) -> CentrifugalSector:
+    """Prestress at unit speed and the sector's ``K_g``, ``K_s`` (module notes).
+
+    Parameters
+    ----------
+    sec : SectorModel
+        From :func:`~bttsim_stream.model.bladed_disk.assemble_sector` (with its elements).
+    n_blades : int
+    """
+    if not sec.elements or sec.node_xyz is None:
+        raise ValueError("the sector model carries no element list (built by an older assemble_sector?)")
+    m = sec.n_dof
+    Q = _ring_transform(n_blades)
+    K_s = np.zeros((m, m))
+    for el in sec.elements:
+        _scatter(K_s, beam_spin_mass(el.p1, el.p2, el.y_hint, el.section), el.dofs)
+    ring_K_s = np.array([Q.T @ beam_spin_mass(el.p1, el.p2, el.y_hint, el.section) @ Q for el in sec.ring_elements])
+    # consistent centrifugal load at 1 rad/s: K_s times the node positions (rotations 0)
+    x = np.zeros(m)
+    x.reshape(-1, 6)[:, :3] = sec.node_xyz
+    K0, _ = _cyclic_matrices(sec, n_blades, 0)
+    Ks0 = _cyclic_one(K_s, sec.ring_dofs, ring_K_s, n_blades, 0)
+    u = sla.solve(K0, Ks0 @ x, assume_a="pos")
+    ue = np.concatenate([u, [0.0]])  # index -1 (clamped) reads 0
+    N_el = np.array([beam_axial_force(el.p1, el.p2, el.y_hint, el.section, ue[el.dofs]) for el in sec.elements])
+    N_ring = np.array([beam_axial_force(el.p1, el.p2, el.y_hint, el.section, Q @ ue[el.dofs])
+                       for el in sec.ring_elements])
+    K_g = np.zeros((m, m))
+    for el, n in zip(sec.elements, N_el):
+        _scatter(K_g, beam_geometric_stiffness(el.p1, el.p2, el.y_hint, el.section, n), el.dofs)
+    ring_K_g = np.array([Q.T @ beam_geometric_stiffness(el.p1, el.p2, el.y_hint, el.section, n) @ Q
+                         for el, n in zip(sec.ring_elements, N_ring)])
+    return CentrifugalSector(K_g=K_g, K_s=K_s, ring_K_g=ring_K_g, ring_K_s=ring_K_s, static_u=u,
+                             axial_force_n=N_el, hoop_force_n=N_ring)
+
+
+def cyclic_speed_matrices(sec: SectorModel, cent: CentrifugalSector, n_blades: int, nd: int):
+    """ND ``nd``'s ``(K_e, K_g - K_s, M)`` (complex Hermitian; real for ND 0 and N/2)."""
+    K, M = _cyclic_matrices(sec, n_blades, nd)
+    G = (_cyclic_one(cent.K_g, sec.ring_dofs, cent.ring_K_g, n_blades, nd)
+         - _cyclic_one(cent.K_s, sec.ring_dofs, cent.ring_K_s, n_blades, nd))
+    return K, G, M
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SpeedSolution:
+    """Tracked per-ND solutions at several speeds.
+
+    Attributes
+    ----------
+    speed_rad_s : ndarray, shape (S,)
+    solutions : list of CyclicSolution
+        One per speed; ``solutions[s].vectors[nd][:, f]`` is family ``f`` of ND ``nd`` at
+        speed ``s``, phase-aligned with the same mode at the previous (sub)step; the vectors
+        at speed 0 are phase-fixed as :func:`~bttsim_stream.model.bladed_disk.expand_cyclic`
+        fixes them.
+    min_mac : float
+        Smallest MAC between consecutive tracked steps (1 = shapes unchanged; near 0.5 or
+        below means the tracking met a crossing it could not resolve).
+    """
+
+    speed_rad_s: np.ndarray
+    solutions: list
+    min_mac: float
+
+
+def solve_cyclic_speeds(d: BladedDiskDesign, sec: SectorModel, cent: CentrifugalSector, speed_rad_s,
+                        zero: CyclicSolution, nds: list[int] | None = None,
+                        n_families: int | None = None) -> SpeedSolution:
+    """Every ND's first ``n_families`` modes at each speed, tracked from ``zero``.
+
+    Parameters
+    ----------
+    speed_rad_s : array_like, shape (S,)
+        Ascending, starting at 0.
+    zero : CyclicSolution
+        The zero-speed solution (:func:`~bttsim_stream.model.bladed_disk.solve_cyclic`),
+        reused as row 0.
+    """
+    sp = np.asarray(speed_rad_s, float)
+    n_families = d.n_families if n_families is None else n_families
+    N = d.n_blades
+    nds = list(range(N // 2 + 1)) if nds is None else nds
+    per_speed_f = [[zero.freq_hz[i]] for i in range(len(nds))]
+    per_speed_v = [[np.array([_fix_phase(v) for v in zero.vectors[i].T]).T] for i in range(len(nds))]
+    min_mac = 1.0
+    for i, nd in enumerate(nds):
+        K, G, M = cyclic_speed_matrices(sec, cent, N, nd)
+        n_ev = min(n_families + N_SPARE, K.shape[0])
+        prev = per_speed_v[i][0]
+        for s in range(1, sp.size):
+            w_lo, w_hi = sp[s - 1] ** 2, sp[s] ** 2
+            for sub in range(1, SUBSTEPS + 1):
+                w2_speed = w_lo + (w_hi - w_lo) * sub / SUBSTEPS
+                w2, V = sla.eigh(K + w2_speed * G, M, subset_by_index=[0, n_ev - 1], driver="gvx")
+                overlap = prev.conj().T @ (M @ V)                      # (n_families, n_ev)
+                mac = np.abs(overlap) ** 2
+                rows, cols = linear_sum_assignment(-mac)
+                min_mac = min(min_mac, float(mac[rows, cols].min()))
+                ph = overlap[rows, cols]
+                V = V[:, cols] * (np.conj(ph) / np.abs(ph))[None, :]
+                w2 = w2[cols]
+                prev = V
+            per_speed_f[i].append(np.sqrt(np.maximum(w2, 0.0)) / (2.0 * np.pi))
+            per_speed_v[i].append(V)
+    sols = [CyclicSolution(freq_hz=np.array([per_speed_f[i][s] for i in range(len(nds))]),
+                           vectors=[per_speed_v[i][s] for i in range(len(nds))]) for s in range(sp.size)]
+    return SpeedSolution(speed_rad_s=sp, solutions=sols, min_mac=min_mac)
+
+
+def speed_grid(max_speed_rad_s: float, n_speeds: int) -> np.ndarray:
+    """``n_speeds`` speeds from 0 to ``max_speed_rad_s``, uniform in ``Omega`` (rad/s)."""
+    return np.linspace(0.0, float(max_speed_rad_s), int(n_speeds))
+
+
+def assemble_full_wheel_speed(d: BladedDiskDesign, sec: SectorModel, cent: CentrifugalSector):
+    """Sparse full-wheel ``K_g - K_s`` of the tuned wheel (DOF as
+    :func:`~bttsim_stream.model.bladed_disk.assemble_full_wheel`), for a direct solve that
+    checks the cyclic reduction."""
+    import scipy.sparse as sp
+    N, m = d.n_blades, sec.n_dof
+    rows, cols, vals = [], [], []
+
+    def add(idx, block):
+        rr, cc = np.meshgrid(idx, idx, indexing="ij")
+        rows.append(rr.ravel()); cols.append(cc.ravel()); vals.append(block.ravel())
+
+    G_sec = cent.K_g - cent.K_s
+    for i in range(N):
+        base, nxt = i * m, ((i + 1) % N) * m
+        add(np.arange(m) + base, G_sec)
+        for dofs, rg, rs in zip(sec.ring_dofs, cent.ring_K_g, cent.ring_K_s):
+            add(np.concatenate([dofs + base, dofs + nxt]), rg - rs)
+    return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(N * m, N * m))
