@@ -161,25 +161,52 @@ def _local_geometric(L: float, s: BeamSection, N: float) -> np.ndarray:
 
 
 def beam_geometric_stiffness(p1: np.ndarray, p2: np.ndarray, y_hint: np.ndarray, section: BeamSection,
-                             axial_force_n: float) -> np.ndarray:
+                             axial_force_n) -> np.ndarray:
     """Geometric (initial-stress) stiffness (12x12, assembly coordinates) for an axial force.
 
     Parameters
     ----------
     p1, p2, y_hint, section
         As :func:`beam_matrices`.
-    axial_force_n : float
-        Axial force of the element, N (tension positive).
+    axial_force_n : float or array_like, shape (3,)
+        Axial force of the element, N (tension positive): a constant, or the coefficients
+        ``(c0, c1, c2)`` of ``N(xi) = c0 + c1 xi + c2 xi^2`` along the element
+        (``xi = x / L``), e.g. the quadratic force of a radial element under its own
+        centrifugal load.
 
     Notes
     -----
-    Consistent with the element's own interpolation: ``N/L`` on the axial DOF,
-    ``N I_p / (A L)`` on the twist (Wagner's term for a doubly symmetric section) and
-    ``N / (30 L) [36, 3L, -36, 3L; 3L, 4L^2, -3L, -L^2; ...]`` in both bending planes
-    (Przemieniecki 1968, Eq. 15.23; McGuire, Gallagher & Ziemian 2000, Eq. 9.19).
+    ``int N(x) (u'^2 + v'^2 + w'^2 + (I_p / A) theta_x'^2) dx`` with the element's own
+    interpolation (Wagner's twist term for a doubly symmetric section), integrated exactly
+    (4-point Gauss). For a constant ``N`` it is the closed form
+    ``N / (30 L) [36, 3L, -36, 3L; 3L, 4L^2, -3L, -L^2; ...]`` in both bending planes and
+    ``N / L`` on the axial and ``N I_p / (A L)`` on the twist DOF (Przemieniecki 1968,
+    Eq. 15.23; McGuire, Gallagher & Ziemian 2000, Eq. 9.19).
     """
     L, _, T = _frame(p1, p2, y_hint)
-    return T.T @ _local_geometric(L, section, float(axial_force_n)) @ T
+    c = np.atleast_1d(np.asarray(axial_force_n, float))
+    if c.size == 1:
+        return T.T @ _local_geometric(L, section, float(c[0])) @ T
+    c = np.concatenate([c, np.zeros(3 - c.size)]) if c.size < 3 else c[:3]
+    kg = np.zeros((12, 12))
+    ratio = section.I_p / section.A
+    for x, w in zip(_GAUSS_X, _GAUSS_W):
+        xi = 0.5 * (x + 1.0)
+        B = _slope_shapes(L, xi)
+        B[3] *= np.sqrt(ratio)
+        kg += (0.5 * w * (c[0] + c[1] * xi + c[2] * xi * xi)) * (B.T @ B)
+    return T.T @ (kg * L) @ T
+
+
+def _slope_shapes(L: float, xi: float) -> np.ndarray:
+    """d/dx of the local (u, v, w, theta_x) at ``x = xi L`` from the 12 local DOF (4x12)."""
+    d1, d2, d3, d4 = (6 * xi**2 - 6 * xi) / L, 1 - 4 * xi + 3 * xi**2, (6 * xi - 6 * xi**2) / L, 3 * xi**2 - 2 * xi
+    B = np.zeros((4, 12))
+    B[0, [0, 6]] = [-1.0 / L, 1.0 / L]
+    B[1, [1, 5, 7, 11]] = [d1, d2, d3, d4]
+    B[2, [2, 4, 8, 10]] = [d1, -d2, d3, -d4]
+    B[3, [3, 9]] = [-1.0 / L, 1.0 / L]
+    return B
 
 
 _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(4)
