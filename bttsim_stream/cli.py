@@ -24,7 +24,7 @@ from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
 from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
-from .model.report import family_table, plot_family_frequencies
+from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
 from .nodes import program, programs
 from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
                       result_warnings, with_processing)
@@ -78,11 +78,15 @@ def _cmd_model_build(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_show(args: argparse.Namespace) -> None:
+    eos = _ints(args.eo, "--eo") if args.eo else list(DEFAULT_ENGINE_ORDERS)
+    if not eos or any(e < 1 or e > 1000 for e in eos):
+        raise BttsimError(f"--eo must be engine orders in [1, 1000], got {args.eo!r}")
     model = load_model(args.model)
     print(family_table(model), flush=True)
+    print(campbell_table(model, eos), flush=True)
     png = Path(args.png) if args.png else Path(args.model).with_suffix(".png")
     try:
-        plot_family_frequencies(model, png)
+        plot_family_frequencies(model, png, eos)
     except PlotExtraMissing as exc:
         if args.png:  # asked for the plot: the one-line error, exit 2
             raise
@@ -377,9 +381,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's rotor)")
     b.add_argument("--out", required=True, help="output model file (.npz)")
     b.set_defaults(func=_cmd_model_build)
-    s = msub.add_parser("show", help="print the family / nodal-diameter table and plot it")
+    s = msub.add_parser("show", help="print the family / nodal-diameter table and the Campbell crossings; plot both")
     s.add_argument("model", help="model file (.npz)")
-    s.add_argument("--png", help="frequency vs ND plot (default: MODEL.png)")
+    s.add_argument("--png", help="frequency vs ND and Campbell plot (default: MODEL.png)")
+    s.add_argument("--eo", help="engine orders of the Campbell lines and crossings, comma-separated (default 1..12)")
     s.set_defaults(func=_cmd_model_show)
     i = msub.add_parser("import", help="a cyclic-symmetry FE sector solution (CalculiX .frd, neutral .npz) "
                                        "to the model file",
