@@ -96,7 +96,8 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_import(args: argparse.Namespace) -> None:
-    from .model.importers import ImportOptions, check_options, format_report, import_model, load_import_options
+    from .model.importers import (ImportOptions, check_options, format_report, import_model, import_model_speeds,
+                                  load_import_options)
 
     opts = load_import_options(args.options) if args.options else ImportOptions()
     flags = {"format": args.format, "deck": args.deck, "n_sectors": args.n_sectors, "tip_nset": args.tip_nset,
@@ -105,6 +106,8 @@ def _cmd_model_import(args: argparse.Namespace) -> None:
         flags["tip_nodes"] = tuple(_ints(args.tip_nodes, "--tip-nodes"))
     if args.force_xyz:
         flags["force_xyz"] = tuple(_floats(args.force_xyz, "--force-xyz", 3))
+    if args.speeds_rpm:
+        flags["speeds_rpm"] = tuple(_floats(args.speeds_rpm, "--speeds-rpm", len(args.speeds_rpm.split(","))))
     flags = {k: v for k, v in flags.items() if v is not None}
     if {"tip_nset", "tip_nodes"} & set(flags):  # a flag replaces the options file's choice
         opts = replace(opts, tip_nodes=(), tip_nset=None, tip_xyz=())
@@ -114,7 +117,10 @@ def _cmd_model_import(args: argparse.Namespace) -> None:
         opts = check_options(replace(opts, **flags), "options")
     except TypeError as exc:
         raise BttsimError(str(exc)) from None
-    model, report = import_model(args.results, opts)
+    if len(args.results) > 1 or opts.speeds_rpm:
+        model, report = import_model_speeds(args.results, opts)
+    else:
+        model, report = import_model(args.results[0], opts)
     print(format_report(report), flush=True)
     save_model(model, args.out)
     print(f"wrote {args.out}: {model.n_modes} modes, {model.n_blades} blades; `bttsim model show {args.out}`:\n")
@@ -390,7 +396,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "to the model file",
                         description="Expand a cyclic-symmetry sector solution to the full-wheel model file; "
                                     "see schemas/cyclic_sector.md.")
-    i.add_argument("results", help="sector results: CalculiX .frd or the neutral sector .npz")
+    i.add_argument("results", nargs="+", help="sector results: CalculiX .frd or the neutral sector .npz; several "
+                                              "(one per speed, with --speeds-rpm) for a speed-dependent model")
     i.add_argument("--out", required=True, help="output model file (.npz)")
     i.add_argument("--format", choices=("frd", "npz", "rst"),
                    help="results format (default: from the extension; rst: not read yet, see schemas/cyclic_sector.md)")
@@ -402,6 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--force-node", type=int, help="excitation node number")
     i.add_argument("--force-xyz", help="excitation node: the node nearest to x,y,z")
     i.add_argument("--nominal-node", type=int, help="0-based tip node of P_nom (default: the middle one)")
+    i.add_argument("--speeds-rpm", help="speed of each results file (or of each frequency step of one .frd), rpm, "
+                                        "comma-separated, ascending from 0: a speed-dependent model")
     i.set_defaults(func=_cmd_model_import)
     p = sub.add_parser("simulate", help="simulate a scenario straight to MCAP (no Zenoh)")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")

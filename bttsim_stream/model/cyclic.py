@@ -48,7 +48,7 @@ from ..errors import ModelFileError
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
 from .modal_model import ModalModel, model_from_cartesian
 
-__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "save_sector",
+__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "expand_sectors_at_speeds", "save_sector",
            "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
 
 SECTOR_SCHEMA = "bttsim.cyclic_sector"
@@ -196,6 +196,28 @@ def _real_standing(u_tip: np.ndarray, u_force: np.ndarray) -> tuple[np.ndarray, 
     return u_tip * ph, u_force * ph
 
 
+def _expand_entries(N: int, entries, wheel: bool, fix_phase: bool = True):
+    """Full-wheel Cartesian shapes of sector solutions ``(k, family, freq, u_tip, u_force)``
+    (module conventions); ``fix_phase`` turns standing-wave solutions real by their largest
+    entry (False: they are real already, aligned by the caller)."""
+    theta = 2.0 * np.pi * np.arange(N) / N
+    R = _rz(theta)
+    freqs, tips, forces, fam_of, nd_of = [], [], [], [], []
+    for k, f, freq, ut, uf in entries:
+        standing = k == 0 or 2 * k == N
+        if standing and fix_phase:
+            ut, uf = _real_standing(ut, uf)
+        ph = np.exp(1j * k * theta)                                # (N,)
+        wt = np.einsum("sij,spj->spi", R, ph[:, None, None] * ut[None])
+        wf = np.einsum("sij,sj->si", R, ph[:, None] * uf[None])
+        scale = 1.0 if wheel else math.sqrt((1.0 if standing else 2.0) / N)
+        parts = (np.real,) if standing else (np.real, np.imag)
+        for part in parts:
+            freqs.append(freq); fam_of.append(f); nd_of.append(k)
+            tips.append(scale * part(wt)); forces.append(scale * part(wf))
+    return freqs, tips, forces, fam_of, nd_of
+
+
 def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: float | None = 9e-6,
                   n_families: int | None = None) -> tuple[ModalModel, dict]:
     """Expand a cyclic sector solution to the full-wheel modal model.
@@ -238,22 +260,10 @@ def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: f
     R = _rz(theta)                                                     # (N, 3, 3)
     tip_xyz = np.einsum("sij,pj->spi", R, sector.tip_xyz)             # (N, n_tip, 3)
     force_xyz = np.einsum("sij,j->si", R, sector.force_xyz)           # (N, 3)
-    wheel = sector.normalisation == "wheel"
-    freqs, tips, forces, fam_of, nd_of = [], [], [], [], []
-    for k, idx in fams.items():
-        for f, i in enumerate(idx[:n_fam]):
-            ut, uf = np.asarray(sector.tip_shapes[i], complex), np.asarray(sector.force_shapes[i], complex)
-            standing = k == 0 or 2 * k == N
-            if standing:
-                ut, uf = _real_standing(ut, uf)
-            ph = np.exp(1j * k * theta)                                # (N,)
-            wt = np.einsum("sij,spj->spi", R, ph[:, None, None] * ut[None])
-            wf = np.einsum("sij,sj->si", R, ph[:, None] * uf[None])
-            scale = 1.0 if wheel else math.sqrt((1.0 if standing else 2.0) / N)
-            parts = (np.real,) if standing else (np.real, np.imag)
-            for part in parts:
-                freqs.append(float(sector.freq_hz[i])); fam_of.append(f); nd_of.append(k)
-                tips.append(scale * part(wt)); forces.append(scale * part(wf))
+    entries = [(k, f, float(sector.freq_hz[i]), np.asarray(sector.tip_shapes[i], complex),
+                np.asarray(sector.force_shapes[i], complex))
+               for k, idx in fams.items() for f, i in enumerate(idx[:n_fam])]
+    freqs, tips, forces, fam_of, nd_of = _expand_entries(N, entries, sector.normalisation == "wheel")
     freqs = np.array(freqs)
     fam_of, nd_of = np.array(fam_of, np.int64), np.array(nd_of, np.int64)
     order = np.lexsort((nd_of, freqs, fam_of))
@@ -280,6 +290,145 @@ def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: f
               "tip": {"chord_m": geo.chord_m, "stagger_deg": geo.stagger_deg, "radius_m": geo.radius_m,
                       "axial_m": geo.axial_m, "n_tip": sector.n_tip, "nominal_node": int(sector.nominal_node)},
               "dropped": int(sum(max(0, len(v) - n_fam) for v in fams.values()))}
+    return model, report
+
+
+def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, damping_beta_s: float | None = 9e-6,
+                             n_families: int | None = None) -> tuple[ModalModel, dict]:
+    """A speed-dependent model from cyclic sector solutions at several speeds.
+
+    Speed 0 is expanded by :func:`expand_sector` (the model's zero-speed arrays); at every
+    further speed each kept (harmonic index, family) is *tracked*: matched to the previous
+    speed's solution of the same harmonic index by the MAC of the complex sector shapes at the
+    tip and excitation nodes (optimal assignment over all the solutions of that harmonic
+    index), and phase-aligned to it (``u_prev^H u`` real and positive; a standing wave's sign),
+    so that mode ``i`` is the same mode at every speed, in the zero-speed model's order.
+
+    Parameters
+    ----------
+    sectors : sequence of CyclicSector
+        One per speed, same wheel and nodes (tip and excitation node positions equal).
+    speed_rad_s : array_like, shape (S,)
+        Their speeds, rad/s: ``2 <= S <= 64``, strictly ascending from 0.
+
+    Returns
+    -------
+    model : ModalModel
+        With ``speed_rad_s``, ``freq_hz_at_speed``, ``tip_shapes_at_speed``,
+        ``force_shapes_at_speed`` and ``campbell_freq_hz_at_speed``.
+    report : dict
+        :func:`expand_sector`'s report for speed 0, plus ``speed_rad_s`` and ``min_mac`` (the
+        poorest match between consecutive speeds).
+
+    Raises
+    ------
+    ModelFileError
+        Speeds not ascending from 0 or not one per sector, sectors of different wheels or
+        nodes, a harmonic index with fewer solutions than the families kept at speed 0, or a
+        mode that cannot be followed (MAC < 0.5 between two speeds: add speeds in between).
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    from .modal_model import MAX_SPEEDS, _to_polar
+
+    sectors = list(sectors)
+    sp = np.asarray(speed_rad_s, float)
+    S = len(sectors)
+    if sp.shape != (S,):
+        raise ModelFileError(f"{S} sector solutions but {sp.size} speeds: give one speed per solution")
+    if not 2 <= S <= MAX_SPEEDS or not np.all(np.isfinite(sp)) or sp[0] != 0.0 or np.any(np.diff(sp) <= 0):
+        raise ModelFileError(f"speeds must be 2..{MAX_SPEEDS} values strictly ascending from 0, got "
+                             f"{', '.join(f'{v * 30 / np.pi:g}' for v in sp)} rpm")
+    s0 = sectors[0]
+    N = int(s0.n_sectors)
+    size = float(np.abs(s0.tip_xyz).max())
+    for i, sec in enumerate(sectors[1:], 1):
+        at = f"the solution at {sp[i] * 30 / np.pi:g} rpm"
+        if int(sec.n_sectors) != N or sec.normalisation != s0.normalisation:
+            raise ModelFileError(f"{at} is for another wheel ({sec.n_sectors} sectors, {sec.normalisation} "
+                                 f"normalisation; speed 0: {N}, {s0.normalisation})")
+        if (sec.tip_xyz.shape != s0.tip_xyz.shape
+                or np.abs(sec.tip_xyz - s0.tip_xyz).max() > 1e-6 * size
+                or np.abs(np.asarray(sec.force_xyz) - s0.force_xyz).max() > 1e-6 * size):
+            raise ModelFileError(f"{at} has other tip or excitation nodes than the speed-0 solution")
+    model, report = expand_sector(s0, damping_ratio=damping_ratio, damping_beta_s=damping_beta_s,
+                                  n_families=n_families)
+    n_fam = report["n_families"]
+    fams0 = s0.families()
+
+    def vec(sec, i, k):
+        ut, uf = np.asarray(sec.tip_shapes[i], complex), np.asarray(sec.force_shapes[i], complex)
+        if k == 0 or 2 * k == N:
+            ut, uf = _real_standing(ut, uf)
+        return ut, uf
+
+    prev = {k: [vec(s0, i, k) for i in idx[:n_fam]] for k, idx in fams0.items()}
+    rows_f = {k: [[float(s0.freq_hz[i]) for i in idx[:n_fam]]] for k, idx in fams0.items()}
+    rows_u = {k: [prev[k]] for k in fams0}
+    min_mac = 1.0
+    for s in range(1, S):
+        sec = sectors[s]
+        fams = sec.families()
+        for k in fams0:
+            cand = fams.get(k, np.array([], int))
+            if cand.size < n_fam:
+                raise ModelFileError(f"the solution at {sp[s] * 30 / np.pi:g} rpm has {cand.size} solutions of "
+                                     f"harmonic index {k}, fewer than the {n_fam} families kept at speed 0")
+            P = np.array([np.concatenate([ut.ravel(), uf]) for ut, uf in prev[k]])          # (n_fam, n)
+            C_u = [vec(sec, i, k) for i in cand]
+            C = np.array([np.concatenate([ut.ravel(), uf]) for ut, uf in C_u])              # (n_cand, n)
+            overlap = P.conj() @ C.T
+            mac = np.abs(overlap) ** 2 / np.outer(np.sum(np.abs(P) ** 2, 1), np.sum(np.abs(C) ** 2, 1))
+            rows, cols = linear_sum_assignment(-mac)
+            worst = float(mac[rows, cols].min())
+            min_mac = min(min_mac, worst)
+            if worst < 0.5:
+                f_bad = int(rows[np.argmin(mac[rows, cols])])
+                raise ModelFileError(f"family {f_bad + 1} of harmonic index {k} cannot be followed from "
+                                     f"{sp[s - 1] * 30 / np.pi:g} to {sp[s] * 30 / np.pi:g} rpm (MAC {worst:.2f}): "
+                                     "add speeds in between")
+            ph = overlap[rows, cols]
+            ph = np.conj(ph) / np.abs(ph)
+            if k == 0 or 2 * k == N:
+                ph = np.sign(ph.real)
+            prev[k] = [(C_u[j][0] * p, C_u[j][1] * p) for j, p in zip(cols, ph)]
+            rows_f[k].append([float(sec.freq_hz[cand[j]]) for j in cols])
+            rows_u[k].append(prev[k])
+    # expand every speed in the zero-speed order
+    theta = 2.0 * np.pi * np.arange(N) / N
+    R = _rz(theta)
+    tip_xyz = np.einsum("sij,pj->spi", R, s0.tip_xyz)
+    force_xyz = np.einsum("sij,j->si", R, s0.force_xyz)
+    wheel = s0.normalisation == "wheel"
+    ks = list(fams0)
+    freq_at, tip_at, force_at = [], [], []
+    order = None
+    for s in range(S):
+        entries = [(k, f, rows_f[k][s][f], *rows_u[k][s][f]) for k in ks for f in range(n_fam)]
+        freqs, tips, forces, fam_of, nd_of = _expand_entries(N, entries, wheel, fix_phase=False)
+        freqs = np.array(freqs)
+        if order is None:
+            order = np.lexsort((np.array(nd_of), freqs, np.array(fam_of)))
+        _, tp = _to_polar(tip_xyz, np.array(tips)[order])
+        _, fp = _to_polar(force_xyz, np.array(forces)[order])
+        freq_at.append(freqs[order]); tip_at.append(tp); force_at.append(fp)
+    campbell = np.array([[[rows_f[k][s][f] for k in range(N // 2 + 1)] for f in range(n_fam)] for s in range(S)])
+    arrays = {"speed_rad_s": sp, "freq_hz_at_speed": np.array(freq_at), "tip_shapes_at_speed": np.array(tip_at),
+              "force_shapes_at_speed": np.array(force_at), "campbell_freq_hz_at_speed": campbell}
+    for key, zero in (("freq_hz_at_speed", model.freq_hz), ("tip_shapes_at_speed", model.tip_shapes),
+                      ("force_shapes_at_speed", model.force_shapes),
+                      ("campbell_freq_hz_at_speed", model.campbell_freq_hz)):
+        arrays[key][0] = zero  # the same numbers, computed by expand_sector: bit-identical row 0
+    meta = dict(model.meta)
+    meta["provenance"] = {**meta["provenance"], "speeds_rpm": [float(v * 30 / np.pi) for v in sp],
+                          "tracking": "MAC of the complex sector shapes at the tip and excitation nodes, "
+                                      "optimal assignment per harmonic index; phase-aligned",
+                          "tracking_min_mac": min_mac}
+    model = ModalModel(**{f: getattr(model, f) for f in ("freq_hz", "damping_ratio", "tip_ref", "tip_shapes",
+                                                         "force_ref", "force_shapes", "family", "nodal_diameter",
+                                                         "campbell_freq_hz")},
+                       meta=meta, extra={**model.extra, **arrays})
+    report.update(speed_rad_s=sp, min_mac=min_mac, campbell_freq_hz_at_speed=campbell)
     return model, report
 
 
@@ -356,9 +505,13 @@ def load_sector(path) -> CyclicSector:
         raise ModelFileError(f"{where}: {exc}") from None
 
 
-def builtin_sector(scn=None) -> CyclicSector:
+def builtin_sector(scn=None, speed_rad_s: float = 0.0) -> CyclicSector:
     """The built-in parametric model's cyclic solution as a neutral sector (leading-edge
     excitation node), e.g. to try the importer or as a template for one's own export.
+
+    With ``speed_rad_s > 0``, the solution at that speed with the centrifugal effects of
+    :mod:`~bttsim_stream.model.centrifugal` (as an FE package's prestressed modal step gives
+    it: eigenvectors as solved, not tracked).
 
     The complex sector vectors of :func:`~bttsim_stream.model.bladed_disk.solve_cyclic`
     (``v^H M_k v = 1``: ``"sector"`` normalisation) are mapped to the tip and force nodes and
@@ -375,6 +528,19 @@ def builtin_sector(scn=None) -> CyclicSector:
     with threadpool_limits(limits=1):
         sec = assemble_sector(d)
         sol = solve_cyclic(d, sec)
+        if speed_rad_s:
+            import scipy.linalg as sla
+
+            from .centrifugal import centrifugal_sector, cyclic_speed_matrices
+            cent = centrifugal_sector(sec, d.n_blades)
+            freqs, vecs = [], []
+            for nd in range(d.n_blades // 2 + 1):
+                K, G, M = cyclic_speed_matrices(sec, cent, d.n_blades, nd)
+                w2, v = sla.eigh(K + float(speed_rad_s) ** 2 * G, M, subset_by_index=[0, d.n_families - 1],
+                                 driver="gvx")
+                freqs.append(np.sqrt(np.maximum(w2, 0.0)) / (2.0 * np.pi))
+                vecs.append(v)
+            sol = type(sol)(freq_hz=np.array(freqs), vectors=vecs)
     N = d.n_blades
 
     def cart(ref, maps, v):
@@ -396,4 +562,5 @@ def builtin_sector(scn=None) -> CyclicSector:
                         force_shapes=np.concatenate(forces), nominal_node=d.nominal_node,
                         stagger_deg=float(np.rad2deg(d.stagger_rad)), normalisation="sector",
                         provenance={"builder": "bttsim_stream built-in parametric bladed disk (cyclic sector)",
-                                    "model_schema_version": MODEL_SCHEMA_VERSION})
+                                    "model_schema_version": MODEL_SCHEMA_VERSION,
+                                    **({"speed_rad_s": float(speed_rad_s)} if speed_rad_s else {})})

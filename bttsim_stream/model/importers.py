@@ -31,8 +31,8 @@ from ..errors import ModelFileError
 from .cyclic import CyclicSector, expand_sector, load_sector, tip_geometry
 from .frd import read_frd
 
-__all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "check_options", "import_model", "read_deck_sets",
-           "sector_from_frd", "format_report", "FORMATS"]
+__all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "check_options", "import_model",
+           "import_model_speeds", "read_deck_sets", "sector_from_frd", "frequency_steps", "format_report", "FORMATS"]
 
 FORMATS = ("frd", "npz")
 #: Length and mass scale of a deck's unit system to SI, and the shape factor that keeps the
@@ -72,6 +72,10 @@ class ImportOptions:
         Stiffness-proportional damping of the model file.
     n_families : int or None
         Families kept per nodal diameter (default: all that every ND has).
+    speeds_rpm : tuple of float
+        A speed-dependent model (:func:`import_model_speeds`): the speed of each results file,
+        or of each ``*FREQUENCY`` step of one ``.frd`` file, rpm; strictly ascending from 0.
+        Empty (default): one speed, zero.
     """
 
     format: str | None = None
@@ -88,6 +92,7 @@ class ImportOptions:
     units: str = "SI"
     damping_beta_s: float = 9e-6
     n_families: int | None = None
+    speeds_rpm: tuple = ()
 
 
 _FIELDS = {f.name for f in fields(ImportOptions)}
@@ -112,6 +117,8 @@ def load_import_options(path) -> ImportOptions:
             data[key] = tuple(tuple(v) if isinstance(v, list) else v for v in data[key])
     if "force_xyz" in data:
         data["force_xyz"] = tuple(data["force_xyz"])
+    if isinstance(data.get("speeds_rpm"), list):
+        data["speeds_rpm"] = tuple(data["speeds_rpm"])
     try:
         return _checked(ImportOptions(**data), where)
     except TypeError as exc:
@@ -143,6 +150,12 @@ def _checked(o: ImportOptions, where: str) -> ImportOptions:
         bad("tip_xyz must be a list of [x, y, z] points")
     if o.force_xyz is not None and len(o.force_xyz) != 3:
         bad("force_xyz must be [x, y, z]")
+    if not isinstance(o.speeds_rpm, tuple) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+            for v in o.speeds_rpm):
+        bad(f"speeds_rpm must be a list of speeds >= 0 rpm, got {o.speeds_rpm!r}")
+    if o.speeds_rpm and (o.speeds_rpm[0] != 0 or any(b <= a for a, b in zip(o.speeds_rpm, o.speeds_rpm[1:]))):
+        bad(f"speeds_rpm must be strictly ascending from 0, got {', '.join(f'{v:g}' for v in o.speeds_rpm)}")
     if not (isinstance(o.damping_beta_s, (int, float)) and 0 <= o.damping_beta_s < 1e-2):
         bad(f"damping_beta_s must be a number in [0, 0.01) s, got {o.damping_beta_s!r}")
     return o
@@ -316,10 +329,24 @@ class ImportResult:
     notes: dict = field(default_factory=dict)
 
 
-def sector_from_frd(path, options: ImportOptions = ImportOptions()) -> ImportResult:
-    """Read a CalculiX cyclic-symmetry ``.frd`` file into a :class:`CyclicSector`."""
+def frequency_steps(path) -> list[int]:
+    """The step numbers of a CalculiX ``.frd`` file's cyclic-symmetry frequency steps."""
+    return sorted({m.step for m in read_frd(path).modes if m.harmonic_index is not None})
+
+
+def sector_from_frd(path, options: ImportOptions = ImportOptions(), *, step: int | None = None,
+                    results=None) -> ImportResult:
+    """Read a CalculiX cyclic-symmetry ``.frd`` file into a :class:`CyclicSector`.
+
+    Parameters
+    ----------
+    step : int, optional
+        The ``*FREQUENCY`` step to read (its number in the file); default the last one.
+    results : FrdResults, optional
+        ``read_frd(path)`` already read.
+    """
     where = str(path)
-    res = read_frd(path)
+    res = read_frd(path) if results is None else results
     deck = options.deck
     if deck is None and Path(path).with_suffix(".inp").is_file():
         deck = str(Path(path).with_suffix(".inp"))
@@ -334,7 +361,11 @@ def sector_from_frd(path, options: ImportOptions = ImportOptions()) -> ImportRes
         raise ModelFileError(f"{where}: no cyclic symmetry modes (no 1PHID): a *FREQUENCY step with "
                              "*CYCLIC SYMMETRY MODEL and *SELECT CYCLIC SYMMETRY MODES is needed")
     steps = sorted({m.step for m in cyc})
-    if len(steps) > 1:  # several frequency steps (e.g. several speeds): the last one
+    if step is not None:
+        if step not in steps:
+            raise ModelFileError(f"{where}: no cyclic frequency step {step} (steps {', '.join(map(str, steps))})")
+        cyc = [m for m in cyc if m.step == step]
+    elif len(steps) > 1:  # several frequency steps (e.g. several speeds): the last one
         cyc = [m for m in cyc if m.step == steps[-1]]
     if any(m.u_imag is None for m in cyc):
         raise ModelFileError(f"{where}: cyclic modes without their imaginary part (DISPI)")
@@ -434,6 +465,65 @@ def import_model(path, options: ImportOptions = ImportOptions()):
     return model, report
 
 
+def import_model_speeds(paths, options: ImportOptions):
+    """Sector results at several speeds -> a speed-dependent model file
+    (:func:`~bttsim_stream.model.cyclic.expand_sectors_at_speeds`).
+
+    Either one results file per speed (``.frd``: its last frequency step; neutral ``.npz``),
+    or one ``.frd`` whose cyclic ``*FREQUENCY`` steps are the speeds in order (e.g. each after
+    a ``*STATIC`` step with a ``CENTRIF`` load, as a ``PERTURBATION`` step). The speeds are
+    ``options.speeds_rpm``.
+
+    Returns
+    -------
+    model : ModalModel
+    report : dict
+        As :func:`import_model`, plus ``speed_rad_s`` and ``min_mac``.
+    """
+    from .cyclic import expand_sectors_at_speeds
+
+    paths = [Path(p) for p in paths]
+    speeds = options.speeds_rpm
+    where = str(paths[0]) if len(paths) == 1 else f"{paths[0]} .. {paths[-1].name}"
+    if len(speeds) < 2:
+        raise ModelFileError(f"{where}: a speed-dependent import needs speeds_rpm (--speeds-rpm), one speed per "
+                             "results file or frequency step, at least 2, from 0")
+    fmts = [options.format or p.suffix.lower().lstrip(".") for p in paths]
+    for p, fmt in zip(paths, fmts):
+        if fmt not in FORMATS:
+            raise ModelFileError(f"{p}: unknown results format {fmt!r} (give --format {' or '.join(FORMATS)})")
+    results = []
+    if len(paths) == 1:
+        if fmts[0] != "frd":
+            raise ModelFileError(f"{where}: {len(speeds)} speeds but one neutral sector file: give one file per speed")
+        res = read_frd(paths[0])
+        steps = sorted({m.step for m in res.modes if m.harmonic_index is not None})
+        if len(steps) != len(speeds):
+            raise ModelFileError(f"{where}: {len(steps)} cyclic frequency step(s) in the file but {len(speeds)} speeds "
+                                 "given: one speed per step, in order")
+        results = [sector_from_frd(paths[0], options, step=st, results=res) for st in steps]
+    else:
+        if len(paths) != len(speeds):
+            raise ModelFileError(f"{where}: {len(paths)} results files but {len(speeds)} speeds given: one speed per file")
+        for p, fmt in zip(paths, fmts):
+            if fmt == "frd":
+                results.append(sector_from_frd(p, options))
+            else:
+                sec = load_sector(p)
+                if options.nominal_node is not None or options.stagger_deg is not None:
+                    sec = replace(sec, **{k: v for k, v in (("nominal_node", options.nominal_node),
+                                                            ("stagger_deg", options.stagger_deg)) if v is not None})
+                results.append(ImportResult(sector=sec, notes={"source": str(p), "format": "npz"}))
+    try:
+        model, report = expand_sectors_at_speeds([r.sector for r in results],
+                                                 np.asarray(speeds, float) * np.pi / 30.0,
+                                                 damping_beta_s=options.damping_beta_s, n_families=options.n_families)
+    except ModelFileError as exc:
+        raise ModelFileError(f"{where}: {exc}") from None
+    report.update(notes=results[0].notes, sector=results[0].sector)
+    return model, report
+
+
 def format_report(report: dict) -> str:
     """What was read: sectors, families per ND, the frequency table, tip chord and stagger."""
     notes, sec = report["notes"], report["sector"]
@@ -462,4 +552,11 @@ def format_report(report: dict) -> str:
     for k in range(camp.shape[1]):
         lines.append(f"  {k:2d} " + "".join(f"  {camp[f, k]:12.3f}" for f in range(camp.shape[0])))
     lines.append(f"  -> {report['n_modes']} full-wheel modes (ND 0 and N/2 single, the others pairs)")
+    if "speed_rad_s" in report:
+        rpm = np.asarray(report["speed_rad_s"]) * 30.0 / np.pi
+        camp = report["campbell_freq_hz_at_speed"]
+        lines.append(f"  speeds: {', '.join(f'{v:g}' for v in rpm)} rpm; modes tracked (smallest MAC between "
+                     f"consecutive speeds {report['min_mac']:.4f}); family 1 ND 0 .. {camp.shape[2] - 1}: "
+                     f"{camp[0, 0].min():.2f} .. {camp[0, 0].max():.2f} Hz at 0 rpm, "
+                     f"{camp[-1, 0].min():.2f} .. {camp[-1, 0].max():.2f} Hz at {rpm[-1]:g} rpm")
     return "\n".join(lines)
