@@ -179,3 +179,66 @@ def test_missing_harmonic_index_and_bad_files(tmp_path):
              freq_hz=np.ones(2), tip_xyz=np.ones((2, 3)), force_xyz=np.ones(3))
     with pytest.raises(ModelFileError):
         load_sector(tmp_path / "pickled.npz")
+
+
+# ---- several speeds -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def speed_sectors():
+    from bttsim_stream.scenario import Model, Scenario
+    sp = np.linspace(0.0, 4800.0 * np.pi / 30.0, 9)
+    built = build_model(Scenario(model=Model(centrifugal=True, centrifugal_speeds=9)))
+    return sp, [builtin_sector(None, w) for w in sp], built
+
+
+def test_import_at_speeds_reproduces_the_builtin_speed_model(speed_sectors):
+    """The built-in model's sector solutions at 9 speeds (untracked, raw eigenvector phases, as
+    an FE package gives them) imported: the same tracked frequencies, and the same shapes up to
+    the zero-speed basis of each (family, ND) space (the tip-node MAC and the mass-weighted MAC
+    align phases a little differently: 1e-2)."""
+    from bttsim_stream.model.cyclic import expand_sectors_at_speeds
+    sp, sectors, built = speed_sectors
+    model, report = expand_sectors_at_speeds(sectors, sp)
+    assert report["min_mac"] > 0.999
+    # (two dense partial eigensolves of the same matrices agree to ~3e-8: the zero-speed model vs
+    # the full wheel agree to 1e-7 too)
+    np.testing.assert_allclose(model.extra["freq_hz_at_speed"], built.extra["freq_hz_at_speed"], rtol=1e-7)
+    np.testing.assert_allclose(model.extra["campbell_freq_hz_at_speed"], built.extra["campbell_freq_hz_at_speed"],
+                               rtol=1e-7)
+    a, c = model.extra["tip_shapes_at_speed"], built.extra["tip_shapes_at_speed"]
+    for f in range(5):
+        for nd in range(15):
+            sel = np.flatnonzero((built.family == f) & (built.nodal_diameter == nd))
+            A0, C0 = a[0, sel].reshape(sel.size, -1), c[0, sel].reshape(sel.size, -1)
+            T = np.linalg.lstsq(A0.T, C0.T, rcond=None)[0]
+            for s in range(sp.size):
+                As, Cs = a[s, sel].reshape(sel.size, -1), c[s, sel].reshape(sel.size, -1)
+                tol = 2e-3 if f == 0 else 1.5e-2
+                assert np.abs(T.T @ As - Cs).max() < tol * np.abs(Cs).max(), (f, nd, s)
+
+
+def test_import_at_speeds_cli_and_errors(speed_sectors, tmp_path, capsys):
+    from bttsim_stream.cli import main
+    sp, sectors, _ = speed_sectors
+    paths = []
+    for i in (0, 4, 8):
+        paths.append(str(tmp_path / f"s{i}.npz"))
+        save_sector(sectors[i], paths[-1])
+    rpm = ",".join(f"{w * 30 / np.pi:g}" for w in sp[[0, 4, 8]])
+    assert main(["model", "import", *paths, "--speeds-rpm", rpm, "--out", str(tmp_path / "m.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "speeds: 0, 2400, 4800 rpm" in out
+    # one line, exit 2: speeds not one per file, not from 0, fewer families at a speed
+    few = CyclicSector(**{**{f: getattr(sectors[4], f) for f in CyclicSector.__dataclass_fields__},
+                          "harmonic_index": sectors[4].harmonic_index[::5].copy(),
+                          "freq_hz": sectors[4].freq_hz[::5].copy(), "tip_shapes": sectors[4].tip_shapes[::5].copy(),
+                          "force_shapes": sectors[4].force_shapes[::5].copy()})
+    save_sector(few, tmp_path / "few.npz")
+    for args, expect in (([*paths, "--speeds-rpm", "0,2400"], "3 results files but 2 speeds"),
+                         ([*paths, "--speeds-rpm", "100,2400,4800"], "strictly ascending from 0"),
+                         ([paths[0], str(tmp_path / "few.npz"), "--speeds-rpm", "0,2400"],
+                          "1 solutions of harmonic index 0, fewer than the 5 families")):
+        assert main(["model", "import", *args, "--out", str(tmp_path / "bad.npz")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("bttsim: error:") and expect in err[0], err
+        assert not (tmp_path / "bad.npz").exists()

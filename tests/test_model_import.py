@@ -160,3 +160,67 @@ def test_bad_results_are_one_line_exit_2(example, tmp_path, capsys, case):
               "no_sectors": "number of sectors", "bad_toml": "not valid TOML", "missing": "no such file"}[case]
     assert expect in err[0]
     assert not (tmp_path / "m.npz").exists()
+
+
+# ---- several speeds: CalculiX centrifugal prestress + perturbation frequency steps ---------
+
+SPEEDS_RPM = (0.0, 10000.0, 20000.0)
+
+
+@pytest.fixture(scope="module")
+def speed_example(tmp_path_factory):
+    """The same 6-blade sector solved at 0, 10,000 and 20,000 rpm (one .frd, three frequency steps)."""
+    _need_fe_tools()
+    ex = _example()
+    d = ex.SectorDesign(n_blades=6, mesh_size=0.014, blade_mesh_size=0.008, n_modes_per_nd=3)
+    out = tmp_path_factory.mktemp("ccx_speeds")
+    files = ex.main(out, d, speeds_rpm=SPEEDS_RPM)
+    return out, files, d
+
+
+def test_speed_dependent_import_of_calculix_prestressed_steps(speed_example, capsys):
+    out, files, d = speed_example
+    model = load_model(files["model"])
+    e = model.extra
+    np.testing.assert_allclose(e["speed_rad_s"] * 30 / np.pi, SPEEDS_RPM)
+    frd = read_frd(files["sector_frd"])
+    steps = sorted({m.step for m in frd.modes if m.harmonic_index is not None})
+    assert len(steps) == 3
+    for s, step in enumerate(steps):
+        # every (ND, family) of the step is in the tracked table once: nothing dropped or doubled
+        got = np.sort(e["campbell_freq_hz_at_speed"][s].ravel())
+        want = np.sort([m.freq_hz for m in frd.modes if m.step == step])
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+    camp = e["campbell_freq_hz_at_speed"]
+    assert np.all(camp[1, 0] > camp[0, 0]) and np.all(camp[2, 0] > camp[1, 0])  # family 1 stiffens
+    # tracked shapes move little and keep their sign / phase between speeds
+    U = e["tip_shapes_at_speed"].reshape(3, model.n_modes, -1)
+    for s in (1, 2):
+        dots = np.sum(U[s] * U[s - 1], axis=1) / np.linalg.norm(U[s], axis=1) / np.linalg.norm(U[s - 1], axis=1)
+        fam1 = model.family == 0
+        assert dots[fam1].min() > 0.99, dots
+    # the crossing the written scenario runs through is the stiffened one
+    assert files["crossing_rpm"] > 60 * model.campbell_freq_hz[0, 2] / 8 * 1.01
+    # model show lists it
+    assert main(["model", "show", str(files["model"]), "--png", str(out / "show.png"), "--eo", "8"]) == 0
+    text = capsys.readouterr().out
+    assert "speed-dependent model: 3 speeds, 0 .. 20000 rpm" in text and "EO  8 x ND  2, family 1" in text
+
+
+@pytest.mark.parametrize("case", ["count", "order", "one_npz"], ids=str)
+def test_bad_speed_imports_are_one_line_exit_2(speed_example, tmp_path, capsys, case):
+    out, files, d = speed_example
+    frd = str(files["sector_frd"])
+    args = {"count": [frd, "--speeds-rpm", "0,10000"], "order": [frd, "--speeds-rpm", "0,20000,10000"],
+            "one_npz": [str(tmp_path / "x.npz"), "--speeds-rpm", "0,1"]}[case]
+    if case == "one_npz":
+        from bttsim_stream.model.cyclic import builtin_sector, save_sector
+        save_sector(builtin_sector(), tmp_path / "x.npz")
+    assert main(["model", "import", *args, "--options", str(files["options"]),
+                 "--out", str(tmp_path / "m.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("bttsim: error:"), err
+    expect = {"count": "3 cyclic frequency step(s) in the file but 2 speeds", "order": "strictly ascending from 0",
+              "one_npz": "one file per speed"}[case]
+    assert expect in err[0]
+    assert not (tmp_path / "m.npz").exists()

@@ -197,8 +197,13 @@ def _material(d: SectorDesign) -> str:
             "*SOLID SECTION, ELSET=SOLID, MATERIAL=STEEL\n")
 
 
-def write_sector_deck(d: SectorDesign, out: Path, mesh) -> Path:
-    """``sector_mesh.inp`` + ``sector.inp``: cyclic symmetry, every nodal diameter 0..N/2."""
+def write_sector_deck(d: SectorDesign, out: Path, mesh, speeds_rpm=()) -> Path:
+    """``sector_mesh.inp`` + ``sector.inp``: cyclic symmetry, every nodal diameter 0..N/2.
+
+    With ``speeds_rpm`` (ascending from 0), after the zero-speed frequency step one pair of
+    steps per further speed: a linear ``*STATIC`` step with the centrifugal load
+    (``CENTRIF``, omega^2 about +z) and a ``*STEP, PERTURBATION`` frequency step about that
+    prestressed state (stress stiffening and spin softening; no Coriolis)."""
     ids, xyz, conn, sets = mesh
     sets = dict(sets)
     # bore nodes on the dependent cyclic face must not also be fixed ("*ERROR in cascade")
@@ -213,6 +218,11 @@ def write_sector_deck(d: SectorDesign, out: Path, mesh) -> Path:
             # ccx prints every eigenvalue twice per nodal diameter: ask for twice the families
             f"{2 * d.n_modes_per_nd}\n*SELECT CYCLIC SYMMETRY MODES, NMIN=0, NMAX={n // 2}\n"
             "*NODE FILE\nU\n*END STEP\n")
+    for rpm in speeds_rpm[1:]:
+        w2 = (float(rpm) * np.pi / 30.0) ** 2
+        deck += (f"*STEP\n*STATIC\n*DLOAD, OP=NEW\nSOLID, CENTRIF, {w2:.12e}, 0., 0., 0., 0., 0., 1.\n*END STEP\n"
+                 f"*STEP, PERTURBATION\n*FREQUENCY\n{2 * d.n_modes_per_nd}\n"
+                 f"*SELECT CYCLIC SYMMETRY MODES, NMIN=0, NMAX={n // 2}\n*NODE FILE\nU\n*END STEP\n")
     (out / "sector.inp").write_text(deck)
     return out / "sector.inp"
 
@@ -308,6 +318,11 @@ def write_scenario(d: SectorDesign, out: Path, model, *, engine_order: int = 8, 
     nd = min(nd_force, n - nd_force)
     f = float(model.campbell_freq_hz[family, nd])
     rpm = 60.0 * f / engine_order
+    if "speed_rad_s" in model.extra:  # a speed-dependent model: where the stiffened family meets the EO
+        from bttsim_stream.model.report import campbell_crossings
+        cross = [c for c in campbell_crossings(model, [engine_order]) if c.family == family]
+        if cross:
+            f, rpm = cross[0].freq_hz, cross[0].rpm
     z_probe = float(model.tip_ref[0, model.nominal_node, 2])
     text = (f"# {n}-blade CalculiX sector model: EO {engine_order} crosses family {family + 1} ND {nd} "
             f"({f:.2f} Hz) at {rpm:.1f} rpm\n"
@@ -323,15 +338,19 @@ def write_scenario(d: SectorDesign, out: Path, model, *, engine_order: int = 8, 
 
 
 def main(out: Path, design: SectorDesign = SectorDesign(), *, full: bool = False,
-         damping_beta_s: float = 1e-6) -> dict:
+         damping_beta_s: float = 1e-6, speeds_rpm=()) -> dict:
     """Mesh, write the decks, solve with ccx, import into ``model.npz`` and write
-    ``scenario.toml``; returns the paths written (and ``crossing_rpm``, ``wheel_stride``)."""
+    ``scenario.toml``; returns the paths written (and ``crossing_rpm``, ``wheel_stride``).
+
+    With ``speeds_rpm`` (ascending from 0) the model is speed-dependent (centrifugal
+    prestress steps, ``bttsim model import --speeds-rpm``)."""
     from bttsim_stream.model import save_model
-    from bttsim_stream.model.importers import format_report, import_model, load_import_options
+    from bttsim_stream.model.importers import format_report, import_model, import_model_speeds, load_import_options
 
     out.mkdir(parents=True, exist_ok=True)
     mesh = mesh_sector(design)
-    files = {"sector_deck": write_sector_deck(design, out, mesh), "options": write_import_options(design, out)}
+    files = {"sector_deck": write_sector_deck(design, out, mesh, speeds_rpm),
+             "options": write_import_options(design, out)}
     files["sector_frd"] = run_ccx(files["sector_deck"])
     if full:
         n_modes = design.n_modes_per_nd * design.n_blades
@@ -341,7 +360,11 @@ def main(out: Path, design: SectorDesign = SectorDesign(), *, full: bool = False
     opts = load_import_options(files["options"])
     from dataclasses import replace
 
-    model, report = import_model(files["sector_frd"], replace(opts, damping_beta_s=damping_beta_s))
+    opts = replace(opts, damping_beta_s=damping_beta_s)
+    if len(speeds_rpm) > 1:
+        model, report = import_model_speeds([files["sector_frd"]], replace(opts, speeds_rpm=tuple(speeds_rpm)))
+    else:
+        model, report = import_model(files["sector_frd"], opts)
     print(format_report(report))
     files["model"] = out / "model.npz"
     save_model(model, files["model"])
@@ -358,9 +381,11 @@ if __name__ == "__main__":
     ap.add_argument("--blade-mesh-size", type=float, default=SectorDesign.blade_mesh_size,
                     help="blade element size, m")
     ap.add_argument("--full", action="store_true", help="also solve the full wheel directly (slower)")
+    ap.add_argument("--speeds-rpm", default="", help="speeds of a speed-dependent model, rpm, comma-separated, "
+                                                    "ascending from 0 (centrifugal prestress steps)")
     a = ap.parse_args()
     d = SectorDesign(n_blades=a.blades, mesh_size=a.mesh_size, blade_mesh_size=a.blade_mesh_size)
-    files = main(a.out, d, full=a.full)
+    files = main(a.out, d, full=a.full, speeds_rpm=tuple(float(v) for v in a.speeds_rpm.split(",") if v.strip()))
     print(f"{files['n_nodes']} nodes per sector; EO 8 crossing at {files['crossing_rpm']:.1f} rpm; wrote "
           + ", ".join(str(v) for k, v in files.items() if isinstance(v, Path)))
     print(f"next: cd {a.out} && bttsim model show model.npz && bttsim run scenario.toml --out run")
