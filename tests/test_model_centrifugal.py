@@ -316,3 +316,19 @@ def test_option_off_is_not_written_and_on_round_trips():
     assert "centrifugal = false" in S.default_toml()
     on = S.Scenario(model=S.Model(centrifugal=True, centrifugal_speeds=5, centrifugal_max_rpm=5000.0))
     assert S.scenario_from_dict(tomllib.loads(S.dumps_toml(on))) == on
+
+
+def test_tracking_follows_veerings_between_distant_speeds(disk, monkeypatch):
+    """Up to 20,000 rpm the higher families veer; tracking from 0 straight to 20,000 rpm (the
+    interval halved where the MAC drops below MAC_REFINE) follows every branch as tracking
+    through 81 speeds does, where one unrefined step picks a wrong mode (150 Hz off)."""
+    import bttsim_stream.model.centrifugal as cf
+    d, sec, cent, zero = disk
+    Omega = 2.0 * np.pi * 20000.0 / 60.0
+    fine = solve_cyclic_speeds(d, sec, cent, np.linspace(0.0, Omega, 81), zero)
+    coarse = solve_cyclic_speeds(d, sec, cent, np.array([0.0, Omega]), zero)
+    np.testing.assert_allclose(coarse.solutions[-1].freq_hz, fine.solutions[-1].freq_hz, rtol=1e-7)
+    assert coarse.min_mac > 0.98
+    monkeypatch.setattr(cf, "MAC_REFINE", 0.0)
+    blind = solve_cyclic_speeds(d, sec, cent, np.array([0.0, Omega]), zero)
+    assert np.abs(blind.solutions[-1].freq_hz - fine.solutions[-1].freq_hz).max() > 100.0

@@ -46,8 +46,10 @@ __all__ = ["CentrifugalSector", "SpeedSolution", "axial_force_profile", "blade_a
 
 #: Spare eigenpairs above the kept families that tracking may pick from.
 N_SPARE = 3
-#: Tracking sub-steps per interval between two output speeds (uniform in Omega^2).
-SUBSTEPS = 2
+#: An interval between two speeds whose poorest MAC is below this is tracked through its
+#: midpoint (in Omega^2), at most MAX_REFINE times.
+MAC_REFINE = 0.99
+MAX_REFINE = 8
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -186,6 +188,26 @@ class SpeedSolution:
     min_mac: float
 
 
+def _track(K, G, M, n_ev: int, prev: np.ndarray, w2_lo: float, w2_hi: float, depth: int):
+    """Solve at ``Omega^2 = w2_hi`` and match to ``prev`` (the tracked vectors at ``w2_lo``).
+
+    Returns the tracked ``(omega^2, vectors, smallest MAC)``; an interval whose poorest match is
+    below :data:`MAC_REFINE` is tracked through its midpoint (in ``Omega^2``, up to
+    :data:`MAX_REFINE` halvings), so that a veering or crossing inside it is followed.
+    """
+    w2, V = sla.eigh(K + w2_hi * G, M, subset_by_index=[0, n_ev - 1], driver="gvx")
+    overlap = prev.conj().T @ (M @ V)                      # (n_families, n_ev)
+    mac = np.abs(overlap) ** 2
+    rows, cols = linear_sum_assignment(-mac)
+    worst = float(mac[rows, cols].min())
+    if worst < MAC_REFINE and depth < MAX_REFINE:
+        _, mid, mac_a = _track(K, G, M, n_ev, prev, w2_lo, 0.5 * (w2_lo + w2_hi), depth + 1)
+        w2_t, V_t, mac_b = _track(K, G, M, n_ev, mid, 0.5 * (w2_lo + w2_hi), w2_hi, depth + 1)
+        return w2_t, V_t, min(mac_a, mac_b)
+    ph = overlap[rows, cols]
+    return w2[cols], V[:, cols] * (np.conj(ph) / np.abs(ph))[None, :], worst
+
+
 def solve_cyclic_speeds(d: BladedDiskDesign, sec: SectorModel, cent: CentrifugalSector, speed_rad_s,
                         zero: CyclicSolution, nds: list[int] | None = None,
                         n_families: int | None = None) -> SpeedSolution:
@@ -211,20 +233,10 @@ def solve_cyclic_speeds(d: BladedDiskDesign, sec: SectorModel, cent: Centrifugal
         n_ev = min(n_families + N_SPARE, K.shape[0])
         prev = per_speed_v[i][0]
         for s in range(1, sp.size):
-            w_lo, w_hi = sp[s - 1] ** 2, sp[s] ** 2
-            for sub in range(1, SUBSTEPS + 1):
-                w2_speed = w_lo + (w_hi - w_lo) * sub / SUBSTEPS
-                w2, V = sla.eigh(K + w2_speed * G, M, subset_by_index=[0, n_ev - 1], driver="gvx")
-                overlap = prev.conj().T @ (M @ V)                      # (n_families, n_ev)
-                mac = np.abs(overlap) ** 2
-                rows, cols = linear_sum_assignment(-mac)
-                min_mac = min(min_mac, float(mac[rows, cols].min()))
-                ph = overlap[rows, cols]
-                V = V[:, cols] * (np.conj(ph) / np.abs(ph))[None, :]
-                w2 = w2[cols]
-                prev = V
+            w2, prev, mac = _track(K, G, M, n_ev, prev, sp[s - 1] ** 2, sp[s] ** 2, 0)
+            min_mac = min(min_mac, mac)
             per_speed_f[i].append(np.sqrt(np.maximum(w2, 0.0)) / (2.0 * np.pi))
-            per_speed_v[i].append(V)
+            per_speed_v[i].append(prev)
     sols = [CyclicSolution(freq_hz=np.array([per_speed_f[i][s] for i in range(len(nds))]),
                            vectors=[per_speed_v[i][s] for i in range(len(nds))]) for s in range(sp.size)]
     return SpeedSolution(speed_rad_s=sp, solutions=sols, min_mac=min_mac)

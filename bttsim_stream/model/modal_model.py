@@ -41,7 +41,7 @@ from .bladed_disk import (
     solve_full_wheel,
 )
 from .bladed_disk import _expand_unsorted
-from .centrifugal import N_SPARE, SUBSTEPS, centrifugal_sector, solve_cyclic_speeds, speed_grid
+from .centrifugal import MAC_REFINE, N_SPARE, centrifugal_sector, solve_cyclic_speeds, speed_grid
 
 __all__ = [
     "SCHEMA",
@@ -378,7 +378,7 @@ def _speed_modes(design: BladedDiskDesign, nominal, campbell, sector, sol, speed
         tip.append(_sector_points(sector, modes.shapes, sector.tip_map))
         force.append(_sector_points(sector, modes.shapes, sector.force_map))
         freq.append(modes.freq_hz)
-    if sector is nominal:
+    if sol is campbell:
         camp_track = track
     else:  # the Campbell table is the nominal wheel's (as at zero speed)
         camp_track = solve_cyclic_speeds(design, nominal, centrifugal_sector(nominal, design.n_blades),
@@ -391,8 +391,8 @@ def _speed_modes(design: BladedDiskDesign, nominal, campbell, sector, sol, speed
                  "1 rad/s), beam geometric stiffness of the element axial and ring hoop forces, spin softening "
                  "(in-plane consistent mass); Coriolis and the sections' propeller moment neglected",
         "speeds_rad_s": [float(v) for v in speed_rad_s],
-        "tracking": f"MAC assignment over {N_SPARE} spare modes, {SUBSTEPS} sub-steps per interval uniform in "
-                    "Omega^2; phase-aligned (v_prev^H M v > 0)",
+        "tracking": f"mass-weighted MAC assignment over {N_SPARE} spare modes (an interval matched below "
+                    f"{MAC_REFINE} is halved in Omega^2); phase-aligned (v_prev^H M v > 0)",
         "tracking_min_mac": track.min_mac,
         "southwell_family1_nd0_nd_max": [float(southwell[0, 0]), float(southwell[0, -1])],
         "root_force_n_at_1_rad_s": float(cent.axial_force_n[design.n_disk_elements]),
