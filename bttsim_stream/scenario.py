@@ -408,8 +408,8 @@ class Model:
         Default false (the paper's zero-speed model). If true, the built-in model gains its
         centrifugal effects (stress stiffening and spin softening; Coriolis neglected): modes
         at ``centrifugal_speeds`` speeds from 0 to ``centrifugal_max_rpm``, tracked across
-        speeds (``schemas/modal_model.md``). Only with ``source = "builtin"`` and a tuned
-        wheel (no mistuning, no ``disk_asymmetry``).
+        speeds (``schemas/modal_model.md``). Only with ``source = "builtin"``; a mistuned or
+        asymmetric wheel is solved as a full wheel (slower: seconds).
     centrifugal_speeds : int
         Speeds at which the modes are solved, default 17; integer in [2, 64].
     centrifugal_max_rpm : float
@@ -438,7 +438,7 @@ class Model:
         "exclusive with mass_factors"))
     centrifugal: bool = field(default=False, metadata=_doc(
         "speed-dependent modes of the built-in model: centrifugal stiffening and spin\n"
-        "softening (Coriolis neglected); needs a tuned wheel (no mistuning, no disk_asymmetry)"))
+        "softening (Coriolis neglected)"))
     centrifugal_speeds: int = field(default=17, metadata=_doc(
         "speeds at which the modes are solved (0 .. centrifugal_max_rpm); in [2, 64]"))
     centrifugal_max_rpm: float = field(default=0.0, metadata=_doc(
@@ -1037,10 +1037,6 @@ class Scenario:
             raise _FieldError("[model]", "centrifugal", "applies to the built-in model only (a model file "
                               "brings its own speed-dependent arrays, schemas/modal_model.md); got it with "
                               f"source = {_show(m.source)}")
-        for kind in ("stiffness_factors", "mass_factors", "stiffness_std", "mass_std", "disk_asymmetry"):
-            if getattr(m, kind):
-                raise _FieldError("[model]", "centrifugal", f"needs a tuned wheel: set {kind} to its default "
-                                  "(mistuned or asymmetric wheels with centrifugal effects are not built yet)")
         top = float(np.max(self.speed.breakpoints()[1]))
         if m.centrifugal_max_rpm and m.centrifugal_max_rpm < top:
             raise _FieldError("[model]", "centrifugal_max_rpm", f"must cover the speed profile's top speed "

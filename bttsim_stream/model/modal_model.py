@@ -33,6 +33,7 @@ from ..scenario import Scenario
 from .bladed_disk import (
     BladedDiskDesign,
     WheelModes,
+    assemble_full_wheel,
     assemble_sector,
     asymmetry_pattern,
     blade_alone_frequencies,
@@ -41,7 +42,8 @@ from .bladed_disk import (
     solve_full_wheel,
 )
 from .bladed_disk import _expand_unsorted
-from .centrifugal import MAC_REFINE, N_SPARE, centrifugal_sector, solve_cyclic_speeds, speed_grid
+from .centrifugal import (MAC_REFINE, N_SPARE, centrifugal_sector, full_wheel_centrifugal, solve_cyclic_speeds,
+                          solve_full_wheel_speeds, speed_grid)
 
 __all__ = [
     "SCHEMA",
@@ -286,9 +288,6 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         campbell = solve_cyclic(design, nominal)
         blade_alone = blade_alone_frequencies(design, 3)
         uniform = (np.ptp(k_f) == 0 and np.ptp(m_f) == 0 and np.ptp(disk_f) == 0)
-        if speed_rad_s is not None and not uniform:
-            raise ScenarioError("[model] centrifugal: the speed-dependent model needs a tuned wheel (no mistuning, "
-                                "no disk asymmetry)")
         if uniform:
             sector = assemble_sector(design, k_f[0], m_f[0], disk_f[0])
             sol = campbell if (k_f[0] == 1 and m_f[0] == 1 and disk_f[0] == 1) else solve_cyclic(design, sector)
@@ -301,6 +300,9 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
             modes, _ = solve_full_wheel(design, design.n_families * N, k_f, m_f, disk_f)
             sector = nominal
             method = "full wheel (mistuned / asymmetric), shift-invert Lanczos + Rayleigh-Ritz"
+            if speed_rad_s is not None:
+                at_speed = _speed_modes_full(design, nominal, campbell, modes, k_f, m_f, disk_f, speed_rad_s)
+                method += "; centrifugal stiffening and spin softening at speed (Coriolis neglected)"
 
     tip = _sector_points(sector, modes.shapes, sector.tip_map)
     force = _sector_points(sector, modes.shapes, sector.force_map)
@@ -358,6 +360,39 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         arrays[key] = np.ascontiguousarray(arrays[key])
         arrays[key][0] = zero
     return replace(model, meta=meta, extra={**model.extra, **arrays})
+
+
+def _speed_modes_full(design: BladedDiskDesign, nominal, campbell, modes: WheelModes, k_f, m_f, disk_f,
+                      speed_rad_s: np.ndarray) -> dict:
+    """:func:`_speed_modes` for a mistuned or asymmetric wheel: the full wheel's prestress and
+    modes at speed (:func:`~.centrifugal.solve_full_wheel_speeds`)."""
+    t0 = time.perf_counter()
+    K, M, sectors = assemble_full_wheel(design, k_f, m_f, disk_f)
+    G, _ = full_wheel_centrifugal(sectors, K)
+    N, m = design.n_blades, sectors[0].n_dof
+    zero = modes.shapes.reshape(modes.shapes.shape[0], -1).T
+    freq, shapes, min_mac = solve_full_wheel_speeds(K, M, G, zero, speed_rad_s)
+    freq[0] = modes.freq_hz
+    tip, force = [], []
+    for V in shapes:
+        sh = V.T.reshape(-1, N, m)
+        tip.append(_sector_points(nominal, sh, nominal.tip_map))
+        force.append(_sector_points(nominal, sh, nominal.force_map))
+    camp_track = solve_cyclic_speeds(design, nominal, centrifugal_sector(nominal, N), speed_rad_s, campbell)
+    camp = np.array([c.freq_hz.T for c in camp_track.solutions])
+    prov = {
+        "model": "K(Omega) = K_e + Omega^2 (K_g - K_s): linear centrifugal prestress (static solve of the full "
+                 "mistuned wheel at 1 rad/s), beam geometric stiffness of the element axial and ring hoop forces, "
+                 "spin softening (in-plane consistent mass); Coriolis and the sections' propeller moment neglected",
+        "speeds_rad_s": [float(v) for v in speed_rad_s],
+        "tracking": f"full wheel: Ritz basis of the zero-speed modes and their static corrections K^-1 G Phi_0, "
+                    f"mass-weighted MAC (an interval matched below {MAC_REFINE} is halved in Omega^2); phase-aligned",
+        "tracking_min_mac": min_mac,
+        "campbell": "the nominal (tuned) wheel's, tracked",
+        "build_time_s": time.perf_counter() - t0,
+    }
+    return {"freq_hz": np.array(freq), "tip": np.array(tip), "force": np.array(force), "campbell": camp,
+            "provenance": prov}
 
 
 def _speed_modes(design: BladedDiskDesign, nominal, campbell, sector, sol, speed_rad_s: np.ndarray) -> dict:
