@@ -26,8 +26,8 @@ from bttsim_stream.model import build_model
 from bttsim_stream.model.beam import (BeamSection, beam_geometric_stiffness, beam_matrices, beam_spin_mass)
 from bttsim_stream.model.bladed_disk import (BeamElement, BladedDiskDesign, SectorModel, assemble_full_wheel,
                                              assemble_sector, expand_cyclic, solve_cyclic)
-from bttsim_stream.model.centrifugal import (assemble_full_wheel_speed, axial_force_profile, blade_alone_at_speed, centrifugal_sector, cyclic_speed_matrices,
-                                             solve_cyclic_speeds, speed_grid)
+from bttsim_stream.model.centrifugal import (assemble_full_wheel_speed, axial_force_profile, blade_alone_at_speed,
+                                             centrifugal_sector, solve_cyclic_speeds, speed_grid)
 
 SEC = BeamSection(E=200e9, G=78e9, rho=7800.0, A=1e-4, I_y=1e-9, I_z=4e-9, J=1.5e-9, I_p=5e-9)
 

@@ -48,7 +48,8 @@ from ..errors import ModelFileError
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
 from .modal_model import ModalModel, model_from_cartesian
 
-__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "expand_sectors_at_speeds", "save_sector",
+__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "expand_sectors_at_speeds",
+           "save_sector",
            "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
 
 SECTOR_SCHEMA = "bttsim.cyclic_sector"

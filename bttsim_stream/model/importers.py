@@ -504,7 +504,8 @@ def import_model_speeds(paths, options: ImportOptions):
         results = [sector_from_frd(paths[0], options, step=st, results=res) for st in steps]
     else:
         if len(paths) != len(speeds):
-            raise ModelFileError(f"{where}: {len(paths)} results files but {len(speeds)} speeds given: one speed per file")
+            raise ModelFileError(f"{where}: {len(paths)} results files but {len(speeds)} speeds given: "
+                                 "one speed per file")
         for p, fmt in zip(paths, fmts):
             if fmt == "frd":
                 results.append(sector_from_frd(p, options))

@@ -254,9 +254,9 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         Per-blade mistuning factors (override the scenario's).
     speed_rad_s : array_like, shape (S,), optional
         Build a speed-dependent model (centrifugal effects, :mod:`.centrifugal`) with the modes
-        at these speeds (ascending from 0; tuned wheels only). Default: the scenario's
-        ``[model] centrifugal`` option (``centrifugal_speeds`` speeds uniform in Omega from 0
-        to :meth:`~bttsim_stream.scenario.Scenario.centrifugal_max_rpm`), else none.
+        at these speeds (ascending from 0; a mistuned or asymmetric wheel is solved as a full
+        wheel). Default: the scenario's ``[model] centrifugal`` option (``centrifugal_speeds``
+        speeds uniform in Omega from 0 to :meth:`~bttsim_stream.scenario.Scenario.centrifugal_max_rpm`), else none.
     """
     t0 = time.perf_counter()
     if design is None:
