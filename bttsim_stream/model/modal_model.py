@@ -256,7 +256,8 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
         Build a speed-dependent model (centrifugal effects, :mod:`.centrifugal`) with the modes
         at these speeds (ascending from 0; a mistuned or asymmetric wheel is solved as a full
         wheel). Default: the scenario's ``[model] centrifugal`` option (``centrifugal_speeds``
-        speeds uniform in Omega from 0 to :meth:`~bttsim_stream.scenario.Scenario.centrifugal_max_rpm`), else none.
+        speeds uniform in Omega from 0 to
+        :meth:`~bttsim_stream.scenario.Scenario.centrifugal_max_rpm`), else none.
     """
     t0 = time.perf_counter()
     if design is None:
