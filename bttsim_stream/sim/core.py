@@ -20,7 +20,9 @@ import numpy as np
 from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
+from ..model.speed_modes import check_speed_range, is_speed_dependent
 from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
                      centrifugal_growth_m, pulse_parameters, synthesise)
 from .speed import SpeedProfile, speed_profile_from_scenario
@@ -293,9 +295,15 @@ class RunUpSimulator:
         self.psi = np.mod(self.probe_actual[None, :] - self.theta_p[:, None] - self.theta_opr, TWO_PI)
         C, eo = modal_forcing(m, scn.excitation)
         self.eo = eo
-        self.basis = tip_basis(m.tip_shapes)
-        self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
-                                             self.speed, initial=scn.speed.initial if initial is None else initial)
+        initial = scn.speed.initial if initial is None else initial
+        if is_speed_dependent(m):  # modes that follow the speed (centrifugal effects): their own path
+            check_speed_range(m, float(np.max(self.speed.omega)))
+            self.basis, psi_at_speed = speed_tip_basis(m)
+            self.integrator = SpeedDependentIntegrator(m, scn.excitation, psi_at_speed, self.speed, initial=initial)
+        else:
+            self.basis = tip_basis(m.tip_shapes)
+            self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
+                                                 self.speed, initial=initial)
         # shorter envelope steps where a free response is present (a start from rest, a speed knot)
         radius = float(np.mean(m.tip_ref[:, p, 0]))
         near = np.argsort(np.abs(m.tip_ref[..., 2] - self.z_probe), axis=1)[:, :4]  # candidate nodes
