@@ -27,12 +27,14 @@ interpolation error (second order in the sample spacing).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.interpolate import CubicSpline
-
 from ..errors import BttsimError
 from .modal_model import SPEED_ARRAYS, ModalModel
+
+if TYPE_CHECKING:
+    from scipy.interpolate import CubicSpline
 
 __all__ = ["SpeedModes", "speed_modes", "is_speed_dependent", "check_speed_range", "southwell_model"]
 
@@ -73,6 +75,8 @@ class SpeedModes:
 
 
 def _spline(speed_rad_s: np.ndarray, values: np.ndarray) -> CubicSpline:
+    from scipy.interpolate import CubicSpline  # only for speed-dependent models
+
     s = np.square(np.asarray(speed_rad_s, float))
     return CubicSpline(s, np.asarray(values, float), axis=0, bc_type="natural", extrapolate=True)
 

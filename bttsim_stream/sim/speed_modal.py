@@ -202,37 +202,50 @@ class SpeedDependentIntegrator:
         beta = self._w2(s, 1) * (om / 1.0)[:, None] / w
         return w, beta
 
-    def _mu_c(self, om, alpha):
-        """``mu`` and ``c`` of every column (n, n_cols) at speeds ``om`` with accelerations ``alpha`` (n,)."""
+    def _coeffs(self, om):
+        """Per speed ``om`` (n,): ``(om, w, beta, lambda_0, rho, c)`` with ``lambda_e = lambda_0 +
+        alpha rho`` (n, n_act) and ``c`` of every column (n, n_cols)."""
         om = np.atleast_1d(np.asarray(om, float))
-        alpha = np.broadcast_to(np.asarray(alpha, float), om.shape)
         w, beta = self._w_at(om)
-        zw = self._zeta * w
-        lam = -zw + 1j * self._sq * w
-        lam += (alpha[:, None] * beta / (2.0 * w)) * (1.0 - 1j * self._zeta / self._sq)
-        mu = lam[:, self._k_col] - 1j * self._eo_col[None, :] * om[:, None]
+        lam0 = -self._zeta * w + 1j * (self._sq * w)
+        rho = (beta / (2.0 * w)) * (1.0 - 1j * self._zeta / self._sq)
         C = self._C(om)  # (n, n_act, n_exc)
         c = np.concatenate([C / 2j, -np.conj(C) / 2j], axis=2).reshape(om.size, -1)
-        return mu, c
+        return om, w, beta, lam0, rho, c
+
+    def _mu(self, co, alpha, sl=slice(None)):
+        """``mu`` of every column (m, n_cols) at the points ``sl`` of :meth:`_coeffs` ``co``,
+        accelerations ``alpha`` (m,)."""
+        om, _, _, lam0, rho, _ = co
+        lam = lam0[sl] + np.asarray(alpha, float).reshape(-1, 1) * rho[sl]
+        return lam[:, self._k_col] - 1j * self._eo_col[None, :] * om[sl, None]
+
+    def _mu_c(self, om, alpha):
+        """``mu`` and ``c`` of every column (n, n_cols) at speeds ``om`` with accelerations ``alpha`` (n,)."""
+        co = self._coeffs(om)
+        return self._mu(co, np.broadcast_to(np.asarray(alpha, float), co[0].shape)), co[5]
 
     def _C(self, om, nu: int = 0):
         s = np.square(np.atleast_1d(np.asarray(om, float)))
         return self._C_re(s, nu) + 1j * self._C_im(s, nu)
 
     # -- the recursion ----------------------------------------------------------------------
-    def _propagate(self, a0, t, om, alpha_steps, om_pts_alpha=None):
+    def _propagate(self, a0, t, co, alpha_steps):
         """Envelopes (n, n_cols) at grid times ``t`` (n,) from ``a0`` (n_cols,) at ``t[0]``.
 
-        ``om`` (n,) are the speeds at ``t``; ``alpha_steps`` (n - 1,) the acceleration of
-        each step (no step straddles a speed knot)."""
+        ``co`` holds the coefficients at the speeds of ``t`` (:meth:`_coeffs`);
+        ``alpha_steps`` (n - 1,) the acceleration of each step (no step straddles a speed
+        knot)."""
         n = t.size
         A = np.empty((n, a0.size), complex)
         A[0] = a0
         if n == 1 or a0.size == 0:
             return A
         h = np.diff(t)
-        mu0, c0 = self._mu_c(om[:-1], alpha_steps)
-        mu1, c1 = self._mu_c(om[1:], alpha_steps)
+        mu0 = self._mu(co, alpha_steps, slice(0, n - 1))
+        mu1 = self._mu(co, alpha_steps, slice(1, n))
+        c0, c1 = co[5][:-1], co[5][1:]
+        om = co[0]
         self.stats["exact"] += a0.size
         zw_max = float(np.max(self._zeta * self._w_at(np.array([om.min(), om.max()]))[0]))
         span = 300.0 / max(zw_max, 1e-9)  # keeps exp(-+ int mu) of a stretch in range
@@ -278,7 +291,7 @@ class SpeedDependentIntegrator:
         with np.errstate(all="ignore"):
             a0 = (-c / mu - c_d / mu**2 + c * mu_d / mu**3)[0]
         a0 = np.where(np.isfinite(a0), a0, 0.0)
-        A = self._propagate(a0, tau, om, np.full(n, al0))
+        A = self._propagate(a0, tau, self._coeffs(om), np.full(n, al0))
         return A[-1].reshape(self.active.size, -1)
 
     def advance(self, t_grid: np.ndarray, keep_modal: bool = False, out: np.ndarray | None = None,
@@ -295,61 +308,73 @@ class SpeedDependentIntegrator:
         _, om, al_pts = self.speed.state(t_grid)
         n, n_exc, n_act = t_grid.size, self._n_exc, self.active.size
         a0 = np.concatenate([self.a_plus, self.a_minus], axis=1).ravel()
+        co = self._coeffs(om)
         if n > 1:
             al_steps = self.speed.alpha[self.speed.segment(0.5 * (t_grid[:-1] + t_grid[1:]))]
-            A = self._propagate(a0, t_grid, om, al_steps)
+            A = self._propagate(a0, t_grid, co, al_steps)
         else:
             A = a0[None].copy()
         A3 = A.reshape(n, n_act, 2 * n_exc)
         self.a_plus, self.a_minus = A3[-1, :, :n_exc].copy(), A3[-1, :, n_exc:].copy()
         self.t = float(t_grid[-1])
         sl = slice(first, None)
-        mu, c = self._mu_c(om[sl], al_pts[sl])
-        D3 = (mu * A[sl] + c).reshape(-1, n_act, 2 * n_exc)
+        D3 = (self._mu(co, al_pts[sl], sl) * A[sl] + co[5][sl]).reshape(-1, n_act, 2 * n_exc)
         Ap, Am = A3[sl, :, :n_exc], A3[sl, :, n_exc:]
         Y = Ap - np.conj(Am)  # (m, n_act, n_exc)
         dY = D3[..., :n_exc] - np.conj(D3[..., n_exc:])
         om_s, al_s = om[sl], al_pts[sl]
-        w, beta = self._w_at(om_s)
-        wd = self._sq * w
-        dwd = self._sq * beta * al_s[:, None]
+        wd = self._sq * co[1][sl]
+        dwd = self._sq * co[2][sl] * al_s[:, None]
         X = Y / wd[..., None]
         dX = dY / wd[..., None] - Y * (dwd / wd**2)[..., None]
         ds = 2.0 * om_s * al_s  # ds/dt
-        GD = self._blade_sum(X, dX, om_s * om_s, ds)  # (2, n_exc, m, nb * r) complex
+        GD = self._blade_sum(X, dX, om_s * om_s, ds)  # (2, n_exc, 2, m, nb * r): G / dG, re / im
         if out is not None:
-            for g in range(2):
-                for m in range(n_exc):
-                    out[g, m, 0] = GD[g, m].real
-                    out[g, m, 1] = GD[g, m].imag
+            out[...] = GD
             return None
-        GD = GD.reshape(2, n_exc, -1, self.n_blades, self.r).transpose(0, 2, 1, 3, 4)
+        GD = (GD[:, :, 0] + 1j * GD[:, :, 1]).reshape(2, n_exc, -1, self.n_blades, self.r).transpose(0, 2, 1, 3, 4)
         return EnvelopeGrid(t=t_grid[sl], G=GD[0], dG=GD[1],
                             a_plus=Ap.copy() if keep_modal else None, a_minus=Am.copy() if keep_modal else None)
 
     def _blade_sum(self, X, dX, s, ds):
-        """``sum_k psi_k(s) X_k`` and ``sum_k (psi_k(s) dX_k + dpsi_k/ds ds/dt X_k)``.
+        """``G = sum_k psi_k(s) X_k`` and ``dG = sum_k (psi_k(s) dX_k + dpsi_k/ds ds/dt X_k)`` as
+        real planes (2 [G, dG], n_exc, 2 [re, im], m, n_blades * r).
 
-        ``psi`` is a cubic in ``s - s_i`` on each spline interval ``i``: per interval present,
-        one matrix product per power (only the powers the spline uses)."""
+        ``psi`` is a polynomial in ``d = s - s_i`` on each spline interval ``i`` (only the
+        powers the spline uses): per interval present, one real matrix product of the
+        stacked ``(X d^p, dX d^p + p d^(p-1) ds/dt X)`` rows by the stacked coefficients."""
         spl = self._psi
         m, n_act, n_exc = X.shape
-        out = np.zeros((2, n_exc, m, spl.c.shape[-1]), complex)
+        nbr = spl.c.shape[-1]
+        out = np.empty((2, n_exc, 2, m, nbr))
         ival = np.clip(np.searchsorted(spl.x, s, side="right") - 1, 0, spl.x.size - 2)
         deg = self._psi_deg
+        Xt = X.transpose(2, 0, 1)  # (n_exc, m, n_act)
+        dXt = dX.transpose(2, 0, 1)
         for i in np.unique(ival):
-            rows = np.flatnonzero(ival == i) if spl.x.size > 2 else slice(None)
-            d = (s[rows] - spl.x[i])[:, None]
-            for p in range(deg + 1):  # psi = sum_p coef_p d^p, coef_p = c[3 - p, i]
-                P = spl.c[3 - p, i]  # (n_act, nb * r)
-                dp = d**p
-                for mm in range(n_exc):
-                    xg = X[rows, :, mm] * dp
-                    xd = dX[rows, :, mm] * dp
-                    if p > 0:
-                        xd = xd + X[rows, :, mm] * (p * d ** (p - 1) * ds[rows, None])
-                    out[0, mm, rows] += _cmatmul(xg, P)
-                    out[1, mm, rows] += _cmatmul(xd, P)
+            rows = np.flatnonzero(ival == i)
+            whole = rows.size == m
+            xg, xd = (Xt, dXt) if whole else (Xt[:, rows], dXt[:, rows])
+            d = (s if whole else s[rows]) - spl.x[i]
+            dsr = ds if whole else ds[rows]
+            mi = d.size
+            M = np.empty((2, n_exc, mi, deg + 1, n_act), complex)  # G / dG rows, powers side by side
+            dp_prev = None
+            dp = np.ones(mi)
+            for p in range(deg + 1):
+                M[0, :, :, p] = xg * dp[:, None]
+                M[1, :, :, p] = xd * dp[:, None]
+                if p > 0:
+                    M[1, :, :, p] += xg * (p * dp_prev * dsr)[:, None]
+                dp_prev, dp = dp, dp * d
+            P = spl.c[3 - np.arange(deg + 1), i].reshape((deg + 1) * n_act, nbr)
+            M = M.reshape(2, n_exc, mi, -1)
+            R = np.stack([M.real, M.imag], axis=2)  # (2, n_exc, 2, mi, (deg + 1) n_act)
+            Z = (R.reshape(-1, R.shape[-1]) @ P).reshape(2, n_exc, 2, mi, nbr)
+            if whole:
+                out[...] = Z
+            else:
+                out[:, :, :, rows] = Z
         return out
 
     # -- refined grid where a free response is present --------------------------------------
@@ -470,10 +495,3 @@ def _degree(spl) -> int:
             return p
     return 0
 
-
-def _cmatmul(x: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Complex (m, n) times real (n, j) as two real products."""
-    out = np.empty((x.shape[0], P.shape[1]), complex)
-    out.real = x.real @ P
-    out.imag = x.imag @ P
-    return out
