@@ -292,3 +292,15 @@ def test_a_lead_in_cut_short_by_the_model_speeds_warns(one_family):
                               "speed": {"start_rpm": 4199.0, "segments": [{"duration_s": 0.1, "end_rpm": 4150.0}]}})
     sim = RunUpSimulator(scn, m)
     assert len(sim.integrator.warnings) == 1 and "lead-in" in sim.integrator.warnings[0]
+
+
+def test_scenario_check_refuses_a_run_beyond_the_model_speeds(one_family, tmp_path, capsys):
+    _, m = one_family
+    path = tmp_path / "sd.npz"
+    save_model(m, path)
+    scn = tmp_path / "s.toml"
+    scn.write_text(f'[model]\nsource = "{path}"\n[speed]\nstart_rpm = 4000.0\n'
+                   '[[speed.segments]]\nduration_s = 1.0\nend_rpm = 4300.0\n')
+    assert cli.main(["scenario", "--check", str(scn)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "4300 rpm" in err and "stop at 4200 rpm" in err, err
