@@ -191,6 +191,20 @@ def _quasi_steady_pkpk(m, excitations, active, om):
     return 2 * np.abs(np.einsum("nk,nkb->nb", C * H, eqv))
 
 
+def _quasi_steady_u(m, excitations, om):
+    """Harmonic complex amplitude of P_nom's (radial, tangential, axial) motion at speeds
+    ``om`` (n,) with the interpolated modes, one excitation: shape (n, n_blades, 3)."""
+    sm = speed_modes(m)
+    s = om**2
+    wk = 2 * np.pi * sm.freq_hz(om)
+    Cs = _forcing_at_speeds(m, excitations)[:, :, 0]
+    C = sm.spline(Cs.real)(s) + 1j * sm.spline(Cs.imag)(s)
+    tip = sm.spline(m.extra["tip_shapes_at_speed"][:, :, :, m.nominal_node])(s)  # (n, k, b, 3)
+    wf = excitations[0].engine_order * om[:, None]
+    H = 1.0 / (wk**2 - wf**2 + 2j * m.damping_ratio * wk * wf)
+    return np.abs(np.einsum("nk,nkbc->nbc", C * H, tip))
+
+
 def _window(start_rpm, duration_s, initial, rate=RATE):
     return {"model": {"n_families": 1},
             "speed": {"start_rpm": start_rpm, "initial": initial,
@@ -304,3 +318,26 @@ def test_scenario_check_refuses_a_run_beyond_the_model_speeds(one_family, tmp_pa
     assert cli.main(["scenario", "--check", str(scn)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "4300 rpm" in err and "stop at 4200 rpm" in err, err
+
+
+def test_tip_amplitude_check_sees_the_shifted_resonance(one_family):
+    """A strongly stiffened family (kappa = 6: the ND 1 crossing moves from 2579 to 2709 rpm)
+    and a run-up across the shifted crossing only: the amplitude estimate with the modes
+    frozen at the Campbell crossings finds the resonant amplitude of P_nom, which the
+    zero-speed modes (130 rpm = 4 half-power bandwidths away) would miss; a force that makes
+    it too large is refused."""
+    from bttsim_stream.sim.core import check_tip_amplitude
+
+    m0, _ = one_family
+    m = southwell_model(m0, np.linspace(0.0, TOP, 3), 6.0)
+    case = _window(2690.0, 1.0, "steady", rate=40.0)
+    scn = scenario_from_dict(case)
+    amp = check_tip_amplitude(scn, m)
+    om = np.array([_resonance_rpm(m0.freq_hz[np.flatnonzero(m0.nodal_diameter == 1)[0]], kappa=6.0) * RPM])
+    peak = np.max(np.linalg.norm(_quasi_steady_u(m, scn.excitation, om), axis=-1))
+    print(amp, peak, check_tip_amplitude(scn, m0))
+    assert peak * 0.99 <= amp <= peak * 1.2
+    assert amp > 3 * check_tip_amplitude(scn, m0)
+    loud = scenario_from_dict(dict(case, excitation=[{"engine_order": 8, "nodal_diameter": 1, "amplitude_n": 40.0}]))
+    with pytest.raises(BttsimError, match="lower the force"):
+        check_tip_amplitude(loud, m)

@@ -36,7 +36,9 @@ from .modal_model import SPEED_ARRAYS, ModalModel
 if TYPE_CHECKING:
     from scipy.interpolate import CubicSpline
 
-__all__ = ["SpeedModes", "speed_modes", "is_speed_dependent", "check_speed_range", "southwell_model"]
+__all__ = ["SpeedModes", "speed_modes", "is_speed_dependent", "check_speed_range", "model_at_speed",
+           "crossing_speeds",
+           "southwell_model"]
 
 RPM = 2.0 * np.pi / 60.0
 
@@ -105,6 +107,39 @@ def check_speed_range(model: ModalModel, max_speed_rad_s: float, where: str = "[
             f"{where}: the run reaches {max_speed_rad_s / RPM:.6g} rpm but the speed-dependent model's modes "
             f"stop at {top / RPM:.6g} rpm (speed_rad_s[-1] = {top:.6g} rad/s); give the model modes up to the "
             "run's top speed or slow the run down")
+
+
+def model_at_speed(model: ModalModel, omega: float) -> ModalModel:
+    """The modes frozen at speed ``omega`` (rad/s, interpolated) as a zero-speed model (for
+    estimates that take constant modes, e.g. the tip amplitude check)."""
+    ex = model.extra
+    sp = np.asarray(ex["speed_rad_s"], float)
+    s = np.array([float(omega) ** 2])
+
+    def at(k):
+        return _spline(sp, ex[k])(s)[0]
+
+    extra = {k: v for k, v in ex.items() if not (k.endswith("_at_speed") or k == "speed_rad_s")}
+    if "force_shapes_trailing_edge_at_speed" in ex:
+        extra["force_shapes_trailing_edge"] = at("force_shapes_trailing_edge_at_speed")
+    freq = np.sqrt(_spline(sp, (2.0 * np.pi * np.asarray(ex["freq_hz_at_speed"], float)) ** 2)(s)[0]) / (2.0 * np.pi)
+    return replace(model, freq_hz=freq, tip_shapes=at("tip_shapes_at_speed"), force_shapes=at("force_shapes_at_speed"),
+                   campbell_freq_hz=None, extra=extra)
+
+
+def crossing_speeds(model: ModalModel, engine_orders, lo_rad_s: float, hi_rad_s: float) -> np.ndarray:
+    """Speeds in ``[lo, hi]`` (rad/s) where an engine-order line ``EO Omega`` meets a mode's
+    interpolated frequency ``w_k(Omega)`` (the Campbell diagram's crossings), ascending and
+    rounded to 1e-3 rad/s (located on a 2001-point grid, then linearly)."""
+    om = np.linspace(lo_rad_s, hi_rad_s, 2001)
+    w = 2.0 * np.pi * speed_modes(model).freq_hz(om)  # (n, n_modes)
+    out = []
+    for eo in np.unique(np.asarray(engine_orders, float)):
+        g = eo * om[:, None] - w
+        i, k = np.nonzero(np.sign(g[:-1]) != np.sign(g[1:]))
+        x = g[i, k] / (g[i, k] - g[i + 1, k])
+        out.append(om[i] + x * (om[i + 1] - om[i]))
+    return np.unique(np.round(np.concatenate(out + [np.zeros(0)]), 3))
 
 
 def southwell_model(model: ModalModel, speed_rad_s, kappa, shape_change: float = 0.0) -> ModalModel:

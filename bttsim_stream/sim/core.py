@@ -20,7 +20,7 @@ import numpy as np
 from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from ..model.speed_modes import check_speed_range, is_speed_dependent
+from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, model_at_speed
 from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
 from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
@@ -214,8 +214,11 @@ def check_tip_amplitude(scn, model) -> float:
     tip radius.
 
     A model with speed-dependent modes must also hold modes up to the profile's top speed
-    (:func:`~bttsim_stream.model.speed_modes.check_speed_range`); its amplitude estimate uses
-    the zero-speed modes (the stiffened resonances have about the same peak).
+    (:func:`~bttsim_stream.model.speed_modes.check_speed_range`); its estimate is the largest
+    over its modes frozen (:func:`~bttsim_stream.model.speed_modes.model_at_speed`) at the
+    profile's slowest and fastest speeds and at every Campbell crossing in between
+    (:func:`~bttsim_stream.model.speed_modes.crossing_speeds`), where the frozen modes are
+    resonant at that very speed.
 
     Returns
     -------
@@ -227,9 +230,15 @@ def check_tip_amplitude(scn, model) -> float:
     BttsimError
         One line naming the amplitude, the limit and the force to lower (or the speed).
     """
+    speed = speed_profile_from_scenario(scn)
     if is_speed_dependent(model):
-        check_speed_range(model, float(np.max(speed_profile_from_scenario(scn).omega)))
-    amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed_profile_from_scenario(scn))))
+        check_speed_range(model, float(np.max(speed.omega)))
+        lo, hi = float(np.min(speed.omega)), float(np.max(speed.omega))
+        at = np.concatenate(([lo, hi], crossing_speeds(model, [e.engine_order for e in scn.excitation], lo, hi)))
+        amp = max(float(np.max(steady_tip_amplitude(model_at_speed(model, om), scn.excitation, speed)))
+                  for om in at)
+    else:
+        amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed)))
     radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
     limit = MAX_TIP_AMPLITUDE_FRACTION * radius
     if not amp <= limit:
