@@ -36,7 +36,7 @@ from .modal_model import SPEED_ARRAYS, ModalModel
 if TYPE_CHECKING:
     from scipy.interpolate import CubicSpline
 
-__all__ = ["SpeedModes", "speed_modes", "is_speed_dependent", "check_speed_range", "model_at_speed",
+__all__ = ["SpeedModes", "speed_modes", "is_speed_dependent", "check_speed_range", "models_at_speeds",
            "crossing_speeds",
            "southwell_model"]
 
@@ -109,22 +109,25 @@ def check_speed_range(model: ModalModel, max_speed_rad_s: float, where: str = "[
             "run's top speed or slow the run down")
 
 
-def model_at_speed(model: ModalModel, omega: float) -> ModalModel:
-    """The modes frozen at speed ``omega`` (rad/s, interpolated) as a zero-speed model (for
-    estimates that take constant modes, e.g. the tip amplitude check)."""
+def models_at_speeds(model: ModalModel, omega) -> list[ModalModel]:
+    """The modes frozen at each speed of ``omega`` (rad/s, interpolated) as zero-speed models
+    (for estimates that take constant modes, e.g. the tip amplitude check)."""
     ex = model.extra
     sp = np.asarray(ex["speed_rad_s"], float)
-    s = np.array([float(omega) ** 2])
-
-    def at(k):
-        return _spline(sp, ex[k])(s)[0]
-
-    extra = {k: v for k, v in ex.items() if not (k.endswith("_at_speed") or k == "speed_rad_s")}
-    if "force_shapes_trailing_edge_at_speed" in ex:
-        extra["force_shapes_trailing_edge"] = at("force_shapes_trailing_edge_at_speed")
-    freq = np.sqrt(_spline(sp, (2.0 * np.pi * np.asarray(ex["freq_hz_at_speed"], float)) ** 2)(s)[0]) / (2.0 * np.pi)
-    return replace(model, freq_hz=freq, tip_shapes=at("tip_shapes_at_speed"), force_shapes=at("force_shapes_at_speed"),
-                   campbell_freq_hz=None, extra=extra)
+    s = np.square(np.atleast_1d(np.asarray(omega, float)))
+    keys = [k for k in ("tip_shapes_at_speed", "force_shapes_at_speed", "force_shapes_trailing_edge_at_speed")
+            if k in ex]
+    vals = {k: _spline(sp, ex[k])(s) for k in keys}
+    w2 = _spline(sp, (2.0 * np.pi * np.asarray(ex["freq_hz_at_speed"], float)) ** 2)(s)
+    base = {k: v for k, v in ex.items() if not (k.endswith("_at_speed") or k == "speed_rad_s")}
+    out = []
+    for i in range(s.size):
+        extra = dict(base)
+        if "force_shapes_trailing_edge_at_speed" in vals:
+            extra["force_shapes_trailing_edge"] = vals["force_shapes_trailing_edge_at_speed"][i]
+        out.append(replace(model, freq_hz=np.sqrt(w2[i]) / (2.0 * np.pi), tip_shapes=vals["tip_shapes_at_speed"][i],
+                           force_shapes=vals["force_shapes_at_speed"][i], campbell_freq_hz=None, extra=extra))
+    return out
 
 
 def crossing_speeds(model: ModalModel, engine_orders, lo_rad_s: float, hi_rad_s: float) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, model_at_speed
+from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, models_at_speeds
 from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
 from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
@@ -215,7 +215,7 @@ def check_tip_amplitude(scn, model) -> float:
 
     A model with speed-dependent modes must also hold modes up to the profile's top speed
     (:func:`~bttsim_stream.model.speed_modes.check_speed_range`); its estimate is the largest
-    over its modes frozen (:func:`~bttsim_stream.model.speed_modes.model_at_speed`) at the
+    over its modes frozen (:func:`~bttsim_stream.model.speed_modes.models_at_speeds`) at the
     profile's slowest and fastest speeds and at every Campbell crossing in between
     (:func:`~bttsim_stream.model.speed_modes.crossing_speeds`), where the frozen modes are
     resonant at that very speed.
@@ -235,8 +235,8 @@ def check_tip_amplitude(scn, model) -> float:
         check_speed_range(model, float(np.max(speed.omega)))
         lo, hi = float(np.min(speed.omega)), float(np.max(speed.omega))
         at = np.concatenate(([lo, hi], crossing_speeds(model, [e.engine_order for e in scn.excitation], lo, hi)))
-        amp = max(float(np.max(steady_tip_amplitude(model_at_speed(model, om), scn.excitation, speed)))
-                  for om in at)
+        amp = max(float(np.max(steady_tip_amplitude(frozen, scn.excitation, speed)))
+                  for frozen in models_at_speeds(model, at))
     else:
         amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed)))
     radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))

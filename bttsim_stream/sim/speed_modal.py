@@ -403,43 +403,50 @@ class SpeedDependentIntegrator:
         wn = (wn / w_min)[self._k_col]
 
         def qs(om, alpha):
-            mu, c = self._mu_c(np.array([om]), alpha)
-            d = 1e-4 * max(om, 1.0)
-            mu_d = (self._mu_c(np.array([om + d]), alpha)[0] - self._mu_c(np.array([om - d]), alpha)[0]) / (2 * d)
-            return quasi_steady_envelope(c[0], mu[0], mu_d[0] * alpha)  # m1 = dmu/dt
+            """Quasi-steady envelopes (n, n_cols) at speeds ``om`` (n,), accelerations ``alpha`` (n,)."""
+            mu, c = self._mu_c(om, alpha)
+            d = 1e-4 * np.maximum(om, 1.0)
+            mu_d = (self._mu_c(om + d, alpha)[0] - self._mu_c(om - d, alpha)[0]) / (2 * d)[:, None]
+            return quasi_steady_envelope(c, mu, mu_d * alpha[:, None])  # m1 = dmu/dt
 
         a0 = np.concatenate([self.a_plus, self.a_minus], axis=1).ravel()
         n_seg = T.size - 1
+        # per segment: mu and c at both end speeds (the segment's acceleration), slowest decay
+        mu_lo, c_lo = self._mu_c(Om[:-1], al[:-1])
+        mu_hi, c_hi = self._mu_c(Om[1:], al[:-1])
+        zw_k = self._zeta * self._w_at(Om)[0]
+        sig = np.minimum(zw_k[:-1], zw_k[1:])[:, self._k_col]  # (n_seg, n_cols)
         with np.errstate(all="ignore"):
-            e = np.abs(a0 - qs(float(Om[0]), float(al[0]))) if np.all(a0 == 0) else np.zeros(a0.size)
+            e = np.abs(a0 - qs(Om[:1], al[:1])[0]) if np.all(a0 == 0) else np.zeros(a0.size)
+            # jumps of the quasi-steady envelope at the inner knots, all at once
+            jump = (np.abs(qs(Om[1:n_seg], al[:n_seg - 1]) - qs(Om[1:n_seg], al[1:n_seg])) if n_seg > 1
+                    else np.zeros((0, a0.size)))
             for k in range(n_seg):
                 if k > 0:
-                    zw = np.min(self._zeta * self._w_at(Om[k - 1:k + 1])[0], axis=0)[self._k_col]
-                    e = e * np.exp(-zw * (T[k] - T[k - 1]))
-                    e = e + np.abs(qs(float(Om[k]), float(al[k - 1])) - qs(float(Om[k]), float(al[k])))
+                    e = e * np.exp(-sig[k - 1] * (T[k] - T[k - 1])) + jump[k - 1]
                 e = np.where(np.isfinite(e), e, 0.0)
                 if not np.any(e * wn > 0):
                     continue
-                pts = self._refine_segment(k, e, wn, h_max, radius_m, reach_m, tol_s)
+                pts = self._refine_segment(k, e, wn, h_max, radius_m, reach_m, tol_s,
+                                           (mu_lo[k], mu_hi[k]), np.maximum(np.abs(c_lo[k]), np.abs(c_hi[k])),
+                                           sig[k])
                 if pts.size > 1:
                     out[k] = pts
         return out
 
-    def _refine_segment(self, k, e, wn, h_max, radius_m, reach_m, tol_s) -> np.ndarray:
-        """As :meth:`EnvelopeIntegrator._refine_segment`, with the segment's end speeds' modes."""
+    def _refine_segment(self, k, e, wn, h_max, radius_m, reach_m, tol_s, mu_ends, c, sig) -> np.ndarray:
+        """As :meth:`EnvelopeIntegrator._refine_segment`, with the segment's end speeds' modes
+        (``mu_ends``: ``mu`` at both ends; ``c``: the larger ``|c|``; ``sig``: the slower decay)."""
         sp = self.speed
         t_k, t_end = float(sp.t_s[k]), float(sp.t_s[k + 1])
         om_k, alpha = float(sp.omega[k]), float(sp.alpha[k])
-        ends = np.array([om_k, float(sp.omega[k + 1])])
-        mu_e, c_e = self._mu_c(ends, alpha)
-        sig = np.min(self._zeta * self._w_at(ends)[0], axis=0)[self._k_col]
-        c = np.max(np.abs(c_e), axis=0)
-        S0 = wn * e * np.max(np.abs(mu_e), axis=0) ** 4 / 24.0
+        S0 = wn * e * np.maximum(np.abs(mu_ends[0]), np.abs(mu_ends[1])) ** 4 / 24.0
         zone = t_end - t_k
         pts = np.array([t_k])
         for _ in range(2):
             om_b = om_k + alpha * zone
-            mu_ab, _c = self._mu_c(np.array([om_k, om_b]), alpha)
+            mu_b = mu_ends[1] if zone == t_end - t_k else self._mu_c(np.array([om_b]), alpha)[0][0]
+            mu_ab = np.stack([mu_ends[0], mu_b])
             im_a, im_b = mu_ab[0].imag, mu_ab[1].imag
             mu_min = np.where(im_a * im_b <= 0, sig, np.min(np.abs(mu_ab), axis=0))
             with np.errstate(divide="ignore"):
