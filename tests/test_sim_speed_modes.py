@@ -341,3 +341,12 @@ def test_tip_amplitude_check_sees_the_shifted_resonance(one_family):
     loud = scenario_from_dict(dict(case, excitation=[{"engine_order": 8, "nodal_diameter": 1, "amplitude_n": 40.0}]))
     with pytest.raises(BttsimError, match="lower the force"):
         check_tip_amplitude(loud, m)
+
+
+def test_speed_dependent_output_does_not_depend_on_the_chunking(one_family):
+    _, m = one_family
+    scn = scenario_from_dict(_window(2605.0, 0.6, "steady"))
+    a = collect(RunUpSimulator(scn, m, chunk_revolutions=3))
+    b = collect(RunUpSimulator(scn, m, chunk_revolutions=7))
+    np.testing.assert_array_equal(a.toa_s, b.toa_s)
+    np.testing.assert_array_equal(a.truth.d_eqv_m, b.truth.d_eqv_m)
