@@ -167,10 +167,11 @@ def _reference_toas(sim, run, blades, t_start, y0):
 def _forcing_at_speeds(m, excitations):
     """Modal forces (S, n_modes, n_exc) from the force shapes at each sample speed (Eq. 5-7)."""
     out = []
+    te = m.extra["force_shapes_trailing_edge_at_speed"]
     for i in range(m.extra["speed_rad_s"].size):
         view = type("V", (), {"n_blades": m.n_blades, "n_modes": m.n_modes,
                               "force_shapes": m.extra["force_shapes_at_speed"][i],
-                              "extra": {"force_shapes_trailing_edge": m.extra["force_shapes_trailing_edge_at_speed"][i]}})
+                              "extra": {"force_shapes_trailing_edge": te[i]}})
         out.append(modal_forcing(view, excitations)[0])
     return np.stack(out)
 

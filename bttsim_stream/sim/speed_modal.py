@@ -183,14 +183,15 @@ class SpeedDependentIntegrator:
         self._eo_col = np.tile(np.concatenate([self.eo[0], -self.eo[0]]), act.size)
         self._n_exc = n_exc
         self.max_speed_rad_s = sm.max_speed_rad_s
-        phi0, om0, al0 = (float(x) for x in speed.state(0.0))
+        _, om0, al0 = (float(x) for x in speed.state(0.0))
         shape = (act.size, n_exc)
         if initial == "rest" or act.size == 0:
             self.a_plus, self.a_minus = np.zeros(shape, complex), np.zeros(shape, complex)
         else:
             a = self._lead_in(om0, al0)
             self.a_plus, self.a_minus = a[:, :n_exc].copy(), a[:, n_exc:].copy()
-        self.lam = (-self._zeta * self._w_at(om0)[0] + 1j * self._sq * self._w_at(om0)[0])[:, None]
+        w0 = self._w_at(om0)[0][0]
+        self.lam = (-self._zeta * w0 + 1j * self._sq * w0)[:, None]  # at t = 0 (for reference)
 
     # -- coefficients at speeds -------------------------------------------------------------
     def _w_at(self, om):
@@ -199,7 +200,7 @@ class SpeedDependentIntegrator:
         s = om * om
         w2 = self._w2(s)
         w = np.sqrt(w2)
-        beta = self._w2(s, 1) * (om / 1.0)[:, None] / w
+        beta = self._w2(s, 1) * om[:, None] / w  # dw/dOmega = (dw^2/ds) Omega / w
         return w, beta
 
     def _coeffs(self, om):
