@@ -20,7 +20,9 @@ import numpy as np
 from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
+from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, models_at_speeds
 from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
                      centrifugal_growth_m, pulse_parameters, synthesise)
 from .speed import SpeedProfile, speed_profile_from_scenario
@@ -211,6 +213,13 @@ def check_tip_amplitude(scn, model) -> float:
     must stay within :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` (5 %) of the
     tip radius.
 
+    A model with speed-dependent modes must also hold modes up to the profile's top speed
+    (:func:`~bttsim_stream.model.speed_modes.check_speed_range`); its estimate is the largest
+    over its modes frozen (:func:`~bttsim_stream.model.speed_modes.models_at_speeds`) at the
+    profile's slowest and fastest speeds and at every Campbell crossing in between
+    (:func:`~bttsim_stream.model.speed_modes.crossing_speeds`), where the frozen modes are
+    resonant at that very speed.
+
     Returns
     -------
     float
@@ -219,9 +228,17 @@ def check_tip_amplitude(scn, model) -> float:
     Raises
     ------
     BttsimError
-        One line naming the amplitude, the limit and the force to lower.
+        One line naming the amplitude, the limit and the force to lower (or the speed).
     """
-    amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed_profile_from_scenario(scn))))
+    speed = speed_profile_from_scenario(scn)
+    if is_speed_dependent(model):
+        check_speed_range(model, float(np.max(speed.omega)))
+        lo, hi = float(np.min(speed.omega)), float(np.max(speed.omega))
+        at = np.concatenate(([lo, hi], crossing_speeds(model, [e.engine_order for e in scn.excitation], lo, hi)))
+        amp = max(float(np.max(steady_tip_amplitude(frozen, scn.excitation, speed)))
+                  for frozen in models_at_speeds(model, at))
+    else:
+        amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed)))
     radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
     limit = MAX_TIP_AMPLITUDE_FRACTION * radius
     if not amp <= limit:
@@ -293,9 +310,14 @@ class RunUpSimulator:
         self.psi = np.mod(self.probe_actual[None, :] - self.theta_p[:, None] - self.theta_opr, TWO_PI)
         C, eo = modal_forcing(m, scn.excitation)
         self.eo = eo
-        self.basis = tip_basis(m.tip_shapes)
-        self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
-                                             self.speed, initial=scn.speed.initial if initial is None else initial)
+        initial = scn.speed.initial if initial is None else initial
+        if is_speed_dependent(m):  # modes that follow the speed (centrifugal effects): their own path
+            self.basis, psi_at_speed = speed_tip_basis(m)
+            self.integrator = SpeedDependentIntegrator(m, scn.excitation, psi_at_speed, self.speed, initial=initial)
+        else:
+            self.basis = tip_basis(m.tip_shapes)
+            self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
+                                                 self.speed, initial=initial)
         # shorter envelope steps where a free response is present (a start from rest, a speed knot)
         radius = float(np.mean(m.tip_ref[:, p, 0]))
         near = np.argsort(np.abs(m.tip_ref[..., 2] - self.z_probe), axis=1)[:, :4]  # candidate nodes
