@@ -980,7 +980,7 @@ class Flutter:
     start_rpm : float
         Onset speed, rpm, default 0 (off); > 0: the first time the speed profile reaches it.
     aero_damping_ratio : float
-        Aerodynamic (negative) damping ratio ``zeta_aero``, default 0.006; in (0, 1); must
+        Aerodynamic (negative) damping ratio ``zeta_aero``, default 0.02; in (0, 1); must
         exceed the mode's structural damping ratio.
     limit_amplitude_m : float
         Limit-cycle amplitude, m pk-pk, default 2e-4; > 0.
@@ -997,7 +997,7 @@ class Flutter:
     start_s: float = field(default=0.0, metadata=_doc("onset time, s; >= 0 (when start_rpm is 0)"))
     start_rpm: float = field(default=0.0, metadata=_doc(
         "onset speed, rpm; 0: off, > 0: the first time the speed profile reaches it"))
-    aero_damping_ratio: float = field(default=0.006, metadata=_doc(
+    aero_damping_ratio: float = field(default=0.02, metadata=_doc(
         "negative aerodynamic damping ratio; in (0, 1), above the mode's structural damping"))
     limit_amplitude_m: float = field(default=2e-4, metadata=_doc(
         "limit-cycle amplitude, m pk-pk (d_eqv at P_nom); > 0"))

@@ -20,7 +20,7 @@ import numpy as np
 from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .modal import TRANSIENT_TOL_S, EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
 from .nsv import build_nsv
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
                      centrifugal_growth_m, pulse_parameters, synthesise)
@@ -346,6 +346,14 @@ class RunUpSimulator:
         self.grid = GridPoints(self.speed, envelope_step_s,
                                self.integrator.transient_grid(envelope_step_s, radius, reach))
         self.h_env = envelope_step_s
+        if self.nsv is not None and self.nsv.flutter is not None:
+            fw = self.nsv.flutter  # cubic Hermite error of the logistic envelope, <= L sigma^4 h^4 / 384
+            err_m = fw.limit_m * fw.sigma**4 * envelope_step_s**4 / 384.0
+            tol_m = TRANSIENT_TOL_S * radius * float(np.min(self.speed.omega))
+            if err_m > 100.0 * tol_m:
+                msg = (f"[flutter]: growth rate {fw.sigma:.3g} /s is fast for the {envelope_step_s * 1e3:g} ms envelope "
+                       f"grid; TOAs may differ from the exact ones by up to {err_m / tol_m * TRANSIENT_TOL_S:.1g} s")
+                self.integrator.warnings.append(msg)
         self._i_grid = 0
         self._buf_t: np.ndarray | None = None  # envelope grid points kept: [_lo, _hi)
         self._buf: np.ndarray | None = None

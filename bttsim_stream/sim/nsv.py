@@ -21,11 +21,11 @@ Rotating stall / non-integral forcing (``[[rotating_stall]]``)
 
 Flutter (``[flutter]``)
     A travelling wave of one mode pair (family, ND) with negative aerodynamic damping
-    ``zeta_a`` above the structural ``zeta_s``. Modal model: the pair's complex travelling
-    coordinate ``z`` obeys the Van der Pol-type equation
-    ``z'' + 2 zeta_s w z' - 2 zeta_a w (1 - beta |z|^2) z' + w^2 z = 0``; averaged over a
-    cycle (Krylov-Bogoliubov; ``sigma / w`` ~ 1e-3 here), its amplitude obeys the logistic law
-    ``R' = sigma R (1 - R^2 / R_lim^2)``, ``sigma = (zeta_a - zeta_s) w``,
+    ``zeta_a`` above the structural ``zeta_s``; the opposite direction of the pair is taken as
+    aerodynamically stable and is not excited. Model: the wave's modal amplitude obeys the
+    Van der Pol equation ``q'' + 2 zeta_s w q' - 2 zeta_a w (1 - beta q^2) q' + w^2 q = 0``
+    averaged over a cycle (Krylov-Bogoliubov; ``sigma / w`` ~ 1e-2 or less), i.e. the
+    logistic law ``R' = sigma R (1 - R^2 / R_lim^2)``, ``sigma = (zeta_a - zeta_s) w``,
     ``R_lim^2 = 4 (zeta_a - zeta_s) / (zeta_a beta)`` (set by ``limit_amplitude_m``), with the
     closed form ``R(t) = R_lim / sqrt(1 + (R_lim^2 / R_0^2 - 1) exp(-2 sigma (t - t_on)))``
     from the seed ``R_0`` at onset ``t_on`` (``R = 0`` before), at the damped frequency
