@@ -1609,7 +1609,7 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
                 lines.append("[[excitation]]")
                 _emit_table(lines, cls, entry, comments and i == 0)
             continue
-        if name in _OPTIONAL_TABLES and getattr(scn, name) == cls():
+        if name in _OPTIONAL_TABLES and not comments and getattr(scn, name) == cls():
             continue  # written only when changed: a default run's id (a hash of this text) stays
         lines.append("")
         if comments:
