@@ -230,7 +230,7 @@ def load_scenario_model(scn):
     return load_model(scn.model.source)
 
 
-def check_tip_amplitude(scn, model) -> float:
+def check_tip_amplitude(scn, model, nsv=None) -> float:
     """Refuse a scenario whose tip amplitude would leave the linear model's validity.
 
     The largest amplitude of P_nom over the speed profile
@@ -247,8 +247,27 @@ def check_tip_amplitude(scn, model) -> float:
     ------
     BttsimError
         One line naming the amplitude, the limit and the force to lower.
+
+    Notes
+    -----
+    Non-synchronous vibration (:mod:`~bttsim_stream.sim.nsv`) adds its own estimate: the
+    stall and broadband carriers' (``EO Omega + omega`` swept over the profile; the
+    broadband lines summed, an upper bound) and the flutter's limit cycle. ``nsv``: the
+    simulator's :class:`~bttsim_stream.sim.nsv.NsvSetup` (built here when None).
     """
-    amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed_profile_from_scenario(scn))))
+    speed = speed_profile_from_scenario(scn)
+    amp_b = steady_tip_amplitude(model, scn.excitation, speed)
+    has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled
+    if has_nsv:  # the non-synchronous forcing's own estimate, plus the flutter's limit cycle
+        basis = tip_basis(model.tip_shapes)
+        if nsv is None:
+            v = basis.nodes[:, model.nominal_node, :]
+            nsv = build_nsv(scn, model, speed, basis, v[:, 1] + v[:, 2] / np.tan(np.deg2rad(float(model.meta["stagger_deg"]))))
+        if nsv.eo.size:
+            amp_b = amp_b + steady_tip_amplitude(model, (), speed, carriers=(nsv.C, nsv.eo, nsv.omega))
+        if nsv.flutter is not None:
+            amp_b = amp_b + nsv.flutter.tip_amplitude(basis.nodes[:, model.nominal_node, :])
+    amp = float(np.max(amp_b))
     radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
     limit = MAX_TIP_AMPLITUDE_FRACTION * radius
     if not amp <= limit:
@@ -256,7 +275,8 @@ def check_tip_amplitude(scn, model) -> float:
         raise BttsimError(
             f"[[excitation]] amplitude_n = {forces} N: the predicted tip amplitude is {amp * 1e3:.3g} mm, above "
             f"{MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius ({limit * 1e3:.3g} mm of {radius * 1e3:.4g} mm), "
-            f"where the linear modal model no longer holds: lower the force")
+            f"where the linear modal model no longer holds: lower the force"
+            + (" (or the non-synchronous forcing, the flutter limit_amplitude_m)" if has_nsv else ""))
     return amp
 
 
@@ -291,7 +311,6 @@ class RunUpSimulator:
             pass  # a user's model defines the blade count
         if np.any(m.damping_ratio >= 1.0):
             raise BttsimError("model: damping ratios must be < 1 (underdamped modes)")
-        check_tip_amplitude(scn, m)
         self.speed: SpeedProfile = speed_profile_from_scenario(scn)
         seed = scn.run.seed
         self._rng = {name: np.random.default_rng(np.random.SeedSequence([seed, i]))
@@ -325,6 +344,7 @@ class RunUpSimulator:
         # non-synchronous vibration: forced carriers through the recursion, flutter in closed form
         self.nsv = build_nsv(scn, m, self.speed, self.basis, v_eqv)
         self._n_eo = eo.size
+        check_tip_amplitude(scn, m, self.nsv)
         omega = None
         if self.nsv is not None:
             C = np.concatenate([C, self.nsv.C], axis=1)

@@ -293,7 +293,7 @@ def modal_forcing(model, excitations) -> tuple[np.ndarray, np.ndarray]:
     return C, eo
 
 
-def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
+def steady_tip_amplitude(model, excitations, speed: SpeedProfile, carriers=None) -> np.ndarray:
     """Estimated largest amplitude of each blade's nominal tip node over a speed profile.
 
     Parameters
@@ -301,6 +301,11 @@ def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
     model : ModalModel
     excitations : sequence of scenario ``Excitation``
     speed : SpeedProfile
+    carriers : tuple (C, eo, omega), optional
+        Instead of ``excitations``: modal forces (n_modes, n) of carriers of phase
+        ``EO phi(t) + omega t`` (non-synchronous forcing, :mod:`~bttsim_stream.sim.nsv`):
+        the forcing frequency is ``EO Omega + omega`` and its resonance speeds
+        ``(+-w_k - omega) / EO``.
 
     Returns
     -------
@@ -318,7 +323,11 @@ def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
     resonance (with a margin for the Fresnel overshoot); on a dwell it is not (an undamped
     mode at resonance on a dwell grows without bound: infinite).
     """
-    C, eo = modal_forcing(model, excitations)
+    if carriers is None:
+        C, eo = modal_forcing(model, excitations)
+        om_c = np.zeros(eo.size)
+    else:
+        C, eo, om_c = carriers[0], np.asarray(carriers[1], float), np.asarray(carriers[2], float)
     w = 2.0 * np.pi * np.asarray(model.freq_hz, float)
     zeta = np.asarray(model.damping_ratio, float)
     tip = np.asarray(model.tip_shapes[:, :, model.nominal_node, :], float)  # (n_modes, n_blades, 3)
@@ -332,14 +341,21 @@ def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
             act = np.flatnonzero(np.abs(C[:, m]) > 0)
             if act.size == 0:
                 continue
-            res = w[act] / eo[m]  # resonance speed of each responding mode, rad/s
+            if om_c[m] == 0:
+                res = w[act] / eo[m]  # resonance speed of each responding mode, rad/s
+            elif eo[m] == 0:
+                res = np.zeros(0)  # a fixed frequency: the same at every speed
+            else:
+                res = np.concatenate([(w[act] - om_c[m]) / eo[m], (-w[act] - om_c[m]) / eo[m]])
             inside = np.flatnonzero((res >= lo) & (res <= hi))
             om = np.concatenate(([lo, hi], res[inside]))
             we = eo[m] * om[:, None]  # (n_speeds, 1)
+            if om_c[m] != 0:
+                we = we + om_c[m]
             H = 1.0 / (w[act] ** 2 - we**2 + 2j * zeta[act] * w[act] * we)  # (n_speeds, n_act)
             for row in range(om.size):  # a mode crossed on a ramp: sweep-limited
                 on = (seg_lo <= om[row]) & (om[row] <= seg_hi)
-                rate = eo[m] * float(np.min(seg_alpha[on])) if np.any(on) else 0.0
+                rate = abs(eo[m]) * float(np.min(seg_alpha[on])) if np.any(on) else 0.0
                 if rate > 0:
                     cap = 1.25 * np.sqrt(2.0 * np.pi / rate) / (2.0 * w[act])
                     big = ~(np.abs(H[row]) <= cap)

@@ -132,6 +132,12 @@ class FlutterWave:
         dR = self.sigma * R * (1.0 - (R / self.limit_m) ** 2)
         return R, dR
 
+    def tip_amplitude(self, nodes_p: np.ndarray) -> np.ndarray:
+        """Zero-to-peak amplitude of each blade's P_nom at the limit cycle, m (n_blades,);
+        ``nodes_p`` (r, 3): compressed coordinates -> P_nom (radial, tangential, axial)."""
+        A = self.limit_m * (self.shape @ nodes_p)  # (n_blades, 3) complex
+        return np.sqrt(np.sum(np.abs(A) ** 2, axis=1))
+
     def envelope(self, t) -> tuple[np.ndarray, np.ndarray]:
         """Envelope ``G`` and its exact derivative, shape (n, n_blades, r), complex."""
         R, dR = self.amplitude(t)
