@@ -117,3 +117,20 @@ def test_mcap_and_export_carry_the_nsv_truth(tmp_path):
     assert rows.size == ref.opr_s.size and set(rows["nsv_kind"]) == {"rotating_stall"}
     np.testing.assert_array_equal(rows["nsv_freq_hz"], ref.nsv_freq_hz[:, 0])
     np.testing.assert_array_equal(rows["nsv_nd"], 8)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[flutter]\nenabled = true\naero_damping_ratio = 0.005\n", "structural damping ratio"),
+    ("[flutter]\nenabled = true\nfamily = 7\n", "has 0 modes"),
+    ("[flutter]\nenabled = true\nstart_rpm = 5000.0\n", "start_rpm must lie within"),
+    ("[[rotating_stall]]\nspeed_fraction = 1.5\n", "speed_fraction must be in"),
+    ("[broadband]\nenabled = true\nband_hz = [400.0, 300.0]\n", "low < high"),
+    ("[[rotating_stall]]\namplitude_n = 1e4\n", "predicted tip amplitude"),
+], ids=["aero-below-structural", "no-such-family", "onset-outside", "fraction", "band", "too-strong"])
+def test_bad_nsv_values_are_one_line_errors_with_exit_2(tmp_path, text, match):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "simulate", str(path), "--out",
+                          str(tmp_path / "x.mcap")], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2
+    assert match in res.stderr and "Traceback" not in res.stderr and res.stderr.count("\n") == 1
