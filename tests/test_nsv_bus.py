@@ -134,3 +134,21 @@ def test_bad_nsv_values_are_one_line_errors_with_exit_2(tmp_path, text, match):
                           str(tmp_path / "x.mcap")], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.returncode == 2
     assert match in res.stderr and "Traceback" not in res.stderr and res.stderr.count("\n") == 1
+
+
+@pytest.mark.integration
+def test_replay_of_a_stall_recording_carries_the_nsv_truth(tmp_path):
+    """``bttsim replay`` into a recorder node: the replayed recording's truth has the same NSV."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_nodes import _record_a_replay
+
+    direct = tmp_path / "direct.mcap"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "simulate", str(REPO / "examples" /
+                          "rotating_stall.toml"), "--out", str(direct), "-q"], cwd=REPO, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    replayed = load_run(_record_a_replay(direct, tmp_path / "replayed.mcap"))
+    ref = load_run(direct)
+    assert replayed.truth.nsv_kind.shape == ref.truth.nsv_kind.shape == (ref.opr_s.size, 1)
+    for f in NSV_FIELDS:
+        np.testing.assert_array_equal(getattr(replayed.truth, f), getattr(ref.truth, f))
