@@ -218,3 +218,35 @@ def test_flutter_needs_more_aero_damping_than_the_structure():
     scn = scenario_from_dict({**FLUTTER, "flutter": {**FLUTTER["flutter"], "aero_damping_ratio": 0.001}})
     with pytest.raises(BttsimError, match="aero_damping_ratio"):
         RunUpSimulator(scn)
+
+
+def test_stall_truth_amplitude_is_the_steady_frequency_response_on_a_dwell():
+    """On a dwell the stall's pk-pk d_eqv truth is ``2 max_b |sum_k v_kb C_k H_k(EO Omega + omega)|``."""
+    scn = scenario_from_dict({"speed": {"start_rpm": 3000.0, "segments": [{"duration_s": 0.1, "end_rpm": 3000.0}]},
+                              "excitation": [{"amplitude_n": 0.0}],
+                              "rotating_stall": [{"cells": 4, "frequency_hz": 545.0, "amplitude_n": 2.0}]})
+    sim = RunUpSimulator(scn)
+    tr = collect(sim).truth
+    m, nsv = sim.model, sim.nsv
+    w, zeta = 2 * np.pi * m.freq_hz, m.damping_ratio
+    tip = m.tip_shapes[:, :, m.nominal_node, :]
+    v = tip[..., 1] + tip[..., 2] / np.tan(np.deg2rad(float(m.meta["stagger_deg"])))
+    rate = nsv.eo[0] * 3000.0 * np.pi / 30.0 + nsv.omega[0]  # rad/s, negative here
+    H = 1.0 / (w**2 - rate**2 + 2j * zeta * w * rate)
+    A = v.T @ (nsv.C[:, 0] * H)  # (n_blades,)
+    # truth pk-pk is the largest over the revolution's arrivals (blades and probes): all blades alike here
+    np.testing.assert_allclose(tr.nsv_amp_pkpk_m[:, 0], 2 * np.max(np.abs(A)), rtol=1e-3)
+
+
+def test_flutter_onset_at_a_speed():
+    from bttsim_stream.sim.nsv import flutter_onset_s
+
+    scn = scenario_from_dict({"speed": {"start_rpm": 2970.0, "end_rpm": 3030.0, "duration_s": 0.8},
+                              "flutter": {"enabled": True, "start_rpm": 2980.0}})
+    sim = RunUpSimulator(scn)
+    t_on = flutter_onset_s(scn.flutter, sim.speed)
+    assert t_on == pytest.approx(0.8 * 10.0 / 60.0, rel=1e-12)
+    tr = collect(sim).truth
+    before = tr.opr_s + 2 * np.pi / tr.omega_mean < t_on  # whole revolutions before onset
+    assert before.sum() > 3 and np.all(tr.nsv_amp_pkpk_m[before] == 0.0)
+    assert np.all(tr.nsv_amp_pkpk_m[tr.opr_s > t_on] > 0.0)
