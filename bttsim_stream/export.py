@@ -15,6 +15,8 @@ run, blades and probes 0-based. The tables (documented in ``schemas/export.md``)
 ``resonance``             entry, kind, eo, nd, rpm, ..., blade, amp_pkpk_m, freq_hz, E_A_pct, ...
 ``truth``                 revolution, blade, probe, toa_s, t_exp_s, d_eqv_m, ... (when recorded)
 ``truth_revolution``      revolution, blade, opr_s, omega_mean_rad_s, d_eqv_pkpk_m (when recorded)
+``truth_nsv``             revolution, component, nsv_kind, nsv_freq_hz, nsv_nd, ... (non-synchronous
+                          vibration in the truth; when any)
 ========================  ================================================================
 
 plus ``run.json``: the run metadata, the processing summary (the brief's summary JSON), and
@@ -90,7 +92,15 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "d_z_m": ("m", "true axial displacement of P_nom at the TOA"),
     "d_eq1_m": ("m", "Eq. 1 displacement from the simulated TOA and the exact expected time"),
     "omega_mean_rad_s": ("rad/s", "true mean speed over the revolution"),
-    "d_eqv_pkpk_m": ("m", "true pk-pk envelope of d_eqv(t) over the revolution"),
+    "d_eqv_pkpk_m": ("m", "true pk-pk envelope of d_eqv(t) over the revolution (engine orders)"),
+    "component": ("", "non-synchronous vibration component index (scenario order: stalls, broadband, flutter)"),
+    "nsv_kind": ("", "'rotating_stall', 'flutter' or 'broadband'"),
+    "nsv_freq_hz": ("Hz", "true frequency in the rotor frame at the revolution's mean speed (broadband: band centre)"),
+    "nsv_nd": ("", "true signed nodal diameter (+ forward, - backward; broadband 0)"),
+    "nsv_amp_pkpk_m": ("m", "true pk-pk d_eqv at P_nom, largest blade (0 when absent)"),
+    "nsv_rms_m": ("m", "true rms of the component's d_eqv at P_nom over the revolution"),
+    "band_lo_hz": ("Hz", "broadband force band, low end (else 0)"),
+    "band_hi_hz": ("Hz", "broadband force band, high end (else 0)"),
 }
 
 
@@ -241,6 +251,13 @@ def run_tables(run, result=None) -> RunTables:
             _long((n_rev, n_b), ("revolution", "blade"), rev),
             opr_s=_f(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=_f(np.repeat(tr.omega_mean, n_b)),
             d_eqv_pkpk_m=_f(tr.d_eqv_pkpk_m))
+        if tr.nsv_kind is not None and tr.nsv_kind.size:
+            shp = tr.nsv_kind.shape
+            t["truth_nsv"] = dict(
+                _long(shp, ("revolution", "component"), rev), nsv_kind=np.asarray(tr.nsv_kind, str).ravel(),
+                nsv_freq_hz=_f(tr.nsv_freq_hz), nsv_nd=np.asarray(tr.nsv_nd, np.int64).ravel(),
+                nsv_amp_pkpk_m=_f(tr.nsv_amp_pkpk_m), nsv_rms_m=_f(tr.nsv_rms_m),
+                band_lo_hz=_f(tr.nsv_band_hz[..., 0]), band_hi_hz=_f(tr.nsv_band_hz[..., 1]))
     info = {f.name: getattr(run.meta, f.name) for f in fields(run.meta)}
     meta = {"run": _jsonable(info), "summary": _jsonable(result.summary),
             "processing": {"by": "bttsim process (default options)", "options": _jsonable(asdict(result.options)),

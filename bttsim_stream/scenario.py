@@ -53,6 +53,9 @@ __all__ = [
     "Toa",
     "Acquisition",
     "Signal",
+    "RotatingStall",
+    "Flutter",
+    "Broadband",
     "Scenario",
     "SECTIONS",
     "load_scenario",
@@ -928,6 +931,182 @@ class Acquisition:
                               f"{_num(MAX_CLOCK_HZ)}], got {_show(self.clock_hz)}")
 
 
+@dataclass(frozen=True, slots=True)
+class RotatingStall:
+    """``[[rotating_stall]]``: a non-synchronous force pattern of ``cells`` lobes rotating in the
+    stationary frame (rotating stall, or any non-integral forcing); none by default.
+
+    Blade ``b`` (rotor angle ``theta_b = 2 pi b / N_b``) sees
+    ``F cos(N_s (1 - r) phi(t) + N_s theta_b)`` (cells turning at ``r`` times the shaft speed:
+    a non-integer engine order ``N_s (1 - r)``), or with ``frequency_hz = f_s > 0``,
+    ``F cos(N_s phi(t) + N_s theta_b - 2 pi f_s t)`` (a pattern of fixed frequency ``f_s`` in
+    the stationary frame). The spatial pattern is nodal diameter ``N_s mod N_b``
+    (:mod:`bttsim_stream.sim.nsv`).
+
+    Attributes
+    ----------
+    cells : int
+        Number of stall cells (lobes) ``N_s``, default 5; integer in [1, 1000].
+    speed_fraction : float
+        Cell speed in the stationary frame over the shaft speed ``r``, default 0.5; in [0, 1).
+    frequency_hz : float
+        Stationary-frame frequency ``f_s`` of the pattern, Hz, default 0 (off: the cells follow
+        ``speed_fraction``); > 0 replaces ``speed_fraction``.
+    amplitude_n : float
+        Force amplitude per blade, N, default 0.5; >= 0.
+    direction : tuple of float
+        As :class:`Excitation`, default (0, 0, 1).
+    node : str
+        As :class:`Excitation`, default ``"leading_edge"``.
+    """
+
+    cells: int = field(default=5, metadata=_doc("number of stall cells (lobes) N_s; integer in [1, 1000]"))
+    speed_fraction: float = field(default=0.5, metadata=_doc(
+        "cell speed in the stationary frame over the shaft speed; in [0, 1)"))
+    frequency_hz: float = field(default=0.0, metadata=_doc(
+        "stationary-frame frequency of the pattern, Hz; 0: off (cells follow speed_fraction);\n"
+        "> 0 replaces speed_fraction"))
+    amplitude_n: float = field(default=0.5, metadata=_doc("force amplitude per blade, N; >= 0"))
+    direction: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0), metadata=_doc(
+        "force direction (radial, tangential, axial) at the force node; normalised at use"))
+    node: str = field(default="leading_edge", metadata=_doc(
+        'tip-section edge where the force is applied: "leading_edge" or "trailing_edge"'))
+
+    def __post_init__(self) -> None:
+        w = "[[rotating_stall]]"
+        _set(self, "cells", _integer(w, "cells", self.cells, lo=1, hi=MAX_ENGINE_ORDER))
+        _set(self, "speed_fraction", _real(w, "speed_fraction", self.speed_fraction, lo=0, hi=1, hi_open=True))
+        _set(self, "frequency_hz", _real(w, "frequency_hz", self.frequency_hz, lo=0, hi=1e6))
+        _set(self, "amplitude_n", _real(w, "amplitude_n", self.amplitude_n, lo=0))
+        _set(self, "direction", _direction(w, self.direction))
+        _set(self, "node", _string(w, "node", self.node, choices=FORCE_NODES))
+
+
+@dataclass(frozen=True, slots=True)
+class Flutter:
+    """``[flutter]``: a self-excited travelling wave of one mode family and nodal diameter
+    (off by default).
+
+    Negative aerodynamic damping ``aero_damping_ratio`` beyond the mode's structural damping
+    makes the wave grow from ``seed_amplitude_m`` at the onset (``start_s``, or the first time
+    the speed reaches ``start_rpm``) to ``limit_amplitude_m`` along the logistic law of the
+    averaged Van der Pol oscillator, at the mode's damped frequency
+    (:mod:`bttsim_stream.sim.nsv`). Amplitudes are peak-to-peak ``d_eqv`` at P_nom of the
+    blade with the largest.
+
+    Attributes
+    ----------
+    enabled : bool
+        Default false.
+    family : int
+        Mode family, 1-based (1: first bending), default 1; in [1, 20].
+    nodal_diameter : int
+        Signed nodal diameter: > 0 forward, < 0 backward travelling wave (the sign convention of
+        :mod:`bttsim_stream.process.travelling_wave`), default 3; ``|nd| <= n_blades / 2``.
+    start_s : float
+        Onset time, s, default 0; >= 0 (used when ``start_rpm`` is 0).
+    start_rpm : float
+        Onset speed, rpm, default 0 (off); > 0: the first time the speed profile reaches it.
+    aero_damping_ratio : float
+        Aerodynamic (negative) damping ratio ``zeta_aero``, default 0.02; in (0, 1); must
+        exceed the mode's structural damping ratio.
+    limit_amplitude_m : float
+        Limit-cycle amplitude, m pk-pk, default 2e-4; > 0.
+    seed_amplitude_m : float
+        Amplitude at onset, m pk-pk, default 1e-9; in (0, limit_amplitude_m).
+    phase_deg : float
+        Phase of the wave at onset, deg, default 0.
+    """
+
+    enabled: bool = field(default=False, metadata=_doc("simulate a flutter travelling wave"))
+    family: int = field(default=1, metadata=_doc("mode family, 1-based (1: first bending); integer in [1, 20]"))
+    nodal_diameter: int = field(default=3, metadata=_doc(
+        "signed nodal diameter: > 0 forward, < 0 backward travelling wave; |nd| <= n_blades / 2"))
+    start_s: float = field(default=0.0, metadata=_doc("onset time, s; >= 0 (when start_rpm is 0)"))
+    start_rpm: float = field(default=0.0, metadata=_doc(
+        "onset speed, rpm; 0: off, > 0: the first time the speed profile reaches it"))
+    aero_damping_ratio: float = field(default=0.02, metadata=_doc(
+        "negative aerodynamic damping ratio; in (0, 1), above the mode's structural damping"))
+    limit_amplitude_m: float = field(default=2e-4, metadata=_doc(
+        "limit-cycle amplitude, m pk-pk (d_eqv at P_nom); > 0"))
+    seed_amplitude_m: float = field(default=1e-9, metadata=_doc(
+        "amplitude at onset, m pk-pk; in (0, limit_amplitude_m)"))
+    phase_deg: float = field(default=0.0, metadata=_doc("phase of the wave at onset, deg"))
+
+    def __post_init__(self) -> None:
+        w = "[flutter]"
+        _set(self, "enabled", _boolean(w, "enabled", self.enabled))
+        _set(self, "family", _integer(w, "family", self.family, lo=1, hi=MAX_FAMILIES))
+        _set(self, "nodal_diameter", _integer(w, "nodal_diameter", self.nodal_diameter))
+        _set(self, "start_s", _real(w, "start_s", self.start_s, lo=0))
+        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, hi=MAX_RPM))
+        _set(self, "aero_damping_ratio", _real(w, "aero_damping_ratio", self.aero_damping_ratio, lo=0, lo_open=True,
+                                               hi=1, hi_open=True))
+        _set(self, "limit_amplitude_m", _real(w, "limit_amplitude_m", self.limit_amplitude_m, lo=0, lo_open=True))
+        _set(self, "seed_amplitude_m", _real(w, "seed_amplitude_m", self.seed_amplitude_m, lo=0, lo_open=True,
+                                             hi=self.limit_amplitude_m, hi_open=True))
+        _set(self, "phase_deg", _real(w, "phase_deg", self.phase_deg))
+
+
+@dataclass(frozen=True, slots=True)
+class Broadband:
+    """``[broadband]``: random blade forcing with a flat force spectrum in a band (off by
+    default).
+
+    Realised as ``n_lines`` sinusoids at the centres of equal sub-bands of ``band_hz``, each
+    of amplitude ``sqrt(2 psd_n2_per_hz df)`` per blade with a random phase per blade and line
+    (seeded by ``[run] seed``): every line is an exact carrier of the envelope recursion, so
+    the cost grows with ``n_lines`` like as many excitations (:mod:`bttsim_stream.sim.nsv`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Default false.
+    band_hz : tuple of float
+        ``(low, high)``, Hz, default (300, 400); 0 < low < high <= 1e5.
+    psd_n2_per_hz : float
+        One-sided force PSD per blade, N^2/Hz, default 1e-4; >= 0.
+    n_lines : int
+        Number of lines, default 16; in [1, 256].
+    direction : tuple of float
+        As :class:`Excitation`, default (0, 0, 1).
+    node : str
+        As :class:`Excitation`, default ``"leading_edge"``.
+    """
+
+    enabled: bool = field(default=False, metadata=_doc("simulate broadband (random) blade forcing"))
+    band_hz: tuple[float, float] = field(default=(300.0, 400.0), metadata=_doc(
+        "frequency band [low, high] of the force spectrum, Hz; 0 < low < high <= 1e5"))
+    psd_n2_per_hz: float = field(default=1e-4, metadata=_doc("one-sided force PSD per blade, N^2/Hz; >= 0"))
+    n_lines: int = field(default=16, metadata=_doc(
+        "sinusoids realising the spectrum (random phase per blade and line); in [1, 256]"))
+    direction: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0), metadata=_doc(
+        "force direction (radial, tangential, axial) at the force node; normalised at use"))
+    node: str = field(default="leading_edge", metadata=_doc(
+        'tip-section edge where the force is applied: "leading_edge" or "trailing_edge"'))
+
+    def __post_init__(self) -> None:
+        w = "[broadband]"
+        _set(self, "enabled", _boolean(w, "enabled", self.enabled))
+        band = _real_tuple(w, "band_hz", self.band_hz, lo=0, lo_open=True, hi=1e5)
+        if len(band) != 2 or not band[0] < band[1]:
+            raise _FieldError(w, "band_hz", f"must be [low, high] with low < high, got {_show(list(band))}")
+        _set(self, "band_hz", band)
+        _set(self, "psd_n2_per_hz", _real(w, "psd_n2_per_hz", self.psd_n2_per_hz, lo=0))
+        _set(self, "n_lines", _integer(w, "n_lines", self.n_lines, lo=1, hi=256))
+        _set(self, "direction", _direction(w, self.direction))
+        _set(self, "node", _string(w, "node", self.node, choices=FORCE_NODES))
+
+
+def _direction(w: str, value: Any) -> tuple[float, ...]:
+    direction = _real_tuple(w, "direction", value)
+    if len(direction) != 3:
+        raise _FieldError(w, "direction", f"must have 3 components (radial, tangential, axial), got {len(direction)}")
+    if not any(direction):
+        raise _FieldError(w, "direction", "must not be the zero vector")
+    return direction
+
+
 def _default_excitation() -> tuple[Excitation, ...]:
     return (Excitation(),)
 
@@ -954,6 +1133,12 @@ class Scenario:
         ``[toa]``.
     acquisition : Acquisition
         ``[acquisition]``.
+    rotating_stall : tuple of RotatingStall
+        ``[[rotating_stall]]``: default none.
+    flutter : Flutter
+        ``[flutter]``: default off.
+    broadband : Broadband
+        ``[broadband]``: default off.
 
     Notes
     -----
@@ -972,8 +1157,30 @@ class Scenario:
     probes: Probes = field(default_factory=Probes)
     toa: Toa = field(default_factory=Toa)
     acquisition: Acquisition = field(default_factory=Acquisition)
+    rotating_stall: tuple[RotatingStall, ...] = ()
+    flutter: Flutter = field(default_factory=Flutter)
+    broadband: Broadband = field(default_factory=Broadband)
 
     def __post_init__(self) -> None:
+        stall = self.rotating_stall
+        if isinstance(stall, RotatingStall) or not isinstance(stall, (list, tuple)):
+            raise _FieldError("[[rotating_stall]]", "", "must be a sequence of RotatingStall, "
+                              f"got {type(stall).__name__}")
+        for i, e in enumerate(stall):
+            if not isinstance(e, RotatingStall):
+                raise _FieldError(f"[[rotating_stall]][{i}]", "", f"must be a RotatingStall, got {type(e).__name__}")
+        _set(self, "rotating_stall", tuple(stall))
+        if 2 * abs(self.flutter.nodal_diameter) > self.rotor.n_blades:
+            raise _FieldError("[flutter]", "nodal_diameter", f"must be within +-[rotor] n_blades / 2 = "
+                              f"{self.rotor.n_blades / 2:g}, got {self.flutter.nodal_diameter}")
+        if self.flutter.enabled and self.flutter.start_rpm > 0:
+            _, rpm = self.speed.breakpoints()
+            if not float(np.min(rpm)) <= self.flutter.start_rpm <= float(np.max(rpm)):
+                raise _FieldError("[flutter]", "start_rpm", f"must lie within the speed profile "
+                                  f"({float(np.min(rpm)):g} .. {float(np.max(rpm)):g} rpm), got {_show(self.flutter.start_rpm)}")
+        if self.flutter.enabled and self.flutter.start_rpm == 0 and self.flutter.start_s >= self.speed.duration_s:
+            raise _FieldError("[flutter]", "start_s", f"must be before the end of the run ({self.speed.duration_s:g} s), "
+                              f"got {_show(self.flutter.start_s)}")
         for name, cls in SECTIONS.items():
             if name == "excitation":
                 continue
@@ -1089,7 +1296,12 @@ SECTIONS: dict[str, type] = {
     "probes": Probes,
     "toa": Toa,
     "acquisition": Acquisition,
+    "flutter": Flutter,
+    "broadband": Broadband,
 }
+
+#: Arrays of tables besides ``excitation`` that may be empty (default none).
+OPTIONAL_ARRAYS: dict[str, type] = {"rotating_stall": RotatingStall}
 
 _SECTION_COMMENTS: dict[str, str] = {
     "run": "Identity of the run.",
@@ -1100,9 +1312,15 @@ _SECTION_COMMENTS: dict[str, str] = {
     "probes": "BTT probes and once-per-revolution (OPR) sensor.",
     "toa": "Time-of-arrival computation (paper Sec. 2.2).",
     "acquisition": "Acquisition errors (all off by default).",
+    "rotating_stall": "Rotating stall / non-integral forcing (none by default); repeat the block for more.",
+    "flutter": "Flutter: a self-excited travelling wave growing to a limit cycle (off by default).",
+    "broadband": "Broadband (random) blade forcing (off by default).",
     "acquisition.signal": "Probe signals, digitisation and triggers (off by default): the TOAs as\n"
                           "hardware extracts them; the truth keeps the exact TOAs.",
 }
+
+#: Sections written only when they differ from their defaults (off by default).
+_OPTIONAL_TABLES = ("flutter", "broadband")
 
 _SEGMENTS_EXAMPLE = """\
 # Example (then delete end_rpm and duration_s above):
@@ -1153,7 +1371,7 @@ def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
     if not isinstance(d, Mapping):
         raise ScenarioError(f"must be a table of sections, {_got(d)}")
     for name, value in d.items():
-        if name not in SECTIONS:
+        if name not in SECTIONS and name not in OPTIONAL_ARRAYS:
             if isinstance(value, Mapping):
                 what = f"unknown section [{_key(name)}]"
             elif isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
@@ -1162,7 +1380,7 @@ def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
                 owners = [s for s, c in SECTIONS.items() if name in _field_names(c)]
                 hint = f" (keys belong in a section: put it under [{owners[0]}])" if owners else ""
                 raise ScenarioError(f"unknown top-level key {_key(name)}{hint}")
-            raise ScenarioError(what + _hint(name, list(SECTIONS)))
+            raise ScenarioError(what + _hint(name, list(SECTIONS) + list(OPTIONAL_ARRAYS)))
 
     # Structure first (tables, unknown keys), then values.
     tables: dict[str, Mapping[str, Any]] = {}
@@ -1204,7 +1422,22 @@ def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
             excitation.append(Excitation(**entry))
         except _FieldError as exc:
             raise exc.relabel(f"[[excitation]][{i}]") from None
-    return Scenario(excitation=tuple(excitation), **sections)
+    arrays: dict[str, tuple] = {}
+    for name, cls in OPTIONAL_ARRAYS.items():
+        items = d.get(name, [])
+        if not isinstance(items, list):
+            raise ScenarioError(f"{name} must be an array of tables ([[{name}]] blocks), " + _got(items))
+        out = []
+        for i, entry in enumerate(items):
+            if not isinstance(entry, Mapping):
+                raise ScenarioError(f"[[{name}]][{i}] must be a table, {_got(entry)}")
+            _check_keys(f"[[{name}]][{i}]", entry, cls)
+            try:
+                out.append(cls(**entry))
+            except _FieldError as exc:
+                raise exc.relabel(f"[[{name}]][{i}]") from None
+        arrays[name] = tuple(out)
+    return Scenario(excitation=tuple(excitation), **sections, **arrays)
 
 
 def scenario_from_dict(d: Mapping[str, Any], source: str = "<dict>", *,
@@ -1329,6 +1562,9 @@ def scenario_to_dict(scn: Scenario) -> dict[str, Any]:
             if table["segments"]:
                 del table["end_rpm"], table["duration_s"]
         out[name] = table
+    for name in OPTIONAL_ARRAYS:
+        if getattr(scn, name):
+            out[name] = [_section_dict(e) for e in getattr(scn, name)]
     return out
 
 
@@ -1422,6 +1658,8 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
                 lines.append("[[excitation]]")
                 _emit_table(lines, cls, entry, comments and i == 0)
             continue
+        if name in _OPTIONAL_TABLES and not comments and getattr(scn, name) == cls():
+            continue  # written only when changed: a default run's id (a hash of this text) stays
         lines.append("")
         if comments:
             lines.extend(_comment(_SECTION_COMMENTS[name]))
@@ -1442,6 +1680,13 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
                 lines.extend(_comment(_SECTION_COMMENTS["acquisition.signal"]))
             lines.append("[acquisition.signal]")
             _emit_table(lines, Signal, sub, comments)
+    for name, cls in OPTIONAL_ARRAYS.items():
+        for i, entry in enumerate(d.get(name, [])):
+            lines.append("")
+            if comments and i == 0:
+                lines.extend(_comment(_SECTION_COMMENTS[name]))
+            lines.append(f"[[{name}]]")
+            _emit_table(lines, cls, entry, comments and i == 0)
     if lines and lines[0] == "":
         lines.pop(0)
     return "\n".join(lines) + "\n"

@@ -613,7 +613,51 @@ def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
     for name in _TRUTH_2D:
         getattr(m, name).extend(np.asarray(getattr(truth, name)[i], dtype=np.float64).ravel().tolist())
     m.d_eqv_pkpk_m.extend(np.asarray(truth.d_eqv_pkpk_m[i], dtype=np.float64).tolist())
+    _fill_nsv(m, truth, i)
     return _serialize(m)
+
+
+#: Largest number of non-synchronous components a TruthBatch may carry.
+MAX_NSV_COMPONENTS = 64
+_NSV_KINDS = ("rotating_stall", "flutter", "broadband")
+
+
+def _fill_nsv(m, truth: Truth, i: int) -> None:
+    """The ``nsv`` components of revolution ``i`` (none when the truth has none)."""
+    if truth.nsv_kind is None:
+        return
+    for j in range(truth.nsv_kind.shape[1]):
+        c = m.nsv.add()
+        c.kind = str(truth.nsv_kind[i, j])
+        c.freq_hz = float(truth.nsv_freq_hz[i, j])
+        c.nodal_diameter = int(truth.nsv_nd[i, j])
+        c.amp_pkpk_m = float(truth.nsv_amp_pkpk_m[i, j])
+        c.rms_m = float(truth.nsv_rms_m[i, j])
+        c.band_lo_hz, c.band_hi_hz = (float(x) for x in truth.nsv_band_hz[i, j])
+
+
+def _decode_nsv(where: str, m, nb: int) -> dict:
+    """``nsv_*`` arrays of one revolution, shape (1, k) (k = 0 for a run without NSV, and for
+    recordings made before the field existed), after size and range checks."""
+    k = len(m.nsv)
+    if k > MAX_NSV_COMPONENTS:
+        raise _corrupt(where, m, f"{k} nsv components, more than {MAX_NSV_COMPONENTS}")
+    kind, nd = [], []
+    vals = np.zeros((5, k))
+    for j, c in enumerate(m.nsv):
+        if c.kind not in _NSV_KINDS:
+            raise _corrupt(where, m, f"nsv[{j}].kind = {c.kind[:40]!r} (expected one of {', '.join(_NSV_KINDS)})")
+        v = (c.freq_hz, c.amp_pkpk_m, c.rms_m, c.band_lo_hz, c.band_hi_hz)
+        if not all(math.isfinite(x) and x >= 0 for x in v) or c.band_lo_hz > c.band_hi_hz:
+            raise _corrupt(where, m, f"nsv[{j}] values must be finite and >= 0 with band_lo_hz <= band_hi_hz")
+        if abs(c.nodal_diameter) > nb:
+            raise _corrupt(where, m, f"nsv[{j}].nodal_diameter = {c.nodal_diameter}, beyond the {nb} blades")
+        kind.append(c.kind)
+        nd.append(int(c.nodal_diameter))
+        vals[:, j] = v
+    return {"nsv_kind": np.array(kind, dtype="<U14").reshape(1, k), "nsv_freq_hz": vals[0:1],
+            "nsv_nd": np.array(nd, np.int64).reshape(1, k), "nsv_amp_pkpk_m": vals[1:2], "nsv_rms_m": vals[2:3],
+            "nsv_band_hz": vals[3:5].T.reshape(1, k, 2).copy()}
 
 
 def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
@@ -636,7 +680,7 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
         raise _corrupt(where, m, f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
     arrays = {name: _array(getattr(m, name)).reshape(1, nb, npr) for name in _TRUTH_2D}
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
-                  d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays)
+                  d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays, **_decode_nsv(where, m, nb))
     return Decoded(_header(m.header), truth)
 
 
@@ -1005,7 +1049,13 @@ def encode_truth_batch(run_id: str, seq, revolution, t_s, truth: Truth) -> list[
     for name in _TRUTH_2D:
         parts += _packed(_tag(_pb.TruthBatch, name), _doubles(np.asarray(getattr(truth, name)).reshape(n, -1)))
     parts += _packed(_tag(_pb.TruthBatch, "d_eqv_pkpk_m"), _doubles(np.asarray(truth.d_eqv_pkpk_m).reshape(n, -1)))
-    return _assemble(parts)
+    out = _assemble(parts)
+    if truth.nsv_kind is not None and truth.nsv_kind.shape[1]:
+        for i in range(n):  # the nsv components, appended (protobuf fields concatenate)
+            m = _pb.TruthBatch()
+            _fill_nsv(m, truth, i)
+            out[i] = out[i] + m.SerializeToString(deterministic=True)
+    return out
 
 
 # --------------------------------------------------------------------------------------

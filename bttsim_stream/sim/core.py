@@ -21,7 +21,8 @@ from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
 from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, models_at_speeds
-from .modal import EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .modal import TRANSIENT_TOL_S, EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .nsv import build_nsv
 from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
                      centrifugal_growth_m, pulse_parameters, synthesise)
@@ -130,9 +131,29 @@ class Truth:
         Eq. 1 displacement from ``toa_s`` and the exact expected times.
     d_eqv_pkpk_m : ndarray, shape (n_rev, n_blades)
         Peak-to-peak envelope of ``d_eqv(t)`` in the revolution (largest over the
-        revolution's arrivals of ``2 sum_m |G_eqv,m|``; exact for one engine order).
+        revolution's arrivals of ``2 sum_m |G_eqv,m|`` over the engine-order excitations;
+        exact for one engine order).
     omega_mean : ndarray, shape (n_rev,)
         Mean speed over the revolution, rad/s.
+    nsv_kind : ndarray of str, shape (n_rev, n_nsv), or None
+        With non-synchronous vibration in the scenario (:mod:`~bttsim_stream.sim.nsv`), per
+        revolution and component: ``"rotating_stall"``, ``"flutter"`` or ``"broadband"``
+        (None: the scenario has none; the ``nsv_*`` fields are all None then).
+    nsv_freq_hz : ndarray, shape (n_rev, n_nsv)
+        Frequency in the rotor frame at the revolution's mean speed, Hz (broadband: the band
+        centre).
+    nsv_nd : ndarray of int64, shape (n_rev, n_nsv)
+        Signed nodal diameter (:mod:`~bttsim_stream.process.travelling_wave` convention);
+        broadband: 0 (random blade phases: every ND).
+    nsv_amp_pkpk_m : ndarray, shape (n_rev, n_nsv)
+        Peak-to-peak ``d_eqv`` at P_nom: largest over the revolution's arrivals of
+        ``2 |G_eqv|`` of the component (0 when absent, e.g. flutter before onset);
+        broadband: ``2 sqrt(2)`` times its rms (a sine of that rms).
+    nsv_rms_m : ndarray, shape (n_rev, n_nsv)
+        Rms of the component's ``d_eqv`` at P_nom over the revolution's arrivals
+        (``sqrt(mean sum_j |G_eqv,j|^2 / 2)``), m.
+    nsv_band_hz : ndarray, shape (n_rev, n_nsv, 2)
+        Broadband: the force band (low, high), Hz; else (0, 0).
     """
 
     opr_s: np.ndarray
@@ -144,6 +165,12 @@ class Truth:
     d_eq1_m: np.ndarray
     d_eqv_pkpk_m: np.ndarray
     omega_mean: np.ndarray
+    nsv_kind: np.ndarray | None = None
+    nsv_freq_hz: np.ndarray | None = None
+    nsv_nd: np.ndarray | None = None
+    nsv_amp_pkpk_m: np.ndarray | None = None
+    nsv_rms_m: np.ndarray | None = None
+    nsv_band_hz: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -205,7 +232,7 @@ def load_scenario_model(scn):
     return load_model(scn.model.source)
 
 
-def check_tip_amplitude(scn, model) -> float:
+def check_tip_amplitude(scn, model, nsv=None) -> float:
     """Refuse a scenario whose tip amplitude would leave the linear model's validity.
 
     The largest amplitude of P_nom over the speed profile
@@ -228,17 +255,40 @@ def check_tip_amplitude(scn, model) -> float:
     Raises
     ------
     BttsimError
-        One line naming the amplitude, the limit and the force to lower (or the speed).
+        One line naming the amplitude, the limit and the force to lower (or the speed), or the
+        non-synchronous options that a speed-dependent model does not support.
+
+    Notes
+    -----
+    Non-synchronous vibration (:mod:`~bttsim_stream.sim.nsv`) adds its own estimate: the
+    stall and broadband carriers' (``EO Omega + omega`` swept over the profile; the
+    broadband lines summed, an upper bound) and the flutter's limit cycle. ``nsv``: the
+    simulator's :class:`~bttsim_stream.sim.nsv.NsvSetup` (built here when None).
     """
     speed = speed_profile_from_scenario(scn)
+    has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled
     if is_speed_dependent(model):
+        if has_nsv:
+            raise BttsimError("[[rotating_stall]], [flutter] and [broadband] are not supported with speed-dependent "
+                              "modes ([model] centrifugal or a model file with speed arrays) yet")
         check_speed_range(model, float(np.max(speed.omega)))
         lo, hi = float(np.min(speed.omega)), float(np.max(speed.omega))
         at = np.concatenate(([lo, hi], crossing_speeds(model, [e.engine_order for e in scn.excitation], lo, hi)))
         amp = max(float(np.max(steady_tip_amplitude(frozen, scn.excitation, speed)))
                   for frozen in models_at_speeds(model, at))
     else:
-        amp = float(np.max(steady_tip_amplitude(model, scn.excitation, speed)))
+        amp_b = steady_tip_amplitude(model, scn.excitation, speed)
+        if has_nsv:  # the non-synchronous forcing's own estimate, plus the flutter's limit cycle
+            basis = tip_basis(model.tip_shapes)
+            if nsv is None:
+                v = basis.nodes[:, model.nominal_node, :]
+                nsv = build_nsv(scn, model, speed, basis,
+                                v[:, 1] + v[:, 2] / np.tan(np.deg2rad(float(model.meta["stagger_deg"]))))
+            if nsv.eo.size:
+                amp_b = amp_b + steady_tip_amplitude(model, (), speed, carriers=(nsv.C, nsv.eo, nsv.omega))
+            if nsv.flutter is not None:
+                amp_b = amp_b + nsv.flutter.tip_amplitude(basis.nodes[:, model.nominal_node, :])
+        amp = float(np.max(amp_b))
     radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
     limit = MAX_TIP_AMPLITUDE_FRACTION * radius
     if not amp <= limit:
@@ -246,7 +296,8 @@ def check_tip_amplitude(scn, model) -> float:
         raise BttsimError(
             f"[[excitation]] amplitude_n = {forces} N: the predicted tip amplitude is {amp * 1e3:.3g} mm, above "
             f"{MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius ({limit * 1e3:.3g} mm of {radius * 1e3:.4g} mm), "
-            f"where the linear modal model no longer holds: lower the force")
+            f"where the linear modal model no longer holds: lower the force"
+            + (" (or the non-synchronous forcing, the flutter limit_amplitude_m)" if has_nsv else ""))
     return amp
 
 
@@ -281,7 +332,6 @@ class RunUpSimulator:
             pass  # a user's model defines the blade count
         if np.any(m.damping_ratio >= 1.0):
             raise BttsimError("model: damping ratios must be < 1 (underdamped modes)")
-        check_tip_amplitude(scn, m)
         self.speed: SpeedProfile = speed_profile_from_scenario(scn)
         seed = scn.run.seed
         self._rng = {name: np.random.default_rng(np.random.SeedSequence([seed, i]))
@@ -309,15 +359,34 @@ class RunUpSimulator:
                       max(1, min(64, round(CROSSINGS_PER_CHUNK / (m.n_blades * probes.size)))))
         self.psi = np.mod(self.probe_actual[None, :] - self.theta_p[:, None] - self.theta_opr, TWO_PI)
         C, eo = modal_forcing(m, scn.excitation)
-        self.eo = eo
         initial = scn.speed.initial if initial is None else initial
-        if is_speed_dependent(m):  # modes that follow the speed (centrifugal effects): their own path
+        speed_dependent = is_speed_dependent(m)
+        if speed_dependent:  # modes that follow the speed (centrifugal effects): their own path
             self.basis, psi_at_speed = speed_tip_basis(m)
-            self.integrator = SpeedDependentIntegrator(m, scn.excitation, psi_at_speed, self.speed, initial=initial)
         else:
             self.basis = tip_basis(m.tip_shapes)
+        v = self.basis.nodes[:, p, :]  # (r, 3)
+        v_eqv = v[:, 1] + v[:, 2] / np.tan(self.stagger)  # (r,): d_eqv at P_nom (Eq. 3-4)
+        # non-synchronous vibration: forced carriers through the recursion, flutter in closed form
+        self.nsv = None if speed_dependent else build_nsv(scn, m, self.speed, self.basis, v_eqv)
+        self._n_eo = eo.size
+        check_tip_amplitude(scn, m, self.nsv)  # refuses non-synchronous options with speed-dependent modes
+        omega = None
+        if self.nsv is not None:
+            C = np.concatenate([C, self.nsv.C], axis=1)
+            omega = np.concatenate([np.zeros(eo.size), self.nsv.omega])
+            eo = np.concatenate([eo, self.nsv.eo])
+        self._n_forced = eo.size  # carriers of the envelope recursion
+        if speed_dependent:
+            self.integrator = SpeedDependentIntegrator(m, scn.excitation, psi_at_speed, self.speed, initial=initial)
+        else:
             self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
-                                                 self.speed, initial=initial)
+                                                 self.speed, initial=initial, omega=omega)
+        #: carrier phases ``EO_m phi(t) + omega_m t`` of every carrier (None: all omega 0)
+        self.eo, self.omega = eo, omega
+        if self.nsv is not None and self.nsv.flutter is not None:
+            self.eo = np.concatenate([eo, [0.0]])
+            self.omega = np.concatenate([omega, [self.nsv.flutter.omega]])
         # shorter envelope steps where a free response is present (a start from rest, a speed knot)
         radius = float(np.mean(m.tip_ref[:, p, 0]))
         near = np.argsort(np.abs(m.tip_ref[..., 2] - self.z_probe), axis=1)[:, :4]  # candidate nodes
@@ -325,6 +394,14 @@ class RunUpSimulator:
         self.grid = GridPoints(self.speed, envelope_step_s,
                                self.integrator.transient_grid(envelope_step_s, radius, reach))
         self.h_env = envelope_step_s
+        if self.nsv is not None and self.nsv.flutter is not None:
+            fw = self.nsv.flutter  # cubic Hermite error of the logistic envelope, <= L sigma^4 h^4 / 384
+            err_m = fw.limit_m * fw.sigma**4 * envelope_step_s**4 / 384.0
+            tol_m = TRANSIENT_TOL_S * radius * float(np.min(self.speed.omega))
+            if err_m > 100.0 * tol_m:
+                msg = (f"[flutter]: growth rate {fw.sigma:.3g} /s is fast for the {envelope_step_s * 1e3:g} ms envelope "
+                       f"grid; TOAs may differ from the exact ones by up to {err_m / tol_m * TRANSIENT_TOL_S:.1g} s")
+                self.integrator.warnings.append(msg)
         self._i_grid = 0
         self._buf_t: np.ndarray | None = None  # envelope grid points kept: [_lo, _hi)
         self._buf: np.ndarray | None = None
@@ -334,8 +411,7 @@ class RunUpSimulator:
         self.timing = {"envelopes_s": 0.0, "crossings_s": 0.0}
         total = int(np.floor((self.speed.angle(self.speed.duration_s) - self.theta_opr) / TWO_PI))
         self.n_revolutions = max(0, total if n_revolutions is None else min(total, n_revolutions))
-        v = self.basis.nodes[:, p, :]  # (r, 3)
-        self._v_eqv = v[:, 1] + v[:, 2] / np.tan(self.stagger)  # (r,)
+        self._v_eqv = v_eqv
         r = self.basis.nodes.shape[0]
         self._VT = np.ascontiguousarray(self.basis.nodes.reshape(r, -1).T)  # (nt * 3, r)
         # P_nom tangential, axial and d_eqv direction (Eq. 3-4)
@@ -397,7 +473,13 @@ class RunUpSimulator:
             # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r), written
             # by the integrator's matrix products straight into the buffer
             planes = self._buf[hi:hi + n_new].transpose(1, 0, 2).reshape(2, n_exc, 2, n_new, -1)
-            self.integrator.advance(t_blk, out=planes, first=first)
+            self.integrator.advance(t_blk, out=planes[:, :self._n_forced], first=first)
+            if self._n_forced < n_exc:  # the flutter carrier's closed-form envelope
+                G, dG = self.nsv.flutter.envelope(t_blk[first:])
+                for g, X in enumerate((G, dG)):
+                    X = X.reshape(X.shape[0], -1)
+                    planes[g, n_exc - 1, 0] = X.real
+                    planes[g, n_exc - 1, 1] = X.imag
             self._buf_t[hi:hi + n_new] = t_blk[first:]
             self._hi = hi + n_new
             self._i_grid = stop
@@ -464,7 +546,7 @@ class RunUpSimulator:
         # straight into the layout of the Hermite coefficients (4, n_exc, r, 2, n)
         idx = ((lo + i) * (4 * n_exc * nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
         CPr = hermite_in_place(np.take(GD.reshape(-1), idx).reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
-        frame = crossing_frame(self.speed, t0, t_r, self.eo)
+        frame = crossing_frame(self.speed, t0, t_r, self.eo, self.omega)
         phi_r, om_r = frame.phi_ref, frame.om_ref
         tau = t_r - t0
         c0, s0 = frame.rot[:, 0, None, :], frame.rot[:, 1, None, :]  # (n_exc, 1, n)
@@ -479,7 +561,8 @@ class RunUpSimulator:
         w_r += Gr[:, :, 0] * s0
         dw_r = dGr[:, :, 1] * c0
         dw_r += dGr[:, :, 0] * s0
-        dw_r += (self.eo[:, None] * om_r)[:, None, :] * (Gr[:, :, 0] * c0 - Gr[:, :, 1] * s0)
+        rate = self.eo[:, None] * om_r if self.omega is None else self.eo[:, None] * om_r + self.omega[:, None]
+        dw_r += rate[:, None, :] * (Gr[:, :, 0] * c0 - Gr[:, :, 1] * s0)
         if n_exc > 1:
             w_r, dw_r = w_r.sum(axis=0), dw_r.sum(axis=0)
         else:
@@ -523,6 +606,8 @@ class RunUpSimulator:
         P_t = project_planes(CPr, self._V_truth)[:, :, 0]  # (4, n_exc, 3, 2, n): tang, axial, eqv
         X = eval_planes(P_t, toa - t0)  # (n_exc, 3, 2, n)
         th = self.eo[:, None] * frame.angle_change(self.speed, toa[None, :])[0]  # (n_exc, n)
+        if self.omega is not None:
+            th += self.omega[:, None] * (toa - t_r)[None, :]
         cd, sd = np.cos(th), np.sin(th)
         c0, s0 = frame.rot[:, 0], frame.rot[:, 1]
         cr, ci = cd * c0 - sd * s0, sd * c0 + cd * s0  # exp(i EO phi(t_TOA))
@@ -535,18 +620,46 @@ class RunUpSimulator:
             d_rad = np.sum(X_r[:, 0, 1] * cr + X_r[:, 0, 0] * ci, axis=0)
             probe_of = np.tile(np.arange(npr), nr * nb)
             sig = self._signal(toa, blade, probe_of, d_rad, self.speed.speed(toa), self.tip_ref[blade, p, 0])
-        amp = 2.0 * np.sum(np.hypot(X[:, 2, 0], X[:, 2, 1]), axis=0)
+        ne = self._n_eo
+        amp = 2.0 * np.sum(np.hypot(X[:ne, 2, 0], X[:ne, 2, 1]), axis=0)
         omega_mean = TWO_PI / np.diff(opr_edges)
+        nsv_truth = {} if self.nsv is None else self._nsv_truth(X[ne:, 2], omega_mean, shape)
         r_p = self.tip_ref[:, p, 0][None, :, None]
         d_eq1 = omega_mean[:, None, None] * r_p * (t_r.reshape(shape) - toa.reshape(shape))
         pkpk = amp.reshape(shape).max(axis=2)
         truth = Truth(opr_s=opr_edges[:-1], toa_s=toa.reshape(shape), t_exp_s=t_r.reshape(shape),
                       d_eqv_m=d_eqv.reshape(shape), d_tang_m=d_tang.reshape(shape),
                       d_z_m=d_z.reshape(shape), d_eq1_m=d_eq1, d_eqv_pkpk_m=pkpk,
-                      omega_mean=omega_mean)
+                      omega_mean=omega_mean, **nsv_truth)
         out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape), sig)
         self.timing["crossings_s"] += time.process_time() - t_clock
         return out
+
+    def _nsv_truth(self, X, omega_mean, shape) -> dict:
+        """The ``nsv_*`` fields of :class:`Truth` from the NSV carriers' ``d_eqv`` envelopes
+        ``X`` (n_nsv_carriers, 2 [re, im], n) at the TOAs."""
+        comps = self.nsv.components
+        nr, nc = shape[0], len(comps)
+        freq, amp, rms = np.zeros((nr, nc)), np.zeros((nr, nc)), np.zeros((nr, nc))
+        nd = np.zeros((nr, nc), np.int64)
+        band = np.zeros((nr, nc, 2))
+        p2 = (X[:, 0] ** 2 + X[:, 1] ** 2).reshape(X.shape[0], nr, -1)  # |G_eqv|^2 per carrier, arrival
+        for j, c in enumerate(comps):
+            idx = list(c.carriers)
+            ms = 0.5 * np.sum(p2[idx], axis=0)  # mean square of d_eqv per arrival (incommensurate lines)
+            rms[:, j] = np.sqrt(np.mean(ms, axis=1))
+            if c.kind == "broadband":
+                freq[:, j] = c.omega / TWO_PI
+                amp[:, j] = 2.0 * np.sqrt(2.0) * rms[:, j]
+                band[:, j] = c.band_hz
+                continue
+            amp[:, j] = 2.0 * np.sqrt(np.max(p2[idx[0]], axis=1))
+            rate = c.eo * omega_mean + c.omega  # rad/s in the rotor frame
+            freq[:, j] = np.abs(rate) / TWO_PI
+            nd[:, j] = np.where(rate < 0, -c.nodal_diameter, c.nodal_diameter)
+        kind = np.broadcast_to(np.array([c.kind for c in comps]), (nr, nc)).copy()
+        return {"nsv_kind": kind, "nsv_freq_hz": freq, "nsv_nd": nd, "nsv_amp_pkpk_m": amp, "nsv_rms_m": rms,
+                "nsv_band_hz": band}
 
     def _chunk_pattern(self, nr: int):
         """The blade of every crossing of ``nr`` revolutions, shape (n,), and the blades'

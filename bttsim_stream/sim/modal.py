@@ -293,7 +293,7 @@ def modal_forcing(model, excitations) -> tuple[np.ndarray, np.ndarray]:
     return C, eo
 
 
-def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
+def steady_tip_amplitude(model, excitations, speed: SpeedProfile, carriers=None) -> np.ndarray:
     """Estimated largest amplitude of each blade's nominal tip node over a speed profile.
 
     Parameters
@@ -301,6 +301,11 @@ def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
     model : ModalModel
     excitations : sequence of scenario ``Excitation``
     speed : SpeedProfile
+    carriers : tuple (C, eo, omega), optional
+        Instead of ``excitations``: modal forces (n_modes, n) of carriers of phase
+        ``EO phi(t) + omega t`` (non-synchronous forcing, :mod:`~bttsim_stream.sim.nsv`):
+        the forcing frequency is ``EO Omega + omega`` and its resonance speeds
+        ``(+-w_k - omega) / EO``.
 
     Returns
     -------
@@ -318,7 +323,11 @@ def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
     resonance (with a margin for the Fresnel overshoot); on a dwell it is not (an undamped
     mode at resonance on a dwell grows without bound: infinite).
     """
-    C, eo = modal_forcing(model, excitations)
+    if carriers is None:
+        C, eo = modal_forcing(model, excitations)
+        om_c = np.zeros(eo.size)
+    else:
+        C, eo, om_c = carriers[0], np.asarray(carriers[1], float), np.asarray(carriers[2], float)
     w = 2.0 * np.pi * np.asarray(model.freq_hz, float)
     zeta = np.asarray(model.damping_ratio, float)
     tip = np.asarray(model.tip_shapes[:, :, model.nominal_node, :], float)  # (n_modes, n_blades, 3)
@@ -332,14 +341,21 @@ def steady_tip_amplitude(model, excitations, speed: SpeedProfile) -> np.ndarray:
             act = np.flatnonzero(np.abs(C[:, m]) > 0)
             if act.size == 0:
                 continue
-            res = w[act] / eo[m]  # resonance speed of each responding mode, rad/s
+            if om_c[m] == 0:
+                res = w[act] / eo[m]  # resonance speed of each responding mode, rad/s
+            elif eo[m] == 0:
+                res = np.zeros(0)  # a fixed frequency: the same at every speed
+            else:
+                res = np.concatenate([(w[act] - om_c[m]) / eo[m], (-w[act] - om_c[m]) / eo[m]])
             inside = np.flatnonzero((res >= lo) & (res <= hi))
             om = np.concatenate(([lo, hi], res[inside]))
             we = eo[m] * om[:, None]  # (n_speeds, 1)
+            if om_c[m] != 0:
+                we = we + om_c[m]
             H = 1.0 / (w[act] ** 2 - we**2 + 2j * zeta[act] * w[act] * we)  # (n_speeds, n_act)
             for row in range(om.size):  # a mode crossed on a ramp: sweep-limited
                 on = (seg_lo <= om[row]) & (om[row] <= seg_hi)
-                rate = eo[m] * float(np.min(seg_alpha[on])) if np.any(on) else 0.0
+                rate = abs(eo[m]) * float(np.min(seg_alpha[on])) if np.any(on) else 0.0
                 if rate > 0:
                     cap = 1.25 * np.sqrt(2.0 * np.pi / rate) / (2.0 * w[act])
                     big = ~(np.abs(H[row]) <= cap)
@@ -525,10 +541,20 @@ class EnvelopeIntegrator:
         Take the quasi-steady series where it is exact to round-off
         (:meth:`quasi_steady_terms`); False: the exact recursion everywhere (the reference
         of the tests).
+    omega : ndarray, shape (n_exc,), optional
+        Constant part of each carrier's frequency in the rotor frame, rad/s: excitation
+        ``m`` is ``Im(C_km exp(i theta_m(t)))`` with the carrier phase
+        ``theta_m(t) = EO_m phi(t) + omega_m t`` (non-synchronous forcing,
+        :mod:`bttsim_stream.sim.nsv`; ``EO_m`` need not be an integer). The envelope
+        equations keep their form with ``EO Omega(t)`` replaced by ``EO Omega(t) + omega``:
+        ``mu = lambda -+ i (EO Omega + omega)``, the phase step ``EO dphi + omega h``; the
+        chirp term ``v`` and the quasi-steady slope ``m1`` do not change, so the recursion
+        and the quasi-steady series stay exact. None (default): all zero, the engine-order
+        carriers of the paper (and the same arithmetic, bit for bit).
     """
 
     def __init__(self, freq_hz, damping_ratio, C, eo, basis: TipBasis, speed: SpeedProfile,
-                 initial: str = "steady", quasi_steady: bool = True) -> None:
+                 initial: str = "steady", quasi_steady: bool = True, omega=None) -> None:
         self.quasi_steady = bool(quasi_steady)
         w = 2.0 * np.pi * np.asarray(freq_hz, float)
         zeta = np.asarray(damping_ratio, float)
@@ -545,6 +571,12 @@ class EnvelopeIntegrator:
         self._lam_row = self.lam[:, 0]
         self._eo_s = np.concatenate([self.eo[0], -self.eo[0]])
         self._c_s = np.concatenate([self.c_plus, self.c_minus], axis=1)
+        om_c = None if omega is None else np.asarray(omega, float).reshape(-1)
+        if om_c is not None and not np.any(om_c):
+            om_c = None  # engine-order carriers only: the paper's arithmetic
+        #: constant carrier frequencies (n_exc,), rad/s, or None (all zero)
+        self.omega = om_c
+        self._om_s = None if om_c is None else np.concatenate([om_c, -om_c])
         n_b, r = basis.psi.shape[1:]
         self.n_blades, self.r = n_b, r
         self.W = np.ascontiguousarray((basis.psi[active] / wd[:, None, None]).reshape(len(self.active), n_b * r))
@@ -564,6 +596,7 @@ class EnvelopeIntegrator:
         self._lam_col = self._lam_row[self._k_col]
         self._eo_col = self._eo_s[self._car_col]
         self._ieo_col = 1j * self._eo_col
+        self._om_col = None if self._om_s is None else self._om_s[self._car_col]
         self._c_col = self._c_s.ravel()
         self._zw_col = (zeta * w)[self._k_col]
         self._cabs_col = np.abs(self._c_col)
@@ -580,7 +613,11 @@ class EnvelopeIntegrator:
             raise ValueError(f"initial must be 'steady' or 'rest', got {initial!r}")
         if initial == "rest" or c.size == 0:
             return np.zeros_like(c)
-        a = quasi_steady_envelope(c, self.lam - sign * 1j * self.eo * omega, -sign * 1j * self.eo * alpha)
+        if self.omega is None:
+            mu = self.lam - sign * 1j * self.eo * omega
+        else:
+            mu = self.lam - sign * 1j * (self.eo * omega + self.omega[None, :])
+        a = quasi_steady_envelope(c, mu, -sign * 1j * self.eo * alpha)
         bad = ~np.isfinite(a)
         if np.any(bad):
             modes = sorted({int(k) for k in self.active[np.nonzero(bad)[0]]})
@@ -643,8 +680,10 @@ class EnvelopeIntegrator:
         wn = np.max(np.linalg.norm(self.W.reshape(n_act, self.n_blades, self.r), axis=2), axis=1)[self._k_col]
         a0 = np.concatenate([self.a_plus, self.a_minus], axis=1).ravel()
 
+        om_col = self._om_col
+
         def mu_at(om):
-            return lam - 1j * eo_s * om
+            return lam - 1j * eo_s * om if om_col is None else lam - 1j * (eo_s * om + om_col)
 
         def qs(om, alpha):
             return quasi_steady_envelope(c, mu_at(om), -1j * eo_s * alpha)
@@ -672,7 +711,9 @@ class EnvelopeIntegrator:
         sp = self.speed
         t_k, t_end = float(sp.t_s[k]), float(sp.t_s[k + 1])
         om_k, alpha = float(sp.omega[k]), float(sp.alpha[k])
-        eo_s, lam, sig, c = self._eo_col, self._lam_col, self._zw_col, self._c_col
+        eo_s, sig, c = self._eo_col, self._zw_col, self._c_col
+        # lambda shifted by the constant carrier frequencies: mu = lam - i EO Omega
+        lam = self._lam_col if self._om_col is None else self._lam_col - 1j * self._om_col
         mu_abs = np.maximum(np.abs(lam - 1j * eo_s * om_k), np.abs(lam - 1j * eo_s * float(sp.omega[k + 1])))
         S0 = wn * e * mu_abs**4 / 24.0
         zone = t_end - t_k
@@ -738,8 +779,10 @@ class EnvelopeIntegrator:
         """Exact envelopes at grid times ``t`` (t[0] = current time) for one carrier."""
         lam, eo = self.lam[None], self.eo[None]  # (1, n_act, 1), (1, 1, n_exc)
         h = np.diff(t)[:, None, None]
-        L = lam * (t - t[0])[:, None, None] - sign * 1j * eo * (phi - phi[0])[:, None, None]
-        u = (lam - sign * 1j * eo * om_end[:, None, None]) * h
+        om_c = 0.0 if self.omega is None else self.omega[None, None, :]
+        L = lam * (t - t[0])[:, None, None] - sign * 1j * (eo * (phi - phi[0])[:, None, None]
+                                                           + om_c * (t - t[0])[:, None, None])
+        u = (lam - sign * 1j * (eo * om_end[:, None, None] + om_c)) * h
         v = sign * 0.5j * eo * alpha[:, None, None] * h * h
         g = c[None] * h * chirp_integral(u, v)  # (n-1, n_act, n_exc)
         acc = np.concatenate([np.zeros_like(g[:1]), np.cumsum(g * np.exp(-L[1:]), axis=0)])
@@ -784,6 +827,8 @@ class EnvelopeIntegrator:
         A[0, :, n_exc:] = self.a_minus
         # columns (mode k, carrier c) flattened: the broadcasts run along whole rows
         mu2 = self._lam_col[None, :] - self._ieo_col[None, :] * om[:, None]
+        if self._om_col is not None:
+            mu2 -= 1j * self._om_col[None, :]
         mu = mu2.reshape(n, len(self.active), 2 * n_exc)
         if n > 1:
             seg = self.speed.segment(0.5 * (t_grid[:-1] + t_grid[1:]))
@@ -929,7 +974,10 @@ class EnvelopeIntegrator:
         car = self._car_col[cols]
         modes, inv_k = np.unique(k, return_inverse=True)
         E = np.exp(self._lam_row[modes][None, :] * (ts - ts[0])[:, None])[:, inv_k]
-        Phi = np.exp(-1j * self._eo_s[None, :] * dphi[:, None])[:, car]
+        if self._om_s is None:
+            Phi = np.exp(-1j * self._eo_s[None, :] * dphi[:, None])[:, car]
+        else:
+            Phi = np.exp(-1j * (self._eo_s[None, :] * dphi[:, None] + self._om_s[None, :] * (ts - ts[0])[:, None]))[:, car]
         return E, Phi
 
     def _run_exact(self, A, cols, start, stop, t, phi, om, alpha):
@@ -956,9 +1004,14 @@ class EnvelopeIntegrator:
         lam_m = self._lam_row[modes]
         E = np.exp(lam_m[None, :] * (ts - ts[0])[:, None])[:, inv_k]  # (N+1, Q)
         Einv = 1.0 / E[1:]
-        Phi = np.exp(-1j * self._eo_s[None, :] * self._dphi(t, start, stop)[:, None])[:, car]
         om_end = om[start + 1:stop + 1]
-        rot = np.exp(-1j * self._eo_s[None, :] * (om_end * h)[:, None])[:, car]  # (N, Q)
+        if self._om_s is None:
+            Phi = np.exp(-1j * self._eo_s[None, :] * self._dphi(t, start, stop)[:, None])[:, car]
+            rot = np.exp(-1j * self._eo_s[None, :] * (om_end * h)[:, None])[:, car]  # (N, Q)
+        else:  # carrier phase EO phi + omega t
+            Phi = np.exp(-1j * (self._eo_s[None, :] * self._dphi(t, start, stop)[:, None]
+                                + self._om_s[None, :] * (ts - ts[0])[:, None]))[:, car]
+            rot = np.exp(-1j * (self._eo_s[None, :] * om_end[:, None] + self._om_s[None, :]) * h[:, None])[:, car]
         if float(np.max(np.abs(h - h0))) * float(np.max(np.abs(lam_m))) <= 1e-8:
             # a uniform stretch (the steps differ in their last digits only):
             # exp(lambda h_n) = exp(lambda h_0) (1 + lambda (h_n - h_0)), |lambda (h_n - h_0)|
@@ -968,6 +1021,8 @@ class EnvelopeIntegrator:
             elh = np.exp(lam_m[None, :] * h[:, None])[:, inv_k]
         eu = elh * rot
         u = (lam[None, :] - 1j * eo[None, :] * om_end[:, None]) * h[:, None]
+        if self._om_col is not None:
+            u -= 1j * self._om_col[idx][None, :] * h[:, None]
         v = 0.5j * eo[None, :] * (alpha * h * h)[:, None]  # (N, Q)
         g = _chirp_given_exp(u, eu, v)
         g *= self._c_col[idx][None, :] * h[:, None]
@@ -997,5 +1052,6 @@ class EnvelopeIntegrator:
         al = self.speed.alpha[self.speed.segment(0.5 * (ts[0] + ts[1]))]
         ap = self._envelopes(+1, a_plus, self.c_plus, ts, phi, om[1:], np.array([al]))[-1]
         am = self._envelopes(-1, a_minus, self.c_minus, ts, phi, om[1:], np.array([al]))[-1]
-        carrier = np.exp(1j * self.eo * phi[1])
+        carrier = np.exp(1j * self.eo * phi[1]) if self.omega is None else np.exp(
+            1j * (self.eo * phi[1] + self.omega[None, :] * t))
         return np.sum(ap * carrier + am * np.conj(carrier), axis=1)

@@ -134,8 +134,11 @@ class LocalMotion:
     margin : float
         Smallest distance from a ``t_ref`` to its segment's bounds, s.
     rot : ndarray, shape (n_exc, 2, n)
-        ``cos`` and ``sin`` of ``EO_m phi(t_ref)``.
+        ``cos`` and ``sin`` of the carrier phase ``theta_m(t_ref) = EO_m phi(t_ref) + omega_m t_ref``.
     eo : ndarray, shape (n_exc,)
+    omega : ndarray, shape (n_exc,), or None
+        Constant carrier frequencies ``omega_m``, rad/s (non-synchronous carriers,
+        :class:`~bttsim_stream.sim.modal.EnvelopeIntegrator`); None: all zero.
     """
 
     P: np.ndarray
@@ -149,18 +152,20 @@ class LocalMotion:
     margin: float
     rot: np.ndarray
     eo: np.ndarray
+    omega: np.ndarray | None = None
 
     def take(self, idx) -> "LocalMotion":
         """The crossings ``idx``."""
         return LocalMotion(P=self.P[..., idx], t0=self.t0[idx], t_ref=self.t_ref[idx], om_ref=self.om_ref[idx],
                            alpha=self.alpha[idx], seg_lo=self.seg_lo[idx], seg_hi=self.seg_hi[idx],
-                           phi_ref=self.phi_ref[idx], margin=self.margin, rot=self.rot[..., idx], eo=self.eo)
+                           phi_ref=self.phi_ref[idx], margin=self.margin, rot=self.rot[..., idx], eo=self.eo,
+                           omega=self.omega)
 
     def with_P(self, P: np.ndarray) -> "LocalMotion":
         """The same crossings with other components."""
         return LocalMotion(P=P, t0=self.t0, t_ref=self.t_ref, om_ref=self.om_ref, alpha=self.alpha,
                            seg_lo=self.seg_lo, seg_hi=self.seg_hi, phi_ref=self.phi_ref, margin=self.margin, rot=self.rot,
-                           eo=self.eo)
+                           eo=self.eo, omega=self.omega)
 
     def angle_change(self, speed: SpeedProfile, t: np.ndarray):
         """Rotor angle turned since ``t_ref`` (rad) and speed (rad/s) at times ``t`` (q, n).
@@ -184,9 +189,10 @@ class LocalMotion:
         return d, om
 
 
-def crossing_frame(speed: SpeedProfile, t0: np.ndarray, t_ref: np.ndarray, eo) -> LocalMotion:
+def crossing_frame(speed: SpeedProfile, t0: np.ndarray, t_ref: np.ndarray, eo, omega=None) -> LocalMotion:
     """A :class:`LocalMotion` without components: the crossings' reference times, speeds and
-    carriers ``exp(i EO phi(t_ref))``."""
+    carriers ``exp(i theta_m(t_ref))``, ``theta_m = EO_m phi + omega_m t`` (``omega`` None:
+    all zero)."""
     k = speed.segment(t_ref)
     s = t_ref - speed.t_s[k]
     lo = np.where(k == 0, -np.inf, speed.t_s[k])
@@ -197,10 +203,13 @@ def crossing_frame(speed: SpeedProfile, t0: np.ndarray, t_ref: np.ndarray, eo) -
     phi = speed.phi_knots[k] + s * (w + 0.5 * a * s)  # as SpeedProfile.state
     eo = np.asarray(eo, float)
     th = eo[:, None] * phi[None, :]
+    if omega is not None:
+        omega = np.asarray(omega, float)
+        th = th + omega[:, None] * t_ref[None, :]
     rot = np.stack([np.cos(th), np.sin(th)], axis=1)  # (n_exc, 2, n)
     margin = float(np.min(np.minimum(t_ref - lo, hi - t_ref), initial=np.inf))
     return LocalMotion(P=np.zeros((4, eo.size, 0, 0, 2, t_ref.size)), t0=t0, t_ref=t_ref, om_ref=om, alpha=a,
-                       seg_lo=lo, seg_hi=hi, phi_ref=phi, margin=margin, rot=rot, eo=eo)
+                       seg_lo=lo, seg_hi=hi, phi_ref=phi, margin=margin, rot=rot, eo=eo, omega=omega)
 
 
 def project_planes(CPr: np.ndarray, V: np.ndarray) -> np.ndarray:
@@ -251,6 +260,8 @@ def eval_local(lm: LocalMotion, speed: SpeedProfile, t: np.ndarray, derivative: 
     for m in range(lm.eo.size):
         P0, P1, P2, P3 = lm.P[:, m]  # (q, c, 2, n)
         th = lm.eo[m] * dphi
+        if lm.omega is not None:
+            th = th + lm.omega[m] * (t - lm.t_ref)
         cd, sd = np.cos(th), np.sin(th)
         c0, s0 = lm.rot[m]
         cr = cd * c0
@@ -276,7 +287,8 @@ def eval_local(lm: LocalMotion, speed: SpeedProfile, t: np.ndarray, derivative: 
             # d/dt Im(X e^{i th}) = Im((X' + i EO Omega X) e^{i th})
             d = Xd[:, :, 1] * cr
             d += Xd[:, :, 0] * ci
-            d += (lm.eo[m] * om)[:, None, :] * (Xr * cr - Xi * ci)
+            rate = lm.eo[m] * om if lm.omega is None else lm.eo[m] * om + lm.omega[m]
+            d += rate[:, None, :] * (Xr * cr - Xi * ci)
             der = d if der is None else der + d
     return val, der, dphi, om
 
