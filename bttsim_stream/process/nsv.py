@@ -1,0 +1,533 @@
+"""Non-synchronous vibration (NSV): detection, order alias, nodal diameter and amplitude.
+
+Flutter and rotating stall make the blades vibrate at a rotor-frame frequency ``f`` that is
+not a whole multiple of the shaft frequency, as a travelling wave of nodal diameter ``k``:
+
+``x_b(t) = A sin(2 pi f t + 2 pi k b / N_b + c)``  (same sign convention as
+:mod:`.travelling_wave`: ``+k`` forward).
+
+Sampling
+--------
+Within a block of ``L`` revolutions at nearly constant speed the blade reaches probe ``j``
+in revolution ``n`` at rotor angle ``2 pi n + psi_bj`` (``psi_bj`` the arrival angle,
+``theta_j - theta_b - theta_OPR`` mod 2 pi, :mod:`.displacement`), so the Eq. 1 samples are
+
+``d_nbj = A sin(nu (2 pi n + psi_bj) + 2 pi k b / N_b + c)``,  ``nu = f / f_shaft``
+
+(the *order*, ``2 pi f / Omega``, not an integer). What this sampling can observe:
+
+* each blade and probe gives one sample per revolution: the sequence in ``n`` shows only
+  the **alias** ``mu = |nu - round(nu)|`` in ``[0, 0.5]`` cycles per revolution (a real
+  sinusoid cannot tell ``nu`` from ``-nu``). A synchronous (engine-order) response has
+  ``mu = 0``: that is what tells NSV from forced response;
+* the probes at different angles see the phase pattern ``exp(i nu psi_bj)``, which fixes
+  the whole part of ``nu`` among the candidates ``m +- mu`` -- as far as the probe layout
+  can: two candidates whose patterns the probes cannot tell apart (e.g. ``nu`` and
+  ``nu + P`` for ``P`` equally spaced probes) are both listed (``order_alternatives``);
+* with the order chosen, the blades' phases after removing ``nu psi_bj`` give the signed
+  ND ``k`` by a spatial DFT (a wrong whole part ``m`` of the order shifts the ND by the same
+  amount: the stationary-frame order ``nu - k`` is what one probe alone sees).
+
+Method (per block, vectorised over blocks)
+------------------------------------------
+Each blade and probe's block of displacements has its mean and a quadratic trend in the
+revolution removed (the slowly varying synchronous response and the offsets), is Hann
+windowed, and transformed along the revolutions (zero-padded FFT). The power summed over
+blades and probes, ``S(mu)``, is searched above the synchronous band ``mu >= guard``: the
+**detection statistic** is the ratio of its peak to its median over that band (white
+noise: about 1.5 with 145 series; an NSV of pk-pk amplitude ``a`` on noise of rms
+``sigma`` per sample gives about ``1 + L a^2 / (7 sigma^2)``). A block is detected when the
+ratio is at least ``ratio_threshold`` (10), the wave's pk-pk amplitude at its ND is at least
+``min_amp_m`` (5 um, a noise-free run's numerical floor is far below, the simulator's 8 ns
+clock tick is about 3 um of tip motion at 0.19 m and 2500 rpm) and the probe-phase
+coherence of the chosen order is at least ``min_coherence``. A **detection** is a run of at
+least ``min_blocks`` (2) consecutive detected blocks with the same ND and orders within
+``3 / L``: a transient (the free vibration after a fast resonance crossing) does not last.
+
+The alias is refined between FFT bins by a parabola through the log power, the complex
+response of each blade and probe is then the windowed DFT at that alias, and the candidate
+orders are scored by their **coherence** ``sum_b |sum_j Z_bj exp(-i nu psi_bj)|^2 /
+(P sum_bj |Z_bj|^2)`` (1: the probes' phases are exactly those of order ``nu``).
+
+Per revolution, the amplitude of a detection (the growth of a flutter) is the least-squares
+fit of ``sin / cos(nu psi_bj)`` to each blade's detrended samples of that revolution.
+
+Conventions: arrays ``(revolution, blade, probe)``, SI units, amplitudes peak-to-peak,
+revolutions numbered from 0 (the caller adds its first revolution's number).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["NsvOptions", "NsvScan", "NsvDetection", "scan_blocks", "detections", "detect_nsv",
+           "nsv_note", "nsv_table_lines"]
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True, slots=True)
+class NsvOptions:
+    """Thresholds and block size of the NSV detection (see the module docstring).
+
+    Attributes
+    ----------
+    block : int
+        Revolutions per block (non-overlapping, from revolution 0 of the run), >= 8.
+    pad : int
+        Zero-padding factor of the FFT along the revolutions.
+    guard : float
+        Synchronous band: aliases below this (cycles per revolution) are not searched;
+        at least 3 bins of the block (the Hann window's main lobe and trend removal).
+    ratio_threshold : float
+        Peak-to-median power ratio of a detected block.
+    min_amp_m : float
+        Smallest pk-pk amplitude of the wave at its ND of a detected block, m.
+    min_coherence : float
+        Smallest probe-phase coherence of the chosen order (0..1).
+    alias_tolerance : float
+        Candidate orders whose coherence is within this fraction of the best are listed as
+        alternatives (the probes cannot tell them apart).
+    min_blocks : int
+        Consecutive detected blocks (same ND, orders within ``3 / block``) of a detection.
+    max_order : float or None
+        Largest order searched (None: the blade count).
+    """
+
+    block: int = 32
+    pad: int = 2
+    guard: float = 0.1
+    ratio_threshold: float = 10.0
+    min_amp_m: float = 5e-6
+    min_coherence: float = 0.5
+    alias_tolerance: float = 0.05
+    min_blocks: int = 2
+    max_order: float | None = None
+
+    def __post_init__(self) -> None:
+        if int(self.block) < 8:
+            raise ValueError(f"NSV block must be >= 8 revolutions, got {self.block}")
+        if int(self.pad) < 1:
+            raise ValueError(f"NSV pad must be >= 1, got {self.pad}")
+        if not 0.0 < self.guard < 0.5:
+            raise ValueError(f"NSV guard must be in (0, 0.5), got {self.guard}")
+        if int(self.min_blocks) < 1:
+            raise ValueError(f"NSV min_blocks must be >= 1, got {self.min_blocks}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class NsvScan:
+    """Every block's analysis (detected or not).
+
+    Attributes
+    ----------
+    start : ndarray of int, shape (n_blocks,)
+        First revolution of each block (index into the run); blocks hold ``block`` revolutions.
+    block : int
+    ratio : ndarray, shape (n_blocks,)
+        Detection statistic (peak / median power above the synchronous band).
+    alias : ndarray, shape (n_blocks,)
+        ``mu``, cycles per revolution, in [guard, 0.5].
+    order : ndarray, shape (n_blocks,)
+        Best order ``nu`` (NaN where not evaluated: ratio below threshold).
+    alternatives : tuple of tuple of float
+        Per block, the other orders the probes cannot tell from ``order``.
+    coherence : ndarray, shape (n_blocks,)
+    nd : ndarray of int, shape (n_blocks,)
+        Signed nodal diameter of the wave (0 where not evaluated).
+    amp_pkpk_m : ndarray, shape (n_blocks,)
+        Pk-pk amplitude of the wave at its ND, m.
+    forward_m, backward_m : ndarray, shape (n_blocks, n_nd)
+        The travelling-wave spectrum of the block's NSV response by ND, pk-pk, m.
+    omega_rad_s : ndarray, shape (n_blocks,)
+        Mean speed of the block, rad/s.
+    detected : ndarray of bool, shape (n_blocks,)
+        The block passes every threshold.
+    blade_amp_pkpk_m : ndarray, shape (n_blocks, n_blades)
+        Per-blade pk-pk amplitude of the block's NSV response, m.
+    """
+
+    start: np.ndarray
+    block: int
+    ratio: np.ndarray
+    alias: np.ndarray
+    order: np.ndarray
+    alternatives: tuple
+    coherence: np.ndarray
+    nd: np.ndarray
+    amp_pkpk_m: np.ndarray
+    forward_m: np.ndarray
+    backward_m: np.ndarray
+    omega_rad_s: np.ndarray
+    detected: np.ndarray
+    blade_amp_pkpk_m: np.ndarray
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.start.size)
+
+    @property
+    def freq_hz(self) -> np.ndarray:
+        """Rotor-frame frequency ``nu Omega / 2 pi`` of each block, Hz."""
+        return self.order * self.omega_rad_s / TWO_PI
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class NsvDetection:
+    """One non-synchronous vibration: consecutive detected blocks of one ND.
+
+    Attributes
+    ----------
+    first_revolution, last_revolution : int
+        Revolutions covered (inclusive, numbered as in the run).
+    order : float
+        ``nu = f / f_shaft`` at the strongest block (the rotor-frame frequency in orders).
+    order_alternatives : tuple of float
+        Orders the probes could not tell from ``order`` (same alias ``mu``).
+    alias : float
+        ``mu = |nu - round(nu)|``, cycles per revolution: what one sample per revolution
+        shows, unambiguous.
+    freq_hz : float
+        ``nu Omega / 2 pi`` at the strongest block, Hz; ``freq_min_hz``, ``freq_max_hz`` over
+        the blocks.
+    nd : int
+        Signed nodal diameter (forward positive).
+    amp_pkpk_m : float
+        Largest block amplitude of the wave at its ND (pk-pk), m; ``amp_first_pkpk_m`` that
+        of the first block (growth).
+    ratio : float
+        Largest detection statistic; ``ratio_threshold`` its threshold.
+    coherence : float
+        Probe-phase coherence at the strongest block.
+    blocks : int
+    revolutions : ndarray of int, shape (n,)
+        Revolution numbers of the per-revolution amplitudes.
+    rev_amp_pkpk_m : ndarray, shape (n,)
+        Per revolution, the blade-RMS pk-pk amplitude at the detected order (the growth), m.
+    forward_m, backward_m : ndarray, shape (n_nd,)
+        Travelling-wave spectrum of the strongest block, pk-pk, m.
+    """
+
+    first_revolution: int
+    last_revolution: int
+    order: float
+    order_alternatives: tuple
+    alias: float
+    freq_hz: float
+    freq_min_hz: float
+    freq_max_hz: float
+    nd: int
+    amp_pkpk_m: float
+    amp_first_pkpk_m: float
+    ratio: float
+    ratio_threshold: float
+    coherence: float
+    blocks: int
+    revolutions: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    rev_amp_pkpk_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    forward_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    backward_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def speed_ratio_note(self) -> str:
+        alts = ", ".join(f"{a:.3f}" for a in self.order_alternatives)
+        return f" (or {alts})" if alts else ""
+
+    def to_summary(self) -> dict:
+        """One element of the summary's ``non_synchronous`` list."""
+        return {"kind": "non_synchronous", "order": _num(self.order),
+                "order_alternatives": [_num(a) for a in self.order_alternatives],
+                "alias_per_rev": _num(self.alias), "freq_hz": _num(self.freq_hz),
+                "freq_min_hz": _num(self.freq_min_hz), "freq_max_hz": _num(self.freq_max_hz),
+                "nd": int(self.nd), "amp_pkpk_m": _num(self.amp_pkpk_m),
+                "amp_first_pkpk_m": _num(self.amp_first_pkpk_m),
+                "detection": {"statistic": "nsv_peak_to_median_power", "value": _num(self.ratio),
+                              "threshold": _num(self.ratio_threshold), "coherence": _num(self.coherence)},
+                "revolutions": {"first": int(self.first_revolution), "last": int(self.last_revolution)},
+                "blocks": int(self.blocks)}
+
+
+def _num(x):
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _detrend_basis(L: int) -> np.ndarray:
+    """Orthonormal columns spanning 1, n, n^2 over a block, shape (L, 3)."""
+    n = np.linspace(-1.0, 1.0, L)
+    q, _ = np.linalg.qr(np.stack([np.ones(L), n, n * n], axis=1))
+    return q
+
+
+def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
+                options: NsvOptions = NsvOptions(), *, starts=None) -> NsvScan:
+    """Analyse every whole block of revolutions for a non-synchronous response.
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+        Eq. 1 displacements, m (NaN: missing); offsets need not be removed.
+    omega_rad_s : ndarray, shape (n_rev,)
+        Mean speed of each revolution, rad/s.
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes)
+        ``psi_bj``, the rotor angle after the OPR pulse at which blade ``b`` reaches probe
+        ``j`` (:meth:`Geometry.nominal_arrival_angles` or the calibrated ones).
+    options : NsvOptions
+    starts : sequence of int, optional
+        First revolutions of the blocks to analyse (default: ``0, L, 2L, ...`` while whole).
+
+    Returns
+    -------
+    NsvScan
+    """
+    d = np.asarray(d_m, dtype=float)
+    n_rev, nb, npr = d.shape
+    L = int(options.block)
+    st = (np.arange(0, n_rev - L + 1, L, dtype=np.int64) if starts is None
+          else np.asarray(starts, dtype=np.int64).reshape(-1))
+    n_nd = nb // 2 + 1
+    nblk = st.size
+    out = dict(ratio=np.zeros(nblk), alias=np.full(nblk, np.nan), order=np.full(nblk, np.nan),
+               coherence=np.full(nblk, np.nan), nd=np.zeros(nblk, np.int64), amp=np.zeros(nblk),
+               fwd=np.zeros((nblk, n_nd)), bwd=np.zeros((nblk, n_nd)), blade=np.zeros((nblk, nb)))
+    alternatives: list = [()] * nblk
+    omega = np.asarray(omega_rad_s, float)
+    om_blk = np.array([float(np.mean(omega[s:s + L])) for s in st]) if nblk else np.zeros(0)
+    if nblk == 0:
+        return _scan(st, L, out, alternatives, om_blk, np.zeros(0, bool))
+    idx = st[:, None] + np.arange(L)[None, :]
+    x = _detrended(d[idx])  # (nblk, L, nb, npr)
+    w = np.hanning(L + 2)[1:-1]
+    n_fft = int(options.pad) * L
+    X = np.fft.rfft(x * w[None, :, None, None], n=n_fft, axis=1)
+    S = np.einsum("kfbj,kfbj->kf", X.real, X.real) + np.einsum("kfbj,kfbj->kf", X.imag, X.imag)
+    mu = np.arange(S.shape[1]) / n_fft
+    band = mu >= options.guard
+    if band.sum() < 3:
+        return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool))
+    Sb = S[:, band]
+    floor = np.median(Sb, axis=1)
+    i_pk = np.argmax(Sb, axis=1)
+    peak = Sb[np.arange(nblk), i_pk]
+    with np.errstate(all="ignore"):
+        ratio = np.where(floor > 0, peak / floor, np.where(peak > 0, np.inf, 0.0))
+    out["ratio"] = ratio
+    i0 = np.flatnonzero(band)[0]
+    k_pk = i_pk + i0
+    cand = np.flatnonzero(ratio >= options.ratio_threshold)
+    max_order = float(options.max_order) if options.max_order is not None else float(nb)
+    for k in cand:  # few blocks: the ones that may hold an NSV
+        mu0 = _refine(S[k], int(k_pk[k]), n_fft)
+        out["alias"][k] = mu0
+        coef = _joint_fit(x[k], mu0)
+        Z = coef[4] + 1j * coef[3]  # A exp(i phase) of each blade and probe at the alias, m
+        _orders(Z, mu0, arrival_angles_rad, max_order, options, out, alternatives, k)
+    detected = ((ratio >= options.ratio_threshold) & (out["amp"] >= options.min_amp_m)
+                & (np.nan_to_num(out["coherence"]) >= options.min_coherence))
+    return _scan(st, L, out, alternatives, om_blk, detected)
+
+
+def _scan(st, L, out, alternatives, om_blk, detected) -> NsvScan:
+    return NsvScan(start=st, block=L, ratio=out["ratio"], alias=out["alias"], order=out["order"],
+                   alternatives=tuple(alternatives), coherence=out["coherence"], nd=out["nd"],
+                   amp_pkpk_m=out["amp"], forward_m=out["fwd"], backward_m=out["bwd"], omega_rad_s=om_blk,
+                   detected=np.asarray(detected, bool), blade_amp_pkpk_m=out["blade"])
+
+
+def _detrended(x: np.ndarray) -> np.ndarray:
+    """Blocks ``(nblk, L, nb, npr)`` with each series' quadratic trend removed; missing
+    samples (NaN) become 0 after the removal of the series mean."""
+    L = x.shape[1]
+    ok = np.isfinite(x)
+    if ok.all():
+        y = x
+    else:
+        with np.errstate(all="ignore"):
+            cnt = ok.sum(axis=1, keepdims=True)
+            mean = np.where(cnt > 0, np.where(ok, x, 0.0).sum(axis=1, keepdims=True) / np.maximum(cnt, 1), 0.0)
+        y = np.where(ok, x, mean)
+    Q = _detrend_basis(L)
+    coef = np.einsum("nq,knbj->kqbj", Q, y)
+    y = y - np.einsum("nq,kqbj->knbj", Q, coef)
+    return np.where(ok, y, 0.0)
+
+
+def _refine(S: np.ndarray, k: int, n_fft: int) -> float:
+    """Alias of the power peak at bin ``k``, refined by a parabola through the log power."""
+    if 0 < k < S.size - 1 and np.all(S[k - 1:k + 2] > 0):
+        a, b, c = np.log(S[k - 1:k + 2])
+        den = a - 2 * b + c
+        delta = 0.5 * (a - c) / den if den < 0 else 0.0
+        return float(np.clip((k + np.clip(delta, -0.5, 0.5)) / n_fft, 0.0, 0.5))
+    return float(k / n_fft)
+
+
+def _joint_basis(L: int, mu: float) -> np.ndarray:
+    """Columns 1, n, n^2, cos(2 pi mu n), sin(2 pi mu n) over a block, shape (L, 5)."""
+    n = np.arange(L)
+    t = np.linspace(-1.0, 1.0, L)
+    return np.stack([np.ones(L), t, t * t, np.cos(TWO_PI * mu * n), np.sin(TWO_PI * mu * n)], axis=1)
+
+
+def _joint_fit(x: np.ndarray, mu: float) -> np.ndarray:
+    """Least-squares coefficients of :func:`_joint_basis` for each blade and probe series of
+    one block ``x`` (L, nb, npr), shape (5, nb, npr): the quadratic trend and the sinusoid at
+    the alias together (removing the trend alone would take part of the sinusoid)."""
+    pinv = np.linalg.pinv(_joint_basis(x.shape[0], mu), rcond=1e-8)
+    return np.einsum("qn,nbj->qbj", pinv, x)
+
+
+def _orders(Z: np.ndarray, mu0: float, psi: np.ndarray, max_order: float, options: NsvOptions,
+            out: dict, alternatives: list, k: int) -> None:
+    """Score the orders ``m +- mu0`` by probe-phase coherence; the best one's ND, spectrum
+    and amplitude into ``out[...][k]``."""
+    nb, npr = Z.shape
+    m = np.arange(0, int(math.ceil(max_order)) + 2)
+    nus = np.concatenate([m + mu0, m - mu0])
+    conj = np.concatenate([np.zeros(m.size, bool), np.ones(m.size, bool)])
+    keep = (nus > 0) & (nus <= max_order)
+    nus, conj = nus[keep], conj[keep]
+    if nus.size == 0:
+        return
+    Zc = np.where(conj[:, None, None], np.conj(Z)[None], Z[None])  # (n_cand, nb, npr)
+    present = np.abs(Z) > 0
+    Y = np.einsum("cbj,cbj->cb", Zc, np.exp(-1j * nus[:, None, None] * psi[None]) * present[None])
+    n_p = np.maximum(present.sum(axis=1), 1)
+    total = float(np.sum(np.abs(Z) ** 2))
+    if total <= 0:
+        return
+    coh = np.sum(np.abs(Y) ** 2 / n_p[None, :], axis=1) / total
+    best = int(np.argmax(coh))
+    near = np.flatnonzero(coh >= coh[best] * (1.0 - options.alias_tolerance))
+    alternatives[k] = tuple(float(nus[i]) for i in near if i != best)
+    out["order"][k] = float(nus[best])
+    out["coherence"][k] = float(coh[best])
+    q = 2.0 * Y[best] / n_p  # complex pk-pk response of each blade, ND phase only
+    out["blade"][k] = np.abs(q)
+    Q = np.fft.fft(q) / nb
+    nd = np.arange(nb // 2 + 1)
+    fwd, bwd = np.abs(Q[nd % nb]), np.abs(Q[(-nd) % nb])
+    out["fwd"][k], out["bwd"][k] = fwd, bwd
+    i_f, i_b = int(np.argmax(fwd)), int(np.argmax(bwd))
+    out["nd"][k] = -i_b if bwd[i_b] > fwd[i_f] else i_f
+    out["amp"][k] = max(fwd[i_f], bwd[i_b])
+
+
+def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, options: NsvOptions = NsvOptions(),
+               *, revolution0: int = 0) -> tuple:
+    """Group detected blocks into detections (runs of ``min_blocks`` consecutive blocks of one
+    ND and orders within ``3 / block``), with the per-revolution amplitude growth.
+
+    Returns
+    -------
+    tuple of NsvDetection
+    """
+    runs: list[list[int]] = []
+    tol = 3.0 / scan.block
+    for k in np.flatnonzero(scan.detected):
+        last = runs[-1][-1] if runs else None
+        if (last is not None and scan.start[k] == scan.start[last] + scan.block and scan.nd[k] == scan.nd[last]
+                and abs(scan.order[k] - scan.order[last]) <= tol):
+            runs[-1].append(int(k))
+        else:
+            runs.append([int(k)])
+    out = []
+    d = np.asarray(d_m, dtype=float)
+    for run in runs:
+        if len(run) < int(options.min_blocks):
+            continue
+        r = np.asarray(run)
+        top = int(r[np.argmax(scan.amp_pkpk_m[r])])
+        revs, amps = [], []
+        for k in run:
+            s = int(scan.start[k])
+            revs.append(np.arange(s, s + scan.block))
+            amps.append(revolution_amplitudes(d[s:s + scan.block], arrival_angles_rad, float(scan.order[k]),
+                                              float(scan.alias[k])))
+        f = scan.freq_hz[r]
+        out.append(NsvDetection(
+            first_revolution=revolution0 + int(scan.start[r[0]]),
+            last_revolution=revolution0 + int(scan.start[r[-1]]) + scan.block - 1,
+            order=float(scan.order[top]), order_alternatives=scan.alternatives[top], alias=float(scan.alias[top]),
+            freq_hz=float(scan.freq_hz[top]), freq_min_hz=float(np.min(f)), freq_max_hz=float(np.max(f)),
+            nd=int(scan.nd[top]), amp_pkpk_m=float(scan.amp_pkpk_m[top]),
+            amp_first_pkpk_m=float(scan.amp_pkpk_m[r[0]]), ratio=float(np.max(scan.ratio[r])),
+            ratio_threshold=float(options.ratio_threshold), coherence=float(scan.coherence[top]), blocks=len(run),
+            revolutions=revolution0 + np.concatenate(revs), rev_amp_pkpk_m=np.concatenate(amps),
+            forward_m=scan.forward_m[top].copy(), backward_m=scan.backward_m[top].copy()))
+    return tuple(out)
+
+
+def revolution_amplitudes(d_m: np.ndarray, arrival_angles_rad: np.ndarray, order: float,
+                          alias: float) -> np.ndarray:
+    """Per revolution of one block, the blade-RMS pk-pk amplitude of the response at ``order``.
+
+    Each blade and probe series loses its quadratic trend (fitted jointly with the sinusoid
+    at ``alias``); each blade's samples of a revolution are then fitted by least squares with
+    ``sin(nu psi_bj)`` and ``cos(nu psi_bj)``.
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (L, n_blades, n_probes)
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes)
+    order : float
+
+    Returns
+    -------
+    ndarray, shape (L,)
+    """
+    x = _detrended(np.asarray(d_m, float)[None])[0]  # (L, nb, npr)
+    coef = _joint_fit(x, alias)
+    x = x - np.einsum("nq,qbj->nbj", _joint_basis(x.shape[0], alias)[:, :3], coef[:3])
+    ok = np.isfinite(np.asarray(d_m, float))
+    arg = float(order) * np.asarray(arrival_angles_rad, float)
+    s, c = np.sin(arg)[None] * ok, np.cos(arg)[None] * ok  # (L, nb, npr)
+    ss, sc, cc = (s * s).sum(-1), (s * c).sum(-1), (c * c).sum(-1)
+    rs, rc = (s * x).sum(-1), (c * x).sum(-1)
+    with np.errstate(all="ignore"):
+        det = ss * cc - sc * sc
+        a1 = (cc * rs - sc * rc) / det
+        a2 = (ss * rc - sc * rs) / det
+        amp = 2.0 * np.hypot(a1, a2)
+        amp = np.where((ok.sum(-1) >= 3) & (det > 1e-9), amp, np.nan)
+        return np.sqrt(np.nanmean(amp * amp, axis=1))
+
+
+def detect_nsv(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
+               options: NsvOptions = NsvOptions(), *, revolution0: int = 0) -> tuple[NsvScan, tuple]:
+    """:func:`scan_blocks` then :func:`detections`: the block analysis and the detections."""
+    scan = scan_blocks(d_m, omega_rad_s, arrival_angles_rad, options)
+    return scan, detections(scan, d_m, arrival_angles_rad, options, revolution0=revolution0)
+
+
+def _nd_text(nd: int) -> str:
+    return f"ND {nd:+d} ({'forward' if nd > 0 else 'backward' if nd < 0 else 'standing'})"
+
+
+def nsv_note(det: dict) -> str:
+    """One sentence on a detection (a ``non_synchronous`` summary element)."""
+    alts = det.get("order_alternatives") or []
+    alt = f" (or {', '.join(f'{a:.3f}' for a in alts)}: the probes cannot tell these apart)" if alts else ""
+    rev = det["revolutions"]
+    return (f"non-synchronous vibration (not an engine-order resonance) at order {det['order']:.3f}{alt}, "
+            f"{det['freq_hz']:.2f} Hz, alias {det['alias_per_rev']:.3f} cycles/rev, {_nd_text(det['nd'])}, "
+            f"{1e3 * det['amp_pkpk_m']:.4f} mm pk-pk, revolutions {rev['first']}-{rev['last']}")
+
+
+def nsv_table_lines(summary: dict) -> list[str]:
+    """Printed lines for the summary's ``non_synchronous`` detections."""
+    lines = []
+    for det in summary.get("non_synchronous", []) or []:
+        d = det["detection"]
+        lines.append(f"NON-SYNCHRONOUS VIBRATION  order {det['order']:.3f}"
+                     + (f" (alternatives {', '.join(f'{a:.3f}' for a in det['order_alternatives'])})"
+                        if det.get("order_alternatives") else "")
+                     + f"  alias {det['alias_per_rev']:.3f}/rev  {det['freq_hz']:.2f} Hz "
+                     f"({det['freq_min_hz']:.2f}-{det['freq_max_hz']:.2f})  {_nd_text(det['nd'])}  "
+                     f"{1e3 * det['amp_pkpk_m']:.4f} mm pk-pk (first block {1e3 * det['amp_first_pkpk_m']:.4f})  "
+                     f"revolutions {det['revolutions']['first']}-{det['revolutions']['last']}  "
+                     f"power ratio {d['value']:.3g} (>= {d['threshold']:g}), coherence {d['coherence']:.3f}")
+    return lines
