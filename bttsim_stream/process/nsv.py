@@ -36,7 +36,8 @@ windowed, and transformed along the revolutions (zero-padded FFT). The power sum
 blades and probes, ``S(mu)``, is searched above the synchronous band ``mu >= guard``: the
 **detection statistic** is the ratio of its peak to its median over that band (white
 noise: about 1.5 with 145 series; an NSV of pk-pk amplitude ``a`` on noise of rms
-``sigma`` per sample gives about ``1 + L a^2 / (7 sigma^2)``). A block is detected when the
+``sigma`` per sample gives about ``1 + 0.043 L a^2 / sigma^2``, i.e. the threshold 10 is
+reached at ``a`` about 2.6 ``sigma`` with ``L = 32``). A block is detected when the
 ratio is at least ``ratio_threshold`` (10), the wave's pk-pk amplitude at its ND is at least
 ``min_amp_m`` (5 um, a noise-free run's numerical floor is far below, the simulator's 8 ns
 clock tick is about 3 um of tip motion at 0.19 m and 2500 rpm) and the probe-phase
@@ -133,8 +134,8 @@ class NsvScan:
         ``mu``, cycles per revolution, in [guard, 0.5].
     order : ndarray, shape (n_blocks,)
         Best order ``nu`` (NaN where not evaluated: ratio below threshold).
-    alternatives : tuple of tuple of float
-        Per block, the other orders the probes cannot tell from ``order``.
+    alternatives : tuple of tuple of (float, int)
+        Per block, the other orders the probes cannot tell from ``order``, with their ND.
     coherence : ndarray, shape (n_blocks,)
     nd : ndarray of int, shape (n_blocks,)
         Signed nodal diameter of the wave (0 where not evaluated).
@@ -187,6 +188,8 @@ class NsvDetection:
         ``nu = f / f_shaft`` at the strongest block (the rotor-frame frequency in orders).
     order_alternatives : tuple of float
         Orders the probes could not tell from ``order`` (same alias ``mu``).
+    nd_alternatives : tuple of int
+        The ND that goes with each alternative order.
     alias : float
         ``mu = |nu - round(nu)|``, cycles per revolution: what one sample per revolution
         shows, unambiguous.
@@ -215,6 +218,7 @@ class NsvDetection:
     last_revolution: int
     order: float
     order_alternatives: tuple
+    nd_alternatives: tuple
     alias: float
     freq_hz: float
     freq_min_hz: float
@@ -231,15 +235,11 @@ class NsvDetection:
     forward_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     backward_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    @property
-    def speed_ratio_note(self) -> str:
-        alts = ", ".join(f"{a:.3f}" for a in self.order_alternatives)
-        return f" (or {alts})" if alts else ""
-
     def to_summary(self) -> dict:
         """One element of the summary's ``non_synchronous`` list."""
         return {"kind": "non_synchronous", "order": _num(self.order),
                 "order_alternatives": [_num(a) for a in self.order_alternatives],
+                "nd_alternatives": [int(n) for n in self.nd_alternatives],
                 "alias_per_rev": _num(self.alias), "freq_hz": _num(self.freq_hz),
                 "freq_min_hz": _num(self.freq_min_hz), "freq_max_hz": _num(self.freq_max_hz),
                 "nd": int(self.nd), "amp_pkpk_m": _num(self.amp_pkpk_m),
@@ -298,16 +298,28 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     om_blk = np.array([float(np.mean(omega[s:s + L])) for s in st]) if nblk else np.zeros(0)
     if nblk == 0:
         return _scan(st, L, out, alternatives, om_blk, np.zeros(0, bool))
-    idx = st[:, None] + np.arange(L)[None, :]
-    x = _detrended(d[idx])  # (nblk, L, nb, npr)
-    w = np.hanning(L + 2)[1:-1]
     n_fft = int(options.pad) * L
-    X = np.fft.rfft(x * w[None, :, None, None], n=n_fft, axis=1)
-    S = np.einsum("kfbj,kfbj->kf", X.real, X.real) + np.einsum("kfbj,kfbj->kf", X.imag, X.imag)
-    mu = np.arange(S.shape[1]) / n_fft
+    mu = np.arange(n_fft // 2 + 1) / n_fft
     band = mu >= options.guard
     if band.sum() < 3:
         return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool))
+    # trend removal, Hann window and the DFT at the band's bins as one real matrix: the
+    # spectrum of every series is one product (no FFT of the synchronous band)
+    comp = band | (np.arange(mu.size) == np.flatnonzero(band)[0] - 1)  # one bin more, for the refinement
+    M = _spectrum_matrix(L, n_fft, np.flatnonzero(comp))
+    idx = st[:, None] + np.arange(L)[None, :]
+    y = np.moveaxis(d[idx].reshape(nblk, L, nb * npr), 1, 2)  # (nblk, series, L)
+    ok = np.isfinite(y)
+    if not ok.all():
+        with np.errstate(all="ignore"):
+            cnt = ok.sum(axis=2, keepdims=True)
+            mean = np.where(ok, y, 0.0).sum(axis=2, keepdims=True) / np.maximum(cnt, 1)
+        y = np.where(ok, y, mean)
+    R = y.reshape(-1, L) @ M  # (nblk * series, 2 n_band)
+    nbd = int(comp.sum())
+    P = (R * R).reshape(nblk, nb * npr, 2 * nbd).sum(axis=1)
+    S = np.zeros((nblk, mu.size))
+    S[:, comp] = P[:, :nbd] + P[:, nbd:]
     Sb = S[:, band]
     floor = np.median(Sb, axis=1)
     i_pk = np.argmax(Sb, axis=1)
@@ -317,12 +329,16 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     out["ratio"] = ratio
     i0 = np.flatnonzero(band)[0]
     k_pk = i_pk + i0
-    cand = np.flatnonzero(ratio >= options.ratio_threshold)
+    # a rough pk-pk amplitude of the peak (a wave equal on every series): blocks far below
+    # the amplitude threshold are not analysed further
+    w_sum = float(np.hanning(L + 2)[1:-1].sum())
+    rough = 4.0 * np.sqrt(peak / (nb * npr)) / w_sum
+    cand = np.flatnonzero((ratio >= options.ratio_threshold) & (rough >= 0.5 * options.min_amp_m))
     max_order = float(options.max_order) if options.max_order is not None else float(nb)
     for k in cand:  # few blocks: the ones that may hold an NSV
         mu0 = _refine(S[k], int(k_pk[k]), n_fft)
         out["alias"][k] = mu0
-        coef = _joint_fit(x[k], mu0)
+        coef = _joint_fit(_detrended(d[st[k]:st[k] + L][None])[0], mu0)
         Z = coef[4] + 1j * coef[3]  # A exp(i phase) of each blade and probe at the alias, m
         _orders(Z, mu0, arrival_angles_rad, max_order, options, out, alternatives, k)
     detected = ((ratio >= options.ratio_threshold) & (out["amp"] >= options.min_amp_m)
@@ -335,6 +351,24 @@ def _scan(st, L, out, alternatives, om_blk, detected) -> NsvScan:
                    alternatives=tuple(alternatives), coherence=out["coherence"], nd=out["nd"],
                    amp_pkpk_m=out["amp"], forward_m=out["fwd"], backward_m=out["bwd"], omega_rad_s=om_blk,
                    detected=np.asarray(detected, bool), blade_amp_pkpk_m=out["blade"])
+
+
+def _spectrum_matrix(L: int, n_fft: int, bins: np.ndarray) -> np.ndarray:
+    """``(I - Q Q^T)``, the Hann window and the (zero-padded) DFT at ``bins`` as one real
+    matrix, shape (L, 2 n_bins): a series ``x`` (L,) gives ``[Re X, Im X] = x @ M``."""
+    key = (L, n_fft, bins.tobytes())
+    if key not in _MATRICES:
+        Q = _detrend_basis(L)
+        w = np.hanning(L + 2)[1:-1]
+        A = w[:, None] * (np.eye(L) - Q @ Q.T)  # (L, L): windowed detrended = A @ x
+        n = np.arange(L)
+        F = np.exp(-2j * np.pi * np.outer(bins, n) / n_fft)  # (n_bins, L)
+        FA = F @ A
+        _MATRICES[key] = np.ascontiguousarray(np.concatenate([FA.real, FA.imag], axis=0).T)
+    return _MATRICES[key]
+
+
+_MATRICES: dict = {}
 
 
 def _detrended(x: np.ndarray) -> np.ndarray:
@@ -401,19 +435,25 @@ def _orders(Z: np.ndarray, mu0: float, psi: np.ndarray, max_order: float, option
         return
     coh = np.sum(np.abs(Y) ** 2 / n_p[None, :], axis=1) / total
     best = int(np.argmax(coh))
-    near = np.flatnonzero(coh >= coh[best] * (1.0 - options.alias_tolerance))
-    alternatives[k] = tuple(float(nus[i]) for i in near if i != best)
+    near = [i for i in np.flatnonzero(coh >= coh[best] * (1.0 - options.alias_tolerance)) if i != best]
     out["order"][k] = float(nus[best])
     out["coherence"][k] = float(coh[best])
     q = 2.0 * Y[best] / n_p  # complex pk-pk response of each blade, ND phase only
     out["blade"][k] = np.abs(q)
+    fwd, bwd, nd, amp = _wave(q)
+    out["fwd"][k], out["bwd"][k], out["nd"][k], out["amp"][k] = fwd, bwd, nd, amp
+    alternatives[k] = tuple((float(nus[i]), _wave(2.0 * Y[i] / n_p)[2]) for i in near)
+
+
+def _wave(q: np.ndarray) -> tuple:
+    """Forward / backward pk-pk magnitudes by ND of per-blade complex pk-pk responses, the
+    signed ND of the largest and its magnitude."""
+    nb = q.size
     Q = np.fft.fft(q) / nb
     nd = np.arange(nb // 2 + 1)
     fwd, bwd = np.abs(Q[nd % nb]), np.abs(Q[(-nd) % nb])
-    out["fwd"][k], out["bwd"][k] = fwd, bwd
     i_f, i_b = int(np.argmax(fwd)), int(np.argmax(bwd))
-    out["nd"][k] = -i_b if bwd[i_b] > fwd[i_f] else i_f
-    out["amp"][k] = max(fwd[i_f], bwd[i_b])
+    return fwd, bwd, (-i_b if bwd[i_b] > fwd[i_f] else i_f), float(max(fwd[i_f], bwd[i_b]))
 
 
 def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, options: NsvOptions = NsvOptions(),
@@ -429,8 +469,11 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
     tol = 3.0 / scan.block
     for k in np.flatnonzero(scan.detected):
         last = runs[-1][-1] if runs else None
-        if (last is not None and scan.start[k] == scan.start[last] + scan.block and scan.nd[k] == scan.nd[last]
-                and abs(scan.order[k] - scan.order[last]) <= tol):
+        # the same vibration: the next block, and its order within tol of the last block's
+        # order or of one it could not be told from (the ND goes with the order)
+        if (last is not None and scan.start[k] == scan.start[last] + scan.block
+                and any(abs(scan.order[k] - o) <= tol and scan.nd[k] == n
+                        for o, n in ((scan.order[last], scan.nd[last]), *scan.alternatives[last]))):
             runs[-1].append(int(k))
         else:
             runs.append([int(k)])
@@ -451,7 +494,8 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
         out.append(NsvDetection(
             first_revolution=revolution0 + int(scan.start[r[0]]),
             last_revolution=revolution0 + int(scan.start[r[-1]]) + scan.block - 1,
-            order=float(scan.order[top]), order_alternatives=scan.alternatives[top], alias=float(scan.alias[top]),
+            order=float(scan.order[top]), order_alternatives=tuple(o for o, _ in scan.alternatives[top]),
+            nd_alternatives=tuple(n for _, n in scan.alternatives[top]), alias=float(scan.alias[top]),
             freq_hz=float(scan.freq_hz[top]), freq_min_hz=float(np.min(f)), freq_max_hz=float(np.max(f)),
             nd=int(scan.nd[top]), amp_pkpk_m=float(scan.amp_pkpk_m[top]),
             amp_first_pkpk_m=float(scan.amp_pkpk_m[r[0]]), ratio=float(np.max(scan.ratio[r])),
@@ -509,8 +553,9 @@ def _nd_text(nd: int) -> str:
 
 def nsv_note(det: dict) -> str:
     """One sentence on a detection (a ``non_synchronous`` summary element)."""
-    alts = det.get("order_alternatives") or []
-    alt = f" (or {', '.join(f'{a:.3f}' for a in alts)}: the probes cannot tell these apart)" if alts else ""
+    alts = list(zip(det.get("order_alternatives") or [], det.get("nd_alternatives") or []))
+    alt = (f" (or {', '.join(f'{a:.3f} with ND {n:+d}' for a, n in alts)}: the probes cannot tell these apart)"
+           if alts else "")
     rev = det["revolutions"]
     return (f"non-synchronous vibration (not an engine-order resonance) at order {det['order']:.3f}{alt}, "
             f"{det['freq_hz']:.2f} Hz, alias {det['alias_per_rev']:.3f} cycles/rev, {_nd_text(det['nd'])}, "
@@ -523,8 +568,9 @@ def nsv_table_lines(summary: dict) -> list[str]:
     for det in summary.get("non_synchronous", []) or []:
         d = det["detection"]
         lines.append(f"NON-SYNCHRONOUS VIBRATION  order {det['order']:.3f}"
-                     + (f" (alternatives {', '.join(f'{a:.3f}' for a in det['order_alternatives'])})"
-                        if det.get("order_alternatives") else "")
+                     + (" (or " + ", ".join(f"{a:.3f} with ND {n:+d}" for a, n in
+                                             zip(det["order_alternatives"], det["nd_alternatives"]))
+                        + ": the probes cannot tell these apart)" if det.get("order_alternatives") else "")
                      + f"  alias {det['alias_per_rev']:.3f}/rev  {det['freq_hz']:.2f} Hz "
                      f"({det['freq_min_hz']:.2f}-{det['freq_max_hz']:.2f})  {_nd_text(det['nd'])}  "
                      f"{1e3 * det['amp_pkpk_m']:.4f} mm pk-pk (first block {1e3 * det['amp_first_pkpk_m']:.4f})  "

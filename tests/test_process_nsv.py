@@ -1,0 +1,140 @@
+"""Non-synchronous vibration: detection, order alias, signed ND and amplitude against an
+analytic blade response turned into TOAs by root finding (tests/_nsv_truth.py); the
+synchronous default run gives no detection; an NSV is never reported as a resonance."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bttsim_stream.process import Geometry, ProcessOptions, process_arrays
+from bttsim_stream.process.nsv import NsvOptions, detect_nsv, scan_blocks
+from bttsim_stream.process.resonance import summary_table
+
+from _nsv_truth import logistic, synthesize
+
+#: Order tolerance: the alias is refined between FFT bins of 1 / (pad x block) = 1/64 per rev.
+ORDER_TOL = 0.01
+
+
+def _geometry(run):
+    return Geometry(run.n_blades, run.probe_angles_rad, run.tip_radius_m)
+
+
+def _process(run, **opts):
+    return process_arrays(run.opr_s, run.toa_s, _geometry(run), ProcessOptions(**opts))
+
+
+@pytest.mark.parametrize("n_cells,fraction,nd", [(5, 0.55, -5), (3, 0.3, 3), (7, 0.62, 7), (4, 0.4, -11)],
+                         ids=["5cells-bwd5", "3cells-fwd3", "7cells-fwd7", "4cells-bwd11"])
+def test_rotating_stall_order_nd_and_amplitude(n_cells, fraction, nd):
+    order = n_cells * (1.0 - fraction)  # a non-integer engine order, constant with speed
+    run = synthesize(n_rev=256, rpm0=3000.0, order=order, nd=nd, amp_pk_m=0.15e-3, noise_s=5e-8, seed=3)
+    res = _process(run)
+    s = res.summary
+    assert len(s["non_synchronous"]) == 1
+    det = s["non_synchronous"][0]
+    assert det["order"] == pytest.approx(order, abs=ORDER_TOL)
+    assert det["alias_per_rev"] == pytest.approx(abs(order - round(order)), abs=ORDER_TOL)
+    assert det["nd"] == nd
+    assert det["freq_hz"] == pytest.approx(order * 3000 / 60, abs=ORDER_TOL * 50)
+    assert det["amp_pkpk_m"] == pytest.approx(0.3e-3, rel=0.03)
+    assert det["detection"]["value"] >= det["detection"]["threshold"]
+    # no engine-order resonance is claimed where none was crossed
+    assert s["status"] == "none" and s["resonances"] == [] and s["blades"] == []
+    assert any("non-synchronous vibration (not an engine-order resonance)" in n for n in s["notes"])
+    text = summary_table(s)
+    assert "NON-SYNCHRONOUS VIBRATION" in text and f"ND {nd:+d}" in text
+    json.loads(json.dumps(s))
+
+
+def test_flutter_growth_during_a_run_up():
+    """Flutter at a fixed rotor-frame frequency, growing logistically to its limit while the
+    speed rises: the detection gives the frequency, ND and the amplitude growth."""
+    f, nd, limit = 344.5, 3, 1.0e-3
+    run = synthesize(n_rev=640, rpm0=2300.0, rpm1=2500.0, freq_hz=f, nd=nd,
+                     amp_pk_m=logistic(0.5e-6, 0.5 * limit, 1.5), noise_s=5e-8, seed=4)
+    res = _process(run)
+    dets = res.nsv
+    assert len(dets) == 1
+    d = dets[0]
+    assert d.nd == nd
+    assert f == pytest.approx(d.freq_hz, abs=0.5)
+    assert d.freq_min_hz > f - 1.0 and d.freq_max_hz < f + 1.0
+    # the speed moved the order: each block's order is f / f_shaft of that block
+    sc = res.nsv_scan
+    ok = sc.detected
+    np.testing.assert_allclose(sc.order[ok], f * 2 * np.pi / sc.omega_rad_s[ok], atol=0.03)
+    # growth: small at the start, the limit amplitude at the end
+    assert d.amp_first_pkpk_m < 0.2 * limit
+    assert d.amp_pkpk_m == pytest.approx(limit, rel=0.05)
+    late = d.rev_amp_pkpk_m[-64:]
+    assert np.nanmedian(late) == pytest.approx(limit, rel=0.06)
+    assert np.nanmedian(d.rev_amp_pkpk_m[:32]) < 0.5 * np.nanmedian(late)
+    assert res.summary["status"] == "none"
+
+
+def test_alias_and_order_alternatives_are_consistent():
+    """Whatever the probes can or cannot resolve, every reported order has the alias that one
+    sample per revolution shows."""
+    run = synthesize(n_rev=128, rpm0=2800.0, order=6.3, nd=-2, amp_pk_m=0.1e-3)
+    g = _geometry(run)
+    res = _process(run)
+    d = res.nsv[0]
+    for nu in (d.order, *d.order_alternatives):
+        assert abs(nu - round(nu)) == pytest.approx(d.alias, abs=1e-9)
+    assert d.order == pytest.approx(6.3, abs=ORDER_TOL) and d.nd == -2
+    # four equally spaced probes cannot tell nu from nu + 4: both are listed
+    probes = (10.0, 100.0, 190.0, 280.0)
+    run4 = synthesize(n_rev=128, rpm0=2800.0, order=6.3, nd=-2, amp_pk_m=0.1e-3, probes_deg=probes)
+    g4 = _geometry(run4)
+    from bttsim_stream.process.displacement import compute_displacements
+    disp = compute_displacements(run4.opr_s, run4.toa_s, g4, calibration=None)
+    _, dets = detect_nsv(disp.d_m, disp.omega_rad_s, g4.nominal_arrival_angles())
+    orders = {round(x, 2) for x in (dets[0].order, *dets[0].order_alternatives)}
+    assert {6.3, 2.3, 10.3} <= {round(x, 1) for x in orders}
+    assert g is not None
+
+
+@pytest.mark.parametrize("case", ["synchronous", "noise"])
+def test_no_detection_without_nsv(case):
+    """A synchronous response (EO 8, casing-fixed, with noise) or noise alone: no detection;
+    the statistic of white noise stays near its expected 1.5."""
+    sync = (8, 0.8e-3, 0.2) if case == "synchronous" else None
+    run = synthesize(n_rev=512, rpm0=2000.0, rpm1=2600.0, order=3.3, nd=0, amp_pk_m=0.0, sync=sync,
+                     noise_s=2e-7, seed=5)
+    g = _geometry(run)
+    from bttsim_stream.process.displacement import compute_displacements
+    disp = compute_displacements(run.opr_s, run.toa_s, g, calibration=None)
+    scan = scan_blocks(disp.d_m, disp.omega_rad_s, g.nominal_arrival_angles())
+    assert not scan.detected.any()
+    assert np.max(scan.ratio) < 3.0
+    assert "non_synchronous" not in _process(run).summary
+
+
+def test_weak_nsv_in_noise_is_detected_by_the_statistic():
+    """The documented sensitivity: a pk-pk amplitude of four times the per-sample noise rms
+    gives a ratio of about 1 + 0.043 L a^2 / sigma^2 (23 with L = 32), above the threshold."""
+    sigma_s, rpm, R = 2e-7, 3000.0, 0.19
+    sigma_m = sigma_s * rpm / 60 * 2 * np.pi * R
+    run = synthesize(n_rev=256, rpm0=rpm, order=4.37, nd=6, amp_pk_m=2 * sigma_m, noise_s=sigma_s, seed=6)
+    g = _geometry(run)
+    from bttsim_stream.process.displacement import compute_displacements
+    disp = compute_displacements(run.opr_s, run.toa_s, g, calibration=None)
+    scan, dets = detect_nsv(disp.d_m, disp.omega_rad_s, g.nominal_arrival_angles(), NsvOptions(min_amp_m=1e-6))
+    assert scan.detected.all()
+    assert np.median(scan.ratio) == pytest.approx(1 + 0.043 * 32 * 16, rel=0.3)
+    assert dets and dets[0].nd == 6 and dets[0].order == pytest.approx(4.37, abs=ORDER_TOL)
+
+
+def test_nsv_beside_a_synchronous_response_keeps_both():
+    """A steady EO 8 response at constant speed and a stall NSV: the NSV is detected at its
+    order and ND while the synchronous response stays (a dwell), not taken for the NSV."""
+    run = synthesize(n_rev=320, rpm0=2500.0, order=2.6, nd=-4, amp_pk_m=0.1e-3, sync=(8, 0.5e-3, 0.4),
+                     noise_s=2e-8, seed=7)
+    res = _process(run)
+    s = res.summary
+    assert len(res.nsv) == 1 and res.nsv[0].nd == -4 and res.nsv[0].order == pytest.approx(2.6, abs=ORDER_TOL)
+    assert res.nsv[0].amp_pkpk_m == pytest.approx(0.2e-3, rel=0.05)
+    assert s["status"] == "steady" and s["steady"][0]["eo"] == 8 and s["steady"][0]["nd"] == 8
+    assert np.mean([b["amp_pkpk_m"] for b in s["steady"][0]["blades"]]) == pytest.approx(1.0e-3, rel=0.05)
