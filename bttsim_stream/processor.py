@@ -115,7 +115,16 @@ class ProcessorSession:
         for rev in revolutions:
             for o in self.proc.push(rev.revolution, rev.opr_s, rev.toa_s):
                 out += self.out.processing(o)
-        return out
+        return out + self._nsv()
+
+    def _nsv(self) -> list[Message]:
+        """One ``NonSynchronous`` message per detected block of revolutions completed (the
+        live view of non-synchronous vibration; the final report holds the run's grouping)."""
+        msgs = []
+        for det in self.proc.nsv_ready():
+            k = det.last_revolution - (self.proc._first_rev or 0)
+            msgs.append(self.out.nsv(det, t_s=float(self.proc._opr[k])))
+        return msgs
 
     def completeness(self) -> Completeness:
         """What the result rests on so far."""
@@ -138,6 +147,7 @@ class ProcessorSession:
         try:
             for o in self.proc.flush():
                 msgs += self.out.processing(o)
+            msgs += self._nsv()
             summary = self.proc.finish(self.tracker if self.score else None)
         except (ValueError, np.linalg.LinAlgError) as exc:  # fewer than three revolutions, ...
             raise BttsimError(f"no resonance report: {exc}") from None

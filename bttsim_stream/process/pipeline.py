@@ -35,7 +35,7 @@ from .displacement import (TWO_PI, Displacements, Geometry, calibrate_arrival_an
                            displacements_from_phase, rotor_phase_from_opr)
 from .fit import SineFit, design_matrix, fit_revolutions
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
-from .nsv import NsvOptions, NsvScan, detect_nsv, nsv_note
+from .nsv import NsvDetection, NsvOptions, NsvScan, detect_nsv, detections, nsv_note, scan_blocks
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .probes import CN_SINGULAR, LayoutError, condition_number
 from .resonance import (PEAK_METHODS, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks,
@@ -999,6 +999,9 @@ class StreamingProcessor:
         self._freq_per_omega = self._eo_arr / TWO_PI
         self._F_probe, self._F_fit, self._n_nd = _spectrum_matrices(g, self.engine_orders[0])
         self._solvers: dict = {}
+        self._nsv_next = 0  # first revolution (index) of the next NSV block
+        self._nsv_run = 0  # consecutive detected blocks so far
+        self._nsv_last = None  # the last block's scan
         self._finished = False
         self.result: ProcessingResult | None = None
         self.last_outputs: list[RevolutionOutput] = []
@@ -1081,6 +1084,39 @@ class StreamingProcessor:
         self.result = process_arrays(self._opr.array, self._toa.array, self.info, opts,
                                      truth=truth_peaks, revolution0=self._first_rev or 0)
         return self.result.summary
+
+    def nsv_ready(self) -> list[NsvDetection]:
+        """Non-synchronous vibration of the blocks of revolutions completed since the last
+        call (:mod:`.nsv`, ``options.nsv.block`` revolutions each): each detected block, once
+        it is the ``min_blocks``-th consecutive one or later, as a one-block
+        :class:`NsvDetection` (the final report groups the blocks over the whole run).
+
+        A block in which the calibration of the arrival angles switched on is skipped (its
+        displacements change their zeroing mid-block)."""
+        opts = self.options.nsv
+        L = int(opts.block)
+        out = []
+        while self._nsv_next + L <= self._n_done:
+            s = self._nsv_next
+            self._nsv_next += L
+            cal = self._was_calibrated[s:s + L]
+            if any(cal) != all(cal):
+                self._nsv_run, self._nsv_last = 0, None
+                continue
+            d = self._d.array[s:s + L]
+            scan = scan_blocks(d, self._omega.array[s:s + L], self._psi, opts, starts=[0])
+            if not scan.detected[0]:
+                self._nsv_run, self._nsv_last = 0, None
+                continue
+            last = self._nsv_last
+            same = last is not None and any(abs(scan.order[0] - o) <= 3.0 / L and scan.nd[0] == n for o, n in
+                                            ((last.order[0], last.nd[0]), *last.alternatives[0]))
+            self._nsv_run = self._nsv_run + 1 if same else 1
+            self._nsv_last = scan
+            if self._nsv_run >= int(opts.min_blocks):
+                one = replace(opts, min_blocks=1)
+                out += list(detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s))
+        return out
 
     # -- per revolution -------------------------------------------------------------------
     def _displace(self, k: int, final: bool) -> None:

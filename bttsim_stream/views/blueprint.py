@@ -86,8 +86,9 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
     displacement at probe 0, Campbell diagram, resonance table), one *Fits EO k* per engine
     order (amplitude against revolution and against speed, phase, speed, frequency),
     *Travelling wave* (every probe and the identified ND), *Displacement* (every probe),
-    *Rotor & Campbell*, *Resonance* (table and per-blade amplitude bars), and *Raw signal*
-    when ``signal_probe`` is given (the bus carries raw probe signals).
+    *Rotor & Campbell*, *Resonance* (table and per-blade amplitude bars), *Raw signal*
+    when ``signal_probe`` is given (the bus carries raw probe signals), and *Non-synchronous*
+    (NSV amplitude growth, its travelling wave by ND, ND, order, detections).
 
     Parameters
     ----------
@@ -115,9 +116,18 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
         rrb.BarChartView(origin=paths.RESONANCE_BARS,
                          name="Resonant amplitude pk-pk (mm) per blade: BTT (left), d_eqv (right)"),
         name="Resonance")
+    nsv = rrb.Vertical(
+        rrb.Horizontal(_series_view(paths.NSV_AMP, "Non-synchronous vibration: amplitude pk-pk (mm) per block"),
+                       rrb.BarChartView(origin=paths.NSV_TW, name="NSV travelling wave (mm) by signed ND, "
+                                                                 "forward +(n_nd-1) first .. backward last")),
+        rrb.Horizontal(_series_view(paths.NSV_ND, "NSV ND (backward < 0)"),
+                       _series_view(paths.NSV_ORDER, "NSV order f / f_shaft"),
+                       rrb.TextDocumentView(origin=paths.NSV_TABLE, name="NSV detections")),
+        name="Non-synchronous")
     return rrb.Blueprint(
         rrb.Tabs(overview, *[_fits_tab(e) for e in eos], tw, disp, rotor, resonance,
                  *([] if signal_probe is None else [rrb.Horizontal(_signal_view(signal_probe), name="Raw signal")]),
+                 nsv,
                  active_tab=active_tab),
         rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline="revolution"))

@@ -24,6 +24,7 @@ from .blueprint import build_blueprint
 from .campbell import CampbellView
 from .displacement import DisplacementView, selected_blades
 from .fits import FitsView, SpeedView
+from .nsv import NsvView
 from .resonance import ResonanceView
 from .revolutions import RevolutionDisplacements
 from .rotor import DEFAULT_EXAGGERATION, RotorView
@@ -96,6 +97,7 @@ class _Views:
     tw: TravellingWaveView
     resonance: ResonanceView
     signal: SignalView
+    nsv: NsvView
 
 
 class LiveViews:
@@ -215,7 +217,8 @@ class LiveViews:
             rotor=RotorView(out, meta, shown.blade_angles_rad, o["exaggeration"]), campbell=CampbellView(out, meta),
             fits=FitsView(out, meta), tw=TravellingWaveView(out, window=o["tw_window"], period_s=o["tw_period_s"]),
             resonance=ResonanceView(out),
-            signal=SignalView(out, meta, self.signal_probe, (selected_blades(meta.n_blades, o["blades"]) or (0,))[0]))
+            signal=SignalView(out, meta, self.signal_probe, (selected_blades(meta.n_blades, o["blades"]) or (0,))[0]),
+            nsv=NsvView(out))
         if self._eos is None:
             self._eos = list(engine_orders_of(meta, ProcessOptions()))
         if self._send_blueprint:
@@ -246,6 +249,9 @@ class LiveViews:
             v.tw.add(d)
         elif kind == "resonance":
             v.resonance.add(d)
+            v.nsv.add_report(d.body)
+        elif kind == "nsv":
+            v.nsv.add(d)
         elif kind == "signal":
             if not self._signal_shown:
                 self._signal_shown = True
@@ -273,7 +279,7 @@ class LiveViews:
             self._revolutions += len(rows)
             for view in (v.speed, v.displacement, v.rotor, v.campbell):
                 view.update(rows)
-        for view in (v.displacement, v.fits, v.tw, v.resonance, v.signal):
+        for view in (v.displacement, v.fits, v.tw, v.resonance, v.signal, v.nsv):
             view.flush(final)
         new = [e for e in v.fits.engine_orders if e not in self._eos]
         if new:
