@@ -163,6 +163,7 @@ class LiveViews:
         self._send_blueprint = bool(send_blueprint)
         self.signal_probe = int(signal_probe)
         self._signal_shown = False
+        self._nsv_shown = False
         self._eos = None if engine_orders is None else [int(e) for e in engine_orders]
         self.decoder = decoder or MessageDecoder()
         self.meta = None
@@ -230,7 +231,16 @@ class LiveViews:
     def _blueprint(self) -> None:
         self.rec.send_blueprint(build_blueprint(self.meta.n_probes, n_blades=self.meta.n_blades,
                                                 engine_orders=self._eos, live=self.live,
-                                                signal_probe=self.signal_probe if self._signal_shown else None))
+                                                signal_probe=self.signal_probe if self._signal_shown else None,
+                                                non_synchronous=self._nsv_shown))
+
+    def _show_nsv(self) -> None:
+        """The first non-synchronous vibration: the layout gains its tab."""
+        if not self._nsv_shown:
+            self._nsv_shown = True
+            if self._send_blueprint:
+                log.info("non-synchronous vibration reported: layout updated")
+                self._blueprint()
 
     def _route(self, msg: Incoming) -> None:
         """Hand a message to the views that show it."""
@@ -249,8 +259,11 @@ class LiveViews:
             v.tw.add(d)
         elif kind == "resonance":
             v.resonance.add(d)
-            v.nsv.add_report(d.body)
+            if d.body.non_synchronous:
+                self._show_nsv()
+                v.nsv.add_report(d.body)
         elif kind == "nsv":
+            self._show_nsv()
             v.nsv.add(d)
         elif kind == "signal":
             if not self._signal_shown:
