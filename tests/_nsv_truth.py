@@ -54,7 +54,8 @@ def synthesize(*, n_rev: int, rpm0: float, rpm1: float | None = None, n_blades: 
     nd : int
         Signed nodal diameter ``k``.
     sync : (eo, amp_pk_m, phase) or None
-        An added synchronous response ``A sin(EO phi + EO theta_b + phase)`` (casing-fixed).
+        An added synchronous response ``A sin(EO phi + EO theta_b + phase)`` (casing-fixed;
+        ``amp_pk_m`` a float or a callable of t).
     noise_s : float
         Gaussian jitter on each TOA, s (seeded).
     """
@@ -94,8 +95,12 @@ def synthesize(*, n_rev: int, rpm0: float, rpm1: float | None = None, n_blades: 
         if sync is not None:
             eo, a_s, ph = sync
             sarg = eo * (phi_of(t) + th_b[None, :, None]) + ph
-            x = x + a_s * np.sin(sarg)
-            dx = dx + a_s * eo * dphi(t) * np.cos(sarg)
+            if callable(a_s):
+                av, dav = a_s(t), (a_s(t + h) - a_s(t - h)) / (2 * h)
+            else:
+                av, dav = a_s, 0.0
+            x = x + av * np.sin(sarg)
+            dx = dx + dav * np.sin(sarg) + av * eo * dphi(t) * np.cos(sarg)
         return x, dx
 
     t = time_at(phi_rigid)
@@ -110,3 +115,25 @@ def synthesize(*, n_rev: int, rpm0: float, rpm1: float | None = None, n_blades: 
         t = t + np.random.default_rng(seed).normal(0.0, noise_s, t.shape)
     return NsvRun(opr_s=opr[:-1], toa_s=t, omega_rad_s=TWO_PI / np.diff(opr), n_blades=n_blades,
                   probe_angles_rad=th_p, tip_radius_m=tip_radius_m)
+
+
+def write_recording(path, run: NsvRun, *, run_id: str = "nsv-synthetic", rig: str = "rig1") -> None:
+    """An MCAP recording of ``run`` as the simulator would publish it (metadata, OPR, TOAs;
+    no truth), for the CLI and the viewer."""
+    from bttsim_stream.bus.recording import McapRecorder
+    from bttsim_stream.bus.stream import MessageStream
+    from bttsim_stream.sim.core import RevolutionBatch, RunInfo
+
+    n_rev = run.opr_s.size
+    info = RunInfo(n_blades=run.n_blades, n_probes=run.probe_angles_rad.size, n_revolutions=n_rev,
+                   probe_angles_rad=run.probe_angles_rad, probe_axial_m=0.01226, tip_radius_m=run.tip_radius_m,
+                   opr_angle_rad=0.0, clock_hz=0.0, stagger_deg=41.5, engine_orders=(8,), nodal_diameters=(1,),
+                   toa_method="HP", duration_s=float(run.opr_s[-1] + 2 * np.pi / run.omega_rad_s[-1]), seed=0,
+                   rig=rig, run_id=run_id, has_truth=False)
+    stream = MessageStream(run_id, rig)
+    batch = RevolutionBatch(revolution=np.arange(n_rev, dtype=np.int64), opr_s=run.opr_s, toa_s=run.toa_s,
+                            opr_ticks=None, toa_ticks=None, truth=None, residual_s=0.0,
+                            bracketed=np.ones(run.toa_s.shape, bool))
+    with McapRecorder(path) as rec:
+        rec.write_message(stream.run_metadata(info))
+        rec.write_all(stream.acquisition(batch, include_truth=False))

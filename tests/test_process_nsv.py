@@ -179,3 +179,81 @@ def test_live_blocks_agree_with_the_report_and_travel_on_the_bus():
     m.alias_per_rev = 0.9
     with pytest.raises(BttsimError, match="alias"):
         codec.decode_nsv(m.SerializeToString())
+
+
+@pytest.mark.integration
+def test_recording_through_process_and_view(tmp_path):
+    """A flutter recording: ``bttsim process`` prints and writes the NSV (status none, no
+    resonance), and ``bttsim view`` shows it (the Non-synchronous tab's entities)."""
+    import subprocess
+    import sys
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    from _nsv_truth import write_recording
+    from bttsim_stream.views import paths
+
+    run = synthesize(n_rev=320, rpm0=2500.0, rpm1=2550.0, freq_hz=344.0, nd=-2,
+                     amp_pk_m=logistic(1e-6, 0.3e-3, 2.0), noise_s=3e-8, seed=9)
+    rec = tmp_path / "flutter.mcap"
+    write_recording(rec, run)
+    summary = tmp_path / "s.json"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "process", str(rec), "--summary", str(summary)],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "NON-SYNCHRONOUS VIBRATION" in res.stdout and "ND -2 (backward)" in res.stdout
+    s = json.loads(summary.read_text())
+    assert s["status"] == "none" and s["resonances"] == []
+    assert s["non_synchronous"][0]["nd"] == -2
+    assert s["non_synchronous"][0]["freq_hz"] == pytest.approx(344.0, abs=0.5)
+    out = tmp_path / "v.rrd"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "view", str(rec), "--rrd", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    ents: dict = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for chunk in RrdReader(out).stream():
+            e = ents.setdefault(chunk.entity_path, {"rows": 0, "static": False})
+            e["static"] |= chunk.is_static
+            e["rows"] += 0 if chunk.is_static else chunk.num_rows
+    for p in (paths.NSV_AMP, paths.NSV_ND, paths.NSV_ORDER):
+        assert ents["/" + p]["rows"] >= 5, p
+    assert ents["/" + paths.NSV_TABLE]["static"] and ents["/" + paths.NSV_TW]["static"]
+
+
+def _bump(t0_s, width_s, amp_pk_m):
+    return lambda t: amp_pk_m * np.exp(-0.5 * ((t - t0_s) / width_s) ** 2)
+
+
+def test_an_nsv_that_comes_and_goes_is_not_an_engine_order_resonance(monkeypatch):
+    """Rotating stall that appears and disappears during a run-up makes the EO 8 fits peak;
+    without the NSV guard the pipeline reports an EO 8 resonance there (checked), with it the
+    run reports no resonance, the NSV, and a note on the dropped peak."""
+    import bttsim_stream.process.pipeline as pipeline
+
+    run = synthesize(n_rev=640, rpm0=2200.0, rpm1=2800.0, order=2.45, nd=4, amp_pk_m=_bump(6.0, 1.2, 0.4e-3),
+                     noise_s=3e-8, seed=2)
+    s = _process(run).summary
+    assert s["status"] == "none" and s["resonances"] == []
+    assert any("not reported as a resonance: it is the non-synchronous vibration" in n for n in s["notes"])
+    det = s["non_synchronous"][0]
+    assert det["nd"] == 4 and det["order"] == pytest.approx(2.45, abs=ORDER_TOL)
+    assert det["amp_pkpk_m"] == pytest.approx(0.8e-3, rel=0.05)  # the bump's top, block-averaged
+    monkeypatch.setattr(pipeline, "NSV_DOMINANCE", np.inf)  # the guard off: the confident wrong answer
+    assert _process(run).summary["status"] == "resonance"
+
+
+def test_a_real_crossing_beside_an_nsv_stays_a_resonance():
+    """An EO 8 response peaking during the run-up (a crossing, 1.6 mm pk-pk) and a weaker
+    rotating stall over the whole run: the crossing is reported, the NSV beside it."""
+    run = synthesize(n_rev=640, rpm0=2200.0, rpm1=2800.0, order=3.3, nd=-6, amp_pk_m=0.1e-3,
+                     sync=(8, _bump(7.0, 0.6, 0.8e-3), 0.3), noise_s=3e-8, seed=11)
+    res = _process(run)
+    s = res.summary
+    assert s["status"] == "resonance" and [e["eo"] for e in s["resonances"]] == [8]
+    assert s["resonances"][0]["nd"] == 8
+    assert np.mean([b["amp_pkpk_m"] for b in s["blades"]]) == pytest.approx(1.6e-3, rel=0.05)
+    assert len(res.nsv) == 1 and res.nsv[0].nd == -6 and res.nsv[0].order == pytest.approx(3.3, abs=ORDER_TOL)
+    assert res.nsv[0].amp_pkpk_m == pytest.approx(0.2e-3, rel=0.1)
