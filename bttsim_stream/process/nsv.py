@@ -303,8 +303,7 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     band = mu >= options.guard
     if band.sum() < 3:
         return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool))
-    # trend removal, Hann window and the DFT at the band's bins as one real matrix: the
-    # spectrum of every series is one product (no FFT of the synchronous band)
+    # trend removal, Hann window and the DFT at the band's bins as one real matrix M
     comp = band | (np.arange(mu.size) == np.flatnonzero(band)[0] - 1)  # one bin more, for the refinement
     M = _spectrum_matrix(L, n_fft, np.flatnonzero(comp))
     idx = st[:, None] + np.arange(L)[None, :]
@@ -315,9 +314,12 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
             cnt = ok.sum(axis=2, keepdims=True)
             mean = np.where(ok, y, 0.0).sum(axis=2, keepdims=True) / np.maximum(cnt, 1)
         y = np.where(ok, y, mean)
-    R = y.reshape(-1, L) @ M  # (nblk * series, 2 n_band)
+    # the power summed over the series at a bin is m^T (sum_s y_s y_s^T) m for its real and
+    # imaginary rows m: one L x L matrix per block instead of a spectrum per series
+    y = y - y.mean(axis=2, keepdims=True)  # (M removes it anyway) less cancellation in C
+    C = np.matmul(np.swapaxes(y, 1, 2), y)  # (nblk, L, L)
+    P = np.maximum(np.einsum("lf,klf->kf", M, C @ M), 0.0)  # (nblk, 2 n_comp); rounding can go below 0
     nbd = int(comp.sum())
-    P = (R * R).reshape(nblk, nb * npr, 2 * nbd).sum(axis=1)
     S = np.zeros((nblk, mu.size))
     S[:, comp] = P[:, :nbd] + P[:, nbd:]
     Sb = S[:, band]
