@@ -71,6 +71,7 @@ def test_flutter_growth_during_a_run_up():
     late = d.rev_amp_pkpk_m[-64:]
     assert np.nanmedian(late) == pytest.approx(limit, rel=0.06)
     assert np.nanmedian(d.rev_amp_pkpk_m[:32]) < 0.5 * np.nanmedian(late)
+    assert d.amp_last_pkpk_m == pytest.approx(limit, rel=0.05)
     assert res.summary["status"] == "none"
 
 
@@ -257,3 +258,20 @@ def test_a_real_crossing_beside_an_nsv_stays_a_resonance():
     assert np.mean([b["amp_pkpk_m"] for b in s["blades"]]) == pytest.approx(1.6e-3, rel=0.05)
     assert len(res.nsv) == 1 and res.nsv[0].nd == -6 and res.nsv[0].order == pytest.approx(3.3, abs=ORDER_TOL)
     assert res.nsv[0].amp_pkpk_m == pytest.approx(0.2e-3, rel=0.1)
+
+
+def test_a_short_run_is_one_block():
+    """A run shorter than two blocks (39 revolutions, like examples/flutter.toml) is analysed as
+    one block: a flutter at a fixed 346.9 Hz, whose order falls from 7.0 to 6.87 while the speed
+    rises, growing to its limit, gives its frequency (amplitude-weighted speed), ND and the
+    level reached."""
+    f, limit = 346.9, 0.3e-3
+    run = synthesize(n_rev=39, rpm0=2971.0, rpm1=3028.0, freq_hz=f, nd=-3,
+                     amp_pk_m=logistic(1e-9, 0.5 * limit, 60.0), noise_s=1e-8, seed=12)
+    res = _process(run)
+    assert res.nsv_scan.whole_run and res.nsv_scan.block == 39
+    (d,) = res.nsv
+    assert d.nd == -3 and d.freq_hz == pytest.approx(f, abs=1.0)
+    # the trend removal models the growth as linear over the block: 8 % here (0.6 % at 640 revs)
+    assert d.amp_last_pkpk_m == pytest.approx(limit, rel=0.08)
+    assert res.summary["status"] == "none"

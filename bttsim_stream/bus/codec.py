@@ -1170,6 +1170,7 @@ def _fill_nsv(m, n: NsvDetection) -> None:
     m.nd_alternatives.extend(int(a) for a in n.nd_alternatives)
     m.freq_hz, m.freq_min_hz, m.freq_max_hz = float(n.freq_hz), float(n.freq_min_hz), float(n.freq_max_hz)
     m.amp_pkpk_m, m.amp_first_pkpk_m = float(n.amp_pkpk_m), float(n.amp_first_pkpk_m)
+    m.amp_last_pkpk_m = float(n.amp_last_pkpk_m)
     m.ratio, m.ratio_threshold, m.coherence = float(n.ratio), float(n.ratio_threshold), float(n.coherence)
     m.blocks = int(n.blocks)
     m.forward_m.extend(np.asarray(n.forward_m, float).tolist())
@@ -1204,7 +1205,8 @@ def _decode_nsv_body(where: str, m, n) -> NsvDetection:
         order_alternatives=tuple(float(a) for a in n.order_alternatives),
         nd_alternatives=tuple(int(a) for a in n.nd_alternatives), alias=float(n.alias_per_rev),
         freq_hz=float(n.freq_hz), freq_min_hz=float(n.freq_min_hz), freq_max_hz=float(n.freq_max_hz), nd=int(n.nd),
-        amp_pkpk_m=float(n.amp_pkpk_m), amp_first_pkpk_m=float(n.amp_first_pkpk_m), ratio=float(n.ratio),
+        amp_pkpk_m=float(n.amp_pkpk_m), amp_first_pkpk_m=float(n.amp_first_pkpk_m),
+        amp_last_pkpk_m=float(n.amp_last_pkpk_m), ratio=float(n.ratio),
         ratio_threshold=float(n.ratio_threshold), coherence=float(n.coherence), blocks=int(n.blocks),
         forward_m=_array(n.forward_m), backward_m=_array(n.backward_m))
 

@@ -68,6 +68,10 @@ __all__ = ["NsvOptions", "NsvScan", "NsvDetection", "scan_blocks", "detections",
            "nsv_note", "nsv_table_lines"]
 
 TWO_PI = 2.0 * np.pi
+#: The shortest run analysed as one block when it is shorter than ``min_blocks`` blocks.
+MIN_WHOLE_RUN = 16
+#: ``amp_last_pkpk_m``: the median of the per-revolution amplitudes over this many last revolutions.
+LAST_REVOLUTIONS = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,6 +153,9 @@ class NsvScan:
         The block passes every threshold.
     blade_amp_pkpk_m : ndarray, shape (n_blocks, n_blades)
         Per-blade pk-pk amplitude of the block's NSV response, m.
+    whole_run : bool
+        A run shorter than ``min_blocks`` blocks (and at least :data:`MIN_WHOLE_RUN`
+        revolutions) is one block of all its revolutions; its detection needs no persistence.
     """
 
     start: np.ndarray
@@ -165,6 +172,7 @@ class NsvScan:
     omega_rad_s: np.ndarray
     detected: np.ndarray
     blade_amp_pkpk_m: np.ndarray
+    whole_run: bool = False
 
     @property
     def n_blocks(self) -> int:
@@ -199,8 +207,10 @@ class NsvDetection:
     nd : int
         Signed nodal diameter (forward positive).
     amp_pkpk_m : float
-        Largest block amplitude of the wave at its ND (pk-pk), m; ``amp_first_pkpk_m`` that
-        of the first block (growth).
+        Largest block amplitude of the wave at its ND (pk-pk, averaged over the block), m;
+        ``amp_first_pkpk_m`` that of the first block (growth); ``amp_last_pkpk_m`` the
+        median of the per-revolution amplitudes of the last :data:`LAST_REVOLUTIONS`
+        revolutions (the level reached, e.g. a flutter's limit amplitude).
     ratio : float
         Largest detection statistic; ``ratio_threshold`` its threshold.
     coherence : float
@@ -226,6 +236,7 @@ class NsvDetection:
     nd: int
     amp_pkpk_m: float
     amp_first_pkpk_m: float
+    amp_last_pkpk_m: float
     ratio: float
     ratio_threshold: float
     coherence: float
@@ -243,7 +254,7 @@ class NsvDetection:
                 "alias_per_rev": _num(self.alias), "freq_hz": _num(self.freq_hz),
                 "freq_min_hz": _num(self.freq_min_hz), "freq_max_hz": _num(self.freq_max_hz),
                 "nd": int(self.nd), "amp_pkpk_m": _num(self.amp_pkpk_m),
-                "amp_first_pkpk_m": _num(self.amp_first_pkpk_m),
+                "amp_first_pkpk_m": _num(self.amp_first_pkpk_m), "amp_last_pkpk_m": _num(self.amp_last_pkpk_m),
                 "detection": {"statistic": "nsv_peak_to_median_power", "value": _num(self.ratio),
                               "threshold": _num(self.ratio_threshold), "coherence": _num(self.coherence)},
                 "revolutions": {"first": int(self.first_revolution), "last": int(self.last_revolution)},
@@ -286,6 +297,9 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     d = np.asarray(d_m, dtype=float)
     n_rev, nb, npr = d.shape
     L = int(options.block)
+    whole = starts is None and MIN_WHOLE_RUN <= n_rev < int(options.min_blocks) * L
+    if whole:  # a short run: one block of all of it (persistence cannot be checked)
+        L = n_rev
     st = (np.arange(0, n_rev - L + 1, L, dtype=np.int64) if starts is None
           else np.asarray(starts, dtype=np.int64).reshape(-1))
     n_nd = nb // 2 + 1
@@ -300,7 +314,7 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
         return _scan(st, L, out, alternatives, om_blk, np.zeros(0, bool))
     n_fft = int(options.pad) * L
     mu = np.arange(n_fft // 2 + 1) / n_fft
-    band = mu >= options.guard
+    band = mu >= max(float(options.guard), 2.5 / L)  # beyond the Hann main lobe of the synchronous band
     if band.sum() < 3:
         return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool))
     # trend removal, Hann window and the DFT at the band's bins as one real matrix M
@@ -345,11 +359,11 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
         _orders(Z, mu0, arrival_angles_rad, max_order, options, out, alternatives, k)
     detected = ((ratio >= options.ratio_threshold) & (out["amp"] >= options.min_amp_m)
                 & (np.nan_to_num(out["coherence"]) >= options.min_coherence))
-    return _scan(st, L, out, alternatives, om_blk, detected)
+    return _scan(st, L, out, alternatives, om_blk, detected, whole)
 
 
-def _scan(st, L, out, alternatives, om_blk, detected) -> NsvScan:
-    return NsvScan(start=st, block=L, ratio=out["ratio"], alias=out["alias"], order=out["order"],
+def _scan(st, L, out, alternatives, om_blk, detected, whole=False) -> NsvScan:
+    return NsvScan(start=st, block=L, whole_run=bool(whole), ratio=out["ratio"], alias=out["alias"], order=out["order"],
                    alternatives=tuple(alternatives), coherence=out["coherence"], nd=out["nd"],
                    amp_pkpk_m=out["amp"], forward_m=out["fwd"], backward_m=out["bwd"], omega_rad_s=om_blk,
                    detected=np.asarray(detected, bool), blade_amp_pkpk_m=out["blade"])
@@ -459,9 +473,14 @@ def _wave(q: np.ndarray) -> tuple:
 
 
 def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, options: NsvOptions = NsvOptions(),
-               *, revolution0: int = 0) -> tuple:
+               *, revolution0: int = 0, omega_rad_s: np.ndarray | None = None) -> tuple:
     """Group detected blocks into detections (runs of ``min_blocks`` consecutive blocks of one
     ND and orders within ``3 / block``), with the per-revolution amplitude growth.
+
+    With ``omega_rad_s`` (n_rev,), each block's frequency is its order times the speed
+    averaged with the per-revolution amplitudes squared as weights (where the vibration is:
+    a flutter at a fixed frequency changes its order while the speed moves); otherwise the
+    block's mean speed.
 
     Returns
     -------
@@ -482,27 +501,41 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
     out = []
     d = np.asarray(d_m, dtype=float)
     for run in runs:
-        if len(run) < int(options.min_blocks):
+        if len(run) < int(options.min_blocks) and not scan.whole_run:
             continue
         r = np.asarray(run)
         top = int(r[np.argmax(scan.amp_pkpk_m[r])])
-        revs, amps = [], []
+        revs, amps, f = [], [], []
         for k in run:
             s = int(scan.start[k])
             revs.append(np.arange(s, s + scan.block))
-            amps.append(revolution_amplitudes(d[s:s + scan.block], arrival_angles_rad, float(scan.order[k]),
-                                              float(scan.alias[k])))
-        f = scan.freq_hz[r]
+            a = revolution_amplitudes(d[s:s + scan.block], arrival_angles_rad, float(scan.order[k]),
+                                      float(scan.alias[k]))
+            amps.append(a)
+            w = np.nan_to_num(a) ** 2
+            if omega_rad_s is not None and w.sum() > 0:
+                om = float(np.sum(w * np.asarray(omega_rad_s, float)[s:s + scan.block]) / w.sum())
+            else:
+                om = float(scan.omega_rad_s[k])
+            f.append(float(scan.order[k]) * om / TWO_PI)
+        f = np.asarray(f)
+        rev_amp = np.concatenate(amps)
+        with np.errstate(all="ignore"):
+            import warnings
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                last_amp = float(np.nanmedian(rev_amp[-LAST_REVOLUTIONS:]))
         out.append(NsvDetection(
             first_revolution=revolution0 + int(scan.start[r[0]]),
             last_revolution=revolution0 + int(scan.start[r[-1]]) + scan.block - 1,
             order=float(scan.order[top]), order_alternatives=tuple(o for o, _ in scan.alternatives[top]),
             nd_alternatives=tuple(n for _, n in scan.alternatives[top]), alias=float(scan.alias[top]),
-            freq_hz=float(scan.freq_hz[top]), freq_min_hz=float(np.min(f)), freq_max_hz=float(np.max(f)),
+            freq_hz=float(f[run.index(top)]), freq_min_hz=float(np.min(f)), freq_max_hz=float(np.max(f)),
             nd=int(scan.nd[top]), amp_pkpk_m=float(scan.amp_pkpk_m[top]),
-            amp_first_pkpk_m=float(scan.amp_pkpk_m[r[0]]), ratio=float(np.max(scan.ratio[r])),
+            amp_first_pkpk_m=float(scan.amp_pkpk_m[r[0]]), amp_last_pkpk_m=last_amp,
+            ratio=float(np.max(scan.ratio[r])),
             ratio_threshold=float(options.ratio_threshold), coherence=float(scan.coherence[top]), blocks=len(run),
-            revolutions=revolution0 + np.concatenate(revs), rev_amp_pkpk_m=np.concatenate(amps),
+            revolutions=revolution0 + np.concatenate(revs), rev_amp_pkpk_m=rev_amp,
             forward_m=scan.forward_m[top].copy(), backward_m=scan.backward_m[top].copy()))
     return tuple(out)
 
@@ -512,8 +545,9 @@ def revolution_amplitudes(d_m: np.ndarray, arrival_angles_rad: np.ndarray, order
     """Per revolution of one block, the blade-RMS pk-pk amplitude of the response at ``order``.
 
     Each blade and probe series loses its quadratic trend (fitted jointly with the sinusoid
-    at ``alias``); each blade's samples of a revolution are then fitted by least squares with
-    ``sin(nu psi_bj)`` and ``cos(nu psi_bj)``.
+    at ``alias`` whose amplitude may change linearly over the block); each blade's samples of
+    a revolution are then fitted by least squares with ``sin(nu psi_bj)`` and
+    ``cos(nu psi_bj)``.
 
     Parameters
     ----------
@@ -526,8 +560,12 @@ def revolution_amplitudes(d_m: np.ndarray, arrival_angles_rad: np.ndarray, order
     ndarray, shape (L,)
     """
     x = _detrended(np.asarray(d_m, float)[None])[0]  # (L, nb, npr)
-    coef = _joint_fit(x, alias)
-    x = x - np.einsum("nq,qbj->nbj", _joint_basis(x.shape[0], alias)[:, :3], coef[:3])
+    L = x.shape[0]
+    t = np.linspace(-1.0, 1.0, L)[:, None]
+    B = _joint_basis(L, alias)
+    B = np.concatenate([B, t * B[:, 3:5]], axis=1)  # the sinusoid's amplitude may change (growth)
+    coef = np.einsum("qn,nbj->qbj", np.linalg.pinv(B, rcond=1e-8), x)
+    x = x - np.einsum("nq,qbj->nbj", B[:, :3], coef[:3])
     ok = np.isfinite(np.asarray(d_m, float))
     arg = float(order) * np.asarray(arrival_angles_rad, float)
     s, c = np.sin(arg)[None] * ok, np.cos(arg)[None] * ok  # (L, nb, npr)
@@ -546,7 +584,7 @@ def detect_nsv(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.
                options: NsvOptions = NsvOptions(), *, revolution0: int = 0) -> tuple[NsvScan, tuple]:
     """:func:`scan_blocks` then :func:`detections`: the block analysis and the detections."""
     scan = scan_blocks(d_m, omega_rad_s, arrival_angles_rad, options)
-    return scan, detections(scan, d_m, arrival_angles_rad, options, revolution0=revolution0)
+    return scan, detections(scan, d_m, arrival_angles_rad, options, revolution0=revolution0, omega_rad_s=omega_rad_s)
 
 
 def _nd_text(nd: int) -> str:
@@ -575,7 +613,8 @@ def nsv_table_lines(summary: dict) -> list[str]:
                         + ": the probes cannot tell these apart)" if det.get("order_alternatives") else "")
                      + f"  alias {det['alias_per_rev']:.3f}/rev  {det['freq_hz']:.2f} Hz "
                      f"({det['freq_min_hz']:.2f}-{det['freq_max_hz']:.2f})  {_nd_text(det['nd'])}  "
-                     f"{1e3 * det['amp_pkpk_m']:.4f} mm pk-pk (first block {1e3 * det['amp_first_pkpk_m']:.4f})  "
+                     f"{1e3 * det['amp_pkpk_m']:.4f} mm pk-pk (first block {1e3 * det['amp_first_pkpk_m']:.4f}, "
+                     f"last revolutions {1e3 * (det.get('amp_last_pkpk_m') or 0.0):.4f})  "
                      f"revolutions {det['revolutions']['first']}-{det['revolutions']['last']}  "
                      f"power ratio {d['value']:.3g} (>= {d['threshold']:g}), coherence {d['coherence']:.3f}")
     return lines

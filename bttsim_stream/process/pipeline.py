@@ -1115,7 +1115,8 @@ class StreamingProcessor:
             self._nsv_last = scan
             if self._nsv_run >= int(opts.min_blocks):
                 one = replace(opts, min_blocks=1)
-                out += list(detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s))
+                out += list(detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s,
+                                       omega_rad_s=self._omega.array[s:s + L]))
         return out
 
     # -- per revolution -------------------------------------------------------------------
