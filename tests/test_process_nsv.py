@@ -168,6 +168,8 @@ def test_live_blocks_agree_with_the_report_and_travel_on_the_bus():
     payload = codec.encode_nsv(codec.Header("r", 3, live[0].last_revolution, 1.0), live[0])
     back = codec.decode_message(keys.nsv_key("rig"), payload).body
     assert back.to_summary() == live[0].to_summary()
+    np.testing.assert_array_equal(back.rev_amp_pkpk_m, live[0].rev_amp_pkpk_m)
+    np.testing.assert_array_equal(back.revolutions, live[0].revolutions)
     rp = codec.encode_resonance_report(codec.Header("r", 0), report)
     assert codec.decode_resonance_report(rp).body.to_summary() == report.to_summary()
     m = pb.NonSynchronous()
@@ -179,6 +181,11 @@ def test_live_blocks_agree_with_the_report_and_travel_on_the_bus():
     m.ParseFromString(payload)
     m.alias_per_rev = 0.9
     with pytest.raises(BttsimError, match="alias"):
+        codec.decode_nsv(m.SerializeToString())
+    m = pb.NonSynchronous()
+    m.ParseFromString(payload)
+    m.rev_amp_pkpk_m.append(1.0)
+    with pytest.raises(BttsimError, match="per-revolution amplitudes"):
         codec.decode_nsv(m.SerializeToString())
 
 
@@ -221,6 +228,7 @@ def test_recording_through_process_and_view(tmp_path):
             e["rows"] += 0 if chunk.is_static else chunk.num_rows
     for p in (paths.NSV_AMP, paths.NSV_ND, paths.NSV_ORDER):
         assert ents["/" + p]["rows"] >= 5, p
+    assert ents["/" + paths.NSV_REV_AMP]["rows"] >= 5 * 32  # the growth, every revolution of the live blocks
     assert ents["/" + paths.NSV_TABLE]["static"] and ents["/" + paths.NSV_TW]["static"]
 
 
@@ -275,3 +283,36 @@ def test_a_short_run_is_one_block():
     # the trend removal models the growth as linear over the block: 8 % here (0.6 % at 640 revs)
     assert d.amp_last_pkpk_m == pytest.approx(limit, rel=0.08)
     assert res.summary["status"] == "none"
+
+
+@pytest.mark.integration
+def test_view_of_a_short_run_shows_the_reports_growth(tmp_path):
+    """A run shorter than two blocks has no live NSV message: ``bttsim view`` shows the final
+    report's detection (growth per revolution, travelling wave by ND, table)."""
+    import subprocess
+    import sys
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    from _nsv_truth import write_recording
+    from bttsim_stream.views import paths
+
+    run = synthesize(n_rev=39, rpm0=2971.0, rpm1=3028.0, freq_hz=346.9, nd=-3,
+                     amp_pk_m=logistic(1e-9, 0.15e-3, 60.0), noise_s=1e-8, seed=12)
+    rec = tmp_path / "short.mcap"
+    write_recording(rec, run)
+    out = tmp_path / "v.rrd"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "view", str(rec), "--rrd", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    ents: dict = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for chunk in RrdReader(out).stream():
+            e = ents.setdefault(chunk.entity_path, {"rows": 0, "static": False})
+            e["static"] |= chunk.is_static
+            e["rows"] += 0 if chunk.is_static else chunk.num_rows
+    assert ents["/" + paths.NSV_REV_AMP]["rows"] == 39
+    assert "/" + paths.NSV_AMP not in ents
+    assert ents["/" + paths.NSV_TABLE]["static"] and ents["/" + paths.NSV_TW]["static"]

@@ -1175,6 +1175,9 @@ def _fill_nsv(m, n: NsvDetection) -> None:
     m.blocks = int(n.blocks)
     m.forward_m.extend(np.asarray(n.forward_m, float).tolist())
     m.backward_m.extend(np.asarray(n.backward_m, float).tolist())
+    rev_amp = np.asarray(n.rev_amp_pkpk_m, float)
+    if rev_amp.size == int(n.last_revolution) - int(n.first_revolution) + 1:
+        m.rev_amp_pkpk_m.extend(rev_amp.tolist())
 
 
 def encode_nsv(header: Header, nsv: NsvDetection) -> bytes:
@@ -1200,6 +1203,11 @@ def _decode_nsv_body(where: str, m, n) -> NsvDetection:
         raise _corrupt(where, m, f"non-synchronous ND {n.nd}")
     if not (math.isfinite(n.amp_pkpk_m) and n.amp_pkpk_m >= 0.0):
         raise _corrupt(where, m, f"non-synchronous amplitude {n.amp_pkpk_m!r}")
+    n_rev = int(n.last_revolution) - int(n.first_revolution) + 1
+    if len(n.rev_amp_pkpk_m) not in (0, n_rev):
+        raise _corrupt(where, m, f"{len(n.rev_amp_pkpk_m)} per-revolution amplitudes for revolutions "
+                                 f"{n.first_revolution}-{n.last_revolution}")
+    rev_amp = _array(n.rev_amp_pkpk_m)
     return NsvDetection(
         first_revolution=int(n.first_revolution), last_revolution=int(n.last_revolution), order=float(n.order),
         order_alternatives=tuple(float(a) for a in n.order_alternatives),
@@ -1208,7 +1216,8 @@ def _decode_nsv_body(where: str, m, n) -> NsvDetection:
         amp_pkpk_m=float(n.amp_pkpk_m), amp_first_pkpk_m=float(n.amp_first_pkpk_m),
         amp_last_pkpk_m=float(n.amp_last_pkpk_m), ratio=float(n.ratio),
         ratio_threshold=float(n.ratio_threshold), coherence=float(n.coherence), blocks=int(n.blocks),
-        forward_m=_array(n.forward_m), backward_m=_array(n.backward_m))
+        forward_m=_array(n.forward_m), backward_m=_array(n.backward_m), rev_amp_pkpk_m=rev_amp,
+        revolutions=np.arange(n.first_revolution, n.first_revolution + rev_amp.size, dtype=np.int64))
 
 
 def decode_nsv(payload: bytes, key: str | None = None) -> Decoded:

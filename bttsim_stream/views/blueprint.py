@@ -121,7 +121,9 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
                          name="Resonant amplitude pk-pk (mm) per blade: BTT (left), d_eqv (right)"),
         name="Resonance")
     nsv = rrb.Vertical(
-        rrb.Horizontal(_series_view(paths.NSV_AMP, "Non-synchronous vibration: amplitude pk-pk (mm) per block"),
+        rrb.Horizontal(_series_view("nsv", "Non-synchronous vibration: amplitude pk-pk (mm), per revolution "
+                                           "(line) and per block (points)",
+                                    contents=[f"/{paths.NSV_AMP}", f"/{paths.NSV_REV_AMP}"]),
                        rrb.BarChartView(origin=paths.NSV_TW, name="NSV travelling wave (mm) by signed ND, "
                                                                  "forward +(n_nd-1) first .. backward last")),
         rrb.Horizontal(_series_view(paths.NSV_ND, "NSV ND (backward < 0)"),

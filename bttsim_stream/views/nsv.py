@@ -4,7 +4,9 @@ From the processor's ``nsv`` messages (:class:`bttsim.v1.NonSynchronous`, one pe
 block of revolutions) and the final report's ``non_synchronous`` list:
 
 * ``nsv/amp_pkpk_mm`` -- the wave's pk-pk amplitude at its ND, mm, at each detected block's
-  last revolution (the growth of a flutter, the level of a stall);
+  last revolution (block-averaged), and ``nsv/rev_amp_pkpk_mm`` the blade-RMS amplitude of
+  every revolution of the detections (the growth of a flutter, the level of a stall; on the
+  ``revolution`` timeline only);
 * ``nsv/nd`` and ``nsv/order`` -- the signed ND and the order ``f / f_shaft`` of each block;
 * ``nsv/tw_mm`` -- the latest block's travelling-wave spectrum of the NSV response as a bar
   chart over signed ND ``+(n_nd - 1) .. 0 .. -(n_nd - 1)`` (forward first): the bar at the
@@ -36,6 +38,7 @@ class NsvView:
         self.out = out
         self._new: list = []
         self._styled = False
+        self._rev_styled = False
         self.count = 0
 
     def add(self, decoded) -> None:
@@ -54,9 +57,23 @@ class NsvView:
                         f"{n.alias:.3f} | {n.freq_hz:.2f} | {n.nd:+d} | {n.amp_pkpk_m * MM:.4f} |")
         text = "**Non-synchronous vibration (not engine-order resonances)**\n\n" + "\n".join(rows)
         self.out.static(paths.NSV_TABLE, rr.TextDocument(text, media_type="text/markdown"))
+        if self.count == 0:  # no live messages (e.g. a run shorter than two blocks): the report's growth
+            for n in dets:
+                self._rev_amps(n)
         last = dets[-1]
         if np.size(last.forward_m):
             self.out.static(paths.NSV_TW, rr.BarChart(_signed(np.asarray(last.forward_m), np.asarray(last.backward_m)) * MM))
+
+    def _rev_amps(self, n) -> None:
+        amp = np.asarray(n.rev_amp_pkpk_m, float)
+        if not amp.size:
+            return
+        if not self._rev_styled:
+            self.out.style(paths.NSV_REV_AMP, rr.SeriesLines(names=["NSV amplitude pk-pk per revolution (mm)"]))
+            self._rev_styled = True
+        revs = np.arange(int(n.first_revolution), int(n.first_revolution) + amp.size, dtype=np.int64)
+        self.out.rec.send_columns(paths.NSV_REV_AMP, indexes=[rr.TimeColumn("revolution", sequence=revs)],
+                                  columns=rr.Scalars.columns(scalars=np.nan_to_num(amp) * MM))
 
     def flush(self, final: bool = False) -> None:
         rows, self._new = self._new, []
@@ -73,6 +90,8 @@ class NsvView:
         self.out.scalars(paths.NSV_AMP, index, np.array([d.body.amp_pkpk_m for d in rows]) * MM)
         self.out.scalars(paths.NSV_ND, index, np.array([d.body.nd for d in rows], float))
         self.out.scalars(paths.NSV_ORDER, index, np.array([d.body.order for d in rows]))
+        for d in rows:
+            self._rev_amps(d.body)
         last = rows[-1]
         self.out.latest(paths.NSV_TW, rr.BarChart(_signed(last.body.forward_m, last.body.backward_m) * MM),
                         last.header.revolution)
