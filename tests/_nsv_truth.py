@@ -19,6 +19,16 @@ PROBES_DEG = (5.0, 15.15, 23.82, 220.0, 301.5)
 
 
 @dataclass(frozen=True)
+class NsvTruth:
+    """The simulator's per-revolution NSV truth fields (``Truth.nsv_*``), one component."""
+
+    nsv_kind: np.ndarray  # (n_rev, 1)
+    nsv_freq_hz: np.ndarray
+    nsv_nd: np.ndarray
+    nsv_amp_pkpk_m: np.ndarray
+
+
+@dataclass(frozen=True)
 class NsvRun:
     opr_s: np.ndarray
     toa_s: np.ndarray
@@ -26,6 +36,7 @@ class NsvRun:
     n_blades: int
     probe_angles_rad: np.ndarray
     tip_radius_m: float
+    truth: NsvTruth | None = None
 
 
 def logistic(a0: float, a_lim: float, rate_per_s: float):
@@ -113,8 +124,14 @@ def synthesize(*, n_rev: int, rpm0: float, rpm1: float | None = None, n_blades: 
             break
     if noise_s > 0:
         t = t + np.random.default_rng(seed).normal(0.0, noise_s, t.shape)
-    return NsvRun(opr_s=opr[:-1], toa_s=t, omega_rad_s=TWO_PI / np.diff(opr), n_blades=n_blades,
-                  probe_angles_rad=th_p, tip_radius_m=tip_radius_m)
+    omega = TWO_PI / np.diff(opr)
+    t_mid = 0.5 * (opr[:-1] + opr[1:])
+    f_rev = order * omega / TWO_PI if order is not None else np.full(n_rev, float(freq_hz))
+    truth = NsvTruth(nsv_kind=np.full((n_rev, 1), "rotating_stall" if order is not None else "flutter"),
+                     nsv_freq_hz=f_rev[:, None], nsv_nd=np.full((n_rev, 1), nd, np.int64),
+                     nsv_amp_pkpk_m=2.0 * amp(t_mid)[:, None])
+    return NsvRun(opr_s=opr[:-1], toa_s=t, omega_rad_s=omega, n_blades=n_blades,
+                  probe_angles_rad=th_p, tip_radius_m=tip_radius_m, truth=truth)
 
 
 def write_recording(path, run: NsvRun, *, run_id: str = "nsv-synthetic", rig: str = "rig1") -> None:

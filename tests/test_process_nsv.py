@@ -316,3 +316,49 @@ def test_view_of_a_short_run_shows_the_reports_growth(tmp_path):
     assert ents["/" + paths.NSV_REV_AMP]["rows"] == 39
     assert "/" + paths.NSV_AMP not in ents
     assert ents["/" + paths.NSV_TABLE]["static"] and ents["/" + paths.NSV_TW]["static"]
+
+
+def test_detections_are_scored_against_the_truth_offline_and_live():
+    """With the truth's NSV components (the simulator's ``Truth.nsv_*``), each detection is
+    scored (ND correct, frequency error, level error); the streaming processor's final report,
+    fed per revolution through a truth tracker, scores the same; the truth is only scored."""
+    from bttsim_stream.process import StreamingProcessor, TruthPeakTracker
+    from bttsim_stream.bus import codec
+
+    f, nd, limit = 344.5, -4, 0.6e-3
+    run = synthesize(n_rev=320, rpm0=2450.0, rpm1=2500.0, freq_hz=f, nd=nd,
+                     amp_pk_m=logistic(1e-6, 0.5 * limit, 3.0), noise_s=3e-8, seed=13)
+    res = process_arrays(run.opr_s, run.toa_s, _geometry(run), ProcessOptions(), truth=run.truth)
+    det = res.summary["non_synchronous"][0]
+    t = det["truth"]
+    assert t["present"] and t["kind"] == "flutter" and t["nd"] == nd and t["nd_correct"]
+    assert abs(t["freq_error_hz"]) < 0.5 and abs(t["amp_last_error_pct"]) < 5.0
+    assert t["amp_last_pkpk_m"] == pytest.approx(limit, rel=0.01)
+    blind = _process(run).summary
+    assert "truth" not in blind["non_synchronous"][0]
+    blind["non_synchronous"][0]["truth"] = t
+    assert blind == res.summary  # scoring changes nothing else
+    assert "truth: flutter" in summary_table(res.summary)
+    # live: the same through the tracker
+    proc = StreamingProcessor(_geometry(run))
+    tracker = TruthPeakTracker(8)
+    tr = run.truth
+    for n in range(run.opr_s.size):
+        proc.push(n, run.opr_s[n], run.toa_s[n])
+        tracker.update(n, np.zeros(run.n_blades), run.omega_rad_s[n],
+                       nsv=(tr.nsv_kind[n], tr.nsv_freq_hz[n], tr.nsv_nd[n], tr.nsv_amp_pkpk_m[n]))
+    live = proc.finish(tracker)
+    assert live["non_synchronous"][0]["truth"] == t
+    rp = codec.encode_resonance_report(codec.Header("r", 0), proc.result.report)
+    assert codec.decode_resonance_report(rp).body.to_summary()["non_synchronous"] == live["non_synchronous"]
+
+
+def test_a_false_detection_is_scored_as_one():
+    """Truth without any NSV component in the detection's revolutions: ``present`` false."""
+    import dataclasses
+
+    run = synthesize(n_rev=128, rpm0=2800.0, order=2.3, nd=5, amp_pk_m=0.1e-3)
+    silent = dataclasses.replace(run.truth, nsv_amp_pkpk_m=np.zeros_like(run.truth.nsv_amp_pkpk_m))
+    s = process_arrays(run.opr_s, run.toa_s, _geometry(run), ProcessOptions(), truth=silent).summary
+    assert s["non_synchronous"][0]["truth"] == {"kind": None, "present": False}
+    assert "a false detection" in summary_table(s)

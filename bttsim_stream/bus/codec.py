@@ -1178,6 +1178,12 @@ def _fill_nsv(m, n: NsvDetection) -> None:
     rev_amp = np.asarray(n.rev_amp_pkpk_m, float)
     if rev_amp.size == int(n.last_revolution) - int(n.first_revolution) + 1:
         m.rev_amp_pkpk_m.extend(rev_amp.tolist())
+    if n.truth is not None:
+        m.has_truth = True
+        if n.truth.get("kind") is not None:
+            t = n.truth
+            m.truth_kind, m.truth_freq_hz, m.truth_nd = str(t["kind"]), float(t["freq_hz"]), int(t["nd"])
+            m.truth_amp_pkpk_m, m.truth_amp_last_pkpk_m = float(t["amp_pkpk_m"]), float(t["amp_last_pkpk_m"])
 
 
 def encode_nsv(header: Header, nsv: NsvDetection) -> bytes:
@@ -1208,6 +1214,13 @@ def _decode_nsv_body(where: str, m, n) -> NsvDetection:
         raise _corrupt(where, m, f"{len(n.rev_amp_pkpk_m)} per-revolution amplitudes for revolutions "
                                  f"{n.first_revolution}-{n.last_revolution}")
     rev_amp = _array(n.rev_amp_pkpk_m)
+    truth = None
+    if n.has_truth:
+        if n.truth_kind not in ("", "rotating_stall", "flutter", "broadband") or abs(n.truth_nd) > MAX_BLADES // 2:
+            raise _corrupt(where, m, f"non-synchronous truth {n.truth_kind[:40]!r}, ND {n.truth_nd}")
+        truth = {"kind": None} if not n.truth_kind else {
+            "kind": n.truth_kind, "freq_hz": float(n.truth_freq_hz), "nd": int(n.truth_nd),
+            "amp_pkpk_m": float(n.truth_amp_pkpk_m), "amp_last_pkpk_m": float(n.truth_amp_last_pkpk_m)}
     return NsvDetection(
         first_revolution=int(n.first_revolution), last_revolution=int(n.last_revolution), order=float(n.order),
         order_alternatives=tuple(float(a) for a in n.order_alternatives),
@@ -1217,7 +1230,7 @@ def _decode_nsv_body(where: str, m, n) -> NsvDetection:
         amp_last_pkpk_m=float(n.amp_last_pkpk_m), ratio=float(n.ratio),
         ratio_threshold=float(n.ratio_threshold), coherence=float(n.coherence), blocks=int(n.blocks),
         forward_m=_array(n.forward_m), backward_m=_array(n.backward_m), rev_amp_pkpk_m=rev_amp,
-        revolutions=np.arange(n.first_revolution, n.first_revolution + rev_amp.size, dtype=np.int64))
+        revolutions=np.arange(n.first_revolution, n.first_revolution + rev_amp.size, dtype=np.int64), truth=truth)
 
 
 def decode_nsv(payload: bytes, key: str | None = None) -> Decoded:

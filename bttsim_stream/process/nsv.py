@@ -64,8 +64,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["NsvOptions", "NsvScan", "NsvDetection", "scan_blocks", "detections", "detect_nsv",
-           "nsv_note", "nsv_table_lines"]
+__all__ = ["NsvOptions", "NsvScan", "NsvDetection", "NsvTruthRows", "scan_blocks", "detections", "detect_nsv",
+           "nsv_truth_rows", "score_nsv", "nsv_note", "nsv_table_lines"]
 
 TWO_PI = 2.0 * np.pi
 #: The shortest run analysed as one block when it is shorter than ``min_blocks`` blocks.
@@ -222,6 +222,11 @@ class NsvDetection:
         Per revolution, the blade-RMS pk-pk amplitude at the detected order (the growth), m.
     forward_m, backward_m : ndarray, shape (n_nd,)
         Travelling-wave spectrum of the strongest block, pk-pk, m.
+    truth : dict or None
+        When the run's truth carries its non-synchronous components (:func:`score_nsv`): the
+        component matched over the detection's revolutions, ``{"kind", "freq_hz", "nd",
+        "amp_pkpk_m", "amp_last_pkpk_m"}`` (``kind`` None: no component was present, a false
+        detection).
     """
 
     first_revolution: int
@@ -245,6 +250,7 @@ class NsvDetection:
     rev_amp_pkpk_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     forward_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     backward_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truth: dict | None = None
 
     def to_summary(self) -> dict:
         """One element of the summary's ``non_synchronous`` list."""
@@ -258,7 +264,20 @@ class NsvDetection:
                 "detection": {"statistic": "nsv_peak_to_median_power", "value": _num(self.ratio),
                               "threshold": _num(self.ratio_threshold), "coherence": _num(self.coherence)},
                 "revolutions": {"first": int(self.first_revolution), "last": int(self.last_revolution)},
-                "blocks": int(self.blocks)}
+                "blocks": int(self.blocks), **({} if self.truth is None else {"truth": self._truth_summary()})}
+
+    def _truth_summary(self) -> dict:
+        """The matched truth component and the errors against it (``nd_correct``,
+        ``freq_error_hz``, ``amp_last_error_pct``)."""
+        t = self.truth
+        if t.get("kind") is None:
+            return {"kind": None, "present": False}
+        out = {"kind": str(t["kind"]), "present": True, "freq_hz": _num(t["freq_hz"]), "nd": int(t["nd"]),
+               "amp_pkpk_m": _num(t["amp_pkpk_m"]), "amp_last_pkpk_m": _num(t["amp_last_pkpk_m"]),
+               "nd_correct": int(t["nd"]) == int(self.nd), "freq_error_hz": _num(self.freq_hz - t["freq_hz"])}
+        if t["amp_last_pkpk_m"] and math.isfinite(t["amp_last_pkpk_m"]) and math.isfinite(self.amp_last_pkpk_m):
+            out["amp_last_error_pct"] = 100.0 * (self.amp_last_pkpk_m - t["amp_last_pkpk_m"]) / t["amp_last_pkpk_m"]
+        return out
 
 
 def _num(x):
@@ -587,6 +606,72 @@ def detect_nsv(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.
     return scan, detections(scan, d_m, arrival_angles_rad, options, revolution0=revolution0, omega_rad_s=omega_rad_s)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class NsvTruthRows:
+    """The truth's non-synchronous components per revolution (the simulator's ``Truth.nsv_*``).
+
+    Attributes
+    ----------
+    kind : ndarray of str, shape (n_rev, k)
+        ``"rotating_stall"``, ``"flutter"``, ``"broadband"`` ("" where unknown).
+    freq_hz : ndarray, shape (n_rev, k)
+        Rotor-frame frequency, Hz (NaN: no truth for that revolution).
+    nd : ndarray of int, shape (n_rev, k)
+        Signed ND (the :mod:`.travelling_wave` convention).
+    amp_pkpk_m : ndarray, shape (n_rev, k)
+        Pk-pk amplitude at P_nom (0: absent in that revolution), m.
+    """
+
+    kind: np.ndarray
+    freq_hz: np.ndarray
+    nd: np.ndarray
+    amp_pkpk_m: np.ndarray
+
+
+def nsv_truth_rows(truth, n_rev: int) -> NsvTruthRows | None:
+    """The NSV truth of a Truth-like object (``nsv_kind``, ``nsv_freq_hz``, ``nsv_nd``,
+    ``nsv_amp_pkpk_m``, each (n_rev, k)), or None when it has none (or of another length)."""
+    arrays = [getattr(truth, f"nsv_{n}", None) for n in ("kind", "freq_hz", "nd", "amp_pkpk_m")]
+    if truth is None or any(a is None for a in arrays):
+        return None
+    kind, freq, nd, amp = (np.asarray(a) for a in arrays)
+    if kind.ndim != 2 or kind.shape[0] != n_rev or not all(a.shape == kind.shape for a in (freq, nd, amp)):
+        return None
+    return NsvTruthRows(kind=kind.astype(str), freq_hz=freq.astype(float), nd=nd.astype(np.int64),
+                        amp_pkpk_m=amp.astype(float))
+
+
+def score_nsv(det: NsvDetection, truth: NsvTruthRows, revolution0: int = 0) -> dict:
+    """The truth component that a detection found: over the detection's revolutions, among the
+    components present (amplitude above 0), the one with the detected ND, else the nearest in
+    frequency. ``kind`` None when none was present (a false detection).
+
+    Returns
+    -------
+    dict
+        ``{"kind", "freq_hz" (mean where present), "nd", "amp_pkpk_m" (largest),
+        "amp_last_pkpk_m" (median of the last LAST_REVOLUTIONS revolutions)}``.
+    """
+    n_rev = truth.freq_hz.shape[0]
+    lo = max(int(det.first_revolution) - revolution0, 0)
+    hi = min(int(det.last_revolution) - revolution0 + 1, n_rev)
+    best, key = None, None
+    for c in range(truth.freq_hz.shape[1]):
+        amp = truth.amp_pkpk_m[lo:hi, c]
+        present = np.isfinite(amp) & (amp > 0) & np.isfinite(truth.freq_hz[lo:hi, c])
+        if not present.any():
+            continue
+        f = float(np.mean(truth.freq_hz[lo:hi, c][present]))
+        nds, counts = np.unique(truth.nd[lo:hi, c][present], return_counts=True)
+        nd = int(nds[np.argmax(counts)])
+        k = (nd != int(det.nd), abs(f - float(det.freq_hz)))
+        if key is None or k < key:
+            last = amp[present][-LAST_REVOLUTIONS:]
+            best, key = {"kind": str(truth.kind[lo:hi, c][present][0]), "freq_hz": f, "nd": nd,
+                         "amp_pkpk_m": float(np.max(amp[present])), "amp_last_pkpk_m": float(np.median(last))}, k
+    return best if best is not None else {"kind": None}
+
+
 def _nd_text(nd: int) -> str:
     return f"ND {nd:+d} ({'forward' if nd > 0 else 'backward' if nd < 0 else 'standing'})"
 
@@ -617,4 +702,14 @@ def nsv_table_lines(summary: dict) -> list[str]:
                      f"last revolutions {1e3 * (det.get('amp_last_pkpk_m') or 0.0):.4f})  "
                      f"revolutions {det['revolutions']['first']}-{det['revolutions']['last']}  "
                      f"power ratio {d['value']:.3g} (>= {d['threshold']:g}), coherence {d['coherence']:.3f}")
+        t = det.get("truth")
+        if t is not None:
+            if not t.get("present"):
+                lines.append("  truth: no non-synchronous component in these revolutions (a false detection)")
+            else:
+                err = f", level error {t['amp_last_error_pct']:+.1f} %" if "amp_last_error_pct" in t else ""
+                lines.append(f"  truth: {t['kind']} {t['freq_hz']:.2f} Hz {_nd_text(t['nd'])} "
+                             f"{1e3 * t['amp_last_pkpk_m']:.4f} mm pk-pk (last revolutions): ND "
+                             f"{'correct' if t['nd_correct'] else 'WRONG'}, frequency error "
+                             f"{t['freq_error_hz']:+.3f} Hz{err}")
     return lines

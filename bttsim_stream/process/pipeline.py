@@ -35,7 +35,8 @@ from .displacement import (TWO_PI, Displacements, Geometry, calibrate_arrival_an
                            displacements_from_phase, rotor_phase_from_opr)
 from .fit import SineFit, design_matrix, fit_revolutions
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
-from .nsv import NsvDetection, NsvOptions, NsvScan, detect_nsv, detections, nsv_note, scan_blocks
+from .nsv import (NsvDetection, NsvOptions, NsvScan, detect_nsv, detections, nsv_note, nsv_truth_rows, scan_blocks,
+                  score_nsv)
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .probes import CN_SINGULAR, LayoutError, condition_number
 from .resonance import (PEAK_METHODS, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks,
@@ -382,6 +383,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         crossings = resolve_engine_orders(crossings, _misfits(d0, angles, eos_asked, fit0))
     psi0 = first.arrival_angles_rad if first.arrival_angles_rad is not None else geometry.nominal_arrival_angles()
     nsv_scan, nsv = detect_nsv(d0, omega, psi0, options.nsv, revolution0=revolution0)
+    nsv_truth = (truth.nsv_rows(revolution0, n_rev) if isinstance(truth, TruthPeakTracker)
+                 else nsv_truth_rows(truth, n_rev))
+    if nsv and nsv_truth is not None:  # scored only: the truth never steers the processing
+        nsv = tuple(replace(n, truth=score_nsv(n, nsv_truth, revolution0)) for n in nsv)
     if nsv:
         crossings = _not_nsv(crossings, nsv, revolution0, omega, notes)
     crossings = _separate(crossings)

@@ -160,11 +160,16 @@ class TruthPeakTracker:
         self._rev: np.ndarray | None = None
         self._omega: np.ndarray | None = None
         self._rows: dict[int, tuple[np.ndarray, float]] = {}
+        self._nsv: dict[int, tuple] = {}
 
-    def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float) -> None:
-        """Add one revolution: ``d_eqv_pkpk_m`` (n_blades,) m, mean speed rad/s."""
+    def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float, nsv=None) -> None:
+        """Add one revolution: ``d_eqv_pkpk_m`` (n_blades,) m, mean speed rad/s; ``nsv``: its
+        non-synchronous components ``(kind, freq_hz, nd, amp_pkpk_m)``, each (k,), when the
+        truth carries them (to score NSV detections)."""
         a = np.asarray(d_eqv_pkpk_m, dtype=float)
         self._rows[int(revolution)] = (a.copy(), float(omega_mean_rad_s))
+        if nsv is not None:
+            self._nsv[int(revolution)] = tuple(np.asarray(x).reshape(-1) for x in nsv)
         if self._amp is None:
             self._amp = np.full(a.shape, -np.inf)
             self._rev = np.full(a.shape, -1, dtype=np.int64)
@@ -194,6 +199,27 @@ class TruthPeakTracker:
             if 0 <= i < n_revolutions and a.shape == (nb,):
                 amp[i], om[i] = a, w
         return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om)
+
+
+    def nsv_rows(self, first_revolution: int, n_revolutions: int):
+        """The non-synchronous truth of revolutions ``first_revolution ..``
+        (:class:`~bttsim_stream.process.nsv.NsvTruthRows`; NaN amplitude where none was
+        received), None when no truth carried NSV components."""
+        from .nsv import NsvTruthRows
+
+        if not self._nsv:
+            return None
+        n = int(n_revolutions)
+        k = max(len(v[0]) for v in self._nsv.values())
+        kind = np.full((n, k), "", dtype=object)
+        freq, amp = np.full((n, k), np.nan), np.full((n, k), np.nan)
+        nd = np.zeros((n, k), np.int64)
+        for rev, (kd, f, d, a) in self._nsv.items():
+            i = rev - int(first_revolution)
+            if 0 <= i < n and len(kd) == len(f) == len(d) == len(a):
+                m = len(kd)
+                kind[i, :m], freq[i, :m], nd[i, :m], amp[i, :m] = kd, f, d, a
+        return NsvTruthRows(kind=kind.astype(str), freq_hz=freq, nd=nd, amp_pkpk_m=amp)
 
 
 def _parabolic(amp: np.ndarray, peak: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
