@@ -539,11 +539,8 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
             f.append(float(scan.order[k]) * om / TWO_PI)
         f = np.asarray(f)
         rev_amp = np.concatenate(amps)
-        with np.errstate(all="ignore"):
-            import warnings
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                last_amp = float(np.nanmedian(rev_amp[-LAST_REVOLUTIONS:]))
+        last = rev_amp[-LAST_REVOLUTIONS:]
+        last_amp = float(np.median(last[np.isfinite(last)])) if np.isfinite(last).any() else math.nan
         out.append(NsvDetection(
             first_revolution=revolution0 + int(scan.start[r[0]]),
             last_revolution=revolution0 + int(scan.start[r[-1]]) + scan.block - 1,

@@ -506,13 +506,14 @@ def _not_nsv(crossings: list, nsv: tuple, revolution0: int, omega: np.ndarray, n
     engine-order fits (those are dropped, each with a note)."""
     keep = []
     for c in crossings:
-        hit = [n for n in nsv if n.first_revolution - revolution0 <= c.hp_hi and n.last_revolution - revolution0 >= c.hp_lo
-               and n.amp_pkpk_m >= NSV_DOMINANCE * c.amp_peak_m]
+        hit = [n for n in nsv if n.first_revolution - revolution0 <= c.hp_hi
+               and n.last_revolution - revolution0 >= c.hp_lo and n.amp_pkpk_m >= NSV_DOMINANCE * c.amp_peak_m]
         if not hit:
             keep.append(c)
             continue
         n = max(hit, key=lambda x: x.amp_pkpk_m)
-        notes.append(f"EO {c.eo} peak at revolution {revolution0 + c.peak} ({float(omega[c.peak]) * 60 / TWO_PI:.0f} rpm, "
+        rpm = float(omega[c.peak]) * 60 / TWO_PI
+        notes.append(f"EO {c.eo} peak at revolution {revolution0 + c.peak} ({rpm:.0f} rpm, "
                      f"{1e3 * c.amp_peak_m:.4f} mm) not reported as a resonance: it is the non-synchronous vibration "
                      f"at order {n.order:.3f}, ND {n.nd:+d} ({1e3 * n.amp_pkpk_m:.4f} mm) seen through the EO fits")
     return keep

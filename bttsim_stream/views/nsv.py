@@ -62,7 +62,8 @@ class NsvView:
                 self._rev_amps(n)
         last = dets[-1]
         if np.size(last.forward_m):
-            self.out.static(paths.NSV_TW, rr.BarChart(_signed(np.asarray(last.forward_m), np.asarray(last.backward_m)) * MM))
+            bars = _signed(np.asarray(last.forward_m), np.asarray(last.backward_m)) * MM
+            self.out.static(paths.NSV_TW, rr.BarChart(bars))
 
     def _rev_amps(self, n) -> None:
         amp = np.asarray(n.rev_amp_pkpk_m, float)
