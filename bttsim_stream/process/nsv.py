@@ -327,46 +327,36 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
                coherence=np.full(nblk, np.nan), nd=np.zeros(nblk, np.int64), amp=np.zeros(nblk),
                fwd=np.zeros((nblk, n_nd)), bwd=np.zeros((nblk, n_nd)), blade=np.zeros((nblk, nb)))
     alternatives: list = [()] * nblk
-    omega = np.asarray(omega_rad_s, float)
-    om_blk = np.array([float(np.mean(omega[s:s + L])) for s in st]) if nblk else np.zeros(0)
-    if nblk == 0:
-        return _scan(st, L, out, alternatives, om_blk, np.zeros(0, bool))
-    n_fft = int(options.pad) * L
-    mu = np.arange(n_fft // 2 + 1) / n_fft
-    band = mu >= max(float(options.guard), 2.5 / L)  # beyond the Hann main lobe of the synchronous band
-    if band.sum() < 3:
-        return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool))
-    # trend removal, Hann window and the DFT at the band's bins as one real matrix M
-    comp = band | (np.arange(mu.size) == np.flatnonzero(band)[0] - 1)  # one bin more, for the refinement
-    M = _spectrum_matrix(L, n_fft, np.flatnonzero(comp))
     idx = st[:, None] + np.arange(L)[None, :]
-    y = np.moveaxis(d[idx].reshape(nblk, L, nb * npr), 1, 2)  # (nblk, series, L)
-    ok = np.isfinite(y)
-    if not ok.all():
+    om_blk = np.asarray(omega_rad_s, float)[idx].mean(axis=1)
+    sp = _spectrum(L, int(options.pad), float(options.guard))
+    if nblk == 0 or sp is None:
+        return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool), whole)
+    n_fft, band, comp, M, w_sum = sp
+    y = d[idx].reshape(nblk, L, nb * npr)  # (block, revolution, series)
+    if not np.isfinite(y).all():  # a missing sample takes its series' mean
+        ok = np.isfinite(y)
         with np.errstate(all="ignore"):
-            cnt = ok.sum(axis=2, keepdims=True)
-            mean = np.where(ok, y, 0.0).sum(axis=2, keepdims=True) / np.maximum(cnt, 1)
+            mean = np.where(ok, y, 0.0).sum(axis=1, keepdims=True) / np.maximum(ok.sum(axis=1, keepdims=True), 1)
         y = np.where(ok, y, mean)
     # the power summed over the series at a bin is m^T (sum_s y_s y_s^T) m for its real and
-    # imaginary rows m: one L x L matrix per block instead of a spectrum per series
-    y = y - y.mean(axis=2, keepdims=True)  # (M removes it anyway) less cancellation in C
-    C = np.matmul(np.swapaxes(y, 1, 2), y)  # (nblk, L, L)
+    # imaginary rows m of M: one L x L matrix per block instead of a spectrum per series
+    y = y - y.mean(axis=1, keepdims=True)  # (M removes it anyway) less cancellation in C
+    C = np.matmul(y, np.swapaxes(y, 1, 2))  # (nblk, L, L)
     P = np.maximum(np.einsum("lf,klf->kf", M, C @ M), 0.0)  # (nblk, 2 n_comp); rounding can go below 0
-    nbd = int(comp.sum())
-    S = np.zeros((nblk, mu.size))
+    nbd = comp.size
+    S = np.zeros((nblk, n_fft // 2 + 1))
     S[:, comp] = P[:, :nbd] + P[:, nbd:]
     Sb = S[:, band]
-    floor = np.median(Sb, axis=1)
+    floor = np.partition(Sb, Sb.shape[1] // 2, axis=1)[:, Sb.shape[1] // 2]  # the (upper) median
     i_pk = np.argmax(Sb, axis=1)
     peak = Sb[np.arange(nblk), i_pk]
     with np.errstate(all="ignore"):
         ratio = np.where(floor > 0, peak / floor, np.where(peak > 0, np.inf, 0.0))
     out["ratio"] = ratio
-    i0 = np.flatnonzero(band)[0]
-    k_pk = i_pk + i0
+    k_pk = i_pk + band[0]
     # a rough pk-pk amplitude of the peak (a wave equal on every series): blocks far below
     # the amplitude threshold are not analysed further
-    w_sum = float(np.hanning(L + 2)[1:-1].sum())
     rough = 4.0 * np.sqrt(peak / (nb * npr)) / w_sum
     cand = np.flatnonzero((ratio >= options.ratio_threshold) & (rough >= 0.5 * options.min_amp_m))
     max_order = float(options.max_order) if options.max_order is not None else float(nb)
@@ -381,29 +371,41 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     return _scan(st, L, out, alternatives, om_blk, detected, whole)
 
 
-def _scan(st, L, out, alternatives, om_blk, detected, whole=False) -> NsvScan:
+def _scan(st, L, out, alternatives, om_blk, detected, whole) -> NsvScan:
     return NsvScan(start=st, block=L, whole_run=bool(whole), ratio=out["ratio"], alias=out["alias"], order=out["order"],
                    alternatives=tuple(alternatives), coherence=out["coherence"], nd=out["nd"],
                    amp_pkpk_m=out["amp"], forward_m=out["fwd"], backward_m=out["bwd"], omega_rad_s=om_blk,
                    detected=np.asarray(detected, bool), blade_amp_pkpk_m=out["blade"])
 
 
-def _spectrum_matrix(L: int, n_fft: int, bins: np.ndarray) -> np.ndarray:
-    """``(I - Q Q^T)``, the Hann window and the (zero-padded) DFT at ``bins`` as one real
-    matrix, shape (L, 2 n_bins): a series ``x`` (L,) gives ``[Re X, Im X] = x @ M``."""
-    key = (L, n_fft, bins.tobytes())
-    if key not in _MATRICES:
+def _spectrum(L: int, pad: int, guard: float):
+    """The searched band of a block of ``L`` revolutions and its spectrum matrix (cached):
+    ``(n_fft, band, comp, M, w_sum)`` with ``band`` the searched bins (aliases from
+    ``max(guard, 2.5 / L)``, beyond the Hann main lobe of the synchronous band), ``comp`` the
+    computed ones (one more below, for the refinement), ``M`` (L, 2 n_comp) the trend
+    removal ``I - Q Q^T``, the Hann window and the zero-padded DFT at ``comp`` as one real
+    matrix (a series ``x`` gives ``[Re X, Im X] = x @ M``) and ``w_sum`` the window's sum.
+    None when the band has fewer than 3 bins."""
+    key = (L, pad, guard)
+    if key not in _SPECTRA:
+        n_fft = pad * L
+        mu = np.arange(n_fft // 2 + 1) / n_fft
+        band = np.flatnonzero(mu >= max(guard, 2.5 / L))
+        if band.size < 3:
+            _SPECTRA[key] = None
+            return None
+        comp = np.concatenate([band[:1] - 1, band])
         Q = _detrend_basis(L)
         w = np.hanning(L + 2)[1:-1]
         A = w[:, None] * (np.eye(L) - Q @ Q.T)  # (L, L): windowed detrended = A @ x
-        n = np.arange(L)
-        F = np.exp(-2j * np.pi * np.outer(bins, n) / n_fft)  # (n_bins, L)
+        F = np.exp(-2j * np.pi * np.outer(comp, np.arange(L)) / n_fft)  # (n_comp, L)
         FA = F @ A
-        _MATRICES[key] = np.ascontiguousarray(np.concatenate([FA.real, FA.imag], axis=0).T)
-    return _MATRICES[key]
+        M = np.ascontiguousarray(np.concatenate([FA.real, FA.imag], axis=0).T)
+        _SPECTRA[key] = (n_fft, band, comp, M, float(w.sum()))
+    return _SPECTRA[key]
 
 
-_MATRICES: dict = {}
+_SPECTRA: dict = {}
 
 
 def _detrended(x: np.ndarray) -> np.ndarray:
