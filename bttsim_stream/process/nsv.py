@@ -64,7 +64,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["NsvOptions", "NsvScan", "NsvDetection", "NsvTruthRows", "scan_blocks", "detections", "detect_nsv",
+__all__ = ["NsvOptions", "NsvScan", "NsvDetection", "NsvTruthRows", "scan_blocks", "screen_block", "detections",
+           "detect_nsv",
            "nsv_truth_rows", "score_nsv", "nsv_note", "nsv_table_lines"]
 
 TWO_PI = 2.0 * np.pi
@@ -332,27 +333,8 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     sp = _spectrum(L, int(options.pad), float(options.guard))
     if nblk == 0 or sp is None:
         return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool), whole)
-    n_fft, band, comp, M, w_sum = sp
-    y = d[idx].reshape(nblk, L, nb * npr)  # (block, revolution, series)
-    if not np.isfinite(y).all():  # a missing sample takes its series' mean
-        ok = np.isfinite(y)
-        with np.errstate(all="ignore"):
-            mean = np.where(ok, y, 0.0).sum(axis=1, keepdims=True) / np.maximum(ok.sum(axis=1, keepdims=True), 1)
-        y = np.where(ok, y, mean)
-    # the power summed over the series at a bin is m^T (sum_s y_s y_s^T) m for its real and
-    # imaginary rows m of M: one L x L matrix per block instead of a spectrum per series
-    y = y - y.mean(axis=1, keepdims=True)  # (M removes it anyway) less cancellation in C
-    C = np.matmul(y, np.swapaxes(y, 1, 2))  # (nblk, L, L)
-    P = np.maximum(np.einsum("lf,klf->kf", M, C @ M), 0.0)  # (nblk, 2 n_comp); rounding can go below 0
-    nbd = comp.size
-    S = np.zeros((nblk, n_fft // 2 + 1))
-    S[:, comp] = P[:, :nbd] + P[:, nbd:]
-    Sb = S[:, band]
-    floor = np.partition(Sb, Sb.shape[1] // 2, axis=1)[:, Sb.shape[1] // 2]  # the (upper) median
-    i_pk = np.argmax(Sb, axis=1)
-    peak = Sb[np.arange(nblk), i_pk]
-    with np.errstate(all="ignore"):
-        ratio = np.where(floor > 0, peak / floor, np.where(peak > 0, np.inf, 0.0))
+    n_fft, band, _, _, w_sum = sp
+    S, ratio, i_pk, peak = _band_power(d[idx].reshape(nblk, L, nb * npr), sp)
     out["ratio"] = ratio
     k_pk = i_pk + band[0]
     # a rough pk-pk amplitude of the peak (a wave equal on every series): blocks far below
@@ -369,6 +351,49 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     detected = ((ratio >= options.ratio_threshold) & (out["amp"] >= options.min_amp_m)
                 & (np.nan_to_num(out["coherence"]) >= options.min_coherence))
     return _scan(st, L, out, alternatives, om_blk, detected, whole)
+
+
+def _band_power(y: np.ndarray, sp: tuple) -> tuple:
+    """Power summed over the series at each bin, and the detection statistic, of blocks
+    ``y`` (n_blocks, L, n_series) (NaN: missing, takes its series' mean): ``(S, ratio, i_pk,
+    peak)`` with ``S`` (n_blocks, n_fft // 2 + 1) (0 outside the computed bins), the
+    peak-to-median ratio over the band, the peak's index in the band and its power."""
+    n_fft, band, comp, M, _ = sp
+    if not np.isfinite(y).all():
+        ok = np.isfinite(y)
+        with np.errstate(all="ignore"):
+            mean = np.where(ok, y, 0.0).sum(axis=1, keepdims=True) / np.maximum(ok.sum(axis=1, keepdims=True), 1)
+        y = np.where(ok, y, mean)
+    # the power summed over the series at a bin is m^T (sum_s y_s y_s^T) m for its real and
+    # imaginary rows m of M: one L x L matrix per block instead of a spectrum per series
+    y = y - y.mean(axis=1, keepdims=True)  # (M removes it anyway) less cancellation in C
+    C = np.matmul(y, np.swapaxes(y, 1, 2))  # (n_blocks, L, L)
+    P = np.maximum(np.einsum("lf,klf->kf", M, C @ M), 0.0)  # (n_blocks, 2 n_comp); rounding can go below 0
+    nbd = comp.size
+    S = np.zeros((y.shape[0], n_fft // 2 + 1))
+    S[:, comp] = P[:, :nbd] + P[:, nbd:]
+    Sb = S[:, band]
+    half = Sb.shape[1] // 2
+    floor = np.partition(Sb, half, axis=1)[:, half]  # the (upper) median
+    i_pk = np.argmax(Sb, axis=1)
+    peak = Sb[np.arange(Sb.shape[0]), i_pk]
+    with np.errstate(all="ignore"):
+        ratio = np.where(floor > 0, peak / floor, np.where(peak > 0, np.inf, 0.0))
+    return S, ratio, i_pk, peak
+
+
+def screen_block(d_m: np.ndarray, options: NsvOptions = NsvOptions()) -> bool:
+    """Whether one block ``d_m`` (L, n_blades, n_probes) may hold an NSV: the detection
+    statistic and the rough amplitude of :func:`scan_blocks`'s first step, without the rest
+    (the live processor scans a block in full only then)."""
+    d = np.asarray(d_m, dtype=float)
+    L = d.shape[0]
+    sp = _spectrum(L, int(options.pad), float(options.guard))
+    if sp is None:
+        return False
+    _, ratio, _, peak = _band_power(d.reshape(1, L, -1), sp)
+    rough = 4.0 * math.sqrt(float(peak[0]) / (d.shape[1] * d.shape[2])) / sp[4]
+    return bool(ratio[0] >= options.ratio_threshold and rough >= 0.5 * options.min_amp_m)
 
 
 def _scan(st, L, out, alternatives, om_blk, detected, whole) -> NsvScan:
@@ -456,16 +481,19 @@ def _orders(Z: np.ndarray, mu0: float, psi: np.ndarray, max_order: float, option
     """Score the orders ``m +- mu0`` by probe-phase coherence; the best one's ND, spectrum
     and amplitude into ``out[...][k]``."""
     nb, npr = Z.shape
-    m = np.arange(0, int(math.ceil(max_order)) + 2)
+    n_m = int(math.ceil(max_order)) + 2
+    m = np.arange(n_m)
     nus = np.concatenate([m + mu0, m - mu0])
-    conj = np.concatenate([np.zeros(m.size, bool), np.ones(m.size, bool)])
     keep = (nus > 0) & (nus <= max_order)
-    nus, conj = nus[keep], conj[keep]
-    if nus.size == 0:
+    if not keep.any():
         return
-    Zc = np.where(conj[:, None, None], np.conj(Z)[None], Z[None])  # (n_cand, nb, npr)
     present = np.abs(Z) > 0
-    Y = np.einsum("cbj,cbj->cb", Zc, np.exp(-1j * nus[:, None, None] * psi[None]) * present[None])
+    # exp(-i (m +- mu) psi) = exp(-i m psi) exp(-+ i mu psi): the whole orders' table is cached
+    E = _whole_order_phases(psi, n_m)  # (n_m, nb, npr)
+    e_mu = np.exp(-1j * mu0 * psi) * present
+    Y = np.concatenate([np.einsum("mbj,bj->mb", E, Z * e_mu),  # branch +: nu = m + mu
+                        np.einsum("mbj,bj->mb", E, np.conj(Z * e_mu))])[keep]  # branch -: conj(Z) exp(+i mu psi)
+    nus = nus[keep]
     n_p = np.maximum(present.sum(axis=1), 1)
     total = float(np.sum(np.abs(Z) ** 2))
     if total <= 0:
@@ -480,6 +508,19 @@ def _orders(Z: np.ndarray, mu0: float, psi: np.ndarray, max_order: float, option
     fwd, bwd, nd, amp = _wave(q)
     out["fwd"][k], out["bwd"][k], out["nd"][k], out["amp"][k] = fwd, bwd, nd, amp
     alternatives[k] = tuple((float(nus[i]), _wave(2.0 * Y[i] / n_p)[2]) for i in near)
+
+
+def _whole_order_phases(psi: np.ndarray, n_m: int) -> np.ndarray:
+    """``exp(-i m psi)`` for ``m = 0 .. n_m - 1``, shape (n_m, nb, npr), cached per arrival angles."""
+    key = (psi.tobytes(), psi.shape, n_m)
+    if key not in _PHASES:
+        if len(_PHASES) > 8:
+            _PHASES.clear()
+        _PHASES[key] = np.exp(-1j * np.arange(n_m)[:, None, None] * np.asarray(psi, float)[None])
+    return _PHASES[key]
+
+
+_PHASES: dict = {}
 
 
 def _wave(q: np.ndarray) -> tuple:

@@ -36,7 +36,7 @@ from .displacement import (TWO_PI, Displacements, Geometry, calibrate_arrival_an
 from .fit import SineFit, design_matrix, fit_revolutions
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
 from .nsv import (NsvDetection, NsvOptions, NsvScan, detect_nsv, detections, nsv_note, nsv_truth_rows, scan_blocks,
-                  score_nsv)
+                  score_nsv, screen_block)
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .probes import CN_SINGULAR, LayoutError, condition_number
 from .resonance import (PEAK_METHODS, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks,
@@ -1110,6 +1110,9 @@ class StreamingProcessor:
                 self._nsv_run, self._nsv_last = 0, None
                 continue
             d = self._d.array[s:s + L]
+            if not screen_block(d, opts):  # the statistic alone first (most blocks stop here)
+                self._nsv_run, self._nsv_last = 0, None
+                continue
             scan = scan_blocks(d, self._omega.array[s:s + L], self._psi, opts, starts=[0])
             if not scan.detected[0]:
                 self._nsv_run, self._nsv_last = 0, None
