@@ -10,7 +10,9 @@ Simulates the default scenario once (not timed), then times
 * offline ``process_arrays`` on the whole run: the default pipeline (OPR-based expected
   times, data preparation) and without data preparation;
 * the streaming processor: one ``push`` per revolution (fits and travelling-wave spectra per
-  revolution) plus ``flush``; then ``finish`` (the final report over the history);
+  revolution, and the live non-synchronous vibration scan of each completed block of
+  revolutions, ``nsv_ready``) plus ``flush``; then ``finish`` (the final report over the
+  history);
 
 and reports TOAs per CPU second (user + system; the machine is shared, wall time would
 measure the neighbours) and the streaming latency in revolutions (revolution pushed when an
@@ -82,7 +84,9 @@ def main(method: str = "HP", repeat: int = 3) -> dict:
                 for o in proc.push(n, run.opr_s[n], run.toa_s[n]):
                     latency = max(latency, n - o.revolution)
                     n_out += 1
+                proc.nsv_ready()  # the live NSV scan per completed block, as the processor session does
             n_out += len(proc.flush())
+            proc.nsv_ready()
             t_push = time.process_time() - t0
             summary = proc.finish(run.truth)
             return t_push, time.process_time() - t0, latency, n_out, summary

@@ -91,7 +91,10 @@ class ProcessorSession:
         self.end.note(key, seq)
         if kind == "truth":
             t = decoded.body
-            self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]))
+            nsv = None
+            if getattr(t, "nsv_kind", None) is not None:  # the non-synchronous components (issue 13)
+                nsv = (t.nsv_kind[0], t.nsv_freq_hz[0], t.nsv_nd[0], t.nsv_amp_pkpk_m[0])
+            self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]), nsv=nsv)
             return []
         if kind == "toa":
             self.missing_toas += int(np.count_nonzero(np.isnan(decoded.body.toa_s)))
@@ -115,7 +118,16 @@ class ProcessorSession:
         for rev in revolutions:
             for o in self.proc.push(rev.revolution, rev.opr_s, rev.toa_s):
                 out += self.out.processing(o)
-        return out
+        return out + self._nsv()
+
+    def _nsv(self) -> list[Message]:
+        """One ``NonSynchronous`` message per detected block of revolutions completed (the
+        live view of non-synchronous vibration; the final report holds the run's grouping)."""
+        msgs = []
+        for det in self.proc.nsv_ready():
+            k = det.last_revolution - (self.proc._first_rev or 0)
+            msgs.append(self.out.nsv(det, t_s=float(self.proc._opr[k])))
+        return msgs
 
     def completeness(self) -> Completeness:
         """What the result rests on so far."""
@@ -138,6 +150,7 @@ class ProcessorSession:
         try:
             for o in self.proc.flush():
                 msgs += self.out.processing(o)
+            msgs += self._nsv()
             summary = self.proc.finish(self.tracker if self.score else None)
         except (ValueError, np.linalg.LinAlgError) as exc:  # fewer than three revolutions, ...
             raise BttsimError(f"no resonance report: {exc}") from None

@@ -4,8 +4,9 @@ Inputs: ``bttsim/<rig>/meta`` (``RunMetadata``: geometry), ``bttsim/<rig>/opr`` 
 ``bttsim/<rig>/toa/<probe>`` (``ToaBatch``). Unless ``--no-score`` it also reads
 ``bttsim/<rig>/truth`` (``TruthBatch``), used only to score the final report (E_A, E_f).
 Outputs, per revolution once the next OPR is in: ``bttsim/<rig>/fit`` (``BladeFits``, one per
-engine order, Eq. 16-17) and ``bttsim/<rig>/tw/<probe>`` (``TravellingWave``); at the end
-``bttsim/<rig>/resonance`` (``ResonanceReport``) and, with ``--summary``, the summary JSON.
+engine order, Eq. 16-17) and ``bttsim/<rig>/tw/<probe>`` (``TravellingWave``); per detected
+block of revolutions ``bttsim/<rig>/nsv`` (``NonSynchronous``: non-synchronous vibration); at
+the end ``bttsim/<rig>/resonance`` (``ResonanceReport``) and, with ``--summary``, the summary JSON.
 Liveliness: ``bttsim/<rig>/alive/processor``. Ends when the simulator's token goes (after the
 final report), on ``--duration``, SIGINT or SIGTERM.
 """

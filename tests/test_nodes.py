@@ -334,3 +334,52 @@ def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(sc
     assert got["complete"] is True and got["revolutions_processed"] == got["revolutions_expected"] == 85
     assert (got["rejected"], got["duplicates"], got["lost"]) == (2, 1, 0), err
     assert "ignored 1" in err, err
+
+
+def test_processor_node_publishes_non_synchronous_vibration(tmp_path):
+    """A flutter recording (analytic response, tests/_nsv_truth.py) published to the processor
+    node: NonSynchronous messages arrive on ``bttsim/rig1/nsv`` during the run (one per detected
+    block from the second on) with the flutter's ND, and the node's summary reports the NSV and
+    no resonance, as ``bttsim process`` does."""
+    from _nsv_truth import logistic, synthesize, write_recording
+    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
+    from bttsim_stream.offline import load_run, processing_messages
+
+    run = synthesize(n_rev=256, rpm0=2500.0, rpm1=2540.0, freq_hz=344.0, nd=5,
+                     amp_pk_m=logistic(1e-6, 0.2e-3, 3.0), noise_s=3e-8, seed=21)
+    rec = tmp_path / "flutter.mcap"
+    write_recording(rec, run)
+    msgs = read_recording(rec).messages
+    port = free_port()
+    summary_path = tmp_path / "summary.json"
+    proc = _start("bttsim_stream.nodes.processor_node", "--rig", "rig1", "--no-score", "--summary", summary_path,
+                  "-l", f"tcp/127.0.0.1:{port}")
+    got: "queue.Queue" = queue.Queue()
+    try:
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            sub = declare_subscriber(session, "bttsim/rig1/nsv", lambda s: got.put(s.payload.to_bytes()),
+                                     history=False)
+            token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
+            assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
+            pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                    for k in {m.key for m in msgs}}
+            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
+            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            for m in msgs:
+                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+            assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
+            token.undeclare()
+            out, err = proc.communicate(timeout=120)
+            sub.undeclare()
+    finally:
+        _stop(proc)
+    assert proc.returncode == 0, err
+    live = []
+    while not got.empty():
+        live.append(codec.decode_nsv(got.get()).body)
+    expected = [m for m in processing_messages(load_run(rec))[0] if m.key == "bttsim/rig1/nsv"]
+    assert len(live) == len(expected) >= 3
+    assert all(d.nd == 5 and abs(d.freq_hz - 344.0) < 1.0 for d in live)
+    summary = json.loads(summary_path.read_text())
+    assert summary["status"] == "none" and summary["non_synchronous"][0]["nd"] == 5

@@ -52,6 +52,7 @@ from ..errors import BttsimError
 from ..process.pipeline import RevolutionFit
 from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport,
                                 TruthPeaks)
+from ..process.nsv import NsvDetection
 from ..process.travelling_wave import ProbeWave
 from ..sim.core import RunInfo, Truth
 from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
@@ -1207,7 +1208,92 @@ def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
         m.reference_contamination_pct = math.nan if c is None else float(c)
         m.reference_reason = str(ref.get("reason") or "")
     m.notes.extend(str(n) for n in report.notes)
+    for n in report.non_synchronous:
+        _fill_nsv(m.non_synchronous.add(), n)
     return _serialize(m)
+
+
+def _fill_nsv(m, n: NsvDetection) -> None:
+    m.first_revolution, m.last_revolution = int(n.first_revolution), int(n.last_revolution)
+    m.order, m.alias_per_rev, m.nd = float(n.order), float(n.alias), int(n.nd)
+    m.order_alternatives.extend(float(a) for a in n.order_alternatives)
+    m.nd_alternatives.extend(int(a) for a in n.nd_alternatives)
+    m.freq_hz, m.freq_min_hz, m.freq_max_hz = float(n.freq_hz), float(n.freq_min_hz), float(n.freq_max_hz)
+    m.amp_pkpk_m, m.amp_first_pkpk_m = float(n.amp_pkpk_m), float(n.amp_first_pkpk_m)
+    m.amp_last_pkpk_m = float(n.amp_last_pkpk_m)
+    m.ratio, m.ratio_threshold, m.coherence = float(n.ratio), float(n.ratio_threshold), float(n.coherence)
+    m.blocks = int(n.blocks)
+    m.forward_m.extend(np.asarray(n.forward_m, float).tolist())
+    m.backward_m.extend(np.asarray(n.backward_m, float).tolist())
+    rev_amp = np.asarray(n.rev_amp_pkpk_m, float)
+    if rev_amp.size == int(n.last_revolution) - int(n.first_revolution) + 1:
+        m.rev_amp_pkpk_m.extend(rev_amp.tolist())
+    if n.truth is not None:
+        m.has_truth = True
+        if n.truth.get("kind") is not None:
+            t = n.truth
+            m.truth_kind, m.truth_freq_hz, m.truth_nd = str(t["kind"]), float(t["freq_hz"]), int(t["nd"])
+            m.truth_amp_pkpk_m, m.truth_amp_last_pkpk_m = float(t["amp_pkpk_m"]), float(t["amp_last_pkpk_m"])
+
+
+def encode_nsv(header: Header, nsv: NsvDetection) -> bytes:
+    """Encode a non-synchronous vibration (:class:`bttsim.v1.NonSynchronous`, key ``nsv``)."""
+    m = _pb.NonSynchronous()
+    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    _fill_nsv(m, nsv)
+    return _serialize(m)
+
+
+def _decode_nsv_body(where: str, m, n) -> NsvDetection:
+    """One ``NonSynchronous`` body, checked: sizes against the blade limit, values in range."""
+    n_nd = len(n.forward_m)
+    if len(n.backward_m) != n_nd or n_nd > MAX_BLADES // 2 + 1:
+        raise _corrupt(where, m, f"non-synchronous spectrum of {n_nd} forward and {len(n.backward_m)} backward NDs")
+    if len(n.order_alternatives) != len(n.nd_alternatives) or len(n.order_alternatives) > 2 * MAX_BLADES + 4:
+        raise _corrupt(where, m, "non-synchronous order alternatives and their NDs differ in number (or too many)")
+    if not (0 <= n.first_revolution <= n.last_revolution <= MAX_REVOLUTIONS):
+        raise _corrupt(where, m, f"non-synchronous revolutions {n.first_revolution}-{n.last_revolution}")
+    if not (math.isfinite(n.order) and 0.0 < n.order <= MAX_BLADES + 1 and 0.0 <= n.alias_per_rev <= 0.5):
+        raise _corrupt(where, m, f"non-synchronous order {n.order!r} / alias {n.alias_per_rev!r}")
+    if abs(n.nd) > MAX_BLADES // 2 or any(abs(a) > MAX_BLADES // 2 for a in n.nd_alternatives):
+        raise _corrupt(where, m, f"non-synchronous ND {n.nd}")
+    if not (math.isfinite(n.amp_pkpk_m) and n.amp_pkpk_m >= 0.0):
+        raise _corrupt(where, m, f"non-synchronous amplitude {n.amp_pkpk_m!r}")
+    n_rev = int(n.last_revolution) - int(n.first_revolution) + 1
+    if len(n.rev_amp_pkpk_m) not in (0, n_rev):
+        raise _corrupt(where, m, f"{len(n.rev_amp_pkpk_m)} per-revolution amplitudes for revolutions "
+                                 f"{n.first_revolution}-{n.last_revolution}")
+    rev_amp = _array(n.rev_amp_pkpk_m)
+    truth = None
+    if n.has_truth:
+        if n.truth_kind not in ("", "rotating_stall", "flutter", "broadband") or abs(n.truth_nd) > MAX_BLADES // 2:
+            raise _corrupt(where, m, f"non-synchronous truth {n.truth_kind[:40]!r}, ND {n.truth_nd}")
+        truth = {"kind": None} if not n.truth_kind else {
+            "kind": n.truth_kind, "freq_hz": float(n.truth_freq_hz), "nd": int(n.truth_nd),
+            "amp_pkpk_m": float(n.truth_amp_pkpk_m), "amp_last_pkpk_m": float(n.truth_amp_last_pkpk_m)}
+    return NsvDetection(
+        first_revolution=int(n.first_revolution), last_revolution=int(n.last_revolution), order=float(n.order),
+        order_alternatives=tuple(float(a) for a in n.order_alternatives),
+        nd_alternatives=tuple(int(a) for a in n.nd_alternatives), alias=float(n.alias_per_rev),
+        freq_hz=float(n.freq_hz), freq_min_hz=float(n.freq_min_hz), freq_max_hz=float(n.freq_max_hz), nd=int(n.nd),
+        amp_pkpk_m=float(n.amp_pkpk_m), amp_first_pkpk_m=float(n.amp_first_pkpk_m),
+        amp_last_pkpk_m=float(n.amp_last_pkpk_m), ratio=float(n.ratio),
+        ratio_threshold=float(n.ratio_threshold), coherence=float(n.coherence), blocks=int(n.blocks),
+        forward_m=_array(n.forward_m), backward_m=_array(n.backward_m), rev_amp_pkpk_m=rev_amp,
+        revolutions=np.arange(n.first_revolution, n.first_revolution + rev_amp.size, dtype=np.int64), truth=truth)
+
+
+def decode_nsv(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.NonSynchronous` payload into ``(Header, NsvDetection)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, spectra longer than the largest
+        wheel's ND count, order / alias / ND / revolutions out of range.
+    """
+    m, where = _parse(_pb.NonSynchronous, payload, key)
+    return Decoded(_header(m.header), _decode_nsv_body(where, m, m))
 
 
 def _decode_blades(where: str, m, rows, *, extended: bool):
@@ -1282,7 +1368,8 @@ def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
                              e_a_pct=e_a, e_f_pct=e_f, status=m.status,
                              resonances=tuple(_decode_entry(where, m, e) for e in m.resonances),
                              steady=tuple(_decode_entry(where, m, e) for e in m.steady),
-                             reference=ref, notes=tuple(m.notes))
+                             reference=ref, notes=tuple(m.notes),
+                             non_synchronous=tuple(_decode_nsv_body(where, m, n) for n in m.non_synchronous))
     return Decoded(_header(m.header), report)
 
 
@@ -1295,6 +1382,7 @@ _DECODERS = {
     "bttsim.v1.BladeFits": decode_fit,
     "bttsim.v1.TravellingWave": decode_probe_wave,
     "bttsim.v1.ResonanceReport": decode_resonance_report,
+    "bttsim.v1.NonSynchronous": decode_nsv,
 }
 
 

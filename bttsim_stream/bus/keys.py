@@ -14,6 +14,7 @@ key                                message                       notes
 ``bttsim/<rig>/fit``               ``bttsim.v1.BladeFits``       one per revolution
 ``bttsim/<rig>/tw/<probe>``        ``bttsim.v1.TravellingWave``  one per probe per revolution
 ``bttsim/<rig>/resonance``         ``bttsim.v1.ResonanceReport`` per report
+``bttsim/<rig>/nsv``               ``bttsim.v1.NonSynchronous``  per detected block (NSV)
 ``bttsim/<rig>/alive/<node>``      (none)                        liveliness token of a node
 =================================  ============================  ===============================
 
@@ -45,6 +46,7 @@ __all__ = [
     "tw_key",
     "tw_all_key",
     "resonance_key",
+    "nsv_key",
     "alive_key",
     "alive_all_key",
     "all_key",
@@ -69,6 +71,7 @@ _KINDS: dict[str, tuple[str | None, bool]] = {
     "fit": ("bttsim.v1.BladeFits", False),
     "tw": ("bttsim.v1.TravellingWave", True),
     "resonance": ("bttsim.v1.ResonanceReport", False),
+    "nsv": ("bttsim.v1.NonSynchronous", False),
     "alive": (None, True),
 }
 
@@ -156,6 +159,11 @@ def resonance_key(rig: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/resonance"
 
 
+def nsv_key(rig: str) -> str:
+    """``bttsim/<rig>/nsv``: non-synchronous vibrations (:class:`bttsim.v1.NonSynchronous`)."""
+    return f"{PREFIX}/{validate_rig(rig)}/nsv"
+
+
 def alive_key(rig: str, node: str) -> str:
     """``bttsim/<rig>/alive/<node>``: liveliness token of a node (no message)."""
     if not isinstance(node, str) or not _NAME_RE.fullmatch(node):
@@ -206,7 +214,7 @@ class KeyInfo:
     rig : str
     kind : str
         ``"opr"``, ``"toa"``, ``"truth"``, ``"signal"``, ``"meta"``, ``"fit"``, ``"tw"``,
-        ``"resonance"`` or ``"alive"``.
+        ``"resonance"``, ``"nsv"`` or ``"alive"``.
     probe : int or None
         Probe index for ``toa``, ``signal`` and ``tw`` keys.
     node : str or None

@@ -308,6 +308,12 @@ class MessageStream:
             out.append(self._message(self._k_tw[wave.probe], rev, t, codec.encode_probe_wave, wave))
         return out
 
+    def nsv(self, detection, *, t_s: float = 0.0) -> Message:
+        """A non-synchronous vibration message (:class:`~bttsim_stream.process.nsv.NsvDetection`),
+        numbered at its last revolution; header time ``t_s`` (the OPR of that revolution)."""
+        return self._message(keys.nsv_key(self.rig), int(detection.last_revolution), t_s, codec.encode_nsv,
+                             detection)
+
     def resonance(self, report, *, revolution: int = -1, t_s: float = 0.0) -> Message:
         """The resonance report message (:class:`~bttsim_stream.process.resonance.ResonanceReport`);
         ``revolution`` -1: the whole run."""

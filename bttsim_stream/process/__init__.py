@@ -12,6 +12,8 @@ One module per stage (paper equations in brackets):
 * :mod:`.resonance` -- entries per crossing and dwell, E_A and E_f (Eq. 18-19), status,
   the summary JSON;
 * :mod:`.travelling_wave` -- nodal diameter spectra (Fig. 10);
+* :mod:`.nsv` -- non-synchronous vibration (flutter, rotating stall): order alias, ND,
+  amplitude per block of revolutions, never a resonance;
 * :mod:`.probes` -- condition number of ``B`` and probe layout search (Table 3);
 * :mod:`.pipeline` -- offline :func:`process_arrays` and :class:`StreamingProcessor`.
 
@@ -39,6 +41,7 @@ from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceRepo
                         TruthRows, find_peaks, resonance_errors, resonance_report, summary_table, truth_peaks,
                         window_truth)
 from .travelling_wave import TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra, signed_nd
+from .nsv import NsvDetection, NsvOptions, NsvScan, detect_nsv, scan_blocks
 
 __all__ = [
     "Geometry", "RotorPhase", "Displacements", "mean_speed_from_opr", "rotor_phase_from_opr",
@@ -56,4 +59,5 @@ __all__ = [
     "condition_number", "LayoutCandidate", "rank_layouts",
     "ProcessOptions", "ProcessingResult", "RevolutionOutput", "StreamingProcessor", "process_arrays",
     "engine_orders_of",
+    "NsvOptions", "NsvScan", "NsvDetection", "detect_nsv", "scan_blocks",
 ]

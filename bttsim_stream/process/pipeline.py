@@ -35,6 +35,8 @@ from .displacement import (TWO_PI, Displacements, Geometry, calibrate_arrival_an
                            displacements_from_phase, rotor_phase_from_opr)
 from .fit import SineFit, design_matrix, fit_revolutions
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
+from .nsv import (NsvDetection, NsvOptions, NsvScan, detect_nsv, detections, nsv_note, nsv_truth_rows, scan_blocks,
+                  score_nsv, screen_block)
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .probes import CN_SINGULAR, LayoutError, condition_number
 from .resonance import (PEAK_METHODS, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks,
@@ -91,6 +93,8 @@ class ProcessOptions:
         Fit each sample at its sampling angle ``theta_j - d_j / R`` rather than at the probe
         angle (:mod:`~bttsim_stream.process.fit`); the per-revolution streaming outputs
         always use the probe angles.
+    nsv : NsvOptions
+        Non-synchronous vibration detection (:mod:`~bttsim_stream.process.nsv`).
     """
 
     engine_orders: tuple | None = None
@@ -104,6 +108,7 @@ class ProcessOptions:
     peak_method: str = "max"
     detect: DetectOptions = field(default_factory=DetectOptions)
     sampling_angles: bool = True
+    nsv: NsvOptions = field(default_factory=NsvOptions)
 
     def __post_init__(self) -> None:
         if self.expected_times not in EXPECTED_TIMES:
@@ -168,6 +173,10 @@ class ProcessingResult:
     reference : Reference or None
     joint : bool
         Whether the engine orders were fitted jointly.
+    nsv_scan : NsvScan or None
+        Every block's non-synchronous analysis (:mod:`~bttsim_stream.process.nsv`).
+    nsv : tuple of NsvDetection
+        The non-synchronous vibrations detected (also in :attr:`report`).
     """
 
     geometry: Geometry
@@ -185,6 +194,8 @@ class ProcessingResult:
     crossings: tuple = ()
     reference: Reference | None = None
     joint: bool = True
+    nsv_scan: NsvScan | None = None
+    nsv: tuple = ()
 
     @property
     def summary(self) -> dict:
@@ -370,6 +381,14 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         crossings += detect_crossings(fit0.amp_pkpk_m[..., i], eo, segments, det)
     if len(eos_asked) > 1 and not joint:
         crossings = resolve_engine_orders(crossings, _misfits(d0, angles, eos_asked, fit0))
+    psi0 = first.arrival_angles_rad if first.arrival_angles_rad is not None else geometry.nominal_arrival_angles()
+    nsv_scan, nsv = detect_nsv(d0, omega, psi0, options.nsv, revolution0=revolution0)
+    nsv_truth = (truth.nsv_rows(revolution0, n_rev) if isinstance(truth, TruthPeakTracker)
+                 else nsv_truth_rows(truth, n_rev))
+    if nsv and nsv_truth is not None:  # scored only: the truth never steers the processing
+        nsv = tuple(replace(n, truth=score_nsv(n, nsv_truth, revolution0)) for n in nsv)
+    if nsv:
+        crossings = _not_nsv(crossings, nsv, revolution0, omega, notes)
     crossings = _separate(crossings)
     eos = tuple(sorted({c.eo for c in crossings})) if scan else eos_asked
     if scan and not eos:
@@ -451,11 +470,12 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     steady = [e for dw in segments.dwells for e in _dwell_entries(ctx, dw)]
     if not entries:
         notes.append(_why_none(eos_asked, segments, omega, info, det))
+    notes += [nsv_note(n.to_summary()) for n in nsv]
     if rows_truth is not None and len(eos) > 1:
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
                      "engine orders' off-resonance response at its speed")
     report = ResonanceReport.from_entries(entries, steady, eo=eos[0], cn=cns.get(eos[0], fit.cn),
-                                          reference=ref_info, notes=notes)
+                                          reference=ref_info, notes=notes, non_synchronous=nsv)
     eo = eos[0]
     fit_tw = fit_spectra(fit.phasor[..., 0], eo, geometry.blade_angles_rad)
     probe_tw = probe_spectra(d, eo)
@@ -471,7 +491,32 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     return ProcessingResult(geometry=geometry, options=options, engine_orders=eos, opr_s=opr,
                             displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_tw,
                             fit_tw=fit_tw, resonance_revolutions=res_revs, report=report, segments=segments,
-                            crossings=tuple(crossings), reference=reference, joint=bool(joint))
+                            crossings=tuple(crossings), reference=reference, joint=bool(joint),
+                            nsv_scan=nsv_scan, nsv=nsv)
+
+
+#: A crossing candidate is the non-synchronous vibration's leak into the engine-order fits
+#: (not a resonance) when a detection overlapping its half-power region is at least this
+#: fraction of the candidate's peak amplitude.
+NSV_DOMINANCE = 0.5
+
+
+def _not_nsv(crossings: list, nsv: tuple, revolution0: int, omega: np.ndarray, notes: list) -> list:
+    """The crossing candidates that are not a non-synchronous vibration seen through the
+    engine-order fits (those are dropped, each with a note)."""
+    keep = []
+    for c in crossings:
+        hit = [n for n in nsv if n.first_revolution - revolution0 <= c.hp_hi
+               and n.last_revolution - revolution0 >= c.hp_lo and n.amp_pkpk_m >= NSV_DOMINANCE * c.amp_peak_m]
+        if not hit:
+            keep.append(c)
+            continue
+        n = max(hit, key=lambda x: x.amp_pkpk_m)
+        rpm = float(omega[c.peak]) * 60 / TWO_PI
+        notes.append(f"EO {c.eo} peak at revolution {revolution0 + c.peak} ({rpm:.0f} rpm, "
+                     f"{1e3 * c.amp_peak_m:.4f} mm) not reported as a resonance: it is the non-synchronous vibration "
+                     f"at order {n.order:.3f}, ND {n.nd:+d} ({1e3 * n.amp_pkpk_m:.4f} mm) seen through the EO fits")
+    return keep
 
 
 def _separate(crossings: list[Crossing]) -> list[Crossing]:
@@ -960,6 +1005,9 @@ class StreamingProcessor:
         self._freq_per_omega = self._eo_arr / TWO_PI
         self._F_probe, self._F_fit, self._n_nd = _spectrum_matrices(g, self.engine_orders[0])
         self._solvers: dict = {}
+        self._nsv_next = 0  # first revolution (index) of the next NSV block
+        self._nsv_run = 0  # consecutive detected blocks so far
+        self._nsv_last = None  # the last block's scan
         self._finished = False
         self.result: ProcessingResult | None = None
         self.last_outputs: list[RevolutionOutput] = []
@@ -1042,6 +1090,43 @@ class StreamingProcessor:
         self.result = process_arrays(self._opr.array, self._toa.array, self.info, opts,
                                      truth=truth_peaks, revolution0=self._first_rev or 0)
         return self.result.summary
+
+    def nsv_ready(self) -> list[NsvDetection]:
+        """Non-synchronous vibration of the blocks of revolutions completed since the last
+        call (:mod:`.nsv`, ``options.nsv.block`` revolutions each): each detected block, once
+        it is the ``min_blocks``-th consecutive one or later, as a one-block
+        :class:`NsvDetection` (the final report groups the blocks over the whole run).
+
+        A block in which the calibration of the arrival angles switched on is skipped (its
+        displacements change their zeroing mid-block)."""
+        opts = self.options.nsv
+        L = int(opts.block)
+        out = []
+        while self._nsv_next + L <= self._n_done:
+            s = self._nsv_next
+            self._nsv_next += L
+            cal = self._was_calibrated[s:s + L]
+            if any(cal) != all(cal):
+                self._nsv_run, self._nsv_last = 0, None
+                continue
+            d = self._d.array[s:s + L]
+            if not screen_block(d, opts):  # the statistic alone first (most blocks stop here)
+                self._nsv_run, self._nsv_last = 0, None
+                continue
+            scan = scan_blocks(d, self._omega.array[s:s + L], self._psi, opts, starts=[0])
+            if not scan.detected[0]:
+                self._nsv_run, self._nsv_last = 0, None
+                continue
+            last = self._nsv_last
+            same = last is not None and any(abs(scan.order[0] - o) <= 3.0 / L and scan.nd[0] == n for o, n in
+                                            ((last.order[0], last.nd[0]), *last.alternatives[0]))
+            self._nsv_run = self._nsv_run + 1 if same else 1
+            self._nsv_last = scan
+            if self._nsv_run >= int(opts.min_blocks):
+                one = replace(opts, min_blocks=1)
+                out += list(detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s,
+                                       omega_rad_s=self._omega.array[s:s + L]))
+        return out
 
     # -- per revolution -------------------------------------------------------------------
     def _displace(self, k: int, final: bool) -> None:

@@ -160,11 +160,16 @@ class TruthPeakTracker:
         self._rev: np.ndarray | None = None
         self._omega: np.ndarray | None = None
         self._rows: dict[int, tuple[np.ndarray, float]] = {}
+        self._nsv: dict[int, tuple] = {}
 
-    def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float) -> None:
-        """Add one revolution: ``d_eqv_pkpk_m`` (n_blades,) m, mean speed rad/s."""
+    def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float, nsv=None) -> None:
+        """Add one revolution: ``d_eqv_pkpk_m`` (n_blades,) m, mean speed rad/s; ``nsv``: its
+        non-synchronous components ``(kind, freq_hz, nd, amp_pkpk_m)``, each (k,), when the
+        truth carries them (to score NSV detections)."""
         a = np.asarray(d_eqv_pkpk_m, dtype=float)
         self._rows[int(revolution)] = (a.copy(), float(omega_mean_rad_s))
+        if nsv is not None:
+            self._nsv[int(revolution)] = tuple(np.asarray(x).reshape(-1) for x in nsv)
         if self._amp is None:
             self._amp = np.full(a.shape, -np.inf)
             self._rev = np.full(a.shape, -1, dtype=np.int64)
@@ -194,6 +199,27 @@ class TruthPeakTracker:
             if 0 <= i < n_revolutions and a.shape == (nb,):
                 amp[i], om[i] = a, w
         return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om)
+
+
+    def nsv_rows(self, first_revolution: int, n_revolutions: int):
+        """The non-synchronous truth of revolutions ``first_revolution ..``
+        (:class:`~bttsim_stream.process.nsv.NsvTruthRows`; NaN amplitude where none was
+        received), None when no truth carried NSV components."""
+        from .nsv import NsvTruthRows
+
+        if not self._nsv:
+            return None
+        n = int(n_revolutions)
+        k = max(len(v[0]) for v in self._nsv.values())
+        kind = np.full((n, k), "", dtype=object)
+        freq, amp = np.full((n, k), np.nan), np.full((n, k), np.nan)
+        nd = np.zeros((n, k), np.int64)
+        for rev, (kd, f, d, a) in self._nsv.items():
+            i = rev - int(first_revolution)
+            if 0 <= i < n and len(kd) == len(f) == len(d) == len(a):
+                m = len(kd)
+                kind[i, :m], freq[i, :m], nd[i, :m], amp[i, :m] = kd, f, d, a
+        return NsvTruthRows(kind=kind.astype(str), freq_hz=freq, nd=nd, amp_pkpk_m=amp)
 
 
 def _parabolic(amp: np.ndarray, peak: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -486,6 +512,9 @@ class ResonanceReport:
         The zeroing reference: ``{"method", "first", "last", "contamination_pct", "reason"}``.
     notes : tuple of str
         Why nothing (or less than expected) is reported.
+    non_synchronous : tuple of NsvDetection
+        Non-synchronous vibrations detected (:mod:`~bttsim_stream.process.nsv`); never
+        resonances.
     """
 
     nd: int
@@ -500,10 +529,11 @@ class ResonanceReport:
     steady: tuple = ()
     reference: dict | None = None
     notes: tuple = ()
+    non_synchronous: tuple = ()
 
     @classmethod
     def from_entries(cls, resonances, steady, *, eo: int, cn: float, reference: dict | None = None,
-                     notes=()) -> "ResonanceReport":
+                     notes=(), non_synchronous=()) -> "ResonanceReport":
         """Build the report: status, and the legacy fields from the strongest entry
         (largest blade-mean amplitude among the resonances, else among the dwells whose
         response was detected; none: ``eo``, ``cn`` given, ND 0, no blade)."""
@@ -517,10 +547,11 @@ class ResonanceReport:
             status, top = "none", None
         if top is None:
             return cls(nd=0, eo=int(eo), cn=float(cn), peaks=ResonancePeaks.empty(), status=status,
-                       resonances=resonances, steady=steady, reference=reference, notes=tuple(notes))
+                       resonances=resonances, steady=steady, reference=reference, notes=tuple(notes),
+                       non_synchronous=tuple(non_synchronous))
         return cls(nd=top.nd, eo=top.eo, cn=top.cn, peaks=top.peaks, truth=top.truth, e_a_pct=top.e_a_pct,
                    e_f_pct=top.e_f_pct, status=status, resonances=resonances, steady=steady,
-                   reference=reference, notes=tuple(notes))
+                   reference=reference, notes=tuple(notes), non_synchronous=tuple(non_synchronous))
 
     def to_summary(self) -> dict:
         """The brief's summary JSON dict (truth fields only when the truth is known).
@@ -529,7 +560,9 @@ class ResonanceReport:
         strongest resonance; with ``status == "steady"`` the strongest dwell; with
         ``status == "none"`` ``blades`` is empty, ``nd`` is 0 and there are no error
         statistics (no amplitude is claimed). Then ``status``, ``resonances``, ``steady``,
-        ``reference`` and ``notes``.
+        ``reference`` and ``notes``; ``non_synchronous`` (a list) only when a non-synchronous
+        vibration was detected (absent: none; the check always runs), never counted in
+        ``status``.
         """
         out = {"nd": int(self.nd), "eo": int(self.eo), "cn": _num(self.cn),
                "blades": _blade_rows(self.peaks, self.truth, self.e_a_pct, self.e_f_pct, extended=False)}
@@ -542,6 +575,9 @@ class ResonanceReport:
         if self.reference is not None:
             out["reference"] = dict(self.reference)
         out["notes"] = list(self.notes)
+        if self.non_synchronous:
+            out["non_synchronous"] = [n.to_summary() if hasattr(n, "to_summary") else dict(n)
+                                      for n in self.non_synchronous]
         return out
 
     def table(self) -> str:
@@ -622,6 +658,8 @@ def summary_table(summary: dict) -> str:
             k = len(summary.get("resonances", []))
             lines.append(f"status {summary['status']}: {k} resonance{'s' if k != 1 else ''}, "
                          f"{len(summary.get('steady', []))} dwell(s)")
+    from .nsv import nsv_table_lines
+    lines += nsv_table_lines(summary)
     if summary.get("missing_toas"):
         lines.append(f"missing pulses: {summary['missing_toas']} TOAs did not trigger (NaN, left out of the fits)")
     if summary.get("double_pulses") or summary.get("stray_edges"):

@@ -79,15 +79,18 @@ def _fits_tab(eo: int) -> rrb.Vertical:
 
 
 def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders: Sequence[int] = (8,),
-                    live: bool = False, active_tab: int = 0, signal_probe: int | None = None) -> rrb.Blueprint:
+                    live: bool = False, active_tab: int = 0, signal_probe: int | None = None,
+                    non_synchronous: bool = False) -> rrb.Blueprint:
     """The default layout of the bttsim views.
 
     Tabs: *Overview* (travelling wave of probe 0, amplitude of the first EO, rotor,
     displacement at probe 0, Campbell diagram, resonance table), one *Fits EO k* per engine
     order (amplitude against revolution and against speed, phase, speed, frequency),
     *Travelling wave* (every probe and the identified ND), *Displacement* (every probe),
-    *Rotor & Campbell*, *Resonance* (table and per-blade amplitude bars), and *Raw signal*
-    when ``signal_probe`` is given (the bus carries raw probe signals).
+    *Rotor & Campbell*, *Resonance* (table and per-blade amplitude bars), *Raw signal*
+    when ``signal_probe`` is given (the bus carries raw probe signals), and *Non-synchronous*
+    (NSV amplitude growth, its travelling wave by ND, ND, order, detections) when
+    ``non_synchronous`` (the processor reported one).
 
     Parameters
     ----------
@@ -101,6 +104,8 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
     active_tab : int
     signal_probe : int, optional
         Probe of the *Raw signal* tab (None: no such tab).
+    non_synchronous : bool
+        Add the *Non-synchronous* tab.
     """
     n_nd = n_blades // 2 + 1 if n_blades else None
     eos = list(dict.fromkeys(int(e) for e in engine_orders)) or [8]
@@ -115,9 +120,20 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
         rrb.BarChartView(origin=paths.RESONANCE_BARS,
                          name="Resonant amplitude pk-pk (mm) per blade: BTT (left), d_eqv (right)"),
         name="Resonance")
+    nsv = rrb.Vertical(
+        rrb.Horizontal(_series_view("nsv", "Non-synchronous vibration: amplitude pk-pk (mm), per revolution "
+                                           "(line) and per block (points)",
+                                    contents=[f"/{paths.NSV_AMP}", f"/{paths.NSV_REV_AMP}"]),
+                       rrb.BarChartView(origin=paths.NSV_TW, name="NSV travelling wave (mm) by signed ND, "
+                                                                 "forward +(n_nd-1) first .. backward last")),
+        rrb.Horizontal(_series_view(paths.NSV_ND, "NSV ND (backward < 0)"),
+                       _series_view(paths.NSV_ORDER, "NSV order f / f_shaft"),
+                       rrb.TextDocumentView(origin=paths.NSV_TABLE, name="NSV detections")),
+        name="Non-synchronous")
     return rrb.Blueprint(
         rrb.Tabs(overview, *[_fits_tab(e) for e in eos], tw, disp, rotor, resonance,
                  *([] if signal_probe is None else [rrb.Horizontal(_signal_view(signal_probe), name="Raw signal")]),
+                 *([nsv] if non_synchronous else []),
                  active_tab=active_tab),
         rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline="revolution"))

@@ -24,6 +24,7 @@ from .blueprint import build_blueprint
 from .campbell import CampbellView
 from .displacement import DisplacementView, selected_blades
 from .fits import FitsView, SpeedView
+from .nsv import NsvView
 from .resonance import ResonanceView
 from .revolutions import RevolutionDisplacements
 from .rotor import DEFAULT_EXAGGERATION, RotorView
@@ -96,6 +97,7 @@ class _Views:
     tw: TravellingWaveView
     resonance: ResonanceView
     signal: SignalView
+    nsv: NsvView
 
 
 class LiveViews:
@@ -161,6 +163,7 @@ class LiveViews:
         self._send_blueprint = bool(send_blueprint)
         self.signal_probe = int(signal_probe)
         self._signal_shown = False
+        self._nsv_shown = False
         self._eos = None if engine_orders is None else [int(e) for e in engine_orders]
         self.decoder = decoder or MessageDecoder()
         self.meta = None
@@ -215,7 +218,8 @@ class LiveViews:
             rotor=RotorView(out, meta, shown.blade_angles_rad, o["exaggeration"]), campbell=CampbellView(out, meta),
             fits=FitsView(out, meta), tw=TravellingWaveView(out, window=o["tw_window"], period_s=o["tw_period_s"]),
             resonance=ResonanceView(out),
-            signal=SignalView(out, meta, self.signal_probe, (selected_blades(meta.n_blades, o["blades"]) or (0,))[0]))
+            signal=SignalView(out, meta, self.signal_probe, (selected_blades(meta.n_blades, o["blades"]) or (0,))[0]),
+            nsv=NsvView(out))
         if self._eos is None:
             self._eos = list(engine_orders_of(meta, ProcessOptions()))
         if self._send_blueprint:
@@ -227,7 +231,16 @@ class LiveViews:
     def _blueprint(self) -> None:
         self.rec.send_blueprint(build_blueprint(self.meta.n_probes, n_blades=self.meta.n_blades,
                                                 engine_orders=self._eos, live=self.live,
-                                                signal_probe=self.signal_probe if self._signal_shown else None))
+                                                signal_probe=self.signal_probe if self._signal_shown else None,
+                                                non_synchronous=self._nsv_shown))
+
+    def _show_nsv(self) -> None:
+        """The first non-synchronous vibration: the layout gains its tab."""
+        if not self._nsv_shown:
+            self._nsv_shown = True
+            if self._send_blueprint:
+                log.info("non-synchronous vibration reported: layout updated")
+                self._blueprint()
 
     def _route(self, msg: Incoming) -> None:
         """Hand a message to the views that show it."""
@@ -246,6 +259,12 @@ class LiveViews:
             v.tw.add(d)
         elif kind == "resonance":
             v.resonance.add(d)
+            if d.body.non_synchronous:
+                self._show_nsv()
+                v.nsv.add_report(d.body)
+        elif kind == "nsv":
+            self._show_nsv()
+            v.nsv.add(d)
         elif kind == "signal":
             if not self._signal_shown:
                 self._signal_shown = True
@@ -273,7 +292,7 @@ class LiveViews:
             self._revolutions += len(rows)
             for view in (v.speed, v.displacement, v.rotor, v.campbell):
                 view.update(rows)
-        for view in (v.displacement, v.fits, v.tw, v.resonance, v.signal):
+        for view in (v.displacement, v.fits, v.tw, v.resonance, v.signal, v.nsv):
             view.flush(final)
         new = [e for e in v.fits.engine_orders if e not in self._eos]
         if new:

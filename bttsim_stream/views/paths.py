@@ -8,7 +8,7 @@ The words are those of the bus keys and the library: ``tw``, ``probe``, ``fit``,
 from __future__ import annotations
 
 __all__ = ["tw_path", "signal_path", "displacement_path", "fit_path", "fit_rpm_path", "SPEED", "TRUTH_AMP", "TW_ND",
-           "ROTOR", "CAMPBELL", "RESONANCE_TABLE", "RESONANCE_BARS"]
+           "ROTOR", "CAMPBELL", "RESONANCE_TABLE", "RESONANCE_BARS", "NSV_AMP", "NSV_REV_AMP", "NSV_ND", "NSV_ORDER", "NSV_TW", "NSV_TABLE"]
 
 #: Speed of each revolution, rpm (time series).
 SPEED = "speed/rpm"
@@ -24,6 +24,19 @@ CAMPBELL = "campbell"
 RESONANCE_TABLE = "resonance/table"
 #: Resonant amplitude per blade, mm (bar charts ``btt`` and ``d_eqv`` below it).
 RESONANCE_BARS = "resonance/amp_pkpk_mm"
+
+#: Non-synchronous vibration: pk-pk amplitude of each detected block, mm (time series).
+NSV_AMP = "nsv/amp_pkpk_mm"
+#: Non-synchronous vibration: blade-RMS pk-pk amplitude of every revolution of a detection, mm.
+NSV_REV_AMP = "nsv/rev_amp_pkpk_mm"
+#: Signed ND of each detected block (time series).
+NSV_ND = "nsv/nd"
+#: Order f / f_shaft of each detected block (time series).
+NSV_ORDER = "nsv/order"
+#: The latest NSV block's travelling-wave spectrum by signed ND, mm (bar chart).
+NSV_TW = "nsv/tw_mm"
+#: The report's NSV detections (markdown).
+NSV_TABLE = "nsv/table"
 
 
 def tw_path(probe: int) -> str:
