@@ -1209,11 +1209,11 @@ def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
         m.reference_reason = str(ref.get("reason") or "")
     m.notes.extend(str(n) for n in report.notes)
     for n in report.non_synchronous:
-        _fill_nsv(m.non_synchronous.add(), n)
+        _fill_nsv_detection(m.non_synchronous.add(), n)
     return _serialize(m)
 
 
-def _fill_nsv(m, n: NsvDetection) -> None:
+def _fill_nsv_detection(m, n: NsvDetection) -> None:
     m.first_revolution, m.last_revolution = int(n.first_revolution), int(n.last_revolution)
     m.order, m.alias_per_rev, m.nd = float(n.order), float(n.alias), int(n.nd)
     m.order_alternatives.extend(float(a) for a in n.order_alternatives)
@@ -1240,7 +1240,7 @@ def encode_nsv(header: Header, nsv: NsvDetection) -> bytes:
     """Encode a non-synchronous vibration (:class:`bttsim.v1.NonSynchronous`, key ``nsv``)."""
     m = _pb.NonSynchronous()
     _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
-    _fill_nsv(m, nsv)
+    _fill_nsv_detection(m, nsv)
     return _serialize(m)
 
 
