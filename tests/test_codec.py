@@ -129,7 +129,95 @@ def test_run_metadata_round_trip_is_the_run_info():
     back = codec.decode_run_metadata(codec.encode_run_metadata(_header(), bare)).body
     assert back.tick_s == 0.0 and back.has_truth is False and back.run_id == "run-a"
     assert back.sensing_angles_rad is None and back.family_freq_hz is None
+    assert back.family_speed_rad_s is None and back.family_freq_hz_at_speed is None
     _assert_same_info(back, bare, skip=("run_id",))
+
+
+def _curves(n_speeds=5, n_families=3):
+    """A speed-dependent Campbell table: (speeds (S,), zero-speed table, table at speeds)."""
+    speeds = np.linspace(0.0, 500.0, n_speeds)
+    fam = np.linspace(300.0, 2000.0, n_families * (NB // 2 + 1)).reshape(n_families, NB // 2 + 1)
+    at_speed = np.sqrt(fam[None] ** 2 + 1.3 * (speeds[:, None, None] / (2 * np.pi)) ** 2)
+    return speeds, fam, at_speed
+
+
+def test_run_metadata_round_trip_with_family_curves():
+    speeds, fam, at_speed = _curves()
+    info = make_info(run_id="run-a", family_freq_hz=fam, family_speed_rad_s=speeds, family_freq_hz_at_speed=at_speed)
+    back = codec.decode_run_metadata(codec.encode_run_metadata(_header(), info), "bttsim/rig1/meta").body
+    assert back.family_freq_hz_at_speed.shape == (5, 3, NB // 2 + 1)
+    _assert_same_info(back, info)
+    # without the curves (a zero-speed model, or a message from before they existed): None
+    flat = codec.decode_run_metadata(codec.encode_run_metadata(_header(), make_info(family_freq_hz=fam))).body
+    np.testing.assert_array_equal(flat.family_freq_hz, fam)
+    assert flat.family_speed_rad_s is None and flat.family_freq_hz_at_speed is None
+
+
+def test_older_recording_metadata_decodes_without_family_curves():
+    from bttsim_stream.bus import keys
+    from bttsim_stream.bus.recording import read_recording
+
+    meta = next(m for m in read_recording(REPO / "recordings" / "resonance_window.mcap").messages
+                if keys.parse_key(m.key).kind == "meta")
+    info = codec.decode_run_metadata(meta.payload, meta.key).body
+    assert info.family_speed_rad_s is None and info.family_freq_hz_at_speed is None
+
+
+@pytest.mark.parametrize("changes,words", [
+    (dict(family_freq_hz_at_speed=None), "go together"),
+    (dict(family_freq_hz=None), "needs family_freq_hz"),
+    (dict(family_freq_hz_at_speed=np.ones((4, 3, NB // 2 + 1))), "family_freq_hz_at_speed: expected shape"),
+    (dict(family_speed_rad_s=np.zeros((5, 1))), "family_speed_rad_s: expected shape"),
+], ids=["no-table", "no-families", "wrong-speeds", "2-d-speeds"])
+def test_run_metadata_refuses_to_encode_inconsistent_family_curves(changes, words):
+    speeds, fam, at_speed = _curves()
+    base = dict(family_freq_hz=fam, family_speed_rad_s=speeds, family_freq_hz_at_speed=at_speed)
+    with pytest.raises(ValueError, match=words):
+        codec.encode_run_metadata(_header(), make_info(**{**base, **changes}))
+
+
+def _forged_curves(n_speeds=5, **changes) -> bytes:
+    """A RunMetadata payload with family curves, then ``changes`` applied to the protobuf."""
+    speeds, fam, at_speed = _curves(n_speeds)
+    info = make_info(family_freq_hz=fam, family_speed_rad_s=speeds, family_freq_hz_at_speed=at_speed)
+    m = codec._pb.RunMetadata()
+    m.ParseFromString(codec.encode_run_metadata(_header(), info))
+    for name, value in changes.items():
+        if isinstance(value, list):
+            del getattr(m, name)[:]
+            getattr(m, name).extend(value)
+        else:
+            setattr(m, name, value)
+    return m.SerializeToString()
+
+
+_S5 = [0.0, 100.0, 200.0, 300.0, 400.0]
+
+
+@pytest.mark.parametrize("n_speeds,changes,words", [
+    (5, dict(family_speed_rad_s=[0.0, 100.0, 100.0, 300.0, 400.0]), "ascending from 0"),
+    (5, dict(family_speed_rad_s=[0.0, 300.0, 200.0, 350.0, 400.0]), "ascending from 0"),
+    (5, dict(family_speed_rad_s=[10.0, 100.0, 200.0, 300.0, 400.0]), "ascending from 0"),
+    (5, dict(family_speed_rad_s=[0.0, 100.0, math.nan, 300.0, 400.0]), "family_speed_rad_s"),
+    (5, dict(family_speed_rad_s=[0.0, 100.0, 200.0, 300.0, math.inf]), "family_speed_rad_s"),
+    (5, dict(family_speed_rad_s=[0.0, 100.0, 200.0, 300.0, 1e300]), "at most"),
+    (2, dict(family_speed_rad_s=[0.0, 1e-300]), "at least 0.001 rad/s apart"),
+    (2, dict(family_speed_rad_s=[0.0]), "2..64"),
+    (64, dict(family_speed_rad_s=list(np.arange(65.0))), "2..64"),
+    (5, dict(family_speed_rad_s=_S5[:4]), "family_freq_hz_at_speed has"),
+    (5, dict(family_speed_rad_s=[]), "family_freq_hz_at_speed has"),
+    (5, dict(family_freq_hz_at_speed=[350.0] * (5 * 3 * (NB // 2 + 1) - 1)), "family_freq_hz_at_speed has"),
+    (5, dict(family_freq_hz_at_speed=[350.0] * 7 + [math.nan] + [350.0] * (5 * 3 * (NB // 2 + 1) - 8)),
+     "family_freq_hz_at_speed must be finite"),
+    (5, dict(family_freq_hz_at_speed=[-1.0] * (5 * 3 * (NB // 2 + 1))), "family_freq_hz_at_speed must be finite"),
+    (5, dict(family_freq_hz_at_speed=[1e300] * (5 * 3 * (NB // 2 + 1))), "family_freq_hz_at_speed must be finite"),
+    (5, dict(n_families=0, family_freq_hz=[]), "without family_freq_hz"),
+], ids=["repeated", "descending", "not-from-0", "nan", "inf", "too-fast", "tiny-step", "one-speed", "65-speeds",
+        "short-speeds", "no-speeds", "short-table", "nan-table", "negative-table", "huge-table", "no-families"])
+def test_run_metadata_refuses_forged_family_curves(n_speeds, changes, words):
+    with pytest.raises(BttsimError, match="corrupt RunMetadata") as info:
+        codec.decode_run_metadata(_forged_curves(n_speeds, **changes), "bttsim/rig1/meta")
+    assert words in str(info.value) and "\n" not in str(info.value)
 
 
 def test_run_metadata_refuses_a_wrong_family_table():

@@ -444,6 +444,103 @@ def test_campbell_is_drawn_from_the_run_metadata_alone(short_mcap, tmp_path, mon
     np.testing.assert_allclose(2 * box[0, 0], np.diff(meta.speed_range_rpm), rtol=1e-6)
 
 
+RPM = 2 * np.pi / 60
+#: A short run through EO 8's crossing with family 1 at ND 1 (2579 rpm at zero speed, about
+#: 2643 rpm with centrifugal stiffening), with the centrifugal model.
+SHORT_CENTRIFUGAL = ("[speed]\nstart_rpm = 2550.0\nend_rpm = 2700.0\nduration_s = 2.0\n"
+                     "[model]\ncentrifugal = true\n")
+
+
+@pytest.fixture(scope="module")
+def centrifugal_run(tmp_path_factory):
+    """``(model, decoded run metadata, recording)`` of :data:`SHORT_CENTRIFUGAL`."""
+    path = tmp_path_factory.mktemp("centrifugal") / "short.toml"
+    path.write_text(SHORT_CENTRIFUGAL)
+    stream = AcquisitionStream(load_scenario(path))
+    out = path.with_suffix(".mcap")
+    with McapRecorder(out, run_metadata=stream.run_metadata_record) as rec:
+        rec.write_all([stream.meta] + [m for _, msgs in stream.batches() for m in msgs])
+    return stream.sim.model, codec.decode_run_metadata(stream.meta.payload, stream.meta.key).body, out
+
+
+@pytest.mark.unit
+def test_centrifugal_run_metadata_carries_the_family_curves(centrifugal_run):
+    model, info, mcap = centrifugal_run
+    e = model.extra
+    np.testing.assert_array_equal(info.family_speed_rad_s, e["speed_rad_s"])
+    np.testing.assert_array_equal(info.family_freq_hz_at_speed, e["campbell_freq_hz_at_speed"])
+    np.testing.assert_array_equal(info.family_freq_hz_at_speed[0], info.family_freq_hz)
+    assert info.family_freq_hz_at_speed.shape == (17, 5, 15)
+    # and the recording carries them
+    meta = next(m for m in read_recording(mcap).messages if keys.parse_key(m.key).kind == "meta")
+    back = codec.decode_run_metadata(meta.payload, meta.key).body
+    np.testing.assert_array_equal(back.family_speed_rad_s, info.family_speed_rad_s)
+    np.testing.assert_array_equal(back.family_freq_hz_at_speed, info.family_freq_hz_at_speed)
+
+
+@pytest.mark.unit
+def test_campbell_crossing_moves_onto_the_family_curve(centrifugal_run):
+    from bttsim_stream.model.speed_modes import crossing_speeds, interpolate_freq_hz
+
+    model, info, _ = centrifugal_run
+    flat = CampbellLayout(dataclasses.replace(info, family_speed_rad_s=None, family_freq_hz_at_speed=None))
+    curved = CampbellLayout(info)
+    assert flat.curve_hz is None and [c[2] for c in flat.crossings] == ["EO 8 x ND 1: 2579 rpm"]
+    assert [c[2] for c in curved.crossings] == ["EO 8 x ND 1: 2643 rpm"]
+    # where the model itself puts it (crossing_speeds: a 2001-point grid, then linear)
+    (speed, f, _), = curved.crossings
+    lo, hi = info.speed_range_rpm
+    want = crossing_speeds(model, [8], lo * RPM, hi * RPM) / RPM
+    assert abs(speed - want[0]) < 0.01, (speed, want)
+    # and on the EO 8 line and the family 1, ND 1 curve (the simulator's interpolation)
+    f_curve = interpolate_freq_hz(info.family_speed_rad_s, info.family_freq_hz_at_speed[:, 0, 1], speed * RPM)
+    np.testing.assert_allclose([f, f_curve], 8 * speed / 60, rtol=1e-10)
+    np.testing.assert_allclose(flat.crossings[0][0], 60 * info.family_freq_hz[0, 1] / 8)
+    # each (family, ND) is one curve inside the plot, rising with speed from its zero-speed value
+    for i, lines in curved.family_lines():
+        for line in lines:
+            x, y = line.T
+            assert x[0] == 0 and np.all(np.diff(x) > 0) and x[-1] == curved.x_top_rpm
+            table = interpolate_freq_hz(info.family_speed_rad_s, info.family_freq_hz_at_speed[:, i], x * RPM)
+            assert np.abs(table - y[:, None]).max(axis=0).min() < 1e-9  # one ND's curve, Hz
+    fam1 = curved.family_lines()[0][1]
+    assert len(fam1) == 15 and all(np.all(np.diff(line[:, 1]) > 0) for line in fam1)
+
+
+@pytest.mark.unit
+def test_campbell_curves_are_cut_at_the_top_and_labels_do_not_overlap(centrifugal_run):
+    _, info, _ = centrifugal_run
+    for changes in ({}, {"engine_orders": (8, 3), "nodal_diameters": (1, 3)}, {"speed_range_rpm": (1000.0, 4000.0)}):
+        lay = CampbellLayout(dataclasses.replace(info, **changes))
+        for _, lines in lay.family_lines():
+            for line in lines:
+                assert np.all((line[:, 1] >= 0) & (line[:, 1] <= lay.f_top_hz * (1 + 1e-12)))
+        frame = PlotFrame(None, paths.CAMPBELL, (0.0, lay.x_top_rpm), (0.0, lay.f_top_hz),
+                          x_label=lambda x: f"{x:g} rpm", y_label=lambda f: f"{f:g} Hz")
+        lay.place(frame)
+        boxes = [label_box(text, *spot) for text, spot, _ in lay.labels]
+        for a, b in combinations(boxes + frame.obstacles(), 2):
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (a, b)
+
+
+@pytest.mark.integration
+def test_campbell_of_a_centrifugal_recording_draws_curves(centrifugal_run, tmp_path, monkeypatch):
+    _, info, mcap = centrifugal_run
+    for target in ("bttsim_stream.model.build_model", "bttsim_stream.model.load_model",
+                   "bttsim_stream.sim.core.load_scenario_model", "bttsim_stream.scenario.load_scenario"):
+        monkeypatch.setattr(target, lambda *a, **k: (_ for _ in ()).throw(AssertionError("model rebuilt")))
+    out = tmp_path / "centrifugal.rrd"
+    views.log_recording(mcap, out)
+    lay = CampbellLayout(info)
+    crossing = np.asarray(static_value(out, "/campbell/data/resonance", ":positions"), float)
+    np.testing.assert_allclose(crossing, [[lay.crossings[0][0], lay.crossings[0][1]]], rtol=1e-6)
+    strips = static_value(out, "/campbell/data/families", ":strips")
+    lines = [line for _, ls in lay.family_lines() for line in ls]
+    assert len(strips) == len(lines) and min(len(s) for s in strips) > 100
+    for got, want in zip(strips, lines):
+        np.testing.assert_allclose(np.asarray(got, float), want, rtol=1e-6)
+
+
 @pytest.mark.integration
 def test_log_recording_without_sensing_angles_or_families(short_mcap, tmp_path):
     """An older recording's metadata: Eq. 1 calibrated, Campbell without families."""

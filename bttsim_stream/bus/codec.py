@@ -47,8 +47,9 @@ import numpy as np
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError
 
-from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS
+from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from ..errors import BttsimError
+from ..model.modal_model import MAX_SPEEDS
 from ..process.pipeline import RevolutionFit
 from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport,
                                 TruthPeaks)
@@ -415,8 +416,28 @@ def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
                              f"got {fam.shape}")
         m.n_families = fam.shape[0]
         m.family_freq_hz.extend(fam.ravel().tolist())
+    if (info.family_speed_rad_s is None) != (info.family_freq_hz_at_speed is None):
+        raise ValueError("family_speed_rad_s and family_freq_hz_at_speed go together")
+    if info.family_speed_rad_s is not None:
+        if info.family_freq_hz is None:
+            raise ValueError("family_freq_hz_at_speed needs family_freq_hz")
+        speeds = _vec(info.family_speed_rad_s, "family_speed_rad_s")
+        at_speed = np.asarray(info.family_freq_hz_at_speed, dtype=float)
+        if at_speed.shape != (speeds.size,) + fam.shape:
+            raise ValueError(f"family_freq_hz_at_speed: expected shape {(speeds.size,) + fam.shape}, "
+                             f"got {at_speed.shape}")
+        m.family_speed_rad_s.extend(speeds.tolist())
+        m.family_freq_hz_at_speed.extend(at_speed.ravel().tolist())
     m.speed_min_rpm, m.speed_max_rpm = (float(v) for v in info.speed_range_rpm)
     return _serialize(m)
+
+
+#: Highest family frequency at speed a decoder accepts, Hz (far above any bladed-disk mode;
+#: keeps ``(2 pi f)^2`` of the interpolation finite).
+_MAX_FREQ_HZ = 1e9
+#: Smallest step between two of those speeds a decoder accepts, rad/s (the interpolation's
+#: divided differences in ``Omega^2`` stay finite).
+_MIN_SPEED_STEP_RAD_S = 1e-3
 
 
 def _run_metadata_problem(m) -> str | None:
@@ -453,6 +474,19 @@ def _run_metadata_problem(m) -> str | None:
     fam = np.array(m.family_freq_hz, dtype=float)
     if not np.all(np.isfinite(fam) & (fam >= 0)):
         return "family_freq_hz must be finite and >= 0"
+    speeds = np.array(m.family_speed_rad_s, dtype=float)
+    top = MAX_RPM * TWO_PI / 60.0
+    with np.errstate(invalid="ignore"):
+        ok = (2 <= speeds.size <= MAX_SPEEDS and speeds[0] == 0.0 and speeds[-1] <= top
+              and bool(np.all(np.diff(speeds) >= _MIN_SPEED_STEP_RAD_S)))
+    if speeds.size and not ok:
+        return (f"family_speed_rad_s must hold 2..{MAX_SPEEDS} speeds ascending from 0 to at most {top:.6g} rad/s "
+                f"({MAX_RPM:g} rpm), at least {_MIN_SPEED_STEP_RAD_S:g} rad/s apart")
+    if (speeds.size or len(m.family_freq_hz_at_speed)) and not m.n_families:
+        return "family_freq_hz_at_speed without family_freq_hz"
+    at_speed = np.array(m.family_freq_hz_at_speed, dtype=float)
+    if not np.all((at_speed >= 0) & (at_speed <= _MAX_FREQ_HZ)):
+        return f"family_freq_hz_at_speed must be finite, >= 0 and <= {_MAX_FREQ_HZ:g} Hz"
     return None
 
 
@@ -490,6 +524,12 @@ def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
         n_nd = m.n_blades // 2 + 1
         _check_len(where, m, "family_freq_hz", m.n_families * n_nd, f"({m.n_families}, {n_nd})")
         families = _array(m.family_freq_hz).reshape(m.n_families, n_nd)
+    speeds = at_speed = None
+    if len(m.family_speed_rad_s) or len(m.family_freq_hz_at_speed):
+        n_s = len(m.family_speed_rad_s)
+        _check_len(where, m, "family_freq_hz_at_speed", n_s * families.size, f"({n_s}, {m.n_families}, {n_nd})")
+        speeds = _array(m.family_speed_rad_s)
+        at_speed = _array(m.family_freq_hz_at_speed).reshape((n_s,) + families.shape)
     info = RunInfo(
         n_blades=int(m.n_blades), n_probes=int(m.n_probes), n_revolutions=int(m.n_revolutions),
         probe_angles_rad=_array(m.probe_angles_rad), probe_axial_m=m.probe_axial_m,
@@ -497,7 +537,8 @@ def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
         stagger_deg=m.stagger_deg, engine_orders=tuple(int(e) for e in m.engine_orders),
         nodal_diameters=tuple(int(n) for n in m.nodal_diameters), toa_method=m.toa_method,
         duration_s=m.duration_s, seed=int(m.seed), rig=m.rig, sensing_angles_rad=sensing,
-        family_freq_hz=families, speed_range_rpm=(m.speed_min_rpm, m.speed_max_rpm),
+        family_freq_hz=families, family_speed_rad_s=speeds, family_freq_hz_at_speed=at_speed,
+        speed_range_rpm=(m.speed_min_rpm, m.speed_max_rpm),
         run_id=m.run_id or m.header.run_id, scenario_toml=m.scenario_toml,
         software_version=m.software_version, has_truth=bool(m.has_truth))
     return Decoded(_header(m.header), info)

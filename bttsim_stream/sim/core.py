@@ -66,7 +66,16 @@ class RunInfo:
         Angle of each blade's nominal sensing point P_nom in the rotor frame at rotor angle 0
         (the model's ``tip_ref[:, nominal_node, 1]``), rad; None: unknown.
     family_freq_hz : ndarray, shape (n_families, n_blades // 2 + 1), or None
-        The model's mode family frequencies per nodal diameter (Campbell diagram), Hz.
+        The model's mode family frequencies per nodal diameter (Campbell diagram), Hz, at
+        zero speed.
+    family_speed_rad_s : ndarray, shape (S,), or None
+        A speed-dependent model's sample speeds (``speed_rad_s``), rad/s, strictly ascending
+        from 0; None: the family frequencies do not change with speed (a zero-speed model).
+    family_freq_hz_at_speed : ndarray, shape (S, n_families, n_blades // 2 + 1), or None
+        ``family_freq_hz`` at each of those speeds (row 0 is ``family_freq_hz``; the model's
+        ``campbell_freq_hz_at_speed``), Hz; between them interpolated as the modes are
+        (:func:`~bttsim_stream.model.speed_modes.interpolate_freq_hz`). Given with
+        ``family_speed_rad_s`` and ``family_freq_hz`` or not at all.
     speed_range_rpm : tuple of float
         Slowest and fastest speed of the run's speed profile, rpm ((0, 0): unknown).
     run_id : str
@@ -101,6 +110,8 @@ class RunInfo:
     rig: str = "rig1"
     sensing_angles_rad: np.ndarray | None = None
     family_freq_hz: np.ndarray | None = None
+    family_speed_rad_s: np.ndarray | None = None
+    family_freq_hz_at_speed: np.ndarray | None = None
     speed_range_rpm: tuple = (0.0, 0.0)
     run_id: str = ""
     scenario_toml: str = ""
@@ -441,7 +452,7 @@ class RunUpSimulator:
             toa_method=scn.toa.method, duration_s=self.speed.duration_s, seed=seed, rig=scn.run.rig,
             sensing_angles_rad=self.theta_p.copy(),
             family_freq_hz=None if m.campbell_freq_hz is None else np.array(m.campbell_freq_hz, float),
-            speed_range_rpm=self.speed.rpm_range())
+            **_family_curves(m), speed_range_rpm=self.speed.rpm_range())
 
     # -- envelopes -------------------------------------------------------------------------
     def _envelopes(self, t_start: float, t_end: float) -> tuple[np.ndarray, np.ndarray]:
@@ -735,6 +746,16 @@ class RunUpSimulator:
     def __iter__(self) -> Iterator[RevolutionBatch]:
         for n0 in range(0, self.n_revolutions, self.chunk):
             yield self._chunk(np.arange(n0, min(n0 + self.chunk, self.n_revolutions)))
+
+
+def _family_curves(model) -> dict:
+    """``family_speed_rad_s`` and ``family_freq_hz_at_speed`` of :class:`RunInfo` (None for a
+    zero-speed model, or one without a Campbell table at its speeds)."""
+    e = model.extra
+    if model.campbell_freq_hz is None or not is_speed_dependent(model) or "campbell_freq_hz_at_speed" not in e:
+        return {"family_speed_rad_s": None, "family_freq_hz_at_speed": None}
+    return {"family_speed_rad_s": np.array(e["speed_rad_s"], float),
+            "family_freq_hz_at_speed": np.array(e["campbell_freq_hz_at_speed"], float)}
 
 
 def _pair(window, off: np.ndarray, n_off: int) -> np.ndarray:

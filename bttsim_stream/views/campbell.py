@@ -1,16 +1,21 @@
 """Campbell diagram: frequency against speed, from the run metadata alone.
 
 Everything comes from the metadata (:class:`~bttsim_stream.sim.core.RunInfo`): the mode
-family frequencies per nodal diameter (``family_freq_hz``, horizontal lines: the model is
-at zero speed), the run's speed range (``speed_range_rpm``), the excited engine orders and
-nodal diameters. The FE model is never rebuilt and the scenario never parsed here.
+family frequencies per nodal diameter (``family_freq_hz``: horizontal lines for a model at
+zero speed; a speed-dependent model's ``family_freq_hz_at_speed`` at ``family_speed_rad_s``:
+curves, interpolated between those speeds as the simulator interpolates the modes,
+:func:`~bttsim_stream.model.speed_modes.interpolate_freq_hz`, and drawn up to the model's
+last speed, never extrapolated), the run's speed range (``speed_range_rpm``), the excited
+engine orders and nodal diameters. The FE model is never rebuilt and the scenario never
+parsed here.
 
 A 2-D plot (:mod:`._plot2d`) below ``campbell``: x the speed (rpm, 0 to a round value
 above the run's top speed), y the frequency (Hz, up to 1.25 times the largest excited EO
 line's value at the right edge). ``campbell/data/engine_orders`` (EO 1..12 lines
 ``f = EO rpm / 60``, excited EOs red), ``families``, ``run_range`` (the run's speed range),
-``resonance`` (each excited EO's crossing with its ND in every family), ``labels``, all
-static; ``speed`` (the current speed, one line per revolution).
+``resonance`` (each excited EO's crossings with its ND in every family: where the EO line
+meets the family's line or curve), ``labels``, all static; ``speed`` (the current speed, one
+line per revolution).
 
 Labels are laid out so that they do not overlap (:func:`~._plot2d.place_labels`): an EO
 line's label sits just outside the box where the line leaves it (right edge for shallow
@@ -25,8 +30,9 @@ import math
 import numpy as np
 import rerun as rr
 
+from ..model.speed_modes import interpolate_freq_hz
 from . import paths
-from ._common import FAMILY_COLORS, GREEN, RED, RevIndex, ViewOutput, nice_step, rpm
+from ._common import FAMILY_COLORS, GREEN, RED, TWO_PI, RevIndex, ViewOutput, nice_step, rpm
 from ._plot2d import LINE_H, PLOT_HEIGHT, Label, PlotFrame, label_box, place_labels, ui
 from .revolutions import ShownRevolutions
 
@@ -36,6 +42,30 @@ __all__ = ["MAX_EO", "CampbellLayout", "CampbellView"]
 MAX_EO = 12
 _EO_GREY = (170, 170, 170)
 _GAP = 0.015
+#: Points of a speed-dependent family curve across the plot, and of the refinement of an EO
+#: crossing inside one interval of them (then linear: the crossing to about 1e-4 rpm).
+_CURVE_POINTS = 401
+_REFINE_POINTS = 101
+
+
+def _inside(x: np.ndarray, y: np.ndarray, y_top: float) -> list[np.ndarray]:
+    """The pieces of the polyline ``(x, y)`` with ``0 < y < y_top``, as ``(n, 2)`` arrays, each
+    ended where it leaves that band (linear between points)."""
+    ok = (y > 0) & (y < y_top)
+    out = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.view(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):  # ok[a:b] all True
+        pts = [np.stack([x[a:b], y[a:b]], axis=-1)]
+        for i, j in ((a - 1, a), (b, b - 1)):  # neighbour outside, inside point
+            if 0 <= i < y.size:
+                edge = y_top if y[i] >= y_top else 0.0
+                t = (edge - y[j]) / (y[i] - y[j])
+                pt = np.array([[x[j] + t * (x[i] - x[j]), edge]])
+                pts.insert(0 if i < j else len(pts), pt)
+        line = np.concatenate(pts)
+        if line.shape[0] >= 2:
+            out.append(line)
+    return out
 
 
 def _signed_nd(nd: int, n_blades: int) -> int:
@@ -65,6 +95,11 @@ class CampbellLayout:
         The run's engine orders.
     crossings : list of (rpm, Hz, text)
         Excited EO x ND crossings with each family inside the plot.
+    curve_rpm : ndarray, shape (n,), or None
+        A speed-dependent model's curves: their speeds, rpm (0 to the plot's right edge or
+        the model's last speed, whichever is lower); None: horizontal family lines.
+    curve_hz : ndarray, shape (n, n_families, n_blades // 2 + 1), or None
+        The family frequencies at ``curve_rpm``, Hz.
     labels : list of (text, (cx, cy), colour)
         The placed labels, box units (see :mod:`._plot2d`).
     """
@@ -82,6 +117,14 @@ class CampbellLayout:
         self.n_blades = int(info.n_blades)
         fam = info.family_freq_hz
         self.families = None if fam is None else np.asarray(fam, float)
+        self._speeds = self._table = None
+        self.curve_rpm = self.curve_hz = None
+        if self.families is not None and info.family_speed_rad_s is not None:
+            self._speeds = np.asarray(info.family_speed_rad_s, float)
+            self._table = np.asarray(info.family_freq_hz_at_speed, float)
+            top = min(self.x_top_rpm, float(rpm(self._speeds[-1])))
+            self.curve_rpm = np.linspace(0.0, top, _CURVE_POINTS)
+            self.curve_hz = self._freq_hz(self.curve_rpm)
         self.crossings = self._crossings(info)
         self.labels: list = []
 
@@ -91,27 +134,59 @@ class CampbellLayout:
         x = np.minimum(self.x_top_rpm, 60.0 * self.f_top_hz / eo)
         return x, eo * x / 60.0
 
+    def _freq_hz(self, speed_rpm) -> np.ndarray:
+        """Family frequencies (Hz) at speeds (rpm): shape ``speed_rpm.shape + (n_families, n_nd)``."""
+        return interpolate_freq_hz(self._speeds, self._table, np.asarray(speed_rpm, float) * (TWO_PI / 60.0))
+
+    def _curve_crossings(self, eo: int, col: int) -> list[tuple[int, float]]:
+        """``(family, rpm)`` where the line ``EO rpm / 60`` meets the families' curves at ND
+        column ``col``: sign changes on the curve's points, refined on a finer grid in their
+        interval, then linear."""
+        x = self.curve_rpm
+        g = self.curve_hz[:, :, col] - eo * x[:, None] / 60.0  # (n, n_families): > 0 below the crossing
+        out = []
+        for i, k in zip(*np.nonzero((g[:-1] > 0) != (g[1:] > 0))):
+            xf = np.linspace(x[i], x[i + 1], _REFINE_POINTS)
+            gf = self._freq_hz(xf)[:, k, col] - eo * xf / 60.0
+            flips = np.flatnonzero((gf[:-1] > 0) != (gf[1:] > 0))
+            j = int(flips[0]) if flips.size else 0
+            t = gf[j] / (gf[j] - gf[j + 1]) if gf[j] != gf[j + 1] else 0.0
+            out.append((int(k), float(xf[j] + t * (xf[j + 1] - xf[j]))))
+        return sorted(out)
+
     def _crossings(self, info) -> list:
         out = []
         if self.families is None:
             return out
         for eo, nd in zip(info.engine_orders, info.nodal_diameters):
             signed = _signed_nd(nd, self.n_blades)
+            if self.curve_hz is not None:
+                for _, speed in self._curve_crossings(int(eo), abs(signed)):
+                    f = eo * speed / 60.0
+                    if 0 < f < self.f_top_hz:
+                        out.append((speed, f, f"EO {eo} x ND {signed}: {speed:.0f} rpm"))
+                continue
             for f in self.families[:, abs(signed)]:
                 speed = 60.0 * f / eo
                 if 0 < f < self.f_top_hz and speed <= self.x_top_rpm:
                     out.append((speed, float(f), f"EO {eo} x ND {signed}: {speed:.0f} rpm"))
         return out
 
-    def family_lines(self) -> list[tuple[int, np.ndarray]]:
-        """``(family index, frequencies inside the plot)`` of every family with lines shown."""
+    def family_lines(self) -> list[tuple[int, list[np.ndarray]]]:
+        """``(family index, its lines inside the plot)`` of every family with lines shown; a
+        line is an ``(n, 2)`` array of ``(rpm, Hz)`` points (horizontal: two points)."""
         if self.families is None:
             return []
         out = []
         for i, row in enumerate(self.families):
-            shown = row[(row > 0) & (row < self.f_top_hz)]
-            if shown.size:
-                out.append((i, shown))
+            if self.curve_hz is None:
+                shown = row[(row > 0) & (row < self.f_top_hz)]
+                lines = [np.array([[0.0, f], [self.x_top_rpm, f]]) for f in shown]
+            else:
+                lines = [ln for col in range(row.size)
+                         for ln in _inside(self.curve_rpm, self.curve_hz[:, i, col], self.f_top_hz)]
+            if lines:
+                out.append((i, lines))
         return out
 
     def place(self, frame: PlotFrame) -> None:
@@ -144,7 +219,8 @@ class CampbellLayout:
             spots = tuple((bx + sx * (w / 2 + _GAP), by + sy * (h / 2 + _GAP)) for sy in (-1, 1) for sx in (1, -1))
             crossing.append((Label(text, spots), RED))
         families = []
-        for i, shown in self.family_lines():
+        for i, lines in self.family_lines():
+            shown = np.concatenate([ln[:, 1] for ln in lines])
             text = f"family {i + 1}: {shown.min():.0f}-{shown.max():.0f} Hz"
             x0, y0, x1, y1 = label_box(text, 0.0, 0.0)
             w, h = x1 - x0, y1 - y0
@@ -199,9 +275,9 @@ class CampbellView:
             [[[0.0, 0.0], [x, f]] for x, f in zip(x_end, f_end)], colors=[RED if e else _EO_GREY for e in excited],
             radii=[ui(1.2 if e else 0.6) for e in excited]))
         strips, colors = [], []
-        for i, shown in lay.family_lines():
-            strips += [[[0.0, f], [lay.x_top_rpm, f]] for f in shown]
-            colors += [FAMILY_COLORS[i % len(FAMILY_COLORS)]] * shown.size
+        for i, lines in lay.family_lines():
+            strips += lines
+            colors += [FAMILY_COLORS[i % len(FAMILY_COLORS)]] * len(lines)
         if strips:
             self.out.static(f"{data}/families", rr.LineStrips2D(strips, colors=colors, radii=ui(0.7)))
         lo, hi = lay.speed_range_rpm
