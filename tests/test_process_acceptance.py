@@ -188,3 +188,27 @@ def test_unknown_engine_order_scan(summaries):
     blind = replace(run.info, engine_orders=(), nodal_diameters=())
     s = process_arrays(run.opr_s, run.toa_s, blind, ProcessOptions(eo_range=(4, 12))).summary
     assert sorted((e["eo"], e["nd"]) for e in s["resonances"]) == [(8, 1), (9, 9)]
+
+
+def test_why_none_follows_speed_dependent_families():
+    """With a speed-dependent model's family curves in the metadata, "no mode family in the
+    swept range" is judged on the curves: EO 8 over 2590-2700 rpm meets the zero-speed
+    family 1 (343.9-347.5 Hz lies in 345-360 Hz) but misses a family stiffened to 380 Hz; and
+    a sweep that meets the stiffened curve only is not told it misses it."""
+    from types import SimpleNamespace
+
+    from bttsim_stream.process.pipeline import DetectOptions, _why_none
+
+    fam0 = np.array([[343.9, 345.0, 347.5]])
+    speeds = np.array([0.0, 200.0, 400.0, 600.0])
+    det = DetectOptions()
+    seg = SimpleNamespace(sweeps=[object()])
+    omega = np.linspace(2590, 2700, 50) * (2 * np.pi) / 60
+    flat = SimpleNamespace(family_freq_hz=fam0)
+    assert "no mode family" not in _why_none([8], seg, omega, flat, det)
+    stiff = SimpleNamespace(family_freq_hz=fam0, family_speed_rad_s=speeds,
+                            family_freq_hz_at_speed=fam0[None] + np.array([0.0, 20.0, 36.0, 40.0])[:, None, None])
+    assert "no mode family" in _why_none([8], seg, omega, stiff, det)
+    omega_hi = np.linspace(2800, 2900, 50) * (2 * np.pi) / 60  # EO 8: 373-387 Hz, the stiffened family at ~380 Hz
+    assert "no mode family" in _why_none([8], seg, omega_hi, flat, det)
+    assert "no mode family" not in _why_none([8], seg, omega_hi, stiff, det)

@@ -788,9 +788,18 @@ def _why_none(eos, segments: RunSegments, omega, info, det: DetectOptions) -> st
            f"the amplitude falls below 1/{det.ratio_threshold:g} of its height on both sides with SNR >= "
            f"{det.snr_threshold:g}")
     fam = getattr(info, "family_freq_hz", None)
+    speeds, fam_at = getattr(info, "family_speed_rad_s", None), getattr(info, "family_freq_hz_at_speed", None)
     if fam is not None and np.size(fam):
         fam = np.asarray(fam, float)
-        inside = [eo for eo in eos if np.any((fam >= eo * lo_rpm / 60) & (fam <= eo * hi_rpm / 60))]
+        if speeds is not None and fam_at is not None:  # speed-dependent families: the swept stretch of each curve
+            from ..model.speed_modes import interpolate_freq_hz
+
+            om = np.linspace(float(np.min(omega)), min(float(np.max(omega)), float(speeds[-1])), 65)
+            f_sw = interpolate_freq_hz(speeds, fam_at, om)  # (65, n_families, n_nd)
+            inside = [eo for eo in eos
+                      if np.any(np.diff(np.sign(eo * om / TWO_PI - f_sw.reshape(om.size, -1).T), axis=1) != 0)]
+        else:
+            inside = [eo for eo in eos if np.any((fam >= eo * lo_rpm / 60) & (fam <= eo * hi_rpm / 60))]
         if not inside:
             msg += (f"; no mode family frequency of the run's model lies in the swept range "
                     f"({min(eos) * lo_rpm / 60:.1f}-{max(eos) * hi_rpm / 60:.1f} Hz)")
