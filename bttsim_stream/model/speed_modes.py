@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from ..errors import BttsimError
+from ..speed_spline import interpolate_freq_hz, speed_spline as _spline
 from .modal_model import SPEED_ARRAYS, ModalModel
 
 if TYPE_CHECKING:
@@ -74,36 +75,6 @@ class SpeedModes:
     def freq_hz(self, omega) -> np.ndarray:
         """Natural frequencies (Hz) at speeds ``omega`` (rad/s): shape ``omega.shape + (n_modes,)``."""
         return np.sqrt(self.omega2(np.square(np.asarray(omega, float)))) / (2.0 * np.pi)
-
-
-def _spline(speed_rad_s: np.ndarray, values: np.ndarray) -> CubicSpline:
-    from scipy.interpolate import CubicSpline  # only for speed-dependent models
-
-    s = np.square(np.asarray(speed_rad_s, float))
-    return CubicSpline(s, np.asarray(values, float), axis=0, bc_type="natural", extrapolate=True)
-
-
-def interpolate_freq_hz(speed_rad_s, freq_hz_at_speed, omega) -> np.ndarray:
-    """Frequencies tabulated at speeds, interpolated as the modes are (see the module notes).
-
-    Parameters
-    ----------
-    speed_rad_s : array_like, shape (S,)
-        Sample speeds, rad/s, strictly ascending (S >= 2).
-    freq_hz_at_speed : array_like, shape (S, ...)
-        Frequencies at those speeds, Hz (e.g. a Campbell table (S, n_families, n_nd)).
-    omega : array_like
-        Speeds, rad/s, within ``[speed_rad_s[0], speed_rad_s[-1]]`` (not checked: outside,
-        the spline's end polynomials extrapolate).
-
-    Returns
-    -------
-    ndarray, shape ``omega.shape + freq_hz_at_speed.shape[1:]``
-        Hz: ``sqrt`` of the natural cubic spline of ``(2 pi f)^2`` in ``Omega^2``.
-    """
-    w2 = (2.0 * np.pi * np.asarray(freq_hz_at_speed, float)) ** 2
-    out = _spline(speed_rad_s, w2)(np.square(np.asarray(omega, float)))
-    return np.sqrt(np.maximum(out, 0.0)) / (2.0 * np.pi)
 
 
 def speed_modes(model: ModalModel) -> SpeedModes | None:

@@ -792,7 +792,7 @@ def _why_none(eos, segments: RunSegments, omega, info, det: DetectOptions) -> st
     if fam is not None and np.size(fam):
         fam = np.asarray(fam, float)
         if speeds is not None and fam_at is not None:  # speed-dependent families: the swept stretch of each curve
-            from ..model.speed_modes import interpolate_freq_hz
+            from ..speed_spline import interpolate_freq_hz
 
             om = np.linspace(float(np.min(omega)), min(float(np.max(omega)), float(speeds[-1])), 65)
             f_sw = interpolate_freq_hz(speeds, fam_at, om)  # (65, n_families, n_nd)

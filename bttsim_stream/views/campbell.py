@@ -30,7 +30,7 @@ import math
 import numpy as np
 import rerun as rr
 
-from ..model.speed_modes import interpolate_freq_hz
+from ..speed_spline import interpolate_freq_hz
 from . import paths
 from ._common import FAMILY_COLORS, GREEN, RED, TWO_PI, RevIndex, ViewOutput, nice_step, rpm
 from ._plot2d import LINE_H, PLOT_HEIGHT, Label, PlotFrame, label_box, place_labels, ui
