@@ -520,6 +520,64 @@ class EnvelopeGrid:
     a_minus: np.ndarray | None = None
 
 
+def _refine_pass(k: int, t_k: float, t_end: float, zone: float, amp: float, reach_m: float, radius_m: float,
+                 om_min: float, sig: np.ndarray, S0: np.ndarray, tol_s: float, h_max: float, warn: bool,
+                 warnings: list) -> tuple[np.ndarray, float | None]:
+    """One pass of a speed segment's refinement (:meth:`EnvelopeIntegrator.transient_grid`).
+
+    From the free response's amplitude bound ``amp`` (m) over the refined stretch ``zone``
+    (s after the knot ``t_k``), its decay rates ``sig`` and fourth-derivative weights ``S0``,
+    the grid points from ``t_k`` on whose Hermite steps meet ``tol_s`` in TOA; and the new
+    stretch they cover (None: no further pass would change them). ``warn``: report (in
+    ``warnings``) a response that does not decay within :data:`MAX_REFINED_POINTS`.
+    """
+    D = (amp + reach_m) / (radius_m * om_min)
+    tol_m = tol_s * radius_m * om_min
+
+    def step(sv, D=D, tol_m=tol_m):
+        """The step the bound allows at ``sv`` (s after the knot)."""
+        S = np.exp(-sig[None, :] * sv[:, None]) @ S0
+        with np.errstate(divide="ignore", over="ignore"):
+            G = tol_m / S
+            h1 = 2.0 * G**0.25
+            h2 = np.sqrt(G) / D - D if D > 0 else np.full(sv.shape, np.inf)
+        # steps below D cannot lower the extrapolation term (D^4 may alone exceed the
+        # bound: D is overestimated, from the steady amplitudes); the interpolation
+        # term is always met
+        return np.maximum(np.minimum(h1, np.maximum(h2, D)), 1e-6)
+
+    span = t_end - t_k
+    h0 = float(step(np.zeros(1))[0])
+    if not h0 < h_max:
+        return np.array([t_k]), None
+    # the step grows as the free response decays: steps h(s) by inverting
+    # n(s) = int_0^s ds' / h(s') (h varies by < 1 % over a step)
+    s_lo = min(h0 / 4.0, span)
+    sv = np.concatenate(([0.0], s_lo * np.exp(np.log(span / s_lo) * _UNIT_GRID)))
+    hv = step(sv)
+    done = np.flatnonzero(hv >= h_max)
+    if done.size:
+        sv, hv = sv[:done[0] + 1], hv[:done[0] + 1]
+    n_of_s = np.concatenate(([0.0], np.cumsum(np.diff(sv) * 0.5 * (1.0 / hv[1:] + 1.0 / hv[:-1]))))
+    n_pts = int(np.floor(n_of_s[-1]))
+    if warn and n_pts > MAX_REFINED_POINTS:
+        msg = (f"speed segment {k}: the free response does not decay within "
+               f"{MAX_REFINED_POINTS:,} refined envelope steps; later TOAs may differ from the exact "
+               f"ones by more than {tol_s:g} s")
+        warnings.append(msg)
+        _log.warning(msg)
+    n_pts = min(n_pts, MAX_REFINED_POINTS)
+    s_pts = np.interp(np.arange(n_pts + 1, dtype=float), n_of_s, sv)
+    pts = t_k + s_pts
+    pts = pts[pts < t_end]
+    if pts.size > 1:
+        pts = pts[np.concatenate(([True], np.diff(pts) > 0))]
+    zone_new = float(s_pts[-1]) if pts.size > 1 else 0.0
+    if pts.size == 1 or zone_new >= 0.5 * zone:  # D would hardly change
+        return pts, None
+    return pts, zone_new
+
+
 class EnvelopeIntegrator:
     """Exact, streaming integration of the modal envelopes along the grid.
 
@@ -727,52 +785,10 @@ class EnvelopeIntegrator:
                 amp = float(np.sum(wn * (np.abs(c) / mu_min + e)))
             om_min = min(om_a, om_b)
             amp = min(amp, 0.05 * radius_m)  # larger amplitudes are refused (check_tip_amplitude)
-            D = (amp + reach_m) / (radius_m * om_min)
-            tol_m = tol_s * radius_m * om_min
-
-            def step(sv, D=D, tol_m=tol_m):
-                """The step the bound allows at ``sv`` (s after the knot)."""
-                S = np.exp(-sig[None, :] * sv[:, None]) @ S0
-                with np.errstate(divide="ignore", over="ignore"):
-                    G = tol_m / S
-                    h1 = 2.0 * G**0.25
-                    h2 = np.sqrt(G) / D - D if D > 0 else np.full(sv.shape, np.inf)
-                # steps below D cannot lower the extrapolation term (D^4 may alone exceed the
-                # bound: D is overestimated, from the steady amplitudes); the interpolation
-                # term is always met
-                return np.maximum(np.minimum(h1, np.maximum(h2, D)), 1e-6)
-
-            span = t_end - t_k
-            h0 = float(step(np.zeros(1))[0])
-            if not h0 < h_max:
-                pts = np.array([t_k])
+            pts, zone = _refine_pass(k, t_k, t_end, zone, amp, reach_m, radius_m, om_min, sig, S0, tol_s, h_max,
+                                     _ == 1, self.warnings)
+            if zone is None:
                 break
-            # the step grows as the free response decays: steps h(s) by inverting
-            # n(s) = int_0^s ds' / h(s') (h varies by < 1 % over a step)
-            s_lo = min(h0 / 4.0, span)
-            sv = np.concatenate(([0.0], s_lo * np.exp(np.log(span / s_lo) * _UNIT_GRID)))
-            hv = step(sv)
-            done = np.flatnonzero(hv >= h_max)
-            if done.size:
-                sv, hv = sv[:done[0] + 1], hv[:done[0] + 1]
-            n_of_s = np.concatenate(([0.0], np.cumsum(np.diff(sv) * 0.5 * (1.0 / hv[1:] + 1.0 / hv[:-1]))))
-            n_pts = int(np.floor(n_of_s[-1]))
-            if _ == 1 and n_pts > MAX_REFINED_POINTS:
-                msg = (f"speed segment {k}: the free response does not decay within "
-                       f"{MAX_REFINED_POINTS:,} refined envelope steps; later TOAs may differ from the exact "
-                       f"ones by more than {tol_s:g} s")
-                self.warnings.append(msg)
-                _log.warning(msg)
-            n_pts = min(n_pts, MAX_REFINED_POINTS)
-            s_pts = np.interp(np.arange(n_pts + 1, dtype=float), n_of_s, sv)
-            pts = t_k + s_pts
-            pts = pts[pts < t_end]
-            if pts.size > 1:
-                pts = pts[np.concatenate(([True], np.diff(pts) > 0))]
-            zone_new = float(s_pts[-1]) if pts.size > 1 else 0.0
-            if pts.size == 1 or zone_new >= 0.5 * zone:  # D would hardly change
-                break
-            zone = zone_new
         return pts
 
     def _envelopes(self, sign, a0, c, t, phi, om_end, alpha):

@@ -70,8 +70,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..model.speed_modes import speed_modes
-from .modal import (_UNIT_GRID, MAX_REFINED_POINTS, TRANSIENT_TOL_S, EnvelopeGrid, EnvelopeIntegrator, TipBasis,
-                    _j_moments, modal_forcing, quasi_steady_envelope, tip_basis)
+from .modal import (TRANSIENT_TOL_S, EnvelopeGrid, EnvelopeIntegrator, TipBasis, _j_moments, _refine_pass,
+                    modal_forcing, quasi_steady_envelope, tip_basis)
 from .speed import SpeedProfile
 
 __all__ = ["SpeedDependentIntegrator", "speed_tip_basis", "chirp_moments", "LEAD_IN_DECAY"]
@@ -454,45 +454,10 @@ class SpeedDependentIntegrator:
                 amp = float(np.sum(wn * (c / mu_min + e)))
             om_min = min(om_k, om_b)
             amp = min(amp, 0.05 * radius_m)
-            D = (amp + reach_m) / (radius_m * om_min)
-            tol_m = tol_s * radius_m * om_min
-
-            def step(sv, D=D, tol_m=tol_m):
-                S = np.exp(-sig[None, :] * sv[:, None]) @ S0
-                with np.errstate(divide="ignore", over="ignore"):
-                    G = tol_m / S
-                    h1 = 2.0 * G**0.25
-                    h2 = np.sqrt(G) / D - D if D > 0 else np.full(sv.shape, np.inf)
-                return np.maximum(np.minimum(h1, np.maximum(h2, D)), 1e-6)
-
-            span = t_end - t_k
-            h0 = float(step(np.zeros(1))[0])
-            if not h0 < h_max:
-                pts = np.array([t_k])
+            pts, zone = _refine_pass(k, t_k, t_end, zone, amp, reach_m, radius_m, om_min, sig, S0, tol_s, h_max,
+                                     _ == 1, self.warnings)
+            if zone is None:
                 break
-            s_lo = min(h0 / 4.0, span)
-            sv = np.concatenate(([0.0], s_lo * np.exp(np.log(span / s_lo) * _UNIT_GRID)))
-            hv = step(sv)
-            done = np.flatnonzero(hv >= h_max)
-            if done.size:
-                sv, hv = sv[:done[0] + 1], hv[:done[0] + 1]
-            n_of_s = np.concatenate(([0.0], np.cumsum(np.diff(sv) * 0.5 * (1.0 / hv[1:] + 1.0 / hv[:-1]))))
-            n_pts = int(np.floor(n_of_s[-1]))
-            if _ == 1 and n_pts > MAX_REFINED_POINTS:
-                msg = (f"speed segment {k}: the free response does not decay within {MAX_REFINED_POINTS:,} refined "
-                       f"envelope steps; later TOAs may differ from the exact ones by more than {tol_s:g} s")
-                self.warnings.append(msg)
-                _log.warning(msg)
-            n_pts = min(n_pts, MAX_REFINED_POINTS)
-            s_pts = np.interp(np.arange(n_pts + 1, dtype=float), n_of_s, sv)
-            pts = t_k + s_pts
-            pts = pts[pts < t_end]
-            if pts.size > 1:
-                pts = pts[np.concatenate(([True], np.diff(pts) > 0))]
-            zone_new = float(s_pts[-1]) if pts.size > 1 else 0.0
-            if pts.size == 1 or zone_new >= 0.5 * zone:
-                break
-            zone = zone_new
         return pts
 
 
