@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.process import Geometry, ProcessOptions, process_arrays
-from bttsim_stream.process.nsv import NsvOptions, detect_nsv, scan_blocks
+from bttsim_stream.process.nsv import NsvOptions, detect_nsv, scan_blocks, screen_block
 from bttsim_stream.process.resonance import summary_table
 
 from _nsv_truth import logistic, synthesize
@@ -362,3 +362,29 @@ def test_a_false_detection_is_scored_as_one():
     s = process_arrays(run.opr_s, run.toa_s, _geometry(run), ProcessOptions(), truth=silent).summary
     assert s["non_synchronous"][0]["truth"] == {"kind": None, "present": False}
     assert "a false detection" in summary_table(s)
+
+
+def test_the_live_screen_is_the_scans_first_step():
+    # screen_block (the finite-data shortcut, and the general code with missing samples) passes
+    # a block exactly when scan_blocks's statistic and rough amplitude would analyse it
+    from bttsim_stream.process.nsv import _band_power, _spectrum
+
+    rng = np.random.default_rng(7)
+    L, nb, npr = 32, 12, 5
+    n = np.arange(L)[:, None, None]
+    seen = set()
+    for trial in range(200):
+        amp = 10.0 ** rng.uniform(-7.5, -4.5)
+        d = 1e-4 * rng.normal(size=(1, nb, npr)) + 1e-7 * n + rng.normal(0, 2e-7, (L, nb, npr))
+        d = d + amp * np.sin(2 * np.pi * rng.uniform(0.15, 0.45) * n + rng.uniform(0, 6, (1, nb, npr)))
+        if trial % 4 == 3:
+            d[rng.random(d.shape) < 0.02] = np.nan
+        for opts in (NsvOptions(), NsvOptions(ratio_threshold=3.0, min_amp_m=1e-7)):
+            sp = _spectrum(L, opts.pad, opts.guard)
+            _, ratio, _, peak = _band_power(d.reshape(1, L, -1), sp)
+            rough = 4.0 * np.sqrt(peak[0] / (nb * npr)) / sp[4]
+            want = bool(ratio[0] >= opts.ratio_threshold and rough >= 0.5 * opts.min_amp_m)
+            finite = bool(np.isfinite(d).all())
+            assert screen_block(d, opts) == screen_block(d, opts, finite=finite) == want
+            seen.add(want)
+    assert seen == {True, False}

@@ -382,18 +382,36 @@ def _band_power(y: np.ndarray, sp: tuple) -> tuple:
     return S, ratio, i_pk, peak
 
 
-def screen_block(d_m: np.ndarray, options: NsvOptions = NsvOptions()) -> bool:
+def screen_block(d_m: np.ndarray, options: NsvOptions = NsvOptions(), *, finite: bool = False) -> bool:
     """Whether one block ``d_m`` (L, n_blades, n_probes) may hold an NSV: the detection
     statistic and the rough amplitude of :func:`scan_blocks`'s first step, without the rest
-    (the live processor scans a block in full only then)."""
+    (the live processor scans a block in full only then).
+
+    The same operations as :func:`_band_power` on one block, without the parts the screen
+    does not read (the spectrum outside the band, the peak's bin); ``finite``: the caller
+    knows every sample is finite (the check for missing ones is skipped)."""
     d = np.asarray(d_m, dtype=float)
     L = d.shape[0]
     sp = _spectrum(L, int(options.pad), float(options.guard))
     if sp is None:
         return False
-    _, ratio, _, peak = _band_power(d.reshape(1, L, -1), sp)
-    rough = 4.0 * math.sqrt(float(peak[0]) / (d.shape[1] * d.shape[2])) / sp[4]
-    return bool(ratio[0] >= options.ratio_threshold and rough >= 0.5 * options.min_amp_m)
+    y = d.reshape(1, L, -1)
+    if not finite and not np.isfinite(y).all():  # missing samples: the general code
+        _, ratio, _, peak = _band_power(y, sp)
+        ratio, peak = float(ratio[0]), float(peak[0])
+    else:
+        _, _, _, M, _ = sp
+        y = y - np.add.reduce(y, axis=1, keepdims=True) / L  # y.mean(axis=1, keepdims=True)
+        C = np.matmul(y, np.swapaxes(y, 1, 2))
+        P = np.maximum(np.einsum("lf,klf->kf", M, C @ M), 0.0)[0]
+        nbd = P.size // 2
+        Sb = (P[:nbd] + P[nbd:])[1:]  # S at the band (comp is one bin below it, then the band)
+        half = Sb.size // 2
+        floor = float(np.partition(Sb, half)[half])
+        peak = float(Sb[np.argmax(Sb)])
+        ratio = peak / floor if floor > 0 else (math.inf if peak > 0 else 0.0)
+    rough = 4.0 * math.sqrt(peak / (d.shape[1] * d.shape[2])) / sp[4]
+    return bool(ratio >= options.ratio_threshold and rough >= 0.5 * options.min_amp_m)
 
 
 def _scan(st, L, out, alternatives, om_blk, detected, whole) -> NsvScan:

@@ -927,8 +927,19 @@ class _Growable:
         self._a[self.n] = row
         self.n += 1
 
+    def next_row(self) -> np.ndarray:
+        """Append a row (NaN) and return it, to be written in place."""
+        if self.n == self._a.shape[0]:
+            self._a = np.concatenate([self._a, np.full_like(self._a, np.nan)])
+        self.n += 1
+        return self._a[self.n - 1]
+
     def __getitem__(self, i):
         return self._a[: self.n][i]
+
+    def row(self, k: int):
+        """Row ``k`` (``0 <= k < n``, unchecked): ``self[k]`` without the slice."""
+        return self._a[k]
 
     @property
     def array(self) -> np.ndarray:
@@ -980,6 +991,7 @@ class StreamingProcessor:
         self._d = _Growable(self._shape, cap)
         self._omega = _Growable((), cap)
         self._was_calibrated: list[bool] = []
+        self._row_sum: list[float] = []  # per revolution, the sum of the displacements (NaN: one is missing)
         self._first_rev: int | None = None
         self._n_done = 0  # displacements computed for revolutions [0, _n_done)
         self._n_emitted = 0
@@ -1004,6 +1016,9 @@ class StreamingProcessor:
         self._i1 = i1
         self._ginv = None if gi is None else (gi[i1, i1], gi[i1 + 1, i1 + 1], gi[i1, i1 + 1])
         self._g12x2 = None if gi is None else 2.0 * gi[i1, i1 + 1]
+        # the same terms as columns (n_eo, 1), for the (order, blade) rows of _output
+        self._ginv_col = None if gi is None else tuple(g[:, None] for g in (*self._ginv[:2], self._g12x2))
+        self._g1122_col = None if gi is None else _interleave(*self._ginv_col[:2])
         self._cn = float(np.linalg.cond(B))
         self._eo_arr = np.asarray(self.engine_orders, float)
         npr, p = B.shape
@@ -1119,7 +1134,8 @@ class StreamingProcessor:
                 self._nsv_run, self._nsv_last = 0, None
                 continue
             d = self._d.array[s:s + L]
-            if not screen_block(d, opts):  # the statistic alone first (most blocks stop here)
+            finite = all(map(math.isfinite, self._row_sum[s:s + L]))  # a finite sum: finite samples
+            if not screen_block(d, opts, finite=finite):  # the statistic alone first (most blocks stop here)
                 self._nsv_run, self._nsv_last = 0, None
                 continue
             scan = scan_blocks(d, self._omega.array[s:s + L], self._psi, opts, starts=[0])
@@ -1160,10 +1176,12 @@ class StreamingProcessor:
             phase = rotor_phase_from_opr(opr[lo:hi]).rows(slice(row, row + 1))
             d, _ = displacements_from_phase(phase, self._toa.array[k][None], self._psi, self.geometry.tip_radius_m)
             d, om = d[0], float(phase.omega_mean_rad_s[0])
+            self._d.append(d)
         else:
-            d, om = _displacement_row(float(opr[k]), *fast, self._toa.array[k], self._psi,
-                                      self.geometry.tip_radius_m)
-        self._d.append(d)
+            d = self._d.next_row()  # written in place
+            om = _displacement_row(float(opr[k]), *fast, self._toa.array[k], self._psi, self.geometry.tip_radius_m,
+                                   d)
+        self._row_sum.append(_add_all(d))
         self._omega.append(om)
         self._was_calibrated.append(self._calibrated or self._cal_window is None)
 
@@ -1219,36 +1237,58 @@ class StreamingProcessor:
         return out
 
     def _output(self, k: int) -> RevolutionOutput:
-        d_k = self._d.array[k]
+        d_k = self._d.row(k)
         w = self._window
         eo = self.engine_orders[0]
-        om = float(self._omega[k])
+        om = float(self._omega.row(k))
         if w == 1 and self._pinv is not None:
-            # the fit and both spectra as a few small matrix products (precomputed)
-            missing = np.isnan(d_k.sum())
+            # the fit and both spectra as a few small matrix products (precomputed); the
+            # element-wise steps run on contiguous (order, blade) rows (the same operations
+            # on the same values as on the (blade, order) columns, fewer strided loops)
+            missing = math.isnan(self._row_sum[k])  # np.isnan(d_k.sum())
             if missing:
                 a, rss, s2, g11, g22, g12, n_used = self._fit_patterns(d_k)
-                g12x2 = 2.0 * g12
+                g11, g22, g12x2 = g11.T, g22.T, 2.0 * g12.T
+                g1122 = _interleave(g11, g22)
             else:
                 a = d_k @ self._pinvT  # (nb, p)
                 r = d_k @ self._residual  # (I - B B^+) applied to each blade's samples
-                rss = (r * r).sum(axis=1)
+                rss = _add_rows(np.multiply(r, r, out=r), axis=1)
                 s2 = rss * self._inv_dof
-                g11, g22, g12 = self._ginv
-                g12x2 = self._g12x2
+                g11, g22, g12x2 = self._ginv_col
+                g1122 = self._g1122_col
                 n_used = self._B.shape[0]
-            a1, a2 = a[:, 1::2], a[:, 2::2]
-            amp2 = a1 * a1 + a2 * a2
-            num = a1 * (g11 * a1 + g12x2 * a2) + g22 * a2 * a2  # (a1, a2) G (a1, a2)^T
+            # each operation with its operands in the original order (a NaN from both keeps
+            # the first one's sign), in place where a temporary is not needed
+            at = a.T.copy()  # (p, nb)
+            a1, a2 = at[1::2], at[2::2]  # (n_eo, nb)
+            sq = at[1:] * at[1:]  # a1 * a1, a2 * a2 interleaved
+            amp2 = sq[0::2] + sq[1::2]
+            ga = g1122 * at[1:]  # g11 * a1, g22 * a2 interleaved
+            t = g12x2 * a2
+            num = np.add(ga[0::2], t, out=t)
+            num = np.multiply(a1, num, out=num)
+            ga2 = ga[1::2]
+            ga2 *= a2
+            num += ga2  # a1 * (g11 * a1 + g12x2 * a2) + g22 * a2 * a2: (a1, a2) G (a1, a2)^T
             amp = np.sqrt(amp2)
-            if not amp2.all():  # no direction: the mean of the two variances
+            if not _all(amp2):  # no direction: the mean of the two variances
                 zero = amp2 == 0
                 num = np.where(zero, 0.5 * (g11 + g22), num)
                 amp2 = np.where(zero, 1.0, amp2)
-            amp_pkpk, phase = 2.0 * amp, np.arctan2(a2, a1)
-            amp_std = 2.0 * np.sqrt(s2[:, None] * num / amp2)
-            dc, res = a[:, 0], np.sqrt(rss / n_used)
-            phasor = a[:, 1] + 1j * a[:, 2]
+            amp = np.multiply(2.0, amp, out=amp)
+            phase = np.arctan2(a2, a1)
+            num = np.multiply(s2, num, out=num)
+            num /= amp2
+            amp_std = np.sqrt(num, out=num)
+            amp_std = np.multiply(2.0, amp_std, out=amp_std)
+            rss /= n_used
+            dc, res = at[0], np.sqrt(rss, out=rss)
+            if a1.shape[0] == 1:  # one EO: (1, nb) rows are (nb, 1) C-contiguous columns as they are
+                amp_pkpk, phase, amp_std = amp.T, phase.T, amp_std.T
+            else:
+                amp_pkpk, phase, amp_std = _columns(amp), _columns(phase), _columns(amp_std)
+            phasor = at[1] + 1j * at[2]
             nb = self.geometry.n_blades
             if missing:  # the conventions of probe_spectra / fit_spectra for NaN
                 okd = ~np.isnan(d_k)
@@ -1276,10 +1316,35 @@ class StreamingProcessor:
             probe_tw = probe_spectra(d_k, eo)
             fit_tw = fit_spectra(phasor, eo, self.geometry.blade_angles_rad)
         return RevolutionOutput(
-            revolution=self._first_rev + k, opr_s=float(self._opr[k]), omega_rad_s=om,
+            revolution=self._first_rev + k, opr_s=float(self._opr.row(k)), omega_rad_s=om,
             engine_orders=self.engine_orders, freq_hz=om * self._freq_per_omega, cn=self._cn,
             d_m=d_k, amp_pkpk_m=amp_pkpk, phase_rad=phase, amp_std_m=amp_std, dc_m=dc,
             residual_rms_m=res, probe_tw=probe_tw, fit_tw=fit_tw, calibrated=self._was_calibrated[k])
+
+
+_add_rows = np.add.reduce  # ndarray.sum without its Python wrapper (the same reduction)
+
+
+def _add_all(x: np.ndarray) -> float:
+    """``float(x.sum())``: the same pairwise reduction, without ndarray.sum's Python wrapper."""
+    return float(np.add.reduce(x, axis=None))
+
+
+def _all(x: np.ndarray) -> bool:
+    """``x.all()`` (NaN counts as true there too), by the faster ``count_nonzero``."""
+    return np.count_nonzero(x) == x.size
+
+
+def _interleave(g11: np.ndarray, g22: np.ndarray) -> np.ndarray:
+    """Rows ``g11[0], g22[0], g11[1], ...`` of two (n_eo, m) arrays, shape (2 n_eo, m)."""
+    out = np.empty((2 * g11.shape[0], g11.shape[1]))
+    out[0::2], out[1::2] = g11, g22
+    return out
+
+
+def _columns(x: np.ndarray) -> np.ndarray:
+    """(n_eo, n_blades) rows as C-contiguous (n_blades, n_eo) columns."""
+    return np.ascontiguousarray(x.T)
 
 
 def _phase_row(opr: np.ndarray, lo: int, hi: int, row: int):
@@ -1313,15 +1378,29 @@ def _phase_row(opr: np.ndarray, lo: int, hi: int, row: int):
 
 
 def _displacement_row(opr_k: float, w0: float, alpha: float, om: float, toa: np.ndarray, psi: np.ndarray,
-                      tip_radius_m: float) -> tuple[np.ndarray, float]:
-    """Eq. 1 displacements of one revolution: :func:`displacements_from_phase` of one row,
-    with the rotor phase as scalars (the same operations in the same order)."""
-    tau = toa - opr_k
-    ang = tau * (w0 + 0.5 * alpha * tau)  # RotorPhase.angle
-    k = np.round((ang - psi) / TWO_PI)
-    a = psi + TWO_PI * np.where(np.isfinite(k), k, 0.0)
-    tau_exp = 2.0 * a / (w0 + np.sqrt(w0 * w0 + 2.0 * alpha * a))  # RotorPhase.delay_at_angle
-    return (om * float(tip_radius_m)) * (tau_exp - tau), om
+                      tip_radius_m: float, out: np.ndarray) -> float:
+    """Eq. 1 displacements of one revolution into ``out`` (returns ``om``):
+    :func:`displacements_from_phase` of one row, with the rotor phase as scalars (the same
+    operations in the same order, operands included, in place on two work arrays)."""
+    tau = np.subtract(toa, opr_k)
+    x = np.multiply(0.5 * alpha, tau)
+    x = np.add(w0, x, out=x)
+    x = np.multiply(tau, x, out=x)  # ang = tau * (w0 + 0.5 * alpha * tau), RotorPhase.angle
+    x -= psi
+    x /= TWO_PI
+    k = np.rint(x, out=x)  # np.round(x): the revolution number
+    a = np.where(np.isfinite(k), k, 0.0)
+    a = np.multiply(TWO_PI, a, out=a)
+    a = np.add(psi, a, out=a)  # a = psi + 2 pi k
+    y = np.multiply(2.0 * alpha, a, out=x)
+    y = np.add(w0 * w0, y, out=y)
+    y = np.sqrt(y, out=y)
+    y = np.add(w0, y, out=y)
+    a = np.multiply(2.0, a, out=a)
+    a /= y  # tau_exp = 2 a / (w0 + sqrt(w0^2 + 2 alpha a)), RotorPhase.delay_at_angle
+    a -= tau
+    np.multiply(om * float(tip_radius_m), a, out=out)
+    return om
 
 
 def _spectrum_matrices(g: Geometry, eo: int) -> tuple[np.ndarray, np.ndarray, int]:
