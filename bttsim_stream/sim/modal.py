@@ -806,9 +806,8 @@ class EnvelopeIntegrator:
         keep_modal : bool
             Keep the modal envelopes in the result (for tests).
         out : ndarray, shape (2, n_exc, 2, n - first, n_blades * r), optional
-            Receives ``G`` and ``dG`` (real and imaginary parts) at ``t_grid[first:]``, each
-            ``(n - first, n_blades * r)`` plane contiguous (written by the matrix products
-            themselves); nothing is returned then.
+            Receives ``G`` and ``dG`` (real and imaginary parts) at ``t_grid[first:]`` (any
+            strides); nothing is returned then.
         first : int
             First grid point written to ``out``.
 
@@ -839,14 +838,19 @@ class EnvelopeIntegrator:
         self.t = float(t_grid[-1])
         if out is not None:
             # G = a_+ - conj(a_-) and dG = (mu a + c)_+ - conj(mu a + c)_-, formed straight
-            # into contiguous real and imaginary planes for the matrix products
+            # into contiguous real and imaginary planes for the matrix products; the products
+            # write a contiguous array (in cache) that is then copied into ``out``: written
+            # straight into a strided ``out`` out of cache, the small-matrix kernels' stores
+            # cost several times the product (same values: the same products)
             D = mu[first:] * A[first:]
             D += self._c_s[None]
+            tmp = np.empty((out.shape[3], self.W.shape[1]))
             for g, X in enumerate((A[first:], D)):
                 for m in range(n_exc):
                     Xp, Xm = X[:, :, m], X[:, :, n_exc + m]
-                    np.matmul(np.subtract(Xp.real, Xm.real), self.W, out=out[g, m, 0])
-                    np.matmul(np.add(Xp.imag, Xm.imag), self.W, out=out[g, m, 1])
+                    for c, Y in enumerate((np.subtract(Xp.real, Xm.real), np.add(Xp.imag, Xm.imag))):
+                        np.matmul(Y, self.W, out=tmp)
+                        out[g, m, c] = tmp
             return None
         D = mu * A
         D += self._c_s[None]
