@@ -538,7 +538,7 @@ class RunUpSimulator:
         self.timing["envelopes_s"] += time.process_time() - t_clock
         t_clock = time.process_time()
         # 2. Hermite coefficients of each crossing's blade envelope, crossings last
-        i = np.clip(np.searchsorted(env_t, t_r, side="right") - 1, 0, env_t.size - 2)
+        i = _clip_index(np.searchsorted(env_t, t_r, side="right") - 1, env_t.size - 2)
         t0 = env_t[i]
         n_exc, r = self.eo.size, self.basis.nodes.shape[0]
         # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
@@ -553,16 +553,22 @@ class RunUpSimulator:
         Gr = eval_planes(CPr, tau)  # (n_exc, r, 2, n) at t_r, no carrier
         dGr = np.multiply(CPr[3], 3.0)
         dGr *= tau
-        dGr += 2.0 * CPr[2]
+        tmp = np.multiply(CPr[2], 2.0)
+        dGr += tmp
         dGr *= tau
         dGr += CPr[1]
-        # Im(G e^{i th}) and Im((G' + i EO Omega G) e^{i th}) at t_r
+        # Im(G e^{i th}) and Im((G' + i EO Omega G) e^{i th}) at t_r (in place, the same
+        # operations in the same order)
+        tmp = tmp[:, :, 0]  # (n_exc, r, n) scratch
         w_r = Gr[:, :, 1] * c0
-        w_r += Gr[:, :, 0] * s0
+        w_r += np.multiply(Gr[:, :, 0], s0, out=tmp)
         dw_r = dGr[:, :, 1] * c0
-        dw_r += dGr[:, :, 0] * s0
+        dw_r += np.multiply(dGr[:, :, 0], s0, out=tmp)
         rate = self.eo[:, None] * om_r if self.omega is None else self.eo[:, None] * om_r + self.omega[:, None]
-        dw_r += rate[:, None, :] * (Gr[:, :, 0] * c0 - Gr[:, :, 1] * s0)
+        d = np.multiply(Gr[:, :, 0], c0, out=dGr[:, :, 0])  # dGr no longer needed
+        d -= np.multiply(Gr[:, :, 1], s0, out=tmp)
+        d *= rate[:, None, :]
+        dw_r += d
         if n_exc > 1:
             w_r, dw_r = w_r.sum(axis=0), dw_r.sum(axis=0)
         else:
@@ -571,7 +577,7 @@ class RunUpSimulator:
         du_r = (self._VT @ dw_r).reshape(nt, 3, -1)
         dz_est = z_ref_t + u_r[:, 2]
         dz_est -= self.z_probe  # (nt, n)
-        k = np.clip(np.sum(dz_est >= 0, axis=0) - 1, 0, nt - 2)  # dz >= 0 for nodes <= k (Eq. 10)
+        k = _clip_index(np.sum(dz_est >= 0, axis=0) - 1, nt - 2)  # dz >= 0 for nodes <= k (Eq. 10)
         # 3. the two candidate nodes k, k+1 of every crossing, from one projection onto the
         # nodes k_min .. k_max + 1 of the batch
         k_lo, k_hi = int(k.min()), int(k.max())
@@ -735,6 +741,13 @@ class RunUpSimulator:
     def __iter__(self) -> Iterator[RevolutionBatch]:
         for n0 in range(0, self.n_revolutions, self.chunk):
             yield self._chunk(np.arange(n0, min(n0 + self.chunk, self.n_revolutions)))
+
+
+def _clip_index(k: np.ndarray, top: int) -> np.ndarray:
+    """Integer indices ``k`` clipped to ``0 .. top`` (``np.clip``'s Python-level checks cost more
+    than the two comparisons on a batch)."""
+    k = np.maximum(k, 0, out=k)
+    return np.minimum(k, top, out=k)
 
 
 def _pair(window, off: np.ndarray, n_off: int) -> np.ndarray:
