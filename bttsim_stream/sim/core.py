@@ -421,11 +421,12 @@ class RunUpSimulator:
         self._dtheta = self.theta_p[:, None] - m.tip_ref[..., 1]  # theta_Pnom - theta_node
         self._pattern: dict = {}
         # offsets of a crossing's envelope values in the buffer (see _envelopes), in the order
-        # (grid point i / i + 1, G / dG, excitation, r, re / im)
+        # (grid point i / i + 1, G / dG, excitation, r, re / im), for a buffer of cap points
         n_exc, nb = self.eo.size, m.n_blades
-        w = 4 * n_exc * nb * r  # values per grid point
         pt, g, mm, j, c = np.ix_(np.arange(2), np.arange(2), np.arange(n_exc), np.arange(r), np.arange(2))
-        self._gather_off = (pt * w + ((g * n_exc + mm) * 2 + c) * (nb * r) + j)[..., None]
+        self._gather_plane = (((g * n_exc + mm) * 2 + c) + 0 * pt + 0 * j)[..., None]
+        self._gather_rest = (pt * (nb * r) + j + 0 * (g + mm + c))[..., None]
+        self._gather_off = None
         # envelope integration block (global grid steps): longer for fewer responding modes
         n_act = max(int(self.integrator.active.size), 1)
         self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 512))
@@ -455,10 +456,11 @@ class RunUpSimulator:
         -------
         t : ndarray, shape (n,)
             Grid times.
-        GD : ndarray, shape (cap, 4 * n_exc, n_blades * r)
-            The buffer: per grid point, envelopes ``G`` then derivatives ``dG``, per
-            excitation, real then imaginary parts, each ``(n_blades, r)``; grid point ``k``
-            of ``t`` is at index ``lo + k``.
+        GD : ndarray, shape (4 * n_exc, cap, n_blades * r)
+            The buffer: planes of envelopes ``G`` then derivatives ``dG``, per excitation,
+            real then imaginary parts, each holding ``(n_blades, r)`` values per grid point
+            (so that the integrator's matrix products write contiguous blocks); grid point
+            ``k`` of ``t`` is at index ``lo + k`` of a plane.
         lo : int
         """
         i_end = min(self.grid.searchsorted(t_end) + 1, self.grid.size - 1)
@@ -470,9 +472,9 @@ class RunUpSimulator:
             self._reserve(n_new, t_start)
             hi = self._hi
             n_exc = self.eo.size
-            # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r), written
-            # by the integrator's matrix products straight into the buffer
-            planes = self._buf[hi:hi + n_new].transpose(1, 0, 2).reshape(2, n_exc, 2, n_new, -1)
+            # (G, dG) x excitation x (re, im) planes of (grid point, blade, r), written by the
+            # integrator's matrix products straight into the buffer, one contiguous block each
+            planes = self._buf[:, hi:hi + n_new].reshape(2, n_exc, 2, n_new, -1)
             self.integrator.advance(t_blk, out=planes[:, :self._n_forced], first=first)
             if self._n_forced < n_exc:  # the flutter carrier's closed-form envelope
                 G, dG = self.nsv.flutter.envelope(t_blk[first:])
@@ -501,12 +503,13 @@ class RunUpSimulator:
         cap = max(2 * (keep + n), 4 * self._block + 8)
         n_exc, r, nb = self.eo.size, self.basis.nodes.shape[0], self.model.n_blades
         if self._buf is None or cap > self._buf_t.size:
-            buf_t, buf = np.empty(cap), np.empty((cap, 4 * n_exc, nb * r))
+            buf_t, buf = np.empty(cap), np.empty((4 * n_exc, cap, nb * r))
+            self._gather_off = self._gather_plane * (cap * nb * r) + self._gather_rest
         else:
             buf_t, buf = self._buf_t, self._buf
         if keep:
             buf_t[:keep] = self._buf_t[lo:hi]
-            buf[:keep] = self._buf[lo:hi]
+            buf[:, :keep] = self._buf[:, lo:hi]
         self._buf_t, self._buf, self._lo, self._hi = buf_t, buf, 0, keep
 
     # -- one chunk -------------------------------------------------------------------------
@@ -544,7 +547,7 @@ class RunUpSimulator:
         # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
         # [G0, dG0, G1, dG1] x (n_exc, r, re/im), crossings last, gathered element by element
         # straight into the layout of the Hermite coefficients (4, n_exc, r, 2, n)
-        idx = ((lo + i) * (4 * n_exc * nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
+        idx = ((lo + i) * (nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
         CPr = hermite_in_place(np.take(GD.reshape(-1), idx).reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
         frame = crossing_frame(self.speed, t0, t_r, self.eo, self.omega)
         phi_r, om_r = frame.phi_ref, frame.om_ref

@@ -839,9 +839,9 @@ class EnvelopeIntegrator:
         if out is not None:
             # G = a_+ - conj(a_-) and dG = (mu a + c)_+ - conj(mu a + c)_-, formed straight
             # into contiguous real and imaginary planes for the matrix products; the products
-            # write a contiguous array (in cache) that is then copied into ``out``: written
-            # straight into a strided ``out`` out of cache, the small-matrix kernels' stores
-            # cost several times the product (same values: the same products)
+            # write each plane of ``out`` directly when it is contiguous, else a contiguous
+            # array that is then copied into it (the small-matrix kernels' strided stores
+            # into memory out of cache cost several times the product; same values)
             D = mu[first:] * A[first:]
             D += self._c_s[None]
             tmp = np.empty((out.shape[3], self.W.shape[1]))
@@ -849,8 +849,11 @@ class EnvelopeIntegrator:
                 for m in range(n_exc):
                     Xp, Xm = X[:, :, m], X[:, :, n_exc + m]
                     for c, Y in enumerate((np.subtract(Xp.real, Xm.real), np.add(Xp.imag, Xm.imag))):
-                        np.matmul(Y, self.W, out=tmp)
-                        out[g, m, c] = tmp
+                        if out[g, m, c].flags.c_contiguous:
+                            np.matmul(Y, self.W, out=out[g, m, c])
+                        else:
+                            np.matmul(Y, self.W, out=tmp)
+                            out[g, m, c] = tmp
             return None
         D = mu * A
         D += self._c_s[None]
