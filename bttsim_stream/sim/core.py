@@ -432,11 +432,12 @@ class RunUpSimulator:
         self._dtheta = self.theta_p[:, None] - m.tip_ref[..., 1]  # theta_Pnom - theta_node
         self._pattern: dict = {}
         # offsets of a crossing's envelope values in the buffer (see _envelopes), in the order
-        # (grid point i / i + 1, G / dG, excitation, r, re / im)
+        # (grid point i / i + 1, G / dG, excitation, r, re / im), for a buffer of cap points
         n_exc, nb = self.eo.size, m.n_blades
-        w = 4 * n_exc * nb * r  # values per grid point
         pt, g, mm, j, c = np.ix_(np.arange(2), np.arange(2), np.arange(n_exc), np.arange(r), np.arange(2))
-        self._gather_off = (pt * w + ((g * n_exc + mm) * 2 + c) * (nb * r) + j)[..., None]
+        self._gather_plane = (((g * n_exc + mm) * 2 + c) + 0 * pt + 0 * j)[..., None]
+        self._gather_rest = (pt * (nb * r) + j + 0 * (g + mm + c))[..., None]
+        self._gather_off = None
         # envelope integration block (global grid steps): longer for fewer responding modes
         n_act = max(int(self.integrator.active.size), 1)
         self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 512))
@@ -466,10 +467,11 @@ class RunUpSimulator:
         -------
         t : ndarray, shape (n,)
             Grid times.
-        GD : ndarray, shape (cap, 4 * n_exc, n_blades * r)
-            The buffer: per grid point, envelopes ``G`` then derivatives ``dG``, per
-            excitation, real then imaginary parts, each ``(n_blades, r)``; grid point ``k``
-            of ``t`` is at index ``lo + k``.
+        GD : ndarray, shape (4 * n_exc, cap, n_blades * r)
+            The buffer: planes of envelopes ``G`` then derivatives ``dG``, per excitation,
+            real then imaginary parts, each holding ``(n_blades, r)`` values per grid point
+            (so that the integrator's matrix products write contiguous blocks); grid point
+            ``k`` of ``t`` is at index ``lo + k`` of a plane.
         lo : int
         """
         i_end = min(self.grid.searchsorted(t_end) + 1, self.grid.size - 1)
@@ -481,9 +483,9 @@ class RunUpSimulator:
             self._reserve(n_new, t_start)
             hi = self._hi
             n_exc = self.eo.size
-            # per grid point: (G, dG) x excitation x (re, im) planes of (blade, r), written
-            # by the integrator's matrix products straight into the buffer
-            planes = self._buf[hi:hi + n_new].transpose(1, 0, 2).reshape(2, n_exc, 2, n_new, -1)
+            # (G, dG) x excitation x (re, im) planes of (grid point, blade, r), written by the
+            # integrator's matrix products straight into the buffer, one contiguous block each
+            planes = self._buf[:, hi:hi + n_new].reshape(2, n_exc, 2, n_new, -1)
             self.integrator.advance(t_blk, out=planes[:, :self._n_forced], first=first)
             if self._n_forced < n_exc:  # the flutter carrier's closed-form envelope
                 G, dG = self.nsv.flutter.envelope(t_blk[first:])
@@ -512,12 +514,13 @@ class RunUpSimulator:
         cap = max(2 * (keep + n), 4 * self._block + 8)
         n_exc, r, nb = self.eo.size, self.basis.nodes.shape[0], self.model.n_blades
         if self._buf is None or cap > self._buf_t.size:
-            buf_t, buf = np.empty(cap), np.empty((cap, 4 * n_exc, nb * r))
+            buf_t, buf = np.empty(cap), np.empty((4 * n_exc, cap, nb * r))
+            self._gather_off = self._gather_plane * (cap * nb * r) + self._gather_rest
         else:
             buf_t, buf = self._buf_t, self._buf
         if keep:
             buf_t[:keep] = self._buf_t[lo:hi]
-            buf[:keep] = self._buf[lo:hi]
+            buf[:, :keep] = self._buf[:, lo:hi]
         self._buf_t, self._buf, self._lo, self._hi = buf_t, buf, 0, keep
 
     # -- one chunk -------------------------------------------------------------------------
@@ -549,13 +552,13 @@ class RunUpSimulator:
         self.timing["envelopes_s"] += time.process_time() - t_clock
         t_clock = time.process_time()
         # 2. Hermite coefficients of each crossing's blade envelope, crossings last
-        i = np.clip(np.searchsorted(env_t, t_r, side="right") - 1, 0, env_t.size - 2)
+        i = _clip_index(np.searchsorted(env_t, t_r, side="right") - 1, env_t.size - 2)
         t0 = env_t[i]
         n_exc, r = self.eo.size, self.basis.nodes.shape[0]
         # (2 [i, i + 1], 2 [G, dG], n_exc, r, 2 [re, im], n): envelope data, crossings last
         # [G0, dG0, G1, dG1] x (n_exc, r, re/im), crossings last, gathered element by element
         # straight into the layout of the Hermite coefficients (4, n_exc, r, 2, n)
-        idx = ((lo + i) * (4 * n_exc * nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
+        idx = ((lo + i) * (nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
         CPr = hermite_in_place(np.take(GD.reshape(-1), idx).reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
         frame = crossing_frame(self.speed, t0, t_r, self.eo, self.omega)
         phi_r, om_r = frame.phi_ref, frame.om_ref
@@ -564,16 +567,22 @@ class RunUpSimulator:
         Gr = eval_planes(CPr, tau)  # (n_exc, r, 2, n) at t_r, no carrier
         dGr = np.multiply(CPr[3], 3.0)
         dGr *= tau
-        dGr += 2.0 * CPr[2]
+        tmp = np.multiply(CPr[2], 2.0)
+        dGr += tmp
         dGr *= tau
         dGr += CPr[1]
-        # Im(G e^{i th}) and Im((G' + i EO Omega G) e^{i th}) at t_r
+        # Im(G e^{i th}) and Im((G' + i EO Omega G) e^{i th}) at t_r (in place, the same
+        # operations in the same order)
+        tmp = tmp[:, :, 0]  # (n_exc, r, n) scratch
         w_r = Gr[:, :, 1] * c0
-        w_r += Gr[:, :, 0] * s0
+        w_r += np.multiply(Gr[:, :, 0], s0, out=tmp)
         dw_r = dGr[:, :, 1] * c0
-        dw_r += dGr[:, :, 0] * s0
+        dw_r += np.multiply(dGr[:, :, 0], s0, out=tmp)
         rate = self.eo[:, None] * om_r if self.omega is None else self.eo[:, None] * om_r + self.omega[:, None]
-        dw_r += rate[:, None, :] * (Gr[:, :, 0] * c0 - Gr[:, :, 1] * s0)
+        d = np.multiply(Gr[:, :, 0], c0, out=dGr[:, :, 0])  # dGr no longer needed
+        d -= np.multiply(Gr[:, :, 1], s0, out=tmp)
+        d *= rate[:, None, :]
+        dw_r += d
         if n_exc > 1:
             w_r, dw_r = w_r.sum(axis=0), dw_r.sum(axis=0)
         else:
@@ -582,7 +591,7 @@ class RunUpSimulator:
         du_r = (self._VT @ dw_r).reshape(nt, 3, -1)
         dz_est = z_ref_t + u_r[:, 2]
         dz_est -= self.z_probe  # (nt, n)
-        k = np.clip(np.sum(dz_est >= 0, axis=0) - 1, 0, nt - 2)  # dz >= 0 for nodes <= k (Eq. 10)
+        k = _clip_index(np.sum(dz_est >= 0, axis=0) - 1, nt - 2)  # dz >= 0 for nodes <= k (Eq. 10)
         # 3. the two candidate nodes k, k+1 of every crossing, from one projection onto the
         # nodes k_min .. k_max + 1 of the batch
         k_lo, k_hi = int(k.min()), int(k.max())
@@ -756,6 +765,13 @@ def _family_curves(model) -> dict:
         return {"family_speed_rad_s": None, "family_freq_hz_at_speed": None}
     return {"family_speed_rad_s": np.array(e["speed_rad_s"], float),
             "family_freq_hz_at_speed": np.array(e["campbell_freq_hz_at_speed"], float)}
+
+
+def _clip_index(k: np.ndarray, top: int) -> np.ndarray:
+    """Integer indices ``k`` clipped to ``0 .. top`` (``np.clip``'s Python-level checks cost more
+    than the two comparisons on a batch)."""
+    k = np.maximum(k, 0, out=k)
+    return np.minimum(k, top, out=k)
 
 
 def _pair(window, off: np.ndarray, n_off: int) -> np.ndarray:

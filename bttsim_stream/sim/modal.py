@@ -822,9 +822,8 @@ class EnvelopeIntegrator:
         keep_modal : bool
             Keep the modal envelopes in the result (for tests).
         out : ndarray, shape (2, n_exc, 2, n - first, n_blades * r), optional
-            Receives ``G`` and ``dG`` (real and imaginary parts) at ``t_grid[first:]``, each
-            ``(n - first, n_blades * r)`` plane contiguous (written by the matrix products
-            themselves); nothing is returned then.
+            Receives ``G`` and ``dG`` (real and imaginary parts) at ``t_grid[first:]`` (any
+            strides); nothing is returned then.
         first : int
             First grid point written to ``out``.
 
@@ -855,14 +854,22 @@ class EnvelopeIntegrator:
         self.t = float(t_grid[-1])
         if out is not None:
             # G = a_+ - conj(a_-) and dG = (mu a + c)_+ - conj(mu a + c)_-, formed straight
-            # into contiguous real and imaginary planes for the matrix products
+            # into contiguous real and imaginary planes for the matrix products; the products
+            # write each plane of ``out`` directly when it is contiguous, else a contiguous
+            # array that is then copied into it (the small-matrix kernels' strided stores
+            # into memory out of cache cost several times the product; same values)
             D = mu[first:] * A[first:]
             D += self._c_s[None]
+            tmp = np.empty((out.shape[3], self.W.shape[1]))
             for g, X in enumerate((A[first:], D)):
                 for m in range(n_exc):
                     Xp, Xm = X[:, :, m], X[:, :, n_exc + m]
-                    np.matmul(np.subtract(Xp.real, Xm.real), self.W, out=out[g, m, 0])
-                    np.matmul(np.add(Xp.imag, Xm.imag), self.W, out=out[g, m, 1])
+                    for c, Y in enumerate((np.subtract(Xp.real, Xm.real), np.add(Xp.imag, Xm.imag))):
+                        if out[g, m, c].flags.c_contiguous:
+                            np.matmul(Y, self.W, out=out[g, m, c])
+                        else:
+                            np.matmul(Y, self.W, out=tmp)
+                            out[g, m, c] = tmp
             return None
         D = mu * A
         D += self._c_s[None]

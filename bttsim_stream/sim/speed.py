@@ -67,7 +67,8 @@ class SpeedProfile:
 
     def segment(self, t) -> np.ndarray:
         """Index of the segment holding each time (clipped to the profile)."""
-        return np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, self.t_s.size - 2)
+        k = np.searchsorted(self.t_s, t, side="right") - 1
+        return np.minimum(np.maximum(k, 0), self.t_s.size - 2)
 
     def state(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rotor angle (rad), speed (rad/s) and acceleration (rad/s^2) at times ``t``."""
@@ -126,7 +127,7 @@ class SpeedProfile:
     def time_at_angle(self, phi) -> np.ndarray:
         """Exact time at which the rotor angle reaches ``phi`` (inverse of :meth:`angle`)."""
         phi = np.asarray(phi, float)
-        k = np.clip(np.searchsorted(self._phi, phi, side="right") - 1, 0, self.t_s.size - 2)
+        k = np.minimum(np.maximum(np.searchsorted(self._phi, phi, side="right") - 1, 0), self.t_s.size - 2)
         d = phi - self._phi[k]
         w = self.omega[k]
         a = self._alpha[k]

@@ -265,9 +265,9 @@ def eval_local(lm: LocalMotion, speed: SpeedProfile, t: np.ndarray, derivative: 
         cd, sd = np.cos(th), np.sin(th)
         c0, s0 = lm.rot[m]
         cr = cd * c0
-        cr -= sd * s0
-        ci = sd * c0
-        ci += cd * s0  # exp(i EO phi(t)) = exp(i EO phi(t_ref)) exp(i EO dphi)
+        cr -= np.multiply(sd, s0, out=th)  # th no longer needed
+        ci = np.multiply(sd, c0, out=sd)
+        ci += np.multiply(cd, s0, out=cd)  # exp(i EO phi(t)) = exp(i EO phi(t_ref)) exp(i EO dphi)
         cr, ci = cr[:, None, :], ci[:, None, :]
         X = P3 * tau
         X += P2
@@ -277,18 +277,23 @@ def eval_local(lm: LocalMotion, speed: SpeedProfile, t: np.ndarray, derivative: 
         X += P0
         Xr, Xi = X[:, :, 0], X[:, :, 1]
         v = Xi * cr
-        v += Xr * ci  # Im(X e^{i th})
+        tmp = Xr * ci
+        v += tmp  # Im(X e^{i th})
         val = v if val is None else val + v
         if derivative:
             Xd = (3.0 * tau) * P3
             Xd += 2.0 * P2
             Xd *= tau
             Xd += P1
-            # d/dt Im(X e^{i th}) = Im((X' + i EO Omega X) e^{i th})
+            # d/dt Im(X e^{i th}) = Im((X' + i EO Omega X) e^{i th}), in place, the same
+            # operations in the same order
             d = Xd[:, :, 1] * cr
-            d += Xd[:, :, 0] * ci
+            d += np.multiply(Xd[:, :, 0], ci, out=tmp)
             rate = lm.eo[m] * om if lm.omega is None else lm.eo[m] * om + lm.omega[m]
-            d += rate[:, None, :] * (Xr * cr - Xi * ci)
+            w = np.multiply(Xr, cr, out=Xd[:, :, 0])
+            w -= np.multiply(Xi, ci, out=tmp)
+            w *= rate[:, None, :]
+            d += w
             der = d if der is None else der + d
     return val, der, dphi, om
 
