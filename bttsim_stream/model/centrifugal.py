@@ -35,7 +35,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
-from scipy.optimize import linear_sum_assignment
 
 from .beam import IN_PLANE, beam_axial_force, beam_geometric_stiffness, beam_spin_mass
 from .bladed_disk import (BladedDiskDesign, CyclicSolution, SectorModel, _cyclic_matrices, _fix_phase, _rz,
@@ -297,6 +296,8 @@ def _track(K, G, M, n_ev: int, prev: np.ndarray, w2_lo: float, w2_hi: float, dep
     below :data:`MAC_REFINE` is tracked through its midpoint (in ``Omega^2``, up to
     :data:`MAX_REFINE` halvings), so that a veering or crossing inside it is followed.
     """
+    from scipy.optimize import linear_sum_assignment  # only a speed-dependent build needs it
+
     w2, V = sla.eigh(K + w2_hi * G, M, subset_by_index=[0, n_ev - 1], driver="gvx")
     V = _align_degenerate(w2, V, prev, M)
     overlap = prev.conj().T @ (M @ V)                      # (n_families, n_ev)
