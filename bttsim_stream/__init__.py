@@ -11,4 +11,10 @@ Conventions used across the package (written down once):
 * Axis order of event arrays: (revolution, blade, probe).
 """
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _dist_version
+
+try:  # one source of the version: the installed package's metadata (pyproject.toml)
+    __version__ = _dist_version("bttsim-stream")
+except _PackageNotFoundError:  # a source tree on sys.path that was never installed
+    __version__ = "0+unknown"

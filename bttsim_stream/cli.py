@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import scenario
+from . import __version__, scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
 from .bus.certs import IDENTITIES, generate_certificates
@@ -345,6 +345,7 @@ def _cmd_validate(args: argparse.Namespace) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
+    parser.add_argument("--version", action="version", version=f"bttsim {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("run", help="the main job: simulator, processor, recorder and viewer on Zenoh")

@@ -58,7 +58,7 @@ def main(argv=None) -> int:
         from importlib.metadata import version
         v = version("grpcio-tools")
     except ImportError:
-        print("gen_proto: grpcio-tools is not installed (pip install 'grpcio-tools==1.71.*')",
+        print("gen_proto: grpcio-tools is not installed (pip install -e '.[codegen]')",
               file=sys.stderr)
         return 2
     if not v.startswith(PINNED_GRPC_TOOLS):

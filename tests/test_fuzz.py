@@ -37,7 +37,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream import cli
-from bttsim_stream.bus import keys
+from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus._gen.bttsim.v1 import bttsim_pb2 as pb
 from bttsim_stream.bus.recording import McapRecorder, read_recording
 from bttsim_stream.bus.stream import Message
@@ -501,7 +501,7 @@ def mutate_proto(rng: random.Random, msg) -> str:
     fields = [f for f in msg.DESCRIPTOR.fields]
     f = rng.choice(fields)
     if f.type == f.TYPE_MESSAGE:
-        if f.label == f.LABEL_REPEATED:
+        if codec.is_repeated(f):
             items = getattr(msg, f.name)
             if len(items) and rng.random() < 0.7:
                 return f"{f.name}[].{mutate_proto(rng, items[rng.randrange(len(items))])}"
@@ -513,7 +513,7 @@ def mutate_proto(rng: random.Random, msg) -> str:
                 return f"{f.name}: one repeated"
             return f"{f.name}: empty"
         return f"{f.name}.{mutate_proto(rng, getattr(msg, f.name))}"
-    if f.label == f.LABEL_REPEATED:
+    if codec.is_repeated(f):
         items = getattr(msg, f.name)
         op = rng.randrange(4)
         if op == 0:

@@ -62,6 +62,7 @@ from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 
 __all__ = [
     "MAX_PAYLOAD_BYTES",
+    "is_repeated",
     "PROTO_FILE",
     "Header",
     "Decoded",
@@ -850,9 +851,27 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
 
 
 @functools.lru_cache(maxsize=None)
+def _repeated_fields() -> frozenset[tuple[str, str]]:
+    """(message, field) names of every repeated field in the schema.
+
+    Read from the schema's own ``FileDescriptorProto`` (public in every protobuf release we
+    support): the runtime descriptors changed between releases (protobuf 7 removed
+    ``FieldDescriptor.label``; ``is_repeated`` appeared only in 6.x).
+    """
+    fdp = descriptor_pb2.FileDescriptorProto.FromString(_pb.DESCRIPTOR.serialized_pb)
+    repeated = descriptor_pb2.FieldDescriptorProto.LABEL_REPEATED
+    return frozenset((m.name, f.name) for m in fdp.message_type for f in m.field if f.label == repeated)
+
+
+def is_repeated(field) -> bool:
+    """True if the schema's field descriptor ``field`` is a repeated field (any protobuf release)."""
+    return (field.containing_type.name, field.name) in _repeated_fields()
+
+
+@functools.lru_cache(maxsize=None)
 def _tag_of(message_name: str, field: str) -> int:
     f = getattr(_pb, message_name).DESCRIPTOR.fields_by_name[field]
-    wire = 2 if (f.type in (f.TYPE_MESSAGE, f.TYPE_STRING, f.TYPE_BYTES) or f.label == f.LABEL_REPEATED) else (
+    wire = 2 if (f.type in (f.TYPE_MESSAGE, f.TYPE_STRING, f.TYPE_BYTES) or is_repeated(f)) else (
         1 if f.type == f.TYPE_DOUBLE else 0)
     return (f.number << 3) | wire
 
