@@ -309,3 +309,25 @@ def test_write_all_is_message_by_message_byte_for_byte(messages, tmp_path, chunk
             rec.write_all(messages[k:k + 9])
         assert rec.n_messages == len(messages)
     assert bulk.read_bytes() == one.read_bytes()
+
+
+@pytest.mark.parametrize("chunk_size", [4096, mcap_io.DEFAULT_CHUNK_SIZE], ids=["small-chunks", "default"])
+def test_bulk_writer_is_byte_identical_to_the_public_api(messages, tmp_path, chunk_size):
+    """``write_all`` fills mcap's writer state in bulk; ``write_message`` goes through mcap's public
+    ``add_message``. Both must give the same file, byte for byte (chunks, indexes, statistics),
+    and ``write_all`` must take the public path where the writer's internals are missing."""
+    bulk = _record(tmp_path / "bulk.mcap", messages, chunk_size)
+    with McapRecorder(tmp_path / "public.mcap", chunk_size=chunk_size) as rec:
+        rec.write_run_metadata(**RUN_META)
+        for m in messages:
+            rec.write_message(m)
+    assert bulk.read_bytes() == (tmp_path / "public.mcap").read_bytes()
+
+    class Private(McapRecorder):  # a writer without mcap 1.6's internals: the public path
+        def _append_records(self, msgs):
+            return False
+
+    with Private(tmp_path / "fallback.mcap", chunk_size=chunk_size) as rec:
+        rec.write_run_metadata(**RUN_META)
+        rec.write_all(messages)
+    assert bulk.read_bytes() == (tmp_path / "fallback.mcap").read_bytes()
