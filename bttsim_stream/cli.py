@@ -58,11 +58,11 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
             raise BttsimError(f"{args.check}: [probes] angles_deg: {exc}") from None
         cns = ", ".join(f"CN {cn:.3g} at {label}" for label, cn in rows)
         try:  # the model too: an absurd force is refused here, not after a run
-            amp = check_tip_amplitude(scn, load_scenario_model(scn))
+            bound = check_tip_amplitude(scn, load_scenario_model(scn))
         except BttsimError as exc:
             raise BttsimError(f"{args.check}: {exc}") from None
         print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns}; "
-              f"tip amplitude up to {amp * 1e3:.3g} mm)")
+              f"{bound.describe()})")
         for w in warns:
             print(f"bttsim: warning: {args.check}: {w}", file=sys.stderr)
         return
