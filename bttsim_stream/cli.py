@@ -58,11 +58,11 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
             raise BttsimError(f"{args.check}: [probes] angles_deg: {exc}") from None
         cns = ", ".join(f"CN {cn:.3g} at {label}" for label, cn in rows)
         try:  # the model too: an absurd force is refused here, not after a run
-            amp = check_tip_amplitude(scn, load_scenario_model(scn))
+            bound = check_tip_amplitude(scn, load_scenario_model(scn))
         except BttsimError as exc:
             raise BttsimError(f"{args.check}: {exc}") from None
         print(f"{args.check}: ok ({scn.rotor.n_blades} blades, {len(scn.probes.angles_deg)} probes; {cns}; "
-              f"tip amplitude up to {amp * 1e3:.3g} mm)")
+              f"{bound.describe()})")
         for w in warns:
             print(f"bttsim: warning: {args.check}: {w}", file=sys.stderr)
         return
@@ -82,8 +82,13 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
     if not eos or any(e < 1 or e > 1000 for e in eos):
         raise BttsimError(f"--eo must be engine orders in [1, 1000], got {args.eo!r}")
     model = load_model(args.model)
+    if args.scenario:
+        scn, source = scenario.load_scenario(args.scenario), f"scenario {args.scenario}"
+    else:
+        scn, source = scenario.Scenario(), "the default scenario (--scenario for another)"
+    forced = [(int(e.engine_order), int(e.nodal_diameter)) for e in scn.excitation]
     print(family_table(model), flush=True)
-    print(campbell_table(model, eos), flush=True)
+    print(campbell_table(model, eos, excitations=forced, source=source), flush=True)
     png = Path(args.png) if args.png else Path(args.model).with_suffix(".png")
     try:
         plot_family_frequencies(model, png, eos)
@@ -392,6 +397,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", help="model file (.npz)")
     s.add_argument("--png", help="frequency vs ND and Campbell plot (default: MODEL.png)")
     s.add_argument("--eo", help="engine orders of the Campbell lines and crossings, comma-separated (default 1..12)")
+    s.add_argument("--scenario", metavar="SCENARIO.toml",
+                   help="also list the crossings this scenario's forces excite (their own ND; default: the "
+                        "default scenario's EO 8 x ND 1)")
     s.set_defaults(func=_cmd_model_show)
     i = msub.add_parser("import", help="a cyclic-symmetry FE sector solution (CalculiX .frd, neutral .npz) "
                                        "to the model file",

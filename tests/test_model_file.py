@@ -178,6 +178,37 @@ def test_cli_show_without_matplotlib_prints_the_table(model_file, tmp_path, caps
     assert not png.exists()
 
 
+def test_cli_show_lists_the_crossing_the_scenario_force_excites(model, model_file, tmp_path, capsys, monkeypatch):
+    """EO 8 aliases to ND 8 (2606 rpm, listed as such), but the default scenario's force is a
+    travelling wave of ND 1 (Eq. 5-7): ``model show`` lists EO 8 x ND 1 of family 1 at the ND 1
+    pair's frequency (the run's resonance, about 2580 rpm) and says why; ``--scenario`` takes
+    another scenario's ND; a missing scenario is a one-line error (exit 2)."""
+    import re
+
+    from bttsim_stream import cli
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # the table only
+    assert cli.main(["model", "show", str(model_file)]) == 0
+    out = capsys.readouterr().out
+    f_nd1 = float(np.mean(model.freq_hz[(model.family == 0) & (model.nodal_diameter == 1)]))
+    rpm = 60.0 * f_nd1 / 8.0
+    assert abs(rpm - 2580.0) < 3.0
+    forced = out[out.index("crossings the forces of the default scenario"):]
+    (got,) = re.findall(r"EO  8 x ND  1, family 1:\s+([0-9.]+) rpm", forced)
+    assert float(got) == pytest.approx(rpm, abs=0.1)
+    assert "EO  8 x ND  8, family 1:   2606.0 rpm" in out[:out.index("crossings the forces")]
+    assert "not by its EO" in forced and "ND = EO mod N" in forced
+    scn = tmp_path / "nd3.toml"
+    scn.write_text("[[excitation]]\nengine_order = 7\nnodal_diameter = 3\n")
+    assert cli.main(["model", "show", str(model_file), "--scenario", str(scn)]) == 0
+    forced = capsys.readouterr().out.split(f"crossings the forces of scenario {scn}")[1]
+    f_nd3 = float(np.mean(model.freq_hz[(model.family == 0) & (model.nodal_diameter == 3)]))
+    (got,) = re.findall(r"EO  7 x ND  3, family 1:\s+([0-9.]+) rpm", forced)
+    assert float(got) == pytest.approx(60.0 * f_nd3 / 7.0, abs=0.1)
+    assert cli.main(["model", "show", str(model_file), "--scenario", str(tmp_path / "none.toml")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
 @pytest.mark.parametrize("content", [b"garbage", b"PK\x03\x04broken"], ids=["text", "broken-zip"])
 def test_cli_bad_model_exits_2_with_one_line(content, tmp_path):
     bad = tmp_path / "bad.npz"

@@ -158,23 +158,85 @@ def test_probe_outside_the_tip_nodes_is_refused(model):
         RunUpSimulator(scn, model)
 
 
-def test_predicted_tip_amplitude_bounds_the_run_and_refuses_absurd_forces(model, default_run):
-    """The upfront estimate (steady resonance, sweep-capped) is the simulated truth's largest
-    P_nom amplitude to 1 %, and a force that would move the tip beyond 5 % of the radius is
-    refused before anything runs (issue 16)."""
+def test_tip_amplitude_bound_holds_on_the_default_run_and_refuses_absurd_forces(model, default_run):
+    """The upfront bound is above the simulated truth (the pk-pk d_eqv at P_nom, Eq. 3-4, and
+    the P_nom displacement) and within 1.6 times it, and a force that could move a tip node
+    beyond 5 % of the radius is refused before anything runs."""
     t = default_run.truth
-    simulated = float(np.nanmax(np.hypot(t.d_tang_m, t.d_z_m)))
-    predicted = check_tip_amplitude(Scenario(), model)
-    assert simulated <= predicted * 1.001 and predicted == pytest.approx(simulated, rel=0.01)
+    bound = check_tip_amplitude(Scenario(), model)
+    truth_pkpk = np.nanmax(t.d_eqv_pkpk_m, axis=0)  # per blade
+    assert np.all(truth_pkpk <= bound.deqv_pkpk_m)
+    ratio = float(np.max(bound.deqv_pkpk_m) / np.max(truth_pkpk))
+    assert 1.0 <= ratio <= 1.6, ratio
+    assert float(np.nanmax(np.hypot(t.d_tang_m, t.d_z_m))) <= float(np.max(bound.tip_0pk_m))
     for force in (1e3, 1e6, 1e300):
         with pytest.raises(BttsimError, match=r"above 5% of the tip radius"):
             RunUpSimulator(scenario_from_dict({"excitation": [{"amplitude_n": force}]}), model)
-    # undamped: a ramp through resonance stays finite (sweep-limited), a dwell on it does not
+    # undamped: a ramp through resonance stays finite (sweep-limited), a dwell on it grows
+    # linearly (5 s here: about 100 times the damped resonance)
     undamped = build_model(damping_beta_s=0.0)
     ramp = scenario_from_dict({"speed": {"start_rpm": 2450.0, "end_rpm": 2700.0, "duration_s": 1.0}})
-    assert check_tip_amplitude(ramp, undamped) < 0.05 * 0.19
+    assert np.max(check_tip_amplitude(ramp, undamped).tip_0pk_m) < 0.05 * 0.19
     rpm = float(undamped.freq_hz[(undamped.family == 0) & (undamped.nodal_diameter == 1)][0]) * 60.0 / 8.0
     dwell = scenario_from_dict({"speed": {"start_rpm": 2450.0, "segments": [{"duration_s": 1.0, "end_rpm": rpm},
                                                                            {"duration_s": 5.0, "end_rpm": rpm}]}})
-    with pytest.raises(BttsimError, match="tip amplitude"):
+    with pytest.raises(BttsimError, match="tip amplitude may reach"):
         check_tip_amplitude(dwell, undamped)
+
+
+def _ramp(a, b, duration_s, **more):
+    return dict({"speed": {"start_rpm": a, "end_rpm": b, "duration_s": duration_s}}, **more)
+
+
+BOUND_CASES = {
+    "eo7-nd3": (_ramp(2850.0, 3050.0, 8.0, excitation=[{"engine_order": 7, "nodal_diameter": 3}]), 1.6),
+    "mistuned": (_ramp(2450.0, 2700.0, 8.0, model={"stiffness_std": 0.01}), 4.0),
+    "fast-sweep": (_ramp(2450.0, 2700.0, 0.4), 1.8),
+    "two-excitations-mistuned": (_ramp(2500.0, 2700.0, 2.0, model={"stiffness_std": 0.005}, excitation=[
+        {"engine_order": 8, "nodal_diameter": 1},
+        {"engine_order": 8, "nodal_diameter": 14, "amplitude_n": 1.0, "node": "trailing_edge",
+         "direction": [0.0, 1.0, 0.0]}]), 3.5),
+    "undamped-ramp": (_ramp(2450.0, 2700.0, 1.0, model={"damping_beta_s": 0.0}), 1.9),
+    "flutter-example": ("examples/flutter.toml", 1.5),
+    "rotating-stall-example": ("examples/rotating_stall.toml", 1.8),
+    "resonance-window-recording": ("recordings/resonance_window.toml", 1.6),
+}
+
+
+@pytest.mark.parametrize("case", list(BOUND_CASES), ids=list(BOUND_CASES))
+def test_tip_amplitude_bound_is_above_the_simulated_truth(case):
+    """Per blade, the largest pk-pk d_eqv at P_nom of the simulated truth (the envelope of the
+    engine-order response, and twice the largest sampled |d_eqv|, which also holds the
+    non-synchronous response) never exceeds the bound; the largest is within the case's
+    factor of it (measured: 1.44, 3.60, 1.62, 3.06, 1.69, 1.29, 1.54, 1.44; the mistuned
+    wheels' modes, summed in absolute value, make the loosest)."""
+    import pathlib
+
+    from bttsim_stream.scenario import load_scenario
+    from bttsim_stream.sim.core import load_scenario_model, tip_amplitude_bound
+
+    spec, factor = BOUND_CASES[case]
+    if isinstance(spec, str):
+        scn = load_scenario(pathlib.Path(__file__).resolve().parents[1] / spec)
+    else:
+        scn = scenario_from_dict(spec)
+    m = load_scenario_model(scn)
+    bound = tip_amplitude_bound(scn, m)
+    t = collect(RunUpSimulator(scn, m)).truth
+    truth = np.maximum(np.nanmax(t.d_eqv_pkpk_m, axis=0), 2.0 * np.nanmax(np.abs(t.d_eqv_m), axis=(0, 2)))
+    assert np.all(truth <= bound.deqv_pkpk_m), np.min(bound.deqv_pkpk_m / truth)
+    assert float(np.nanmax(np.hypot(t.d_tang_m, t.d_z_m))) <= float(np.max(bound.tip_0pk_m))
+    ratio = float(np.max(bound.deqv_pkpk_m) / np.max(truth))
+    assert ratio <= factor, ratio
+
+
+def test_euler_chord_is_the_longest_chord_of_the_cornu_spiral():
+    from scipy.special import fresnel
+
+    from bttsim_stream.sim.modal import EULER_CHORD
+
+    x = np.linspace(-6.0, 6.0, 6001)
+    s, c = fresnel(x)
+    z = c + 1j * s
+    longest = max(float(np.max(np.abs(z[i] - z))) for i in range(0, x.size, 3))
+    assert longest <= EULER_CHORD < longest + 1e-3

@@ -335,12 +335,13 @@ def test_tip_amplitude_check_sees_the_shifted_resonance(one_family):
     m = southwell_model(m0, np.linspace(0.0, TOP, 3), 6.0)
     case = _window(2690.0, 1.0, "steady", rate=40.0)
     scn = scenario_from_dict(case)
-    amp = check_tip_amplitude(scn, m)
+    amp = float(np.max(check_tip_amplitude(scn, m).tip_0pk_m))
     om = np.array([_resonance_rpm(m0.freq_hz[np.flatnonzero(m0.nodal_diameter == 1)[0]], kappa=6.0) * RPM])
     peak = np.max(np.linalg.norm(_quasi_steady_u(m, scn.excitation, om), axis=-1))
-    print(amp, peak, check_tip_amplitude(scn, m0))
-    assert peak * 0.99 <= amp <= peak * 1.2
-    assert amp > 3 * check_tip_amplitude(scn, m0)
+    amp0 = float(np.max(check_tip_amplitude(scn, m0).tip_0pk_m))
+    print(amp, peak, amp0)
+    assert peak * 0.99 <= amp <= peak * 1.6  # any tip node, the ND 1 pair's modes summed in absolute value
+    assert amp > 3 * amp0
     loud = scenario_from_dict(dict(case, excitation=[{"engine_order": 8, "nodal_diameter": 1, "amplitude_n": 40.0}]))
     with pytest.raises(BttsimError, match="lower the force"):
         check_tip_amplitude(loud, m)

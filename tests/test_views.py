@@ -421,6 +421,24 @@ def test_log_recording_with_processing_messages(processed_mcap, tmp_path):
 
 
 @pytest.mark.integration
+@pytest.mark.unit
+def test_campbell_legend_says_which_nd_the_force_excites(short_run):
+    """EO 8 aliases to ND 8 (2606 rpm), but the scenario's travelling wave is ND 1: the legend
+    and the crossing (family 1 at ND 1, about 2579 rpm, where the run resonates) say ND 1."""
+    info = _run_info(short_run)
+    lay = CampbellLayout(info)
+    frame = PlotFrame(None, paths.CAMPBELL, (0.0, lay.x_top_rpm), (0.0, lay.f_top_hz), x_label=lambda x: f"{x:g} rpm",
+                      y_label=lambda f: f"{f:g} Hz")
+    lay.place(frame)
+    texts = [t for t, _, _ in lay.labels]
+    assert "force: EO 8 x ND 1" in texts, texts
+    (speed, f, text), = [c for c in lay.crossings if abs(c[0] - 2580.0) < 5.0]
+    assert text.startswith("EO 8 x ND 1:")
+    np.testing.assert_allclose(f, info.family_freq_hz[0, 1], rtol=1e-9)
+    two = CampbellLayout(_run_info(short_run, engine_orders=(8, 16), nodal_diameters=(1, 28)))
+    assert two.legend == "force: EO 8 x ND 1, EO 16 x ND -1"
+
+
 def test_campbell_is_drawn_from_the_run_metadata_alone(short_mcap, tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the views rebuilt the model or parsed the scenario")

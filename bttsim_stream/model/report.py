@@ -172,8 +172,14 @@ class Crossing:
     freq_hz: float
 
 
-def campbell_crossings(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS) -> list[Crossing]:
+def campbell_crossings(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS,
+                       nodal_diameters=None) -> list[Crossing]:
     """Every crossing of the given engine orders with every family, by speed.
+
+    ``nodal_diameters`` (one per engine order, signed or ``0 .. N - 1``, folded to
+    ``0 .. N // 2``): the ND each engine order's force excites, as a scenario sets it with the
+    travelling-wave phase ``2 pi (b - 1) N_ND / N_b`` (Eq. 5-7); None: the classic aliasing
+    ``ND = EO mod N`` (folded), what a force fixed in the casing excites.
 
     A speed-dependent model: within its speed range, between two sampled speeds the squared
     frequency taken linear in ``Omega^2`` (exact to first order in the prestress; the samples
@@ -181,9 +187,13 @@ def campbell_crossings(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS) -
     """
     speeds, table = campbell_data(model)
     N = model.n_blades
+    if nodal_diameters is None:
+        pairs = {(int(e), excited_nodal_diameter(e, N)) for e in engine_orders if int(e) > 0}
+    else:
+        pairs = {(int(e), excited_nodal_diameter(n, N)) for e, n in zip(engine_orders, nodal_diameters)
+                 if int(e) > 0}
     out = []
-    for eo in sorted({int(e) for e in engine_orders if int(e) > 0}):
-        nd = excited_nodal_diameter(eo, N)
+    for eo, nd in sorted(pairs):
         c = eo / (2.0 * np.pi)  # Hz per rad/s
         for f in range(table.shape[1]):
             F = table[:, f, nd]
@@ -202,9 +212,15 @@ def campbell_crossings(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS) -
     return sorted(out, key=lambda x: (x.family, x.rpm))
 
 
-def campbell_table(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS, families: int = 2) -> str:
+def campbell_table(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS, families: int = 2,
+                   excitations=None, source: str = "the scenario") -> str:
     """Text: the families' frequency range at the model's lowest and highest speed, and the
-    crossings of ``engine_orders`` with the first ``families`` families."""
+    crossings of ``engine_orders`` with the first ``families`` families.
+
+    ``engine_orders`` are listed with the ND each aliases to (``EO mod N``, folded);
+    ``excitations``, a sequence of ``(engine_order, nodal_diameter)`` (a scenario's
+    ``[[excitation]]``, whose travelling-wave ND is set independently of the EO, Eq. 5-7),
+    adds the crossings those forces excite, introduced as ``source``."""
     speeds, table = campbell_data(model)
     rpm = 30.0 * speeds / math.pi
     lines = ["", "Campbell diagram (EO n excites ND n mod N, folded):"]
@@ -228,6 +244,18 @@ def campbell_table(model: ModalModel, engine_orders=DEFAULT_ENGINE_ORDERS, famil
     for c in cross:
         lines.append(f"    EO {c.engine_order:2d} x ND {c.nodal_diameter:2d}, family {c.family + 1}: "
                      f"{c.rpm:8.1f} rpm, {c.freq_hz:8.2f} Hz")
+    if excitations:
+        eos = [int(e) for e, _ in excitations]
+        nds = [int(n) for _, n in excitations]
+        lines.append(f"  crossings the forces of {source} excite (their own ND):")
+        fc = [c for c in campbell_crossings(model, eos, nds) if c.family < families]
+        if not fc:
+            lines.append("    none")
+        for c in fc:
+            lines.append(f"    EO {c.engine_order:2d} x ND {c.nodal_diameter:2d}, family {c.family + 1}: "
+                         f"{c.rpm:8.1f} rpm, {c.freq_hz:8.2f} Hz")
+        lines.append("  note: a force's ND is set by its travelling-wave phase 2 pi (b-1) N_ND / N_b (Eq. 5-7), "
+                     "not by its EO; the list above assumes ND = EO mod N (folded), as a force fixed in space gives")
     return "\n".join(lines)
 
 

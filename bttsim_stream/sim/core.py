@@ -21,7 +21,8 @@ from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
 from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, models_at_speeds
-from .modal import TRANSIENT_TOL_S, EnvelopeIntegrator, GridPoints, modal_forcing, steady_tip_amplitude, tip_basis
+from .modal import (TRANSIENT_TOL_S, EnvelopeIntegrator, GridPoints, modal_forcing, modal_response_bound,
+                    tip_basis)
 from .nsv import build_nsv
 from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
 from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
@@ -31,7 +32,7 @@ from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermi
                   project_planes, stage_b)
 
 __all__ = ["CROSSINGS_PER_CHUNK", "RunInfo", "Truth", "RevolutionBatch", "RunUpSimulator", "load_scenario_model",
-           "check_tip_amplitude", "collect"]
+           "TipAmplitudeBound", "tip_amplitude_bound", "check_tip_amplitude", "collect"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -243,41 +244,86 @@ def load_scenario_model(scn):
     return load_model(scn.model.source)
 
 
-def check_tip_amplitude(scn, model, nsv=None) -> float:
-    """Refuse a scenario whose tip amplitude would leave the linear model's validity.
+@dataclass(frozen=True, slots=True, eq=False)
+class TipAmplitudeBound:
+    """Upper bounds of a scenario's tip response over the whole run (:func:`tip_amplitude_bound`).
 
-    The largest amplitude of P_nom over the speed profile
-    (:func:`~bttsim_stream.sim.modal.steady_tip_amplitude`, an upper estimate of the run-up's)
-    must stay within :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` (5 %) of the
-    tip radius.
+    Attributes
+    ----------
+    deqv_pkpk_m : ndarray, shape (n_blades,)
+        Bound of the peak-to-peak ``d_eqv = d_tang + d_z / tan(eta_tip)`` (Eq. 3-4) at the
+        nominal sensing node P_nom, per blade, m: what the product reports as amplitude.
+    tip_0pk_m : ndarray, shape (n_blades,)
+        Bound of the zero-to-peak displacement magnitude (radial, tangential and axial) of any
+        tip node, per blade, m: the quantity held to :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION`
+        of the tip radius.
+    radius_m : float
+        Mean radius of P_nom, m.
+    proven : bool
+        True: a bound for the linear model (:func:`~bttsim_stream.sim.modal.modal_response_bound`).
+        False: a model with speed-dependent modes, whose bound is the largest over its modes
+        frozen at the profile's end speeds and Campbell crossings (an estimate).
+    """
 
-    A model with speed-dependent modes must also hold modes up to the profile's top speed
-    (:func:`~bttsim_stream.model.speed_modes.check_speed_range`); its estimate is the largest
-    over its modes frozen (:func:`~bttsim_stream.model.speed_modes.models_at_speeds`) at the
-    profile's slowest and fastest speeds and at every Campbell crossing in between
-    (:func:`~bttsim_stream.model.speed_modes.crossing_speeds`), where the frozen modes are
-    resonant at that very speed.
+    deqv_pkpk_m: np.ndarray
+    tip_0pk_m: np.ndarray
+    radius_m: float
+    proven: bool = True
 
-    Returns
-    -------
-    float
-        The predicted largest amplitude, m.
+    @property
+    def limit_m(self) -> float:
+        """Largest allowed zero-to-peak tip displacement, m (5 % of the tip radius)."""
+        return MAX_TIP_AMPLITUDE_FRACTION * self.radius_m
 
-    Raises
-    ------
-    BttsimError
-        One line naming the amplitude, the limit and the force to lower (or the speed), or the
-        non-synchronous options that a speed-dependent model does not support.
+    def describe(self) -> str:
+        """One line: what is bounded, on which basis, against which limit."""
+        word = "upper bound" if self.proven else "estimate, speed-dependent modes"
+        return (f"d_eqv at the nominal sensing node at most {np.max(self.deqv_pkpk_m) * 1e3:.3g} mm pk-pk, "
+                f"any tip node's displacement at most {np.max(self.tip_0pk_m) * 1e3:.3g} mm 0-pk "
+                f"({word}; limit {self.limit_m * 1e3:.3g} mm 0-pk, "
+                f"{MAX_TIP_AMPLITUDE_FRACTION:.0%} of the {self.radius_m * 1e3:.4g} mm tip radius)")
 
-    Notes
-    -----
-    Non-synchronous vibration (:mod:`~bttsim_stream.sim.nsv`) adds its own estimate: the
-    stall and broadband carriers' (``EO Omega + omega`` swept over the profile; the
-    broadband lines summed, an upper bound) and the flutter's limit cycle. ``nsv``: the
+
+def _tip_bound(model, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per blade: 0-pk bound of ``d_eqv`` at P_nom and of any tip node's displacement
+    magnitude from the modal bounds ``Q`` (n_modes,), summed over modes in absolute value."""
+    tip = np.asarray(model.tip_shapes, float)  # (n_modes, n_blades, n_tip, 3)
+    v = tip[:, :, model.nominal_node, :]
+    eqv = v[:, :, 1] + v[:, :, 2] / np.tan(np.deg2rad(float(model.meta["stagger_deg"])))  # Eq. 3-4
+    with np.errstate(invalid="ignore"):
+        deqv = np.where(Q[:, None] > 0, np.abs(eqv) * Q[:, None], 0.0).sum(axis=0)
+        mag = np.where(Q[:, None, None] > 0, np.linalg.norm(tip, axis=3) * Q[:, None, None], 0.0).sum(axis=0)
+    return deqv, np.max(mag, axis=1)
+
+
+def tip_amplitude_bound(scn, model, nsv=None) -> TipAmplitudeBound:
+    """Upper bounds of the run's tip response, per blade (the scenario's forces, its speed profile).
+
+    Per mode, the envelope bound of :func:`~bttsim_stream.sim.modal.modal_response_bound` (the
+    modal force ``|phi_force . F|`` summed over blades with the travelling-wave phases of
+    Eq. 5-7, times the SDOF amplification peak ``1 / (2 zeta sqrt(1 - zeta^2) w^2)``, or less
+    where a sweep or the distance to resonance caps it), times the mode's tip shape, summed over
+    modes and excitations in absolute value (triangle inequality).
+
+    Non-synchronous forcing (:mod:`~bttsim_stream.sim.nsv`): the stall and broadband carriers
+    are forced carriers like the engine orders and are bounded the same way. Flutter is
+    self-excited (unbounded growth in linear theory); the simulator saturates it at its limit
+    cycle, so its bound is the limit cycle (``max(limit, seed)`` of ``[flutter]``). ``nsv``: the
     simulator's :class:`~bttsim_stream.sim.nsv.NsvSetup` (built here when None).
+
+    A model with speed-dependent modes is bounded with its modes frozen at the profile's
+    slowest and fastest speeds and at every Campbell crossing in between
+    (:func:`~bttsim_stream.model.speed_modes.crossing_speeds`), the largest kept: an estimate
+    (``proven`` False), since the modes move during the run.
     """
     speed = speed_profile_from_scenario(scn)
+    initial = scn.speed.initial
     has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled
+    radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
+
+    def forced(m, C, eo, omega=None):
+        return _tip_bound(m, modal_response_bound(m.freq_hz, m.damping_ratio, C, eo, speed, omega, initial))
+
     if is_speed_dependent(model):
         if has_nsv:
             raise BttsimError("[[rotating_stall]], [flutter] and [broadband] are not supported with speed-dependent "
@@ -285,31 +331,63 @@ def check_tip_amplitude(scn, model, nsv=None) -> float:
         check_speed_range(model, float(np.max(speed.omega)))
         lo, hi = float(np.min(speed.omega)), float(np.max(speed.omega))
         at = np.concatenate(([lo, hi], crossing_speeds(model, [e.engine_order for e in scn.excitation], lo, hi)))
-        amp = max(float(np.max(steady_tip_amplitude(frozen, scn.excitation, speed)))
-                  for frozen in models_at_speeds(model, at))
-    else:
-        amp_b = steady_tip_amplitude(model, scn.excitation, speed)
-        if has_nsv:  # the non-synchronous forcing's own estimate, plus the flutter's limit cycle
-            basis = tip_basis(model.tip_shapes)
-            if nsv is None:
-                v = basis.nodes[:, model.nominal_node, :]
-                nsv = build_nsv(scn, model, speed, basis,
-                                v[:, 1] + v[:, 2] / np.tan(np.deg2rad(float(model.meta["stagger_deg"]))))
-            if nsv.eo.size:
-                amp_b = amp_b + steady_tip_amplitude(model, (), speed, carriers=(nsv.C, nsv.eo, nsv.omega))
-            if nsv.flutter is not None:
-                amp_b = amp_b + nsv.flutter.tip_amplitude(basis.nodes[:, model.nominal_node, :])
-        amp = float(np.max(amp_b))
-    radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
-    limit = MAX_TIP_AMPLITUDE_FRACTION * radius
-    if not amp <= limit:
+        parts = [forced(frozen, *modal_forcing(frozen, scn.excitation)) for frozen in models_at_speeds(model, at)]
+        deqv = np.max([p[0] for p in parts], axis=0)
+        tip = np.max([p[1] for p in parts], axis=0)
+        return TipAmplitudeBound(2.0 * deqv, tip, radius, proven=False)
+    deqv, tip = forced(model, *modal_forcing(model, scn.excitation))
+    if has_nsv:
+        basis = tip_basis(model.tip_shapes)
+        stagger = np.deg2rad(float(model.meta["stagger_deg"]))
+        if nsv is None:
+            v = basis.nodes[:, model.nominal_node, :]
+            nsv = build_nsv(scn, model, speed, basis, v[:, 1] + v[:, 2] / np.tan(stagger))
+        if nsv.eo.size:
+            d, u = forced(model, nsv.C, nsv.eo, nsv.omega)
+            deqv, tip = deqv + d, tip + u
+        if nsv.flutter is not None:  # the limit cycle, which the logistic growth never exceeds
+            f = nsv.flutter
+            r_max = max(f.limit_m, f.seed_m)
+            nodes = basis.nodes  # (r, n_tip, 3)
+            v = nodes[:, model.nominal_node, :]
+            deqv = deqv + r_max * np.abs(f.shape @ (v[:, 1] + v[:, 2] / np.tan(stagger)))
+            A = np.einsum("br,rnj->bnj", f.shape, nodes)  # (n_blades, n_tip, 3) complex
+            tip = tip + r_max * np.max(np.sqrt(np.sum(np.abs(A) ** 2, axis=2)), axis=1)
+    return TipAmplitudeBound(2.0 * deqv, tip, radius)
+
+
+def check_tip_amplitude(scn, model, nsv=None) -> TipAmplitudeBound:
+    """Refuse a scenario whose tip motion could leave the linear model's validity.
+
+    The bound of the zero-to-peak displacement of any tip node over the run
+    (:func:`tip_amplitude_bound`) must stay within
+    :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` (5 %) of the tip radius. A
+    model with speed-dependent modes must also hold modes up to the profile's top speed
+    (:func:`~bttsim_stream.model.speed_modes.check_speed_range`).
+
+    Returns
+    -------
+    TipAmplitudeBound
+        The bounds (the pk-pk ``d_eqv`` at P_nom among them).
+
+    Raises
+    ------
+    BttsimError
+        One line naming the bound, the limit and the force to lower (or the speed), or the
+        non-synchronous options that a speed-dependent model does not support.
+    """
+    bound = tip_amplitude_bound(scn, model, nsv)
+    amp = float(np.max(bound.tip_0pk_m))
+    if not amp <= bound.limit_m:
+        has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled
         forces = ", ".join(f"{e.amplitude_n:g}" for e in scn.excitation)
         raise BttsimError(
-            f"[[excitation]] amplitude_n = {forces} N: the predicted tip amplitude is {amp * 1e3:.3g} mm, above "
-            f"{MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius ({limit * 1e3:.3g} mm of {radius * 1e3:.4g} mm), "
-            f"where the linear modal model no longer holds: lower the force"
+            f"[[excitation]] amplitude_n = {forces} N: the tip amplitude may reach {amp * 1e3:.3g} mm 0-pk (upper "
+            f"bound, any tip node), above {MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius "
+            f"({bound.limit_m * 1e3:.3g} mm of {bound.radius_m * 1e3:.4g} mm), where the linear modal model no "
+            f"longer holds: lower the force"
             + (" (or the non-synchronous forcing, the flutter limit_amplitude_m)" if has_nsv else ""))
-    return amp
+    return bound
 
 
 class RunUpSimulator:

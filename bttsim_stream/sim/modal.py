@@ -49,7 +49,8 @@ __all__ = [
     "chirp_integral",
     "quasi_steady_envelope",
     "modal_forcing",
-    "steady_tip_amplitude",
+    "EULER_CHORD",
+    "modal_response_bound",
     "TipBasis",
     "tip_basis",
     "EnvelopeIntegrator",
@@ -293,77 +294,107 @@ def modal_forcing(model, excitations) -> tuple[np.ndarray, np.ndarray]:
     return C, eo
 
 
-def steady_tip_amplitude(model, excitations, speed: SpeedProfile, carriers=None) -> np.ndarray:
-    """Estimated largest amplitude of each blade's nominal tip node over a speed profile.
+#: Longest chord of the Euler (Cornu) spiral, ``max |int_s1^s2 exp(i pi x^2 / 2) dx|`` over all
+#: ``s1 < s2`` (1.898113 at ``s2 = -s1 = 1.2094``), rounded up: an undamped mode swept through
+#: resonance at ``r`` rad/s^2 gathers at most ``EULER_CHORD sqrt(pi / r)`` times its forcing
+#: in its envelope, whatever the start and end of the sweep.
+EULER_CHORD = 1.8982
+
+
+def modal_response_bound(freq_hz, damping_ratio, C, eo, speed: SpeedProfile, omega=None,
+                         initial: str = "steady") -> np.ndarray:
+    """Upper bound of every modal coordinate ``|q_k(t)|`` over a whole run (any ``t``).
 
     Parameters
     ----------
-    model : ModalModel
-    excitations : sequence of scenario ``Excitation``
+    freq_hz, damping_ratio : ndarray, shape (n_modes,)
+        Undamped natural frequencies, Hz, and damping ratios (``< 1``).
+    C : ndarray, shape (n_modes, n_car), complex
+        Modal forces (:func:`modal_forcing`): carrier ``m`` forces mode ``k`` with
+        ``Im(C[k, m] exp(i theta_m(t)))``, ``theta_m = EO_m phi(t) + omega_m t`` (Eq. 5-7).
+    eo : ndarray, shape (n_car,)
     speed : SpeedProfile
-    carriers : tuple (C, eo, omega), optional
-        Instead of ``excitations``: modal forces (n_modes, n) of carriers of phase
-        ``EO phi(t) + omega t`` (non-synchronous forcing, :mod:`~bttsim_stream.sim.nsv`):
-        the forcing frequency is ``EO Omega + omega`` and its resonance speeds
-        ``(+-w_k - omega) / EO``.
+    omega : ndarray, shape (n_car,), optional
+        Constant rotor-frame carrier frequencies, rad/s (non-synchronous forcing); default 0.
+    initial : {"steady", "rest"}
+        The simulator's start (:class:`EnvelopeIntegrator`).
 
     Returns
     -------
-    ndarray, shape (n_blades,)
-        Zero-to-peak displacement of P_nom, m: the largest over the speeds tried (the
-        profile's slowest and fastest, and every responding mode's resonance speed in
-        between) of the steady-state ``|sum_k tip_k C_k H_k(EO Omega)|``,
-        ``H(w) = 1 / (w_k^2 - w^2 + 2i zeta_k w_k w)``, summed over the excitations.
+    ndarray, shape (n_modes,)
+        ``Q_k >= max_t |q_k(t)|``, m per unit mass-normalised coordinate.
 
     Notes
     -----
-    A mode crossed on a ramp (engine-order frequency sweeping at ``r = EO |alpha|`` rad/s^2)
-    never reaches its steady resonance when the sweep is fast: ``|H_k|`` is capped at
-    ``1.25 sqrt(2 pi / r) / (2 w_k)``, the undamped response to a linear sweep through
-    resonance (with a margin for the Fresnel overshoot); on a dwell it is not (an undamped
-    mode at resonance on a dwell grows without bound: infinite).
+    ``q = Im(a_+ e^{i theta} - conj(a_-) e^{-i theta}) / w_d`` (module conventions), so
+    ``|q| <= (|a_+| + |a_-|) / w_d`` per carrier, summed over carriers. Each envelope is
+    ``a(t) = a(0) exp(int_0^t mu) + c int_0^t exp(int_s^t mu) ds``, ``|c| = |C| / 2``,
+    ``mu = lambda -+ i (EO Omega + omega)``, ``|exp(int_s^t mu)| <= exp(-zeta w (t - s))``; the
+    least of three bounds is kept:
+
+    * any forcing history: ``|a| <= |c| / (zeta w)``, hence
+      ``|q| <= |C| / (2 zeta sqrt(1 - zeta^2) w^2)`` per carrier -- the peak of the SDOF dynamic
+      amplification, reached by the resonant carrier on a dwell; a start in the quasi-steady
+      state (:func:`quasi_steady_envelope`) obeys the same bound;
+    * quasi-statically, ``a = -c / mu(t) + r`` with ``r' = mu r - c mu' / mu^2`` (``mu`` is
+      continuous, ``mu' = -+ i EO alpha`` piecewise constant): ``|a| <= |c| / min |mu| +
+      |a(0) + c / mu(0)| + |c| sum_j EO |alpha_j| min(T_j, 1 / (zeta w)) / m_j^2``, tight for a
+      carrier that stays away from resonance (``m_j``: least ``|mu|`` on segment ``j``);
+    * speed segment by segment, ``|a(t)| <= |a(0)| + sum_j S_j`` with ``S_j`` the least of: the
+      segment's duration; ``1 / (zeta w)``; integration by parts where the carrier stays away
+      from resonance (``|mu| >= m_j`` on the segment), ``2 / m_j + EO |alpha_j| min(T_j,
+      1 / (zeta w)) / m_j^2``; on a ramp, the longest chord of the Euler spiral,
+      ``EULER_CHORD sqrt(pi / (EO |alpha_j|))`` (the damping weight, increasing in ``s`` and at
+      most 1, cannot lengthen a chord). This caps undamped or fast-swept crossings.
+
+    The bound holds for the transient through resonance as well as for any steady state: a
+    linear sweep never exceeds it (the resonant carrier's ``1 / (zeta w)`` is the stationary
+    peak, the other carrier adds ``O(zeta)``).
     """
-    if carriers is None:
-        C, eo = modal_forcing(model, excitations)
-        om_c = np.zeros(eo.size)
-    else:
-        C, eo, om_c = carriers[0], np.asarray(carriers[1], float), np.asarray(carriers[2], float)
-    w = 2.0 * np.pi * np.asarray(model.freq_hz, float)
-    zeta = np.asarray(model.damping_ratio, float)
-    tip = np.asarray(model.tip_shapes[:, :, model.nominal_node, :], float)  # (n_modes, n_blades, 3)
+    w = 2.0 * np.pi * np.asarray(freq_hz, float)
+    zeta = np.asarray(damping_ratio, float)
+    C = np.asarray(C, complex).reshape(w.size, -1)
+    eo = np.asarray(eo, float).reshape(-1)
+    om_c = np.zeros(eo.size) if omega is None else np.asarray(omega, float).reshape(-1)
+    wd = w * np.sqrt(1.0 - zeta**2)
+    zw = zeta * w
+    lam = -zw + 1j * wd
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        g = np.where(zw > 0, 1.0 / zw, np.inf)  # any history
     knots = np.asarray(speed.omega, float)
-    lo, hi = float(knots.min()), float(knots.max())
-    seg_lo, seg_hi = np.minimum(knots[:-1], knots[1:]), np.maximum(knots[:-1], knots[1:])
-    seg_alpha = np.abs(np.asarray(speed.alpha, float)[:-1])
-    total = np.zeros(model.n_blades)
-    with np.errstate(all="ignore"):  # absurd forces overflow to inf: reported as such
-        for m in range(eo.size):
-            act = np.flatnonzero(np.abs(C[:, m]) > 0)
-            if act.size == 0:
-                continue
-            if om_c[m] == 0:
-                res = w[act] / eo[m]  # resonance speed of each responding mode, rad/s
-            elif eo[m] == 0:
-                res = np.zeros(0)  # a fixed frequency: the same at every speed
-            else:
-                res = np.concatenate([(w[act] - om_c[m]) / eo[m], (-w[act] - om_c[m]) / eo[m]])
-            inside = np.flatnonzero((res >= lo) & (res <= hi))
-            om = np.concatenate(([lo, hi], res[inside]))
-            we = eo[m] * om[:, None]  # (n_speeds, 1)
-            if om_c[m] != 0:
-                we = we + om_c[m]
-            H = 1.0 / (w[act] ** 2 - we**2 + 2j * zeta[act] * w[act] * we)  # (n_speeds, n_act)
-            for row in range(om.size):  # a mode crossed on a ramp: sweep-limited
-                on = (seg_lo <= om[row]) & (om[row] <= seg_hi)
-                rate = abs(eo[m]) * float(np.min(seg_alpha[on])) if np.any(on) else 0.0
-                if rate > 0:
-                    cap = 1.25 * np.sqrt(2.0 * np.pi / rate) / (2.0 * w[act])
-                    big = ~(np.abs(H[row]) <= cap)
-                    H[row, big] = -1j * cap[big]
-            A = (H * C[act, m]) @ tip[act].reshape(act.size, -1)  # (n_speeds, n_blades * 3)
-            amp = np.sqrt(np.sum(np.abs(A.reshape(om.size, model.n_blades, 3)) ** 2, axis=2))
-            total += np.max(amp, axis=0)
-    return total
+    T = np.diff(np.asarray(speed.t_s, float))
+    alpha = np.asarray(speed.alpha, float)[:-1]
+    om0, al0 = float(knots[0]), float(speed.alpha[0])
+    Q = np.zeros(w.size)
+    for m in range(eo.size):
+        c = 0.5 * np.abs(C[:, m])
+        if not np.any(c > 0):
+            continue
+        for sign in (1.0, -1.0):
+            # carrier frequency seen by the envelope over each segment: sign (EO Omega + omega)
+            xa = sign * (eo[m] * knots[:-1] + om_c[m])
+            xb = sign * (eo[m] * knots[1:] + om_c[m])
+            lo, hi = np.minimum(xa, xb), np.maximum(xa, xb)
+            dist = np.maximum(0.0, np.maximum(lo[None, :] - wd[:, None], wd[:, None] - hi[None, :]))
+            mj = np.sqrt(zw[:, None] ** 2 + dist**2)  # least |mu| on the segment, (n_modes, n_seg)
+            rate = np.abs(eo[m] * alpha)[None, :]
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                ibp = 2.0 / mj + rate * np.minimum(T[None, :], g[:, None]) / mj**2
+                chord = np.where(rate > 0, EULER_CHORD * np.sqrt(np.pi / rate), np.inf)
+                S = np.minimum(np.minimum(T[None, :], g[:, None]), np.minimum(np.nan_to_num(ibp, nan=np.inf), chord))
+            mu0 = lam - sign * 1j * (eo[m] * om0 + om_c[m])
+            a0 = np.zeros(w.size, complex)
+            if initial == "steady":
+                q0 = quasi_steady_envelope(np.ones(w.size), mu0, -sign * 1j * eo[m] * al0)
+                a0 = np.where(np.isfinite(q0), q0, 0.0)  # none: the simulator starts at rest
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                # quasi-static part -1/mu(t) plus a remainder r' = mu r - mu' / mu^2 (per unit c)
+                drift = np.sum(rate * np.minimum(T[None, :], g[:, None]) / mj**2, axis=1)
+                qs = 1.0 / np.min(mj, axis=1) + np.abs(a0 + 1.0 / mu0) + drift
+            env = np.minimum(np.minimum(g, np.abs(a0) + np.sum(S, axis=1)), np.nan_to_num(qs, nan=np.inf))
+            with np.errstate(invalid="ignore"):
+                Q += np.where(c > 0, c * env / wd, 0.0)
+    return Q
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -14,7 +14,8 @@ above the run's top speed), y the frequency (Hz, up to 1.25 times the largest ex
 line's value at the right edge). ``campbell/data/engine_orders`` (EO 1..12 lines
 ``f = EO rpm / 60``, excited EOs red), ``families``, ``run_range`` (the run's speed range),
 ``resonance`` (each excited EO's crossings with its ND in every family: where the EO line
-meets the family's line or curve), ``labels``, all static; ``speed`` (the current speed, one
+meets the family's line or curve; the ND is the force's own, set by its travelling-wave
+phase, Eq. 5-7, which a legend label "force: EO 8 x ND 1" states), ``labels``, all static; ``speed`` (the current speed, one
 line per revolution).
 
 Labels are laid out so that they do not overlap (:func:`~._plot2d.place_labels`): an EO
@@ -126,6 +127,11 @@ class CampbellLayout:
             self.curve_rpm = np.linspace(0.0, top, _CURVE_POINTS)
             self.curve_hz = self._freq_hz(self.curve_rpm)
         self.crossings = self._crossings(info)
+        #: which ND the run's forces excite: set by the travelling-wave phase (Eq. 5-7), not by
+        #: the EO (whose classic aliasing ND = EO mod N, folded, may differ)
+        self.legend = "force: " + ", ".join(
+            f"EO {int(eo)} x ND {_signed_nd(nd, self.n_blades)}"
+            for eo, nd in dict.fromkeys(zip(info.engine_orders, info.nodal_diameters)))
         self.labels: list = []
 
     def eo_exit(self, eo) -> tuple[np.ndarray, np.ndarray]:
@@ -229,10 +235,15 @@ class CampbellLayout:
             spots += [(x + w / 2, bottom - _GAP - h / 2) for x in (0.02, 0.3)]
             families.append((Label(text, tuple(spots)), FAMILY_COLORS[i % len(FAMILY_COLORS)]))
         n_excited = len([e for e in self.engine_orders if e in self.excited])
+        x0, y0, x1, y1 = label_box(self.legend, 0.0, 0.0)
+        w, h = x1 - x0, y1 - y0
+        rows = [PLOT_HEIGHT - _GAP - h * r for r in (0.5, 1.5, 2.5)] + [_GAP + h * r for r in (2.5, 3.5, 4.5)]
+        legend = (Label(self.legend, tuple((x + w / 2, y) for y in rows for x in (0.02, 0.25))),
+                  RED)  # inside the plot, left: top rows, else low (above the shallow EO lines)
         ordered = cands[:n_excited] + crossing
         if run_pos is not None:
             ordered.append((Label(f"run {lo:g}-{hi:g} rpm", tuple(run_pos)), GREEN))
-        ordered += cands[n_excited:] + families
+        ordered += cands[n_excited:] + families + [legend]
         spots = place_labels([lab for lab, _ in ordered], frame.obstacles())
         self.labels = [(lab.text, spot, color) for (lab, color), spot in zip(ordered, spots) if spot is not None]
 
