@@ -36,7 +36,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 from bttsim_stream import views  # noqa: E402
 from bttsim_stream.views import paths  # noqa: E402
 from bttsim_stream.views._plot2d import BOUNDS, Label, PlotFrame, label_box, place_labels  # noqa: E402
-from bttsim_stream.views.campbell import CampbellLayout  # noqa: E402
+from bttsim_stream.views.campbell import CampbellLayout, frequency_span_text  # noqa: E402
 from bttsim_stream.views.resonance import resonance_markdown  # noqa: E402
 from bttsim_stream.views.revolutions import CALIBRATION_REVOLUTIONS, RevolutionDisplacements  # noqa: E402
 
@@ -276,7 +276,9 @@ def test_blueprint_has_the_views_of_every_probe_and_engine_order(n_probes, eos):
                                           ("TimeSeries", f"{paths.fit_path(e)}/freq_hz")}
         amplitude = next(v for v in _views_of(tabs.contents[1 + eos.index(e)]) if v.origin == paths.fit_path(e))
         assert f"+ /{paths.TRUTH_AMP}" in amplitude.contents and "+ $origin/amp_pkpk_mm" in amplitude.contents
-    assert ("TimeSeries", paths.fit_path(eos[0])) in by_tab["Overview"]
+    # the overview's amplitude is the first EO's plot against speed (the Fits tab's), not against revolution
+    assert ("2D", paths.fit_rpm_path(eos[0])) in by_tab["Overview"]
+    assert not any(kind == "TimeSeries" and origin.startswith("fit/") for kind, origin in by_tab["Overview"])
     assert by_tab["Rotor & Campbell"] == {("2D", paths.ROTOR), ("2D", paths.CAMPBELL)}
 
 
@@ -305,6 +307,19 @@ def test_campbell_labels_do_not_overlap(short_run, changes):
     if not changes:  # the short run: every EO line, the crossing, the run range and the family
         assert texts.count("EO 12") == 1 and "run 2450-2700 rpm" in texts
         assert any(t.startswith("EO 8 x ND 1: ") for t in texts) and any(t.startswith("family 1") for t in texts)
+    for t in texts:  # a span whose ends print alike is one value
+        if t.startswith("family ") and "-" in t:
+            lo, hi = t.split(": ")[1].removesuffix(" Hz").split("-")
+            assert lo != hi, t
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("lo, hi, text", [(343.9, 347.5, "344-348 Hz"), (343.4, 347.4, "343-347 Hz"),
+                                          (817.9172, 817.9172, "817.9 Hz"), (817.61, 818.38, "817.6-818.4 Hz"),
+                                          (817.91, 817.94, "817.9 Hz")],
+                         ids=["family-1", "whole-hz", "one-line", "same-whole-hz", "same-tenth"])
+def test_family_frequency_span_is_one_value_when_its_ends_print_alike(lo, hi, text):
+    assert frequency_span_text(lo, hi) == text
 
 
 @pytest.mark.unit

@@ -83,7 +83,7 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
                     non_synchronous: bool = False) -> rrb.Blueprint:
     """The default layout of the bttsim views.
 
-    Tabs: *Overview* (travelling wave of probe 0, amplitude of the first EO, rotor,
+    Tabs: *Overview* (travelling wave of probe 0, amplitude of the first EO against speed, rotor,
     displacement at probe 0, Campbell diagram, resonance table), one *Fits EO k* per engine
     order (amplitude against revolution and against speed, phase, speed, frequency),
     *Travelling wave* (every probe and the identified ND), *Displacement* (every probe),
@@ -109,7 +109,7 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
     """
     n_nd = n_blades // 2 + 1 if n_blades else None
     eos = list(dict.fromkeys(int(e) for e in engine_orders)) or [8]
-    overview = rrb.Grid(_tw_view(0, n_nd, live), _amplitude_view(eos[0]), _rotor_view(), _displacement_view(0),
+    overview = rrb.Grid(_tw_view(0, n_nd, live), _amplitude_rpm_view(eos[0]), _rotor_view(), _displacement_view(0),
                         _campbell_view(), _table_view(), grid_columns=3, name="Overview")
     tw = rrb.Grid(*[_tw_view(j, n_nd, live) for j in range(int(n_probes))],
                   _series_view(paths.TW_ND, "Identified ND (backward < 0)"), name="Travelling wave")
