@@ -13,10 +13,10 @@ __all__ = ["build_blueprint"]
 
 
 def _tw_view(probe: int, live: bool) -> rrb.Spatial2DView:
-    span = "the last revolutions" if live else "revolution"
+    span = " (rolling window)" if live else ""
     return rrb.Spatial2DView(
         origin=paths.tw_map_path(probe), visual_bounds=rrb.VisualBounds2D(x_range=[-0.12, 1.3], y_range=[-0.72, 0.1]),
-        name=f"Travelling wave, probe {probe}: ND (+ forward, - backward) against {span}; colour pk-pk mm")
+        name=f"Travelling wave (mm pk-pk), probe {probe}: signed ND by revolution{span}")
 
 
 def _series_view(origin: str, name: str, contents=None, legend: bool = True) -> rrb.TimeSeriesView:
