@@ -82,7 +82,7 @@ class _WaveMap:
 
     def log(self, mat_mm: np.ndarray, first: int, last: int, top_mm: float) -> None:
         """The matrix (rows ND +top..-top, columns revolutions ``first..last``), coloured."""
-        if self.frame is None or self.window is None and self.frame.x_range != (first - 0.5, last + 0.5):
+        if self.frame is None or (self.window is None and self.frame.x_range != (first - 0.5, last + 0.5)):
             self.frame = self._frame((first - 0.5, last + 0.5), self._top)
         n_rows, n_cols = mat_mm.shape
         rgb = turbo((np.clip(mat_mm, 0.0, None) / (top_mm or 1.0)) ** GAMMA)
