@@ -36,8 +36,11 @@ from rerun.chunk import RrdReader  # noqa: E402
 from bttsim_stream import views  # noqa: E402
 from bttsim_stream.views import paths  # noqa: E402
 from bttsim_stream.views._plot2d import BOUNDS, Label, PlotFrame, label_box, place_labels  # noqa: E402
-from bttsim_stream.views.campbell import CampbellLayout  # noqa: E402
+from bttsim_stream.views.campbell import CampbellLayout, frequency_span_text  # noqa: E402
 from bttsim_stream.views.resonance import resonance_markdown  # noqa: E402
+from bttsim_stream.views._common import turbo  # noqa: E402
+from bttsim_stream.views._plot2d import LINE_H, PLOT_HEIGHT  # noqa: E402
+from bttsim_stream.views.travelling_wave import GAMMA, colour_ticks, nd_ticks  # noqa: E402
 from bttsim_stream.views.revolutions import CALIBRATION_REVOLUTIONS, RevolutionDisplacements  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -267,8 +270,9 @@ def test_blueprint_has_the_views_of_every_probe_and_engine_order(n_probes, eos):
     assert names == ["Overview", *[f"Fits EO {e}" for e in eos], "Travelling wave", "Displacement",
                      "Rotor & Campbell", "Resonance"]
     by_tab = {t.name: {(v.class_identifier, v.origin) for v in _views_of(t)} for t in tabs.contents}
-    assert by_tab["Travelling wave"] >= {("Tensor", paths.tw_path(j)) for j in range(n_probes)}
-    assert ("Tensor", paths.tw_path(n_probes)) not in by_tab["Travelling wave"]
+    assert by_tab["Travelling wave"] >= {("2D", paths.tw_map_path(j)) for j in range(n_probes)}
+    assert ("2D", paths.tw_map_path(n_probes)) not in by_tab["Travelling wave"]
+    assert ("2D", paths.tw_map_path(0)) in by_tab["Overview"]
     assert by_tab["Displacement"] == {("TimeSeries", paths.displacement_path(j)) for j in range(n_probes)}
     for e in eos:
         assert by_tab[f"Fits EO {e}"] >= {("TimeSeries", paths.fit_path(e)), ("2D", paths.fit_rpm_path(e)),
@@ -276,7 +280,9 @@ def test_blueprint_has_the_views_of_every_probe_and_engine_order(n_probes, eos):
                                           ("TimeSeries", f"{paths.fit_path(e)}/freq_hz")}
         amplitude = next(v for v in _views_of(tabs.contents[1 + eos.index(e)]) if v.origin == paths.fit_path(e))
         assert f"+ /{paths.TRUTH_AMP}" in amplitude.contents and "+ $origin/amp_pkpk_mm" in amplitude.contents
-    assert ("TimeSeries", paths.fit_path(eos[0])) in by_tab["Overview"]
+    # the overview's amplitude is the first EO's plot against speed (the Fits tab's), not against revolution
+    assert ("2D", paths.fit_rpm_path(eos[0])) in by_tab["Overview"]
+    assert not any(kind == "TimeSeries" and origin.startswith("fit/") for kind, origin in by_tab["Overview"])
     assert by_tab["Rotor & Campbell"] == {("2D", paths.ROTOR), ("2D", paths.CAMPBELL)}
 
 
@@ -305,6 +311,46 @@ def test_campbell_labels_do_not_overlap(short_run, changes):
     if not changes:  # the short run: every EO line, the crossing, the run range and the family
         assert texts.count("EO 12") == 1 and "run 2450-2700 rpm" in texts
         assert any(t.startswith("EO 8 x ND 1: ") for t in texts) and any(t.startswith("family 1") for t in texts)
+    for t in texts:  # a span whose ends print alike is one value
+        if t.startswith("family ") and "-" in t:
+            lo, hi = t.split(": ")[1].removesuffix(" Hz").split("-")
+            assert lo != hi, t
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("lo, hi, text", [(343.9, 347.5, "344-348 Hz"), (343.4, 347.4, "343-347 Hz"),
+                                          (817.9172, 817.9172, "817.9 Hz"), (817.61, 818.38, "817.6-818.4 Hz"),
+                                          (817.91, 817.94, "817.9 Hz")],
+                         ids=["family-1", "whole-hz", "one-line", "same-whole-hz", "same-tenth"])
+def test_family_frequency_span_is_one_value_when_its_ends_print_alike(lo, hi, text):
+    assert frequency_span_text(lo, hi) == text
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("n_nd, ticks", [(15, [-14, -10, -5, 0, 5, 10, 14]), (4, [-3, -2, -1, 0, 1, 2, 3]),
+                                         (2, [-1, 0, 1]), (1, [0])], ids=["29-blades", "7-blades", "3-blades", "1"])
+def test_travelling_wave_map_ticks_every_round_nd_and_both_ends(n_nd, ticks):
+    np.testing.assert_array_equal(nd_ticks(n_nd), ticks)
+
+
+@pytest.mark.unit
+def test_travelling_wave_colour_bar_ticks_sit_where_their_colour_is():
+    ticks = colour_ticks(2.37)
+    assert [v for v, _ in ticks][:2] == [0.0, 0.5] and ticks[-1][0] <= 2.37
+    for v, h in ticks:  # the bar's colour at height h is the map's colour of v mm
+        np.testing.assert_array_equal(turbo(h), turbo((v / 2.37) ** GAMMA))
+    heights = np.array([h for _, h in ticks]) * PLOT_HEIGHT
+    assert np.all(np.diff(heights) >= LINE_H)  # labels do not overlap
+
+
+@pytest.mark.unit
+def test_turbo_is_close_to_the_turbo_colour_map():
+    matplotlib = pytest.importorskip("matplotlib")
+    x = np.linspace(0, 1, 257)
+    ref = np.round(matplotlib.colormaps["turbo"](x)[:, :3] * 255)
+    err = np.abs(turbo(x).astype(int) - ref)
+    assert err.mean() < 8 and err.max() <= 32
+    assert turbo([np.nan, -1.0, 2.0]).tolist() == turbo([0.0, 0.0, 1.0]).tolist()
 
 
 @pytest.mark.unit
@@ -403,6 +449,17 @@ def test_log_recording_with_processing_messages(processed_mcap, tmp_path):
     tensor = static_tensor(out, f"/{paths.tw_path(0)}")
     assert tensor.shape == (29, N_REV)
     np.testing.assert_allclose(tensor, np.stack([m.body.signed_spectrum() for m in tws], axis=1) * 1e3, rtol=1e-6)
+    # the same matrix drawn for reading: coloured by the colour bar's map, ND ticks on the
+    # left (+14 top .. -14 bottom), a colour bar ticked in mm up to the largest magnitude
+    rgb = np.asarray(static_value(out, f"/{paths.tw_map_path(0)}/image", ":buffer")[0], np.uint8)
+    top = max(float(static_tensor(out, f"/{paths.tw_path(j)}").max()) for j in range(5))
+    np.testing.assert_array_equal(rgb.reshape(29, N_REV, 3), turbo((np.clip(tensor, 0, None) / top) ** GAMMA))
+    ticks = static_value(out, f"/{paths.tw_map_path(0)}/data/ticks", ":labels")
+    assert {"+14", "+10", "0", "-10", "-14"} <= set(ticks)
+    bar = static_value(out, f"/{paths.tw_map_path(0)}/data/colour_ticks", ":labels")
+    assert bar[0] == "0 mm" and all(t.endswith(" mm") for t in bar) and 0 < float(bar[-1][:-3]) <= top
+    ys = np.asarray(static_value(out, f"/{paths.tw_map_path(0)}/data", ":translation")[0])
+    assert ys.size == 3  # the plot's transform
     revs, nd = temporal(out, f"/{paths.TW_ND}", ":scalars")
     np.testing.assert_array_equal(np.ravel(nd), [m.body.nd for m in tws])
     # per EO, one amplitude series per blade, in mm, at the fit's revolution

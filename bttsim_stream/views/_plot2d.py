@@ -120,10 +120,12 @@ class PlotFrame:
         Tick value -> label text (may hold a line break).
     grid : bool
         Light grid lines at the ticks.
+    y_ticks : sequence of float, optional
+        Tick values of the y axis (default: round values over the range).
     """
 
     def __init__(self, out: ViewOutput, root: str, x_range, y_range, *, x_label: Callable[[float], str],
-                 y_label: Callable[[float], str], grid: bool = True) -> None:
+                 y_label: Callable[[float], str], grid: bool = True, y_ticks: Sequence[float] | None = None) -> None:
         self.out = out
         self.root = root
         self.data_path = f"{root}/data"
@@ -134,6 +136,7 @@ class PlotFrame:
         self.x_label = x_label
         self.y_label = y_label
         self.grid = grid
+        self.y_ticks = None if y_ticks is None else np.asarray(y_ticks, float)
 
     # -- coordinates ---------------------------------------------------------------------
     def _spans(self) -> tuple[float, float]:
@@ -159,7 +162,7 @@ class PlotFrame:
 
     # -- ticks ---------------------------------------------------------------------------
     def _ticks(self) -> tuple[np.ndarray, np.ndarray]:
-        return nice_ticks(*self.x_range), nice_ticks(*self.y_range, n=4)
+        return nice_ticks(*self.x_range), nice_ticks(*self.y_range, n=4) if self.y_ticks is None else self.y_ticks
 
     def tick_labels(self) -> list[tuple[str, tuple]]:
         """``(text, (cx, cy))`` of every tick label (box units): x below, y left of the axes."""

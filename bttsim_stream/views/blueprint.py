@@ -12,14 +12,11 @@ from ._plot2d import plot_bounds
 __all__ = ["build_blueprint"]
 
 
-def _tw_view(probe: int, n_nd: int | None, live: bool) -> rrb.TensorView:
-    rows = f"ND +{n_nd - 1} top to -{n_nd - 1} bottom" if n_nd else "ND + top to - bottom"
-    span = "rolling window" if live else "whole run"
-    return rrb.TensorView(
-        origin=paths.tw_path(probe), name=f"Travelling wave, probe {probe} ({rows}; {span})",
-        slice_selection=rrb.TensorSliceSelection(width=1, height=0),
-        scalar_mapping=rrb.TensorScalarMapping(colormap="turbo", mag_filter="nearest", gamma=0.5),
-        view_fit="Fill")
+def _tw_view(probe: int, live: bool) -> rrb.Spatial2DView:
+    span = " (rolling window)" if live else ""
+    return rrb.Spatial2DView(
+        origin=paths.tw_map_path(probe), visual_bounds=rrb.VisualBounds2D(x_range=[-0.12, 1.3], y_range=[-0.72, 0.1]),
+        name=f"Travelling wave (mm pk-pk), probe {probe}: signed ND by revolution{span}")
 
 
 def _series_view(origin: str, name: str, contents=None, legend: bool = True) -> rrb.TimeSeriesView:
@@ -83,7 +80,7 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
                     non_synchronous: bool = False) -> rrb.Blueprint:
     """The default layout of the bttsim views.
 
-    Tabs: *Overview* (travelling wave of probe 0, amplitude of the first EO, rotor,
+    Tabs: *Overview* (travelling wave of probe 0, amplitude of the first EO against speed, rotor,
     displacement at probe 0, Campbell diagram, resonance table), one *Fits EO k* per engine
     order (amplitude against revolution and against speed, phase, speed, frequency),
     *Travelling wave* (every probe and the identified ND), *Displacement* (every probe),
@@ -96,7 +93,7 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
     ----------
     n_probes : int
     n_blades : int, optional
-        Names the nodal-diameter rows of the travelling-wave views.
+        Not needed any more (the travelling-wave maps draw their ND ticks); accepted for callers.
     engine_orders : sequence of int
         The fitted engine orders (one *Fits* tab each; the first in the overview).
     live : bool
@@ -107,11 +104,10 @@ def build_blueprint(n_probes: int, *, n_blades: int | None = None, engine_orders
     non_synchronous : bool
         Add the *Non-synchronous* tab.
     """
-    n_nd = n_blades // 2 + 1 if n_blades else None
     eos = list(dict.fromkeys(int(e) for e in engine_orders)) or [8]
-    overview = rrb.Grid(_tw_view(0, n_nd, live), _amplitude_view(eos[0]), _rotor_view(), _displacement_view(0),
+    overview = rrb.Grid(_tw_view(0, live), _amplitude_rpm_view(eos[0]), _rotor_view(), _displacement_view(0),
                         _campbell_view(), _table_view(), grid_columns=3, name="Overview")
-    tw = rrb.Grid(*[_tw_view(j, n_nd, live) for j in range(int(n_probes))],
+    tw = rrb.Grid(*[_tw_view(j, live) for j in range(int(n_probes))],
                   _series_view(paths.TW_ND, "Identified ND (backward < 0)"), name="Travelling wave")
     disp = rrb.Grid(*[_displacement_view(j) for j in range(int(n_probes))], name="Displacement")
     rotor = rrb.Horizontal(_rotor_view(), _campbell_view(), name="Rotor & Campbell")

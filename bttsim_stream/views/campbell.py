@@ -37,7 +37,7 @@ from ._common import FAMILY_COLORS, GREEN, RED, TWO_PI, RevIndex, ViewOutput, ni
 from ._plot2d import LINE_H, PLOT_HEIGHT, Label, PlotFrame, label_box, place_labels, ui
 from .revolutions import ShownRevolutions
 
-__all__ = ["MAX_EO", "CampbellLayout", "CampbellView"]
+__all__ = ["MAX_EO", "CampbellLayout", "CampbellView", "frequency_span_text"]
 
 #: Engine order lines drawn: 1 .. MAX_EO (or more when the run excites a higher EO).
 MAX_EO = 12
@@ -47,6 +47,17 @@ _GAP = 0.015
 #: crossing inside one interval of them (then linear: the crossing to about 1e-4 rpm).
 _CURVE_POINTS = 401
 _REFINE_POINTS = 101
+
+
+def frequency_span_text(lo_hz: float, hi_hz: float) -> str:
+    """A family's frequency span as label text: ``"344-347 Hz"`` in whole Hz when that tells
+    the ends apart, else to 0.1 Hz (``"817.9-818.3 Hz"``), and one value when they are equal
+    to 0.1 Hz (``"817.9 Hz"``, a single line)."""
+    for decimals in (0, 1):
+        lo, hi = f"{lo_hz:.{decimals}f}", f"{hi_hz:.{decimals}f}"
+        if lo != hi:
+            return f"{lo}-{hi} Hz"
+    return f"{lo} Hz"
 
 
 def _inside(x: np.ndarray, y: np.ndarray, y_top: float) -> list[np.ndarray]:
@@ -227,7 +238,7 @@ class CampbellLayout:
         families = []
         for i, lines in self.family_lines():
             shown = np.concatenate([ln[:, 1] for ln in lines])
-            text = f"family {i + 1}: {shown.min():.0f}-{shown.max():.0f} Hz"
+            text = f"family {i + 1}: {frequency_span_text(shown.min(), shown.max())}"
             x0, y0, x1, y1 = label_box(text, 0.0, 0.0)
             w, h = x1 - x0, y1 - y0
             top, bottom = float(box(0.0, shown.max())[1]), float(box(0.0, shown.min())[1])

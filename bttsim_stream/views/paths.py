@@ -7,7 +7,8 @@ The words are those of the bus keys and the library: ``tw``, ``probe``, ``fit``,
 
 from __future__ import annotations
 
-__all__ = ["tw_path", "signal_path", "displacement_path", "fit_path", "fit_rpm_path", "SPEED", "TRUTH_AMP", "TW_ND",
+__all__ = ["tw_path", "tw_map_path", "signal_path", "displacement_path", "fit_path", "fit_rpm_path", "SPEED",
+           "TRUTH_AMP", "TW_ND",
            "ROTOR", "CAMPBELL", "RESONANCE_TABLE", "RESONANCE_BARS", "NSV_AMP", "NSV_REV_AMP", "NSV_ND", "NSV_ORDER", "NSV_TW", "NSV_TABLE"]
 
 #: Speed of each revolution, rpm (time series).
@@ -42,6 +43,12 @@ NSV_TABLE = "nsv/table"
 def tw_path(probe: int) -> str:
     """Travelling-wave matrix of one probe: ``tw/probe_<j>``."""
     return f"tw/probe_{int(probe)}"
+
+
+def tw_map_path(probe: int) -> str:
+    """The travelling-wave matrix drawn with ND and revolution ticks and a colour bar (2-D;
+    data under ``data/``): ``tw/probe_<j>/map``."""
+    return f"{tw_path(probe)}/map"
 
 
 def signal_path(probe: int) -> str:

@@ -8,6 +8,13 @@ rolling window of the last ``window`` revolutions, re-logged on the ``revolution
 timeline at most every ``period_s`` (re-logging the whole run each time would cost
 O(n^2)). ``tw/nd``: the revolution's signed ND as identified by the processor from the fits
 of all probes (the same in every probe's message).
+
+``tw/probe_<j>/map``: the same matrix drawn for reading (Rerun's tensor view has no axis
+ticks and no colour scale): a 2-D plot (:mod:`._plot2d`) whose ``image`` is the matrix
+coloured by :func:`~._common.turbo` of ``(magnitude / top) ** GAMMA``, with ND ticks (y:
+``+(n_nd - 1)`` top, 0, ``-(n_nd - 1)`` bottom) and revolution ticks (x: the revolution;
+live, revolutions before the latest), and ``colorbar`` beside it, ticked in mm
+(``data/colour_ticks``); ``top`` is the largest magnitude seen.
 """
 
 from __future__ import annotations
@@ -19,9 +26,85 @@ import numpy as np
 import rerun as rr
 
 from . import paths
-from ._common import MM, RevIndex, ViewOutput
+from ._common import DARK, MM, RevIndex, ViewOutput, nice_step, nice_ticks, turbo
+from ._plot2d import CHAR_W, LINE_H, PLOT_HEIGHT, PlotFrame, ui
 
-__all__ = ["TravellingWaveView"]
+__all__ = ["GAMMA", "TravellingWaveView", "colour_ticks", "nd_ticks"]
+
+#: Colour of a magnitude: ``turbo((magnitude / top) ** GAMMA)`` (below 1: weak waves show).
+GAMMA = 0.5
+#: The colour bar: x from :data:`_BAR_X` to ``_BAR_X + _BAR_W`` (box units), full plot height.
+_BAR_X, _BAR_W = 1.03, 0.04
+_BAR_LEVELS = 256
+
+
+def nd_ticks(n_nd: int) -> np.ndarray:
+    """Signed ND ticks of a map with rows ``+(n_nd - 1) .. -(n_nd - 1)``: round values and
+    both ends (a round value too close to an end is left out)."""
+    top = max(int(n_nd) - 1, 0)
+    step = max(int(nice_step(top, 3)), 1) if top else 1
+    inner = [v for v in range(step, top, step) if top - v >= step / 2]
+    return np.array(sorted({0, top, -top, *inner, *(-v for v in inner)}), float)
+
+
+def colour_ticks(top_mm: float) -> list[tuple[float, float]]:
+    """``(magnitude mm, height in the bar 0..1)`` of the colour bar's ticks: round values up
+    to ``top_mm``, each at least a label's height above the one below."""
+    out: list[tuple[float, float]] = []
+    for v in nice_ticks(0.0, top_mm, 6):
+        h = (v / top_mm) ** GAMMA if top_mm > 0 else 0.0
+        if not out or (h - out[-1][1]) * PLOT_HEIGHT >= LINE_H:
+            out.append((float(v), float(h)))
+    return out
+
+
+class _WaveMap:
+    """One probe's drawn map: frame, image and colour bar (see the module docstring)."""
+
+    def __init__(self, out: ViewOutput, probe: int, n_rows: int, window: int | None) -> None:
+        self.out = out
+        self.root = paths.tw_map_path(probe)
+        top = (n_rows - 1) // 2
+        self.window = window
+        self.frame = None if window is None else self._frame((-(window - 1) - 0.5, 0.5), top)
+        self._top = top
+        self._bar_top = None
+        bar = turbo(np.linspace(1.0, 0.0, _BAR_LEVELS))[:, None, :]  # top row: the top colour
+        out.static(f"{self.root}/colorbar", rr.Transform3D(translation=[_BAR_X, -PLOT_HEIGHT, 0.0],
+                                                           scale=[_BAR_W, PLOT_HEIGHT / _BAR_LEVELS, 1.0]))
+        out.static(f"{self.root}/colorbar", rr.Image(bar, color_model="RGB"))
+
+    def _frame(self, x_range, top: int) -> PlotFrame:
+        frame = PlotFrame(self.out, self.root, x_range, (-top - 0.5, top + 0.5), x_label=lambda x: f"{x:g}",
+                          y_label=lambda nd: f"{nd:+g}" if nd else "0", grid=False, y_ticks=nd_ticks(top + 1))
+        frame.draw()
+        return frame
+
+    def log(self, mat_mm: np.ndarray, first: int, last: int, top_mm: float) -> None:
+        """The matrix (rows ND +top..-top, columns revolutions ``first..last``), coloured."""
+        if self.frame is None or (self.window is None and self.frame.x_range != (first - 0.5, last + 0.5)):
+            self.frame = self._frame((first - 0.5, last + 0.5), self._top)
+        n_rows, n_cols = mat_mm.shape
+        rgb = turbo((np.clip(mat_mm, 0.0, None) / (top_mm or 1.0)) ** GAMMA)
+        self.out.static(f"{self.root}/image", rr.Transform3D(translation=[0.0, -PLOT_HEIGHT, 0.0],
+                                                             scale=[1.0 / n_cols, PLOT_HEIGHT / n_rows, 1.0]))
+        self.out.latest(f"{self.root}/image", rr.Image(rgb, color_model="RGB", magnification_filter="Nearest"), last)
+        if top_mm != self._bar_top:
+            self._bar_top = top_mm
+            self._log_bar_ticks(top_mm, last)
+
+    def _log_bar_ticks(self, top_mm: float, revolution: int) -> None:
+        ticks = colour_ticks(top_mm)
+        texts = [f"{v:g} mm" for v, _ in ticks]
+        x1 = _BAR_X + _BAR_W
+        marks = [[self.frame.to_data(x1, h * PLOT_HEIGHT), self.frame.to_data(x1 + 0.012, h * PLOT_HEIGHT)]
+                 for _, h in ticks]
+        anchors = [self.frame.label_anchor(x1 + 0.02 + CHAR_W * len(t) / 2 + 0.006, h * PLOT_HEIGHT, t)
+                   for t, (_, h) in zip(texts, ticks)]
+        data = self.frame.data_path
+        self.out.latest(f"{data}/colour_marks", rr.LineStrips2D(marks, colors=[DARK], radii=ui(0.6)), revolution)
+        self.out.latest(f"{data}/colour_ticks", rr.Points2D(anchors, labels=texts, colors=[DARK], radii=ui(0.0),
+                                                            show_labels=True), revolution)
 
 
 class TravellingWaveView:
@@ -45,6 +128,7 @@ class TravellingWaveView:
         self._max_mm = 0.0
         self._last_log = -math.inf
         self._nd_until = -1  # last revolution whose ND is logged
+        self._maps: dict[int, _WaveMap] = {}
         self.count = 0
 
     def add(self, decoded) -> None:
@@ -93,6 +177,10 @@ class TravellingWaveView:
             for r, spec in spectra.items():
                 if r >= first and spec.size == n_rows:
                     mat[:, r - first] = spec
-            tensor = rr.Tensor(np.nan_to_num(mat), dim_names=["nodal_diameter", "revolution"],
-                               value_range=(0.0, self._max_mm or 1.0))
+            mat = np.nan_to_num(mat)
+            tensor = rr.Tensor(mat, dim_names=["nodal_diameter", "revolution"], value_range=(0.0, self._max_mm or 1.0))
             self.out.latest(paths.tw_path(probe), tensor, last)
+            wave_map = self._maps.get(probe)
+            if wave_map is None:
+                wave_map = self._maps[probe] = _WaveMap(self.out, probe, n_rows, self.window if self.out.live else None)
+            wave_map.log(mat, first, last, self._max_mm)
