@@ -24,6 +24,7 @@ endpoints under the access-control policy of :mod:`bttsim_stream.bus.security`.
 from __future__ import annotations
 
 import json
+import shlex
 import signal
 import subprocess
 import sys
@@ -200,7 +201,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         if files["summary"].exists():
             summary = json.loads(files["summary"].read_text())
         elif "processor" in failed:  # no report: say so in the file a reader looks at
-            summary = _no_report_summary(n_rev, failed["processor"])
+            summary = _no_report_summary(n_rev, failed["processor"], files["mcap"])
             files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
         recorder = _last_json_line(out / "recorder.log")
         viewer = _last_json_line(out / "viewer.log")  # its own counts: what the views lost
@@ -236,13 +237,14 @@ def describe_exit(returncode: int) -> str:
     return f"exit {returncode}"
 
 
-def _no_report_summary(n_revolutions: int, returncode: int) -> dict:
-    """The summary of a run whose processor ended without its report: nothing claimed."""
+def _no_report_summary(n_revolutions: int, returncode: int, mcap: Path | str) -> dict:
+    """The summary of a run whose processor ended without its report: nothing claimed; the
+    error names the command that processes the recording ``mcap`` (the path as given)."""
     return {"status": "none", "complete": False, "revolutions_expected": int(n_revolutions),
             "revolutions_processed": 0, "lost": None, "duplicates": None, "rejected": None,
             "resonances": [], "steady": [], "blades": [],
             "error": f"the processor ended ({describe_exit(returncode)}) before its report; "
-                     "the recording may still hold the run: bttsim process run.mcap"}
+                     f"the recording may still hold the run: bttsim process {shlex.quote(str(mcap))}"}
 
 
 def _wait_or_stop(proc: subprocess.Popen, timeout_s: float) -> None:
