@@ -19,6 +19,7 @@ import argparse
 import contextlib
 import logging
 import queue
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -33,7 +34,7 @@ from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
-           "Progress", "parse_rate", "RATE_HELP"]
+           "Progress", "parse_rate", "RATE_HELP", "plain_text"]
 
 #: Help text of every ``--rate`` option.
 RATE_HELP = "pacing: 'max' (default: as fast as possible), 'realtime', or a speed-up factor"
@@ -61,8 +62,28 @@ class NodeProgram:
     main: Callable[..., object]
 
     @property
+    def help_text(self) -> str:
+        """The description as plain text (``--help`` prints no reST markup)."""
+        return plain_text(self.description)
+
+    @property
     def summary(self) -> str:
-        return self.description.strip().splitlines()[0]
+        return self.help_text.strip().splitlines()[0]
+
+
+_ROLE = re.compile(r":[a-z:]+:`(~?)([^`<]*?)(?:\s*<[^>]*>)?`")
+_LITERAL = re.compile(r"``(.+?)``", re.DOTALL)
+
+
+def plain_text(rst: str) -> str:
+    """A docstring's text without its reST inline markup: double-backquoted literals lose
+    their quotes, a cross-reference role becomes its target (the last component with ``~``,
+    the title of an explicit ``title <target>``)."""
+    def role(m: re.Match) -> str:
+        target = m.group(2).strip()
+        return target.rsplit(".", 1)[-1] if m.group(1) else target
+
+    return _LITERAL.sub(r"\1", _ROLE.sub(role, rst))
 
 
 class Parser(argparse.ArgumentParser):
@@ -81,14 +102,14 @@ def _configure(parser: argparse.ArgumentParser, program: NodeProgram) -> argpars
 
 def node_parser(program: NodeProgram) -> argparse.ArgumentParser:
     """The parser of a node's own script (``python -m bttsim_stream.nodes.X``)."""
-    parser = Parser(prog=f"bttsim-{program.name}", description=program.description,
+    parser = Parser(prog=f"bttsim-{program.name}", description=program.help_text,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     return _configure(parser, program)
 
 
 def add_node_parser(subparsers, program: NodeProgram, name: str | None = None) -> argparse.ArgumentParser:
     """Add ``program`` to a ``bttsim`` subcommand table (``bttsim node NAME``, ``bttsim replay``...)."""
-    parser = subparsers.add_parser(name or program.name, help=program.summary, description=program.description,
+    parser = subparsers.add_parser(name or program.name, help=program.summary, description=program.help_text,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     return _configure(parser, program)
 

@@ -26,3 +26,28 @@ def test_no_report_hint_names_the_recording_of_the_run(tmp_path, capsys):
     shutil.copyfile(RECORDING, mcap)
     assert cli.main(command[1:]) == 0
     assert capsys.readouterr().out.startswith("RESONANCE")
+
+
+def _parsers(parser, path=("bttsim",)):
+    """Every parser of the command line, with its command words."""
+    import argparse
+
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*path, name))
+
+
+def test_help_is_plain_text():
+    """No ``--help`` shows reST markup: double backquotes or :func:/:class: roles."""
+    import re
+
+    seen = []
+    for path, parser in _parsers(cli.build_parser()):
+        text = parser.format_help()
+        assert "``" not in text, (path, text)
+        assert not re.search(r":[a-z]+:`", text), (path, text)
+        seen.append(" ".join(path))
+    assert {"bttsim", "bttsim run", "bttsim node sim", "bttsim node viewer", "bttsim model import",
+            "bttsim replay"} <= set(seen)
