@@ -20,6 +20,7 @@ from . import scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
 from .bus.certs import IDENTITIES, generate_certificates
+from .bus.ports import check_web_ports
 from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
 from .errors import BttsimError, exit_status
@@ -264,6 +265,10 @@ def _by_key(counts) -> str:
 
 
 def _cmd_view(args: argparse.Namespace) -> None:
+    if not (args.rrd or args.web):  # refused before the recording is read and processed
+        raise BttsimError("no output: give --rrd OUT.rrd and/or --web")
+    if args.web:  # a busy port too
+        args.bind = check_web_ports(args.bind, args.web_port, args.grpc_port)
     from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()

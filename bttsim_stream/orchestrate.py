@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 from .bus import codec, keys
-from .bus.ports import check_port_free, parse_bind
+from .bus.ports import check_web_ports
 from .bus.security import TlsFiles
 from .bus.session import CONNECT_TIMEOUT_S, free_port, make_config, open_session
 from .children import die_with_parent
@@ -87,11 +87,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
         security += ["--tls-dir", str(d)] + ([] if access_control else ["--no-access-control"])
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
     if web:  # a busy port is an error now, not after the run (Rerun would only log it)
-        bind = parse_bind(bind)
-        if int(web_port) == int(grpc_port):
-            raise BttsimError(f"--web-port and --grpc-port are both {int(web_port)}: give two ports")
-        check_port_free(bind, int(grpc_port), "web viewer's data server (--grpc-port)")
-        check_port_free(bind, int(web_port), "web viewer (--web-port)")
+        bind = check_web_ports(bind, web_port, grpc_port)
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)

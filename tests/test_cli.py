@@ -5,6 +5,8 @@ import shlex
 import shutil
 from pathlib import Path
 
+import pytest
+
 from bttsim_stream import cli, orchestrate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,3 +53,39 @@ def test_help_is_plain_text():
         seen.append(" ".join(path))
     assert {"bttsim", "bttsim run", "bttsim node sim", "bttsim node viewer", "bttsim model import",
             "bttsim replay"} <= set(seen)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("which", ["--web-port", "--grpc-port"])
+def test_view_web_with_a_busy_port_fails_before_processing(tmp_path, which):
+    """`bttsim view REC --web` on a busy port: one line, exit 2, before the recording (which
+    holds no fits, so would be processed first) is processed or any view is written."""
+    import socket
+    import subprocess
+    import sys
+
+    from bttsim_stream.bus.session import free_port
+
+    ports = {"--web-port": free_port(), "--grpc-port": free_port()}
+    rrd = tmp_path / "views.rrd"
+    garbage = tmp_path / "garbage.mcap"  # would fail as soon as it is read
+    garbage.write_bytes(b"not an MCAP file\n" * 64)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", ports[which]))
+        busy.listen()
+        results = [subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "view", rec, "--rrd", rrd, "--web",
+                                   "--web-port", str(ports["--web-port"]), "--grpc-port", str(ports["--grpc-port"])],
+                                  cwd=REPO, capture_output=True, text=True, timeout=120)
+                   for rec in (RECORDING, garbage)]
+    for res in results:  # the port is the error, also for a recording that cannot be read: checked first
+        assert res.returncode == 2, res.stdout + res.stderr
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("bttsim: error:") and which in lines[0], res.stderr
+        assert f"127.0.0.1:{ports[which]}" in lines[0] and "in use" in lines[0]
+        assert res.stdout == "" and not rrd.exists()  # nothing processed, no view written
+
+
+def test_view_without_an_output_is_refused_before_processing(capsys):
+    assert cli.main(["view", str(RECORDING)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bttsim: error: no output") and err.count("\n") == 1
