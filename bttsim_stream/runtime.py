@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import queue
 import re
 import sys
@@ -312,14 +313,15 @@ class Progress:
         self._text = ""
         self._shown = ""
 
-    def update(self, text: str, *, force: bool = False) -> None:
-        """Show ``text`` (throttled unless ``force``)."""
+    def update(self, text: str, *, force: bool = False) -> bool:
+        """Show ``text`` (throttled unless ``force``); True if it was written now."""
         self._text = text
         now = time.monotonic()
         if not self.enabled or (not force and now - self._last < self._every):
-            return
+            return False
         self._last = now
         self._write(text)
+        return True
 
     def _write(self, text: str) -> None:
         if self.tty:
@@ -340,13 +342,38 @@ class Progress:
             self.stream.write(self._shown)
         self.stream.flush()
 
-    def close(self) -> None:
-        """Show the last state and end the line."""
+    def phase(self, text: str) -> None:
+        """End the progress line and say, on a line of its own, what is being done now that
+        has no count (``"making the report ..."``); nothing when the progress line is off."""
         if not self.enabled:
             return
+        self._end_line()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def signal_note(self, text: str) -> None:
+        """Print ``text`` on a line of its own from a signal handler, also when the progress
+        line is off: one unbuffered write to the stream's file descriptor, as the interrupted
+        code may be inside a write to the stream (whose buffer lock it holds)."""
+        prefix = "\n" if self.tty and self._shown else ""
+        try:
+            os.write(self.stream.fileno(), (prefix + text + "\n").encode(errors="replace"))
+        except (AttributeError, OSError, ValueError):  # no file descriptor (a test's StringIO)
+            return
+        if prefix:
+            self._shown = ""
+
+    def _end_line(self) -> None:
         if self._text and self._text != self._shown:
             self._write(self._text)
         if self.tty and self._shown:
             self.stream.write("\n")
             self.stream.flush()
+        self._text = self._shown = ""
+
+    def close(self) -> None:
+        """Show the last state and end the line."""
+        if not self.enabled:
+            return
+        self._end_line()
         self.enabled = False
