@@ -178,10 +178,15 @@ def _cmd_node(args: argparse.Namespace) -> None:
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
+    # the phases on a terminal only: on a pipe, stderr stays the errors and warnings
+    progress = Progress(sys.stderr.isatty())
+    progress.phase(f"reading {args.mcap} ...")
     run = load_run(args.mcap)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")
+    progress.phase(f"processing {run.revolution.size} revolutions ...")
+    progress.close()
     try:
         result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
                                 revolution0=int(run.revolution[0]))
