@@ -20,6 +20,7 @@ from . import __version__, scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
 from .bus.certs import IDENTITIES, generate_certificates
+from .bus.ports import check_web_ports
 from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
 from .errors import BttsimError, exit_status
@@ -182,10 +183,15 @@ def _cmd_node(args: argparse.Namespace) -> None:
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
+    # the phases on a terminal only: on a pipe, stderr stays the errors and warnings
+    progress = Progress(sys.stderr.isatty())
+    progress.phase(f"reading {args.mcap} ...")
     run = load_run(args.mcap)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")
+    progress.phase(f"processing {run.revolution.size} revolutions ...")
+    progress.close()
     try:
         result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
                                 revolution0=int(run.revolution[0]))
@@ -269,6 +275,10 @@ def _by_key(counts) -> str:
 
 
 def _cmd_view(args: argparse.Namespace) -> None:
+    if not (args.rrd or args.web):  # refused before the recording is read and processed
+        raise BttsimError("no output: give --rrd OUT.rrd and/or --web")
+    if args.web:  # a busy port too
+        args.bind = check_web_ports(args.bind, args.web_port, args.grpc_port)
     from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()

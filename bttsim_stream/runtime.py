@@ -18,7 +18,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import queue
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -33,7 +35,7 @@ from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
-           "Progress", "parse_rate", "RATE_HELP"]
+           "Progress", "parse_rate", "RATE_HELP", "plain_text"]
 
 #: Help text of every ``--rate`` option.
 RATE_HELP = "pacing: 'max' (default: as fast as possible), 'realtime', or a speed-up factor"
@@ -61,8 +63,28 @@ class NodeProgram:
     main: Callable[..., object]
 
     @property
+    def help_text(self) -> str:
+        """The description as plain text (``--help`` prints no reST markup)."""
+        return plain_text(self.description)
+
+    @property
     def summary(self) -> str:
-        return self.description.strip().splitlines()[0]
+        return self.help_text.strip().splitlines()[0]
+
+
+_ROLE = re.compile(r":[a-z:]+:`(~?)([^`<]*?)(?:\s*<[^>]*>)?`")
+_LITERAL = re.compile(r"``(.+?)``", re.DOTALL)
+
+
+def plain_text(rst: str) -> str:
+    """A docstring's text without its reST inline markup: double-backquoted literals lose
+    their quotes, a cross-reference role becomes its target (the last component with ``~``,
+    the title of an explicit ``title <target>``)."""
+    def role(m: re.Match) -> str:
+        target = m.group(2).strip()
+        return target.rsplit(".", 1)[-1] if m.group(1) else target
+
+    return _LITERAL.sub(r"\1", _ROLE.sub(role, rst))
 
 
 class Parser(argparse.ArgumentParser):
@@ -81,14 +103,14 @@ def _configure(parser: argparse.ArgumentParser, program: NodeProgram) -> argpars
 
 def node_parser(program: NodeProgram) -> argparse.ArgumentParser:
     """The parser of a node's own script (``python -m bttsim_stream.nodes.X``)."""
-    parser = Parser(prog=f"bttsim-{program.name}", description=program.description,
+    parser = Parser(prog=f"bttsim-{program.name}", description=program.help_text,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     return _configure(parser, program)
 
 
 def add_node_parser(subparsers, program: NodeProgram, name: str | None = None) -> argparse.ArgumentParser:
     """Add ``program`` to a ``bttsim`` subcommand table (``bttsim node NAME``, ``bttsim replay``...)."""
-    parser = subparsers.add_parser(name or program.name, help=program.summary, description=program.description,
+    parser = subparsers.add_parser(name or program.name, help=program.summary, description=program.help_text,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     return _configure(parser, program)
 
@@ -291,14 +313,15 @@ class Progress:
         self._text = ""
         self._shown = ""
 
-    def update(self, text: str, *, force: bool = False) -> None:
-        """Show ``text`` (throttled unless ``force``)."""
+    def update(self, text: str, *, force: bool = False) -> bool:
+        """Show ``text`` (throttled unless ``force``); True if it was written now."""
         self._text = text
         now = time.monotonic()
         if not self.enabled or (not force and now - self._last < self._every):
-            return
+            return False
         self._last = now
         self._write(text)
+        return True
 
     def _write(self, text: str) -> None:
         if self.tty:
@@ -319,13 +342,38 @@ class Progress:
             self.stream.write(self._shown)
         self.stream.flush()
 
-    def close(self) -> None:
-        """Show the last state and end the line."""
+    def phase(self, text: str) -> None:
+        """End the progress line and say, on a line of its own, what is being done now that
+        has no count (``"making the report ..."``); nothing when the progress line is off."""
         if not self.enabled:
             return
+        self._end_line()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def signal_note(self, text: str) -> None:
+        """Print ``text`` on a line of its own from a signal handler, also when the progress
+        line is off: one unbuffered write to the stream's file descriptor, as the interrupted
+        code may be inside a write to the stream (whose buffer lock it holds)."""
+        prefix = "\n" if self.tty and self._shown else ""
+        try:
+            os.write(self.stream.fileno(), (prefix + text + "\n").encode(errors="replace"))
+        except (AttributeError, OSError, ValueError):  # no file descriptor (a test's StringIO)
+            return
+        if prefix:
+            self._shown = ""
+
+    def _end_line(self) -> None:
         if self._text and self._text != self._shown:
             self._write(self._text)
         if self.tty and self._shown:
             self.stream.write("\n")
             self.stream.flush()
+        self._text = self._shown = ""
+
+    def close(self) -> None:
+        """Show the last state and end the line."""
+        if not self.enabled:
+            return
+        self._end_line()
         self.enabled = False

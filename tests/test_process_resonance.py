@@ -119,3 +119,45 @@ def test_table_text():
     assert "E_A mean" in text and len(text.splitlines()) == 2 + 3 + 1
     assert "E_A" not in summary_table(_report(False).to_summary())
     assert not math.isnan(float(text.splitlines()[2].split()[1]))
+
+
+def _one_entry_summary(amp_m, amp_std_m, phase_rad):
+    """A summary holding one crossing of two blades (amplitudes pk-pk, m)."""
+    blades = [{"blade": b, "amp_pkpk_m": a, "freq_hz": 344.2, "phase_rad": p, "amp_std_m": s}
+              for b, (a, s, p) in enumerate(zip(amp_m, amp_std_m, phase_rad))]
+    entry = {"kind": "crossing", "eo": 8, "nd": 1, "rpm": 2581.0, "freq_hz": 344.2, "method": "peak", "cn": 1.4,
+             "detection": {"value": 3.0, "threshold": 2.0, "snr": 100.0, "snr_threshold": 8.0},
+             "revolutions": {"first": 0, "last": 10, "peak": 5}, "blades": blades}
+    return {"status": "resonance", "resonances": [entry], "steady": [], "blades": blades, "nd": 1, "eo": 8,
+            "cn": 1.4}
+
+
+def _columns(text: str) -> tuple[list[str], list[list[float]]]:
+    """The per-blade table of ``text``: its header cells (split on two spaces) and its rows."""
+    lines = text.splitlines()
+    i = next(k for k, line in enumerate(lines) if line.lstrip().startswith("blade"))
+    head = [c.strip() for c in lines[i].split("  ") if c.strip()]
+    rows = []
+    for line in lines[i + 1:]:
+        cells = line.split()
+        if not cells or not cells[0].isdigit():
+            break
+        rows.append([float(c) for c in cells])
+    return head, rows
+
+
+def test_table_prints_the_uncertainty_in_micrometres_and_the_phase_in_degrees():
+    """An uncertainty of 19 nm is not 0.0000 mm: it is printed in um, beside the phase (deg)."""
+    text = summary_table(_one_entry_summary([2.3732e-3, 2.3717e-3], [1.88e-8, 2.5e-7], [-1.3475, math.pi / 2]))
+    head, rows = _columns(text)
+    assert head == ["blade", "amp mm pk-pk", "+- \u00b5m", "freq Hz", "phase deg"]
+    np.testing.assert_allclose([r[1] for r in rows], [2.3732, 2.3717], atol=1e-4)
+    np.testing.assert_allclose([r[2] for r in rows], [0.019, 0.25], atol=1e-3)
+    np.testing.assert_allclose([r[4] for r in rows], [math.degrees(-1.3475), 90.0], atol=0.05)
+
+
+def test_table_prints_small_amplitudes_in_micrometres():
+    head, rows = _columns(summary_table(_one_entry_summary([12e-6, 8.5e-6], [1e-7, 1e-7], [0.0, 3 * math.pi])))
+    assert head[1] == "amp \u00b5m pk-pk"
+    np.testing.assert_allclose([r[1] for r in rows], [12.0, 8.5], atol=1e-4)
+    np.testing.assert_allclose([r[4] for r in rows], [0.0, -180.0], atol=1e-9)  # wrapped to [-180, 180)

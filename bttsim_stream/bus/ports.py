@@ -8,7 +8,7 @@ import socket
 
 from ..errors import BttsimError
 
-__all__ = ["parse_bind", "check_port_free", "url_host"]
+__all__ = ["parse_bind", "check_port_free", "check_web_ports", "url_host"]
 
 
 def parse_bind(addr: str) -> str:
@@ -40,6 +40,18 @@ def check_port_free(host: str, port: int, what: str) -> None:
         except OSError as exc:
             raise BttsimError(f"cannot serve the {what} on {url_host(host)}:{port}: "
                               f"{(exc.strerror or str(exc)).lower()}") from None
+
+
+def check_web_ports(bind: str, web_port: int, grpc_port: int) -> str:
+    """Check the web viewer's two servers can listen (``--bind``, ``--web-port``,
+    ``--grpc-port``) before any work starts; the normalised bind address. One-line
+    BttsimError for a bad address, equal ports or a port in use."""
+    bind = parse_bind(bind)
+    if int(web_port) == int(grpc_port):
+        raise BttsimError(f"--web-port and --grpc-port are both {int(web_port)}: give two ports")
+    check_port_free(bind, int(grpc_port), "web viewer's data server (--grpc-port)")
+    check_port_free(bind, int(web_port), "web viewer (--web-port)")
+    return bind
 
 
 def url_host(host: str) -> str:

@@ -585,29 +585,60 @@ class ResonanceReport:
         return summary_table(self.to_summary())
 
 
+#: Micrometres in the printed tables.
+_UM = "\u00b5m"
+
+
+def _f(x) -> float:
+    """A table cell's number: NaN for a missing (None) value."""
+    return math.nan if x is None else float(x)
+
+
+def _amp_unit(rows: list[dict]) -> tuple[str, float]:
+    """The amplitude unit of one table: mm, or um when every amplitude is below 0.1 mm."""
+    amps = [abs(_f(r.get(k))) for r in rows for k in ("amp_pkpk_m", "truth_amp_pkpk_m")]
+    amps = [a for a in amps if math.isfinite(a)]
+    return ("mm", 1e3) if not amps or max(amps) >= 1e-4 else (_UM, 1e6)
+
+
 def _blade_table(title: str, entry: dict) -> list[str]:
+    """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
+    uncertainty in um, frequency, phase in degrees, and the truth with E_A / E_f when the
+    entry has them."""
+    rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
-    unc = any("amp_std_m" in r for r in entry["blades"])
-    head = f"{'blade':>5}  {'amp mm pk-pk':>12}"
+    unc = any("amp_std_m" in r for r in rows)
+    phase = any("phase_rad" in r for r in rows)
+    unit, scale = _amp_unit(rows)
+    head = f"{'blade':>5}  {f'amp {unit} pk-pk':>12}"
     if unc:
-        head += f"  {'+- mm':>7}"
+        head += f"  {'+- ' + _UM:>8}"
     head += f"  {'freq Hz':>9}"
+    if phase:
+        head += f"  {'phase deg':>9}"
     if truth:
-        head += f"  {'truth mm':>9}  {'truth Hz':>9}  {'E_A %':>7}  {'E_f %':>7}"
+        head += f"  {f'truth {unit}':>9}  {'truth Hz':>9}  {'E_A %':>7}  {'E_f %':>7}"
     lines = [title, head]
-    for r in entry["blades"]:
-        s = f"{r['blade']:>5}  {1e3 * r['amp_pkpk_m']:>12.4f}"
+    for r in rows:
+        s = f"{r['blade']:>5}  {scale * _f(r['amp_pkpk_m']):>12.4f}"
         if unc:
-            s += f"  {1e3 * r.get('amp_std_m', math.nan):>7.4f}"
-        s += f"  {r['freq_hz']:>9.3f}"
+            s += f"  {1e6 * _f(r.get('amp_std_m')):>8.3f}"
+        s += f"  {_f(r['freq_hz']):>9.3f}"
+        if phase:
+            s += f"  {_phase_deg(r.get('phase_rad')):>9.1f}"
         if truth:
-            s += (f"  {1e3 * r['truth_amp_pkpk_m']:>9.4f}  {r['truth_freq_hz']:>9.3f}"
-                  f"  {r['E_A_pct']:>7.3f}  {r['E_f_pct']:>7.4f}")
+            s += (f"  {scale * _f(r['truth_amp_pkpk_m']):>9.4f}  {_f(r['truth_freq_hz']):>9.3f}"
+                  f"  {_f(r['E_A_pct']):>7.3f}  {_f(r['E_f_pct']):>7.4f}")
         lines.append(s)
     if truth:
         lines.append(f"E_A mean {entry['mean_E_A_pct']:.3f} %  max {entry['max_E_A_pct']:.3f} %   "
                      f"E_f mean {entry['mean_E_f_pct']:.4f} %  max {entry['max_E_f_pct']:.4f} %")
     return lines
+
+
+def _phase_deg(phase_rad) -> float:
+    """A phase in degrees, wrapped to [-180, 180)."""
+    return (math.degrees(_f(phase_rad)) + 180.0) % 360.0 - 180.0
 
 
 def _entry_title(e: dict) -> str:

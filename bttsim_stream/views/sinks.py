@@ -16,7 +16,7 @@ from pathlib import Path
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..bus.ports import check_port_free, parse_bind, url_host
+from ..bus.ports import check_web_ports, url_host
 from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from ..errors import BttsimError
 from .webviewer import WebViewerServer
@@ -98,12 +98,7 @@ def open_recording(*, rrd_path=None, grpc_url: str | None = None, serve_web: boo
     if not (rrd_path or grpc_url or serve_web):
         raise BttsimError("no Rerun output: give an .rrd file, a viewer URL or the web viewer")
     if serve_web:
-        bind = parse_bind(bind)
-        if int(web_port) == int(grpc_port):
-            raise BttsimError(f"--web-port and --grpc-port are both {int(web_port)}: give two ports")
-        for port, what in ((grpc_port, "web viewer's data server (--grpc-port)"),
-                           (web_port, "web viewer (--web-port)")):
-            check_port_free(bind, int(port), what)
+        bind = check_web_ports(bind, web_port, grpc_port)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
     sinks: list = []
     server_url = web_url = web_server = None
