@@ -256,11 +256,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 for n, rc in res["failed"].items()]
     if summary is None:
         problems.append("no summary (the processor gave no report; see processor.log)")
-    elif not summary.get("complete", False):
+    elif not res.get("result_complete", summary.get("complete", False)):
         problems.append("the result is incomplete")
-    for node, what in (("recorder", "the recording misses"), ("viewer", "the views miss")):
-        if res[node].get("gaps"):
-            problems.append(f"{what} {res[node]['gaps']} messages{_by_key(res[node].get('gaps_by_key'))}")
+    recording = res["recording"]
+    if not recording["complete"] and "recorder" not in res["failed"]:
+        problems.append(f"the recording is incomplete: {recording.get('incomplete') or 'see recorder.log'}")
+    if res["viewer"].get("gaps"):
+        problems.append(f"the views miss {res['viewer']['gaps']} messages{_by_key(res['viewer'].get('gaps_by_key'))}")
     if problems:
         print(f"bttsim: warning: {'; '.join(problems)}", file=sys.stderr)
         return EXIT_INCOMPLETE

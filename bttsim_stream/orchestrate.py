@@ -191,6 +191,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     summary = None
     recorder: dict = {}
     viewer: dict = {}
+    result_complete = False
     failed: dict = {}
     n_rev = 0
     try:
@@ -249,11 +250,16 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
         recorder = _last_json_line(out / "recorder.log")
         viewer = _last_json_line(out / "viewer.log")  # its own counts: what the views lost
+        if summary is not None:  # the result is complete only with a complete recording of it
+            result_complete = bool(summary.get("complete", False))
+            summary["recording"] = _recording(recorder)
+            summary["complete"] = result_complete and summary["recording"]["complete"]
+            files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
         finished = True
         progress.close()
         if serving:
             if on_serving is not None:
-                on_serving(_result(summary, files, recorder, viewer, interrupted, failed, t0))
+                on_serving(_result(summary, files, recorder, viewer, interrupted, failed, t0, result_complete))
             procs["viewer"].wait()  # until a signal: the handler stops it
     finally:
         progress.close()
@@ -264,12 +270,30 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             f.close()
         for s, h in old.items():
             signal.signal(s, h)
-    return _result(summary, files, recorder, viewer, interrupted, failed, t0)
+    return _result(summary, files, recorder, viewer, interrupted, failed, t0, result_complete)
 
 
-def _result(summary, files: dict, recorder: dict, viewer: dict, interrupted: bool, failed: dict, t0: float) -> dict:
+def _result(summary, files: dict, recorder: dict, viewer: dict, interrupted: bool, failed: dict, t0: float,
+            result_complete: bool) -> dict:
+    """The run's outcome; ``result_complete``: the processor's own verdict (``summary["complete"]``
+    also needs a complete recording)."""
     return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder, "viewer": viewer,
-            "interrupted": interrupted, "failed": failed, "wall_s": time.monotonic() - t0}
+            "interrupted": interrupted, "failed": failed, "wall_s": time.monotonic() - t0,
+            "result_complete": result_complete, "recording": _recording(recorder)}
+
+
+def _recording(stats: dict) -> dict:
+    """The summary's ``recording`` block from the recorder's statistics (its JSON line):
+    ``complete``, ``missing`` (messages), ``missing_by_key`` (``{key: {"head", "gaps", "tail"}}``),
+    ``messages``, ``duplicates``, ``rejected`` and ``incomplete`` (why, "" if complete)."""
+    if "complete" not in stats:
+        return {"complete": False, "missing": None, "missing_by_key": {}, "messages": stats.get("messages"),
+                "duplicates": None, "rejected": None,
+                "incomplete": "the recorder gave no completeness statistics (see recorder.log)"}
+    return {"complete": bool(stats["complete"]), "missing": stats.get("missing"),
+            "missing_by_key": stats.get("missing_by_key", {}), "messages": stats.get("messages"),
+            "duplicates": stats.get("duplicates_skipped"), "rejected": stats.get("rejected"),
+            "incomplete": stats.get("incomplete", "")}
 
 
 def describe_exit(returncode: int) -> str:

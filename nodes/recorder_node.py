@@ -4,8 +4,14 @@ Inputs: every key of the rig (run metadata, OPR, TOA batches, truth, fits, trave
 resonance reports); the run metadata sample is also written as the ``bttsim.run`` metadata
 record. Output: ``OUT.mcap`` with zstd chunks, one channel per key, the protobuf schemas
 embedded, log time = simulated time (from the sample attachment; payloads are not decoded).
-Sequence gaps are counted per key and reported (log line, JSON on stdout, and a
-``bttsim.recorder`` metadata record). Liveliness: ``bttsim/<rig>/alive/recorder``.
+Completeness: the run metadata fixes the count of the metadata, OPR, TOA and truth keys
+(``n_revolutions`` each, numbered from 0); the recording is complete when every one of them
+is whole to its last number and nothing is missing on the other keys (result keys: fits,
+travelling waves, resonance reports -- checked before their first and between their numbers
+received; their count is not known). A run with no metadata received is incomplete. The
+statistics -- ``complete``, ``missing`` and ``missing_by_key`` (head, gaps, tail per key),
+sequence gaps, duplicates, rejected -- are logged, printed as one JSON line on stdout and
+written as the ``bttsim.recorder`` metadata record. Liveliness: ``bttsim/<rig>/alive/recorder``.
 
 Stops when the liveliness tokens of the nodes named by ``--until`` (default: the simulator,
 ``alive/sim``) have gone, after ``--duration`` seconds, or on SIGINT / SIGTERM; the file is
@@ -23,7 +29,7 @@ import time
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.recording import MAX_SEQ, McapRecorder
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
+from bttsim_stream.bus.stream import SequenceTracker, StreamEnd, acquisition_counts
 from bttsim_stream.runtime import NodeProgram, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
@@ -62,6 +68,7 @@ def main(conf, args: argparse.Namespace) -> dict:
                 rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
                 meta_done.add(key)
                 ends[info.rig] = StreamEnd(info)
+                stats.expect(acquisition_counts(info))
                 node.ready()
             rec.write(key, payload, t_ns, seq=seq or 0)
             key_rig = key.split("/", 2)[1]
@@ -70,13 +77,36 @@ def main(conf, args: argparse.Namespace) -> dict:
                 end.note(key, seq)
                 if end.done:
                     node.done(key_rig)
-        summary = dict(stats.summary(), rejected=rejected + stats.implausible)
+        summary = dict(stats.summary(), rejected=rejected + stats.implausible,
+                       **_completeness(stats, ends, None if rig == "*" else rig))
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
-    level = logging.WARNING if summary["gaps"] else logging.INFO
-    log.log(level, "recorded %d messages on %d keys to %s; %d sequence gaps", summary["messages"],
-            summary["keys"], args.out, summary["gaps"])
+    if summary["complete"]:
+        log.info("recorded %d messages on %d keys to %s; complete", summary["messages"], summary["keys"], args.out)
+    else:
+        log.warning("recorded %d messages on %d keys to %s; INCOMPLETE: %s", summary["messages"], summary["keys"],
+                    args.out, summary["incomplete"])
     print(json.dumps(summary), flush=True)
     return summary
+
+
+def _completeness(stats: SequenceTracker, ends: dict[str, StreamEnd], rig: str | None) -> dict:
+    """The statistics' completeness keys: ``complete``, ``missing``, ``missing_by_key``
+    (``{key: {"head", "gaps", "tail"}}``), ``run_metadata`` (the rigs whose metadata came)
+    and ``incomplete`` (one line saying why, "" if complete)."""
+    expected: dict[str, int] = {}
+    for end in ends.values():
+        expected.update(end.counts)
+    missing = stats.missing(expected)
+    why = []
+    if not ends or (rig is not None and rig not in ends):
+        why.append(f"no run metadata received{f' for {rig}' if rig else ''}")
+    if missing:
+        total = sum(m.total for m in missing.values())
+        why.append(f"{total} messages missing (" + ", ".join(
+            f"{k.split('/', 2)[-1]} {m.total}" for k, m in missing.items()) + ")")
+    return {"complete": not why, "missing": sum(m.total for m in missing.values()),
+            "missing_by_key": {k: m.to_dict() for k, m in missing.items()}, "run_metadata": sorted(ends),
+            "incomplete": "; ".join(why)}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,6 +1,7 @@
 """The fault matrix of ``bttsim run`` at max rate: a node stalled 10 s (SIGSTOP, then SIGCONT)
 costs nothing; a node killed (SIGKILL) makes the run say so (non-zero exit), with the files
-that were written still valid and the summary marked incomplete.
+that were written still valid and the summary marked incomplete; a recorder stalled past the
+Zenoh lease (cut off: the run goes on without it) makes the run say what the recording misses.
 
 Each fault is applied mid-run: once the recorder has written its first MCAP chunk (the
 simulator is publishing), found by waiting on the file, not on a clock.
@@ -38,11 +39,12 @@ def _node_pid(out: Path, name: str) -> int | None:
     return None
 
 
-def _start(tmp_path: Path, tag: str):
+def _start(tmp_path: Path, tag: str, *extra: str):
     scn = tmp_path / "scn.toml"
     scn.write_text(SCENARIO)
     out = tmp_path / tag
-    proc = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "run", str(scn), "--out", str(out), "--quiet"],
+    proc = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "run", str(scn), "--out", str(out), "--quiet",
+                             *extra],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
     return proc, out
@@ -138,7 +140,63 @@ def test_a_killed_node_makes_the_run_say_so(tmp_path, node):
     run = read_recording(out / "run.mcap")
     assert len(run.messages) > 0 and run.truncated == (node == "recorder")
     s = json.loads((out / "summary.json").read_text())
-    # honest either way: a simulator killed while it waited for its consumers had sent it all
-    assert s["complete"] == (s["revolutions_processed"] == s["revolutions_expected"] and s["lost"] == 0)
+    # honest either way: a simulator killed while it waited for its consumers had sent it all;
+    # a recorder killed leaves no statistics, so its recording is not known to be complete
+    assert s["recording"]["complete"] == (node != "recorder" and s["recording"]["missing"] == 0)
+    assert s["complete"] == (s["revolutions_processed"] == s["revolutions_expected"] and s["lost"] == 0
+                             and s["recording"]["complete"])
     if node == "processor":
         assert s["status"] == "none" and s["blades"] == [] and "killed by SIGKILL" in s["error"]
+
+
+# Zenoh closes a link whose peer has been silent for the lease (bttsim's own default: 30 s);
+# 1 s here, so that a recorder stopped for a few seconds is cut off from the run
+SHORT_LEASE = "{ transport: { link: { tx: { lease: 1000, " \
+              "queue: { congestion_control: { block: { wait_before_close: 500000 } } } } } } }"
+
+
+def _absent(run, key: str, n: int | None) -> int:
+    """Sequence numbers of ``key`` absent from a recording: of 0..n-1, or (n None) of 0..last."""
+    seqs = {m.seq for m in run.messages if m.key == key}
+    return (n if n is not None else (max(seqs) + 1 if seqs else 0)) - len(seqs)
+
+
+def test_a_recorder_cut_off_past_the_lease_makes_the_run_say_what_it_misses(tmp_path):
+    """The recorder stopped past the lease loses its link; the simulator goes on without it
+    and ends. Resumed, the recorder has the run's head only: the run exits 3 and reports the
+    missing per key -- exactly what run.mcap lacks -- although the processor's result is whole."""
+    conf = tmp_path / "lease.json5"
+    conf.write_text(SHORT_LEASE)
+    proc, out = _start(tmp_path, "cut", "-c", str(conf))
+    try:
+        _wait_mid_run(proc, out)
+        pid = _node_pid(out, "recorder")
+        assert pid is not None and _node_pid(out, "sim") is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:  # until the simulator has published the run without it and ended
+            deadline = time.monotonic() + 60
+            while _node_pid(out, "sim") is not None and time.monotonic() < deadline:
+                time.sleep(0.1)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+    finally:
+        rc, text = _finish(proc)
+    assert rc == 3, text
+    assert "Traceback" not in text and "the recording is incomplete" in text and "INCOMPLETE RECORDING" in text
+    s = json.loads((out / "summary.json").read_text())
+    rec = s["recording"]
+    assert s["complete"] is False and rec["complete"] is False and rec["missing"] > 0
+    n = s["revolutions_expected"]
+    run = read_recording(out / "run.mcap")
+    rig = "rig1"
+    acquisition = [f"bttsim/{rig}/opr", f"bttsim/{rig}/truth"] + [f"bttsim/{rig}/toa/{j}" for j in range(5)]
+    assert _absent(run, acquisition[0], n) > 0  # the fault did cut the stream
+    for key in acquisition:  # every acquisition key checked to its last number
+        got = rec["missing_by_key"].get(key, {"head": 0, "gaps": 0, "tail": 0})
+        assert sum(got.values()) == _absent(run, key, n), (key, got)
+    for key, got in rec["missing_by_key"].items():  # and nothing claimed that the file holds
+        assert sum(got.values()) == _absent(run, key, n if key in acquisition else None), (key, got)
+        assert f"{key.split('/', 2)[-1]} {sum(got.values())}" in text
+    assert rec["missing"] == sum(sum(v.values()) for v in rec["missing_by_key"].values())
+    stored = json.loads(run.metadata["bttsim.recorder"]["missing_by_key"])
+    assert stored == rec["missing_by_key"] and run.metadata["bttsim.recorder"]["complete"] == "false"

@@ -59,6 +59,8 @@ def test_run_writes_the_three_files(tmp_path):
     kinds = {m.key.split("/")[2] for m in rec.messages}
     assert {"meta", "opr", "toa", "truth", "fit", "tw", "resonance"} <= kinds
     assert '"gaps": 0' in (out / "recorder.log").read_text()
+    assert summary["recording"]["complete"] is True and summary["recording"]["missing"] == 0
+    assert summary["recording"]["missing_by_key"] == {} and '"complete": true' in (out / "recorder.log").read_text()
     _rrd_verify(out / "views.rrd")
     from test_views import rrd_entities  # the views got the processor's final report too
     from bttsim_stream.views import paths

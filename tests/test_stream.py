@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from bttsim_stream.bus import codec
+from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler, SequenceTracker, Sequencer
 from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
 
@@ -197,6 +197,54 @@ def test_sequence_tracker_does_not_believe_a_far_jump():
     t = SequenceTracker(max_jump=100)
     assert [t.accept("a", s) for s in (0, 1, 10**6, 2, 3, 50)] == [True, True, False, True, True, True]
     assert (t.implausible, t.duplicates, t.lost) == (1, 0, 46)
+
+
+def test_sequence_tracker_missing_head_gaps_and_tail_per_key():
+    """Against the run's known counts: the numbers before the first received, between, and
+    after the last up to n-1; a key with nothing received misses all of it; a key of unknown
+    count (a result key) is checked for head and gaps only."""
+    t = SequenceTracker()
+    t.expect({"opr": 10, "toa/0": 10, "toa/1": 10, "truth": 10})
+    for s in (3, 4, 6, 7):  # head 0-2, gap 5, tail 8-9
+        t.accept("opr", s)
+    for s in range(10):  # whole
+        t.accept("toa/0", s)
+    for s in (2, 5, 9):  # a result key: head 2, gaps 2 + 3, tail unknown
+        t.accept("fit", s)
+    got = {k: m.to_dict() for k, m in t.missing({"opr": 10, "toa/0": 10, "toa/1": 10, "truth": 10}).items()}
+    assert got == {"opr": {"head": 3, "gaps": 1, "tail": 2}, "toa/1": {"head": 10, "gaps": 0, "tail": 0},
+                   "truth": {"head": 10, "gaps": 0, "tail": 0}, "fit": {"head": 2, "gaps": 5, "tail": 0}}
+    assert t.missing({"toa/0": 10}).keys() == {"opr", "fit"}  # toa/0 whole
+
+
+def test_sequence_tracker_bounds_forged_numbers_by_the_known_count():
+    """A forged number at or beyond a key's known count, or (unknown count) a first number
+    beyond max_jump, is not believed: the counts stay within the run and the real stream is
+    still accepted."""
+    t = SequenceTracker(max_jump=100)
+    t.expect({"opr": 5})
+    assert [t.accept("opr", s) for s in (10**18, 5, 0, 1, 2, 3, 4, 5)] == [False] * 2 + [True] * 5 + [False]
+    assert [t.accept("fit", s) for s in (10**18, 101, 0)] == [False, False, True]
+    assert t.implausible == 5 and t.missing({"opr": 5}) == {}
+    assert t.accept("tw", 100) and t.missing()["tw"].to_dict() == {"head": 100, "gaps": 0, "tail": 0}
+
+
+@pytest.mark.parametrize("truth", [True, False], ids=["truth", "blind"])
+def test_acquisition_counts_are_the_published_stream(truth):
+    """The counts the recorder checks against are exactly what a publisher numbers for a run."""
+    from bttsim_stream.bus.stream import acquisition_counts
+
+    info = make_info(n_revolutions=NR, has_truth=truth)
+    stream = MessageStream("run", "rig1")
+    msgs = [stream.run_metadata(info)] + stream.acquisition(make_batch(), include_truth=truth)
+    t = SequenceTracker()
+    for m in msgs:
+        t.accept(m.key, m.seq)
+    counts = acquisition_counts(info)
+    assert counts == {k: stream.sequencer.count(k) for k in counts} and len(counts) == NP + 2 + truth
+    assert t.missing(counts) == {}
+    assert {k: m.total for k, m in t.missing(dict(counts, **{keys.opr_key("rig1"): NR + 4})).items()} == \
+        {keys.opr_key("rig1"): 4}
 
 
 def _reference_acquisition(stream, batch, include_truth=True):

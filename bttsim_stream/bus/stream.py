@@ -24,8 +24,8 @@ import numpy as np
 from ..sim.core import RevolutionBatch, RunInfo
 from . import codec, keys
 
-__all__ = ["Message", "Sequencer", "SequenceTracker", "MessageStream", "Revolution", "RevolutionAssembler",
-           "StreamEnd", "Completeness"]
+__all__ = ["Message", "Sequencer", "SequenceTracker", "KeyMissing", "acquisition_counts", "MessageStream",
+           "Revolution", "RevolutionAssembler", "StreamEnd", "Completeness"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,27 +94,64 @@ class SequenceTracker:
         self.first: dict[str, int] = {}
         self.next: dict[str, int] = {}
         self.gaps: dict[str, int] = {}
+        self.limit: dict[str, int] = {}
         self.duplicates = 0
 
+    def expect(self, counts: dict[str, int]) -> None:
+        """Keys whose message count is known (``{key: n}``, e.g. :func:`acquisition_counts`):
+        their numbers run 0..n-1, and a number at or beyond ``n`` is not believed."""
+        self.limit.update({k: int(n) for k, n in counts.items()})
+
     def accept(self, key: str, seq: int | None) -> bool:
-        """Count one message; False for a duplicate."""
+        """Count one message; False for a duplicate or a number not believed."""
         if seq is None:
             self.count[key] = self.count.get(key, 0) + 1
             return True
         expected = self.next.get(key)
-        if expected is None:
-            self.first[key] = seq
-        elif seq < expected:
-            self.duplicates += 1
-            return False
-        elif seq > expected:
-            if seq - expected > self.max_jump:
+        if seq != expected:  # the rare cases: the first message of a key, a gap, a duplicate
+            start = 0 if expected is None else expected
+            if seq < start:
+                self.duplicates += 1
+                return False
+            # a jump (from 0 for a key's first message) beyond the key's known count, or
+            # beyond max_jump, is not believed: a forged number must neither make every later
+            # message a duplicate nor make the missing counts absurd
+            if seq >= self.limit.get(key, start + self.max_jump + 1):
                 self.implausible += 1
                 return False
-            self.gaps[key] = self.gaps.get(key, 0) + seq - expected
+            if expected is None:
+                self.first[key] = seq
+            else:
+                self.gaps[key] = self.gaps.get(key, 0) + seq - expected
+        elif seq >= self.limit.get(key, seq + 1):  # one past a key's known end
+            self.implausible += 1
+            return False
         self.count[key] = self.count.get(key, 0) + 1
         self.next[key] = seq + 1
         return True
+
+    def missing(self, expected: dict[str, int] | None = None) -> dict[str, "KeyMissing"]:
+        """What is missing, per key that misses anything: numbers before the first one received
+        (``head``; publishers count from 0), between received ones (``gaps``) and, for a key
+        whose count is known (``expected``, ``{key: n}``), after the last one received up to
+        ``n - 1`` (``tail``; a key with nothing received misses all ``n`` as its head).
+        Computed from per-key counters at the end: nothing is done per message."""
+        expected = expected or {}
+        out: dict[str, KeyMissing] = {}
+        for key in sorted(set(self.next) | set(expected)):
+            n = expected.get(key)
+            nxt = self.next.get(key)
+            if nxt is None:  # nothing numbered received
+                m = KeyMissing(head=int(n or 0), gaps=0, tail=0)
+            else:
+                head, gaps = self.first.get(key, 0), self.gaps.get(key, 0)
+                tail = 0 if n is None else max(0, int(n) - nxt)
+                if n is not None:  # numbers accepted before the count was known: stay within n
+                    head, gaps = min(head, int(n)), min(gaps, int(n))
+                m = KeyMissing(head=int(head), gaps=int(gaps), tail=int(tail))
+            if m.total:
+                out[key] = m
+        return out
 
     @property
     def lost(self) -> int:
@@ -133,6 +170,44 @@ class SequenceTracker:
                 "gaps": self.lost, "gaps_by_key": dict(self.gaps),
                 "duplicates_skipped": self.duplicates,
                 "late_start_keys": {k: v for k, v in self.first.items() if v > 0}}
+
+
+@dataclass(frozen=True, slots=True)
+class KeyMissing:
+    """Numbers missing on one key (:meth:`SequenceTracker.missing`).
+
+    Attributes
+    ----------
+    head : int
+        Before the first number received (all of a known count if nothing came).
+    gaps : int
+        Between numbers received.
+    tail : int
+        After the last number received, up to the key's known count (0 if unknown).
+    """
+
+    head: int
+    gaps: int
+    tail: int
+
+    @property
+    def total(self) -> int:
+        return self.head + self.gaps + self.tail
+
+    def to_dict(self) -> dict:
+        return {"head": self.head, "gaps": self.gaps, "tail": self.tail}
+
+
+def acquisition_counts(meta) -> dict[str, int]:
+    """The message count of every key whose count the run metadata (:class:`RunInfo`) fixes:
+    the metadata key (one message), the OPR key, each probe's TOA key and, if the run has
+    it, the truth key (``n_revolutions`` each, numbered 0..n_revolutions-1)."""
+    rig, n = meta.rig, int(meta.n_revolutions)
+    counts = {keys.meta_key(rig): 1, keys.opr_key(rig): n}
+    counts.update({keys.toa_key(rig, j): n for j in range(int(meta.n_probes))})
+    if meta.has_truth:
+        counts[keys.truth_key(rig)] = n
+    return counts
 
 
 @dataclass(frozen=True, slots=True)
@@ -356,12 +431,9 @@ class StreamEnd:
     """
 
     def __init__(self, meta) -> None:
-        rig, n = meta.rig, int(meta.n_revolutions)
-        wanted = [keys.opr_key(rig)] + [keys.toa_key(rig, j) for j in range(int(meta.n_probes))]
-        if meta.has_truth:
-            wanted.append(keys.truth_key(rig))
-        self._last = n - 1
-        self._waiting = set(wanted)
+        self.counts = acquisition_counts(meta)
+        self._last = int(meta.n_revolutions) - 1
+        self._waiting = set(self.counts) - {keys.meta_key(meta.rig)}
 
     def note(self, key: str, seq: int | None) -> None:
         """A message of ``key`` numbered ``seq`` came in."""

@@ -697,10 +697,16 @@ def summary_table(summary: dict) -> str:
         stray = f"; {summary['stray_edges']} in no blade's window" if summary.get("stray_edges") else ""
         lines.append(f"double pulses: {summary['double_pulses']} TOAs had extra trigger edges "
                      f"({summary['extra_edges']} edges in their blade's window{stray}; the first edge kept)")
-    if summary.get("complete") is False:
+    recording = summary.get("recording") or {}
+    bad_recording = recording.get("complete") is False
+    whole_result = not summary.get("lost") and \
+        summary.get("revolutions_processed") == summary.get("revolutions_expected")
+    if summary.get("complete") is False and not (bad_recording and whole_result):
         lines.append(f"INCOMPLETE: {summary['revolutions_processed']} of {summary['revolutions_expected']} "
                      f"revolutions processed, {summary['lost']} messages lost, {summary['duplicates']} "
                      f"duplicates, {summary['rejected']} rejected: this is not the whole run")
+    if bad_recording:  # the result may be whole, its recording is not (``bttsim run``)
+        lines.append(f"INCOMPLETE RECORDING: {recording.get('incomplete') or 'see recorder.log'}")
     return "\n".join(lines)
 
 
