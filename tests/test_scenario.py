@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.errors import BttsimError, ScenarioError
+from bttsim_stream.fieldspec import comments
 from bttsim_stream.scenario import (
     SECTIONS,
     Acquisition,
@@ -102,7 +103,7 @@ def test_every_field_documented():
     for name, cls in [*SECTIONS.items(), ("acquisition.signal", Signal)]:
         for f in dataclasses.fields(cls):
             assert f.name in cls.__doc__, f"{cls.__name__}.{f.name} missing from docstring"
-            assert f.metadata.get("toml"), f"{cls.__name__}.{f.name} has no TOML comment"
+            assert comments(cls)[f.name], f"{cls.__name__}.{f.name} has no TOML comment"
             if f.name in ("segments", "signal"):  # written as an example / as its own table
                 continue
             i = next(i for i, line in enumerate(lines) if line.startswith(f"{f.name} = "))
