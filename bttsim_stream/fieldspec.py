@@ -484,7 +484,9 @@ def comments(cls: type) -> dict[str, str]:
 
 
 def _sentence(text: str) -> str:
+    """One sentence for the docstring and the schema: capitalised, ends with a full stop."""
     text = " ".join(text.split())
+    text = text[:1].upper() + text[1:] if text[:1].islower() else text
     return text if text.endswith(".") else text + "."
 
 

@@ -310,7 +310,7 @@ class Model:
         "speeds at which the modes are solved (0 .. centrifugal_max_rpm); {range}"))
     centrifugal_max_rpm: float = spec(0.0, kind="float", unit="rpm", lo=0, hi=MAX_RPM, doc=(
         "highest of those speeds, {unit}; {range}; 0 = 1.2 x the speed profile's top speed;\n"
-        "else >= it"), note="0 is rounded up to 100 rpm")
+        "else >= it"), note="The default 0 is rounded up to 100 rpm")
 
     def __post_init__(self) -> None:
         validate_fields(self, "[model]")
@@ -1222,3 +1222,64 @@ def default_toml() -> str:
     str
     """
     return dumps_toml(Scenario(), comments=True)
+
+
+# --------------------------------------------------------------------------------------
+# The schema document
+# --------------------------------------------------------------------------------------
+
+_TABLE_BLOCK = re.compile(r"(<!-- fields: (\S+) [^\n]*-->\n)(.*?)(<!-- end fields -->)", re.S)
+
+
+def _section_class(name: str) -> type:
+    if name == "acquisition.signal":
+        return Signal
+    if name in SECTIONS:
+        return SECTIONS[name]
+    if name in OPTIONAL_ARRAYS:
+        return OPTIONAL_ARRAYS[name]
+    raise ScenarioError(f"schemas/scenario.md: no section {name!r} (a fields block names a section)")
+
+
+def schema_markdown(text: str) -> str:
+    """``schemas/scenario.md`` with its field tables regenerated from the declarations.
+
+    Each table sits between ``<!-- fields: SECTION ... -->`` and ``<!-- end fields -->``;
+    the prose around the tables is kept as written.
+
+    Parameters
+    ----------
+    text : str
+        The current document.
+
+    Returns
+    -------
+    str
+    """
+    return _TABLE_BLOCK.sub(lambda m: m.group(1) + markdown_table(_section_class(m.group(2))) + m.group(4), text)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m bttsim_stream.scenario --schema-md FILE [--check]``: rewrite (or check) the
+    field tables of the scenario schema document."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m bttsim_stream.scenario", description=main.__doc__)
+    parser.add_argument("--schema-md", metavar="FILE", required=True, help="schemas/scenario.md")
+    parser.add_argument("--check", action="store_true", help="exit 1 if FILE is not up to date, write nothing")
+    options = parser.parse_args(argv)
+    path = Path(options.schema_md)
+    text = path.read_text(encoding="utf-8")
+    new = schema_markdown(text)
+    if options.check:
+        if new != text:
+            print(f"{path}: field tables out of date; run python -m bttsim_stream.scenario "
+                  f"--schema-md {path}", file=sys.stderr)
+        return int(new != text)
+    if new != text:
+        path.write_text(new, encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
