@@ -380,30 +380,37 @@ class Spec:
         lo = getattr(siblings, self.lo) if isinstance(self.lo, str) else self.lo
         hi = getattr(siblings, self.hi) if isinstance(self.hi, str) else self.hi
         if self.kind == "float":
-            if self.zero_off:
-                value = check_real(where, key, value, lo=0)
-                if value and not (lo <= value <= hi):  # type: ignore[operator]
-                    raise FieldError(where, key, f"must be 0 ({self.zero_off}) or "
-                                     f"{_interval(lo, hi, False, False, _num)}, got {show(value)}")
-            else:
-                names = (self.lo if isinstance(self.lo, str) else "", self.hi if isinstance(self.hi, str) else "")
-                value = check_real(where, key, value, lo=lo, lo_open=self.lo_open, hi=hi, hi_open=self.hi_open,
-                                   names=names)
+            value = self._real(where, key, value, lo, hi)
         elif self.kind == "int":
             value = check_integer(where, key, value, lo=lo, hi=None if isinstance(self.hi, str) else hi)
             if isinstance(self.hi, str) and value > hi:  # type: ignore[operator]
                 raise FieldError(where, key, f"must be <= {self.hi} = {hi}, got {value}")
-        elif self.kind == "bool":
-            value = check_boolean(where, key, value)
-        elif self.kind == "str":
-            value = check_string(where, key, value, choices=self.choices)
         elif self.kind == "floats":
             value = check_real_tuple(where, key, value, lo=lo, lo_open=self.lo_open, hi=hi, hi_open=self.hi_open)
             if self.count is not None and not self.count[0] <= len(value) <= self.count[1]:
                 raise FieldError(where, key, f"must hold {self.count_text()} values, got {len(value)}")
-        elif self.kind == "choice_each":
-            value = check_choices(where, key, value, self.choices)
+        elif self.kind in _SIMPLE_CHECKS:
+            value = _SIMPLE_CHECKS[self.kind](where, key, value, self.choices)
         return self.check(where, key, value) if self.check is not None else value
+
+    def _real(self, where: str, key: str, value: Any, lo: Any, hi: Any) -> float:
+        if not self.zero_off:
+            names = (self.lo if isinstance(self.lo, str) else "", self.hi if isinstance(self.hi, str) else "")
+            return check_real(where, key, value, lo=lo, lo_open=self.lo_open, hi=hi, hi_open=self.hi_open,
+                              names=names)
+        value = check_real(where, key, value, lo=0)
+        if value and not (lo <= value <= hi):
+            raise FieldError(where, key, f"must be 0 ({self.zero_off}) or "
+                             f"{_interval(lo, hi, False, False, _num)}, got {show(value)}")
+        return value
+
+
+#: Checks of the kinds that need no bounds: ``(where, key, value, choices) -> value``.
+_SIMPLE_CHECKS: dict[str, Callable[[str, str, Any, tuple[str, ...]], Any]] = {
+    "bool": lambda where, key, value, choices: check_boolean(where, key, value),
+    "str": lambda where, key, value, choices: check_string(where, key, value, choices=choices),
+    "choice_each": check_choices,
+}
 
 
 def spec(default: Any = dataclasses.MISSING, *, kind: str, doc: str,
