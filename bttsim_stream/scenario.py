@@ -8,11 +8,14 @@ Rules, the same for a file and for programmatic construction:
 
 * All values are SI with the unit in the name (``_m``, ``_s``, ``_n``, ``_hz``), except
   angles in degrees (``_deg``) and speeds in rpm (``_rpm``), as in the paper.
-* Each section dataclass validates itself in ``__post_init__``; :class:`Scenario` adds
-  the checks that span sections. Any problem raises
-  :class:`~bttsim_stream.errors.ScenarioError` with a one-line message naming the field,
-  e.g. ``[probes] angles_deg[2] must be finite, got nan``; :func:`load_scenario` and
-  :func:`scenario_from_dict` prefix it with the file (``scenario.toml: ...``).
+* Each field is declared once (:func:`~bttsim_stream.fieldspec.spec`: kind, unit, bounds,
+  default, comment); its check, its comment in the printed file, the ``Attributes`` of the
+  section's docstring and its row in ``schemas/scenario.md`` all come from that declaration.
+  Checks across fields are small named functions here; :class:`Scenario` adds the checks that
+  span sections. Any problem raises :class:`~bttsim_stream.errors.ScenarioError` with a
+  one-line message naming the field, e.g. ``[probes] angles_deg[2] must be finite, got nan``;
+  :func:`load_scenario` and :func:`scenario_from_dict` prefix it with the file
+  (``scenario.toml: ...``).
 * An integer is accepted where a float is expected, never the reverse; a boolean is never
   accepted as a number. Floats must be finite. Lists are stored as tuples.
 * In a file, unknown sections and keys are errors; a missing section or key takes its
@@ -20,18 +23,18 @@ Rules, the same for a file and for programmatic construction:
 
 The file is read with :mod:`tomllib`; :func:`dumps_toml` is a small emitter for the few
 value types used here, written so that ``load(dumps(s)) == s`` exactly (floats by
-``repr``).
+``repr``). ``python -m bttsim_stream.scenario --schema-md FILE`` rewrites the generated
+field tables of ``schemas/scenario.md``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
-import json
 import math
-import numbers
 import os
 import re
+import sys
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +45,15 @@ import numpy as np
 
 from .defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from .errors import ScenarioError
+from .fieldspec import FieldError as _FieldError
+from .fieldspec import comments as _comments
+from .fieldspec import field_spec, markdown_table, section, spec, validate_fields
+from .fieldspec import got as _got
+from .fieldspec import one_line as _one_line
+from .fieldspec import show as _show
+from .fieldspec import toml_key as _key
+from .fieldspec import toml_string as _toml_string
+from .fieldspec import toml_value as _toml_value
 
 __all__ = [
     "Run",
@@ -63,6 +75,7 @@ __all__ = [
     "scenario_to_dict",
     "dumps_toml",
     "default_toml",
+    "schema_markdown",
 ]
 
 BUILTIN_MODEL = "builtin"
@@ -80,174 +93,15 @@ MIN_CLOCK_HZ, MAX_CLOCK_HZ = 1e3, 1e12
 MAX_PROBE_ANGLE_ERROR_DEG = 5.0
 MAX_TIP_RADIUS_M = 10.0
 MAX_SEED = 2**63 - 1
+SIGNAL_PROBES = ("optical", "capacitive")
+SIGNAL_TRIGGERS = ("threshold", "constant_fraction", "peak")
+SIGNAL_EDGES = ("rising", "falling")
+MAX_WINDOW_SAMPLES = 4096
+MAX_STALL_FREQUENCY_HZ = 1e6
+MAX_BROADBAND_HZ = 1e5
+MAX_BROADBAND_LINES = 256
+MAX_SIGNAL_SIZE_M = 0.05
 _RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
-_BARE_KEY_RE = re.compile(r"[A-Za-z0-9_-]+")
-
-
-# --------------------------------------------------------------------------------------
-# Errors and value checks
-# --------------------------------------------------------------------------------------
-
-
-class _FieldError(ScenarioError):
-    """A :class:`ScenarioError` that remembers where it happened, so it can be relabelled.
-
-    Parameters
-    ----------
-    where : str
-        Section label, e.g. ``"[probes]"`` or ``"[[excitation]][1]"``.
-    key : str
-        Field (with an index if any), e.g. ``"angles_deg[2]"``; may be empty.
-    problem : str
-        What is wrong, e.g. ``"must be finite, got nan"``.
-    """
-
-    def __init__(self, where: str, key: str, problem: str) -> None:
-        self.where, self.key, self.problem = where, key, problem
-        text = " ".join(part for part in (where, key, problem) if part)
-        super().__init__(_one_line(text))
-
-    def relabel(self, where: str) -> "_FieldError":
-        """The same error under another section label."""
-        return _FieldError(where, self.key, self.problem)
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split()) if ("\n" in text or "\r" in text) else text
-
-
-def _toml_type(value: Any) -> str:
-    """The TOML name of a value's type (for messages)."""
-    if isinstance(value, bool):
-        return "boolean"
-    if isinstance(value, numbers.Integral):
-        return "integer"
-    if isinstance(value, numbers.Real):
-        return "float"
-    if isinstance(value, str):
-        return "string"
-    if isinstance(value, Mapping):
-        return "table"
-    if isinstance(value, (list, tuple)):
-        return "array"
-    return type(value).__name__
-
-
-def _show(value: Any, limit: int = 60) -> str:
-    """A short one-line TOML-like rendering of a value (for messages)."""
-    if isinstance(value, bool):
-        text = "true" if value else "false"
-    elif isinstance(value, numbers.Integral):
-        text = str(int(value))
-    elif isinstance(value, numbers.Real):
-        text = repr(float(value))
-    elif isinstance(value, str):
-        text = json.dumps(value, ensure_ascii=False)
-    elif isinstance(value, Mapping):
-        text = "{" + ", ".join(f"{_key(k)} = {_show(v, limit)}" for k, v in value.items()) + "}"
-    elif isinstance(value, (list, tuple)):
-        text = "[" + ", ".join(_show(v, limit) for v in value) + "]"
-    else:
-        text = repr(value)
-    text = _one_line(text)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _got(value: Any) -> str:
-    """``"got <type> <value>"`` for a value of the wrong type."""
-    return f"got {_toml_type(value)} {_show(value)}"
-
-
-def _num(x: float) -> str:
-    """A bound for a message: ``0``, ``0.5``, ``360``."""
-    return f"{x:g}"
-
-
-def _is_real(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-
-
-def _real(where: str, key: str, value: Any, *, lo: float | None = None, lo_open: bool = False,
-          hi: float | None = None, hi_open: bool = False) -> float:
-    """Check a finite real number within optional bounds; return it as a float."""
-    if not _is_real(value):
-        raise _FieldError(where, key, f"must be a number, {_got(value)}")
-    try:
-        x = float(value)
-    except OverflowError:  # an integer beyond any float
-        raise _FieldError(where, key, f"must be finite, got an integer of {len(str(int(value)))} digits") from None
-    if not math.isfinite(x):
-        raise _FieldError(where, key, f"must be finite, got {_show(x)}")
-    too_low = lo is not None and (x <= lo if lo_open else x < lo)
-    too_high = hi is not None and (x >= hi if hi_open else x > hi)
-    if too_low or too_high:
-        if lo is not None and hi is not None:
-            rng = f"in {'(' if lo_open else '['}{_num(lo)}, {_num(hi)}{')' if hi_open else ']'}"
-        elif lo is not None:
-            rng = f"{'>' if lo_open else '>='} {_num(lo)}"
-        else:
-            rng = f"{'<' if hi_open else '<='} {_num(hi)}"  # type: ignore[arg-type]
-        raise _FieldError(where, key, f"must be {rng}, got {_show(x)}")
-    return x
-
-
-def _integer(where: str, key: str, value: Any, *, lo: int | None = None,
-             hi: int | None = None) -> int:
-    """Check an integer (not a bool, not a float) within optional inclusive bounds."""
-    if lo is not None and hi is not None:
-        what = f"an integer in [{lo}, {hi}]"
-    elif lo is not None:
-        what = f"an integer >= {lo}"
-    elif hi is not None:
-        what = f"an integer <= {hi}"
-    else:
-        what = "an integer"
-    if not _is_int(value):
-        raise _FieldError(where, key, f"must be {what}, {_got(value)}")
-    n = int(value)
-    if (lo is not None and n < lo) or (hi is not None and n > hi):
-        raise _FieldError(where, key, f"must be {what}, got {_show(n)}")
-    return n
-
-
-def _boolean(where: str, key: str, value: Any) -> bool:
-    """Check a boolean (``true``/``false``; 0 and 1 are not booleans)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise _FieldError(where, key, f"must be true or false, {_got(value)}")
-    return bool(value)
-
-
-def _string(where: str, key: str, value: Any, *, choices: Sequence[str] | None = None) -> str:
-    """Check a string, optionally one of ``choices`` (case-sensitive)."""
-    if choices is not None:
-        allowed = ", ".join(json.dumps(c) for c in choices)
-        if not isinstance(value, str):
-            raise _FieldError(where, key, f"must be one of {allowed}, {_got(value)}")
-        if value not in choices:
-            raise _FieldError(where, key, f"must be one of {allowed}, got {_show(value)}")
-        return value
-    if not isinstance(value, str):
-        raise _FieldError(where, key, f"must be a string, {_got(value)}")
-    return value
-
-
-def _sequence(where: str, key: str, value: Any, what: str) -> list[Any]:
-    """Check an array (list, tuple or 1-D numpy array) and return its items as a list."""
-    if isinstance(value, np.ndarray) and value.ndim == 1:
-        return value.tolist()
-    if not isinstance(value, (list, tuple)):
-        raise _FieldError(where, key, f"must be {what}, {_got(value)}")
-    return list(value)
-
-
-def _real_tuple(where: str, key: str, value: Any, **bounds: Any) -> tuple[float, ...]:
-    """Check an array of finite reals, each within ``bounds`` (see :func:`_real`)."""
-    items = _sequence(where, key, value, "an array of numbers")
-    return tuple(_real(where, f"{key}[{i}]", v, **bounds) for i, v in enumerate(items))
 
 
 def _set(obj: Any, name: str, value: Any) -> None:
@@ -255,9 +109,95 @@ def _set(obj: Any, name: str, value: Any) -> None:
     object.__setattr__(obj, name, value)
 
 
-def _doc(text: str) -> dict[str, str]:
-    """Field metadata: the comment written above the key in the emitted TOML."""
-    return {"toml": text}
+# --------------------------------------------------------------------------------------
+# Checks of one field beyond its kind and bounds
+# --------------------------------------------------------------------------------------
+
+
+def _check_rig(where: str, key: str, rig: str) -> str:
+    if not _RIG_RE.fullmatch(rig):
+        raise _FieldError(where, key, "must be non-empty and use only letters, digits, "
+                          f"'_' and '-', got {_show(rig)}")
+    return rig
+
+
+def _check_source(where: str, key: str, source: str) -> str:
+    if not source:
+        raise _FieldError(where, key, 'must be "builtin" or a file path, got ""')
+    return source
+
+
+def _check_direction(where: str, key: str, direction: tuple[float, ...]) -> tuple[float, ...]:
+    if len(direction) != 3:
+        raise _FieldError(where, key, f"must have 3 components (radial, tangential, axial), got {len(direction)}")
+    if not any(direction):
+        raise _FieldError(where, key, "must not be the zero vector")
+    return direction
+
+
+def _check_distinct(where: str, key: str, values: tuple[float, ...]) -> tuple[float, ...]:
+    first: dict[float, int] = {}
+    for i, a in enumerate(values):
+        if a in first:
+            raise _FieldError(where, f"{key}[{i}]", f"duplicates {key}[{first[a]}] ({_show(a)})")
+        first[a] = i
+    return values
+
+
+def _check_band(where: str, key: str, band: tuple[float, ...]) -> tuple[float, ...]:
+    if len(band) != 2 or not band[0] < band[1]:
+        raise _FieldError(where, key, f"must be [low, high] with low < high, got {_show(list(band))}")
+    return band
+
+
+def _check_segments(where: str, key: str, value: Any) -> tuple[tuple[float, float], ...]:
+    from .fieldspec import check_sequence
+
+    items = check_sequence(where, key, value, "an array of {duration_s = ..., end_rpm = ...} tables")
+    return tuple(_segment(where, f"{key}[{i}]", s) for i, s in enumerate(items))
+
+
+_SEGMENT_KEYS = ("duration_s", "end_rpm")
+
+
+def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
+    """Check one speed segment: a ``{duration_s, end_rpm}`` mapping or a pair; its members
+    have the bounds of ``[speed] duration_s`` and ``end_rpm``."""
+    if isinstance(value, Mapping):
+        for k in value:
+            if k not in _SEGMENT_KEYS:
+                raise _FieldError(where, key, f"has unknown key {_key(k)}{_hint(k, _SEGMENT_KEYS)}"
+                                  " (expected duration_s and end_rpm)")
+        for k in _SEGMENT_KEYS:
+            if k not in value:
+                raise _FieldError(where, key, f"is missing {k}")
+        d, r = value["duration_s"], value["end_rpm"]
+    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2:
+        d, r = value[0], value[1]
+    else:
+        raise _FieldError(where, key, f"must be a table {{duration_s = ..., end_rpm = ...}}, "
+                          f"{_got(value)}")
+    specs = {f.name: field_spec(f) for f in dataclasses.fields(Speed)}
+    return (specs["duration_s"].validate(where, f"{key}.duration_s", d, None),
+            specs["end_rpm"].validate(where, f"{key}.end_rpm", r, None))
+
+
+def _check_signal_table(where: str, key: str, value: Any) -> "Signal":
+    if isinstance(value, Mapping):
+        _check_keys("[acquisition.signal]", value, Signal)
+        return Signal(**value)
+    if not isinstance(value, Signal):
+        raise _FieldError(where, key, f"must be a table ([acquisition.signal]), {_got(value)}")
+    return value
+
+
+def _force_fields() -> tuple[Any, Any]:
+    """The ``direction`` and ``node`` fields shared by every force pattern."""
+    direction = spec((0.0, 0.0, 1.0), kind="floats", check=_check_direction, doc=(
+        "force direction (radial, tangential, axial) at the force node; normalised at use"))
+    node = spec("leading_edge", kind="str", choices=FORCE_NODES, doc=(
+        "tip-section edge where the force is applied: {range}"))
+    return direction, node
 
 
 # --------------------------------------------------------------------------------------
@@ -265,35 +205,24 @@ def _doc(text: str) -> dict[str, str]:
 # --------------------------------------------------------------------------------------
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Run:
     """``[run]``: identity of the run and the seed of every random choice.
 
-    Attributes
-    ----------
-    rig : str
-        Rig name, default ``"rig1"``. It becomes a Zenoh key segment, so it must be
-        non-empty and use only ``A-Z a-z 0-9 _ -``.
-    seed : int
-        Seed of every random choice of the run (random mistuning, acquisition errors),
-        default 0; integer in [0, 2**63 - 1]. The same scenario and seed give the same run.
+    The same scenario and seed give the same run.
     """
 
-    rig: str = field(default="rig1", metadata=_doc(
+    rig: str = spec("rig1", kind="str", check=_check_rig, doc=(
         "rig name, used as a Zenoh key segment: non-empty, only A-Z a-z 0-9 _ -"))
-    seed: int = field(default=0, metadata=_doc(
-        "seed of every random choice (random mistuning, acquisition errors); integer in [0, 2**63 - 1]"))
+    seed: int = spec(0, kind="int", lo=0, hi=MAX_SEED, doc=(
+        "seed of every random choice (random mistuning, acquisition errors); integer {range}"))
 
     def __post_init__(self) -> None:
-        w = "[run]"
-        rig = _string(w, "rig", self.rig)
-        if not _RIG_RE.fullmatch(rig):
-            raise _FieldError(w, "rig", "must be non-empty and use only letters, digits, "
-                              f"'_' and '-', got {_show(rig)}")
-        _set(self, "rig", rig)
-        _set(self, "seed", _integer(w, "seed", self.seed, lo=0, hi=MAX_SEED))
+        validate_fields(self, "[run]")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Rotor:
     """``[rotor]``: geometry of the built-in bladed disk and its tip section.
@@ -301,69 +230,35 @@ class Rotor:
     The tip chord runs from the leading edge (LE) at axial position z = 0 to the trailing
     edge (TE) at z = ``tip_chord_m * sin(stagger_deg)``. The tip nodes lie on the chord,
     ``tip_node_spacing_m`` apart, starting at the TE.
-
-    Attributes
-    ----------
-    n_blades : int
-        Number of blades, default 29 (the paper's rotor); integer in [2, 200]
-        (:data:`~bttsim_stream.defaults.MAX_BLADES`: the built-in model's memory grows as
-        ``n_families * n_blades**2``).
-    tip_radius_m : float
-        Blade tip radius, m, default 0.19; in (0, 10]; the built-in model also needs it
-        beyond its rim (0.115 m). Our choice (the first compressor stage of
-        a small turbojet): the paper does not give it.
-    stagger_deg : float
-        Tip stagger angle eta_tip, deg: angle of the tip chord from the tangential
-        direction. Default 41.5; in (0, 90).
-    tip_chord_m : float
-        Chord length of the tip section, m, default 0.0202523; > 0 and at most
-        ``tip_radius_m``.
-    n_tip_nodes : int
-        Number of tip nodes along the chord, default 9; integer in [2, 100].
-    tip_node_spacing_m : float
-        Spacing of the tip nodes along the chord, m, starting at the TE; default
-        0.0004375; > 0. The nodes must fit on the chord:
-        ``(n_tip_nodes - 1) * tip_node_spacing_m <= tip_chord_m``.
-    nominal_node : int
-        The nominal tip node P_nom, counted from the TE (TE node = 1). Default 5 (the
-        paper's P_nom, 1.75 mm from the TE); integer in [1, n_tip_nodes].
     """
 
-    n_blades: int = field(default=29, metadata=_doc(
-        "number of blades (the paper's rotor has 29); integer in [2, 200]"))
-    tip_radius_m: float = field(default=0.19, metadata=_doc(
-        "blade tip radius, m; in (0, 10] (our choice, small turbojet 1st compressor stage)"))
-    stagger_deg: float = field(default=41.5, metadata=_doc(
-        "tip stagger eta_tip, deg: tip chord angle from the tangential direction; in (0, 90)"))
-    tip_chord_m: float = field(default=0.0202523, metadata=_doc(
-        "tip chord length, m; in (0, tip_radius_m]. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
-    n_tip_nodes: int = field(default=9, metadata=_doc(
-        "number of tip nodes along the chord; integer in [2, 100]"))
-    tip_node_spacing_m: float = field(default=0.0004375, metadata=_doc(
-        "tip node spacing along the chord from the TE, m; > 0;\n"
+    n_blades: int = spec(29, kind="int", lo=2, hi=MAX_BLADES, doc=(
+        "number of blades (the paper's rotor has 29); integer {range}"),
+        note="The built-in model's memory grows as n_families * n_blades**2: about 0.6 GB at "
+             "200 blades and 5 families")
+    tip_radius_m: float = spec(0.19, kind="float", unit="m", lo=0, lo_open=True, hi=MAX_TIP_RADIUS_M, doc=(
+        "blade tip radius, {unit}; {range}, and >= 1.1 x its rim radius (0.115 m) with the\n"
+        "built-in model (our choice, small turbojet 1st compressor stage)"),
+        note="The paper does not give it; 0.19 m is representative of the first compressor stage "
+             "of a small turbojet. The rim condition is checked when the built-in model is built")
+    stagger_deg: float = spec(41.5, kind="float", unit="deg", lo=0, lo_open=True, hi=90, hi_open=True, doc=(
+        "tip stagger eta_tip, {unit}: tip chord angle from the tangential direction; {range}"))
+    tip_chord_m: float = spec(0.0202523, kind="float", unit="m", lo=0, lo_open=True, hi="tip_radius_m", doc=(
+        "tip chord length, {unit}; {range}. LE at z = 0, TE at z = tip_chord_m * sin(stagger)"))
+    n_tip_nodes: int = spec(9, kind="int", lo=2, hi=MAX_TIP_NODES, doc=(
+        "number of tip nodes along the chord; integer {range}"))
+    tip_node_spacing_m: float = spec(0.0004375, kind="float", unit="m", lo=0, lo_open=True, doc=(
+        "tip node spacing along the chord from the TE, {unit}; {range};\n"
         "(n_tip_nodes - 1) * tip_node_spacing_m <= tip_chord_m"))
-    nominal_node: int = field(default=5, metadata=_doc(
-        "nominal node P_nom counted from the TE (TE node = 1); in [1, n_tip_nodes]"))
+    nominal_node: int = spec(5, kind="int", lo=1, hi="n_tip_nodes", doc=(
+        "nominal node P_nom counted from the TE (TE node = 1); {range}"),
+        note="The default is the paper's P_nom, 1.75 mm from the TE")
 
     def __post_init__(self) -> None:
-        w = "[rotor]"
-        _set(self, "n_blades", _integer(w, "n_blades", self.n_blades, lo=2, hi=MAX_BLADES))
-        _set(self, "tip_radius_m", _real(w, "tip_radius_m", self.tip_radius_m, lo=0,
-                                         lo_open=True, hi=MAX_TIP_RADIUS_M))
-        _set(self, "stagger_deg", _real(w, "stagger_deg", self.stagger_deg, lo=0,
-                                        lo_open=True, hi=90, hi_open=True))
-        _set(self, "tip_chord_m", _real(w, "tip_chord_m", self.tip_chord_m, lo=0,
-                                        lo_open=True, hi=self.tip_radius_m))
-        _set(self, "n_tip_nodes", _integer(w, "n_tip_nodes", self.n_tip_nodes, lo=2, hi=MAX_TIP_NODES))
-        _set(self, "tip_node_spacing_m", _real(w, "tip_node_spacing_m",
-                                               self.tip_node_spacing_m, lo=0, lo_open=True))
-        _set(self, "nominal_node", _integer(w, "nominal_node", self.nominal_node, lo=1))
-        if self.nominal_node > self.n_tip_nodes:
-            raise _FieldError(w, "nominal_node", f"must be <= n_tip_nodes = "
-                              f"{self.n_tip_nodes}, got {self.nominal_node}")
+        validate_fields(self, "[rotor]")
         span = (self.n_tip_nodes - 1) * self.tip_node_spacing_m
         if span > self.tip_chord_m * (1.0 + 1e-12):
-            raise _FieldError(w, "tip_node_spacing_m", f"puts the tip nodes beyond the chord: "
+            raise _FieldError("[rotor]", "tip_node_spacing_m", f"puts the tip nodes beyond the chord: "
                               f"(n_tip_nodes - 1) * tip_node_spacing_m = {span:.6g} m > "
                               f"tip_chord_m = {self.tip_chord_m:.6g} m")
 
@@ -378,102 +273,54 @@ class Rotor:
         return (self.nominal_node - 1) * self.tip_node_spacing_m
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Model:
     """``[model]``: where the modal model comes from, its damping and its mistuning.
 
-    Attributes
-    ----------
-    source : str
-        ``"builtin"`` (default: the parametric bladed disk built from ``[rotor]``) or the
-        path of a user's modal model ``.npz``. :func:`load_scenario` resolves a relative
-        path against the scenario file's directory; the string is not checked further here.
-    damping_beta_s : float
-        Stiffness-proportional damping coefficient beta, s, default 9e-6; >= 0. The modal
-        damping ratio is zeta = beta * omega / 2.
-    n_families : int
-        Mode families kept per nodal diameter, default 5 (5 families * 29 blades = 145
-        modes); integer in [1, 20].
-    disk_asymmetry : bool
-        Default false. If true, a small deterministic disk asymmetry splits the
-        nodal-diameter mode pairs, as in the paper's scanned disk.
-    stiffness_factors : tuple of float
-        Per-blade stiffness factors (dimensionless). Empty (default) = none; else exactly
-        ``n_blades`` finite values > 0. Exclusive with ``stiffness_std > 0``.
-    mass_factors : tuple of float
-        Per-blade mass factors, as ``stiffness_factors``. Exclusive with ``mass_std > 0``.
-    stiffness_std : float
-        Standard deviation of seeded random per-blade stiffness factors 1 + N(0, std),
-        dimensionless; default 0.0; in [0, 0.5).
-    mass_std : float
-        As ``stiffness_std``, for the blade masses.
-    centrifugal : bool
-        Default false (the paper's zero-speed model). If true, the built-in model gains its
-        centrifugal effects (stress stiffening and spin softening; Coriolis neglected): modes
-        at ``centrifugal_speeds`` speeds from 0 to ``centrifugal_max_rpm``, tracked across
-        speeds (``schemas/modal_model.md``). Only with ``source = "builtin"``; a mistuned or
-        asymmetric wheel is solved as a full wheel (slower: seconds).
-    centrifugal_speeds : int
-        Speeds at which the modes are solved, default 17; integer in [2, 64].
-    centrifugal_max_rpm : float
-        Highest of those speeds, rpm; default 0.0 = 1.2 times the speed profile's top speed
-        (rounded up to 100 rpm); else in [top speed, 1e6].
+    :func:`load_scenario` resolves a relative ``source`` path against the scenario file's
+    directory. The three ``centrifugal*`` keys are written only when ``centrifugal`` is on.
     """
 
-    source: str = field(default=BUILTIN_MODEL, metadata=_doc(
+    source: str = spec(BUILTIN_MODEL, kind="str", check=_check_source, doc=(
         '"builtin" (parametric bladed disk from [rotor]) or the path of a modal model .npz\n'
         "(a relative path is relative to this file's directory)"))
-    damping_beta_s: float = field(default=9e-6, metadata=_doc(
-        "stiffness-proportional damping beta, s; zeta = beta * omega / 2; >= 0"))
-    n_families: int = field(default=5, metadata=_doc(
-        "mode families kept per nodal diameter (modes = n_families * n_blades); in [1, 20]"))
-    disk_asymmetry: bool = field(default=False, metadata=_doc(
+    damping_beta_s: float = spec(9e-6, kind="float", unit="s", lo=0, doc=(
+        "stiffness-proportional damping beta, {unit}; zeta = beta * omega / 2; {range}"))
+    n_families: int = spec(5, kind="int", lo=1, hi=MAX_FAMILIES, doc=(
+        "mode families kept per nodal diameter (modes = n_families * n_blades); {range}"))
+    disk_asymmetry: bool = spec(False, kind="bool", doc=(
         "small deterministic disk asymmetry splitting the nodal-diameter pairs (paper's disk)"))
-    stiffness_factors: tuple[float, ...] = field(default=(), metadata=_doc(
-        "per-blade stiffness factors: [] = none, else n_blades finite values > 0"))
-    mass_factors: tuple[float, ...] = field(default=(), metadata=_doc(
-        "per-blade mass factors: [] = none, else n_blades finite values > 0"))
-    stiffness_std: float = field(default=0.0, metadata=_doc(
-        "std of seeded random per-blade stiffness factors 1 + N(0, std); in [0, 0.5);\n"
+    stiffness_factors: tuple[float, ...] = spec((), kind="floats", lo=0, lo_open=True, doc=(
+        "per-blade stiffness factors: [] = none, else n_blades finite values {range}"))
+    mass_factors: tuple[float, ...] = spec((), kind="floats", lo=0, lo_open=True, doc=(
+        "per-blade mass factors: [] = none, else n_blades finite values {range}"))
+    stiffness_std: float = spec(0.0, kind="float", lo=0, hi=0.5, hi_open=True, doc=(
+        "std of seeded random per-blade stiffness factors 1 + N(0, std); {range};\n"
         "exclusive with stiffness_factors"))
-    mass_std: float = field(default=0.0, metadata=_doc(
-        "std of seeded random per-blade mass factors 1 + N(0, std); in [0, 0.5);\n"
+    mass_std: float = spec(0.0, kind="float", lo=0, hi=0.5, hi_open=True, doc=(
+        "std of seeded random per-blade mass factors 1 + N(0, std); {range};\n"
         "exclusive with mass_factors"))
-    centrifugal: bool = field(default=False, metadata=_doc(
+    centrifugal: bool = spec(False, kind="bool", doc=(
         "speed-dependent modes of the built-in model: centrifugal stiffening and spin\n"
-        "softening (Coriolis neglected)"))
-    centrifugal_speeds: int = field(default=17, metadata=_doc(
-        "speeds at which the modes are solved (0 .. centrifugal_max_rpm); in [2, 64]"))
-    centrifugal_max_rpm: float = field(default=0.0, metadata=_doc(
-        "highest of those speeds, rpm; 0 = 1.2 x the speed profile's top speed; else >= it"))
+        "softening (Coriolis neglected)"),
+        note="Only with source = \"builtin\" (schemas/modal_model.md); a mistuned or asymmetric "
+             "wheel is solved as a full wheel (seconds rather than 1 s)")
+    centrifugal_speeds: int = spec(17, kind="int", lo=2, hi=MAX_MODEL_SPEEDS, doc=(
+        "speeds at which the modes are solved (0 .. centrifugal_max_rpm); {range}"))
+    centrifugal_max_rpm: float = spec(0.0, kind="float", unit="rpm", lo=0, hi=MAX_RPM, doc=(
+        "highest of those speeds, {unit}; {range}; 0 = 1.2 x the speed profile's top speed;\n"
+        "else >= it"), note="The default 0 is rounded up to 100 rpm")
 
     def __post_init__(self) -> None:
-        w = "[model]"
-        _set(self, "centrifugal", _boolean(w, "centrifugal", self.centrifugal))
-        _set(self, "centrifugal_speeds", _integer(w, "centrifugal_speeds", self.centrifugal_speeds, lo=2,
-                                                  hi=MAX_MODEL_SPEEDS))
-        _set(self, "centrifugal_max_rpm", _real(w, "centrifugal_max_rpm", self.centrifugal_max_rpm, lo=0,
-                                                hi=MAX_RPM))
-        source = _string(w, "source", self.source)
-        if not source:
-            raise _FieldError(w, "source", 'must be "builtin" or a file path, got ""')
-        _set(self, "source", source)
-        _set(self, "damping_beta_s", _real(w, "damping_beta_s", self.damping_beta_s, lo=0))
-        _set(self, "n_families", _integer(w, "n_families", self.n_families, lo=1,
-                                          hi=MAX_FAMILIES))
-        _set(self, "disk_asymmetry", _boolean(w, "disk_asymmetry", self.disk_asymmetry))
+        validate_fields(self, "[model]")
         for kind in ("stiffness", "mass"):
-            factors = _real_tuple(w, f"{kind}_factors", getattr(self, f"{kind}_factors"),
-                                  lo=0, lo_open=True)
-            std = _real(w, f"{kind}_std", getattr(self, f"{kind}_std"), lo=0, hi=0.5,
-                        hi_open=True)
-            if factors and std > 0:
-                raise _FieldError(w, f"{kind}_std", f"must be 0 when {kind}_factors is given "
-                                  f"(use one or the other), got {_show(std)}")
-            _set(self, f"{kind}_factors", factors)
-            _set(self, f"{kind}_std", std)
+            if getattr(self, f"{kind}_factors") and getattr(self, f"{kind}_std") > 0:
+                raise _FieldError("[model]", f"{kind}_std", f"must be 0 when {kind}_factors is given "
+                                  f"(use one or the other), got {_show(getattr(self, f'{kind}_std'))}")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Speed:
     """``[speed]``: the rotor speed profile.
@@ -481,66 +328,44 @@ class Speed:
     By default the paper's linear run-up (Eq. 6) from ``start_rpm`` to ``end_rpm`` in
     ``duration_s``. With ``segments``, a piecewise-linear profile: each segment ramps
     linearly from the previous segment's end speed (the first from ``start_rpm``) to its
-    own ``end_rpm`` in its ``duration_s``; a dwell is a segment that keeps the speed.
-
-    Attributes
-    ----------
-    start_rpm : float
-        Speed at t = 0, rpm, default 1000.0; in (0, 1e6].
-    end_rpm : float
-        Speed at the end of the profile, rpm, default 4000.0; in (0, 1e6]. With ``segments`` it is
-        derived (the last segment's ``end_rpm``) and must be absent from the file.
-    duration_s : float
-        Duration of the profile, s, default 130.0; > 0. With ``segments`` it is derived
-        (the sum of the segment durations) and must be absent from the file.
-    segments : tuple of (float, float)
-        ``(duration_s, end_rpm)`` pairs, default empty (plain ramp). In a file, an array
-        of inline tables ``{duration_s = 10.0, end_rpm = 2000.0}``. Durations > 0, speeds
-        in (0, 1e6].
-        Programmatically, pairs or such mappings are accepted.
-    initial : str
-        Modal state at t = 0, default ``"steady"``: every mode in its quasi-steady response
-        to the forcing (the first segment's sweep extended back in time; at or near a
-        resonance too); ``"rest"``: zero displacement and velocity (the free vibration of
-        the start is simulated exactly).
-
-    The whole profile makes at most 1,000,000 revolutions
-    (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`).
+    own ``end_rpm`` in its ``duration_s``; a dwell is a segment that keeps the speed. Then
+    ``end_rpm`` and ``duration_s`` are derived (and must be absent from a file).
+    Programmatically, segments may be pairs or mappings. The whole profile makes at most
+    1,000,000 revolutions (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`).
     """
 
-    start_rpm: float = field(default=1000.0, metadata=_doc(
-        "speed at t = 0, rpm; in (0, 1e6] (paper Eq. 6: linear run-up)"))
-    end_rpm: float = field(default=4000.0, metadata=_doc(
-        "speed at the end of the run-up, rpm; in (0, 1e6]. Leave out when segments is given"))
-    duration_s: float = field(default=130.0, metadata=_doc(
-        "duration of the run-up, s; > 0. Leave out when segments is given"))
-    segments: tuple[tuple[float, float], ...] = field(default=(), metadata=_doc(
-        "piecewise-linear profile: segments from start_rpm, each {duration_s (s, > 0),\n"
-        "end_rpm (rpm, in (0, 1e6])}; a dwell keeps end_rpm. Replaces end_rpm and duration_s"))
-    initial: str = field(default="steady", metadata=_doc(
+    start_rpm: float = spec(1000.0, kind="float", unit="rpm", lo=0, lo_open=True, hi=MAX_RPM, doc=(
+        "speed at t = 0, {unit}; {range} (paper Eq. 6: linear run-up)"))
+    end_rpm: float = spec(4000.0, kind="float", unit="rpm", lo=0, lo_open=True, hi=MAX_RPM, doc=(
+        "speed at the end of the run-up, {unit}; {range}. Leave out when segments is given"))
+    duration_s: float = spec(130.0, kind="float", unit="s", lo=0, lo_open=True, doc=(
+        "duration of the run-up, {unit}; {range}. Leave out when segments is given"))
+    segments: tuple[tuple[float, float], ...] = spec((), kind="custom", check=_check_segments,
+                                                     type_name="tuple of (float, float)", doc=(
+        "piecewise-linear profile: segments from start_rpm, each {{duration_s ({f[duration_s].unit}, "
+        "{f[duration_s].range}),\nend_rpm ({f[end_rpm].unit}, {f[end_rpm].range})}}; a dwell keeps end_rpm. "
+        "Replaces end_rpm and duration_s"))
+    initial: str = spec("steady", kind="str", choices=SPEED_INITIAL, doc=(
         'modal state at t = 0: "steady" (every mode in its quasi-steady forced response,\n'
         'near a resonance too) or "rest" (zero displacement and velocity)'))
 
     def __post_init__(self) -> None:
         w = "[speed]"
-        _set(self, "initial", _string(w, "initial", self.initial, choices=SPEED_INITIAL))
-        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, lo_open=True, hi=MAX_RPM))
-        items = _sequence(w, "segments", self.segments,
-                          "an array of {duration_s = ..., end_rpm = ...} tables")
-        segments = tuple(_segment(w, f"segments[{i}]", s) for i, s in enumerate(items))
-        _set(self, "segments", segments)
-        if segments:
-            _set(self, "end_rpm", segments[-1][1])
-            _set(self, "duration_s", math.fsum(d for d, _ in segments))
-        else:
-            _set(self, "end_rpm", _real(w, "end_rpm", self.end_rpm, lo=0, lo_open=True, hi=MAX_RPM))
-            _set(self, "duration_s", _real(w, "duration_s", self.duration_s, lo=0,
-                                           lo_open=True))
+        validate_fields(self, w, skip=("end_rpm", "duration_s") if self._has_segments() else ())
+        if self.segments:
+            _set(self, "end_rpm", self.segments[-1][1])
+            _set(self, "duration_s", math.fsum(d for d, _ in self.segments))
         t_s, rpm = self.breakpoints()
         revolutions = math.fsum(0.5 * (a + b) * d for a, b, d in zip(rpm[:-1], rpm[1:], np.diff(t_s))) / 60.0
         if not revolutions <= MAX_REVOLUTIONS:
             raise _FieldError(w, "", f"makes {revolutions:.3g} revolutions, more than the "
                               f"{MAX_REVOLUTIONS:,} of one run: shorten duration_s or the segments")
+
+    def _has_segments(self) -> bool:
+        try:
+            return len(self.segments) > 0
+        except TypeError:  # not an array: the check of segments says so
+            return False
 
     @property
     def total_duration_s(self) -> float:
@@ -566,176 +391,74 @@ class Speed:
         return t_s, rpm
 
 
-_SEGMENT_KEYS = ("duration_s", "end_rpm")
-
-
-def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
-    """Check one speed segment: a ``{duration_s, end_rpm}`` mapping or a pair."""
-    if isinstance(value, Mapping):
-        for k in value:
-            if k not in _SEGMENT_KEYS:
-                raise _FieldError(where, key, f"has unknown key {_key(k)}{_hint(k, _SEGMENT_KEYS)}"
-                                  " (expected duration_s and end_rpm)")
-        for k in _SEGMENT_KEYS:
-            if k not in value:
-                raise _FieldError(where, key, f"is missing {k}")
-        d, r = value["duration_s"], value["end_rpm"]
-    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2:
-        d, r = value[0], value[1]
-    else:
-        raise _FieldError(where, key, f"must be a table {{duration_s = ..., end_rpm = ...}}, "
-                          f"{_got(value)}")
-    return (_real(where, f"{key}.duration_s", d, lo=0, lo_open=True),
-            _real(where, f"{key}.end_rpm", r, lo=0, lo_open=True, hi=MAX_RPM))
-
-
+@section
 @dataclass(frozen=True, slots=True)
 class Excitation:
-    """``[[excitation]]``: one engine-order force pattern applied at every blade tip.
+    """``[[excitation]]``: one engine-order force pattern applied at every blade tip."""
 
-    Attributes
-    ----------
-    engine_order : int
-        Engine order EO (force cycles per revolution), default 8; integer in [1, 1000].
-    nodal_diameter : int
-        Nodal diameter ND of the force pattern across the blades (inter-blade phase
-        2*pi*ND/n_blades), default 1; integer in [0, n_blades) (checked by
-        :class:`Scenario`).
-    amplitude_n : float
-        Force amplitude per blade, N, default 2.25; >= 0.
-    direction : tuple of float
-        Force direction as 3 components in the local (radial, tangential, axial) frame at
-        the force node, default (0, 0, 1). Finite, not all zero; stored as given and
-        normalised at use.
-    node : str
-        The tip-section edge where the force is applied: ``"leading_edge"`` (default) or
-        ``"trailing_edge"``.
-    """
-
-    engine_order: int = field(default=8, metadata=_doc(
-        "engine order EO (force cycles per revolution); integer in [1, 1000]"))
-    nodal_diameter: int = field(default=1, metadata=_doc(
+    engine_order: int = spec(8, kind="int", lo=1, hi=MAX_ENGINE_ORDER, doc=(
+        "engine order EO (force cycles per revolution); integer {range}"))
+    nodal_diameter: int = spec(1, kind="int", lo=0, cross_hi="n_blades", hi_open=True, doc=(
         "nodal diameter ND of the force pattern (inter-blade phase 2*pi*ND/n_blades);\n"
-        "integer in [0, n_blades)"))
-    amplitude_n: float = field(default=2.25, metadata=_doc(
-        "force amplitude per blade, N; >= 0"))
-    direction: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0), metadata=_doc(
+        "integer {range}"))
+    amplitude_n: float = spec(2.25, kind="float", unit="N", lo=0, doc=(
+        "force amplitude per blade, {unit}; {range}"))
+    direction: tuple[float, float, float] = spec((0.0, 0.0, 1.0), kind="floats", check=_check_direction, doc=(
         "force direction (radial, tangential, axial) at the force node; 3 finite\n"
         "components, not all zero; normalised at use"))
-    node: str = field(default="leading_edge", metadata=_doc(
-        'tip-section edge where the force is applied: "leading_edge" or "trailing_edge"'))
+    node: str = spec("leading_edge", kind="str", choices=FORCE_NODES, doc=(
+        "tip-section edge where the force is applied: {range}"))
 
     def __post_init__(self) -> None:
-        w = "[[excitation]]"
-        _set(self, "engine_order", _integer(w, "engine_order", self.engine_order, lo=1,
-                                                   hi=MAX_ENGINE_ORDER))
-        _set(self, "nodal_diameter", _integer(w, "nodal_diameter", self.nodal_diameter, lo=0))
-        _set(self, "amplitude_n", _real(w, "amplitude_n", self.amplitude_n, lo=0))
-        direction = _real_tuple(w, "direction", self.direction)
-        if len(direction) != 3:
-            raise _FieldError(w, "direction", "must have 3 components (radial, tangential, "
-                              f"axial), got {len(direction)}")
-        if not any(direction):
-            raise _FieldError(w, "direction", "must not be the zero vector")
-        _set(self, "direction", direction)
-        _set(self, "node", _string(w, "node", self.node, choices=FORCE_NODES))
+        validate_fields(self, "[[excitation]]")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Probes:
     """``[probes]``: the BTT probes and the once-per-revolution (OPR) sensor.
 
     Angles are anticlockwise from +x seen from +z, like the rotation.
-
-    Attributes
-    ----------
-    angles_deg : tuple of float
-        Probe angular positions, deg, default (5.0, 15.15, 23.82, 220.0, 301.5) (the
-        paper's); 1 to 64 distinct finite values in [0, 360).
-    axial_position_m : float
-        Axial position z_j of the probes, m, default 0.01226; within the tip chord's
-        axial extent [0, ``tip_chord_m * sin(stagger_deg)``] (checked by
-        :class:`Scenario`).
-    opr_angle_deg : float
-        Angular position of the OPR sensor, deg, default 0.0; in [0, 360).
     """
 
-    angles_deg: tuple[float, ...] = field(default=(5.0, 15.15, 23.82, 220.0, 301.5),
-                                          metadata=_doc(
-        "probe angular positions, deg, anticlockwise from +x; 1 to 64 distinct values\n"
-        "in [0, 360)"))
-    axial_position_m: float = field(default=0.01226, metadata=_doc(
-        "probe axial position z_j, m; within the tip chord's axial extent\n"
-        "[0, tip_chord_m * sin(stagger_deg)]"))
-    opr_angle_deg: float = field(default=0.0, metadata=_doc(
-        "once-per-revolution (OPR) sensor angle, deg; in [0, 360)"))
+    angles_deg: tuple[float, ...] = spec((5.0, 15.15, 23.82, 220.0, 301.5), kind="floats", unit="deg",
+                                         lo=0, hi=360, hi_open=True, count=(1, MAX_PROBES),
+                                         check=_check_distinct, doc=(
+        "probe angular positions, {unit}, anticlockwise from +x; {count} distinct values\n"
+        "{range}"))
+    axial_position_m: float = spec(0.01226, kind="float", unit="m", doc=(
+        "probe axial position z_j, {unit}; within the tip chord's axial extent\n"
+        "[0, tip_chord_m * sin(stagger_deg)]"),
+        note="With a user's model ([model] source), within the axial span of its tip nodes, checked "
+             "when the model is loaded")
+    opr_angle_deg: float = spec(0.0, kind="float", unit="deg", lo=0, hi=360, hi_open=True, doc=(
+        "once-per-revolution (OPR) sensor angle, {unit}; {range}"))
 
     def __post_init__(self) -> None:
-        w = "[probes]"
-        angles = _real_tuple(w, "angles_deg", self.angles_deg, lo=0, hi=360, hi_open=True)
-        if not 1 <= len(angles) <= MAX_PROBES:
-            raise _FieldError(w, "angles_deg", f"must hold 1 to {MAX_PROBES} angles, "
-                              f"got {len(angles)}")
-        first: dict[float, int] = {}
-        for i, a in enumerate(angles):
-            if a in first:
-                raise _FieldError(w, f"angles_deg[{i}]", f"duplicates angles_deg[{first[a]}] "
-                                  f"({_show(a)})")
-            first[a] = i
-        _set(self, "angles_deg", angles)
-        _set(self, "axial_position_m", _real(w, "axial_position_m", self.axial_position_m))
-        _set(self, "opr_angle_deg", _real(w, "opr_angle_deg", self.opr_angle_deg, lo=0,
-                                          hi=360, hi_open=True))
+        validate_fields(self, "[probes]")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Toa:
-    """``[toa]``: how times of arrival (TOAs) are computed (paper Sec. 2.2).
+    """``[toa]``: how times of arrival (TOAs) are computed (paper Sec. 2.2)."""
 
-    Attributes
-    ----------
-    method : str
-        TOA method of the paper's Sec. 2.2: ``"HP"`` (default), ``"AD"`` or ``"PAD"``.
-    grid_step_s : float
-        Step of the integrator time grid used for the AD/PAD interpolation, s, default
-        1.2e-5; > 0.
-    axial_interpolation : bool
-        Default true: interpolate between the tip nodes at the probe's z. False: use the
-        nearest node (reproduces the paper's Fig. 7).
-    """
-
-    method: str = field(default="HP", metadata=_doc(
-        'TOA method (paper Sec. 2.2): "HP", "AD" or "PAD"'))
-    grid_step_s: float = field(default=1.2e-5, metadata=_doc(
-        "integrator time grid step for the AD/PAD interpolation, s; > 0"))
-    axial_interpolation: bool = field(default=True, metadata=_doc(
+    method: str = spec("HP", kind="str", choices=TOA_METHODS, doc="TOA method (paper Sec. 2.2): {range}")
+    grid_step_s: float = spec(1.2e-5, kind="float", unit="s", lo=0, lo_open=True, doc=(
+        "integrator time grid step for the AD/PAD interpolation, {unit}; {range}"),
+        note="1.2e-5 s gives PAD the paper's ~10 % noise-to-signal ratio at resonance")
+    axial_interpolation: bool = spec(True, kind="bool", doc=(
         "true: interpolate between tip nodes at the probe z; false: nearest node (Fig. 7)"))
 
     def __post_init__(self) -> None:
-        w = "[toa]"
-        _set(self, "method", _string(w, "method", self.method, choices=TOA_METHODS))
-        _set(self, "grid_step_s", _real(w, "grid_step_s", self.grid_step_s, lo=0,
-                                        lo_open=True))
-        _set(self, "axial_interpolation", _boolean(w, "axial_interpolation",
-                                                   self.axial_interpolation))
+        validate_fields(self, "[toa]")
 
 
-SIGNAL_PROBES = ("optical", "capacitive")
-SIGNAL_TRIGGERS = ("threshold", "constant_fraction", "peak")
-SIGNAL_EDGES = ("rising", "falling")
-MAX_WINDOW_SAMPLES = 4096
+def _signal_size(default: float, what: str) -> Any:
+    return spec(default, kind="float", unit="m", lo=0, lo_open=True, hi=MAX_SIGNAL_SIZE_M, doc=what + ", {unit}; {range}")
 
 
-def _choices(where: str, key: str, value: Any, choices: Sequence[str]) -> str | tuple[str, ...]:
-    """One of ``choices``, or an array of them (one per probe, checked by :class:`Scenario`)."""
-    if isinstance(value, str):
-        return _string(where, key, value, choices=choices)
-    items = _sequence(where, key, value, "a string or an array of strings (one per probe)")
-    if not items:
-        raise _FieldError(where, key, "must not be an empty array")
-    return tuple(_string(where, f"{key}[{i}]", v, choices=choices) for i, v in enumerate(items))
-
-
+@section
 @dataclass(frozen=True, slots=True)
 class Signal:
     """``[acquisition.signal]``: probe signals, digitisation and triggers (off by default).
@@ -744,193 +467,97 @@ class Signal:
     :mod:`bttsim_stream.sim.signal` (probe pulse around the exact passage, front-end
     low-pass, noise, ADC, trigger, counter clock) instead of the exact TOA plus
     ``trigger_jitter_s``; the truth keeps the exact TOA of the same passage. A pulse that
-    does not trigger is a missing TOA (NaN).
-
-    Attributes
-    ----------
-    enabled : bool
-        Default false.
-    probe_type : str or tuple of str
-        ``"optical"`` (default) or ``"capacitive"``; one value for every probe or one per probe.
-    trigger : str or tuple of str
-        ``"threshold"`` (default), ``"constant_fraction"`` or ``"peak"``; one or one per probe.
-    edge : str
-        Threshold trigger edge, ``"rising"`` (default) or ``"falling"``.
-    level_v, hysteresis_v : float
-        Trigger level (arming level of constant fraction and peak), V, default 0.5, and the
-        threshold trigger's hysteresis, V, default 0.05; the level within the ADC range.
-    fraction : float
-        Constant fraction, default 0.5; in (0, 1).
-    spot_diameter_m, electrode_diameter_m : float
-        Optical 1/e^2 spot diameter (default 0.5 mm) and capacitive electrode diameter
-        (default 1.5 mm), m; in (0, 0.05].
-    tip_thickness_m : float
-        Tangential width of the tip at the probe, m, default 1 mm; in (0, 0.05].
-    clearance_m : float
-        Cold tip clearance, m, default 0.5 mm; in (0, 0.05], larger than the centrifugal growth.
-    reference_clearance_m : float
-        Clearance at which the capacitive pulse height scale is ``height_v``, m, default 0.5 mm;
-        in (0, 0.05] (the height falls as ``1 / clearance``).
-    height_v : float
-        Pulse height scale, V, default 1.0; > 0.
-    fringe_factor : float
-        Capacitive kernel spreading with clearance, default 0.5; in [0, 10].
-    bandwidth_hz : float
-        Front-end bandwidth, Hz, default 1e6; 0 = unlimited.
-    sample_rate_hz : float
-        ADC sample rate, Hz, default 2e6; in [1e5, 1e9].
-    bits : int
-        ADC resolution, default 12; in [4, 24].
-    range_lo_v, range_hi_v : float
-        ADC input range, V, default -0.5 .. 1.5.
-    noise_v, lf_noise_v : float
-        rms of the band-limited white noise (default 0.005 V) and of the low-frequency noise
-        (default 0), V; >= 0.
-    lf_corner_hz : float
-        Highest frequency of the low-frequency noise, Hz, default 10; > 0.
-    offset_v, offset_drift_v_per_s, gain_drift_per_s : float
-        Baseline offset, V, its drift, V/s, and the relative gain drift, 1/s; default 0.
-    density_kg_m3, youngs_modulus_pa : float
-        Rotor material for the centrifugal tip growth ``rho Omega^2 R^3 / (3 E)``; default
-        titanium, 4430 kg/m^3 and 1.14e11 Pa.
-    publish : bool
-        Also publish the digitised windows on ``bttsim/<rig>/signal/<probe>``
-        (``bttsim.v1.SignalBatch``); default false.
+    does not trigger is a missing TOA (NaN). The centrifugal tip growth is
+    ``rho Omega^2 R^3 / (3 E)``.
     """
 
-    enabled: bool = field(default=False, metadata=_doc(
+    enabled: bool = spec(False, kind="bool", doc=(
         "true: TOAs come from probe signals and triggers (truth keeps the exact TOAs)"))
-    probe_type: Any = field(default="optical", metadata=_doc(
-        '"optical" or "capacitive"; one value, or an array with one per probe'))
-    trigger: Any = field(default="threshold", metadata=_doc(
-        '"threshold", "constant_fraction" or "peak"; one value, or an array with one per probe'))
-    edge: str = field(default="rising", metadata=_doc('threshold trigger edge: "rising" or "falling"'))
-    level_v: float = field(default=0.5, metadata=_doc(
-        "trigger level (arming level of constant_fraction and peak), V; within the ADC range"))
-    hysteresis_v: float = field(default=0.05, metadata=_doc("threshold trigger hysteresis, V; >= 0"))
-    fraction: float = field(default=0.5, metadata=_doc("constant fraction; in (0, 1)"))
-    spot_diameter_m: float = field(default=0.5e-3, metadata=_doc(
-        "optical probe 1/e^2 spot diameter, m; in (0, 0.05]"))
-    electrode_diameter_m: float = field(default=1.5e-3, metadata=_doc(
-        "capacitive probe electrode diameter, m; in (0, 0.05]"))
-    tip_thickness_m: float = field(default=1.0e-3, metadata=_doc(
-        "tangential width of the blade tip at the probe, m; in (0, 0.05]"))
-    clearance_m: float = field(default=0.5e-3, metadata=_doc(
-        "cold tip clearance, m; in (0, 0.05], above the centrifugal growth"))
-    reference_clearance_m: float = field(default=0.5e-3, metadata=_doc(
-        "clearance at which the capacitive pulse height scale is height_v, m; in (0, 0.05]"))
-    height_v: float = field(default=1.0, metadata=_doc(
-        "pulse height scale, V (capacitive: at reference_clearance_m, falls as 1 / clearance); > 0"))
-    fringe_factor: float = field(default=0.5, metadata=_doc(
-        "capacitive field spreading with clearance (kernel sigma^2 = (D/4)^2 + (k g)^2); in [0, 10]"))
-    bandwidth_hz: float = field(default=1.0e6, metadata=_doc(
-        "front-end bandwidth (first-order low-pass), Hz; 0 = unlimited"))
-    sample_rate_hz: float = field(default=2.0e6, metadata=_doc("ADC sample rate, Hz; in [1e5, 1e9]"))
-    bits: int = field(default=12, metadata=_doc("ADC resolution, bits; in [4, 24]"))
-    range_lo_v: float = field(default=-0.5, metadata=_doc("ADC input range low end, V"))
-    range_hi_v: float = field(default=1.5, metadata=_doc("ADC input range high end, V; > range_lo_v"))
-    noise_v: float = field(default=0.005, metadata=_doc(
-        "rms of the white noise at the ADC input (band-limited by the front end), V; >= 0"))
-    lf_noise_v: float = field(default=0.0, metadata=_doc("rms of the low-frequency noise, V; >= 0"))
-    lf_corner_hz: float = field(default=10.0, metadata=_doc(
-        "highest frequency of the low-frequency noise, Hz; > 0"))
-    offset_v: float = field(default=0.0, metadata=_doc("baseline offset, V"))
-    offset_drift_v_per_s: float = field(default=0.0, metadata=_doc("baseline drift, V/s"))
-    gain_drift_per_s: float = field(default=0.0, metadata=_doc("relative gain drift, 1/s"))
-    density_kg_m3: float = field(default=4430.0, metadata=_doc(
-        "rotor density for the centrifugal tip growth, kg/m^3; > 0"))
-    youngs_modulus_pa: float = field(default=1.14e11, metadata=_doc(
-        "rotor Young's modulus for the centrifugal tip growth, Pa; > 0"))
-    publish: bool = field(default=False, metadata=_doc(
-        "true: also publish the raw windows (ADC codes) on bttsim/<rig>/signal/<probe>"))
+    probe_type: Any = spec("optical", kind="choice_each", choices=SIGNAL_PROBES, doc=(
+        "{range}; one value, or an array with one per probe"))
+    trigger: Any = spec("threshold", kind="choice_each", choices=SIGNAL_TRIGGERS, doc=(
+        "{range}; one value, or an array with one per probe"))
+    edge: str = spec("rising", kind="str", choices=SIGNAL_EDGES, doc="threshold trigger edge: {range}")
+    level_v: float = spec(0.5, kind="float", unit="V", doc=(
+        "trigger level (arming level of constant_fraction and peak), {unit}; within the ADC range"))
+    hysteresis_v: float = spec(0.05, kind="float", unit="V", lo=0, doc="threshold trigger hysteresis, {unit}; {range}")
+    fraction: float = spec(0.5, kind="float", lo=0, lo_open=True, hi=1, hi_open=True, doc="constant fraction; {range}")
+    spot_diameter_m: float = _signal_size(0.5e-3, "optical probe 1/e^2 spot diameter")
+    electrode_diameter_m: float = _signal_size(1.5e-3, "capacitive probe electrode diameter")
+    tip_thickness_m: float = _signal_size(1.0e-3, "tangential width of the blade tip at the probe")
+    clearance_m: float = spec(0.5e-3, kind="float", unit="m", lo=0, lo_open=True, hi=MAX_SIGNAL_SIZE_M, doc=(
+        "cold tip clearance, {unit}; {range}, above the centrifugal growth"))
+    reference_clearance_m: float = _signal_size(
+        0.5e-3, "clearance at which the capacitive pulse height scale is height_v")
+    height_v: float = spec(1.0, kind="float", unit="V", lo=0, lo_open=True, doc=(
+        "pulse height scale, {unit} (capacitive: at reference_clearance_m, falls as 1 / clearance); {range}"))
+    fringe_factor: float = spec(0.5, kind="float", lo=0, hi=10, doc=(
+        "capacitive field spreading with clearance (kernel sigma^2 = (D/4)^2 + (k g)^2); {range}"))
+    bandwidth_hz: float = spec(1.0e6, kind="float", unit="Hz", lo=0, doc=(
+        "front-end bandwidth (first-order low-pass), {unit}; {range}, 0 = unlimited"))
+    sample_rate_hz: float = spec(2.0e6, kind="float", unit="Hz", lo=1e5, hi=1e9, doc="ADC sample rate, {unit}; {range}")
+    bits: int = spec(12, kind="int", lo=4, hi=24, doc="ADC resolution, bits; {range}")
+    range_lo_v: float = spec(-0.5, kind="float", unit="V", doc="ADC input range low end, {unit}")
+    range_hi_v: float = spec(1.5, kind="float", unit="V", lo="range_lo_v", lo_open=True, doc=(
+        "ADC input range high end, {unit}; {range}"))
+    noise_v: float = spec(0.005, kind="float", unit="V", lo=0, doc=(
+        "rms of the white noise at the ADC input (band-limited by the front end), {unit}; {range}"))
+    lf_noise_v: float = spec(0.0, kind="float", unit="V", lo=0, doc="rms of the low-frequency noise, {unit}; {range}")
+    lf_corner_hz: float = spec(10.0, kind="float", unit="Hz", lo=0, lo_open=True, hi=1e6, doc=(
+        "highest frequency of the low-frequency noise, {unit}; {range}"))
+    offset_v: float = spec(0.0, kind="float", unit="V", doc="baseline offset, {unit}")
+    offset_drift_v_per_s: float = spec(0.0, kind="float", unit="V/s", doc="baseline drift, {unit}")
+    gain_drift_per_s: float = spec(0.0, kind="float", unit="1/s", doc="relative gain drift, {unit}")
+    density_kg_m3: float = spec(4430.0, kind="float", unit="kg/m^3", lo=0, lo_open=True, doc=(
+        "rotor density for the centrifugal tip growth, {unit}; {range}"))
+    youngs_modulus_pa: float = spec(1.14e11, kind="float", unit="Pa", lo=0, lo_open=True, doc=(
+        "rotor Young's modulus for the centrifugal tip growth, {unit}; {range}"))
+    publish: bool = spec(False, kind="bool", doc=(
+        "true: also publish the raw windows (ADC codes) on bttsim/<rig>/signal/<probe>"),
+        note="Needs enabled = true; the messages are bttsim.v1.SignalBatch (schemas/bus.md)")
 
     def __post_init__(self) -> None:
         w = "[acquisition.signal]"
-        _set(self, "enabled", _boolean(w, "enabled", self.enabled))
-        _set(self, "publish", _boolean(w, "publish", self.publish))
+        validate_fields(self, w)
         if self.publish and not self.enabled:  # asked for signals that would never come
             raise _FieldError(w, "publish", "= true needs enabled = true (no signal is synthesised with the "
                               "chain off)")
-        _set(self, "probe_type", _choices(w, "probe_type", self.probe_type, SIGNAL_PROBES))
-        _set(self, "trigger", _choices(w, "trigger", self.trigger, SIGNAL_TRIGGERS))
-        _set(self, "edge", _string(w, "edge", self.edge, choices=SIGNAL_EDGES))
-        _set(self, "bits", _integer(w, "bits", self.bits, lo=4, hi=24))
-        bounds = {"fraction": dict(lo=0, lo_open=True, hi=1, hi_open=True),
-                  "sample_rate_hz": dict(lo=1e5, hi=1e9), "fringe_factor": dict(lo=0, hi=10),
-                  "lf_corner_hz": dict(lo=0, lo_open=True, hi=1e6)}
-        for name in ("spot_diameter_m", "electrode_diameter_m", "tip_thickness_m", "clearance_m",
-                     "reference_clearance_m"):
-            bounds[name] = dict(lo=0, lo_open=True, hi=0.05)
-        for name in ("height_v", "density_kg_m3", "youngs_modulus_pa"):
-            bounds[name] = dict(lo=0, lo_open=True)
-        for name in ("hysteresis_v", "noise_v", "lf_noise_v", "bandwidth_hz"):
-            bounds[name] = dict(lo=0)
-        for f in dataclasses.fields(self):
-            if f.name not in ("enabled", "probe_type", "trigger", "edge", "bits", "publish"):
-                _set(self, f.name, _real(w, f.name, getattr(self, f.name), **bounds.get(f.name, {})))
-        if not self.range_hi_v > self.range_lo_v:
-            raise _FieldError(w, "range_hi_v", f"must be above range_lo_v = {_show(self.range_lo_v)}, "
-                              f"got {_show(self.range_hi_v)}")
         if not self.range_lo_v < self.level_v < self.range_hi_v:
             raise _FieldError(w, "level_v", f"must lie inside the ADC range ({_show(self.range_lo_v)}, "
                               f"{_show(self.range_hi_v)}), got {_show(self.level_v)}")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Acquisition:
     """``[acquisition]``: errors of the acquisition system; all off (0) by default.
 
-    Attributes
-    ----------
-    clock_hz : float
-        TOA counter clock, Hz. 0 (default) = no quantisation; else in [1e3, 1e12] and the
-        TOAs are whole ticks of this clock (which must count the whole run in 62 bits).
-    trigger_jitter_s : float
-        Standard deviation of a Gaussian jitter on each TOA, s; >= 0 and at most 1 % of the
-        shortest revolution period (checked by :class:`Scenario`).
-    probe_angle_error_deg : float
-        Standard deviation of static random errors of the probe angular positions, deg
-        (drawn once per run); in [0, 5].
-    opr_jitter_s : float
-        Standard deviation of a Gaussian jitter on each OPR timestamp, s; as
-        ``trigger_jitter_s``.
-    speed_fluctuation_rpm : float
-        Standard deviation of a random speed fluctuation about the speed profile, rpm;
-        >= 0 and at most 10 % of the slowest speed (checked by :class:`Scenario`).
-    signal : Signal
-        ``[acquisition.signal]``: the probe signal and trigger chain (off by default).
+    The jitters and the speed fluctuation are standard deviations; the probe angle errors are
+    drawn once per run. The upper limits relative to the speed profile, and the clock counting
+    the whole run in 62 bits, are checked by :class:`Scenario`.
     """
 
-    clock_hz: float = field(default=0.0, metadata=_doc(
-        "TOA counter clock, Hz; 0 = no quantisation, else in [1e3, 1e12] (TOAs become whole ticks)"))
-    trigger_jitter_s: float = field(default=0.0, metadata=_doc(
-        "std of the Gaussian jitter on each TOA, s; >= 0, at most 1 % of the shortest revolution"))
-    probe_angle_error_deg: float = field(default=0.0, metadata=_doc(
-        "std of static random probe angular position errors, deg; in [0, 5]"))
-    opr_jitter_s: float = field(default=0.0, metadata=_doc(
-        "std of the Gaussian jitter on each OPR timestamp, s; >= 0, at most 1 % of the shortest\nrevolution"))
-    speed_fluctuation_rpm: float = field(default=0.0, metadata=_doc(
-        "std of the random speed fluctuation about the speed profile, rpm; >= 0, at most 10 %\nof the slowest speed"))
-    signal: Signal = field(default_factory=Signal, metadata=_doc(
-        "the probe signal and trigger chain: the [acquisition.signal] table"))
+    clock_hz: float = spec(0.0, kind="float", unit="Hz", lo=MIN_CLOCK_HZ, hi=MAX_CLOCK_HZ,
+                           zero_off="no quantisation", doc=(
+        "TOA counter clock, {unit}; 0 = no quantisation, else {range} (TOAs become whole ticks)"))
+    trigger_jitter_s: float = spec(0.0, kind="float", unit="s", lo=0, doc=(
+        "std of the Gaussian jitter on each TOA, {unit}; {range}, at most 1 % of the shortest revolution"))
+    probe_angle_error_deg: float = spec(0.0, kind="float", unit="deg", lo=0, hi=MAX_PROBE_ANGLE_ERROR_DEG, doc=(
+        "std of static random probe angular position errors, {unit}; {range}"))
+    opr_jitter_s: float = spec(0.0, kind="float", unit="s", lo=0, doc=(
+        "std of the Gaussian jitter on each OPR timestamp, {unit}; {range}, at most 1 % of the shortest\n"
+        "revolution"))
+    speed_fluctuation_rpm: float = spec(0.0, kind="float", unit="rpm", lo=0, doc=(
+        "std of the random speed fluctuation about the speed profile, {unit}; {range}, at most 10 %\n"
+        "of the slowest speed"))
+    signal: Signal = spec(kind="custom", default_factory=Signal, check=_check_signal_table, type_name="Signal",
+                          doc="the probe signal and trigger chain: the [acquisition.signal] table")
 
     def __post_init__(self) -> None:
-        w = "[acquisition]"
-        if isinstance(self.signal, Mapping):
-            _check_keys("[acquisition.signal]", self.signal, Signal)
-            _set(self, "signal", Signal(**self.signal))
-        elif not isinstance(self.signal, Signal):
-            raise _FieldError(w, "signal", f"must be a table ([acquisition.signal]), {_got(self.signal)}")
-        for f in dataclasses.fields(self):
-            if f.name == "signal":
-                continue
-            _set(self, f.name, _real(w, f.name, getattr(self, f.name), lo=0,
-                                     hi=MAX_PROBE_ANGLE_ERROR_DEG if f.name == "probe_angle_error_deg" else None))
-        if self.clock_hz and not MIN_CLOCK_HZ <= self.clock_hz <= MAX_CLOCK_HZ:
-            raise _FieldError(w, "clock_hz", f"must be 0 (no quantisation) or in [{_num(MIN_CLOCK_HZ)}, "
-                              f"{_num(MAX_CLOCK_HZ)}], got {_show(self.clock_hz)}")
+        validate_fields(self, "[acquisition]")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class RotatingStall:
     """``[[rotating_stall]]``: a non-synchronous force pattern of ``cells`` lobes rotating in the
@@ -942,46 +569,25 @@ class RotatingStall:
     ``F cos(N_s phi(t) + N_s theta_b - 2 pi f_s t)`` (a pattern of fixed frequency ``f_s`` in
     the stationary frame). The spatial pattern is nodal diameter ``N_s mod N_b``
     (:mod:`bttsim_stream.sim.nsv`).
-
-    Attributes
-    ----------
-    cells : int
-        Number of stall cells (lobes) ``N_s``, default 5; integer in [1, 1000].
-    speed_fraction : float
-        Cell speed in the stationary frame over the shaft speed ``r``, default 0.5; in [0, 1).
-    frequency_hz : float
-        Stationary-frame frequency ``f_s`` of the pattern, Hz, default 0 (off: the cells follow
-        ``speed_fraction``); > 0 replaces ``speed_fraction``.
-    amplitude_n : float
-        Force amplitude per blade, N, default 0.5; >= 0.
-    direction : tuple of float
-        As :class:`Excitation`, default (0, 0, 1).
-    node : str
-        As :class:`Excitation`, default ``"leading_edge"``.
     """
 
-    cells: int = field(default=5, metadata=_doc("number of stall cells (lobes) N_s; integer in [1, 1000]"))
-    speed_fraction: float = field(default=0.5, metadata=_doc(
-        "cell speed in the stationary frame over the shaft speed; in [0, 1)"))
-    frequency_hz: float = field(default=0.0, metadata=_doc(
-        "stationary-frame frequency of the pattern, Hz; 0: off (cells follow speed_fraction);\n"
-        "> 0 replaces speed_fraction"))
-    amplitude_n: float = field(default=0.5, metadata=_doc("force amplitude per blade, N; >= 0"))
-    direction: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0), metadata=_doc(
-        "force direction (radial, tangential, axial) at the force node; normalised at use"))
-    node: str = field(default="leading_edge", metadata=_doc(
-        'tip-section edge where the force is applied: "leading_edge" or "trailing_edge"'))
+    cells: int = spec(5, kind="int", lo=1, hi=MAX_ENGINE_ORDER, doc=(
+        "number of stall cells (lobes) N_s; integer {range}"))
+    speed_fraction: float = spec(0.5, kind="float", lo=0, hi=1, hi_open=True, doc=(
+        "cell speed in the stationary frame over the shaft speed; {range}"))
+    frequency_hz: float = spec(0.0, kind="float", unit="Hz", lo=0, hi=MAX_STALL_FREQUENCY_HZ, doc=(
+        "stationary-frame frequency of the pattern, {unit}; {range}; 0: off (cells follow\n"
+        "speed_fraction); > 0 replaces speed_fraction"))
+    amplitude_n: float = spec(0.5, kind="float", unit="N", lo=0, doc="force amplitude per blade, {unit}; {range}")
+    direction: tuple[float, float, float]
+    node: str
+    direction, node = _force_fields()
 
     def __post_init__(self) -> None:
-        w = "[[rotating_stall]]"
-        _set(self, "cells", _integer(w, "cells", self.cells, lo=1, hi=MAX_ENGINE_ORDER))
-        _set(self, "speed_fraction", _real(w, "speed_fraction", self.speed_fraction, lo=0, hi=1, hi_open=True))
-        _set(self, "frequency_hz", _real(w, "frequency_hz", self.frequency_hz, lo=0, hi=1e6))
-        _set(self, "amplitude_n", _real(w, "amplitude_n", self.amplitude_n, lo=0))
-        _set(self, "direction", _direction(w, self.direction))
-        _set(self, "node", _string(w, "node", self.node, choices=FORCE_NODES))
+        validate_fields(self, "[[rotating_stall]]")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Flutter:
     """``[flutter]``: a self-excited travelling wave of one mode family and nodal diameter
@@ -992,62 +598,35 @@ class Flutter:
     the speed reaches ``start_rpm``) to ``limit_amplitude_m`` along the logistic law of the
     averaged Van der Pol oscillator, at the mode's damped frequency
     (:mod:`bttsim_stream.sim.nsv`). Amplitudes are peak-to-peak ``d_eqv`` at P_nom of the
-    blade with the largest.
-
-    Attributes
-    ----------
-    enabled : bool
-        Default false.
-    family : int
-        Mode family, 1-based (1: first bending), default 1; in [1, 20].
-    nodal_diameter : int
-        Signed nodal diameter: > 0 forward, < 0 backward travelling wave (the sign convention of
-        :mod:`bttsim_stream.process.travelling_wave`), default 3; ``|nd| <= n_blades / 2``.
-    start_s : float
-        Onset time, s, default 0; >= 0 (used when ``start_rpm`` is 0).
-    start_rpm : float
-        Onset speed, rpm, default 0 (off); > 0: the first time the speed profile reaches it.
-    aero_damping_ratio : float
-        Aerodynamic (negative) damping ratio ``zeta_aero``, default 0.02; in (0, 1); must
-        exceed the mode's structural damping ratio.
-    limit_amplitude_m : float
-        Limit-cycle amplitude, m pk-pk, default 2e-4; > 0.
-    seed_amplitude_m : float
-        Amplitude at onset, m pk-pk, default 1e-9; in (0, limit_amplitude_m).
-    phase_deg : float
-        Phase of the wave at onset, deg, default 0.
+    blade with the largest. The nodal diameter's sign follows
+    :mod:`bttsim_stream.process.travelling_wave`.
     """
 
-    enabled: bool = field(default=False, metadata=_doc("simulate a flutter travelling wave"))
-    family: int = field(default=1, metadata=_doc("mode family, 1-based (1: first bending); integer in [1, 20]"))
-    nodal_diameter: int = field(default=3, metadata=_doc(
+    enabled: bool = spec(False, kind="bool", doc="simulate a flutter travelling wave")
+    family: int = spec(1, kind="int", lo=1, hi=MAX_FAMILIES, doc=(
+        "mode family, 1-based (1: first bending); integer {range}"))
+    nodal_diameter: int = spec(3, kind="int", doc=(
         "signed nodal diameter: > 0 forward, < 0 backward travelling wave; |nd| <= n_blades / 2"))
-    start_s: float = field(default=0.0, metadata=_doc("onset time, s; >= 0 (when start_rpm is 0)"))
-    start_rpm: float = field(default=0.0, metadata=_doc(
-        "onset speed, rpm; 0: off, > 0: the first time the speed profile reaches it"))
-    aero_damping_ratio: float = field(default=0.02, metadata=_doc(
-        "negative aerodynamic damping ratio; in (0, 1), above the mode's structural damping"))
-    limit_amplitude_m: float = field(default=2e-4, metadata=_doc(
-        "limit-cycle amplitude, m pk-pk (d_eqv at P_nom); > 0"))
-    seed_amplitude_m: float = field(default=1e-9, metadata=_doc(
-        "amplitude at onset, m pk-pk; in (0, limit_amplitude_m)"))
-    phase_deg: float = field(default=0.0, metadata=_doc("phase of the wave at onset, deg"))
+    start_s: float = spec(0.0, kind="float", unit="s", lo=0, doc=(
+        "onset time, {unit}; {range} (when start_rpm is 0)"), note="Before the end of the run")
+    start_rpm: float = spec(0.0, kind="float", unit="rpm", lo=0, hi=MAX_RPM, doc=(
+        "onset speed, {unit}; {range}; 0: off, > 0: the first time the speed profile reaches it"),
+        note="It must lie within the speed profile")
+    aero_damping_ratio: float = spec(0.02, kind="float", lo=0, lo_open=True, hi=1, hi_open=True, doc=(
+        "negative aerodynamic damping ratio; {range}, above the mode's structural damping"),
+        note="The structural damping (0.0098 for family 1 of the built-in model) is checked once the "
+             "model is built")
+    limit_amplitude_m: float = spec(2e-4, kind="float", unit="m", lo=0, lo_open=True, doc=(
+        "limit-cycle amplitude, {unit} pk-pk (d_eqv at P_nom); {range}"))
+    seed_amplitude_m: float = spec(1e-9, kind="float", unit="m", lo=0, lo_open=True, hi="limit_amplitude_m",
+                                   hi_open=True, doc="amplitude at onset, {unit} pk-pk; {range}")
+    phase_deg: float = spec(0.0, kind="float", unit="deg", doc="phase of the wave at onset, {unit}")
 
     def __post_init__(self) -> None:
-        w = "[flutter]"
-        _set(self, "enabled", _boolean(w, "enabled", self.enabled))
-        _set(self, "family", _integer(w, "family", self.family, lo=1, hi=MAX_FAMILIES))
-        _set(self, "nodal_diameter", _integer(w, "nodal_diameter", self.nodal_diameter))
-        _set(self, "start_s", _real(w, "start_s", self.start_s, lo=0))
-        _set(self, "start_rpm", _real(w, "start_rpm", self.start_rpm, lo=0, hi=MAX_RPM))
-        _set(self, "aero_damping_ratio", _real(w, "aero_damping_ratio", self.aero_damping_ratio, lo=0, lo_open=True,
-                                               hi=1, hi_open=True))
-        _set(self, "limit_amplitude_m", _real(w, "limit_amplitude_m", self.limit_amplitude_m, lo=0, lo_open=True))
-        _set(self, "seed_amplitude_m", _real(w, "seed_amplitude_m", self.seed_amplitude_m, lo=0, lo_open=True,
-                                             hi=self.limit_amplitude_m, hi_open=True))
-        _set(self, "phase_deg", _real(w, "phase_deg", self.phase_deg))
+        validate_fields(self, "[flutter]")
 
 
+@section
 @dataclass(frozen=True, slots=True)
 class Broadband:
     """``[broadband]``: random blade forcing with a flat force spectrum in a band (off by
@@ -1057,54 +636,22 @@ class Broadband:
     of amplitude ``sqrt(2 psd_n2_per_hz df)`` per blade with a random phase per blade and line
     (seeded by ``[run] seed``): every line is an exact carrier of the envelope recursion, so
     the cost grows with ``n_lines`` like as many excitations (:mod:`bttsim_stream.sim.nsv`).
-
-    Attributes
-    ----------
-    enabled : bool
-        Default false.
-    band_hz : tuple of float
-        ``(low, high)``, Hz, default (300, 400); 0 < low < high <= 1e5.
-    psd_n2_per_hz : float
-        One-sided force PSD per blade, N^2/Hz, default 1e-4; >= 0.
-    n_lines : int
-        Number of lines, default 16; in [1, 256].
-    direction : tuple of float
-        As :class:`Excitation`, default (0, 0, 1).
-    node : str
-        As :class:`Excitation`, default ``"leading_edge"``.
     """
 
-    enabled: bool = field(default=False, metadata=_doc("simulate broadband (random) blade forcing"))
-    band_hz: tuple[float, float] = field(default=(300.0, 400.0), metadata=_doc(
-        "frequency band [low, high] of the force spectrum, Hz; 0 < low < high <= 1e5"))
-    psd_n2_per_hz: float = field(default=1e-4, metadata=_doc("one-sided force PSD per blade, N^2/Hz; >= 0"))
-    n_lines: int = field(default=16, metadata=_doc(
-        "sinusoids realising the spectrum (random phase per blade and line); in [1, 256]"))
-    direction: tuple[float, float, float] = field(default=(0.0, 0.0, 1.0), metadata=_doc(
-        "force direction (radial, tangential, axial) at the force node; normalised at use"))
-    node: str = field(default="leading_edge", metadata=_doc(
-        'tip-section edge where the force is applied: "leading_edge" or "trailing_edge"'))
+    enabled: bool = spec(False, kind="bool", doc="simulate broadband (random) blade forcing")
+    band_hz: tuple[float, float] = spec((300.0, 400.0), kind="floats", unit="Hz", lo=0, lo_open=True,
+                                        hi=MAX_BROADBAND_HZ, check=_check_band, doc=(
+        "frequency band [low, high] of the force spectrum, {unit}; low < high, each {range}"))
+    psd_n2_per_hz: float = spec(1e-4, kind="float", unit="N^2/Hz", lo=0, doc=(
+        "one-sided force PSD per blade, {unit}; {range}"))
+    n_lines: int = spec(16, kind="int", lo=1, hi=MAX_BROADBAND_LINES, doc=(
+        "sinusoids realising the spectrum (random phase per blade and line); {range}"))
+    direction: tuple[float, float, float]
+    node: str
+    direction, node = _force_fields()
 
     def __post_init__(self) -> None:
-        w = "[broadband]"
-        _set(self, "enabled", _boolean(w, "enabled", self.enabled))
-        band = _real_tuple(w, "band_hz", self.band_hz, lo=0, lo_open=True, hi=1e5)
-        if len(band) != 2 or not band[0] < band[1]:
-            raise _FieldError(w, "band_hz", f"must be [low, high] with low < high, got {_show(list(band))}")
-        _set(self, "band_hz", band)
-        _set(self, "psd_n2_per_hz", _real(w, "psd_n2_per_hz", self.psd_n2_per_hz, lo=0))
-        _set(self, "n_lines", _integer(w, "n_lines", self.n_lines, lo=1, hi=256))
-        _set(self, "direction", _direction(w, self.direction))
-        _set(self, "node", _string(w, "node", self.node, choices=FORCE_NODES))
-
-
-def _direction(w: str, value: Any) -> tuple[float, ...]:
-    direction = _real_tuple(w, "direction", value)
-    if len(direction) != 3:
-        raise _FieldError(w, "direction", f"must have 3 components (radial, tangential, axial), got {len(direction)}")
-    if not any(direction):
-        raise _FieldError(w, "direction", "must not be the zero vector")
-    return direction
+        validate_fields(self, "[broadband]")
 
 
 def _default_excitation() -> tuple[Excitation, ...]:
@@ -1142,11 +689,11 @@ class Scenario:
 
     Notes
     -----
-    Cross-section checks: each ``nodal_diameter < n_blades``; the probes' axial position
-    within ``[0, rotor.tip_axial_extent_m]`` with the built-in model (a user's model: within
-    its tip nodes, checked by the simulator once the model is loaded); non-empty mistuning
-    factor lists hold
-    ``n_blades`` values.
+    Cross-section checks, one named method each: each ``nodal_diameter < n_blades``; the
+    probes' axial position within ``[0, rotor.tip_axial_extent_m]`` with the built-in model (a
+    user's model: within its tip nodes, checked by the simulator once the model is loaded);
+    non-empty mistuning factor lists hold ``n_blades`` values; the flutter onset within the
+    run; the acquisition errors against the speed profile; the signal chain against the rotor.
     """
 
     run: Run = field(default_factory=Run)
@@ -1162,79 +709,77 @@ class Scenario:
     broadband: Broadband = field(default_factory=Broadband)
 
     def __post_init__(self) -> None:
-        stall = self.rotating_stall
-        if isinstance(stall, RotatingStall) or not isinstance(stall, (list, tuple)):
-            raise _FieldError("[[rotating_stall]]", "", "must be a sequence of RotatingStall, "
-                              f"got {type(stall).__name__}")
-        for i, e in enumerate(stall):
-            if not isinstance(e, RotatingStall):
-                raise _FieldError(f"[[rotating_stall]][{i}]", "", f"must be a RotatingStall, got {type(e).__name__}")
-        _set(self, "rotating_stall", tuple(stall))
-        if 2 * abs(self.flutter.nodal_diameter) > self.rotor.n_blades:
-            raise _FieldError("[flutter]", "nodal_diameter", f"must be within +-[rotor] n_blades / 2 = "
-                              f"{self.rotor.n_blades / 2:g}, got {self.flutter.nodal_diameter}")
-        if self.flutter.enabled and self.flutter.start_rpm > 0:
-            _, rpm = self.speed.breakpoints()
-            if not float(np.min(rpm)) <= self.flutter.start_rpm <= float(np.max(rpm)):
-                raise _FieldError("[flutter]", "start_rpm", f"must lie within the speed profile "
-                                  f"({float(np.min(rpm)):g} .. {float(np.max(rpm)):g} rpm), got {_show(self.flutter.start_rpm)}")
-        if self.flutter.enabled and self.flutter.start_rpm == 0 and self.flutter.start_s >= self.speed.duration_s:
-            raise _FieldError("[flutter]", "start_s", f"must be before the end of the run ({self.speed.duration_s:g} s), "
-                              f"got {_show(self.flutter.start_s)}")
-        for name, cls in SECTIONS.items():
-            if name == "excitation":
-                continue
-            value = getattr(self, name)
-            if not isinstance(value, cls):
-                raise _FieldError(f"[{name}]", "", f"must be a {cls.__name__}, "
-                                  f"got {type(value).__name__}")
-        exc = self.excitation
-        if isinstance(exc, Excitation) or not isinstance(exc, (list, tuple)):
-            raise _FieldError("[[excitation]]", "", "must be a sequence of Excitation, "
-                              f"got {type(exc).__name__}")
-        exc = tuple(exc)
-        if not exc:
-            raise _FieldError("[[excitation]]", "", "must have at least one entry, got none")
-        for i, e in enumerate(exc):
-            if not isinstance(e, Excitation):
-                raise _FieldError(f"[[excitation]][{i}]", "", "must be an Excitation, "
-                                  f"got {type(e).__name__}")
-        _set(self, "excitation", exc)
+        _set(self, "rotating_stall", _entries("rotating_stall", self.rotating_stall, RotatingStall, allow_empty=True))
+        self._check_flutter()
+        self._check_section_types()
+        _set(self, "excitation", _entries("excitation", self.excitation, Excitation, allow_empty=False))
+        self._check_nodal_diameters()
+        self._check_probe_position()
+        self._check_centrifugal()
+        self._check_mistuning()
+        self._check_acquisition()
 
+    def _check_section_types(self) -> None:
+        for name, cls in SECTIONS.items():
+            value = getattr(self, name)
+            if name != "excitation" and not isinstance(value, cls):
+                raise _FieldError(f"[{name}]", "", f"must be a {cls.__name__}, got {type(value).__name__}")
+
+    def _check_flutter(self) -> None:
+        fl, n = self.flutter, self.rotor.n_blades
+        if 2 * abs(fl.nodal_diameter) > n:
+            raise _FieldError("[flutter]", "nodal_diameter", f"must be within +-[rotor] n_blades / 2 = "
+                              f"{n / 2:g}, got {fl.nodal_diameter}")
+        if fl.enabled and fl.start_rpm > 0:
+            _, rpm = self.speed.breakpoints()
+            lo, hi = float(np.min(rpm)), float(np.max(rpm))
+            if not lo <= fl.start_rpm <= hi:
+                raise _FieldError("[flutter]", "start_rpm", f"must lie within the speed profile "
+                                  f"({lo:g} .. {hi:g} rpm), got {_show(fl.start_rpm)}")
+        if fl.enabled and fl.start_rpm == 0 and fl.start_s >= self.speed.duration_s:
+            raise _FieldError("[flutter]", "start_s", f"must be before the end of the run "
+                              f"({self.speed.duration_s:g} s), got {_show(fl.start_s)}")
+
+    def _check_nodal_diameters(self) -> None:
         n = self.rotor.n_blades
-        for i, e in enumerate(exc):
+        for i, e in enumerate(self.excitation):
             if e.nodal_diameter >= n:
                 raise _FieldError(f"[[excitation]][{i}]", "nodal_diameter",
                                   f"must be < [rotor] n_blades = {n}, got {e.nodal_diameter}")
+
+    def _check_probe_position(self) -> None:
         z, z_max = self.probes.axial_position_m, self.rotor.tip_axial_extent_m
         # a user's model has its own tip nodes: the simulator checks z against them
-        if self.model.source == "builtin" and not 0.0 <= z <= z_max:
+        if self.model.source == BUILTIN_MODEL and not 0.0 <= z <= z_max:
             raise _FieldError("[probes]", "axial_position_m", "must lie within the tip "
                               f"chord's axial extent [0, {z_max:.6g}] m ([rotor] tip_chord_m * "
                               f"sin(stagger_deg)), got {_show(z)}")
-        self._check_centrifugal()
+
+    def _check_mistuning(self) -> None:
+        n = self.rotor.n_blades
         for kind in ("stiffness_factors", "mass_factors"):
             factors = getattr(self.model, kind)
             if factors and len(factors) != n:
                 raise _FieldError("[model]", kind, f"must hold [rotor] n_blades = {n} values "
                                   f"(or be empty), got {len(factors)}")
+
+    def _check_acquisition(self) -> None:
         acq, (_, rpm) = self.acquisition, self.speed.breakpoints()
-        shortest = 60.0 / float(np.max(rpm))  # s, the shortest revolution
+        rpm_min, rpm_max = float(np.min(rpm)), float(np.max(rpm))
+        shortest = 60.0 / rpm_max  # s, the shortest revolution
         for name in ("trigger_jitter_s", "opr_jitter_s"):
             if getattr(acq, name) > 0.01 * shortest:
                 raise _FieldError("[acquisition]", name, f"must be at most 1 % of the shortest revolution "
-                                  f"({0.01 * shortest:.3g} s at {float(np.max(rpm)):g} rpm), got "
+                                  f"({0.01 * shortest:.3g} s at {rpm_max:g} rpm), got "
                                   f"{_show(getattr(acq, name))}")
-        if acq.speed_fluctuation_rpm > 0.1 * float(np.min(rpm)):
+        if acq.speed_fluctuation_rpm > 0.1 * rpm_min:
             raise _FieldError("[acquisition]", "speed_fluctuation_rpm", "must be at most 10 % of the slowest "
-                              f"speed ({0.1 * float(np.min(rpm)):g} rpm), got {_show(acq.speed_fluctuation_rpm)}")
-        sig = acq.signal
-        if sig.enabled:
-            self._check_signal(sig, float(np.min(rpm)), float(np.max(rpm)))
+                              f"speed ({0.1 * rpm_min:g} rpm), got {_show(acq.speed_fluctuation_rpm)}")
+        if acq.signal.enabled:
+            self._check_signal(acq.signal, rpm_min, rpm_max)
         if acq.clock_hz * self.speed.duration_s >= 2.0**62:
             raise _FieldError("[acquisition]", "clock_hz", f"cannot count a run of {self.speed.duration_s:g} s "
                               f"in 62 bits, got {_show(acq.clock_hz)}")
-
 
     def _check_centrifugal(self) -> None:
         m = self.model
@@ -1284,6 +829,21 @@ class Scenario:
             raise _FieldError(w, "sample_rate_hz", f"gives windows of {samples:.0f} samples per blade passage at "
                               f"{rpm_min:g} rpm, above {MAX_WINDOW_SAMPLES}: lower it, or the spot, electrode or "
                               f"tip size, got {_show(sig.sample_rate_hz)}")
+
+
+
+
+def _entries(name: str, value: Any, cls: type, *, allow_empty: bool) -> tuple[Any, ...]:
+    """An array-of-tables section given programmatically: a sequence of ``cls``."""
+    if isinstance(value, cls) or not isinstance(value, (list, tuple)):
+        raise _FieldError(f"[[{name}]]", "", f"must be a sequence of {cls.__name__}, got {type(value).__name__}")
+    if not value and not allow_empty:
+        raise _FieldError(f"[[{name}]]", "", "must have at least one entry, got none")
+    for i, e in enumerate(value):
+        if not isinstance(e, cls):
+            article = "an" if cls.__name__[0] in "AEIOU" else "a"
+            raise _FieldError(f"[[{name}]][{i}]", "", f"must be {article} {cls.__name__}, got {type(e).__name__}")
+    return tuple(value)
 
 
 #: Section name -> dataclass, in file order (``excitation`` is an array of tables).
@@ -1336,12 +896,6 @@ _SEGMENTS_EXAMPLE = """\
 # --------------------------------------------------------------------------------------
 
 
-def _key(k: Any) -> str:
-    """A key as written in TOML: bare if possible, else quoted."""
-    k = str(k)
-    return k if _BARE_KEY_RE.fullmatch(k) else _toml_string(k)
-
-
 def _hint(name: Any, candidates: Sequence[str]) -> str:
     close = difflib.get_close_matches(str(name), list(candidates), n=1)
     return f" (did you mean {close[0]}?)" if close else ""
@@ -1367,22 +921,26 @@ def _resolve_source(source: Any, base_dir: Path | None) -> Any:
     return os.path.normpath(path)
 
 
-def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
+def _check_top_level(d: Any) -> None:
+    """Only known sections at the top of the file."""
     if not isinstance(d, Mapping):
         raise ScenarioError(f"must be a table of sections, {_got(d)}")
     for name, value in d.items():
-        if name not in SECTIONS and name not in OPTIONAL_ARRAYS:
-            if isinstance(value, Mapping):
-                what = f"unknown section [{_key(name)}]"
-            elif isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
-                what = f"unknown section [[{_key(name)}]]"
-            else:
-                owners = [s for s, c in SECTIONS.items() if name in _field_names(c)]
-                hint = f" (keys belong in a section: put it under [{owners[0]}])" if owners else ""
-                raise ScenarioError(f"unknown top-level key {_key(name)}{hint}")
-            raise ScenarioError(what + _hint(name, list(SECTIONS) + list(OPTIONAL_ARRAYS)))
+        if name in SECTIONS or name in OPTIONAL_ARRAYS:
+            continue
+        if isinstance(value, Mapping):
+            what = f"unknown section [{_key(name)}]"
+        elif isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
+            what = f"unknown section [[{_key(name)}]]"
+        else:
+            owners = [s for s, c in SECTIONS.items() if name in _field_names(c)]
+            hint = f" (keys belong in a section: put it under [{owners[0]}])" if owners else ""
+            raise ScenarioError(f"unknown top-level key {_key(name)}{hint}")
+        raise ScenarioError(what + _hint(name, list(SECTIONS) + list(OPTIONAL_ARRAYS)))
 
-    # Structure first (tables, unknown keys), then values.
+
+def _tables(d: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:
+    """The single-table sections, their keys checked (a missing one is empty)."""
     tables: dict[str, Mapping[str, Any]] = {}
     for name, cls in SECTIONS.items():
         if name == "excitation":
@@ -1392,52 +950,54 @@ def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
             raise ScenarioError(f"[{name}] must be a table, {_got(table)}")
         _check_keys(f"[{name}]", table, cls)
         tables[name] = table
-    entries = d.get("excitation", [{}])
-    if not isinstance(entries, list):
-        raise ScenarioError("excitation must be an array of tables ([[excitation]] blocks), "
-                            + _got(entries))
-    if not entries:
-        raise ScenarioError("[[excitation]] must have at least one entry, got none")
-    for i, entry in enumerate(entries):
-        if not isinstance(entry, Mapping):
-            raise ScenarioError(f"[[excitation]][{i}] must be a table, {_got(entry)}")
-        _check_keys(f"[[excitation]][{i}]", entry, Excitation)
-
     speed = tables["speed"]
     if speed.get("segments"):
         for k in ("end_rpm", "duration_s"):
             if k in speed:
                 raise ScenarioError(f"[speed] {k} must be absent when segments is given "
                                     "(the segments set the end speed and the duration)")
+    return tables
 
+
+def _array_tables(d: Mapping[str, Any], name: str, default: list[Any]) -> list[Mapping[str, Any]]:
+    """An array of tables (``[[name]]`` blocks), its keys checked."""
+    entries = d.get(name, default)
+    if not isinstance(entries, list):
+        raise ScenarioError(f"{name} must be an array of tables ([[{name}]] blocks), " + _got(entries))
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, Mapping):
+            raise ScenarioError(f"[[{name}]][{i}] must be a table, {_got(entry)}")
+        _check_keys(f"[[{name}]][{i}]", entry, SECTIONS.get(name) or OPTIONAL_ARRAYS[name])
+    return entries
+
+
+def _build_entries(name: str, entries: list[Mapping[str, Any]]) -> tuple[Any, ...]:
+    cls = SECTIONS.get(name) or OPTIONAL_ARRAYS[name]
+    out = []
+    for i, entry in enumerate(entries):
+        try:
+            out.append(cls(**entry))
+        except _FieldError as exc:
+            raise exc.relabel(f"[[{name}]][{i}]") from None
+    return tuple(out)
+
+
+def _build(d: Mapping[str, Any], base_dir: Path | None) -> Scenario:
+    _check_top_level(d)
+    # Structure first (tables, unknown keys), then values.
+    tables = _tables(d)
+    entries = _array_tables(d, "excitation", [{}])
+    if not entries:
+        raise ScenarioError("[[excitation]] must have at least one entry, got none")
     sections: dict[str, Any] = {}
     for name, table in tables.items():
         kwargs = dict(table)
         if name == "model" and "source" in kwargs:
             kwargs["source"] = _resolve_source(kwargs["source"], base_dir)
         sections[name] = SECTIONS[name](**kwargs)
-    excitation = []
-    for i, entry in enumerate(entries):
-        try:
-            excitation.append(Excitation(**entry))
-        except _FieldError as exc:
-            raise exc.relabel(f"[[excitation]][{i}]") from None
-    arrays: dict[str, tuple] = {}
-    for name, cls in OPTIONAL_ARRAYS.items():
-        items = d.get(name, [])
-        if not isinstance(items, list):
-            raise ScenarioError(f"{name} must be an array of tables ([[{name}]] blocks), " + _got(items))
-        out = []
-        for i, entry in enumerate(items):
-            if not isinstance(entry, Mapping):
-                raise ScenarioError(f"[[{name}]][{i}] must be a table, {_got(entry)}")
-            _check_keys(f"[[{name}]][{i}]", entry, cls)
-            try:
-                out.append(cls(**entry))
-            except _FieldError as exc:
-                raise exc.relabel(f"[[{name}]][{i}]") from None
-        arrays[name] = tuple(out)
-    return Scenario(excitation=tuple(excitation), **sections, **arrays)
+    excitation = _build_entries("excitation", entries)
+    arrays = {name: _build_entries(name, _array_tables(d, name, [])) for name in OPTIONAL_ARRAYS}
+    return Scenario(excitation=excitation, **sections, **arrays)
 
 
 def scenario_from_dict(d: Mapping[str, Any], source: str = "<dict>", *,
@@ -1568,50 +1128,12 @@ def scenario_to_dict(scn: Scenario) -> dict[str, Any]:
     return out
 
 
-def _toml_string(s: str) -> str:
-    """A TOML basic string."""
-    out = ['"']
-    for ch in s:
-        code = ord(ch)
-        if ch == '"':
-            out.append('\\"')
-        elif ch == "\\":
-            out.append("\\\\")
-        elif ch in "\b\t\n\f\r":
-            out.append({"\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}[ch])
-        elif code < 0x20 or code == 0x7F:
-            out.append(f"\\u{code:04X}")
-        else:
-            out.append(ch)
-    out.append('"')
-    return "".join(out)
-
-
-def _toml_value(v: Any) -> str:
-    """One TOML value: str, int, float, bool, list of values, or an inline table."""
-    if isinstance(v, (bool, np.bool_)):
-        return "true" if v else "false"
-    if isinstance(v, numbers.Integral):
-        return str(int(v))
-    if isinstance(v, numbers.Real):
-        return repr(float(v))  # shortest repr: parses back to the same float
-    if isinstance(v, str):
-        return _toml_string(v)
-    if isinstance(v, Mapping):
-        return "{" + ", ".join(f"{_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    if isinstance(v, (list, tuple)):
-        if v and all(isinstance(x, Mapping) for x in v):
-            return "[\n" + "".join(f"    {_toml_value(x)},\n" for x in v) + "]"
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} as TOML")
-
-
 def _comment(text: str) -> list[str]:
     return [f"# {line}".rstrip() for line in text.splitlines()]
 
 
 def _emit_table(lines: list[str], cls: type, table: Mapping[str, Any], comments: bool) -> None:
-    docs = {f.name: f.metadata.get("toml", "") for f in dataclasses.fields(cls)}
+    docs = _comments(cls)
     for k, v in table.items():
         if k == "segments" and not v:
             if comments:
@@ -1700,3 +1222,64 @@ def default_toml() -> str:
     str
     """
     return dumps_toml(Scenario(), comments=True)
+
+
+# --------------------------------------------------------------------------------------
+# The schema document
+# --------------------------------------------------------------------------------------
+
+_TABLE_BLOCK = re.compile(r"(<!-- fields: (\S+) [^\n]*-->\n)(.*?)(<!-- end fields -->)", re.S)
+
+
+def _section_class(name: str) -> type:
+    if name == "acquisition.signal":
+        return Signal
+    if name in SECTIONS:
+        return SECTIONS[name]
+    if name in OPTIONAL_ARRAYS:
+        return OPTIONAL_ARRAYS[name]
+    raise ScenarioError(f"schemas/scenario.md: no section {name!r} (a fields block names a section)")
+
+
+def schema_markdown(text: str) -> str:
+    """``schemas/scenario.md`` with its field tables regenerated from the declarations.
+
+    Each table sits between ``<!-- fields: SECTION ... -->`` and ``<!-- end fields -->``;
+    the prose around the tables is kept as written.
+
+    Parameters
+    ----------
+    text : str
+        The current document.
+
+    Returns
+    -------
+    str
+    """
+    return _TABLE_BLOCK.sub(lambda m: m.group(1) + markdown_table(_section_class(m.group(2))) + m.group(4), text)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m bttsim_stream.scenario --schema-md FILE [--check]``: rewrite (or check) the
+    field tables of the scenario schema document."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m bttsim_stream.scenario", description=main.__doc__)
+    parser.add_argument("--schema-md", metavar="FILE", required=True, help="schemas/scenario.md")
+    parser.add_argument("--check", action="store_true", help="exit 1 if FILE is not up to date, write nothing")
+    options = parser.parse_args(argv)
+    path = Path(options.schema_md)
+    text = path.read_text(encoding="utf-8")
+    new = schema_markdown(text)
+    if options.check:
+        if new != text:
+            print(f"{path}: field tables out of date; run python -m bttsim_stream.scenario "
+                  f"--schema-md {path}", file=sys.stderr)
+        return int(new != text)
+    if new != text:
+        path.write_text(new, encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.errors import BttsimError, ScenarioError
+from bttsim_stream.fieldspec import comments
 from bttsim_stream.scenario import (
     SECTIONS,
     Acquisition,
@@ -102,7 +103,7 @@ def test_every_field_documented():
     for name, cls in [*SECTIONS.items(), ("acquisition.signal", Signal)]:
         for f in dataclasses.fields(cls):
             assert f.name in cls.__doc__, f"{cls.__name__}.{f.name} missing from docstring"
-            assert f.metadata.get("toml"), f"{cls.__name__}.{f.name} has no TOML comment"
+            assert comments(cls)[f.name], f"{cls.__name__}.{f.name} has no TOML comment"
             if f.name in ("segments", "signal"):  # written as an example / as its own table
                 continue
             i = next(i for i, line in enumerate(lines) if line.startswith(f"{f.name} = "))
@@ -406,3 +407,65 @@ def test_probe_axial_position_is_checked_against_a_user_models_tip_nodes(tmp_pat
     with pytest.raises(BttsimError, match="outside the model's tip nodes") as err:
         RunUpSimulator(far, n_revolutions=1)
     assert "\n" not in str(err.value)
+
+
+# --------------------------------------------------------------------------------------
+# One declaration per field
+# --------------------------------------------------------------------------------------
+
+
+def test_schema_md_field_tables_are_generated():
+    """schemas/scenario.md's tables are what the declarations give; regenerate them with
+    ``python -m bttsim_stream.scenario --schema-md schemas/scenario.md``."""
+    from bttsim_stream.scenario import OPTIONAL_ARRAYS, schema_markdown
+
+    path = Path(__file__).resolve().parents[1] / "schemas" / "scenario.md"
+    text = path.read_text(encoding="utf-8")
+    assert schema_markdown(text) == text, "run: python -m bttsim_stream.scenario --schema-md schemas/scenario.md"
+    for name in [*SECTIONS, *OPTIONAL_ARRAYS, "acquisition.signal"]:
+        assert f"<!-- fields: {name} " in text, f"no generated table for [{name}]"
+
+
+@pytest.mark.parametrize("cls, name, shown", [
+    (Rotor, "tip_chord_m", "in (0, tip_radius_m]"),
+    (Rotor, "n_blades", "integer in [2, 200]"),
+    (Speed, "segments", "{duration_s (s, > 0),\nend_rpm (rpm, in (0, 1e6])}"),
+    (Signal, "sample_rate_hz", "Hz; in [1e5, 1e9]"),
+], ids=["sibling bound", "integer", "segment members", "unit and range"])
+def test_comment_docstring_and_schema_show_the_declared_bounds(cls, name, shown):
+    from bttsim_stream.fieldspec import markdown_table
+
+    assert shown in comments(cls)[name]
+    flat = " ".join(shown.split())
+    assert flat in " ".join(cls.__doc__.split())
+    assert flat in markdown_table(cls)
+
+
+@pytest.mark.parametrize("options", [
+    dict(kind="float", lo=0, doc="no bounds shown"),
+    dict(kind="float", unit="m", doc="no unit shown; {range}"),
+    dict(kind="str", choices=("a", "b"), doc='only "a"'),
+], ids=["bounds", "unit", "choices"])
+def test_a_declaration_must_show_its_bounds(options):
+    from bttsim_stream.fieldspec import spec
+
+    with pytest.raises(ValueError):
+        spec(0.0, **options)
+
+
+def test_a_bound_from_a_sibling_is_named():
+    with pytest.raises(ScenarioError, match=r"^\[rotor\] tip_chord_m must be in \(0, tip_radius_m = 0.19\], got 0.5$"):
+        Rotor(tip_chord_m=0.5)
+    with pytest.raises(ScenarioError, match=r"^\[rotor\] nominal_node must be <= n_tip_nodes = 9, got 10$"):
+        Rotor(nominal_node=10)
+
+
+def test_schema_md_command_checks_and_rewrites(tmp_path):
+    from bttsim_stream.scenario import main
+
+    path = tmp_path / "s.md"
+    path.write_text("# x\n\n<!-- fields: toa (generated) -->\nstale\n<!-- end fields -->\n")
+    assert main(["--schema-md", str(path), "--check"]) == 1
+    assert main(["--schema-md", str(path)]) == 0
+    assert "| `grid_step_s` | s | `1.2e-05` |" in path.read_text()
+    assert main(["--schema-md", str(path), "--check"]) == 0
