@@ -108,6 +108,26 @@ def test_import_cli_report_and_model_show(example, capsys):
     np.testing.assert_array_equal(load_model(out / "ids.npz").tip_shapes, m.tip_shapes)
 
 
+def _readme_reimport(out: Path, monkeypatch) -> Path:
+    """The example README's step, verbatim but for the output name, run in the example's folder."""
+    monkeypatch.chdir(out)
+    assert main(["model", "import", "sector.frd", "--options", "import.toml", "--out", "readme.npz"]) == 0
+    return out / "readme.npz"
+
+
+def test_readme_reimport_gives_the_model_sector_py_imported(example, monkeypatch, capsys):
+    """import.toml holds what sector.py imported with (the damping included): the README's
+    `bttsim model import sector.frd --options import.toml` gives the same model."""
+    out, files, d = example
+    again, ref = load_model(_readme_reimport(out, monkeypatch)), load_model(files["model"])
+    np.testing.assert_array_equal(again.freq_hz, ref.freq_hz)
+    np.testing.assert_array_equal(again.damping_ratio, ref.damping_ratio)
+    np.testing.assert_array_equal(again.tip_shapes, ref.tip_shapes)
+    np.testing.assert_array_equal(again.force_shapes, ref.force_shapes)
+    # the example's damping: zeta = pi f beta with beta = sector.DAMPING_BETA_S (0.003 on family 1)
+    np.testing.assert_allclose(ref.damping_ratio, np.pi * ref.freq_hz * _example().DAMPING_BETA_S, rtol=1e-6)
+
+
 def test_bttsim_run_finds_the_resonance_at_the_campbell_crossing(example):
     out, files, d = example
     res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "run", str(files["scenario"]), "--out",
@@ -176,6 +196,17 @@ def speed_example(tmp_path_factory):
     out = tmp_path_factory.mktemp("ccx_speeds")
     files = ex.main(out, d, speeds_rpm=SPEEDS_RPM)
     return out, files, d
+
+
+def test_readme_reimport_of_the_speed_dependent_example(speed_example, monkeypatch, capsys):
+    """With --speeds-rpm, import.toml carries the speeds too: the README's re-import repeats it."""
+    out, files, d = speed_example
+    again, ref = load_model(_readme_reimport(out, monkeypatch)), load_model(files["model"])
+    np.testing.assert_array_equal(again.freq_hz, ref.freq_hz)
+    np.testing.assert_array_equal(again.damping_ratio, ref.damping_ratio)
+    assert sorted(again.extra) == sorted(ref.extra)
+    for key, value in ref.extra.items():
+        np.testing.assert_array_equal(again.extra[key], value, err_msg=key)
 
 
 def test_speed_dependent_import_of_calculix_prestressed_steps(speed_example, capsys):
