@@ -249,19 +249,17 @@ def read_times(path, column: str | None = None, *, what: str = "pulse times", st
     blocks = _blocks_parquet(p, column) if _is_parquet(p) else _blocks_csv(p, column)
     out, prev = [], -math.inf
     for first, arr in blocks:
+        unit = "row" if _is_parquet(p) else "line"
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
-            raise BttsimError(f"{p}: line {first + int(bad[0])}: {arr[bad[0]]!r} is not a time ({what} must be "
-                              f"finite numbers in s)" if not _is_parquet(p) else
-                              f"{p}: row {first + int(bad[0])}: {arr[bad[0]]!r} is not a time ({what} must be "
-                              f"finite numbers in s)")
+            raise BttsimError(f"{p}: {unit} {first + int(bad[0])}: {float(arr[bad[0]])!r} is not a time ({what} "
+                              f"must be finite numbers in s)")
         steps = np.diff(np.r_[prev, arr])
         back = np.flatnonzero(steps <= 0 if strict else steps < 0)
         if back.size:
             i = int(back[0])
-            before = prev if i == 0 else arr[i - 1]
-            unit = "row" if _is_parquet(p) else "line"
-            raise BttsimError(f"{p}: {unit} {first + i}: time {arr[i]!r} s is not after the previous one "
+            before = prev if i == 0 else float(arr[i - 1])
+            raise BttsimError(f"{p}: {unit} {first + i}: time {float(arr[i])!r} s is not after the previous one "
                               f"({before!r} s): {what} must {'strictly ' if strict else ''}increase")
         if arr.size:
             prev = float(arr[-1])

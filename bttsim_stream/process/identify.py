@@ -23,9 +23,11 @@ simulator's numbering, that of ``bttsim export``.
    ``tolerance`` blade pitches from its blade's angle is *stray*;
 4. a cell ``(m, b)`` claimed by several pulses (a double trigger, an extra pulse) keeps the
    one nearest the blade's deviation predicted from its neighbouring revolutions (the
-   median of ``m +- 1, m +- 2``), the others are *extra*; a lone pulse further than
-   ``outlier`` robust scales (and ``floor`` pitches) from that prediction is extra too and
-   leaves the cell missing -- a spurious pulse where the real one was lost;
+   median of ``m +- 1 .. m +- 3``, when at least 3 of them have a pulse; else the one
+   nearest the blade's angle), the others are *extra*; a pulse further than ``outlier``
+   robust scales (and ``floor`` pitches) from that prediction is extra too and leaves the
+   cell missing -- a spurious pulse where the real one was lost; done twice, the second
+   time predicting from the pulses the first accepted;
 5. an empty cell is *missing* (NaN), which the processing already handles.
 """
 
@@ -39,6 +41,10 @@ import numpy as np
 from .displacement import TWO_PI, rotor_phase_from_opr
 
 __all__ = ["IdentifiedPulses", "identify_pulses", "pulses_per_revolution"]
+
+#: Revolutions on each side whose pulses predict a cell's, and how many must be present.
+_REACH = 3
+_MIN_NEIGHBOURS = 3
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -178,25 +184,28 @@ def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: 
     cell = ~outside & ~stray
     ci = np.flatnonzero(cell)
     key = m[ci] * nb + blade[ci]
-    # a first pick per cell (nearest the blade's angle) sets the neighbours' prediction
-    first = ci[_first_per_cell(key, np.abs(dev[ci]))]
-    dev_cell = np.full((nr + 4, nb), np.nan)
-    dev_cell[m[first] + 2, blade[first]] = dev[first]
-    neigh = np.stack([dev_cell[k:k + nr] for k in (0, 1, 3, 4)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        pred = np.nanmedian(neigh, axis=0)  # (nr, nb), NaN where no neighbour
-    pred = np.where(np.isfinite(pred), pred, 0.0)
-    resid = np.abs(dev[ci] - pred[m[ci], blade[ci]])
-    keep = ci[_first_per_cell(key, resid)]
-    r_keep = np.abs(dev[keep] - pred[m[keep], blade[keep]])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        scale = 1.4826 * np.array([np.median(r_keep[blade[keep] == b]) if np.any(blade[keep] == b) else np.nan
-                                   for b in range(nb)])
-    limit = np.fmax(outlier * scale, floor * pitch)
-    good = r_keep <= limit[blade[keep]]
-    kept = keep[good]
+    # a first pick per cell (nearest the blade's angle) sets the neighbours' prediction; the
+    # second round predicts from the first round's accepted pulses only
+    kept = ci[_first_per_cell(key, np.abs(dev[ci]))]
+    for _ in range(2):
+        dev_cell = np.full((nr + 2 * _REACH, nb), np.nan)
+        dev_cell[m[kept] + _REACH, blade[kept]] = dev[kept]
+        neigh = np.stack([dev_cell[k:k + nr] for k in range(2 * _REACH + 1) if k != _REACH])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            pred = np.nanmedian(neigh, axis=0)  # (nr, nb)
+        trusted = np.sum(np.isfinite(neigh), axis=0) >= _MIN_NEIGHBOURS
+        pred = np.where(trusted, pred, 0.0)
+        resid = np.abs(dev[ci] - pred[m[ci], blade[ci]])
+        keep = ci[_first_per_cell(key, resid)]
+        r_keep = np.abs(dev[keep] - pred[m[keep], blade[keep]])
+        tr = trusted[m[keep], blade[keep]]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            scale = 1.4826 * np.array([np.median(r_keep[tr & (blade[keep] == b)]) if np.any(tr & (blade[keep] == b))
+                                       else np.nan for b in range(nb)])
+        limit = np.fmax(outlier * scale, floor * pitch)
+        kept = keep[~tr | (r_keep <= limit[blade[keep]])]
     toa = np.full((nr, nb), np.nan)
     toa[m[kept], blade[kept]] = t[kept]
     is_kept = np.zeros(t.size, bool)
