@@ -93,6 +93,31 @@ def test_identify_counts_every_dropped_and_extra_pulse(sim):
     np.testing.assert_array_equal(got.toa_s[kept], run.toa_s[:, :, 2][kept])
 
 
+FLUCTUATING = """[speed]
+start_rpm = 2400.0
+segments = [{duration_s = 0.3, end_rpm = 2500.0}, {duration_s = 0.3, end_rpm = 2380.0},
+            {duration_s = 0.3, end_rpm = 2520.0}, {duration_s = 0.3, end_rpm = 2400.0},
+            {duration_s = 0.3, end_rpm = 2550.0}, {duration_s = 0.3, end_rpm = 2450.0}]
+"""
+
+
+def test_identify_follows_speed_fluctuation(tmp_path):
+    # +-400 rpm/s reversing every 0.3 s: the OPR model's kinks are common to neighbouring blades
+    (tmp_path / "f.toml").write_text(FLUCTUATING)
+    simulate_to_mcap(load_scenario(tmp_path / "f.toml"), tmp_path / "f.mcap", include_truth=False)
+    run = load_run(tmp_path / "f.mcap")
+    psi = Geometry.from_info(run.meta).nominal_arrival_angles()
+    rng = np.random.default_rng(0)
+    for j in range(run.meta.n_probes):
+        t = run.toa_s[:, :, j].ravel()
+        got = identify_pulses(run.opr_s, np.sort(t), psi[:, j])
+        np.testing.assert_array_equal(got.toa_s, run.toa_s[:, :, j])
+        gone = rng.random(t.size) < 0.01
+        fake = rng.uniform(run.opr_s[0], t.max(), 30)
+        got = identify_pulses(run.opr_s, np.r_[t[~gone], fake], psi[:, j])
+        assert (got.missing, got.extra + got.stray) == (gone.sum(), fake.size)
+
+
 # -- from an export --------------------------------------------------------------------
 
 @pytest.mark.parametrize("fmt", ["csv", "parquet"], ids=["csv", "parquet"])

@@ -25,8 +25,10 @@ simulator's numbering, that of ``bttsim export``.
    one nearest the blade's deviation predicted from its neighbouring revolutions (the
    median of ``m +- 1 .. m +- 3``, when at least 3 of them have a pulse; else the one
    nearest the blade's angle), the others are *extra*; a pulse further than ``outlier``
-   robust scales (and ``floor`` pitches) from that prediction is extra too and leaves the
-   cell missing -- a spurious pulse where the real one was lost; done twice, the second
+   robust scales (and ``floor`` pitches) from that prediction (plus the median departure
+   of the neighbouring blades ``b +- 1 .. b +- 3`` of the same revolution from theirs: the
+   rotor-angle model's error when the speed changes between OPR pulses) is extra too and
+   leaves the cell missing -- a spurious pulse where the real one was lost; done twice, the second
    time predicting from the pulses the first accepted;
 5. an empty cell is *missing* (NaN), which the processing already handles.
 """
@@ -133,7 +135,7 @@ def _first_per_cell(key: np.ndarray, score: np.ndarray) -> np.ndarray:
 
 def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: np.ndarray, *,
                     calibrate: bool = True, tolerance: float = 0.25, outlier: float = 20.0,
-                    floor: float = 0.002) -> IdentifiedPulses:
+                    floor: float = 0.02) -> IdentifiedPulses:
     """Assign one probe's unlabelled pulse times to revolutions and blades.
 
     Parameters
@@ -196,6 +198,15 @@ def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: 
             pred = np.nanmedian(neigh, axis=0)  # (nr, nb)
         trusted = np.sum(np.isfinite(neigh), axis=0) >= _MIN_NEIGHBOURS
         pred = np.where(trusted, pred, 0.0)
+        # what the neighbouring blades of the same revolution share beyond their own trend:
+        # the rotor-angle model's error between OPR pulses (a speed change), common to
+        # arrivals close in time
+        r_cell = dev_cell[_REACH:_REACH + nr] - pred
+        side = np.stack([np.roll(r_cell, k, axis=1) for k in range(-_REACH, _REACH + 1) if k])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            common = np.nanmedian(side, axis=0)
+        pred = pred + np.where(trusted & np.isfinite(common), common, 0.0)
         resid = np.abs(dev[ci] - pred[m[ci], blade[ci]])
         keep = ci[_first_per_cell(key, resid)]
         r_keep = np.abs(dev[keep] - pred[m[keep], blade[keep]])
