@@ -133,57 +133,55 @@ def _blocks_csv(path: Path, column: str | None):
                 raise BttsimError(f"{path}: a line is longer than {_MAX_LINE // 1024} KiB: not a CSV of times")
             first = line_no + 1
             line_no += len(lines)
-            nums = []
-            for k, ln in enumerate(lines):  # header and blank/comment lines are few: find them first
+            nums = lines
+            for k, ln in enumerate([] if started else lines):  # up to the first data (or header) line
                 s = ln.strip()
-                if not started:
-                    if not s or s.startswith("#"):
-                        continue
-                    delim = next((d for d in (",", ";", "\t") if d in s), None)
-                    head = [c.strip().strip('"') for c in _split(s, delim)]
-                    try:
-                        float(head[0 if idx is None else idx])
-                        is_header = False
-                    except (ValueError, IndexError):
-                        is_header = True
-                    if column is not None:
-                        if not is_header:
-                            raise BttsimError(f"{path}: --column {column!r} needs a header line naming the columns")
-                        if column not in head:
-                            raise BttsimError(f"{path}: no column {column!r} (the header has {', '.join(head)})")
-                        idx = head.index(column)
-                    started = True
-                    first = first + k + (1 if is_header else 0)
-                    rest = lines[k + (1 if is_header else 0):]
-                    nums = rest
-                    break
-            else:
-                if not started:
-                    if last:
-                        break
+                if not s or s.startswith("#"):
                     continue
-                nums = lines
+                delim = next((d for d in (",", ";", "\t") if d in s), None)
+                head = [c.strip().strip('"') for c in _split(s, delim)]
+                try:
+                    float(head[0 if idx is None else idx])
+                    is_header = False
+                except (ValueError, IndexError):
+                    is_header = True
+                if column is not None:
+                    if not is_header:
+                        raise BttsimError(f"{path}: --column {column!r} needs a header line naming the columns")
+                    if column not in head:
+                        raise BttsimError(f"{path}: no column {column!r} (the header has {', '.join(head)})")
+                    idx = head.index(column)
+                started = True
+                first = first + k + (1 if is_header else 0)
+                nums = lines[k + (1 if is_header else 0):]
+                break
+            if not started:
+                if last:
+                    break
+                continue
             if not nums:
                 if last:
                     break
                 continue
+            skip = [k for k, ln in enumerate(nums) if not ln.strip() or ln.lstrip().startswith("#")]
+            rows = None
+            if skip:  # blank and comment lines are left out; the others keep their line numbers
+                rows = np.delete(np.arange(first, first + len(nums)), skip)
+                gone = set(skip)
+                nums = [ln for k, ln in enumerate(nums) if k not in gone]
             try:
-                if delim is None:
-                    vals = [ln.split()[idx] if ln.strip() else "nan_blank" for ln in nums]
-                else:
-                    vals = [ln.split(delim, idx + 1)[idx] if ln.strip() else "nan_blank" for ln in nums]
+                vals = ([ln.split()[idx] for ln in nums] if delim is None
+                        else [ln.split(delim, idx + 1)[idx] for ln in nums])
                 arr = np.array(vals, dtype=float)
             except (ValueError, IndexError):
-                arr = None
-            if arr is None or "nan_blank" in vals:
                 for k, ln in enumerate(nums):
                     try:
-                        f = _split(ln.strip(), delim)[idx]
-                        float(f)
+                        float(_split(ln.strip(), delim)[idx])
                     except (ValueError, IndexError):
-                        shown = ln.strip()[:40] or "(blank line)"
-                        raise BttsimError(f"{path}: line {first + k}: not a time in s: {shown!r}") from None
-            yield first, arr
+                        where = first + k if rows is None else int(rows[k])
+                        raise BttsimError(f"{path}: line {where}: not a time in s: {ln.strip()[:40]!r}") from None
+                raise
+            yield (first if rows is None else rows), arr
             if last:
                 break
 
@@ -248,18 +246,19 @@ def read_times(path, column: str | None = None, *, what: str = "pulse times", st
         raise BttsimError(f"{p}: no such file ({what})")
     blocks = _blocks_parquet(p, column) if _is_parquet(p) else _blocks_csv(p, column)
     out, prev = [], -math.inf
+    unit = "row" if _is_parquet(p) else "line"
     for first, arr in blocks:
-        unit = "row" if _is_parquet(p) else "line"
+        at = (lambda i: first + i) if isinstance(first, int) else (lambda i: int(first[i]))  # noqa: E731
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
-            raise BttsimError(f"{p}: {unit} {first + int(bad[0])}: {float(arr[bad[0]])!r} is not a time ({what} "
+            raise BttsimError(f"{p}: {unit} {at(int(bad[0]))}: {float(arr[bad[0]])!r} is not a time ({what} "
                               f"must be finite numbers in s)")
         steps = np.diff(np.r_[prev, arr])
         back = np.flatnonzero(steps <= 0 if strict else steps < 0)
         if back.size:
             i = int(back[0])
             before = prev if i == 0 else float(arr[i - 1])
-            raise BttsimError(f"{p}: {unit} {first + i}: time {float(arr[i])!r} s is not after the previous one "
+            raise BttsimError(f"{p}: {unit} {at(i)}: time {float(arr[i])!r} s is not after the previous one "
                               f"({before!r} s): {what} must {'strictly ' if strict else ''}increase")
         if arr.size:
             prev = float(arr[-1])

@@ -184,8 +184,14 @@ def test_pulse_trains_with_a_scenario(sim, tmp_path):
 def test_read_times_formats(tmp_path):
     (tmp_path / "a.csv").write_text("# rig 3\nchannel;toa_s\n1;0.5\n2;0.75\n3;1.0\n")
     np.testing.assert_array_equal(read_times(tmp_path / "a.csv", "toa_s"), [0.5, 0.75, 1.0])
-    (tmp_path / "b.txt").write_text("0.1\n0.2\n\n")
+    (tmp_path / "b.txt").write_text("0.1\n\n# pause\n0.2\n\n\n")
     np.testing.assert_array_equal(read_times(tmp_path / "b.txt"), [0.1, 0.2])
+    (tmp_path / "c.txt").write_text("t\n0.1\n\n0.3\n0.2\n")  # line numbers count every line
+    with pytest.raises(BttsimError, match="line 5: time 0.2 s is not after the previous one"):
+        read_times(tmp_path / "c.txt")
+    (tmp_path / "d.txt").write_text("t\n0.1\n0,2\n")
+    with pytest.raises(BttsimError, match="line 3: not a time in s: '0,2'"):
+        read_times(tmp_path / "d.txt")
     pa = pytest.importorskip("pyarrow")
     import pyarrow.parquet as pq
 
