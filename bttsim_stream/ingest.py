@@ -277,6 +277,17 @@ def _run_id(*parts) -> str:
     return h.hexdigest()[:16]
 
 
+def _check_out(out) -> None:
+    """Refuse an output path that cannot be written, before anything is read."""
+    out = Path(out)
+    if out.is_dir():
+        raise BttsimError(f"{out}: is a folder (--out takes the recording's file name)")
+    if not out.parent.is_dir():
+        raise BttsimError(f"{out}: cannot write (no folder {out.parent})")
+    if not os.access(out.parent, os.W_OK):
+        raise BttsimError(f"{out}: cannot write (folder {out.parent} not writable)")
+
+
 def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray,
            extra_passage: np.ndarray, extra_toa_s: np.ndarray, record: dict) -> None:
     """The recording, written to ``out`` through a temporary file (``out`` untouched on error).
@@ -303,6 +314,8 @@ def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_s:
         os.replace(tmp, out)
     except OSError as exc:
         raise BttsimError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    except BttsimError as exc:  # the recorder names the temporary file
+        raise BttsimError(f"{out}: cannot write ({str(exc).replace(str(tmp), out.name)})") from None
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -375,6 +388,7 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
     rig : str, optional
         Rig name on the bus (default: the export's).
     """
+    _check_out(out)
     folder = Path(folder)
     meta_file = folder / "run.json"
     if not meta_file.is_file():
@@ -517,6 +531,7 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     -------
     IngestResult
     """
+    _check_out(out)
     info, notes = _geometry([a for a, _ in probes], n_blades, tip_radius_m, scenario_path, engine_orders, rig)
     nb, npr = info.n_blades, info.n_probes
     opr = read_times(opr_path, column, what="OPR times", strict=True)

@@ -246,3 +246,20 @@ def test_bad_input_one_line_exit_2(sim, tmp_path, capsys, case, words):
 def test_export_folder_errors(tmp_path):
     with pytest.raises(BttsimError, match="no run.json"):
         ingest_export(tmp_path, tmp_path / "x.mcap")
+
+
+def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
+    args, _ = _trains(sim, tmp_path / "t")
+    cases = [
+        ([*args, "--blades", "29", "--tip-radius-m", "0.19", "--out", str(tmp_path / "no" / "x.mcap")], "no folder"),
+        ([*args, "--blades", "29", "--out", str(tmp_path / "x.mcap")], "--tip-radius-m R are required"),
+        ([*args, "--blades", "29", "--tip-radius-m", "190", "--out", str(tmp_path / "x.mcap")], "radius in m"),
+        (["--opr", args[1], "--probe", "5:p.csv", "--blades", "29", "--tip-radius-m", "0.19",
+          "--out", str(tmp_path / "x.mcap")], "ANGLE_DEG=FILE"),
+        (["--from-export", str(tmp_path), *args, "--out", str(tmp_path / "x.mcap")], "takes no --opr"),
+    ]
+    for argv, words in cases:
+        assert main(["ingest", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err, err
+    assert not (tmp_path / "x.mcap").exists()
