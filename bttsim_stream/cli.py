@@ -178,6 +178,35 @@ def _cmd_export(args: argparse.Namespace) -> None:
           f"{time.perf_counter() - t0:.1f} s")
 
 
+def _cmd_ingest(args: argparse.Namespace) -> None:
+    from .ingest import ingest_export, ingest_pulses, parse_probe
+
+    t0 = time.perf_counter()
+    if args.from_export:
+        if args.opr or args.probe:
+            raise BttsimError("--from-export takes no --opr / --probe (the export holds them)")
+        res = ingest_export(args.from_export, args.out, rig=args.rig)
+    else:
+        if not args.opr:
+            raise BttsimError("--opr FILE is required (the once-per-revolution pulse times), or --from-export DIR")
+        if not args.probe:
+            raise BttsimError("at least one --probe ANGLE_DEG=FILE is required")
+        eos = parse_engine_orders(args.eo) if args.eo else None
+        res = ingest_pulses(args.opr, [parse_probe(p) for p in args.probe], args.out, n_blades=args.blades,
+                            tip_radius_m=args.tip_radius_m, rig=args.rig, engine_orders=eos,
+                            scenario_path=args.scenario, column=args.column)
+    dt = time.perf_counter() - t0
+    for note in res.notes:
+        print(f"bttsim: note: {note}", file=sys.stderr)
+    for p in res.per_probe:
+        print(f"probe {p['probe']} at {p['angle_deg']:g} deg: {p['toas']} TOAs, {p['missing']} missing, "
+              f"{p['extra']} extra, {p['stray']} stray, {p['outside']} outside "
+              f"(median {p['median_pulses_per_revolution']:g} pulses/revolution)")
+    print(f"wrote {args.out}: {res.revolutions} revolutions, {res.n_blades} blades, {res.n_probes} probes, "
+          f"{res.toas} TOAs ({res.missing} missing, {res.extra} extra, {res.stray} stray, {res.outside} outside), "
+          f"median {res.median_rpm:.1f} rpm, run {res.run_id}, {dt:.1f} s ({res.toas / max(dt, 1e-9):.3g} TOA/s)")
+
+
 def _cmd_node(args: argparse.Namespace) -> None:
     run_parsed(args)
 
@@ -466,6 +495,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="csv (always available) or parquet (the parquet extra: pyarrow)")
     p.add_argument("--out", required=True, help="output folder: one file per table and run.json")
     p.set_defaults(func=_cmd_export)
+
+    p = sub.add_parser("ingest", help="measured pulse trains (or an export folder) to a recording (schemas/ingest.md)",
+                       description="A rig's OPR and per-probe pulse times to an MCAP recording that process, view, "
+                                   "export and replay treat like a simulated run; see schemas/ingest.md.")
+    p.add_argument("--out", required=True, help="output recording (MCAP)")
+    p.add_argument("--from-export", metavar="DIR", help="the labelled tables of `bttsim export` (csv or parquet)")
+    p.add_argument("--opr", metavar="FILE", help="OPR pulse times, s (CSV first column or Parquet)")
+    p.add_argument("--probe", action="append", default=[], metavar="ANGLE_DEG=FILE",
+                   help="a probe's angle (deg, anticlockwise from +x) and its pulse times, s (repeatable)")
+    p.add_argument("--blades", type=int, help="number of blades (or from --scenario)")
+    p.add_argument("--tip-radius-m", type=float, help="tip radius of the sensing point, m (or from --scenario)")
+    p.add_argument("--scenario", metavar="S.toml", help="rotor geometry (blades, radius, OPR angle, model) from a scenario")
+    p.add_argument("--eo", metavar="EO[,EO...]", help="expected engine orders (into the run metadata)")
+    p.add_argument("--rig", help="rig name on the bus (default rig1, or the export's)")
+    p.add_argument("--column", metavar="NAME", help="the column of the time files to read (default: the first)")
+    p.set_defaults(func=_cmd_ingest)
 
     p = sub.add_parser("view", help="Rerun views of a recording (.rrd file and/or web viewer)")
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")

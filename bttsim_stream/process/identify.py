@@ -1,0 +1,229 @@
+"""Blade identification of unlabelled pulse trains against the OPR (measured data in).
+
+Conventions: those of :mod:`bttsim_stream.process.displacement` -- times in s, angles in rad
+anticlockwise from +x (the direction of rotation), arrays ``(revolution, blade)`` per probe.
+Revolution ``n`` starts at OPR pulse ``n`` and holds, for each blade, the arrival whose
+*rigid* crossing of the probe falls in ``[OPR_n, OPR_n+1)``; blade ``b`` is the blade whose
+sensing point sits at rotor angle ``theta_b`` (default ``2 pi b / N_b``) from the OPR sensor
+at the OPR pulse, so it reaches probe ``j`` at rotor angle
+``psi[b, j] = (theta_probe_j - theta_b - theta_opr) mod 2 pi`` after the pulse
+(:meth:`~bttsim_stream.process.displacement.Geometry.nominal_arrival_angles`): the
+simulator's numbering, that of ``bttsim export``.
+
+:func:`identify_pulses` labels one probe's pulse train, vectorised over all its pulses:
+
+1. each pulse's total rotor angle ``Phi = 2 pi n + phi_n(t)`` from the quadratic OPR model
+   (:func:`~bttsim_stream.process.displacement.rotor_phase_from_opr`: speed fluctuation
+   between pulses is followed to second order);
+2. the nearest arrival angle (mod 2 pi) names the blade; unless the arrival angles are
+   known exactly (``calibrate=False``) they are then re-centred on the median measured
+   deviation of each blade (the unknown angle of the sensing point on the blade, a
+   static probe angle error) and the labelling repeated;
+3. ``m = round((Phi - psi_b) / 2 pi)`` is the revolution; a pulse further than
+   ``tolerance`` blade pitches from its blade's angle is *stray*;
+4. a cell ``(m, b)`` claimed by several pulses (a double trigger, an extra pulse) keeps the
+   one nearest the blade's deviation predicted from its neighbouring revolutions (the
+   median of ``m +- 1 .. m +- 3``, when at least 3 of them have a pulse; else the one
+   nearest the blade's angle), the others are *extra*; a pulse further than ``outlier``
+   robust scales (and ``floor`` pitches) from that prediction (plus the median departure
+   of the neighbouring blades ``b +- 1 .. b +- 3`` of the same revolution from theirs: the
+   rotor-angle model's error when the speed changes between OPR pulses) is extra too and
+   leaves the cell missing -- a spurious pulse where the real one was lost; done twice, the second
+   time predicting from the pulses the first accepted;
+5. an empty cell is *missing* (NaN), which the processing already handles.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .displacement import TWO_PI, rotor_phase_from_opr
+
+__all__ = ["IdentifiedPulses", "identify_pulses", "pulses_per_revolution"]
+
+#: Revolutions on each side whose pulses predict a cell's, and how many must be present.
+_REACH = 3
+_MIN_NEIGHBOURS = 3
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class IdentifiedPulses:
+    """One probe's pulse train, labelled.
+
+    Attributes
+    ----------
+    toa_s : ndarray, shape (n_rev, n_blades)
+        The pulse of each blade in each revolution, s; NaN: missing.
+    extra_revolution, extra_blade : ndarray of int64, shape (n_extra,)
+        Cell of every extra pulse (in a blade's window, not kept).
+    extra_toa_s : ndarray, shape (n_extra,)
+    stray_revolution : ndarray of int64, shape (n_stray,)
+        Revolution (OPR interval) of every stray pulse (in no blade's window).
+    stray_toa_s : ndarray, shape (n_stray,)
+    outside : int
+        Pulses before the first OPR pulse or beyond the last revolution, dropped.
+    arrival_angles_rad : ndarray, shape (n_blades,)
+        The arrival angles used (calibrated unless given exactly), rad.
+    """
+
+    toa_s: np.ndarray
+    extra_revolution: np.ndarray
+    extra_blade: np.ndarray
+    extra_toa_s: np.ndarray
+    stray_revolution: np.ndarray
+    stray_toa_s: np.ndarray
+    outside: int
+    arrival_angles_rad: np.ndarray
+
+    @property
+    def missing(self) -> int:
+        """Empty cells (blade passages without a pulse)."""
+        return int(np.count_nonzero(np.isnan(self.toa_s)))
+
+    @property
+    def extra(self) -> int:
+        return int(self.extra_toa_s.size)
+
+    @property
+    def stray(self) -> int:
+        return int(self.stray_toa_s.size)
+
+
+def pulses_per_revolution(opr_s: np.ndarray, pulse_s: np.ndarray) -> np.ndarray:
+    """Pulses between consecutive OPR pulses.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        OPR times, s, increasing.
+    pulse_s : ndarray, shape (n_pulses,)
+        Pulse times, s.
+
+    Returns
+    -------
+    ndarray of int64, shape (n_rev - 1,)
+        Count of pulses in ``[OPR_n, OPR_n+1)``.
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    idx = np.searchsorted(np.sort(np.asarray(pulse_s, dtype=float)), opr)
+    return np.diff(idx).astype(np.int64)
+
+
+def _nearest(total: np.ndarray, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Blade of the nearest arrival angle (mod 2 pi) and the signed deviation from it, rad."""
+    order = np.argsort(psi)
+    ps = psi[order]
+    r = np.mod(total, TWO_PI)
+    i = np.searchsorted(ps, r)
+    lo, hi = order[(i - 1) % ps.size], order[i % ps.size]
+    d_lo = np.mod(r - psi[lo] + np.pi, TWO_PI) - np.pi
+    d_hi = np.mod(r - psi[hi] + np.pi, TWO_PI) - np.pi
+    pick_lo = np.abs(d_lo) <= np.abs(d_hi)
+    return np.where(pick_lo, lo, hi), np.where(pick_lo, d_lo, d_hi)
+
+
+def _first_per_cell(key: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Indices of the lowest ``score`` of every distinct ``key``."""
+    srt = np.lexsort((score, key))
+    first = np.ones(srt.size, bool)
+    first[1:] = key[srt][1:] != key[srt][:-1]
+    return srt[first]
+
+
+def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: np.ndarray, *,
+                    calibrate: bool = True, tolerance: float = 0.25, outlier: float = 20.0,
+                    floor: float = 0.02) -> IdentifiedPulses:
+    """Assign one probe's unlabelled pulse times to revolutions and blades.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        OPR times, s, strictly increasing, ``n_rev >= 3``.
+    pulse_s : ndarray, shape (n_pulses,)
+        Pulse times at the probe, s, finite (any order).
+    arrival_angles_rad : ndarray, shape (n_blades,)
+        Rotor angle after the OPR pulse at which each blade reaches this probe, rad
+        (``Geometry.nominal_arrival_angles()[:, j]``).
+    calibrate : bool
+        Re-centre the arrival angles on the data (the sensing point's angle on the blade
+        unknown); False when they are exact (the simulator's sensing angles).
+    tolerance : float
+        Largest distance of a pulse from its blade's angle, in blade pitches ``2 pi / N_b``;
+        further: stray.
+    outlier : float
+        A cell's pulse further than ``outlier`` robust scales (1.4826 MAD, per blade, of the
+        kept pulses' distance from their neighbours' median) from the prediction is extra.
+    floor : float
+        ... but never for a distance below ``floor`` blade pitches.
+
+    Returns
+    -------
+    IdentifiedPulses
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    t = np.sort(np.asarray(pulse_s, dtype=float).ravel())
+    psi = np.mod(np.asarray(arrival_angles_rad, dtype=float).ravel(), TWO_PI)
+    nr, nb = opr.size, psi.size
+    pitch = TWO_PI / nb
+    phase = rotor_phase_from_opr(opr)
+    n = np.searchsorted(opr, t, side="right") - 1
+    before = n < 0
+    t, n = t[~before], n[~before]
+    total = TWO_PI * n + phase.rows(n).angle(t)
+    blade, dev = _nearest(total, psi)
+    if calibrate and t.size:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            shift = np.array([np.median(dev[blade == b]) if np.any(blade == b) else 0.0 for b in range(nb)])
+        psi = np.mod(psi + np.where(np.abs(shift) < 0.5 * pitch, shift, 0.0), TWO_PI)
+        blade, dev = _nearest(total, psi)
+    m = np.round((total - dev - psi[blade]) / TWO_PI).astype(np.int64)
+    outside = (m < 0) | (m >= nr)
+    stray = ~outside & (np.abs(dev) > tolerance * pitch)
+    cell = ~outside & ~stray
+    ci = np.flatnonzero(cell)
+    key = m[ci] * nb + blade[ci]
+    # a first pick per cell (nearest the blade's angle) sets the neighbours' prediction; the
+    # second round predicts from the first round's accepted pulses only
+    kept = ci[_first_per_cell(key, np.abs(dev[ci]))]
+    for _ in range(2):
+        dev_cell = np.full((nr + 2 * _REACH, nb), np.nan)
+        dev_cell[m[kept] + _REACH, blade[kept]] = dev[kept]
+        neigh = np.stack([dev_cell[k:k + nr] for k in range(2 * _REACH + 1) if k != _REACH])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            pred = np.nanmedian(neigh, axis=0)  # (nr, nb)
+        trusted = np.sum(np.isfinite(neigh), axis=0) >= _MIN_NEIGHBOURS
+        pred = np.where(trusted, pred, 0.0)
+        # what the neighbouring blades of the same revolution share beyond their own trend:
+        # the rotor-angle model's error between OPR pulses (a speed change), common to
+        # arrivals close in time
+        r_cell = dev_cell[_REACH:_REACH + nr] - pred
+        side = np.stack([np.roll(r_cell, k, axis=1) for k in range(-_REACH, _REACH + 1) if k])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            common = np.nanmedian(side, axis=0)
+        pred = pred + np.where(trusted & np.isfinite(common), common, 0.0)
+        resid = np.abs(dev[ci] - pred[m[ci], blade[ci]])
+        keep = ci[_first_per_cell(key, resid)]
+        r_keep = np.abs(dev[keep] - pred[m[keep], blade[keep]])
+        tr = trusted[m[keep], blade[keep]]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            scale = 1.4826 * np.array([np.median(r_keep[tr & (blade[keep] == b)]) if np.any(tr & (blade[keep] == b))
+                                       else np.nan for b in range(nb)])
+        limit = np.fmax(outlier * scale, floor * pitch)
+        kept = keep[~tr | (r_keep <= limit[blade[keep]])]
+    toa = np.full((nr, nb), np.nan)
+    toa[m[kept], blade[kept]] = t[kept]
+    is_kept = np.zeros(t.size, bool)
+    is_kept[kept] = True
+    ex = cell & ~is_kept
+    st = np.flatnonzero(stray)
+    return IdentifiedPulses(
+        toa_s=toa, extra_revolution=m[ex], extra_blade=blade[ex].astype(np.int64), extra_toa_s=t[ex],
+        stray_revolution=np.clip(n[st], 0, nr - 1).astype(np.int64), stray_toa_s=t[st],
+        outside=int(before.sum() + outside.sum()), arrival_angles_rad=psi)

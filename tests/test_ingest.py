@@ -1,0 +1,265 @@
+"""bttsim ingest: export folders and unlabelled pulse trains in, against the simulator's own
+labelled TOAs (a short run-up through the EO 8 resonance near 2580 rpm)."""
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bttsim_stream.bus.recording import read_recording
+from bttsim_stream.cli import main
+from bttsim_stream.errors import BttsimError
+from bttsim_stream.export import export_run
+from bttsim_stream.ingest import ingest_export, ingest_pulses, read_times
+from bttsim_stream.offline import load_run
+from bttsim_stream.process.displacement import Geometry
+from bttsim_stream.process.identify import identify_pulses
+from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
+from bttsim_stream.acquisition import simulate_to_mcap
+from bttsim_stream.scenario import load_scenario
+
+SHORT = """[speed]
+start_rpm = 2400.0
+end_rpm = 2700.0
+duration_s = 6.0
+"""
+
+
+def _process(path):
+    run = load_run(path)
+    res = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth,
+                         revolution0=int(run.revolution[0]))
+    return run, res.summary
+
+
+def _blades(summary, key):
+    return np.array([b[key] for b in summary["resonances"][0]["blades"]], dtype=float)
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ingest")
+    (d / "short.toml").write_text(SHORT)
+    simulate_to_mcap(load_scenario(d / "short.toml"), d / "sim.mcap")
+    run, summary = _process(d / "sim.mcap")
+    return {"dir": d, "mcap": d / "sim.mcap", "run": run, "summary": summary}
+
+
+def _trains(sim, out: Path, *, drop=0.0, extra=0.0, seed=0, scale=1.0):
+    """Pulse trains as a rig gives them: labels dropped, sorted per probe (CSV, header line)."""
+    run = sim["run"]
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    np.savetxt(out / "opr.csv", run.opr_s * scale, fmt="%.17g", header="opr_s", comments="")
+    args, injected = ["--opr", str(out / "opr.csv")], {"dropped": 0, "extra": 0}
+    for j, a in enumerate(np.rad2deg(run.meta.probe_angles_rad)):
+        t = run.toa_s[:, :, j].ravel()
+        gone = rng.random(t.size) < drop
+        fake = rng.uniform(run.opr_s[0], t.max(), int(round(extra * t.size)))
+        np.savetxt(out / f"p{j}.csv", np.sort(np.r_[t[~gone], fake]) * scale, fmt="%.17g", header="toa_s",
+                   comments="")
+        args += ["--probe", f"{float(a)!r}={out / f'p{j}.csv'}"]
+        injected["dropped"] += int(gone.sum())
+        injected["extra"] += int(fake.size)
+    return args, injected
+
+
+# -- identification ----------------------------------------------------------------------
+
+def test_identify_gives_the_simulator_labels(sim):
+    run = sim["run"]
+    psi = Geometry.from_info(run.meta).nominal_arrival_angles()  # nominal blade angles, calibrated on the data
+    for j in range(run.meta.n_probes):
+        got = identify_pulses(run.opr_s, np.sort(run.toa_s[:, :, j].ravel()), psi[:, j])
+        np.testing.assert_array_equal(got.toa_s, run.toa_s[:, :, j])
+        assert (got.missing, got.extra, got.stray, got.outside) == (0, 0, 0, 0)
+
+
+def test_identify_counts_every_dropped_and_extra_pulse(sim):
+    run = sim["run"]
+    psi = Geometry.from_info(run.meta).nominal_arrival_angles()
+    rng = np.random.default_rng(7)
+    t = run.toa_s[:, :, 2].ravel()  # probe 2: a blade crosses it 0.9 deg after the OPR pulse
+    gone = rng.random(t.size) < 0.02
+    near = t[~gone][rng.choice((~gone).sum(), 20, replace=False)] + 2e-6  # double triggers
+    fake = rng.uniform(run.opr_s[0], t.max(), 30)
+    got = identify_pulses(run.opr_s, np.r_[t[~gone], near, fake], psi[:, 2])
+    assert got.missing == gone.sum()
+    assert got.extra + got.stray == near.size + fake.size
+    assert np.isin(near, got.extra_toa_s).all()
+    kept = np.isfinite(got.toa_s)
+    np.testing.assert_array_equal(got.toa_s[kept], run.toa_s[:, :, 2][kept])
+
+
+FLUCTUATING = """[speed]
+start_rpm = 2400.0
+segments = [{duration_s = 0.3, end_rpm = 2500.0}, {duration_s = 0.3, end_rpm = 2380.0},
+            {duration_s = 0.3, end_rpm = 2520.0}, {duration_s = 0.3, end_rpm = 2400.0},
+            {duration_s = 0.3, end_rpm = 2550.0}, {duration_s = 0.3, end_rpm = 2450.0}]
+"""
+
+
+def test_identify_follows_speed_fluctuation(tmp_path):
+    # +-400 rpm/s reversing every 0.3 s: the OPR model's kinks are common to neighbouring blades
+    (tmp_path / "f.toml").write_text(FLUCTUATING)
+    simulate_to_mcap(load_scenario(tmp_path / "f.toml"), tmp_path / "f.mcap", include_truth=False)
+    run = load_run(tmp_path / "f.mcap")
+    psi = Geometry.from_info(run.meta).nominal_arrival_angles()
+    rng = np.random.default_rng(0)
+    for j in range(run.meta.n_probes):
+        t = run.toa_s[:, :, j].ravel()
+        got = identify_pulses(run.opr_s, np.sort(t), psi[:, j])
+        np.testing.assert_array_equal(got.toa_s, run.toa_s[:, :, j])
+        gone = rng.random(t.size) < 0.01
+        fake = rng.uniform(run.opr_s[0], t.max(), 30)
+        got = identify_pulses(run.opr_s, np.r_[t[~gone], fake], psi[:, j])
+        assert (got.missing, got.extra + got.stray) == (gone.sum(), fake.size)
+
+
+# -- from an export --------------------------------------------------------------------
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"], ids=["csv", "parquet"])
+def test_from_export_same_toas_and_results(sim, tmp_path, fmt):
+    export_run(sim["mcap"], tmp_path / "exp", fmt)
+    out = tmp_path / "in.mcap"
+    assert main(["ingest", "--from-export", str(tmp_path / "exp"), "--out", str(out)]) == 0
+    run, summary = _process(out)
+    orig = sim["run"]
+    assert run.meta.has_truth is False and run.truth is None
+    np.testing.assert_array_equal(run.toa_s.view(np.int64), orig.toa_s.view(np.int64))  # to the bit
+    np.testing.assert_array_equal(run.opr_s, orig.opr_s)
+    for key in ("amp_pkpk_m", "freq_hz", "phase_rad"):
+        np.testing.assert_array_equal(_blades(summary, key), _blades(sim["summary"], key))
+    assert "truth_amp_pkpk_m" not in summary["resonances"][0]["blades"][0]
+    rec = read_recording(out).run_metadata
+    assert json.loads(rec["source"])["kind"] == "export"
+    assert json.loads(rec["ingest"])["toas"] == orig.toa_s.size
+
+
+# -- from pulse trains -----------------------------------------------------------------
+
+def test_pulse_trains_give_the_original_amplitudes(sim, tmp_path, capsys):
+    args, _ = _trains(sim, tmp_path / "t")
+    out = tmp_path / "rig.mcap"
+    t0 = time.perf_counter()
+    assert main(["ingest", *args, "--blades", "29", "--tip-radius-m", "0.19010353787923925", "--eo", "8",
+                 "--out", str(out)]) == 0
+    rate = sim["run"].toa_s.size / (time.perf_counter() - t0)
+    print(f"ingest rate {rate:.3g} TOA/s", file=__import__("sys").stderr)
+    run, summary = _process(out)
+    np.testing.assert_array_equal(run.toa_s, sim["run"].toa_s)
+    err = np.abs(_blades(summary, "amp_pkpk_m") / _blades(sim["summary"], "amp_pkpk_m") - 1)
+    assert err.max() < 0.002
+    assert "0 missing, 0 extra, 0 stray" in capsys.readouterr().out
+
+
+def test_pulse_trains_with_dropped_and_extra_pulses(sim, tmp_path):
+    args, injected = _trains(sim, tmp_path / "t", drop=0.01, extra=0.001, seed=3)
+    out = tmp_path / "rig.mcap"
+    res = ingest_pulses(args[1], [(float(a.split("=")[0]), a.split("=", 1)[1]) for a in args[3::2]], out,
+                        n_blades=29, tip_radius_m=0.19010353787923925, engine_orders=(8,))
+    assert res.missing == injected["dropped"]
+    assert res.extra + res.stray == injected["extra"]
+    assert res.outside == 0
+    run, summary = _process(out)
+    err = np.abs(_blades(summary, "amp_pkpk_m") / _blades(sim["summary"], "amp_pkpk_m") - 1)
+    assert err.max() < 0.03 and err.mean() < 0.01
+    counts = json.loads(read_recording(out).run_metadata["ingest"])
+    assert (counts["missing"], counts["extra"] + counts["stray"]) == (injected["dropped"], injected["extra"])
+
+
+def test_pulse_trains_with_a_scenario(sim, tmp_path):
+    args, _ = _trains(sim, tmp_path / "t")
+    out = tmp_path / "rig.mcap"
+    assert main(["ingest", *args, "--scenario", str(sim["dir"] / "short.toml"), "--out", str(out)]) == 0
+    run, summary = _process(out)
+    assert run.meta.n_blades == 29 and run.meta.engine_orders == (8,)
+    np.testing.assert_allclose(_blades(summary, "amp_pkpk_m"), _blades(sim["summary"], "amp_pkpk_m"), rtol=2e-3)
+
+
+# -- reading ---------------------------------------------------------------------------
+
+def test_read_times_formats(tmp_path):
+    (tmp_path / "a.csv").write_text("# rig 3\nchannel;toa_s\n1;0.5\n2;0.75\n3;1.0\n")
+    np.testing.assert_array_equal(read_times(tmp_path / "a.csv", "toa_s"), [0.5, 0.75, 1.0])
+    (tmp_path / "b.txt").write_text("0.1\n\n# pause\n0.2\n\n\n")
+    np.testing.assert_array_equal(read_times(tmp_path / "b.txt"), [0.1, 0.2])
+    (tmp_path / "c.txt").write_text("t\n0.1\n\n0.3\n0.2\n")  # line numbers count every line
+    with pytest.raises(BttsimError, match="line 5: time 0.2 s is not after the previous one"):
+        read_times(tmp_path / "c.txt")
+    (tmp_path / "d.txt").write_text("t\n0.1\n0,2\n")
+    with pytest.raises(BttsimError, match="line 3: not a time in s: '0,2'"):
+        read_times(tmp_path / "d.txt")
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.table({"t": [0.1, 0.2, 0.3], "x": [1, 2, 3]}), tmp_path / "c.parquet")
+    np.testing.assert_array_equal(read_times(tmp_path / "c.parquet"), [0.1, 0.2, 0.3])
+
+
+# -- bad data: one line, exit 2, nothing written ---------------------------------------------
+
+def _bad(sim, tmp_path, case):
+    args, _ = _trains(sim, tmp_path / "t", scale=1000.0 if case == "ms" else 1.0)
+    blades = "29"
+    p0 = Path(args[3].split("=", 1)[1])
+    if case == "empty":
+        p0.write_text("")
+    elif case == "non_monotonic":
+        t = np.loadtxt(p0, skiprows=1)
+        t[[100, 101]] = t[[101, 100]]
+        np.savetxt(p0, t, fmt="%.17g")
+    elif case == "no_opr":
+        args = args[2:]
+    elif case == "one_opr":
+        (tmp_path / "t" / "opr.csv").write_text("opr_s\n0.1\n")
+    elif case == "blades":
+        blades = "31"
+    elif case == "nan":
+        t = np.loadtxt(p0, skiprows=1)
+        t[500] = np.nan
+        np.savetxt(p0, t, fmt="%.17g")
+    elif case == "garbage":
+        p0.write_bytes(np.random.default_rng(0).bytes(20 << 20))
+    return [*args, "--blades", blades, "--tip-radius-m", "0.19"]
+
+
+@pytest.mark.parametrize("case, words", [
+    ("empty", "no times"), ("non_monotonic", "must increase"), ("no_opr", "--opr"), ("one_opr", "at least 3"),
+    ("blades", "median 29 pulses per revolution"), ("ms", "times in ms"), ("nan", "line 501: nan"),
+    ("garbage", "not a text CSV")],
+    ids=["empty", "non_monotonic", "no_opr", "one_opr", "blades", "ms", "nan", "garbage"])
+def test_bad_input_one_line_exit_2(sim, tmp_path, capsys, case, words):
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"keep me")  # an earlier result is not lost
+    t0 = time.perf_counter()
+    assert main(["ingest", *_bad(sim, tmp_path, case), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bttsim: error: ") and err.count("\n") == 1 and words in err, err
+    assert "Traceback" not in err
+    assert out.read_bytes() == b"keep me"
+    assert time.perf_counter() - t0 < 20
+
+
+def test_export_folder_errors(tmp_path):
+    with pytest.raises(BttsimError, match="no run.json"):
+        ingest_export(tmp_path, tmp_path / "x.mcap")
+
+
+def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
+    args, _ = _trains(sim, tmp_path / "t")
+    cases = [
+        ([*args, "--blades", "29", "--tip-radius-m", "0.19", "--out", str(tmp_path / "no" / "x.mcap")], "no folder"),
+        ([*args, "--blades", "29", "--out", str(tmp_path / "x.mcap")], "--tip-radius-m R are required"),
+        ([*args, "--blades", "29", "--tip-radius-m", "190", "--out", str(tmp_path / "x.mcap")], "radius in m"),
+        (["--opr", args[1], "--probe", "5:p.csv", "--blades", "29", "--tip-radius-m", "0.19",
+          "--out", str(tmp_path / "x.mcap")], "ANGLE_DEG=FILE"),
+        (["--from-export", str(tmp_path), *args, "--out", str(tmp_path / "x.mcap")], "takes no --opr"),
+    ]
+    for argv, words in cases:
+        assert main(["ingest", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err, err
+    assert not (tmp_path / "x.mcap").exists()
