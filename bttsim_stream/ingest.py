@@ -35,6 +35,7 @@ import numpy as np
 from . import __version__
 from .bus.recording import McapRecorder
 from .bus.stream import MessageStream
+from .defaults import DEFAULT_RIG
 from .errors import BttsimError
 from .process.displacement import Geometry
 from .process.identify import identify_pulses, pulses_per_revolution
@@ -489,7 +490,7 @@ def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_or
             notes.append("no --eo: EO 8 recorded as the expected engine order (process with --eo or --eo-range)")
         nds = tuple(0 for _ in eos)
         kw = dict(n_blades=int(n_blades), probe_axial_m=0.0, opr_angle_rad=0.0,
-                  stagger_deg=Scenario().rotor.stagger_deg, rig=rig or "rig1")
+                  stagger_deg=Scenario().rotor.stagger_deg, rig=rig or DEFAULT_RIG)
         tip = tip_radius_m
     if not 2 <= kw["n_blades"] <= MAX_BLADES:
         raise BttsimError(f"--blades must be in [2, {MAX_BLADES}], got {kw['n_blades']}")

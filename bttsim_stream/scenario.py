@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from .defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
+from .defaults import DEFAULT_RIG, MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from .errors import ScenarioError
 from .fieldspec import FieldError as _FieldError
 from .fieldspec import comments as _comments
@@ -213,7 +213,7 @@ class Run:
     The same scenario and seed give the same run.
     """
 
-    rig: str = spec("rig1", kind="str", check=_check_rig, doc=(
+    rig: str = spec(DEFAULT_RIG, kind="str", check=_check_rig, doc=(
         "rig name, used as a Zenoh key segment: non-empty, only A-Z a-z 0-9 _ -"))
     seed: int = spec(0, kind="int", lo=0, hi=MAX_SEED, doc=(
         "seed of every random choice (random mistuning, acquisition errors); integer {range}"))

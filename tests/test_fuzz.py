@@ -44,6 +44,8 @@ from bttsim_stream.bus.stream import Message
 from bttsim_stream.model import build_model, save_model
 from bttsim_stream.scenario import Scenario, scenario_from_dict, scenario_to_dict
 
+pytestmark = pytest.mark.slow
+
 #: Fixed; ``BTTSIM_FUZZ_SEED=N`` explores other cases (a failure prints its seed).
 SEED = int(os.environ.get("BTTSIM_FUZZ_SEED", "16"))
 #: A case that takes longer than this is a hang, s (the slowest honest case takes about 1 s).

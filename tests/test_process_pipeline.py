@@ -190,6 +190,7 @@ def test_streaming_window_three():
     np.testing.assert_allclose(amp[70:], off.fit.amp_pkpk_m[70:], rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_validate_reports_every_check():
     v = validate(include_ad=False, include_probe_errors=False)  # cached runs: processing only
     assert v["all_ok"], format_validation(v)

@@ -216,6 +216,7 @@ def _modal_run(quasi_steady, speed, initial, h=2e-3, block=64):
     return integ, t, np.concatenate(ap)[..., 0], np.concatenate(am)[..., 0]
 
 
+@pytest.mark.slow
 def test_quasi_steady_envelopes_against_full_recursion_and_solve_ivp():
     """The quasi-steady series (with its bound, QUASI_STEADY_TOL) against the exact recursion
     everywhere, and the physical response against solve_ivp; a run-up with a speed knot, from

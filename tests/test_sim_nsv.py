@@ -17,19 +17,13 @@ from scipy.integrate import solve_ivp
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
-from bttsim_stream.sim.toa import stage_b
 
-
-def _initial_state(sim):
-    integ = sim.integrator
-    lam = integ.lam[:, 0]
-    z0 = integ.modal_state(0.0, 0.0, integ.a_plus, integ.a_minus)
-    return np.concatenate([np.imag(z0) / lam.imag, np.imag(lam * z0) / lam.imag])
+from _reference import fixed_mode_motion, initial_state, newton_toas, tip_grid
 
 
 def _reference_toas(sim, run, blades, y0, extra=None):
     """TOAs (n_rev, blades, probes) from solve_ivp of the forced modes (every carrier
-    ``EO phi + omega t``) from the initial state ``y0`` (:func:`_initial_state`), plus ``extra(t, b)`` -- a
+    ``EO phi + omega t``) from the initial state ``y0`` (:func:`_reference.initial_state`), plus ``extra(t, b)`` -- a
     displacement of the tip nodes (..., n_tip, 3) added in closed form -- by Newton on Eq. 8
     and Eq. 9-11."""
     m, integ, speed = sim.model, sim.integrator, sim.speed
@@ -48,36 +42,9 @@ def _reference_toas(sim, run, blades, y0, extra=None):
     sol = solve_ivp(rhs, (0.0, speed.duration_s), y0, method="DOP853", rtol=1e-10, atol=1e-16,
                     dense_output=True)
     assert sol.status == 0
-    t_exp = run.truth.t_exp_s[:, blades]
-    nr, nbs, npr = t_exp.shape
-    nt = m.n_tip
-    shape = (nr, nbs, npr, nt)
-    b = np.broadcast_to(np.asarray(blades)[None, :, None, None], shape)
-    node = np.broadcast_to(np.arange(nt)[None, None, None, :], shape)
-    theta_j = np.broadcast_to(sim.probe_actual[None, None, :, None], shape)
-    r_ref, th_ref, z_ref = (m.tip_ref[b, node, i] for i in range(3))
-    turn = np.round((m.tip_ref[b, m.nominal_node, 1] + speed.angle(t_exp[..., None]) - theta_j) / (2 * np.pi))
-    S = m.tip_shapes[act][:, b, node, :]
-
-    def motion(t):
-        y = sol.sol(t.ravel()).reshape(2 * n, *shape)
-        u = np.einsum("k...,k...c->...c", y[:n], S)
-        du = np.einsum("k...,k...c->...c", y[n:], S)
-        if extra is not None:
-            e, de = extra(t, b, node)
-            u, du = u + e, du + de
-        return u, du
-
-    t = np.broadcast_to(t_exp[..., None], shape).copy()
-    for _ in range(8):
-        u, du = motion(t)
-        x, yt = r_ref + u[..., 0], u[..., 1]
-        g = th_ref + speed.angle(t) + np.arctan2(yt, x) - theta_j - 2 * np.pi * turn
-        t = t - g / (speed.speed(t) + (x * du[..., 1] - yt * du[..., 0]) / (x * x + yt * yt))
-    assert np.max(np.abs(g)) < 1e-13
-    u, _ = motion(t)
-    dz = z_ref + u[..., 2] - sim.z_probe
-    return stage_b(t.reshape(-1, nt), dz.reshape(-1, nt))[0].reshape(nr, nbs, npr)
+    _, b, node = tip_grid(sim, run, blades)
+    motion = fixed_mode_motion(sol, m.tip_shapes[act][:, b, node, :], n, extra)
+    return newton_toas(sim, run, blades, motion, iterations=8, tol=1e-13)
 
 
 # 8 cells at 0.14 of the shaft speed: EO 6.88, the 344 Hz first family (ND 8) crossed near 3000 rpm
@@ -90,11 +57,12 @@ STALL_FIXED = {"speed": {"start_rpm": 2999.0, "initial": "steady",
                "rotating_stall": [{"cells": 4, "frequency_hz": 545.0, "amplitude_n": 2.0, "direction": [0, 1, 0]}]}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", [STALL_RAMP, STALL_FIXED], ids=["stall-fraction-rest-ramp", "stall-fixed-freq-knot"])
 def test_rotating_stall_toas_match_solve_ivp_in_every_revolution(case):
     sim = RunUpSimulator(scenario_from_dict(case), chunk_revolutions=2)
     assert sim.omega is not None and sim.nsv.components[0].kind == "rotating_stall"
-    y0 = _initial_state(sim)
+    y0 = initial_state(sim)
     run = collect(sim)
     blades = [0, 11, 23]
     err = np.abs(run.toa_s[:, blades] - _reference_toas(sim, run, blades, y0)).max(axis=(1, 2))
@@ -125,10 +93,11 @@ FLUTTER = {"speed": {"start_rpm": 3000.0, "segments": [{"duration_s": 0.4, "end_
                        "limit_amplitude_m": 3e-4, "seed_amplitude_m": 1e-9, "phase_deg": 30.0}}
 
 
+@pytest.mark.slow
 def test_flutter_toas_match_closed_form_and_solve_ivp():
     sim = RunUpSimulator(scenario_from_dict(FLUTTER), chunk_revolutions=3)
     fw = sim.nsv.flutter
-    y0 = _initial_state(sim)
+    y0 = initial_state(sim)
     run = collect(sim)
     m = sim.model
     nodes = sim.basis.nodes  # (r, nt, 3)

@@ -19,6 +19,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.interpolate import CubicSpline
 
+from _reference import newton_toas
+
 from bttsim_stream import cli
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.model import build_model, save_model
@@ -28,7 +30,6 @@ from bttsim_stream.sim.core import RunUpSimulator, collect
 from bttsim_stream.sim.modal import modal_forcing
 from bttsim_stream.sim.speed import RPM
 from bttsim_stream.sim.speed_modal import chirp_moments
-from bttsim_stream.sim.toa import stage_b
 
 KAPPA = 1.5
 TOP = 4200.0 * RPM
@@ -137,33 +138,16 @@ def _reference_toas(sim, run, blades, t_start, y0):
                     dense_output=True)
     assert sol.status == 0
     tips = spl(m.extra["tip_shapes_at_speed"][:, act][:, :, blades])  # (n, blades, nt, 3) at s
-    t_exp = run.truth.t_exp_s[:, blades]
-    nr, nbs, npr = t_exp.shape
-    nt = m.n_tip
-    shape = (nr, nbs, npr, nt)
-    bi = np.broadcast_to(np.arange(nbs)[None, :, None, None], shape)
-    b = np.asarray(blades)[bi]
-    node = np.broadcast_to(np.arange(nt)[None, None, None, :], shape)
-    theta_j = np.broadcast_to(sim.probe_actual[None, None, :, None], shape)
-    r_ref, th_ref, z_ref = (m.tip_ref[b, node, i] for i in range(3))
-    turn = np.round((m.tip_ref[b, m.nominal_node, 1] + speed.angle(t_exp[..., None]) - theta_j) / (2 * np.pi))
-    t = np.broadcast_to(t_exp[..., None], shape).copy()
 
-    for _ in range(10):
-        om = speed.speed(t)
-        S_all = tips(om.ravel() ** 2)  # (N, n, nbs, nt, 3)
-        S = S_all[np.arange(t.size), :, bi.ravel(), node.ravel()]  # (N, n, 3)
+    def motion(t, bi, b, node):
+        S = tips(speed.speed(t).ravel() ** 2)[np.arange(t.size), :, bi.ravel(), node.ravel()]  # (N, n, 3)
         y = sol.sol(t.ravel())
-        u = np.einsum("kN,Nkc->Nc", y[:n], S).reshape(*shape, 3)
-        du = np.einsum("kN,Nkc->Nc", y[n:], S).reshape(*shape, 3)
-        x, yt = r_ref + u[..., 0], u[..., 1]
-        g = th_ref + speed.angle(t) + np.arctan2(yt, x) - theta_j - 2 * np.pi * turn
-        t = t - g / (om + (x * du[..., 1] - yt * du[..., 0]) / (x * x + yt * yt))
-    assert np.max(np.abs(g)) < 1e-12  # rad: round-off of the rotor angle (hundreds of rad)
-    om = speed.speed(t)
-    S = tips(om.ravel() ** 2)[np.arange(t.size), :, bi.ravel(), node.ravel()]
-    dz = z_ref + np.einsum("kN,Nk->N", sol.sol(t.ravel())[:n], S[..., 2]).reshape(shape) - sim.z_probe
-    return stage_b(t.reshape(-1, nt), dz.reshape(-1, nt))[0].reshape(nr, nbs, npr)
+        u = np.einsum("kN,Nkc->Nc", y[:n], S).reshape(*t.shape, 3)
+        du = np.einsum("kN,Nkc->Nc", y[n:], S).reshape(*t.shape, 3)
+        return u, du
+
+    # rad: round-off of the rotor angle (hundreds of rad)
+    return newton_toas(sim, run, blades, motion, iterations=10, tol=1e-12)
 
 
 def _forcing_at_speeds(m, excitations):
@@ -218,6 +202,7 @@ TWO = {"excitation": [{"engine_order": 8, "nodal_diameter": 1, "amplitude_n": 2.
                       {"engine_order": 10, "nodal_diameter": 10, "amplitude_n": 1.5, "node": "trailing_edge"}]}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case,lead_s,refined", [
     (_window(2598.0, 1.2, "steady"), 1.2, False),  # steady start 12 rpm below the shifted resonance, across it
     (_window(2610.0, 0.25, "steady"), 1.2, False),  # steady start at the shifted resonance

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 from scipy.integrate import quad, solve_ivp
 
+from _reference import fixed_mode_motion, initial_state, newton_toas, tip_grid
+
 from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
 from bttsim_stream.sim.modal import EnvelopeIntegrator, TipBasis, modal_forcing, quasi_steady_envelope
 from bttsim_stream.sim.speed import RPM, SpeedProfile
-from bttsim_stream.sim.toa import stage_b
 
 RATE = 3000.0 / 130.0  # the paper's run-up, rpm/s
 
@@ -24,14 +25,6 @@ RATE = 3000.0 / 130.0  # the paper's run-up, rpm/s
 def _ramp(start_rpm, duration_s, initial, rate=RATE):
     return {"speed": {"start_rpm": start_rpm, "initial": initial,
                       "segments": [{"duration_s": duration_s, "end_rpm": start_rpm + rate * duration_s}]}}
-
-
-def _initial_state(sim):
-    """The simulator's modal displacements and velocities at t = 0 (before it runs)."""
-    integ = sim.integrator
-    lam = integ.lam[:, 0]
-    z0 = integ.modal_state(0.0, 0.0, integ.a_plus, integ.a_minus)
-    return np.concatenate([np.imag(z0) / lam.imag, np.imag(lam * z0) / lam.imag])
 
 
 def _reference_toas(sim, run, blades, y0):
@@ -50,30 +43,12 @@ def _reference_toas(sim, run, blades, y0):
 
     sol = solve_ivp(rhs, (0.0, speed.duration_s), y0, method="DOP853", rtol=1e-10, atol=1e-16, dense_output=True)
     assert sol.status == 0
-    t_exp = run.truth.t_exp_s[:, blades]
-    nr, nbs, npr = t_exp.shape
-    nt = m.n_tip
-    shape = (nr, nbs, npr, nt)
-    b = np.broadcast_to(np.asarray(blades)[None, :, None, None], shape)
-    node = np.broadcast_to(np.arange(nt)[None, None, None, :], shape)
-    theta_j = np.broadcast_to(sim.probe_actual[None, None, :, None], shape)
-    r_ref, th_ref, z_ref = (m.tip_ref[b, node, i] for i in range(3))
-    turn = np.round((m.tip_ref[b, m.nominal_node, 1] + speed.angle(t_exp[..., None]) - theta_j) / (2 * np.pi))
-    S = m.tip_shapes[act][:, b, node, :]  # (n, ..., 3)
-    t = np.broadcast_to(t_exp[..., None], shape).copy()
-    for _ in range(8):
-        y = sol.sol(t.ravel()).reshape(2 * n, *shape)
-        u = np.einsum("k...,k...c->...c", y[:n], S)
-        du = np.einsum("k...,k...c->...c", y[n:], S)
-        x, yt = r_ref + u[..., 0], u[..., 1]
-        g = th_ref + speed.angle(t) + np.arctan2(yt, x) - theta_j - 2 * np.pi * turn
-        t = t - g / (speed.speed(t) + (x * du[..., 1] - yt * du[..., 0]) / (x * x + yt * yt))
-    assert np.max(np.abs(g)) < 1e-13
-    y = sol.sol(t.ravel()).reshape(2 * n, *shape)
-    dz = z_ref + np.einsum("k...,k...->...", y[:n], S[..., 2]) - sim.z_probe
-    return stage_b(t.reshape(-1, nt), dz.reshape(-1, nt))[0].reshape(nr, nbs, npr)
+    _, b, node = tip_grid(sim, run, blades)
+    motion = fixed_mode_motion(sol, m.tip_shapes[act][:, b, node, :], n)
+    return newton_toas(sim, run, blades, motion, iterations=8, tol=1e-13)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", [
     _ramp(1000.0, 0.13, "rest"),  # the default run-up's start, from rest (was 5e-7 s off)
     _ramp(2578.0, 0.07, "rest"),  # from rest just below the ND 1 resonance
@@ -84,7 +59,7 @@ def test_transients_match_solve_ivp_in_every_revolution(case):
     scn = scenario_from_dict(case)
     sim = RunUpSimulator(scn, chunk_revolutions=2)
     assert sim.grid.refined > 0  # the free response is there, and the grid follows it
-    y0 = _initial_state(sim)
+    y0 = initial_state(sim)
     run = collect(sim)
     blades = [0, 9, 20]
     err = np.abs(run.toa_s[:, blades] - _reference_toas(sim, run, blades, y0)).max(axis=(1, 2))

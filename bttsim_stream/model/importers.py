@@ -32,7 +32,7 @@ from .cyclic import CyclicSector, expand_sector, load_sector, tip_geometry
 from .frd import read_frd
 
 __all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "check_options", "import_model",
-           "import_model_speeds", "read_deck_sets", "sector_from_frd", "frequency_steps", "format_report", "FORMATS"]
+           "import_model_speeds", "read_deck_sets", "sector_from_frd", "format_report", "FORMATS"]
 
 FORMATS = ("frd", "npz")
 #: Length and mass scale of a deck's unit system to SI, and the shape factor that keeps the
@@ -327,11 +327,6 @@ class ImportResult:
 
     sector: CyclicSector
     notes: dict = field(default_factory=dict)
-
-
-def frequency_steps(path) -> list[int]:
-    """The step numbers of a CalculiX ``.frd`` file's cyclic-symmetry frequency steps."""
-    return sorted({m.step for m in read_frd(path).modes if m.harmonic_index is not None})
 
 
 def sector_from_frd(path, options: ImportOptions = ImportOptions(), *, step: int | None = None,
