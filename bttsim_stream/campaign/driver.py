@@ -92,8 +92,10 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
     n = int(n_workers) if n_workers else (os.cpu_count() or 1)
     if n < 1:
         raise BttsimError(f"--workers must be >= 1, got {n}")
+    # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
+    # on a free loopback port unless an address is asked for
     cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address=dashboard, silence_logs=logging.ERROR)
+                                       dashboard_address=dashboard or "127.0.0.1:0", silence_logs=logging.ERROR)
     return distributed.Client(cluster), cluster
 
 
