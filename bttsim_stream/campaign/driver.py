@@ -24,7 +24,7 @@ from .. import __version__
 from ..errors import BttsimError
 from .report import write_report
 from .results import PARTS, read_rows, sort_rows, write_rows
-from .run import execute_run
+from .run import execute_run, warm_up
 from .spec import CampaignSpec, RunSpec, expand
 
 __all__ = ["CampaignOutcome", "run_campaign", "connect"]
@@ -95,7 +95,7 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
     # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
     # on a free loopback port unless an address is asked for
     cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address=dashboard or "127.0.0.1:0", silence_logs=logging.ERROR)
+                                       dashboard_address=dashboard or "127.0.0.1:0", silence_logs=logging.CRITICAL)
     return distributed.Client(cluster), cluster
 
 
@@ -161,6 +161,7 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
         try:
             distributed = _dask()
             n_workers_seen = len(client.scheduler_info().get("workers", {}))
+            client.run(warm_up)  # imports on every worker now, not in the first runs' timings
             t_submit = time.perf_counter()
             if progress is not None and client.dashboard_link and dashboard:
                 progress.note(f"campaign: Dask dashboard at {client.dashboard_link}")

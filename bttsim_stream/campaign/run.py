@@ -29,7 +29,7 @@ from ..process.resonance import truth_peaks
 from ..scenario import Scenario
 from .spec import Processor, RunSpec
 
-__all__ = ["RunData", "execute_run", "ROW_COLUMNS", "Z95"]
+__all__ = ["RunData", "execute_run", "warm_up", "ROW_COLUMNS", "Z95"]
 
 #: Two-sided 95 % normal quantile: ``amp_ci95 = amp +- Z95 * amp_std_m`` when a method gives
 #: a standard uncertainty but no interval.
@@ -78,6 +78,14 @@ class RunData:
     info: object
     scenario: Scenario
     mcap_path: str | None = None
+
+
+def warm_up() -> int:
+    """Import what a run needs (a worker's first task would pay it otherwise); the process id."""
+    from .. import acquisition, offline  # noqa: F401
+    from ..sim import core  # noqa: F401
+
+    return os.getpid()
 
 
 def _worker_name() -> str:
