@@ -199,3 +199,10 @@ def test_scheduler_unreachable_exit_2(tmp_path, capsys):
                  "--scheduler", f"tcp://127.0.0.1:{port}", "--connect-timeout", "2"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot reach the Dask scheduler" in err
+
+
+@pytest.mark.unit
+def test_quick_example_expands():
+    runs = expand(load_spec(EXAMPLES / "campaign_quick.toml"))
+    assert len(runs) == 12 and len({r.run_id for r in runs}) == 12
+    assert len({r.seed for r in runs}) == 3  # paired: one seed per replicate at every point
