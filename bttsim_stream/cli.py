@@ -378,6 +378,17 @@ def _cmd_study(args: argparse.Namespace) -> None:
     studies.run(args.name, args.out)
 
 
+def _cmd_campaign(args: argparse.Namespace) -> int:
+    from .campaign import load_spec, run_campaign
+
+    spec = load_spec(args.spec)  # a bad spec is one line before any cluster starts
+    res = run_campaign(spec, args.out, scheduler=args.scheduler, n_workers=args.workers, resume=args.resume,
+                       progress=Progress(not args.quiet), timeout_s=args.connect_timeout, dashboard=args.dashboard)
+    print(f"wrote {res.results} ({res.rows} rows) and {res.report}: {res.executed} run(s) in {res.wall_s:.1f} s "
+          f"on {res.workers} worker(s) ({res.runs_per_s:.3g} runs/s), {res.skipped} resumed, {res.failed} failed")
+    return 0
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     if args.processing:
         from .paper.validate_processing import format_validation, validate as validate_processing
@@ -525,6 +536,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, metavar="DIR",
                    help="output folder (the repository's copy: docs/results); figures need the plot extra")
     p.set_defaults(func=_cmd_study)
+
+    p = sub.add_parser("campaign", help="a study of many runs scored against truth, on Dask (docs/campaign.md)")
+    p.add_argument("spec", help="campaign spec (TOML): base scenario, axes, seeds, processors")
+    p.add_argument("--out", required=True, help="output folder: results.parquet, report.md, runs/")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://HOST:PORT); default: an "
+                                                         "embedded LocalCluster on loopback")
+    p.add_argument("--workers", type=int, metavar="N", help="workers of the embedded cluster (default: one per core)")
+    p.add_argument("--resume", action="store_true", help="keep the runs already in --out, run the rest")
+    p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="scheduler connect timeout (10)")
+    p.add_argument("--dashboard", metavar="HOST:PORT", help="serve the embedded cluster's Dask dashboard there "
+                                                             "(needs bokeh; e.g. 127.0.0.1:8787)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=_cmd_campaign)
 
     p = sub.add_parser("cn", help="condition number of B (Eq. 16) for an EO and probe angles")
     p.add_argument("--eo", default="8", help="engine order (>= 1), or several comma-separated (fitted jointly)")

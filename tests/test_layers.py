@@ -27,6 +27,9 @@ FORBIDDEN = {
                                "bttsim_stream.scenario"),
     ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline", "bttsim_stream.export",
      "bttsim_stream.processor", "bttsim_stream.orchestrate", "bttsim_stream.testing"): ("bttsim_stream.paper",),
+    # studies on Dask: above the simulation and processing, beside the live system
+    ("bttsim_stream.campaign",): ("bttsim_stream.nodes", "bttsim_stream.views", "bttsim_stream.orchestrate",
+                                  "bttsim_stream.runtime", "bttsim_stream.cli", "bttsim_stream.paper"),
 }
 
 
@@ -109,6 +112,14 @@ def test_layers_import_only_what_is_below_them(graph):
         if _within(m, ("bttsim_stream.views",)):
             bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if t.split(".")[0] == "zenoh"]
     assert not bad, "\n".join(bad)
+
+
+def test_only_the_cli_imports_the_campaign_and_dask(graph):
+    _, imports = graph
+    users = {m for m, imp in imports.items() for t, _, _ in imp
+             if (_within(t, ("bttsim_stream.campaign",)) or t.split(".")[0] in ("dask", "distributed"))
+             and not _within(m, ("bttsim_stream.campaign",))}
+    assert users <= {"bttsim_stream.cli"}
 
 
 def test_the_runtime_imports_paper_code_only_from_the_cli_commands(graph):

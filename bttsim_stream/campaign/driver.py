@@ -1,0 +1,220 @@
+"""``bttsim campaign``: submit a spec's runs to Dask distributed and gather the results.
+
+Without a scheduler address an embedded ``LocalCluster`` runs on loopback (one
+single-threaded worker process per core, BLAS threads 1, no dashboard unless asked); with one,
+the runs go to that scheduler's workers. Each run is one task (``Client.submit`` with the
+spec's ``retries``); results are taken as they finish (``as_completed``) and written at once,
+one part file per run, so an interrupted campaign keeps every finished run and ``resume``
+skips them. Scheduling, placement and retries are Dask's; this module only submits and
+gathers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from .. import __version__
+from ..errors import BttsimError
+from .report import write_report
+from .results import PARTS, read_rows, sort_rows, write_rows
+from .run import execute_run, warm_up
+from .spec import CampaignSpec, RunSpec, expand
+
+__all__ = ["CampaignOutcome", "run_campaign", "connect"]
+
+
+@dataclass(frozen=True, slots=True)
+class CampaignOutcome:
+    """What a campaign did.
+
+    Attributes
+    ----------
+    runs : int
+        Runs in the spec.
+    executed, skipped : int
+        Run now, and taken from an earlier campaign in the folder (``resume``).
+    failed : int
+        Runs with at least one ``error`` or ``lost`` row.
+    rows : int
+        Rows of ``results.parquet``.
+    wall_s : float
+        From the start to the last result (cluster start-up included).
+    compute_s : float
+        From the first submission to the last result.
+    workers : int
+        Workers of the cluster when the campaign started.
+    results, report : Path
+    """
+
+    runs: int
+    executed: int
+    skipped: int
+    failed: int
+    rows: int
+    wall_s: float
+    compute_s: float
+    workers: int
+    results: Path
+    report: Path
+
+    @property
+    def runs_per_s(self) -> float:
+        """Runs per second of compute (after the cluster is up)."""
+        return self.executed / self.compute_s if self.compute_s > 0 else math.nan
+
+
+def _dask():
+    try:
+        import distributed
+    except ImportError:
+        raise BttsimError("bttsim campaign needs Dask: pip install 'bttsim-stream[campaign]'") from None
+    return distributed
+
+
+def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 10.0, dashboard: str | None = None):
+    """``(client, cluster or None)``: a client of ``scheduler``, or of a new loopback
+    ``LocalCluster`` of ``n_workers`` single-threaded worker processes (default: one per core).
+    An unreachable scheduler is a one-line :class:`BttsimError`."""
+    distributed = _dask()
+    if scheduler:
+        try:
+            return distributed.Client(scheduler, timeout=timeout_s), None
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise BttsimError(f"cannot reach the Dask scheduler at {scheduler} "
+                              f"({' '.join(str(exc).split())[:200]})") from None
+    n = int(n_workers) if n_workers else (os.cpu_count() or 1)
+    if n < 1:
+        raise BttsimError(f"--workers must be >= 1, got {n}")
+    # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
+    # on a free loopback port unless an address is asked for
+    cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                       dashboard_address=dashboard or "127.0.0.1:0", silence_logs=logging.CRITICAL)
+    return distributed.Client(cluster), cluster
+
+
+def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
+    """Rows of a run whose task failed on the cluster after Dask's retries (a worker died
+    each time, or the task could not be unpickled): ``status = "lost"``, rerun by ``resume``."""
+    from .run import _axis_value, _failed, _one_line
+
+    base = {"run_id": run.run_id, "index": run.index, "replicate": run.replicate, "seed": run.seed, "worker": "",
+            **{k: _axis_value(v) for k, v in run.point.items()}}
+    return [_failed(base, p.name, "lost", f"the cluster gave up on the task: {_one_line(exc)}", math.nan, math.nan)
+            for p in run.processors]
+
+
+def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n_workers: int | None = None,
+                 resume: bool = False, progress=None, timeout_s: float = 10.0,
+                 dashboard: str | None = None) -> CampaignOutcome:
+    """Run every run of ``spec`` on Dask and write ``results.parquet`` and ``report.md``.
+
+    Parameters
+    ----------
+    spec : CampaignSpec
+    out_dir : path-like
+        Output folder: ``results.parquet``, ``report.md``, ``campaign.json``, ``spec.json``,
+        ``runs/`` (one part file per finished run).
+    scheduler : str, optional
+        ``tcp://HOST:PORT`` of a running Dask scheduler; None: an embedded ``LocalCluster``.
+    n_workers : int, optional
+        Workers of the embedded cluster (default: one per core).
+    resume : bool
+        Keep the runs already in ``out_dir``; without it a folder holding a campaign is refused.
+    progress : Progress, optional
+        Progress line (``update(text)``, ``note(text)``, ``close()``).
+    """
+    from .results import pyarrow_modules
+
+    pyarrow_modules()  # the extra is there before anything runs
+    out = Path(out_dir)
+    runs = expand(spec)
+    parts = out / PARTS
+    existing = {p.stem for p in parts.glob("*.parquet")} if parts.is_dir() else set()
+    if (existing or (out / "results.parquet").exists()) and not resume:
+        raise BttsimError(f"{out} already holds a campaign: --resume to finish it, or another --out")
+    try:
+        parts.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BttsimError(f"{out}: cannot create ({exc.strerror or exc})") from None
+    (out / "spec.json").write_text(json.dumps({"name": spec.name, "source": spec.source, "base": spec.base,
+                                               "axes": {a.name: list(a.values) for a in spec.axes},
+                                               "seeds": list(spec.seeds),
+                                               "processors": [p.name for p in spec.processors],
+                                               "software_version": __version__}, indent=2) + "\n")
+    todo = [r for r in runs if r.run_id not in existing]
+    skipped = len(runs) - len(todo)
+    lost: list[dict] = []
+    t0 = time.perf_counter()
+    t_submit = t_last = t0
+    done = failed = 0
+    n_workers_seen = 0
+    interrupted = False
+    if todo:
+        client, cluster = connect(scheduler, n_workers, timeout_s=timeout_s, dashboard=dashboard)
+        try:
+            distributed = _dask()
+            n_workers_seen = len(client.scheduler_info().get("workers", {}))
+            client.run(warm_up)  # imports on every worker now, not in the first runs' timings
+            t_submit = time.perf_counter()
+            if progress is not None and client.dashboard_link and dashboard:
+                progress.note(f"campaign: Dask dashboard at {client.dashboard_link}")
+            by_key = {}
+            futures = []
+            for r in todo:
+                fut = client.submit(execute_run, r, key=f"bttsim-run-{r.run_id}", retries=spec.retries, pure=False)
+                by_key[fut.key] = r
+                futures.append(fut)
+            try:
+                for fut in distributed.as_completed(futures):
+                    r = by_key[fut.key]
+                    if fut.status == "finished":
+                        rows = fut.result()
+                        write_rows(parts / f"{r.run_id}.parquet", rows, spec)
+                        bad = any(x["status"] == "error" for x in rows)
+                    else:
+                        rows = _lost_rows(r, fut.exception())
+                        lost += rows
+                        bad = True
+                    fut.release()
+                    t_last = time.perf_counter()
+                    done += 1
+                    failed += bad
+                    if progress is not None:
+                        dt = time.perf_counter() - t_submit
+                        progress.update(f"campaign: {done}/{len(todo)} runs ({failed} failed), "
+                                        f"{done / dt:.2f} runs/s" + (f", {skipped} resumed" if skipped else ""))
+            except KeyboardInterrupt:
+                interrupted = True
+                client.cancel(futures)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    wall, compute = t_last - t0, t_last - t_submit
+    if progress is not None:
+        progress.close()
+    ids = {r.run_id for r in runs}
+    rows = [row for p in parts.glob("*.parquet") if p.stem in ids for row in read_rows(p)]
+    rows = sort_rows(rows + lost, spec)
+    results = out / "results.parquet"
+    write_rows(results, rows, spec)
+    report = out / "report.md"
+    write_report(report, rows, spec, interrupted=interrupted, n_runs=len(runs))
+    outcome = CampaignOutcome(runs=len(runs), executed=done, skipped=skipped,
+                              failed=len({r["run_id"] for r in rows if r["status"] in ("error", "lost")}),
+                              rows=len(rows), wall_s=wall, compute_s=compute, workers=n_workers_seen, results=results, report=report)
+    (out / "campaign.json").write_text(json.dumps({
+        "runs": outcome.runs, "executed": outcome.executed, "skipped": outcome.skipped, "failed": outcome.failed,
+        "rows": outcome.rows, "wall_s": wall, "compute_s": compute, "runs_per_s": outcome.runs_per_s, "workers": n_workers_seen,
+        "scheduler": scheduler or "LocalCluster", "interrupted": interrupted, "python": sys.version.split()[0],
+        "software_version": __version__}, indent=2) + "\n")
+    if interrupted:
+        raise KeyboardInterrupt
+    return outcome

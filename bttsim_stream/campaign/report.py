@@ -1,0 +1,128 @@
+"""``report.md`` of a campaign: error distributions, interval coverage and failures.
+
+Per processor (the ``method`` column) and per value of each axis: the number of runs and of
+scored blades, percentiles of ``E_A`` (Eq. 18, percent; median, 90 %, 95 %, max), the mean
+``E_A`` with its 95 % confidence interval over runs (a blade's errors within one run are not
+independent, so the run means are the samples), and the coverage of the 95 % amplitude
+intervals (the fraction of blades whose truth lies in ``[amp_ci95_lo_m, amp_ci95_hi_m]``,
+beside its binomial 95 % range); then every failed or empty run with its reason.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from .spec import CampaignSpec
+
+__all__ = ["write_report", "method_stats"]
+
+
+def _ok(rows):
+    return [r for r in rows if r["status"] == "ok"]
+
+
+def method_stats(rows: list[dict]) -> dict:
+    """Statistics of one group of rows (one processor, maybe one axis value).
+
+    Returns
+    -------
+    dict
+        ``runs``, ``blades`` (scored), ``failed_runs``, ``E_A_p50``, ``E_A_p90``, ``E_A_p95``,
+        ``E_A_max``, ``E_A_mean``, ``E_A_mean_ci95`` (half width over the run means),
+        ``coverage`` (fraction, NaN without intervals), ``coverage_n``.
+    """
+    ok = [r for r in _ok(rows) if math.isfinite(r["E_A_pct"])]
+    e = np.array([r["E_A_pct"] for r in ok], float)
+    per_run = defaultdict(list)
+    for r in ok:
+        per_run[r["run_id"]].append(r["E_A_pct"])
+    means = np.array([np.mean(v) for v in per_run.values()], float)
+    with_ci = [r for r in ok if math.isfinite(r["amp_ci95_lo_m"]) and math.isfinite(r["amp_ci95_hi_m"])
+               and math.isfinite(r["truth_amp_pkpk_m"])]
+    inside = sum(r["amp_ci95_lo_m"] <= r["truth_amp_pkpk_m"] <= r["amp_ci95_hi_m"] for r in with_ci)
+    pct = (lambda q: float(np.percentile(e, q))) if e.size else (lambda q: math.nan)
+    half = 1.96 * float(np.std(means, ddof=1)) / math.sqrt(means.size) if means.size > 1 else math.nan
+    return {"runs": len({r["run_id"] for r in rows}), "blades": int(e.size),
+            "failed_runs": len({r["run_id"] for r in rows if r["status"] != "ok"}),
+            "E_A_p50": pct(50), "E_A_p90": pct(90), "E_A_p95": pct(95), "E_A_max": float(e.max()) if e.size else math.nan,
+            "E_A_mean": float(means.mean()) if means.size else math.nan, "E_A_mean_ci95": half,
+            "coverage": inside / len(with_ci) if with_ci else math.nan, "coverage_n": len(with_ci)}
+
+
+def _g(x: float, fmt: str = ".3g") -> str:
+    return "–" if not math.isfinite(x) else format(x, fmt)
+
+
+def _cov(s: dict) -> str:
+    n = s["coverage_n"]
+    if not n:
+        return "–"
+    lo = max(0.0, 0.95 - 1.96 * math.sqrt(0.95 * 0.05 / n))
+    flag = "" if s["coverage"] >= lo else " (low)"
+    return f"{100 * s['coverage']:.1f} % of {n}{flag}"
+
+
+_HEAD = ("| {label} | runs | blades | failed | E_A p50 % | p90 % | p95 % | max % | mean E_A % (95 % CI) | "
+         "95 % interval coverage |")
+
+
+def _line(label: str, s: dict) -> str:
+    mean = (f"{_g(s['E_A_mean'])} ± {_g(s['E_A_mean_ci95'], '.2g')}" if math.isfinite(s["E_A_mean_ci95"])
+            else _g(s["E_A_mean"]))
+    return (f"| {label} | {s['runs']} | {s['blades']} | {s['failed_runs']} | {_g(s['E_A_p50'])} | "
+            f"{_g(s['E_A_p90'])} | {_g(s['E_A_p95'])} | {_g(s['E_A_max'])} | {mean} | {_cov(s)} |")
+
+
+def _table(label: str, groups) -> list[str]:
+    head = _HEAD.format(label=label)
+    return [head, "|" + "---|" * (head.count("|") - 1), *(_line(k, method_stats(v)) for k, v in groups)]
+
+
+def write_report(path, rows: list[dict], spec: CampaignSpec, *, interrupted: bool = False, n_runs: int = 0) -> None:
+    """Write the campaign's ``report.md`` from its result rows."""
+    methods = [p.name for p in spec.processors]
+    by_method = {m: [r for r in rows if r["method"] == m] for m in methods}
+    done = len({r["run_id"] for r in rows})
+    out = [f"# Campaign {spec.name}", ""]
+    out.append(f"{done} of {n_runs} runs in `results.parquet`"
+               + (" (interrupted: the rest did not run)" if interrupted else "")
+               + f"; {len(spec.seeds)} seed(s) per axis point; processors: {', '.join(methods)}.")
+    if spec.axes:
+        out.append("Axes: " + "; ".join(f"`{a.name}` = {', '.join(map(_show, a.values))}" for a in spec.axes) + ".")
+    out += ["", "E_A (Eq. 18) is per blade and crossing, percent of the truth's peak-to-peak amplitude. "
+            "Coverage: blades whose truth lies in their 95 % amplitude interval (\"low\": below the binomial "
+            "95 % range of a calibrated interval).", "", "## Per processor", ""]
+    out += _table("processor", by_method.items())
+    for a in spec.axes:
+        out += ["", f"## By `{a.name}`", ""]
+        groups = []
+        for m in methods:
+            for v in a.values:
+                key = _show(v)
+                groups.append((f"{m} @ {key}", [r for r in by_method[m] if _show(r.get(a.name)) == key]))
+        out += _table(f"processor @ {a.name}", groups)
+    out += ["", "## Failures", ""]
+    bad = [r for r in rows if r["status"] != "ok"]
+    if not bad:
+        out.append("None: every processor reported a resonance in every run.")
+    else:
+        runs_bad = {(r["run_id"], r["method"]): r for r in bad}
+        counts = Counter((r["method"], r["status"], r["error"]) for r in runs_bad.values())
+        out += ["| processor | status | runs | reason |", "|---|---|---|---|"]
+        for (m, st, err), n in counts.most_common():
+            out.append(f"| {m} | {st} | {n} | {err.replace('|', '/')} |")
+        out += ["", "status `none`: the processor found no resonance (no amplitude claimed); `error`: it "
+                "raised; `lost`: the cluster gave up on the run after Dask's retries (`--resume` reruns it)."]
+    Path(path).write_text("\n".join(out) + "\n")
+
+
+def _show(v) -> str:
+    if isinstance(v, list):
+        return ",".join(_show(x) for x in v)
+    if isinstance(v, float):
+        return format(v, ".6g")
+    return str(v)
