@@ -32,7 +32,7 @@ import zenoh
 
 from .bus import keys
 from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
-    declare_subscriber, open_session
+    declare_subscriber, open_session, pack_attachment
 from .bus.status import STATES as STATUS_STATES
 from .bus.status import NodeStatus, encode_status, write_status_file
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
@@ -237,7 +237,9 @@ class NodeContext:
             logging.getLogger(f"bttsim.{self.name}").warning("status %s not sent: %s", state, exc)
             return
         with contextlib.suppress(zenoh.ZError):
-            self.publisher(keys.status_key(self.rig, self.name), cache_samples=len(STATUS_STATES)).put(payload)
+            # an attachment like every sample of the bus (its number, wall-clock time)
+            self.publisher(keys.status_key(self.rig, self.name), cache_samples=len(STATUS_STATES)).put(
+                payload, attachment=pack_attachment(status.seq, time.time_ns()))
 
     def ready(self) -> None:
         """Declare (once) the token ``bttsim/<rig>/ready/<name>``: this node has received the run
