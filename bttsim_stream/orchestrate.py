@@ -7,6 +7,15 @@ waits for the other three nodes' liveliness tokens, publishes the run, and the o
 when it (and the processor's final report) is done. Progress (revolution of the run's count,
 rpm, elapsed time, and the remaining time once the rate seen is a second old) comes from the
 bus; after the last revolution each phase is named (the report, the recording, the views).
+
+The run is a :class:`Run` object in steps -- ``start`` (the nodes), ``watch`` (the bus until
+the simulator ends), ``collect`` (each node's end, then the result), ``serve`` (``--web``) --
+planned first by :func:`plan_run`, which checks every input before anything starts. The
+nodes say how far they are on their status keys, ``bttsim/<rig>/status/<node>``
+(:mod:`bttsim_stream.bus.status`; their status files where the bus did not deliver): the web
+viewer's address, that the viewer only serves, and the recorder's and the viewer's final
+statistics. Their logs, ``OUT/<node>.log``, are for people: the run reads none of them.
+
 Ctrl-C (or SIGTERM, SIGHUP) prints "stopping ..." at once and stops the simulator and the
 processor (which reports on what it has); the recorder and the viewer then finalise their
 files, so ``run.mcap``, ``views.rrd`` and ``summary.json`` stay valid. A node still running
@@ -50,7 +59,7 @@ from .runtime import Progress
 from .scenario import Scenario, dumps_toml, load_scenario
 from .summary import describe_exit, no_report_summary, recording_block, with_recording
 
-__all__ = ["run_all", "Run", "NODES", "describe_exit"]
+__all__ = ["run_all", "plan_run", "Run", "RunPlan", "NODES", "describe_exit"]
 
 #: The node programs of a run, in start order (the simulator last: it waits for the others).
 NODES = ("recorder", "processor", "viewer", "sim")
@@ -85,8 +94,10 @@ class RunPlan:
     rig : str
     commands : dict of {str: list of str}
         Each node's arguments to ``python -m bttsim_stream.nodes``, in start order.
+    status_dir : Path
+        A temporary folder for the status files (removed by :meth:`Run.close`).
     status_files : dict of {str: Path}
-        Where each node also writes its status (in a temporary folder, :attr:`status_dir`).
+        Where each node also writes its status (``--status-file``).
     conf : zenoh.Config
         The run's own session (identity ``run``; with the embedded network it listens, and
         every node connects to it).

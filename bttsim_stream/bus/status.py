@@ -11,7 +11,8 @@ its ``alive`` token is out), ``ready`` (it has the run metadata), ``done`` (its 
 ``stats`` holds its final statistics) and ``serving`` (the viewer's views are complete and it
 only serves the web viewer at ``url``). A node numbers its messages from 0 (``seq``); a reader
 keeps the highest. ``url`` is the web viewer's address ("" when none); ``stats`` a JSON object
-(``{}`` until ``done``).
+(``{}`` until ``done``). Like every sample of the bus, a status sample carries the 16-byte
+attachment (``seq`` and the wall-clock time in ns).
 
 The same message can be written to a status file (:func:`write_status_file`: a temporary file
 renamed over the target, so a reader never sees half of one) for a reader that no bus reaches.
