@@ -23,10 +23,9 @@ Every member may subscribe, query, declare queryables and follow liveliness unde
 ``bttsim/**``; each declares only its own liveliness tokens (``bttsim/<rig>/<what>/<name>``:
 ``alive``, ``ready``...) and publishes only its own status (``bttsim/<rig>/status/<name>``,
 which every member may receive), so nobody can pose as the simulator and end a run early, nor
-report another node's statistics. Each
-node checks what comes in from (ingress) and goes out to (egress) each neighbour: with a
-router, the router is the neighbour of every client, and it enforces the policy on the
-clients' links.
+report another node's statistics. Each node checks what comes in from (ingress) and goes out
+to (egress) each neighbour: with a router, the router is the neighbour of every client, and it
+enforces the policy on the clients' links.
 """
 
 from __future__ import annotations
