@@ -29,7 +29,7 @@ from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, p
 from .nodes import program, programs
 from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
                       result_warnings, with_processing)
-from .orchestrate import describe_exit, run_all
+from .orchestrate import run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
                              check_layout, layout_report, rank_layouts)
@@ -37,6 +37,7 @@ from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, add_web_arguments, run_parsed
 from .sim.core import check_tip_amplitude, load_scenario_model
+from .summary import build_summary, describe_exit
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
 # paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
@@ -228,9 +229,9 @@ def _cmd_process(args: argparse.Namespace) -> None:
         raise BttsimError(f"{args.mcap}: {exc}") from None
     except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway
         raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None
-    summary = dict(result.summary, **completeness(run).to_summary())
-    summary["missing_toas"] = int(np.count_nonzero(np.isnan(run.toa_s)))  # pulses that did not trigger
-    summary.update(run.doubles)  # extra trigger edges, each in its blade's window
+    summary = build_summary(result.summary, completeness(run),
+                            missing_toas=int(np.count_nonzero(np.isnan(run.toa_s))),  # pulses that did not trigger
+                            doubles=run.doubles)  # extra trigger edges, each in its blade's window
     if args.summary:  # before anything is printed: a closed stdout must not lose it
         try:
             Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")

@@ -7,6 +7,15 @@ waits for the other three nodes' liveliness tokens, publishes the run, and the o
 when it (and the processor's final report) is done. Progress (revolution of the run's count,
 rpm, elapsed time, and the remaining time once the rate seen is a second old) comes from the
 bus; after the last revolution each phase is named (the report, the recording, the views).
+
+The run is a :class:`Run` object in steps -- ``start`` (the nodes), ``watch`` (the bus until
+the simulator ends), ``collect`` (each node's end, then the result), ``serve`` (``--web``) --
+planned first by :func:`plan_run`, which checks every input before anything starts. The
+nodes say how far they are on their status keys, ``bttsim/<rig>/status/<node>``
+(:mod:`bttsim_stream.bus.status`; their status files where the bus did not deliver): the web
+viewer's address, that the viewer only serves, and the recorder's and the viewer's final
+statistics. Their logs, ``OUT/<node>.log``, are for people: the run reads none of them.
+
 Ctrl-C (or SIGTERM, SIGHUP) prints "stopping ..." at once and stops the simulator and the
 processor (which reports on what it has); the recorder and the viewer then finalise their
 files, so ``run.mcap``, ``views.rrd`` and ``summary.json`` stay valid. A node still running
@@ -29,24 +38,28 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shlex
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from .bus import codec, keys
 from .bus.ports import check_web_ports
 from .bus.security import TlsFiles
 from .bus.session import CONNECT_TIMEOUT_S, declare_subscriber, free_port, make_config, open_session
+from .bus.status import StatusBoard
 from .children import die_with_parent
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError
 from .runtime import Progress
 from .scenario import Scenario, dumps_toml, load_scenario
+from .summary import describe_exit, no_report_summary, recording_block, with_recording
 
-__all__ = ["run_all", "NODES"]
+__all__ = ["run_all", "plan_run", "Run", "RunPlan", "NODES", "describe_exit"]
 
 #: The node programs of a run, in start order (the simulator last: it waits for the others).
 NODES = ("recorder", "processor", "viewer", "sim")
@@ -61,8 +74,118 @@ RECORDER_KILL_S = 10.0
 #: since the first OPR seen (the start-up is no rate).
 ESTIMATE_AFTER_S = 1.0
 ESTIMATE_AFTER_REVS = 5
-#: The viewer node's log line once its views are complete and it only serves the web viewer.
-SERVING_LINE = "serving the web viewer until stopped"
+#: How long, after a node ended normally, its final status may still be on its way on the bus
+#: before its status file is read instead (s).
+FINAL_STATUS_WAIT_S = 2.0
+
+_no_report_summary = no_report_summary  # the name this module gave it before summary.py
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run starts, decided (and checked) before anything starts.
+
+    Attributes
+    ----------
+    out : Path
+        The output folder.
+    files : dict of {str: Path}
+        ``mcap``, ``rrd``, ``summary``: the run's outputs.
+    rig : str
+    commands : dict of {str: list of str}
+        Each node's arguments to ``python -m bttsim_stream.nodes``, in start order.
+    status_dir : Path
+        A temporary folder for the status files (removed by :meth:`Run.close`).
+    status_files : dict of {str: Path}
+        Where each node also writes its status (``--status-file``).
+    conf : zenoh.Config
+        The run's own session (identity ``run``; with the embedded network it listens, and
+        every node connects to it).
+    web : bool
+        The viewer serves the web viewer.
+    """
+
+    out: Path
+    files: dict
+    rig: str
+    commands: dict
+    status_dir: Path
+    status_files: dict
+    conf: object
+    web: bool
+
+
+def plan_run(scenario_path: str | None, out_dir: str, *, web: bool = False, web_port: int = DEFAULT_WEB_PORT,
+             grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
+             connect: list[str] | None = None, config: str | None = None, mode: str = "peer",
+             tls_dir: str | None = None, access_control: bool = True,
+             connect_timeout_s: float = CONNECT_TIMEOUT_S) -> RunPlan:
+    """Check the inputs and prepare the output folder (``scenario.toml`` written, old outputs
+    removed); bad input is a :class:`BttsimError` before any node starts."""
+    if mode == "client" and not connect:
+        raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
+    tls, security = _security(tls_dir, access_control, connect_timeout_s)
+    scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
+    if web:  # a busy port is an error now, not after the run (Rerun would only log it)
+        bind = check_web_ports(bind, web_port, grpc_port)
+    out, files = _prepare_folder(Path(out_dir), scn)
+    embedded = not connect  # a -c file is merged with each node's own loopback endpoint
+    # the run's own session listens too, and every node connects to it as it starts: it has
+    # the run metadata and every OPR from the first (the progress line), however slow a start
+    ports = {n: free_port() for n in (*NODES, "run")} if embedded else {}
+    endpoints = {n: f"{'tls' if tls else 'tcp'}/127.0.0.1:{p}" for n, p in ports.items()}
+    # our own session's configuration first: bad endpoints, files or certificates end the run
+    # before any node starts
+    conf = make_config(mode, connect=[] if embedded else list(connect or []),
+                       listen=[endpoints["run"]] if embedded else [], config_file=config, tls=tls,
+                       connect_timeout_s=None if embedded else connect_timeout_s)  # a router must answer
+    node_args = _node_args(scn.run.rig, files, out / "scenario.toml", realtime,
+                           ["--web", "--web-port", str(web_port), "--grpc-port", str(grpc_port), "--bind", bind]
+                           if web else [])
+    status_dir = Path(tempfile.mkdtemp(prefix="bttsim-run-status-"))
+    status_files = {n: status_dir / f"{n}.json" for n in NODES}
+    commands = {}
+    for i, n in enumerate(NODES):  # each node connects to the run and to the nodes before it
+        connects = [endpoints[m] for m in ("run", *NODES[:i])] if embedded else list(connect or [])
+        commands[n] = [*map(str, node_args[n]), "--status-file", str(status_files[n]),
+                       *_session_flags(endpoints.get(n), connects, config, mode, security)]
+    return RunPlan(out=out, files=files, rig=scn.run.rig, commands=commands, status_dir=status_dir,
+                   status_files=status_files, conf=conf, web=web)
+
+
+def _security(tls_dir: str | None, access_control: bool, connect_timeout_s: float) -> tuple:
+    """The run's own :class:`TlsFiles` (None: security off) and the nodes' security flags."""
+    flags: list[str] = ["--connect-timeout", f"{connect_timeout_s:g}"]
+    if not tls_dir:
+        return None, flags
+    d = Path(tls_dir).resolve()
+    tls = TlsFiles(d / "ca.pem", d / "run.pem", d / "run-key.pem", access_control)
+    for n in NODES:  # every identity there before anything starts
+        TlsFiles(d / "ca.pem", d / f"{n}.pem", d / f"{n}-key.pem")
+    return tls, flags + ["--tls-dir", str(d)] + ([] if access_control else ["--no-access-control"])
+
+
+def _prepare_folder(out: Path, scn: Scenario) -> tuple[Path, dict]:
+    """Create the output folder, write the scenario there and remove a previous run's outputs."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BttsimError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    (out / "scenario.toml").write_text(dumps_toml(scn))
+    files = {"mcap": out / "run.mcap", "rrd": out / "views.rrd", "summary": out / "summary.json"}
+    for f in files.values():
+        f.unlink(missing_ok=True)
+    return out, files
+
+
+def _node_args(rig: str, files: dict, scn_file: Path, realtime: bool, web_flags: list[str]) -> dict:
+    """Each node's own arguments (session and status flags aside)."""
+    return {
+        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
+        "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
+        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor", *web_flags],
+        "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
+    }
 
 
 def _session_flags(listen: str | None, connect: list[str], config: str | None, mode: str,
@@ -82,7 +205,8 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             connect: list[str] | None = None, config: str | None = None, quiet: bool = False,
             mode: str = "peer", on_serving=None, tls_dir: str | None = None, access_control: bool = True,
             connect_timeout_s: float = CONNECT_TIMEOUT_S) -> dict:
-    """Run the main job; returns the summary dict (also written to ``OUT/summary.json``).
+    """Run the main job; returns the result (:meth:`Run.result`; its summary is also written to
+    ``OUT/summary.json``).
 
     With ``web``, once the run's result is known and the viewer only serves, ``on_serving``
     (if given) is called with the result (the dict this function returns) and the web viewer
@@ -91,83 +215,196 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     ``connect_timeout_s``: how long every node tries to reach its endpoints before it gives up
     with an error.
     """
-    if mode == "client" and not connect:
-        raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
-    tls = None
-    security: list[str] = ["--connect-timeout", f"{connect_timeout_s:g}"]
-    if tls_dir:
-        d = Path(tls_dir).resolve()
-        tls = TlsFiles(d / "ca.pem", d / "run.pem", d / "run-key.pem", access_control)
-        for n in NODES:  # every identity there before anything starts
-            TlsFiles(d / "ca.pem", d / f"{n}.pem", d / f"{n}-key.pem")
-        security += ["--tls-dir", str(d)] + ([] if access_control else ["--no-access-control"])
-    scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
-    if web:  # a busy port is an error now, not after the run (Rerun would only log it)
-        bind = check_web_ports(bind, web_port, grpc_port)
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise BttsimError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
-    scn_file = out / "scenario.toml"
-    scn_file.write_text(dumps_toml(scn))
-    rig = scn.run.rig
-    files = {"mcap": out / "run.mcap", "rrd": out / "views.rrd", "summary": out / "summary.json"}
-    for f in files.values():
-        f.unlink(missing_ok=True)
+    plan = plan_run(scenario_path, out_dir, web=web, web_port=web_port, grpc_port=grpc_port, bind=bind,
+                    realtime=realtime, connect=connect, config=config, mode=mode, tls_dir=tls_dir,
+                    access_control=access_control, connect_timeout_s=connect_timeout_s)
+    run = Run(plan, Progress(not quiet, period_s=5.0))
+    with run.handling_signals():
+        try:
+            with open_session(plan.conf) as session:
+                run.start(session)
+                run.watch(session)
+                run.collect()
+                run.serve(on_serving)
+        finally:
+            run.close()
+    return run.result()
 
-    embedded = not connect  # a -c file is merged with each node's own loopback endpoint
-    # the run's own session listens too, and every node connects to it as it starts: it has
-    # the run metadata and every OPR from the first (the progress line), however slow a start
-    ports = {n: free_port() for n in (*NODES, "run")} if embedded else {}
-    endpoints = {n: f"{'tls' if tls else 'tcp'}/127.0.0.1:{p}" for n, p in ports.items()}
-    args = {
-        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
-        "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
-        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor"]
-        + (["--web", "--web-port", str(web_port), "--grpc-port", str(grpc_port), "--bind", bind] if web else []),
-        "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
-    }
-    # our own session's configuration first: bad endpoints, files or certificates end the run
-    # before any node starts
-    conf = make_config(mode, connect=[] if embedded else list(connect or []),
-                       listen=[endpoints["run"]] if embedded else [], config_file=config, tls=tls,
-                       connect_timeout_s=None if embedded else connect_timeout_s)  # a router must answer
-    procs: dict[str, subprocess.Popen] = {}
-    logs = {n: open(out / f"{n}.log", "w") for n in NODES}
-    interrupted = finished = False
-    stop_at: float | None = None  # when the first signal came (monotonic)
-    n_signals = 0
-    t0 = time.monotonic()
-    progress = Progress(not quiet, period_s=5.0)
 
-    def on_signal(signum, frame):
-        nonlocal interrupted, n_signals, stop_at
-        n_signals += 1
-        interrupted = interrupted or not finished
-        if stop_at is None:
-            stop_at = time.monotonic()
-            progress.signal_note("stopping ...")
-        sim = procs.get("sim")
-        if n_signals == 1 and sim is not None and sim.poll() is None:
+class Run:
+    """One ``bttsim run``: :meth:`start` the nodes, :meth:`watch` the run on the bus,
+    :meth:`collect` the result, and with ``--web`` :meth:`serve`; :meth:`close` in any case.
+
+    The nodes say how far they are on the bus (:class:`~bttsim_stream.bus.status.StatusBoard`:
+    ``bttsim/<rig>/status/<node>``, or their status files where the bus did not deliver): the
+    web viewer's address, that the viewer only serves, and the recorder's and the viewer's
+    final statistics. Their logs (``OUT/<node>.log``) are for people; the run reads none.
+
+    Signals (installed by :meth:`handling_signals`): the first stops the simulator and the
+    processor, which reports on what it has; the recorder and the viewer take that report,
+    then finalise their files. A second signal, or one after the simulator ended, stops every
+    node at once. Nodes are signalled by process group.
+    """
+
+    def __init__(self, plan: RunPlan, progress: Progress) -> None:
+        self.plan = plan
+        self.progress = progress
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.board: StatusBoard | None = None
+        self.t0 = time.monotonic()
+        self.interrupted = self.finished = self.serving = False
+        self.stop_at: float | None = None  # when the first signal came (monotonic)
+        self.n_signals = 0
+        self.n_rev = 0
+        self.summary: dict | None = None
+        self.recorder: dict = {}
+        self.viewer: dict = {}
+        self.failed: dict = {}
+        self.result_complete = False  # the processor's own verdict, before the recording's
+        self._logs: dict = {}
+        self._url_shown = not plan.web
+
+    # -- signals -------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def handling_signals(self):
+        """Ctrl-C, SIGTERM and SIGHUP go to :meth:`_on_signal` while in this block."""
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+        try:
+            yield self
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    def _on_signal(self, signum, frame) -> None:
+        self.n_signals += 1
+        self.interrupted = self.interrupted or not self.finished
+        if self.stop_at is None:
+            self.stop_at = time.monotonic()
+            self.progress.signal_note("stopping ...")
+        sim = self.procs.get("sim")
+        if self.n_signals == 1 and sim is not None and sim.poll() is None:
             # the simulator, and the processor: it reports on what it has without waiting
             # for the rest; the recorder and the viewer take that report, then finalise
             _signal(sim, signal.SIGTERM)
-            _signal(procs.get("processor"), signal.SIGTERM)
+            _signal(self.procs.get("processor"), signal.SIGTERM)
             return
-        for p in procs.values():  # the run is over (or a second signal): stop every node now
+        for p in self.procs.values():  # the run is over (or a second signal): stop every node now
             _signal(p, signal.SIGTERM)
 
-    def wait(name: str, timeout_s: float) -> None:
+    # -- the steps -----------------------------------------------------------------------
+    def start(self, session) -> None:
+        """Follow the nodes' status on ``session``, then start the nodes in order, each
+        logging to ``OUT/<node>.log`` (none after a signal)."""
+        self.progress.phase(f"starting the {len(NODES)} nodes ...")
+        self.board = StatusBoard(session, self.plan.rig, NODES, files=self.plan.status_files)
+        self._logs = {n: open(self.plan.out / f"{n}.log", "w") for n in NODES}
+        for n in NODES:
+            if self.stop_at is not None:
+                break
+            self.procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *self.plan.commands[n]],
+                                             stdout=self._logs[n], stderr=subprocess.STDOUT,
+                                             start_new_session=True,  # Ctrl-C reaches only us
+                                             preexec_fn=die_with_parent())  # and they end when we do
+
+    def watch(self, session) -> None:
+        """Until the simulator ends: the progress line from the bus (the run's revolution count,
+        the OPR stream) and the web viewer's address once the viewer's status gives it."""
+        follow = _Follower(session, self.plan.rig)
+        shown = -1
+        try:
+            while "sim" in self.procs and self.procs["sim"].poll() is None:
+                if self.stop_at is not None and time.monotonic() > self.stop_at + STOP_GRACE_S:
+                    break  # a simulator slow to stop: collect() stops it
+                time.sleep(0.25)
+                follow.ask()
+                self._show_url()
+                if follow.started and self.progress.update(follow.line(time.monotonic() - self.t0)):
+                    shown = follow.rev
+            time.sleep(0.1)
+            if follow.started and follow.rev != shown:  # the last state, once
+                self.progress.update(follow.line(time.monotonic() - self.t0, final=True), force=True)
+            self.n_rev = follow.n_rev
+        finally:
+            follow.close()
+
+    def collect(self) -> None:
+        """Wait for the nodes in turn, each phase named, then gather the result: the summary
+        the processor wrote, completed with the recorder's final statistics."""
+        self._wait("sim", 0 if self.stop_at is None else STOP_GRACE_S)
+        # a simulator that failed (it may never have published) leaves the others nothing to
+        # wait for: they get a short grace to notice, then SIGTERM (they finalise their files)
+        sim = self.procs.get("sim")
+        grace = 120 if sim is not None and sim.returncode == 0 else 15
+        self.progress.phase("making the report ...")
+        self._wait("processor", grace)
+        self.progress.phase("finishing the recording ...")
+        self._wait("recorder", grace)
+        self.progress.phase("finishing the views ...")
+        self.serving = self.plan.web and "viewer" in self.procs and self._wait_serving(120)
+        if self.serving and self.interrupted:  # its .rrd is complete: no serving after Ctrl-C
+            _signal(self.procs["viewer"], signal.SIGTERM)
+            self.serving = False
+        if not self.serving:
+            self._wait("viewer", grace)
+        self.failed = {n: p.returncode for n, p in self.procs.items() if p.returncode not in (0, None)}
+        self.recorder = self._final_stats("recorder")
+        self.viewer = self._final_stats("viewer")  # its own counts: what the views lost
+        self.summary, self.result_complete = self._summary()
+        self.finished = True
+        self.progress.close()
+
+    def serve(self, on_serving=None) -> None:
+        """With the viewer serving the web viewer: ``on_serving(result)``, then serve until a
+        signal stops the viewer."""
+        if not self.serving:
+            return
+        if on_serving is not None:
+            on_serving(self.result())
+        self.procs["viewer"].wait()  # until a signal: the handler stops it
+
+    def close(self) -> None:
+        """Stop what still runs; close the logs, the status board and the status files."""
+        self.progress.close()
+        for p in self.procs.values():
+            if p.poll() is None:
+                _wait_or_stop(p, 0)
+        for f in self._logs.values():
+            f.close()
+        if self.board is not None:
+            self.board.close()
+        shutil.rmtree(self.plan.status_dir, ignore_errors=True)
+
+    def result(self) -> dict:
+        """The run's outcome: ``summary`` (None: no report), ``files``, ``recorder`` and
+        ``viewer`` (their final statistics, ``{}`` if none came), ``recording`` (the summary's
+        block), ``interrupted``, ``failed`` (``{node: returncode}``), ``wall_s`` and
+        ``result_complete`` (the processor's own verdict: ``summary["complete"]`` also needs
+        a complete recording)."""
+        return {"summary": self.summary, "files": {k: str(v) for k, v in self.plan.files.items()},
+                "recorder": self.recorder, "viewer": self.viewer, "interrupted": self.interrupted,
+                "failed": self.failed, "wall_s": time.monotonic() - self.t0,
+                "result_complete": self.result_complete, "recording": recording_block(self.recorder)}
+
+    # -- helpers -------------------------------------------------------------------------
+    def _show_url(self) -> None:
+        """Print the web viewer's address once its status gives it."""
+        if self._url_shown or self.board is None:
+            return
+        status = self.board.get("viewer")
+        if status is not None and status.url:
+            self.progress.note(f"web viewer: {status.url}")
+            self._url_shown = True
+
+    def _wait(self, name: str, timeout_s: float) -> None:
         """Wait for a node; SIGTERM it after ``timeout_s``. After a signal, every node still
         running gets SIGTERM ``STOP_GRACE_S`` after it, and SIGKILL ``STOP_KILL_S`` later
         (the recorder, writing what it has, ``RECORDER_KILL_S``)."""
-        p = procs.get(name)
+        p = self.procs.get(name)
         if p is None:
             return
         end = time.monotonic() + timeout_s
         while p.poll() is None:
-            limit = end if stop_at is None else min(end, stop_at + STOP_GRACE_S)
+            limit = end if self.stop_at is None else min(end, self.stop_at + STOP_GRACE_S)
             left = limit - time.monotonic()
             if left <= 0:
                 break
@@ -175,145 +412,54 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
                 p.wait(timeout=min(left, 0.1))
         if p.poll() is not None:
             return
-        if stop_at is None:
+        if self.stop_at is None:
             _wait_or_stop(p, 0)
             return
-        for q in procs.values():
+        for q in self.procs.values():
             _signal(q, signal.SIGTERM)
         kill_s = RECORDER_KILL_S if name == "recorder" else STOP_KILL_S
         try:
-            p.wait(timeout=max(0.0, stop_at + STOP_GRACE_S + kill_s - time.monotonic()))
+            p.wait(timeout=max(0.0, self.stop_at + STOP_GRACE_S + kill_s - time.monotonic()))
         except subprocess.TimeoutExpired:
             _signal(p, signal.SIGKILL)
             p.wait()
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
-    summary = None
-    recorder: dict = {}
-    viewer: dict = {}
-    result_complete = False
-    failed: dict = {}
-    n_rev = 0
-    try:
-        started: list[str] = []
-        progress.phase(f"starting the {len(NODES)} nodes ...")
-        with open_session(conf) as session:
-            follow = _Follower(session, rig)
-            for n in NODES:
-                if stop_at is not None:
-                    break
-                flags = _session_flags(endpoints.get(n), [endpoints[m] for m in ("run", *started)] if embedded
-                                       else list(connect or []), config, mode, security)
-                procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *map(str, args[n]),
-                                             *flags], stdout=logs[n], stderr=subprocess.STDOUT,
-                                            start_new_session=True,  # Ctrl-C reaches only us
-                                            preexec_fn=die_with_parent())  # and they end when we do
-                started.append(n)
-            url, shown = None, -1
-            while "sim" in procs and procs["sim"].poll() is None:
-                if stop_at is not None and time.monotonic() > stop_at + STOP_GRACE_S:
-                    break  # a simulator slow to stop: wait() below stops it
-                time.sleep(0.25)
-                follow.ask()
-                if web and url is None:  # printed by the viewer before it joined
-                    url = _log_line(out / "viewer.log", "web viewer: ")
-                    if url:
-                        progress.note(url)
-                if follow.started and progress.update(follow.line(time.monotonic() - t0)):
-                    shown = follow.rev
+    def _wait_serving(self, timeout_s: float) -> bool:
+        """Wait until the viewer's status says it only serves (True), or it has ended, or a
+        signal came (False); False after ``timeout_s`` too."""
+        viewer = self.procs["viewer"]
+        deadline = time.monotonic() + timeout_s
+        while viewer.poll() is None and time.monotonic() < deadline and self.stop_at is None:
+            status = self.board.get("viewer")
+            if status is not None and status.state == "serving":
+                self._show_url()
+                return True
             time.sleep(0.1)
-            if follow.started and follow.rev != shown:  # the last state, once
-                progress.update(follow.line(time.monotonic() - t0, final=True), force=True)
-            n_rev = follow.n_rev
-            follow.close()
-        wait("sim", 0 if stop_at is None else STOP_GRACE_S)
-        # a simulator that failed (it may never have published) leaves the others nothing to
-        # wait for: they get a short grace to notice, then SIGTERM (they finalise their files)
-        grace = 120 if procs.get("sim") is not None and procs["sim"].returncode == 0 else 15
-        progress.phase("making the report ...")
-        wait("processor", grace)
-        progress.phase("finishing the recording ...")
-        wait("recorder", grace)
-        progress.phase("finishing the views ...")
-        serving = web and "viewer" in procs and _wait_serving(procs["viewer"], out / "viewer.log", 120,
-                                                              lambda: stop_at is not None)
-        if serving and interrupted:  # its .rrd is complete: no serving after Ctrl-C
-            _signal(procs["viewer"], signal.SIGTERM)
-            serving = False
-        if not serving:
-            wait("viewer", grace)
-        failed = {n: p.returncode for n, p in procs.items() if p.returncode not in (0, None)}
-        if files["summary"].exists():
-            summary = json.loads(files["summary"].read_text())
-        elif "processor" in failed:  # no report: say so in the file a reader looks at
-            summary = _no_report_summary(n_rev, failed["processor"], files["mcap"])
-            files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
-        recorder = _last_json_line(out / "recorder.log")
-        viewer = _last_json_line(out / "viewer.log")  # its own counts: what the views lost
-        if summary is not None:  # the result is complete only with a complete recording of it
-            result_complete = bool(summary.get("complete", False))
-            summary["recording"] = _recording(recorder)
-            summary["complete"] = result_complete and summary["recording"]["complete"]
-            files["summary"].write_text(json.dumps(summary, indent=2) + "\n")
-        finished = True
-        progress.close()
-        if serving:
-            if on_serving is not None:
-                on_serving(_result(summary, files, recorder, viewer, interrupted, failed, t0, result_complete))
-            procs["viewer"].wait()  # until a signal: the handler stops it
-    finally:
-        progress.close()
-        for p in procs.values():
-            if p.poll() is None:
-                _wait_or_stop(p, 0)
-        for f in logs.values():
-            f.close()
-        for s, h in old.items():
-            signal.signal(s, h)
-    return _result(summary, files, recorder, viewer, interrupted, failed, t0, result_complete)
+        return False
 
+    def _final_stats(self, name: str) -> dict:
+        """A node's final statistics from its status (``{}``: it gave none, e.g. killed)."""
+        p = self.procs.get(name)
+        if p is None or self.board is None:
+            return {}
+        ended_well = p.returncode in (0, None)  # None: the viewer, serving
+        status = self.board.final(name, wait_s=FINAL_STATUS_WAIT_S if ended_well else 0.0)
+        return dict(status.stats) if status is not None else {}
 
-def _result(summary, files: dict, recorder: dict, viewer: dict, interrupted: bool, failed: dict, t0: float,
-            result_complete: bool) -> dict:
-    """The run's outcome; ``result_complete``: the processor's own verdict (``summary["complete"]``
-    also needs a complete recording)."""
-    return {"summary": summary, "files": {k: str(v) for k, v in files.items()}, "recorder": recorder, "viewer": viewer,
-            "interrupted": interrupted, "failed": failed, "wall_s": time.monotonic() - t0,
-            "result_complete": result_complete, "recording": _recording(recorder)}
-
-
-def _recording(stats: dict) -> dict:
-    """The summary's ``recording`` block from the recorder's statistics (its JSON line):
-    ``complete``, ``missing`` (messages), ``missing_by_key`` (``{key: {"head", "gaps", "tail"}}``),
-    ``messages``, ``duplicates``, ``rejected`` and ``incomplete`` (why, "" if complete)."""
-    if "complete" not in stats:
-        return {"complete": False, "missing": None, "missing_by_key": {}, "messages": stats.get("messages"),
-                "duplicates": None, "rejected": None,
-                "incomplete": "the recorder gave no completeness statistics (see recorder.log)"}
-    return {"complete": bool(stats["complete"]), "missing": stats.get("missing"),
-            "missing_by_key": stats.get("missing_by_key", {}), "messages": stats.get("messages"),
-            "duplicates": stats.get("duplicates_skipped"), "rejected": stats.get("rejected"),
-            "incomplete": stats.get("incomplete", "")}
-
-
-def describe_exit(returncode: int) -> str:
-    """``"exit 1"`` or ``"killed by SIGKILL"``."""
-    if returncode < 0:
-        try:
-            return f"killed by {signal.Signals(-returncode).name}"
-        except ValueError:
-            return f"killed by signal {-returncode}"
-    return f"exit {returncode}"
-
-
-def _no_report_summary(n_revolutions: int, returncode: int, mcap: Path | str) -> dict:
-    """The summary of a run whose processor ended without its report: nothing claimed; the
-    error names the command that processes the recording ``mcap`` (the path as given)."""
-    return {"status": "none", "complete": False, "revolutions_expected": int(n_revolutions),
-            "revolutions_processed": 0, "lost": None, "duplicates": None, "rejected": None,
-            "resonances": [], "steady": [], "blades": [],
-            "error": f"the processor ended ({describe_exit(returncode)}) before its report; "
-                     f"the recording may still hold the run: bttsim process {shlex.quote(str(mcap))}"}
+    def _summary(self) -> tuple[dict | None, bool]:
+        """The processor's summary (or, if it failed, one that says so) with the recording
+        block, written back to ``summary.json``; and the processor's own verdict."""
+        path = self.plan.files["summary"]
+        if path.exists():
+            summary = json.loads(path.read_text())
+        elif "processor" in self.failed:  # no report: say so in the file a reader looks at
+            summary = no_report_summary(self.n_rev, self.failed["processor"], self.plan.files["mcap"])
+        else:
+            return None, False
+        result_complete = bool(summary.get("complete", False))
+        summary = with_recording(summary, self.recorder)  # complete only with a complete recording
+        path.write_text(json.dumps(summary, indent=2) + "\n")
+        return summary, result_complete
 
 
 def _signal(proc: subprocess.Popen | None, sig: int) -> None:
@@ -339,37 +485,6 @@ def _wait_or_stop(proc: subprocess.Popen, timeout_s: float) -> None:
         except subprocess.TimeoutExpired:
             _signal(proc, signal.SIGKILL)
             proc.wait()
-
-
-def _wait_serving(viewer: subprocess.Popen, log_path: Path, timeout_s: float, stopped=lambda: False) -> bool:
-    """Wait until the viewer has finished its views and only serves (True: its log says so)
-    or has ended, or ``stopped()`` (False); False after ``timeout_s`` too."""
-    deadline = time.monotonic() + timeout_s
-    while viewer.poll() is None and time.monotonic() < deadline and not stopped():
-        if _log_line(log_path, SERVING_LINE):
-            return True
-        time.sleep(0.1)
-    return False
-
-
-def _log_line(path: Path, text: str) -> str | None:
-    """The first line of the log ``path`` that contains ``text`` (None if none yet)."""
-    try:
-        content = path.read_text(errors="replace")
-    except OSError:
-        return None
-    return next((line.strip() for line in content.splitlines() if text in line), None)
-
-
-def _last_json_line(path: Path) -> dict:
-    """The recorder's statistics: the last JSON line of its log ({} if none)."""
-    for line in reversed(path.read_text(errors="replace").splitlines()):
-        if line.startswith("{"):
-            try:
-                return json.loads(line)
-            except ValueError:
-                break
-    return {}
 
 
 class _Follower:

@@ -25,6 +25,7 @@ from .process.displacement import DoublePulses
 from .process.pipeline import ProcessOptions, StreamingProcessor
 from .process.resonance import TruthPeakTracker
 from .sim.core import RunInfo
+from .summary import build_summary
 
 __all__ = ["ProcessorSession"]
 
@@ -151,12 +152,11 @@ class ProcessorSession:
             for o in self.proc.flush():
                 msgs += self.out.processing(o)
             msgs += self._nsv()
-            summary = self.proc.finish(self.tracker if self.score else None)
+            result = self.proc.finish(self.tracker if self.score else None)
         except (ValueError, np.linalg.LinAlgError) as exc:  # fewer than three revolutions, ...
             raise BttsimError(f"no resonance report: {exc}") from None
-        summary.update(self.completeness().to_summary())
-        summary["missing_toas"] = self.missing_toas
-        summary.update(self.doubles.to_summary())
+        summary = build_summary(result, self.completeness(), missing_toas=self.missing_toas,
+                                doubles=self.doubles.to_summary())
         msgs.append(self.out.resonance(self.proc.result.report))
         a = self.asm
         log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "

@@ -7,8 +7,10 @@
   ``-c/--config``, ``--multicast-scouting``) come from :func:`~bttsim_stream.bus.session.add_session_args`.
 * :class:`NodeContext` (:func:`node_session`) -- the loop every subscribing node runs: one
   session, its subscriptions into one bounded inbox (back-pressure instead of unbounded
-  memory), publishers, the liveliness token ``bttsim/<rig>/alive/<name>``, the watch on the
-  nodes whose end ends this one, a drain, and everything undeclared on the way out.
+  memory), publishers, the liveliness token ``bttsim/<rig>/alive/<name>``, the node's status
+  (``bttsim/<rig>/status/<name>``, :mod:`bttsim_stream.bus.status`; also written to
+  ``--status-file``), the watch on the nodes whose end ends this one, a drain, and everything
+  undeclared on the way out.
 * :class:`Progress` -- the progress line: redrawn in place on a terminal, plain periodic
   lines otherwise (a log file gets no carriage returns).
 """
@@ -30,12 +32,14 @@ import zenoh
 
 from .bus import keys
 from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
-    declare_subscriber, open_session
+    declare_subscriber, open_session, pack_attachment
+from .bus.status import STATES as STATUS_STATES
+from .bus.status import NodeStatus, encode_status, write_status_file
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
-           "Progress", "parse_rate", "RATE_HELP", "plain_text"]
+           "Progress", "parse_rate", "RATE_HELP", "plain_text", "add_status_argument", "add_web_arguments"]
 
 #: Help text of every ``--rate`` option.
 RATE_HELP = "pacing: 'max' (default: as fast as possible), 'realtime', or a speed-up factor"
@@ -145,6 +149,13 @@ def parse_rate(text: str) -> float | None:
 
 
 
+def add_status_argument(p: argparse.ArgumentParser) -> None:
+    """``--status-file``: where a node also writes its status (for a reader no bus reaches)."""
+    p.add_argument("--status-file", metavar="FILE.json",
+                   help="also write the node's status (state, final statistics: the JSON of its "
+                        "bttsim/<rig>/status/<node> messages) to FILE.json, replaced atomically")
+
+
 def add_web_arguments(p: argparse.ArgumentParser) -> None:
     """``--web-port``, ``--grpc-port``, ``--bind``: where the Rerun web viewer is served (the
     viewer node, ``bttsim run`` and ``bttsim view`` alike)."""
@@ -162,7 +173,8 @@ class NodeContext:
     blocks Zenoh's delivery (back-pressure) rather than growing without bound.
     """
 
-    def __init__(self, session, rig: str, name: str, *, inbox_size: int = 1 << 16) -> None:
+    def __init__(self, session, rig: str, name: str, *, inbox_size: int = 1 << 16,
+                 status_file: str | None = None) -> None:
         self.session = session
         self.rig = rig
         self.name = name
@@ -173,6 +185,10 @@ class NodeContext:
         self.watch: NodeWatch | None = None
         self._ready = False
         self._done: set[str] = set()  # rigs whose whole stream this node has confirmed
+        self.status_file = status_file
+        #: The web viewer's address, sent with every status ("" when none).
+        self.url = ""
+        self._status_seq = 0
 
     # -- declarations --------------------------------------------------------------------
     def subscribe(self, key_expr: str, *, history: bool = False) -> None:
@@ -205,6 +221,25 @@ class NodeContext:
         """Declare the liveliness token ``bttsim/<rig>/alive/<name>`` (after the subscriptions:
         a simulator waiting for the token then finds them)."""
         self.declare(self.session.liveliness().declare_token(keys.alive_key(self.rig, self.name)))
+        self.status("starting")
+
+    def status(self, state: str, stats: dict | None = None) -> None:
+        """Publish the node's status (``starting``, ``ready``, ``done`` with its final
+        statistics, ``serving``) on ``bttsim/<rig>/status/<name>`` and write it to the status
+        file, if any. A status that cannot go out is logged, never fatal."""
+        status = NodeStatus(self.name, state, self._status_seq, self.url, dict(stats or {}))
+        self._status_seq += 1
+        try:
+            payload = encode_status(status)
+            if self.status_file:
+                write_status_file(self.status_file, status)
+        except (BttsimError, OSError) as exc:
+            logging.getLogger(f"bttsim.{self.name}").warning("status %s not sent: %s", state, exc)
+            return
+        with contextlib.suppress(zenoh.ZError):
+            # an attachment like every sample of the bus (its number, wall-clock time)
+            self.publisher(keys.status_key(self.rig, self.name), cache_samples=len(STATUS_STATES)).put(
+                payload, attachment=pack_attachment(status.seq, time.time_ns()))
 
     def ready(self) -> None:
         """Declare (once) the token ``bttsim/<rig>/ready/<name>``: this node has received the run
@@ -212,6 +247,7 @@ class NodeContext:
         if not self._ready:
             self._ready = True
             self.declare(self.session.liveliness().declare_token(keys.ready_key(self.rig, self.name)))
+            self.status("ready")
 
     def done(self, rig: str | None = None) -> None:
         """Declare (once per rig) the token ``bttsim/<rig>/done/<name>``: this node has the
@@ -279,11 +315,13 @@ class NodeContext:
 
 
 @contextlib.contextmanager
-def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, linger_s: float = 0.2):
+def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, linger_s: float = 0.2,
+                 status_file: str | None = None):
     """Open a session and a :class:`NodeContext` for node ``name`` on ``rig``; on exit,
-    wait ``linger_s`` if anything was published, undeclare everything and close."""
+    wait ``linger_s`` if anything was published, undeclare everything and close.
+    ``status_file``: where the node's status is also written (``--status-file``)."""
     with open_session(conf) as session:
-        ctx = NodeContext(session, rig, name, inbox_size=inbox_size)
+        ctx = NodeContext(session, rig, name, inbox_size=inbox_size, status_file=status_file)
         try:
             yield ctx
         finally:

@@ -7,7 +7,8 @@ Outputs, per revolution once the next OPR is in: ``bttsim/<rig>/fit`` (``BladeFi
 engine order, Eq. 16-17) and ``bttsim/<rig>/tw/<probe>`` (``TravellingWave``); per detected
 block of revolutions ``bttsim/<rig>/nsv`` (``NonSynchronous``: non-synchronous vibration); at
 the end ``bttsim/<rig>/resonance`` (``ResonanceReport``) and, with ``--summary``, the summary JSON.
-Liveliness: ``bttsim/<rig>/alive/processor``. Ends when the simulator's token goes (after the
+Liveliness: ``bttsim/<rig>/alive/processor``; status ``bttsim/<rig>/status/processor`` (``done``
+with the report's completeness counts). Ends when the simulator's token goes (after the
 final report), on ``--duration``, SIGINT or SIGTERM.
 """
 
@@ -25,7 +26,7 @@ from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import add_processing_arguments, processing_options
 from bttsim_stream.process.resonance import summary_table
 from bttsim_stream.processor import ProcessorSession
-from bttsim_stream.runtime import NodeProgram, node_session, run_node
+from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session, run_node
 
 
 
@@ -35,7 +36,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
     options = processing_options(args)  # a bad value: one line, exit 2
     stop = StopFlag(args.duration)
     summary = None
-    with node_session(conf, rig, "processor") as node:
+    with node_session(conf, rig, "processor", status_file=args.status_file) as node:
         for k in (keys.meta_key(rig), keys.opr_key(rig), keys.toa_all_key(rig)) + (
                 () if args.no_score else (keys.truth_key(rig),)):
             node.subscribe(k)
@@ -94,7 +95,18 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             if args.summary:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
             print(summary_table(summary), flush=True)
+        node.status("done", _final_stats(summary, args.summary))
     return summary
+
+
+def _final_stats(summary: dict | None, path: str | None) -> dict:
+    """The processor's final status statistics: whether it made a report, where it wrote the
+    summary, and the summary's completeness keys."""
+    if summary is None:
+        return {"report": False, "summary": ""}
+    return {"report": True, "summary": path or "",
+            **{k: summary.get(k) for k in ("status", "complete", "revolutions_expected", "revolutions_processed",
+                                           "lost", "duplicates", "rejected")}}
 
 
 #: Samples kept while the run metadata has not arrived.
@@ -107,6 +119,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-score", action="store_true", help="do not read truth (no E_A / E_f)")
     add_processing_arguments(p)  # --method, --eo, --eo-range, --no-prep, --window
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_status_argument(p)
 
 
 PROGRAM = NodeProgram("processor", __doc__, add_arguments, main)

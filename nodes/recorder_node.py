@@ -10,8 +10,10 @@ is whole to its last number and nothing is missing on the other keys (result key
 travelling waves, resonance reports -- checked before their first and between their numbers
 received; their count is not known). A run with no metadata received is incomplete. The
 statistics -- ``complete``, ``missing`` and ``missing_by_key`` (head, gaps, tail per key),
-sequence gaps, duplicates, rejected -- are logged, printed as one JSON line on stdout and
-written as the ``bttsim.recorder`` metadata record. Liveliness: ``bttsim/<rig>/alive/recorder``.
+sequence gaps, duplicates, rejected -- are logged, printed as one JSON line on stdout,
+written as the ``bttsim.recorder`` metadata record and sent as the ``stats`` of the node's
+final status (``bttsim/<rig>/status/recorder``, state ``done``; also to ``--status-file``).
+Status keys themselves are not recorded. Liveliness: ``bttsim/<rig>/alive/recorder``.
 
 Stops when the liveliness tokens of the nodes named by ``--until`` (default: the simulator,
 ``alive/sim``) have gone, after ``--duration`` seconds, or on SIGINT / SIGTERM; the file is
@@ -30,7 +32,7 @@ from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.recording import MAX_SEQ, McapRecorder
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import SequenceTracker, StreamEnd, acquisition_counts
-from bttsim_stream.runtime import NodeProgram, node_session, run_node
+from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
 
@@ -45,7 +47,8 @@ def main(conf, args: argparse.Namespace) -> dict:
     meta_done: set[str] = set()
     ends: dict[str, StreamEnd] = {}  # per rig: has the whole acquisition stream come in?
     with McapRecorder(args.out) as rec, \
-            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue) as node:
+            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue,
+                         status_file=args.status_file) as node:
         node.subscribe(keys.all_key(rig), history=True)
         if until:
             node.watch_nodes(until)
@@ -54,6 +57,8 @@ def main(conf, args: argparse.Namespace) -> dict:
             if sample is None:
                 continue
             key, att = sample.key, sample.att
+            if keys.is_status_key(key):  # the nodes' own state: not part of the run's record
+                continue
             seq, t_ns = att if att is not None else (None, time.time_ns())
             if (seq is not None and seq >= MAX_SEQ) or t_ns < 0:  # untrusted: MCAP cannot hold it
                 rejected += 1
@@ -80,6 +85,7 @@ def main(conf, args: argparse.Namespace) -> dict:
         summary = dict(stats.summary(), rejected=rejected + stats.implausible,
                        **_completeness(stats, ends, None if rig == "*" else rig))
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
+        node.status("done", summary)
     if summary["complete"]:
         log.info("recorded %d messages on %d keys to %s; complete", summary["messages"], summary["keys"], args.out)
     else:
@@ -118,6 +124,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "or --duration)")
     p.add_argument("--queue", type=int, default=1 << 20, metavar="N",
                    help="samples buffered before the network is slowed down (1048576)")
+    add_status_argument(p)
 
 
 PROGRAM = NodeProgram("recorder", __doc__, add_arguments, main)

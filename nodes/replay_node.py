@@ -21,7 +21,7 @@ from bttsim_stream.bus.recording import read_recording
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_subscribers
 from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.runtime import RATE_HELP, NodeProgram, node_session, parse_rate, run_node
+from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_status_argument, node_session, parse_rate, run_node
 
 log = logging.getLogger("bttsim.replay")
 
@@ -47,7 +47,7 @@ def main(conf, args: argparse.Namespace) -> dict:
         for m in data:
             end.note(m.key, m.seq)
         whole &= end.done
-    with node_session(conf, rigs[0], "sim") as node:
+    with node_session(conf, rigs[0], "sim", status_file=args.status_file) as node:
         for r in rigs:
             node.declare(node.session.liveliness().declare_token(keys.alive_key(r, "sim")))
         for m in metas:
@@ -89,6 +89,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="after a whole run, wait up to S seconds for the nodes that took it to confirm it (120)")
     p.add_argument("--allow-truncated", action="store_true", help="replay a file without its footer")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_status_argument(p)
 
 
 PROGRAM = NodeProgram("replay", __doc__, add_arguments, main)

@@ -9,6 +9,7 @@ Keys (``schemas/bus.md``):
   with ``[acquisition.signal] publish = true``
 * ``bttsim/<rig>/meta`` -- ``bttsim.v1.RunMetadata``: published once first, and a queryable
 * ``bttsim/<rig>/alive/sim`` -- liveliness token while the node runs
+* ``bttsim/<rig>/status/sim`` -- its status (JSON, ``schemas/bus.md``): ``starting``, ``done``
 
 Publishers keep a cache for late joiners and block rather than drop under congestion
 (``--lossy`` drops instead). Stops at the end of the run, after ``--duration`` seconds, on
@@ -27,7 +28,8 @@ from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_liveliness, \
     wait_for_subscribers
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, node_session, parse_rate, run_node
+from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_status_argument, \
+    node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
 
 log = logging.getLogger("bttsim.sim")
@@ -48,7 +50,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     meta = stream.meta
     sent = 0
     progress = Progress(args.progress)
-    with node_session(conf, stream.rig, "sim", linger_s=0.0) as node:
+    with node_session(conf, stream.rig, "sim", linger_s=0.0, status_file=args.status_file) as node:
         node.announce()
         node.declare(node.session.declare_queryable(
             meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0))))
@@ -96,7 +98,9 @@ def main(conf, args: argparse.Namespace) -> dict:
                             drain_s)
         if args.linger and not stop:
             stop.wait(args.linger)
-    return {"run_id": stream.run_id, "messages": sent, "stopped_by_signal": stop.signal}
+        result = {"run_id": stream.run_id, "messages": sent, "stopped_by_signal": stop.signal}
+        node.status("done", result)
+    return result
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -116,6 +120,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--linger", type=float, default=0.0, metavar="S",
                    help="keep serving the metadata and the late-joiner cache S seconds after the run")
     p.add_argument("--progress", action="store_true", help="show a progress line on stderr")
+    add_status_argument(p)
 
 
 PROGRAM = NodeProgram("sim", __doc__, add_arguments, main)

@@ -16,6 +16,7 @@ key                                message                       notes
 ``bttsim/<rig>/resonance``         ``bttsim.v1.ResonanceReport`` per report
 ``bttsim/<rig>/nsv``               ``bttsim.v1.NonSynchronous``  per detected block (NSV)
 ``bttsim/<rig>/alive/<node>``      (none)                        liveliness token of a node
+``bttsim/<rig>/status/<node>``     JSON ``bttsim.status.v1``     a node's state and statistics
 =================================  ============================  ===============================
 
 A blind processor subscribes to :func:`opr_key` and :func:`toa_all_key` only, so it never
@@ -49,6 +50,9 @@ __all__ = [
     "nsv_key",
     "alive_key",
     "alive_all_key",
+    "status_key",
+    "status_all_key",
+    "is_status_key",
     "all_key",
     "acquisition_keys",
     "parse_key",
@@ -73,6 +77,7 @@ _KINDS: dict[str, tuple[str | None, bool]] = {
     "resonance": ("bttsim.v1.ResonanceReport", False),
     "nsv": ("bttsim.v1.NonSynchronous", False),
     "alive": (None, True),
+    "status": (None, True),  # JSON (bus/status.py), not protobuf
 }
 
 #: Full protobuf names of every message type that travels on a key, by key kind.
@@ -188,6 +193,25 @@ def done_key(rig: str, node: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/done/{node}"
 
 
+def status_key(rig: str, node: str) -> str:
+    """``bttsim/<rig>/status/<node>``: a node's state and final statistics (JSON,
+    :mod:`bttsim_stream.bus.status`); never recorded."""
+    if not isinstance(node, str) or not _NAME_RE.fullmatch(node):
+        raise BttsimError(f"invalid node name {node!r}: use letters, digits, '_' and '-'")
+    return f"{PREFIX}/{validate_rig(rig)}/status/{node}"
+
+
+def status_all_key(rig: str) -> str:
+    """``bttsim/<rig>/status/*``: every node's status."""
+    return f"{PREFIX}/{validate_rig(rig)}/status/*"
+
+
+def is_status_key(key: str) -> bool:
+    """Is ``key`` a status key (``bttsim/<any>/status/<any>``)? Recorders and views skip them."""
+    parts = str(key).split("/")
+    return len(parts) == 4 and parts[0] == PREFIX and parts[2] == "status"
+
+
 def alive_all_key(rig: str) -> str:
     """``bttsim/<rig>/alive/*``: every node's liveliness token."""
     return f"{PREFIX}/{validate_rig(rig)}/alive/*"
@@ -214,13 +238,13 @@ class KeyInfo:
     rig : str
     kind : str
         ``"opr"``, ``"toa"``, ``"truth"``, ``"signal"``, ``"meta"``, ``"fit"``, ``"tw"``,
-        ``"resonance"``, ``"nsv"`` or ``"alive"``.
+        ``"resonance"``, ``"nsv"``, ``"alive"`` or ``"status"``.
     probe : int or None
         Probe index for ``toa``, ``signal`` and ``tw`` keys.
     node : str or None
-        Node name for ``alive`` keys.
+        Node name for ``alive`` and ``status`` keys.
     message_type : str or None
-        Full protobuf message name carried on the key (None for liveliness keys).
+        Full protobuf message name carried on the key (None for liveliness and status keys).
     """
 
     rig: str
@@ -256,7 +280,7 @@ def _parse_key(key: str) -> KeyInfo:
     probe = node = None
     if indexed:
         last = parts[3]
-        if kind == "alive":
+        if kind in ("alive", "status"):
             if not _NAME_RE.fullmatch(last):
                 raise bad
             node = last
@@ -277,7 +301,7 @@ def message_type_for_key(key: str) -> str:
     """
     info = parse_key(key)
     if info.message_type is None:
-        raise BttsimError(f"{key}: a liveliness key carries no message")
+        raise BttsimError(f"{key}: a liveliness or status key carries no protobuf message")
     return info.message_type
 
 

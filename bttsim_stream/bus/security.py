@@ -21,10 +21,11 @@ any other name / no cert    refused (default: deny)                nothing
 
 Every member may subscribe, query, declare queryables and follow liveliness under
 ``bttsim/**``; each declares only its own liveliness tokens (``bttsim/<rig>/<what>/<name>``:
-``alive``, ``ready``...), so nobody can pose as the simulator and end a run early. Each
-node checks what comes in from (ingress) and goes out to (egress) each neighbour: with a
-router, the router is the neighbour of every client, and it enforces the policy on the
-clients' links.
+``alive``, ``ready``...) and publishes only its own status (``bttsim/<rig>/status/<name>``,
+which every member may receive), so nobody can pose as the simulator and end a run early, nor
+report another node's statistics. Each node checks what comes in from (ingress) and goes out
+to (egress) each neighbour: with a router, the router is the neighbour of every client, and it
+enforces the policy on the clients' links.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ TRUTH_READERS = ("processor", "recorder", "viewer", "router")
 _ACQ = ["bttsim/*/opr", "bttsim/*/toa/*", "bttsim/*/signal/*", "bttsim/*/meta"]
 _TRUTH = ["bttsim/*/truth"]
 _RESULTS = ["bttsim/*/fit", "bttsim/*/tw/*", "bttsim/*/resonance"]
+_STATUS = ["bttsim/*/status/*"]
 # zenoh-ext's advanced publishers and subscribers use keys under a verbatim chunk ``@adv``
 # (liveliness tokens, cache queries), which ``**`` does not match
 _CONTROL = ["bttsim/**", "bttsim/**/@adv/**"]
@@ -129,7 +131,7 @@ def access_control_policy(identities=IDENTITIES) -> dict:
         {"id": "internal tokens", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
          "key_exprs": ["bttsim/**/@adv/**"]},
         {"id": "receive data", "permission": "allow", "flows": ["egress"], "messages": _DATA,
-         "key_exprs": _ACQ + _RESULTS},
+         "key_exprs": _ACQ + _RESULTS + _STATUS},
         {"id": "receive truth", "permission": "allow", "flows": ["egress"], "messages": _DATA, "key_exprs": _TRUTH},
         {"id": "publish acquisition", "permission": "allow", "flows": ["ingress"], "messages": _DATA,
          "key_exprs": _ACQ + _TRUTH},
@@ -137,6 +139,7 @@ def access_control_policy(identities=IDENTITIES) -> dict:
          "key_exprs": _RESULTS},
         {"id": "relay tokens", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
          "key_exprs": _CONTROL},
+        {"id": "relay status", "permission": "allow", "flows": ["ingress"], "messages": _DATA, "key_exprs": _STATUS},
     ]
     policies = [
         {"id": "members", "rules": ["declare", "see tokens", "internal tokens", "receive data"], "subjects": members},
@@ -144,12 +147,14 @@ def access_control_policy(identities=IDENTITIES) -> dict:
         {"id": "simulator", "rules": ["publish acquisition"], "subjects": [n for n in ("sim", "router") if n in members]},
         {"id": "processor", "rules": ["publish results"],
          "subjects": [n for n in ("processor", "router") if n in members]},
-        {"id": "router", "rules": ["relay tokens"], "subjects": [n for n in ("router",) if n in members]},
+        {"id": "router", "rules": ["relay tokens", "relay status"], "subjects": [n for n in ("router",) if n in members]},
     ]
-    for n in members:  # each one's own liveliness tokens (alive, ready, done...)
+    for n in members:  # each one's own liveliness tokens (alive, ready, done...) and status
         rules.append({"id": f"tokens of {n}", "permission": "allow", "flows": ["ingress"],
                       "messages": ["liveliness_token"], "key_exprs": [f"bttsim/*/*/{n}"]})
-        policies.append({"id": f"own tokens of {n}", "rules": [f"tokens of {n}"], "subjects": [n]})
+        rules.append({"id": f"status of {n}", "permission": "allow", "flows": ["ingress"],
+                      "messages": _DATA, "key_exprs": [f"bttsim/*/status/{n}"]})
+        policies.append({"id": f"own tokens of {n}", "rules": [f"tokens of {n}", f"status of {n}"], "subjects": [n]})
     policies = [p for p in policies if p["subjects"]]
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": [{"id": n, "cert_common_names": [n]} for n in members], "policies": policies}
