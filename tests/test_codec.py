@@ -14,7 +14,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from bttsim_stream.bus import codec
 from bttsim_stream.bus.stream import MessageStream
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.process.pipeline import RevolutionFit
+from bttsim_stream.process.results import RevolutionFit
 from bttsim_stream.process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks, resonance_report
 from bttsim_stream.process.travelling_wave import ProbeWave
 from bttsim_stream.sim.core import RevolutionBatch, RunInfo, Truth

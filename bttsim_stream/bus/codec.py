@@ -10,7 +10,7 @@ parallel message classes and no dicts:
 ``bttsim.v1.ToaBatch``         :class:`ToaBatch` (one probe's part of a revolution)
 ``bttsim.v1.TruthBatch``       :class:`~bttsim_stream.sim.core.Truth` (one revolution)
 ``bttsim.v1.SignalBatch``      :class:`SignalBatch` (one probe's raw windows of a revolution)
-``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.pipeline.RevolutionFit`
+``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.results.RevolutionFit`
 ``bttsim.v1.TravellingWave``   :class:`~bttsim_stream.process.travelling_wave.ProbeWave`
 ``bttsim.v1.ResonanceReport``  :class:`~bttsim_stream.process.resonance.ResonanceReport`
 =============================  ======================================================
@@ -50,7 +50,7 @@ from google.protobuf.message import DecodeError
 from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from ..errors import BttsimError
 from ..model.modal_model import MAX_SPEEDS
-from ..process.pipeline import RevolutionFit
+from ..process.results import RevolutionFit
 from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport,
                                 TruthPeaks)
 from ..process.nsv import NsvDetection
@@ -94,7 +94,6 @@ __all__ = [
     "decode_resonance_report",
     "decode_message",
     "log_time_ns",
-    "message_types",
     "schema_name_for",
     "file_descriptor_set",
 ]
@@ -311,11 +310,6 @@ def _check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
 # --------------------------------------------------------------------------------------
 # Schema helpers
 # --------------------------------------------------------------------------------------
-
-
-def message_types() -> tuple[str, ...]:
-    """Full names of every message in the schema (``"bttsim.v1.Header"``, ...)."""
-    return tuple(d.full_name for d in _pb.DESCRIPTOR.message_types_by_name.values())
 
 
 def schema_name_for(message_type: str) -> str:
