@@ -102,7 +102,8 @@ class StreamingProcessor:
         self.info = info
         self.options = options
         self.geometry = Geometry.from_info(info)
-        eos, _, _ = layout_condition_numbers(engine_orders_of(info, options), self.geometry, False)  # LayoutError if singular
+        # LayoutError if an order is singular
+        eos, _, _ = layout_condition_numbers(engine_orders_of(info, options), self.geometry, False)
         if len(eos) > 1 and not fits_jointly(eos, self.geometry):
             eos = eos[:1]  # the live fits cannot hold them jointly: the first order (the report has them all)
         self.engine_orders = eos
