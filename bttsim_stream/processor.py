@@ -22,7 +22,8 @@ from .bus.codec import Decoded
 from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker, StreamEnd
 from .errors import BttsimError
 from .process.displacement import DoublePulses
-from .process.pipeline import ProcessOptions, StreamingProcessor
+from .process.options import ProcessOptions
+from .process.streaming import StreamingProcessor
 from .process.resonance import TruthPeakTracker
 from .sim.core import RunInfo
 from .summary import build_summary

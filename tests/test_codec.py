@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from bttsim_stream.bus import codec
+from bttsim_stream.bus import codec, codec_base
 from bttsim_stream.bus.stream import MessageStream
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.process.pipeline import RevolutionFit
+from bttsim_stream.process.results import RevolutionFit
 from bttsim_stream.process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks, resonance_report
 from bttsim_stream.process.travelling_wave import ProbeWave
 from bttsim_stream.sim.core import RevolutionBatch, RunInfo, Truth
@@ -385,7 +385,7 @@ def test_empty_payload_has_no_header():
 
 def test_oversized_payload_is_refused(monkeypatch):
     payload = MessageStream("r", "rig1").acquisition(make_batch())[1].payload
-    monkeypatch.setattr(codec, "MAX_PAYLOAD_BYTES", len(payload) - 1)
+    monkeypatch.setattr(codec_base, "MAX_PAYLOAD_BYTES", len(payload) - 1)  # the limit of every decoder
     with pytest.raises(BttsimError, match="exceeds the .* byte limit") as excinfo:
         codec.decode_toa_batch(payload, "bttsim/rig1/toa/0")
     _one_line_error(excinfo)

@@ -24,12 +24,20 @@ FORBIDDEN = {
                              "bttsim_stream.orchestrate", "bttsim_stream.cli"),
     ("bttsim_stream.views",): ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.paper",
                                "bttsim_stream.orchestrate", "bttsim_stream.cli", "bttsim_stream.model",
-                               "bttsim_stream.scenario"),
+                               "bttsim_stream.sim", "bttsim_stream.scenario"),
     ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline", "bttsim_stream.export",
      "bttsim_stream.processor", "bttsim_stream.orchestrate", "bttsim_stream.testing"): ("bttsim_stream.paper",),
     # studies on Dask: above the simulation and processing, beside the live system
     ("bttsim_stream.campaign",): ("bttsim_stream.nodes", "bttsim_stream.views", "bttsim_stream.orchestrate",
                                   "bttsim_stream.runtime", "bttsim_stream.cli", "bttsim_stream.paper"),
+}
+
+#: Exact modules each group must not import: the bus decodes processing results (the result
+#: dataclasses of ``process.results``, ``process.resonance``, ...) but never runs the
+#: processing (the pipeline, the streaming processor, or the package that re-exports them).
+FORBIDDEN_EXACT = {
+    ("bttsim_stream.bus",): ("bttsim_stream.process", "bttsim_stream.process.pipeline",
+                             "bttsim_stream.process.streaming"),
 }
 
 
@@ -107,6 +115,9 @@ def test_layers_import_only_what_is_below_them(graph):
         for group, forbidden in FORBIDDEN.items():
             if _within(m, group):
                 bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if _within(t, forbidden)]
+        for group, forbidden in FORBIDDEN_EXACT.items():
+            if _within(m, group):
+                bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if t in forbidden]
         if _within(m, NUMERICS):
             bad += [f"{m}:{line} imports {t}" for t, line, _ in imp if t.split(".")[0] in TRANSPORT]
         if _within(m, ("bttsim_stream.views",)):

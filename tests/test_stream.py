@@ -7,7 +7,8 @@ import pytest
 
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.stream import MessageStream, RevolutionAssembler, SequenceTracker, Sequencer
-from bttsim_stream.process.pipeline import ProcessOptions, StreamingProcessor
+from bttsim_stream.process.options import ProcessOptions
+from bttsim_stream.process.streaming import StreamingProcessor
 
 from _io_helpers import NB, NP, NR, make_batch, make_info
 

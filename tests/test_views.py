@@ -26,7 +26,7 @@ from bttsim_stream.bus.session import free_port
 from bttsim_stream.bus.stream import Sequencer
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import with_processing
-from bttsim_stream.process.pipeline import RevolutionFit
+from bttsim_stream.process.results import RevolutionFit
 from bttsim_stream.process.resonance import ResonancePeaks, ResonanceReport, TruthPeaks
 from bttsim_stream.scenario import load_scenario
 

@@ -1,4 +1,5 @@
-"""Protobuf encoding and decoding of every bus message (the only user of the generated code).
+"""Protobuf encoding and decoding of every bus message (with :mod:`.codec_base` and
+:mod:`.codec_results`, the only user of the generated code).
 
 Each message type maps to one of the library's own frozen dataclasses; there are no
 parallel message classes and no dicts:
@@ -10,7 +11,7 @@ parallel message classes and no dicts:
 ``bttsim.v1.ToaBatch``         :class:`ToaBatch` (one probe's part of a revolution)
 ``bttsim.v1.TruthBatch``       :class:`~bttsim_stream.sim.core.Truth` (one revolution)
 ``bttsim.v1.SignalBatch``      :class:`SignalBatch` (one probe's raw windows of a revolution)
-``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.pipeline.RevolutionFit`
+``bttsim.v1.BladeFits``        :class:`~bttsim_stream.process.results.RevolutionFit`
 ``bttsim.v1.TravellingWave``   :class:`~bttsim_stream.process.travelling_wave.ProbeWave`
 ``bttsim.v1.ResonanceReport``  :class:`~bttsim_stream.process.resonance.ResonanceReport`
 =============================  ======================================================
@@ -40,25 +41,23 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import dataclass, field
 
 import numpy as np
 from google.protobuf import descriptor_pb2
-from google.protobuf.message import DecodeError
 
 from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
 from ..errors import BttsimError
 from ..model.modal_model import MAX_SPEEDS
-from ..process.pipeline import RevolutionFit
-from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonancePeaks, ResonanceReport,
-                                TruthPeaks)
-from ..process.nsv import NsvDetection
-from ..process.travelling_wave import ProbeWave
 from ..sim.core import RunInfo, Truth
 from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
+from .codec_base import (MAX_PAYLOAD_BYTES, PROTO_FILE, _MAX_NS, Decoded, Header, _array, _check_len, _check_probe_key,
+                         _corrupt, _fill_header, _header, _parse, _serialize, _vec, file_descriptor_set,
+                         log_time_ns, schema_name_for)
+from .codec_results import (decode_fit, decode_nsv, decode_probe_wave, decode_resonance_report, encode_fit,
+                            encode_nsv, encode_probe_wave, encode_resonance_report)
 
 __all__ = [
     "MAX_PAYLOAD_BYTES",
@@ -92,55 +91,21 @@ __all__ = [
     "decode_probe_wave",
     "encode_resonance_report",
     "decode_resonance_report",
+    "encode_nsv",
+    "decode_nsv",
     "decode_message",
     "log_time_ns",
-    "message_types",
     "schema_name_for",
     "file_descriptor_set",
 ]
 
-#: Largest payload a decoder accepts, bytes.
-MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
 #: Most extra trigger edges (double pulses) a ``ToaBatch`` may carry per blade.
 MAX_EXTRA_EDGES_PER_BLADE = 8
 #: Most samples a raw-signal window may hold (the scenario allows 4096 at the slowest speed).
 MAX_WINDOW_SAMPLES = 1 << 16
 #: Largest |first sample index| of a signal window: exact as a float, far from int64 overflow.
 MAX_FIRST_SAMPLE = 1 << 52
-#: Name of the schema file inside the descriptor (and path under ``schemas/``).
-PROTO_FILE = "bttsim/v1/bttsim.proto"
-_PACKAGE = "bttsim.v1"
-_MAX_NS = (1 << 63) - 1
 TWO_PI = 2.0 * math.pi
-
-
-@dataclass(frozen=True, slots=True)
-class Header:
-    """The header every message carries.
-
-    Attributes
-    ----------
-    run_id : str
-    seq : int
-        Per-publisher, per-key sequence number (0, 1, 2, ...).
-    revolution : int
-        Revolution index, -1 where it does not apply.
-    t_s : float
-        Simulated time the message refers to, s.
-    """
-
-    run_id: str
-    seq: int
-    revolution: int = -1
-    t_s: float = 0.0
-
-
-@dataclass(frozen=True, slots=True)
-class Decoded:
-    """A decoded message: its header and its body (the library dataclass of its type)."""
-
-    header: Header
-    body: Any
 
 
 @dataclass(frozen=True, slots=True)
@@ -222,141 +187,6 @@ class SignalBatch:
 
 
 _TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
-_FIT_ARRAYS = (("amp_pkpk_m", "amp_pkpk_m"), ("phase_rad", "phase_rad"), ("dc_m", "dc_m"),
-               ("residual_m", "residual_rms_m"), ("amp_std_m", "amp_std_m"))  # (proto, dataclass)
-
-
-# --------------------------------------------------------------------------------------
-# Helpers
-# --------------------------------------------------------------------------------------
-
-
-def log_time_ns(t_s: float) -> int:
-    """MCAP log time of a message: ``round(t_s * 1e9)`` clamped to ``[0, 2**63 - 1]``."""
-    t = float(t_s)
-    if not math.isfinite(t):
-        return 0 if t != math.inf else _MAX_NS
-    return min(max(int(round(t * 1e9)), 0), _MAX_NS)
-
-
-def _fill_header(h, run_id: str, seq: int, revolution: int, t_s: float) -> None:
-    h.run_id = run_id
-    h.seq = seq
-    h.revolution = revolution
-    h.t_s = t_s
-
-
-def _serialize(msg) -> bytes:
-    return msg.SerializeToString(deterministic=True)
-
-
-def _vec(values, name: str, n: int | None = None, dtype=float) -> np.ndarray:
-    arr = np.asarray(values, dtype=dtype)
-    if arr.ndim != 1 or (n is not None and arr.size != n):
-        want = f"({n},)" if n is not None else "1-D"
-        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
-    return arr
-
-
-def _parse(cls, payload, where: str | None):
-    name = cls.DESCRIPTOR.name
-    where = where or cls.DESCRIPTOR.full_name
-    if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise BttsimError(f"{where}: {name} payload must be bytes, got {type(payload).__name__}")
-    size = len(payload)
-    if size > MAX_PAYLOAD_BYTES:
-        raise BttsimError(f"{where}: {name} payload of {size} bytes exceeds the "
-                          f"{MAX_PAYLOAD_BYTES} byte limit")
-    msg = cls()
-    try:
-        msg.ParseFromString(bytes(payload))
-    except (DecodeError, ValueError, RuntimeError) as exc:
-        text = " ".join(str(exc).split()) or type(exc).__name__
-        raise BttsimError(f"{where}: corrupt {name} ({text})") from None
-    if not msg.HasField("header"):
-        raise BttsimError(f"{where}: corrupt {name} (no header)")
-    return msg, where
-
-
-def _corrupt(where: str, msg, problem: str) -> BttsimError:
-    return BttsimError(f"{where}: corrupt {msg.DESCRIPTOR.name} ({problem})")
-
-
-def _header(h) -> Header:
-    return Header(run_id=h.run_id, seq=int(h.seq), revolution=int(h.revolution),
-                     t_s=float(h.t_s))
-
-
-def _array(values, dtype=np.float64) -> np.ndarray:
-    return np.array(values, dtype=dtype)
-
-
-def _check_len(where: str, msg, field: str, n: int, shape: str) -> None:
-    got = len(getattr(msg, field))
-    if got != n:
-        raise _corrupt(where, msg, f"{field} has {got} values, expected {n} for shape {shape}")
-
-
-def _check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
-    if key is None:
-        return
-    try:
-        info = _keys.parse_key(key)
-    except BttsimError:
-        return
-    if info.kind == kind and info.probe != msg.probe:
-        raise _corrupt(where, msg, f"probe {msg.probe} on the key of probe {info.probe}")
-
-
-# --------------------------------------------------------------------------------------
-# Schema helpers
-# --------------------------------------------------------------------------------------
-
-
-def message_types() -> tuple[str, ...]:
-    """Full names of every message in the schema (``"bttsim.v1.Header"``, ...)."""
-    return tuple(d.full_name for d in _pb.DESCRIPTOR.message_types_by_name.values())
-
-
-def schema_name_for(message_type: str) -> str:
-    """The MCAP schema name (full protobuf name) of a message type.
-
-    Parameters
-    ----------
-    message_type : str
-        ``"ToaBatch"`` or ``"bttsim.v1.ToaBatch"``.
-
-    Raises
-    ------
-    BttsimError
-        If the schema has no such message.
-    """
-    short = message_type.removeprefix(_PACKAGE + ".")
-    desc = _pb.DESCRIPTOR.message_types_by_name.get(short)
-    if desc is None:
-        raise BttsimError(f"unknown message type {message_type!r}")
-    return desc.full_name
-
-
-@functools.lru_cache(maxsize=1)
-def file_descriptor_set() -> bytes:
-    """The serialized ``FileDescriptorSet`` of ``bttsim/v1/bttsim.proto`` and its dependencies.
-
-    This is the MCAP schema data of every channel (schema encoding ``"protobuf"``).
-    """
-    fds = descriptor_pb2.FileDescriptorSet()
-    seen: set[str] = set()
-
-    def add(fd) -> None:
-        if fd.name in seen:
-            return
-        seen.add(fd.name)
-        for dep in fd.dependencies:
-            add(dep)
-        fd.CopyToProto(fds.file.add())
-
-    add(_pb.DESCRIPTOR)
-    return fds.SerializeToString(deterministic=True)
 
 
 # --------------------------------------------------------------------------------------
@@ -1117,320 +947,6 @@ def encode_truth_batch(run_id: str, seq, revolution, t_s, truth: Truth) -> list[
             _fill_nsv(m, truth, i)
             out[i] = out[i] + m.SerializeToString(deterministic=True)
     return out
-
-
-# --------------------------------------------------------------------------------------
-# Processing outputs
-# --------------------------------------------------------------------------------------
-
-
-def encode_fit(header: Header, fit: RevolutionFit) -> bytes:
-    """Encode one revolution's fits at one EO (:class:`bttsim.v1.BladeFits`, key ``fit``)."""
-    amp = _vec(fit.amp_pkpk_m, "amp_pkpk_m")
-    nb = amp.size
-    m = _pb.BladeFits()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
-    m.n_blades = nb
-    m.engine_order = int(fit.engine_order)
-    m.omega_mean_rad_s = float(fit.omega_rad_s)
-    m.freq_hz = float(fit.freq_hz)
-    m.cn = float(fit.cn)
-    for proto_name, name in _FIT_ARRAYS:
-        getattr(m, proto_name).extend(_vec(getattr(fit, name), name, nb).tolist())
-    return _serialize(m)
-
-
-def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
-    """Decode a :class:`bttsim.v1.BladeFits` payload into ``(Header, RevolutionFit)``.
-
-    Raises
-    ------
-    BttsimError
-        Unparsable or oversized payload, missing header, or inconsistent array lengths.
-    """
-    m, where = _parse(_pb.BladeFits, payload, key)
-    nb = int(m.n_blades)
-    for proto_name, _ in _FIT_ARRAYS:
-        _check_len(where, m, proto_name, nb, f"({nb},)")
-    fit = RevolutionFit(engine_order=int(m.engine_order), omega_rad_s=m.omega_mean_rad_s, freq_hz=m.freq_hz,
-                        cn=m.cn, **{name: _array(getattr(m, proto_name)) for proto_name, name in _FIT_ARRAYS})
-    return Decoded(_header(m.header), fit)
-
-
-def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
-    """Encode one probe's travelling-wave spectrum (:class:`bttsim.v1.TravellingWave`, key ``tw/<probe>``)."""
-    fwd = _vec(wave.forward_m, "forward_m")
-    bwd = _vec(wave.backward_m, "backward_m", fwd.size)
-    if fwd.size == 0:
-        raise ValueError("forward_m: at least one nodal diameter is needed")
-    m = _pb.TravellingWave()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
-    m.probe = int(wave.probe)
-    m.n_nd = fwd.size
-    m.forward_m.extend(fwd.tolist())
-    m.backward_m.extend(bwd.tolist())
-    m.dominant_nd = int(wave.nd)
-    return _serialize(m)
-
-
-def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
-    """Decode a :class:`bttsim.v1.TravellingWave` payload into ``(Header, ProbeWave)``.
-
-    Raises
-    ------
-    BttsimError
-        Unparsable or oversized payload, missing header, or inconsistent array lengths.
-    """
-    m, where = _parse(_pb.TravellingWave, payload, key)
-    n = int(m.n_nd)
-    _check_len(where, m, "forward_m", n, f"({n},)")
-    _check_len(where, m, "backward_m", n, f"({n},)")
-    if abs(m.dominant_nd) >= max(n, 1):
-        raise _corrupt(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
-    _check_probe_key(where, m, key, "tw")
-    return Decoded(_header(m.header), ProbeWave(probe=int(m.probe), forward_m=_array(m.forward_m),
-                                                backward_m=_array(m.backward_m), nd=int(m.dominant_nd)))
-
-
-_EXTENDED = ("phase_rad", "amp_std_m", "freq_std_hz", "damping_ratio", "steady_amp_pkpk_m", "natural_freq_hz")
-
-
-def _fill_blades(rows, peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, extended: bool) -> None:
-    nan = np.full(peaks.n_blades, np.nan)
-    for b in range(peaks.n_blades):
-        row = rows.add()
-        row.blade = b
-        row.amp_pkpk_m = float(peaks.amp_pkpk_m[b])
-        row.freq_hz = float(peaks.freq_hz[b])
-        if truth is not None:
-            row.truth_amp_pkpk_m = float(truth.amp_pkpk_m[b])
-            row.truth_freq_hz = float(truth.freq_hz[b])
-            row.e_a_pct = float(e_a[b])
-            row.e_f_pct = float(e_f[b])
-            row.has_truth = True
-        if extended:
-            for name in _EXTENDED:
-                arr = getattr(peaks, name)
-                setattr(row, name, float((nan if arr is None or np.size(arr) != peaks.n_blades else arr)[b]))
-            row.revolution = float(peaks.revolution[b])
-            row.has_extended = True
-
-
-def _fill_stats(m, e_a, e_f) -> None:
-    import warnings
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        m.mean_e_a_pct, m.max_e_a_pct = float(np.nanmean(e_a)), float(np.nanmax(e_a))
-        m.mean_e_f_pct, m.max_e_f_pct = float(np.nanmean(e_f)), float(np.nanmax(e_f))
-
-
-def _fill_entry(m, e: ResonanceEntry) -> None:
-    m.kind, m.eo, m.nd, m.cn, m.method = e.kind, int(e.eo), int(e.nd), float(e.cn), e.method
-    m.rpm, m.freq_hz, m.damping_ratio = float(e.rpm), float(e.freq_hz), float(e.damping_ratio)
-    d = e.detection
-    m.detection_statistic, m.detection_value, m.detection_threshold = d.statistic, float(d.value), float(d.threshold)
-    m.detection_snr, m.detection_snr_threshold = float(d.snr), float(d.snr_threshold)
-    m.first_revolution, m.last_revolution = int(e.first_revolution), int(e.last_revolution)
-    m.peak_revolution, m.sweep_rate = int(e.peak_revolution), float(e.sweep_rate)
-    m.zeroing_correction_pct = 100.0 * float(e.zeroing_correction)
-    _fill_blades(m.blades, e.peaks, e.truth, e.e_a_pct, e.e_f_pct, extended=True)
-    if e.truth is not None and e.peaks.n_blades:
-        _fill_stats(m, e.e_a_pct, e.e_f_pct)
-
-
-def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
-    """Encode a resonance report (:class:`bttsim.v1.ResonanceReport`, key ``resonance``).
-
-    Blades are numbered 0..n_blades-1; truth fields (and the error statistics) are set when
-    the report carries the truth. The status, every resonance and dwell entry (with its own
-    blade table, detection statistic and revolutions), the zeroing reference and the notes
-    travel too (fields 10-18).
-    """
-    m = _pb.ResonanceReport()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
-    m.nd = int(report.nd)
-    m.eo = int(report.eo)
-    m.cn = float(report.cn)
-    _fill_blades(m.blades, report.peaks, report.truth, report.e_a_pct, report.e_f_pct, extended=False)
-    if report.truth is not None and report.peaks.n_blades:
-        _fill_stats(m, report.e_a_pct, report.e_f_pct)
-    m.status = report.status
-    for e in report.resonances:
-        _fill_entry(m.resonances.add(), e)
-    for e in report.steady:
-        _fill_entry(m.steady.add(), e)
-    ref = report.reference
-    if ref is not None:
-        m.reference_method = str(ref.get("method") or "")
-        m.reference_first = -1 if ref.get("first") is None else int(ref["first"])
-        m.reference_last = -1 if ref.get("last") is None else int(ref["last"])
-        c = ref.get("contamination_pct")
-        m.reference_contamination_pct = math.nan if c is None else float(c)
-        m.reference_reason = str(ref.get("reason") or "")
-    m.notes.extend(str(n) for n in report.notes)
-    for n in report.non_synchronous:
-        _fill_nsv_detection(m.non_synchronous.add(), n)
-    return _serialize(m)
-
-
-def _fill_nsv_detection(m, n: NsvDetection) -> None:
-    m.first_revolution, m.last_revolution = int(n.first_revolution), int(n.last_revolution)
-    m.order, m.alias_per_rev, m.nd = float(n.order), float(n.alias), int(n.nd)
-    m.order_alternatives.extend(float(a) for a in n.order_alternatives)
-    m.nd_alternatives.extend(int(a) for a in n.nd_alternatives)
-    m.freq_hz, m.freq_min_hz, m.freq_max_hz = float(n.freq_hz), float(n.freq_min_hz), float(n.freq_max_hz)
-    m.amp_pkpk_m, m.amp_first_pkpk_m = float(n.amp_pkpk_m), float(n.amp_first_pkpk_m)
-    m.amp_last_pkpk_m = float(n.amp_last_pkpk_m)
-    m.ratio, m.ratio_threshold, m.coherence = float(n.ratio), float(n.ratio_threshold), float(n.coherence)
-    m.blocks = int(n.blocks)
-    m.forward_m.extend(np.asarray(n.forward_m, float).tolist())
-    m.backward_m.extend(np.asarray(n.backward_m, float).tolist())
-    rev_amp = np.asarray(n.rev_amp_pkpk_m, float)
-    if rev_amp.size == int(n.last_revolution) - int(n.first_revolution) + 1:
-        m.rev_amp_pkpk_m.extend(rev_amp.tolist())
-    if n.truth is not None:
-        m.has_truth = True
-        if n.truth.get("kind") is not None:
-            t = n.truth
-            m.truth_kind, m.truth_freq_hz, m.truth_nd = str(t["kind"]), float(t["freq_hz"]), int(t["nd"])
-            m.truth_amp_pkpk_m, m.truth_amp_last_pkpk_m = float(t["amp_pkpk_m"]), float(t["amp_last_pkpk_m"])
-
-
-def encode_nsv(header: Header, nsv: NsvDetection) -> bytes:
-    """Encode a non-synchronous vibration (:class:`bttsim.v1.NonSynchronous`, key ``nsv``)."""
-    m = _pb.NonSynchronous()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
-    _fill_nsv_detection(m, nsv)
-    return _serialize(m)
-
-
-def _decode_nsv_body(where: str, m, n) -> NsvDetection:
-    """One ``NonSynchronous`` body, checked: sizes against the blade limit, values in range."""
-    n_nd = len(n.forward_m)
-    if len(n.backward_m) != n_nd or n_nd > MAX_BLADES // 2 + 1:
-        raise _corrupt(where, m, f"non-synchronous spectrum of {n_nd} forward and {len(n.backward_m)} backward NDs")
-    if len(n.order_alternatives) != len(n.nd_alternatives) or len(n.order_alternatives) > 2 * MAX_BLADES + 4:
-        raise _corrupt(where, m, "non-synchronous order alternatives and their NDs differ in number (or too many)")
-    if not (0 <= n.first_revolution <= n.last_revolution <= MAX_REVOLUTIONS):
-        raise _corrupt(where, m, f"non-synchronous revolutions {n.first_revolution}-{n.last_revolution}")
-    if not (math.isfinite(n.order) and 0.0 < n.order <= MAX_BLADES + 1 and 0.0 <= n.alias_per_rev <= 0.5):
-        raise _corrupt(where, m, f"non-synchronous order {n.order!r} / alias {n.alias_per_rev!r}")
-    if abs(n.nd) > MAX_BLADES // 2 or any(abs(a) > MAX_BLADES // 2 for a in n.nd_alternatives):
-        raise _corrupt(where, m, f"non-synchronous ND {n.nd}")
-    if not (math.isfinite(n.amp_pkpk_m) and n.amp_pkpk_m >= 0.0):
-        raise _corrupt(where, m, f"non-synchronous amplitude {n.amp_pkpk_m!r}")
-    n_rev = int(n.last_revolution) - int(n.first_revolution) + 1
-    if len(n.rev_amp_pkpk_m) not in (0, n_rev):
-        raise _corrupt(where, m, f"{len(n.rev_amp_pkpk_m)} per-revolution amplitudes for revolutions "
-                                 f"{n.first_revolution}-{n.last_revolution}")
-    rev_amp = _array(n.rev_amp_pkpk_m)
-    truth = None
-    if n.has_truth:
-        if n.truth_kind not in ("", "rotating_stall", "flutter", "broadband") or abs(n.truth_nd) > MAX_BLADES // 2:
-            raise _corrupt(where, m, f"non-synchronous truth {n.truth_kind[:40]!r}, ND {n.truth_nd}")
-        truth = {"kind": None} if not n.truth_kind else {
-            "kind": n.truth_kind, "freq_hz": float(n.truth_freq_hz), "nd": int(n.truth_nd),
-            "amp_pkpk_m": float(n.truth_amp_pkpk_m), "amp_last_pkpk_m": float(n.truth_amp_last_pkpk_m)}
-    return NsvDetection(
-        first_revolution=int(n.first_revolution), last_revolution=int(n.last_revolution), order=float(n.order),
-        order_alternatives=tuple(float(a) for a in n.order_alternatives),
-        nd_alternatives=tuple(int(a) for a in n.nd_alternatives), alias=float(n.alias_per_rev),
-        freq_hz=float(n.freq_hz), freq_min_hz=float(n.freq_min_hz), freq_max_hz=float(n.freq_max_hz), nd=int(n.nd),
-        amp_pkpk_m=float(n.amp_pkpk_m), amp_first_pkpk_m=float(n.amp_first_pkpk_m),
-        amp_last_pkpk_m=float(n.amp_last_pkpk_m), ratio=float(n.ratio),
-        ratio_threshold=float(n.ratio_threshold), coherence=float(n.coherence), blocks=int(n.blocks),
-        forward_m=_array(n.forward_m), backward_m=_array(n.backward_m), rev_amp_pkpk_m=rev_amp,
-        revolutions=np.arange(n.first_revolution, n.first_revolution + rev_amp.size, dtype=np.int64), truth=truth)
-
-
-def decode_nsv(payload: bytes, key: str | None = None) -> Decoded:
-    """Decode a :class:`bttsim.v1.NonSynchronous` payload into ``(Header, NsvDetection)``.
-
-    Raises
-    ------
-    BttsimError
-        Unparsable or oversized payload, missing header, spectra longer than the largest
-        wheel's ND count, order / alias / ND / revolutions out of range.
-    """
-    m, where = _parse(_pb.NonSynchronous, payload, key)
-    return Decoded(_header(m.header), _decode_nsv_body(where, m, m))
-
-
-def _decode_blades(where: str, m, rows, *, extended: bool):
-    nb = len(rows)
-    if [b.blade for b in rows] != list(range(nb)):
-        raise _corrupt(where, m, "blades must be numbered 0..n_blades-1 in order")
-    has_truth = [bool(b.has_truth) for b in rows]
-    if any(has_truth) and not all(has_truth):
-        raise _corrupt(where, m, "truth on some blades only")
-    nan = np.full(nb, np.nan)
-    kw = {}
-    rev = nan
-    method = "reported"
-    if extended and nb:
-        if not all(b.has_extended for b in rows):
-            raise _corrupt(where, m, "an entry's blade rows lack their extended fields")
-        kw = {name: _array([getattr(b, name) for b in rows]) for name in _EXTENDED}
-        rev = _array([b.revolution for b in rows])
-    peaks = ResonancePeaks(revolution=rev, amp_pkpk_m=_array([b.amp_pkpk_m for b in rows]),
-                           freq_hz=_array([b.freq_hz for b in rows]),
-                           damping_ratio=kw.pop("damping_ratio", nan.copy()), method=method, **kw)
-    truth = e_a = e_f = None
-    if nb and all(has_truth):
-        truth = TruthPeaks(revolution=np.full(nb, -1, np.int64),
-                           amp_pkpk_m=_array([b.truth_amp_pkpk_m for b in rows]),
-                           freq_hz=_array([b.truth_freq_hz for b in rows]))
-        e_a = _array([b.e_a_pct for b in rows])
-        e_f = _array([b.e_f_pct for b in rows])
-    return peaks, truth, e_a, e_f
-
-
-def _decode_entry(where: str, m, e) -> ResonanceEntry:
-    if e.kind not in ("crossing", "dwell"):
-        raise _corrupt(where, m, f"entry kind {e.kind!r}")
-    peaks, truth, e_a, e_f = _decode_blades(where, m, e.blades, extended=True)
-    peaks = replace(peaks, method=e.method)
-    return ResonanceEntry(
-        kind=e.kind, eo=int(e.eo), nd=int(e.nd), cn=float(e.cn), method=e.method, rpm=float(e.rpm),
-        freq_hz=float(e.freq_hz), damping_ratio=float(e.damping_ratio),
-        detection=Detection(e.detection_statistic, float(e.detection_value), float(e.detection_threshold),
-                            float(e.detection_snr), float(e.detection_snr_threshold)),
-        first_revolution=int(e.first_revolution), last_revolution=int(e.last_revolution),
-        peak_revolution=int(e.peak_revolution), peaks=peaks, truth=truth, e_a_pct=e_a, e_f_pct=e_f,
-        sweep_rate=float(e.sweep_rate), zeroing_correction=float(e.zeroing_correction_pct) / 100.0)
-
-
-def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
-    """Decode a :class:`bttsim.v1.ResonanceReport` payload into ``(Header, ResonanceReport)``.
-
-    The legacy per-blade peak revolutions and damping ratios do not travel: they come back
-    NaN (truth peak revolutions -1), with ``peaks.method == "reported"``; the entries'
-    blade rows carry theirs. A report from an older writer has ``status == ""`` and no
-    entries.
-
-    Raises
-    ------
-    BttsimError
-        Unparsable or oversized payload, missing header, blades out of order, truth on
-        only some blades, an unknown status or entry kind.
-    """
-    m, where = _parse(_pb.ResonanceReport, payload, key)
-    if m.status not in ("",) + STATUSES:
-        raise _corrupt(where, m, f"status {m.status!r}")
-    peaks, truth, e_a, e_f = _decode_blades(where, m, m.blades, extended=False)
-    ref = None
-    if m.reference_method:
-        c = float(m.reference_contamination_pct)
-        ref = {"method": m.reference_method, "first": None if m.reference_first < 0 else int(m.reference_first),
-               "last": None if m.reference_last < 0 else int(m.reference_last),
-               "contamination_pct": c if math.isfinite(c) else None, "reason": m.reference_reason}
-    report = ResonanceReport(nd=int(m.nd), eo=int(m.eo), cn=m.cn, peaks=peaks, truth=truth,
-                             e_a_pct=e_a, e_f_pct=e_f, status=m.status,
-                             resonances=tuple(_decode_entry(where, m, e) for e in m.resonances),
-                             steady=tuple(_decode_entry(where, m, e) for e in m.steady),
-                             reference=ref, notes=tuple(m.notes),
-                             non_synchronous=tuple(_decode_nsv_body(where, m, n) for n in m.non_synchronous))
-    return Decoded(_header(m.header), report)
 
 
 _DECODERS = {

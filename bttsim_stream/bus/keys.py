@@ -41,11 +41,9 @@ __all__ = [
     "toa_all_key",
     "truth_key",
     "signal_key",
-    "signal_all_key",
     "meta_key",
     "fits_key",
     "tw_key",
-    "tw_all_key",
     "resonance_key",
     "nsv_key",
     "alive_key",
@@ -134,11 +132,6 @@ def signal_key(rig: str, probe: int) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/signal/{_index(probe, 'probe')}"
 
 
-def signal_all_key(rig: str) -> str:
-    """``bttsim/<rig>/signal/*``: the raw windows of every probe."""
-    return f"{PREFIX}/{validate_rig(rig)}/signal/*"
-
-
 def meta_key(rig: str) -> str:
     """``bttsim/<rig>/meta``: the run-metadata queryable (:class:`bttsim.v1.RunMetadata`)."""
     return f"{PREFIX}/{validate_rig(rig)}/meta"
@@ -152,11 +145,6 @@ def fits_key(rig: str) -> str:
 def tw_key(rig: str, probe: int) -> str:
     """``bttsim/<rig>/tw/<probe>``: travelling-wave spectra of one probe."""
     return f"{PREFIX}/{validate_rig(rig)}/tw/{_index(probe, 'probe')}"
-
-
-def tw_all_key(rig: str) -> str:
-    """``bttsim/<rig>/tw/*``: the travelling-wave spectra of every probe."""
-    return f"{PREFIX}/{validate_rig(rig)}/tw/*"
 
 
 def resonance_key(rig: str) -> str:

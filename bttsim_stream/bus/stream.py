@@ -7,7 +7,7 @@ assembler, one "results -> messages".
 * :class:`Sequencer` is the only place where sequence numbers are assigned (0, 1, 2, ... per
   key). :class:`MessageStream` owns one and turns the library's dataclasses into numbered
   messages: the run metadata, the acquisition (:class:`~bttsim_stream.sim.core.RevolutionBatch`)
-  and the processing results (:class:`~bttsim_stream.process.pipeline.RevolutionOutput`,
+  and the processing results (:class:`~bttsim_stream.process.results.RevolutionOutput`,
   :class:`~bttsim_stream.process.resonance.ResonanceReport`). The simulator node, ``bttsim
   simulate``, the processor node and the offline processing all publish through it, so a
   live run and a file hold the same bytes.
@@ -373,7 +373,7 @@ class MessageStream:
     # -- processing results --------------------------------------------------------------
     def processing(self, output) -> list[Message]:
         """Messages of one processed revolution
-        (:class:`~bttsim_stream.process.pipeline.RevolutionOutput`): one ``BladeFits`` per
+        (:class:`~bttsim_stream.process.results.RevolutionOutput`): one ``BladeFits`` per
         engine order, then one ``TravellingWave`` per probe; header time: the OPR."""
         rev, t = int(output.revolution), float(output.opr_s)
         out = [self._message(self._k_fit, rev, t, codec.encode_fit, fit) for fit in output.fits()]

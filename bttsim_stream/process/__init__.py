@@ -15,7 +15,10 @@ One module per stage (paper equations in brackets):
 * :mod:`.nsv` -- non-synchronous vibration (flutter, rotating stall): order alias, ND,
   amplitude per block of revolutions, never a resonance;
 * :mod:`.probes` -- condition number of ``B`` and probe layout search (Table 3);
-* :mod:`.pipeline` -- offline :func:`process_arrays` and :class:`StreamingProcessor`.
+* :mod:`.options` -- :class:`ProcessOptions` and which engine orders are fitted;
+* :mod:`.results` -- the result dataclasses (shared with the codec and the views);
+* :mod:`.pipeline` -- offline :func:`process_arrays`;
+* :mod:`.streaming` -- :class:`StreamingProcessor`, revolution by revolution.
 
 The paper's Table 2 / Table 3 / ND checks on simulated runs are in
 :mod:`bttsim_stream.paper.validate_processing` (this package never imports the simulator).
@@ -32,8 +35,10 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_response, speed_segments)
 from .fit import SineFit, design_matrix, fit_revolutions, sine_at_probes
 from .methods import METHODS, cff_method, peak_method, sdof_method
-from .pipeline import (ProcessingResult, ProcessOptions, RevolutionOutput, StreamingProcessor,
-                       engine_orders_of, process_arrays)
+from .options import ProcessOptions, engine_orders_of
+from .pipeline import process_arrays
+from .results import ProcessingResult, RevolutionFit, RevolutionOutput
+from .streaming import StreamingProcessor
 from .prep import (PreparedData, PrepOptions, ResonanceRegion, locate_resonance, prepare, remove_offset,
                    smooth_revolutions, speed_adaptive_half_width)
 from .probes import LayoutCandidate, LayoutError, check_layout, condition_number, layout_report, rank_layouts
@@ -57,7 +62,7 @@ __all__ = [
     "resonance_errors", "resonance_report", "summary_table",
     "TravellingWaveSpectra", "probe_spectra", "fit_spectra", "identify_nd", "signed_nd",
     "condition_number", "LayoutCandidate", "rank_layouts",
-    "ProcessOptions", "ProcessingResult", "RevolutionOutput", "StreamingProcessor", "process_arrays",
+    "ProcessOptions", "ProcessingResult", "RevolutionFit", "RevolutionOutput", "StreamingProcessor", "process_arrays",
     "engine_orders_of",
     "NsvOptions", "NsvScan", "NsvDetection", "detect_nsv", "scan_blocks",
 ]

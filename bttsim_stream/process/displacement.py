@@ -36,6 +36,7 @@ revolution. Eq. 1 then uses the revolution-mean speed ``Omega_n = 2 pi / (OPR_n+
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -54,6 +55,7 @@ __all__ = [
     "btt_displacement",
     "compute_displacements",
     "displacements_from_phase",
+    "revolution_displacements",
     "identify_blades",
 ]
 
@@ -171,8 +173,7 @@ class RotorPhase:
         """Rotor angle since the revolution's OPR pulse at times ``t_s`` (axis 0 = revolution), rad."""
         t = np.asarray(t_s, dtype=float)
         ex = (slice(None),) + (None,) * (t.ndim - 1)
-        tau = t - self.opr_s[ex]
-        return tau * (self.omega0_rad_s[ex] + 0.5 * self.alpha_rad_s2[ex] * tau)
+        return _rotor_angle(t - self.opr_s[ex], self.omega0_rad_s[ex], self.alpha_rad_s2[ex])
 
     def time_at_angle(self, angle_rad: np.ndarray) -> np.ndarray:
         """Time at which the rotor angle model reaches ``angle_rad`` (axis 0 = revolution), s."""
@@ -184,9 +185,50 @@ class RotorPhase:
         """Time after the revolution's OPR pulse at which the model reaches ``angle_rad``, s."""
         a = np.asarray(angle_rad, dtype=float)
         ex = (slice(None),) + (None,) * (a.ndim - 1)
-        w = self.omega0_rad_s[ex]
-        # the stable root of w tau + alpha tau^2 / 2 = a (no cancellation as alpha -> 0)
-        return 2.0 * a / (w + np.sqrt(w * w + 2.0 * self.alpha_rad_s2[ex] * a))
+        return _delay_at_angle(a, self.omega0_rad_s[ex], self.alpha_rad_s2[ex])
+
+
+# The formulas of the rotor angle model, written once. Each works on arrays (one value per
+# revolution, broadcast) and on Python floats (the per-revolution fast path), with the same
+# floating-point operations in the same order, so that both paths agree bit for bit.
+
+def _rotor_angle(tau, w0, alpha, out=None):
+    """``tau (w0 + alpha tau / 2)``: the rotor angle ``tau`` s after the OPR pulse, rad."""
+    x = np.multiply(0.5 * alpha, tau, out=out)
+    x = np.add(w0, x, out=x)
+    return np.multiply(tau, x, out=x)
+
+
+def _delay_at_angle(a, w0, alpha, work=None, out=None):
+    """The time after the OPR pulse at which the angle reaches ``a``, s: the stable root
+    ``2 a / (w0 + sqrt(w0^2 + 2 alpha a))`` of ``w0 tau + alpha tau^2 / 2 = a`` (no
+    cancellation as alpha -> 0). ``work`` and ``out`` (may be ``a``): arrays to reuse."""
+    y = np.multiply(2.0 * alpha, a, out=work)
+    y = np.add(w0 * w0, y, out=y)
+    y = np.sqrt(y, out=y)
+    y = np.add(w0, y, out=y)
+    num = np.multiply(2.0, a, out=out)
+    return np.divide(num, y, out=num)
+
+
+def _acceleration(s, t):
+    """Acceleration of the quadratic angle through three OPR pulses, periods ``s`` then ``t``, rad/s^2."""
+    return 2.0 * TWO_PI * (s - t) / (t * s * (t + s))
+
+
+def _speed_at_pulse(alpha, t):
+    """Speed at the OPR pulse of a revolution of period ``t`` under ``alpha``, rad/s."""
+    return (TWO_PI - 0.5 * alpha * t * t) / t
+
+
+def _speed_at_first_pulse(alpha, t):
+    """:func:`_speed_at_pulse` of the first revolution (which takes the second one's ``alpha``)."""
+    return (TWO_PI - 0.5 * alpha * t ** 2) / t
+
+
+def _extrapolated_speed(last, before):
+    """Mean speed of the revolution after ``before``, ``last``: linear, rad/s."""
+    return 2.0 * last - before
 
 
 def mean_speed_from_opr(opr_s: np.ndarray) -> np.ndarray:
@@ -207,7 +249,7 @@ def mean_speed_from_opr(opr_s: np.ndarray) -> np.ndarray:
     if opr.ndim != 1 or opr.size < 2:
         raise ValueError("at least two OPR times are needed for a speed")
     om = TWO_PI / np.diff(opr)
-    last = 2.0 * om[-1] - om[-2] if om.size >= 2 else om[-1]
+    last = _extrapolated_speed(om[-1], om[-2]) if om.size >= 2 else om[-1]
     return np.append(om, last)
 
 
@@ -218,9 +260,9 @@ def _phase_coefficients(t_prev: np.ndarray, t_cur: np.ndarray) -> tuple[np.ndarr
     (previous pulse), with ``T = t_cur``, ``S = t_prev`` the periods; ``S`` NaN: linear.
     """
     s, t = np.asarray(t_prev, float), np.asarray(t_cur, float)
-    alpha = 2.0 * TWO_PI * (s - t) / (t * s * (t + s))
+    alpha = _acceleration(s, t)
     alpha = np.where(np.isfinite(alpha), alpha, 0.0)
-    return (TWO_PI - 0.5 * alpha * t * t) / t, alpha
+    return _speed_at_pulse(alpha, t), alpha
 
 
 def rotor_phase_from_opr(opr_s: np.ndarray) -> RotorPhase:
@@ -249,8 +291,35 @@ def rotor_phase_from_opr(opr_s: np.ndarray) -> RotorPhase:
     w0, alpha = _phase_coefficients(prev, period)
     if opr.size >= 2:
         alpha[0] = alpha[1]
-        w0[0] = (TWO_PI - 0.5 * alpha[0] * period[0] ** 2) / period[0]
+        w0[0] = _speed_at_first_pulse(alpha[0], period[0])
     return RotorPhase(opr_s=opr, omega0_rad_s=w0, alpha_rad_s2=alpha, omega_mean_rad_s=om)
+
+
+def _phase_row(opr_s: np.ndarray, row: int) -> tuple[float, float, float] | None:
+    """Row ``row`` of ``rotor_phase_from_opr(opr_s)`` for 2 or 3 pulses, as Python floats
+    ``(omega0, alpha, omega_mean)`` (the same operations as the array code); None when the
+    window is degenerate (repeated pulses: the array code handles it)."""
+    o = opr_s.tolist()
+    n = len(o)
+    try:
+        om = [TWO_PI / (o[j + 1] - o[j]) for j in range(n - 1)]  # mean_speed_from_opr
+        om.append(_extrapolated_speed(om[-1], om[-2]) if len(om) >= 2 else om[-1])
+        period = [TWO_PI / w for w in om]
+        if row == 0:  # the first revolution takes the second one's acceleration
+            alpha = _finite_or_zero(_acceleration(period[0], period[1])) if n >= 2 else 0.0
+            w0 = _speed_at_first_pulse(alpha, period[0])
+        else:
+            alpha = _finite_or_zero(_acceleration(period[row - 1], period[row]))
+            w0 = _speed_at_pulse(alpha, period[row])
+    except (ZeroDivisionError, OverflowError, IndexError):
+        return None
+    if not (math.isfinite(w0) and math.isfinite(alpha) and math.isfinite(om[row])):
+        return None
+    return w0, alpha, om[row]
+
+
+def _finite_or_zero(x: float) -> float:
+    return x if math.isfinite(x) else 0.0
 
 
 def calibrate_arrival_angles(phase: RotorPhase, toa_s: np.ndarray,
@@ -313,9 +382,21 @@ def _expected_delay(phase: RotorPhase, toa: np.ndarray, psi: np.ndarray) -> np.n
     """Time after each revolution's OPR pulse at which the rotor model reaches the
     representative ``psi + 2 pi k`` nearest to the measured angle of each TOA (``k = 0``
     where the TOA is missing), s."""
-    psi = psi[None]
-    k = np.round((phase.angle(toa) - psi) / TWO_PI)
-    return phase.delay_at_angle(psi + TWO_PI * np.where(np.isfinite(k), k, 0.0))
+    ex = (slice(None),) + (None,) * (toa.ndim - 1)
+    return _delay_to_nearest(toa - phase.opr_s[ex], phase.omega0_rad_s[ex], phase.alpha_rad_s2[ex], psi)
+
+
+def _delay_to_nearest(tau, w0, alpha, psi):
+    """:func:`_expected_delay` from the arrivals' times ``tau`` after their OPR pulse (a new
+    array, s), the phase ``w0``, ``alpha`` (broadcast against ``tau``) and ``psi``."""
+    x = _rotor_angle(tau, w0, alpha)
+    x -= psi
+    x /= TWO_PI
+    k = np.rint(x, out=x)  # np.round: the revolution number of the nearest representative
+    a = np.where(np.isfinite(k), k, 0.0)
+    a = np.multiply(TWO_PI, a, out=a)
+    a = np.add(psi, a, out=a)  # psi + 2 pi k
+    return _delay_at_angle(a, w0, alpha, work=x, out=a)
 
 
 def btt_displacement(omega_rad_s: np.ndarray, tip_radius_m: float, t_exp_s: np.ndarray,
@@ -437,10 +518,51 @@ def displacements_from_phase(phase: RotorPhase, toa_s: np.ndarray, arrival_angle
         Expected arrival times after the revolution's OPR pulse, s.
     """
     toa = np.asarray(toa_s, dtype=float)
-    tau_exp = _expected_delay(phase, toa, np.asarray(arrival_angles_rad, dtype=float))
     # times relative to the OPR pulse: no cancellation of the absolute time (130 s) in Eq. 1
     tau = toa - phase.opr_s[:, None, None]
+    tau_exp = _delay_to_nearest(tau, phase.omega0_rad_s[:, None, None], phase.alpha_rad_s2[:, None, None],
+                                np.asarray(arrival_angles_rad, dtype=float))
     return btt_displacement(phase.omega_mean_rad_s, tip_radius_m, tau_exp, tau), tau_exp
+
+
+def revolution_displacements(opr_s: np.ndarray, row: int, toa_s: np.ndarray, arrival_angles_rad: np.ndarray,
+                             tip_radius_m: float, out: np.ndarray) -> float:
+    """Eq. 1 displacements of one revolution, fast (the streaming processor's entry point).
+
+    Row ``row`` of ``displacements_from_phase(rotor_phase_from_opr(opr_s), ...)``, bit for
+    bit, with the rotor phase as Python floats and two work arrays: a few microseconds
+    instead of the array code's tens.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (2,) or (3,)
+        The OPR pulses of the revolution's phase model (:func:`rotor_phase_from_opr`), s.
+    row : int
+        The revolution's index in ``opr_s``.
+    toa_s : ndarray, shape (n_blades, n_probes)
+        The revolution's TOAs, s (NaN: missing).
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes)
+    tip_radius_m : float
+    out : ndarray, shape (n_blades, n_probes)
+        Written with the displacements, m.
+
+    Returns
+    -------
+    float
+        The revolution's mean speed (Eq. 1's Omega), rad/s.
+    """
+    phase = _phase_row(opr_s, row)
+    if phase is None:  # a degenerate OPR window (e.g. repeated pulses): the array code
+        rows = rotor_phase_from_opr(opr_s).rows(slice(row, row + 1))
+        d, _ = displacements_from_phase(rows, toa_s[None], arrival_angles_rad, tip_radius_m)
+        out[...] = d[0]
+        return float(rows.omega_mean_rad_s[0])
+    w0, alpha, om = phase
+    tau = np.subtract(toa_s, float(opr_s[row]))
+    d = _delay_to_nearest(tau, w0, alpha, arrival_angles_rad)
+    d -= tau
+    np.multiply(om * float(tip_radius_m), d, out=out)  # btt_displacement
+    return om
 
 
 def assign_extra_edges(toa_s: np.ndarray, edge_s: np.ndarray, *, tolerance: float = 0.5) -> np.ndarray:

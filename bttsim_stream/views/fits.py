@@ -1,7 +1,7 @@
 """Fits view: amplitude, phase and frequency of every engine order, against revolution and speed.
 
 Per engine order ``k`` (one ``BladeFits`` message per EO and revolution, a
-:class:`~bttsim_stream.process.pipeline.RevolutionFit`):
+:class:`~bttsim_stream.process.results.RevolutionFit`):
 
 * ``fit/eo_<k>/amp_pkpk_mm``, ``fit/eo_<k>/phase_deg``: one series per blade (phase wrapped
   to (-180, 180]); ``fit/eo_<k>/freq_hz``: ``f_BTT = EO Omega / (2 pi)`` (Eq. 17);
@@ -91,7 +91,7 @@ class FitsView:
         self.count = {"fits": 0, "truth": 0}
 
     def add(self, decoded) -> None:
-        """A ``fit`` message (:class:`~bttsim_stream.process.pipeline.RevolutionFit` body)."""
+        """A ``fit`` message (:class:`~bttsim_stream.process.results.RevolutionFit` body)."""
         if decoded.body.n_blades == self.n_blades:
             self._fits.append(decoded)
 

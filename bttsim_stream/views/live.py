@@ -18,7 +18,7 @@ import rerun as rr
 from ..bus import codec, keys
 from ..bus.stream import SequenceTracker
 from ..errors import BttsimError
-from ..process.pipeline import ProcessOptions, engine_orders_of
+from ..process.options import ProcessOptions, engine_orders_of
 from ._common import ViewOutput
 from .blueprint import build_blueprint
 from .campbell import CampbellView

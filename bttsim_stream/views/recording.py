@@ -12,7 +12,7 @@ import rerun as rr
 from ..bus import keys
 from ..bus.recording import read_recording
 from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
-from ..process.pipeline import ProcessOptions, engine_orders_of
+from ..process.options import ProcessOptions, engine_orders_of
 from .blueprint import build_blueprint
 from .live import LiveViews, MessageDecoder
 from .rotor import DEFAULT_EXAGGERATION

@@ -10,7 +10,7 @@ in us, y the ADC input in V (``range_lo_v + code * lsb_v``). Per shown revolutio
 * ``data/window`` -- the samples joined by a line, ``data/samples`` -- the samples;
 * ``data/level`` -- the trigger level (threshold; arming level of constant fraction and
   peak) and, for a constant-fraction trigger, the window's own level ``b + f (max - b)``
-  (:func:`~bttsim_stream.sim.signal.constant_fraction_level`);
+  (:func:`~bttsim_stream.triggers.constant_fraction_level`);
 * ``data/toa`` -- a vertical line at the published TOA (latched on the counter clock), none
   for a missing pulse;
 * ``data/note`` -- a label: revolution, blade, and "missing pulse" or the number of edges of
@@ -27,7 +27,7 @@ import math
 import numpy as np
 import rerun as rr
 
-from ..sim.signal import constant_fraction_level
+from ..triggers import constant_fraction_level
 from . import paths
 from ._common import BLUE, GREEN, ORANGE, RED, DARK, ViewOutput
 from ._plot2d import PlotFrame, ui

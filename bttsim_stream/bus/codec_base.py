@@ -1,0 +1,188 @@
+"""What the codec modules share: the header and decoded-message types, the decoders' limits,
+the wire helpers and the schema helpers (:mod:`.codec` and :mod:`.codec_results` build on it).
+
+Together these three modules are the only users of the generated protobuf code.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from google.protobuf import descriptor_pb2
+from google.protobuf.message import DecodeError
+
+from ..errors import BttsimError
+from . import keys as _keys
+from ._gen.bttsim.v1 import bttsim_pb2 as _pb
+
+
+__all__ = ["MAX_PAYLOAD_BYTES", "PROTO_FILE", "Header", "Decoded", "log_time_ns", "schema_name_for",
+           "file_descriptor_set"]
+
+#: Largest payload a decoder accepts, bytes.
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+#: Name of the schema file inside the descriptor (and path under ``schemas/``).
+PROTO_FILE = "bttsim/v1/bttsim.proto"
+_PACKAGE = "bttsim.v1"
+_MAX_NS = (1 << 63) - 1
+
+
+@dataclass(frozen=True, slots=True)
+class Header:
+    """The header every message carries.
+
+    Attributes
+    ----------
+    run_id : str
+    seq : int
+        Per-publisher, per-key sequence number (0, 1, 2, ...).
+    revolution : int
+        Revolution index, -1 where it does not apply.
+    t_s : float
+        Simulated time the message refers to, s.
+    """
+
+    run_id: str
+    seq: int
+    revolution: int = -1
+    t_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """A decoded message: its header and its body (the library dataclass of its type)."""
+
+    header: Header
+    body: Any
+
+
+# --------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------
+
+
+def log_time_ns(t_s: float) -> int:
+    """MCAP log time of a message: ``round(t_s * 1e9)`` clamped to ``[0, 2**63 - 1]``."""
+    t = float(t_s)
+    if not math.isfinite(t):
+        return 0 if t != math.inf else _MAX_NS
+    return min(max(int(round(t * 1e9)), 0), _MAX_NS)
+
+
+def _fill_header(h, run_id: str, seq: int, revolution: int, t_s: float) -> None:
+    h.run_id = run_id
+    h.seq = seq
+    h.revolution = revolution
+    h.t_s = t_s
+
+
+def _serialize(msg) -> bytes:
+    return msg.SerializeToString(deterministic=True)
+
+
+def _vec(values, name: str, n: int | None = None, dtype=float) -> np.ndarray:
+    arr = np.asarray(values, dtype=dtype)
+    if arr.ndim != 1 or (n is not None and arr.size != n):
+        want = f"({n},)" if n is not None else "1-D"
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    return arr
+
+
+def _parse(cls, payload, where: str | None):
+    name = cls.DESCRIPTOR.name
+    where = where or cls.DESCRIPTOR.full_name
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise BttsimError(f"{where}: {name} payload must be bytes, got {type(payload).__name__}")
+    size = len(payload)
+    if size > MAX_PAYLOAD_BYTES:
+        raise BttsimError(f"{where}: {name} payload of {size} bytes exceeds the "
+                          f"{MAX_PAYLOAD_BYTES} byte limit")
+    msg = cls()
+    try:
+        msg.ParseFromString(bytes(payload))
+    except (DecodeError, ValueError, RuntimeError) as exc:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        raise BttsimError(f"{where}: corrupt {name} ({text})") from None
+    if not msg.HasField("header"):
+        raise BttsimError(f"{where}: corrupt {name} (no header)")
+    return msg, where
+
+
+def _corrupt(where: str, msg, problem: str) -> BttsimError:
+    return BttsimError(f"{where}: corrupt {msg.DESCRIPTOR.name} ({problem})")
+
+
+def _header(h) -> Header:
+    return Header(run_id=h.run_id, seq=int(h.seq), revolution=int(h.revolution),
+                     t_s=float(h.t_s))
+
+
+def _array(values, dtype=np.float64) -> np.ndarray:
+    return np.array(values, dtype=dtype)
+
+
+def _check_len(where: str, msg, field: str, n: int, shape: str) -> None:
+    got = len(getattr(msg, field))
+    if got != n:
+        raise _corrupt(where, msg, f"{field} has {got} values, expected {n} for shape {shape}")
+
+
+def _check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
+    if key is None:
+        return
+    try:
+        info = _keys.parse_key(key)
+    except BttsimError:
+        return
+    if info.kind == kind and info.probe != msg.probe:
+        raise _corrupt(where, msg, f"probe {msg.probe} on the key of probe {info.probe}")
+
+
+# --------------------------------------------------------------------------------------
+# Schema helpers
+# --------------------------------------------------------------------------------------
+
+
+def schema_name_for(message_type: str) -> str:
+    """The MCAP schema name (full protobuf name) of a message type.
+
+    Parameters
+    ----------
+    message_type : str
+        ``"ToaBatch"`` or ``"bttsim.v1.ToaBatch"``.
+
+    Raises
+    ------
+    BttsimError
+        If the schema has no such message.
+    """
+    short = message_type.removeprefix(_PACKAGE + ".")
+    desc = _pb.DESCRIPTOR.message_types_by_name.get(short)
+    if desc is None:
+        raise BttsimError(f"unknown message type {message_type!r}")
+    return desc.full_name
+
+
+@functools.lru_cache(maxsize=1)
+def file_descriptor_set() -> bytes:
+    """The serialized ``FileDescriptorSet`` of ``bttsim/v1/bttsim.proto`` and its dependencies.
+
+    This is the MCAP schema data of every channel (schema encoding ``"protobuf"``).
+    """
+    fds = descriptor_pb2.FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd) -> None:
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        fd.CopyToProto(fds.file.add())
+
+    add(_pb.DESCRIPTOR)
+    return fds.SerializeToString(deterministic=True)
