@@ -14,7 +14,8 @@ from scipy.integrate import quad, solve_ivp
 
 from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
-from bttsim_stream.sim.modal import EnvelopeIntegrator, TipBasis, modal_forcing, quasi_steady_envelope
+from bttsim_stream.sim.forcing import modal_forcing
+from bttsim_stream.sim.modal import EnvelopeIntegrator, TipBasis, quasi_steady_envelope
 from bttsim_stream.sim.speed import RPM, SpeedProfile
 from bttsim_stream.sim.toa import stage_b
 
