@@ -17,8 +17,8 @@ from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, models_at_speeds
 from .forcing import modal_forcing
-from .modal import quasi_steady_envelope, tip_basis
-from .nsv import build_nsv
+from .modal import FixedModes, quasi_steady_envelope
+from .sources import excitation_sources
 from .speed import SpeedProfile, speed_profile_from_scenario
 
 __all__ = ["EULER_CHORD", "modal_response_bound", "TipAmplitudeBound", "tip_amplitude_bound", "check_tip_amplitude"]
@@ -179,7 +179,7 @@ def _tip_bound(model, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return deqv, np.max(mag, axis=1)
 
 
-def tip_amplitude_bound(scn, model, nsv=None) -> TipAmplitudeBound:
+def tip_amplitude_bound(scn, model, sources=None) -> TipAmplitudeBound:
     """Upper bounds of the run's tip response, per blade (the scenario's forces, its speed profile).
 
     Per mode, the envelope bound of :func:`modal_response_bound` (the
@@ -191,8 +191,9 @@ def tip_amplitude_bound(scn, model, nsv=None) -> TipAmplitudeBound:
     Non-synchronous forcing (:mod:`~bttsim_stream.sim.nsv`): the stall and broadband carriers
     are forced carriers like the engine orders and are bounded the same way. Flutter is
     self-excited (unbounded growth in linear theory); the simulator saturates it at its limit
-    cycle, so its bound is the limit cycle (``max(limit, seed)`` of ``[flutter]``). ``nsv``: the
-    simulator's :class:`~bttsim_stream.sim.nsv.NsvSetup` (built here when None).
+    cycle, so its bound is the limit cycle (``max(limit, seed)`` of ``[flutter]``). Each
+    excitation source gives its own terms (``bound_terms``); ``sources``: the simulator's
+    (:func:`~bttsim_stream.sim.sources.excitation_sources`, built here when None).
 
     A model with speed-dependent modes is bounded with its modes frozen at the profile's
     slowest and fastest speeds and at every Campbell crossing in between
@@ -218,28 +219,19 @@ def tip_amplitude_bound(scn, model, nsv=None) -> TipAmplitudeBound:
         deqv = np.max([p[0] for p in parts], axis=0)
         tip = np.max([p[1] for p in parts], axis=0)
         return TipAmplitudeBound(2.0 * deqv, tip, radius, proven=False)
-    deqv, tip = forced(model, *modal_forcing(model, scn.excitation))
-    if has_nsv:
-        basis = tip_basis(model.tip_shapes)
-        stagger = np.deg2rad(float(model.meta["stagger_deg"]))
-        if nsv is None:
-            v = basis.nodes[:, model.nominal_node, :]
-            nsv = build_nsv(scn, model, speed, basis, v[:, 1] + v[:, 2] / np.tan(stagger))
-        if nsv.eo.size:
-            d, u = forced(model, nsv.C, nsv.eo, nsv.omega)
-            deqv, tip = deqv + d, tip + u
-        if nsv.flutter is not None:  # the limit cycle, which the logistic growth never exceeds
-            f = nsv.flutter
-            r_max = max(f.limit_m, f.seed_m)
-            nodes = basis.nodes  # (r, n_tip, 3)
-            v = nodes[:, model.nominal_node, :]
-            deqv = deqv + r_max * np.abs(f.shape @ (v[:, 1] + v[:, 2] / np.tan(stagger)))
-            A = np.einsum("br,rnj->bnj", f.shape, nodes)  # (n_blades, n_tip, 3) complex
-            tip = tip + r_max * np.max(np.sqrt(np.sum(np.abs(A) ** 2, axis=2)), axis=1)
+    if sources is None:
+        modes = FixedModes(model)
+        v = modes.basis.nodes[:, model.nominal_node, :]
+        v_eqv = v[:, 1] + v[:, 2] / np.tan(np.deg2rad(float(model.meta["stagger_deg"])))
+        sources = excitation_sources(scn, model, speed, modes, v_eqv)
+    terms = [t for s in sources for t in s.bound_terms(lambda C, eo, omega: forced(model, C, eo, omega))]
+    deqv, tip = terms[0]
+    for d, u in terms[1:]:
+        deqv, tip = deqv + d, tip + u
     return TipAmplitudeBound(2.0 * deqv, tip, radius)
 
 
-def check_tip_amplitude(scn, model, nsv=None) -> TipAmplitudeBound:
+def check_tip_amplitude(scn, model, sources=None) -> TipAmplitudeBound:
     """Refuse a scenario whose tip motion could leave the linear model's validity.
 
     The bound of the zero-to-peak displacement of any tip node over the run
@@ -259,7 +251,7 @@ def check_tip_amplitude(scn, model, nsv=None) -> TipAmplitudeBound:
         One line naming the bound, the limit and the force to lower (or the speed), or the
         non-synchronous options that a speed-dependent model does not support.
     """
-    bound = tip_amplitude_bound(scn, model, nsv)
+    bound = tip_amplitude_bound(scn, model, sources)
     amp = float(np.max(bound.tip_0pk_m))
     if not amp <= bound.limit_m:
         has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled

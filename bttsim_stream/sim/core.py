@@ -267,7 +267,8 @@ class RunUpSimulator:
     def __init__(self, scn, model=None, *, chunk_revolutions: int | None = None, envelope_step_s: float = 2e-3,
                  initial: str | None = None, n_revolutions: int | None = None) -> None:
         self.scn = scn
-        self.model = m = load_scenario_model(scn) if model is None else model
+        self.model = load_scenario_model(scn) if model is None else model
+        m = self.model
         if np.any(m.damping_ratio >= 1.0):
             raise BttsimError("model: damping ratios must be < 1 (underdamped modes)")
         self.speed: SpeedProfile = speed_profile_from_scenario(scn)
@@ -291,7 +292,7 @@ class RunUpSimulator:
         self.sources = excitation_sources(scn, m, self.speed, modes, self._v_eqv)
         #: the scenario's non-synchronous vibration (:class:`~bttsim_stream.sim.nsv.NsvSetup`) or None
         self.nsv = next((s.nsv for s in self.sources if isinstance(s, NonSynchronous)), None)
-        check_tip_amplitude(scn, m, self.nsv)  # refuses non-synchronous options with speed-dependent modes
+        check_tip_amplitude(scn, m, self.sources)  # refuses non-synchronous options with speed-dependent modes
         forced = self._lay_out_carriers()
         initial = scn.speed.initial if initial is None else initial
         self.integrator = modes.integrator(forced, scn.excitation, self.speed, initial)

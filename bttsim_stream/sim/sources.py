@@ -78,6 +78,12 @@ class ExcitationSource(Protocol):
     def warnings(self, step_s: float, radius_m: float, speed) -> list[str]:
         """Warnings about the envelope grid step ``step_s`` for this source."""
 
+    def bound_terms(self, forced_bound) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Upper bounds of this source's response over the run, per blade: terms ``(d_eqv 0-pk
+        at P_nom, any tip node's displacement 0-pk)``, each (n_blades,), m, summed by
+        :func:`~bttsim_stream.sim.bounds.tip_amplitude_bound`; ``forced_bound(C, eo, omega)``
+        gives them for forced carriers."""
+
 
 class EngineOrderForcing:
     """Chirps at fixed engine orders with travelling-wave phases (paper Eq. 5-7): the scenario's
@@ -104,13 +110,18 @@ class EngineOrderForcing:
     def warnings(self, step_s, radius_m, speed) -> list[str]:
         return []
 
+    def bound_terms(self, forced_bound) -> list:
+        f = self.forced
+        return [forced_bound(f.C, f.eo, f.omega)]
+
 
 class NonSynchronous:
     """Rotating stall, broadband (forced carriers) and flutter (closed form): the scenario's
     non-synchronous vibration (:mod:`~bttsim_stream.sim.nsv`); truth: the ``nsv_*`` fields."""
 
-    def __init__(self, nsv: NsvSetup) -> None:
+    def __init__(self, nsv: NsvSetup, nodes: np.ndarray, v_eqv: np.ndarray) -> None:
         self.nsv = nsv
+        self.nodes, self.v_eqv = nodes, v_eqv  # tip basis (r, n_tip, 3); d_eqv at P_nom (r,)
         self.forced = Carriers(nsv.eo, nsv.omega, nsv.C)
         fw = nsv.flutter
         self.closed = NO_CARRIERS if fw is None else Carriers(np.array([0.0]), np.array([fw.omega]))
@@ -122,7 +133,7 @@ class NonSynchronous:
         if not modes.nonsynchronous:
             return None
         nsv = build_nsv(scn, model, speed, modes.basis, v_eqv)
-        return None if nsv is None else cls(nsv)
+        return None if nsv is None else cls(nsv, modes.basis.nodes, v_eqv)
 
     def closed_envelopes(self, t):
         if self.nsv.flutter is not None:
@@ -162,6 +173,20 @@ class NonSynchronous:
             return [f"[flutter]: growth rate {fw.sigma:.3g} /s is fast for the {step_s * 1e3:g} ms envelope "
                     f"grid; TOAs may differ from the exact ones by up to {err_m / tol_m * TRANSIENT_TOL_S:.1g} s"]
         return []
+
+    def bound_terms(self, forced_bound) -> list:
+        """Stall and broadband: forced carriers. Flutter: its limit cycle, which the logistic
+        growth never exceeds."""
+        nsv, terms = self.nsv, []
+        if nsv.eo.size:
+            terms.append(forced_bound(nsv.C, nsv.eo, nsv.omega))
+        if nsv.flutter is not None:
+            f = nsv.flutter
+            r_max = max(f.limit_m, f.seed_m)
+            A = np.einsum("br,rnj->bnj", f.shape, self.nodes)  # (n_blades, n_tip, 3) complex
+            terms.append((r_max * np.abs(f.shape @ self.v_eqv),
+                          r_max * np.max(np.sqrt(np.sum(np.abs(A) ** 2, axis=2)), axis=1)))
+        return terms
 
 
 #: The kinds of forcing, in carrier order: each ``from_scenario(scn, model, speed, modes, v_eqv)``
