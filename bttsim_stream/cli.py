@@ -36,7 +36,8 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_node_parser, add_web_arguments, run_parsed
-from .sim.core import check_tip_amplitude, load_scenario_model
+from .sim.bounds import check_tip_amplitude
+from .sim.core import load_scenario_model
 from .summary import build_summary, describe_exit
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the

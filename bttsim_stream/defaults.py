@@ -29,7 +29,7 @@ MAX_RPM = 1.0e6
 #: Most revolutions of one run (about 4 h at 4000 rpm; the default run has 5,400).
 MAX_REVOLUTIONS = 1_000_000
 #: Largest tip amplitude as a fraction of the tip radius: zero to peak, the upper bound of any
-#: tip node's displacement over the run (``bttsim_stream.sim.core.tip_amplitude_bound``). The
+#: tip node's displacement over the run (``bttsim_stream.sim.bounds.tip_amplitude_bound``). The
 #: modal model is linear (small displacements); beyond this a scenario is refused before
 #: anything is simulated.
 MAX_TIP_AMPLITUDE_FRACTION = 0.05

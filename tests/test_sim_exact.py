@@ -7,13 +7,13 @@ from scipy.optimize import brentq
 
 from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
+from bttsim_stream.sim.forcing import modal_forcing
 from bttsim_stream.sim.modal import (
     EnvelopeIntegrator,
     GridPoints,
     TipBasis,
     build_grid,
     chirp_integral,
-    modal_forcing,
     tip_basis,
 )
 from bttsim_stream.sim.speed import RPM, SpeedProfile

@@ -6,7 +6,8 @@ import pytest
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.model import build_model
 from bttsim_stream.scenario import Scenario, scenario_from_dict
-from bttsim_stream.sim.core import RunUpSimulator, check_tip_amplitude, collect
+from bttsim_stream.sim.bounds import check_tip_amplitude
+from bttsim_stream.sim.core import RunUpSimulator, collect
 
 WINDOW = {"speed": {"start_rpm": 2450.0, "segments": [{"duration_s": 10.0, "end_rpm": 2700.0}]}}
 
@@ -213,7 +214,8 @@ def test_tip_amplitude_bound_is_above_the_simulated_truth(case):
     import pathlib
 
     from bttsim_stream.scenario import load_scenario
-    from bttsim_stream.sim.core import load_scenario_model, tip_amplitude_bound
+    from bttsim_stream.sim.bounds import tip_amplitude_bound
+    from bttsim_stream.sim.core import load_scenario_model
 
     spec, factor = BOUND_CASES[case]
     if isinstance(spec, str):
@@ -233,7 +235,7 @@ def test_tip_amplitude_bound_is_above_the_simulated_truth(case):
 def test_euler_chord_is_the_longest_chord_of_the_cornu_spiral():
     from scipy.special import fresnel
 
-    from bttsim_stream.sim.modal import EULER_CHORD
+    from bttsim_stream.sim.bounds import EULER_CHORD
 
     x = np.linspace(-6.0, 6.0, 6001)
     s, c = fresnel(x)

@@ -27,7 +27,7 @@ from bttsim_stream.model import build_model, save_model
 from bttsim_stream.model.speed_modes import SpeedModes, check_speed_range, southwell_model, speed_modes
 from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
-from bttsim_stream.sim.modal import modal_forcing
+from bttsim_stream.sim.forcing import modal_forcing
 from bttsim_stream.sim.speed import RPM
 from bttsim_stream.sim.speed_modal import chirp_moments
 

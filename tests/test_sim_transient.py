@@ -16,7 +16,8 @@ from _reference import fixed_mode_motion, initial_state, newton_toas, tip_grid
 
 from bttsim_stream.scenario import scenario_from_dict
 from bttsim_stream.sim.core import RunUpSimulator, collect
-from bttsim_stream.sim.modal import EnvelopeIntegrator, TipBasis, modal_forcing, quasi_steady_envelope
+from bttsim_stream.sim.forcing import modal_forcing
+from bttsim_stream.sim.modal import EnvelopeIntegrator, TipBasis, quasi_steady_envelope
 from bttsim_stream.sim.speed import RPM, SpeedProfile
 
 RATE = 3000.0 / 130.0  # the paper's run-up, rpm/s

@@ -29,7 +29,7 @@ import numpy as np
 from ..model import build_model
 from ..scenario import Scenario, scenario_from_dict
 from ..sim.core import RunUpSimulator, collect
-from ..sim.modal import modal_forcing
+from ..sim.forcing import modal_forcing
 from ..sim.toa import stage_b
 from ._report import md_table, out_dir_mk, write_study
 

@@ -17,22 +17,20 @@ from typing import Iterator
 
 import numpy as np
 
-from ..defaults import MAX_TIP_AMPLITUDE_FRACTION
 from ..errors import BttsimError
 from ..model import build_model, load_model
-from ..model.speed_modes import check_speed_range, crossing_speeds, is_speed_dependent, models_at_speeds
-from .modal import (TRANSIENT_TOL_S, EnvelopeIntegrator, GridPoints, modal_forcing, modal_response_bound,
-                    tip_basis)
-from .nsv import build_nsv
-from .speed_modal import SpeedDependentIntegrator, speed_tip_basis
-from .signal import (Digitiser, LowFrequencyNoise, ProbeModel, PulseParameters, RawSignals, Trigger, apply_triggers,
-                     centrifugal_growth_m, pulse_parameters, synthesise)
+from ..model.speed_modes import is_speed_dependent
+from .bounds import check_tip_amplitude
+from .modal import FixedModes, GridPoints
+from .signal import RawSignals
+from .sources import Carriers, NonSynchronous, excitation_sources
 from .speed import SpeedProfile, speed_profile_from_scenario
-from .toa import (crossing_frame, eval_local, eval_planes, grid_crossings, hermite_in_place, hp_crossings,
-                  project_planes, stage_b)
+from .speed_modal import SpeedDependentModes
+from .stages import Acquired, Passages, acquisition_stages, stream, toa_method
+from .toa import crossing_frame, eval_planes, hermite_in_place, hp_crossings, project_planes, stage_b
 
 __all__ = ["CROSSINGS_PER_CHUNK", "RunInfo", "Truth", "RevolutionBatch", "RunUpSimulator", "load_scenario_model",
-           "TipAmplitudeBound", "tip_amplitude_bound", "check_tip_amplitude", "collect"]
+           "collect"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -244,152 +242,6 @@ def load_scenario_model(scn):
     return load_model(scn.model.source)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class TipAmplitudeBound:
-    """Upper bounds of a scenario's tip response over the whole run (:func:`tip_amplitude_bound`).
-
-    Attributes
-    ----------
-    deqv_pkpk_m : ndarray, shape (n_blades,)
-        Bound of the peak-to-peak ``d_eqv = d_tang + d_z / tan(eta_tip)`` (Eq. 3-4) at the
-        nominal sensing node P_nom, per blade, m: what the product reports as amplitude.
-    tip_0pk_m : ndarray, shape (n_blades,)
-        Bound of the zero-to-peak displacement magnitude (radial, tangential and axial) of any
-        tip node, per blade, m: the quantity held to :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION`
-        of the tip radius.
-    radius_m : float
-        Mean radius of P_nom, m.
-    proven : bool
-        True: a bound for the linear model (:func:`~bttsim_stream.sim.modal.modal_response_bound`).
-        False: a model with speed-dependent modes, whose bound is the largest over its modes
-        frozen at the profile's end speeds and Campbell crossings (an estimate).
-    """
-
-    deqv_pkpk_m: np.ndarray
-    tip_0pk_m: np.ndarray
-    radius_m: float
-    proven: bool = True
-
-    @property
-    def limit_m(self) -> float:
-        """Largest allowed zero-to-peak tip displacement, m (5 % of the tip radius)."""
-        return MAX_TIP_AMPLITUDE_FRACTION * self.radius_m
-
-    def describe(self) -> str:
-        """One line: what is bounded, on which basis, against which limit."""
-        word = "upper bound" if self.proven else "estimate, speed-dependent modes"
-        return (f"d_eqv at the nominal sensing node at most {np.max(self.deqv_pkpk_m) * 1e3:.3g} mm pk-pk, "
-                f"any tip node's displacement at most {np.max(self.tip_0pk_m) * 1e3:.3g} mm 0-pk "
-                f"({word}; limit {self.limit_m * 1e3:.3g} mm 0-pk, "
-                f"{MAX_TIP_AMPLITUDE_FRACTION:.0%} of the {self.radius_m * 1e3:.4g} mm tip radius)")
-
-
-def _tip_bound(model, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per blade: 0-pk bound of ``d_eqv`` at P_nom and of any tip node's displacement
-    magnitude from the modal bounds ``Q`` (n_modes,), summed over modes in absolute value."""
-    tip = np.asarray(model.tip_shapes, float)  # (n_modes, n_blades, n_tip, 3)
-    v = tip[:, :, model.nominal_node, :]
-    eqv = v[:, :, 1] + v[:, :, 2] / np.tan(np.deg2rad(float(model.meta["stagger_deg"])))  # Eq. 3-4
-    with np.errstate(invalid="ignore"):
-        deqv = np.where(Q[:, None] > 0, np.abs(eqv) * Q[:, None], 0.0).sum(axis=0)
-        mag = np.where(Q[:, None, None] > 0, np.linalg.norm(tip, axis=3) * Q[:, None, None], 0.0).sum(axis=0)
-    return deqv, np.max(mag, axis=1)
-
-
-def tip_amplitude_bound(scn, model, nsv=None) -> TipAmplitudeBound:
-    """Upper bounds of the run's tip response, per blade (the scenario's forces, its speed profile).
-
-    Per mode, the envelope bound of :func:`~bttsim_stream.sim.modal.modal_response_bound` (the
-    modal force ``|phi_force . F|`` summed over blades with the travelling-wave phases of
-    Eq. 5-7, times the SDOF amplification peak ``1 / (2 zeta sqrt(1 - zeta^2) w^2)``, or less
-    where a sweep or the distance to resonance caps it), times the mode's tip shape, summed over
-    modes and excitations in absolute value (triangle inequality).
-
-    Non-synchronous forcing (:mod:`~bttsim_stream.sim.nsv`): the stall and broadband carriers
-    are forced carriers like the engine orders and are bounded the same way. Flutter is
-    self-excited (unbounded growth in linear theory); the simulator saturates it at its limit
-    cycle, so its bound is the limit cycle (``max(limit, seed)`` of ``[flutter]``). ``nsv``: the
-    simulator's :class:`~bttsim_stream.sim.nsv.NsvSetup` (built here when None).
-
-    A model with speed-dependent modes is bounded with its modes frozen at the profile's
-    slowest and fastest speeds and at every Campbell crossing in between
-    (:func:`~bttsim_stream.model.speed_modes.crossing_speeds`), the largest kept: an estimate
-    (``proven`` False), since the modes move during the run.
-    """
-    speed = speed_profile_from_scenario(scn)
-    initial = scn.speed.initial
-    has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled
-    radius = float(np.mean(model.tip_ref[:, model.nominal_node, 0]))
-
-    def forced(m, C, eo, omega=None):
-        return _tip_bound(m, modal_response_bound(m.freq_hz, m.damping_ratio, C, eo, speed, omega, initial))
-
-    if is_speed_dependent(model):
-        if has_nsv:
-            raise BttsimError("[[rotating_stall]], [flutter] and [broadband] are not supported with speed-dependent "
-                              "modes ([model] centrifugal or a model file with speed arrays) yet")
-        check_speed_range(model, float(np.max(speed.omega)))
-        lo, hi = float(np.min(speed.omega)), float(np.max(speed.omega))
-        at = np.concatenate(([lo, hi], crossing_speeds(model, [e.engine_order for e in scn.excitation], lo, hi)))
-        parts = [forced(frozen, *modal_forcing(frozen, scn.excitation)) for frozen in models_at_speeds(model, at)]
-        deqv = np.max([p[0] for p in parts], axis=0)
-        tip = np.max([p[1] for p in parts], axis=0)
-        return TipAmplitudeBound(2.0 * deqv, tip, radius, proven=False)
-    deqv, tip = forced(model, *modal_forcing(model, scn.excitation))
-    if has_nsv:
-        basis = tip_basis(model.tip_shapes)
-        stagger = np.deg2rad(float(model.meta["stagger_deg"]))
-        if nsv is None:
-            v = basis.nodes[:, model.nominal_node, :]
-            nsv = build_nsv(scn, model, speed, basis, v[:, 1] + v[:, 2] / np.tan(stagger))
-        if nsv.eo.size:
-            d, u = forced(model, nsv.C, nsv.eo, nsv.omega)
-            deqv, tip = deqv + d, tip + u
-        if nsv.flutter is not None:  # the limit cycle, which the logistic growth never exceeds
-            f = nsv.flutter
-            r_max = max(f.limit_m, f.seed_m)
-            nodes = basis.nodes  # (r, n_tip, 3)
-            v = nodes[:, model.nominal_node, :]
-            deqv = deqv + r_max * np.abs(f.shape @ (v[:, 1] + v[:, 2] / np.tan(stagger)))
-            A = np.einsum("br,rnj->bnj", f.shape, nodes)  # (n_blades, n_tip, 3) complex
-            tip = tip + r_max * np.max(np.sqrt(np.sum(np.abs(A) ** 2, axis=2)), axis=1)
-    return TipAmplitudeBound(2.0 * deqv, tip, radius)
-
-
-def check_tip_amplitude(scn, model, nsv=None) -> TipAmplitudeBound:
-    """Refuse a scenario whose tip motion could leave the linear model's validity.
-
-    The bound of the zero-to-peak displacement of any tip node over the run
-    (:func:`tip_amplitude_bound`) must stay within
-    :data:`~bttsim_stream.defaults.MAX_TIP_AMPLITUDE_FRACTION` (5 %) of the tip radius. A
-    model with speed-dependent modes must also hold modes up to the profile's top speed
-    (:func:`~bttsim_stream.model.speed_modes.check_speed_range`).
-
-    Returns
-    -------
-    TipAmplitudeBound
-        The bounds (the pk-pk ``d_eqv`` at P_nom among them).
-
-    Raises
-    ------
-    BttsimError
-        One line naming the bound, the limit and the force to lower (or the speed), or the
-        non-synchronous options that a speed-dependent model does not support.
-    """
-    bound = tip_amplitude_bound(scn, model, nsv)
-    amp = float(np.max(bound.tip_0pk_m))
-    if not amp <= bound.limit_m:
-        has_nsv = bool(scn.rotating_stall) or scn.flutter.enabled or scn.broadband.enabled
-        forces = ", ".join(f"{e.amplitude_n:g}" for e in scn.excitation)
-        raise BttsimError(
-            f"[[excitation]] amplitude_n = {forces} N: the tip amplitude may reach {amp * 1e3:.3g} mm 0-pk (upper "
-            f"bound, any tip node), above {MAX_TIP_AMPLITUDE_FRACTION:.0%} of the tip radius "
-            f"({bound.limit_m * 1e3:.3g} mm of {bound.radius_m * 1e3:.4g} mm), where the linear modal model no "
-            f"longer holds: lower the force"
-            + (" (or the non-synchronous forcing, the flutter limit_amplitude_m)" if has_nsv else ""))
-    return bound
-
-
 class RunUpSimulator:
     """Simulate the scenario's run-up and yield :class:`RevolutionBatch` chunks.
 
@@ -417,80 +269,34 @@ class RunUpSimulator:
         self.scn = scn
         self.model = load_scenario_model(scn) if model is None else model
         m = self.model
-        if m.n_blades != scn.rotor.n_blades and scn.model.source != "builtin":
-            pass  # a user's model defines the blade count
         if np.any(m.damping_ratio >= 1.0):
             raise BttsimError("model: damping ratios must be < 1 (underdamped modes)")
         self.speed: SpeedProfile = speed_profile_from_scenario(scn)
-        seed = scn.run.seed
-        self._rng = {name: np.random.default_rng(np.random.SeedSequence([seed, i]))
-                     for i, name in enumerate(("probe", "jitter", "opr"))}
-        nb = m.n_blades
-        p = m.nominal_node
-        self.p = p
+        self.p = p = m.nominal_node
         self.stagger = np.deg2rad(float(m.meta["stagger_deg"]))
         probes = np.deg2rad(np.asarray(scn.probes.angles_deg, float))
-        err = np.deg2rad(scn.acquisition.probe_angle_error_deg) * self._rng["probe"].standard_normal(probes.size)
+        err = np.deg2rad(scn.acquisition.probe_angle_error_deg) * stream(scn.run.seed, 0).standard_normal(probes.size)
         self.probe_actual = probes + err
         self.theta_opr = np.deg2rad(scn.probes.opr_angle_deg)
         self.z_probe = scn.probes.axial_position_m
         self.tip_ref = m.tip_ref
-        z_nodes = m.tip_ref[..., 2]
-        if np.any(self.z_probe > z_nodes.max(axis=1)) or np.any(self.z_probe < z_nodes.min(axis=1)):
-            raise BttsimError(
-                f"[probes] axial_position_m = {self.z_probe * 1e3:.3f} mm lies outside the model's tip "
-                f"nodes (z {z_nodes.min() * 1e3:.3f} .. {z_nodes.max() * 1e3:.3f} mm)")
-        order = np.argsort(-z_nodes, axis=1)
-        if not np.all(order == np.arange(m.n_tip)):
-            raise BttsimError("model: tip nodes must be ordered from the trailing edge (z decreasing)")
+        _check_tip_nodes(m, self.z_probe)
         self.theta_p = m.tip_ref[:, p, 1]
         self.chunk = (int(chunk_revolutions) if chunk_revolutions is not None else
                       max(1, min(64, round(CROSSINGS_PER_CHUNK / (m.n_blades * probes.size)))))
         self.psi = np.mod(self.probe_actual[None, :] - self.theta_p[:, None] - self.theta_opr, TWO_PI)
-        C, eo = modal_forcing(m, scn.excitation)
-        initial = scn.speed.initial if initial is None else initial
-        speed_dependent = is_speed_dependent(m)
-        if speed_dependent:  # modes that follow the speed (centrifugal effects): their own path
-            self.basis, psi_at_speed = speed_tip_basis(m)
-        else:
-            self.basis = tip_basis(m.tip_shapes)
+        modes = SpeedDependentModes(m) if is_speed_dependent(m) else FixedModes(m)
+        self.basis = modes.basis
         v = self.basis.nodes[:, p, :]  # (r, 3)
-        v_eqv = v[:, 1] + v[:, 2] / np.tan(self.stagger)  # (r,): d_eqv at P_nom (Eq. 3-4)
-        # non-synchronous vibration: forced carriers through the recursion, flutter in closed form
-        self.nsv = None if speed_dependent else build_nsv(scn, m, self.speed, self.basis, v_eqv)
-        self._n_eo = eo.size
-        check_tip_amplitude(scn, m, self.nsv)  # refuses non-synchronous options with speed-dependent modes
-        omega = None
-        if self.nsv is not None:
-            C = np.concatenate([C, self.nsv.C], axis=1)
-            omega = np.concatenate([np.zeros(eo.size), self.nsv.omega])
-            eo = np.concatenate([eo, self.nsv.eo])
-        self._n_forced = eo.size  # carriers of the envelope recursion
-        if speed_dependent:
-            self.integrator = SpeedDependentIntegrator(m, scn.excitation, psi_at_speed, self.speed, initial=initial)
-        else:
-            self.integrator = EnvelopeIntegrator(m.freq_hz, m.damping_ratio, C, eo, self.basis,
-                                                 self.speed, initial=initial, omega=omega)
-        #: carrier phases ``EO_m phi(t) + omega_m t`` of every carrier (None: all omega 0)
-        self.eo, self.omega = eo, omega
-        if self.nsv is not None and self.nsv.flutter is not None:
-            self.eo = np.concatenate([eo, [0.0]])
-            self.omega = np.concatenate([omega, [self.nsv.flutter.omega]])
-        # shorter envelope steps where a free response is present (a start from rest, a speed knot)
-        radius = float(np.mean(m.tip_ref[:, p, 0]))
-        near = np.argsort(np.abs(m.tip_ref[..., 2] - self.z_probe), axis=1)[:, :4]  # candidate nodes
-        reach = radius * float(np.max(np.abs(self.theta_p[:, None] - np.take_along_axis(m.tip_ref[..., 1], near, 1))))
-        self.grid = GridPoints(self.speed, envelope_step_s,
-                               self.integrator.transient_grid(envelope_step_s, radius, reach))
-        self.h_env = envelope_step_s
-        if self.nsv is not None and self.nsv.flutter is not None:
-            fw = self.nsv.flutter  # cubic Hermite error of the logistic envelope, <= L sigma^4 h^4 / 384
-            err_m = fw.limit_m * fw.sigma**4 * envelope_step_s**4 / 384.0
-            tol_m = TRANSIENT_TOL_S * radius * float(np.min(self.speed.omega))
-            if err_m > 100.0 * tol_m:
-                msg = (f"[flutter]: growth rate {fw.sigma:.3g} /s is fast for the {envelope_step_s * 1e3:g} ms envelope "
-                       f"grid; TOAs may differ from the exact ones by up to {err_m / tol_m * TRANSIENT_TOL_S:.1g} s")
-                self.integrator.warnings.append(msg)
+        self._v_eqv = v[:, 1] + v[:, 2] / np.tan(self.stagger)  # (r,): d_eqv at P_nom (Eq. 3-4)
+        self.sources = excitation_sources(scn, m, self.speed, modes, self._v_eqv)
+        #: the scenario's non-synchronous vibration (:class:`~bttsim_stream.sim.nsv.NsvSetup`) or None
+        self.nsv = next((s.nsv for s in self.sources if isinstance(s, NonSynchronous)), None)
+        check_tip_amplitude(scn, m, self.sources)  # refuses non-synchronous options with speed-dependent modes
+        forced = self._lay_out_carriers()
+        initial = scn.speed.initial if initial is None else initial
+        self.integrator = modes.integrator(forced, scn.excitation, self.speed, initial)
+        self._build_grid(envelope_step_s)
         self._i_grid = 0
         self._buf_t: np.ndarray | None = None  # envelope grid points kept: [_lo, _hi)
         self._buf: np.ndarray | None = None
@@ -500,7 +306,6 @@ class RunUpSimulator:
         self.timing = {"envelopes_s": 0.0, "crossings_s": 0.0}
         total = int(np.floor((self.speed.angle(self.speed.duration_s) - self.theta_opr) / TWO_PI))
         self.n_revolutions = max(0, total if n_revolutions is None else min(total, n_revolutions))
-        self._v_eqv = v_eqv
         r = self.basis.nodes.shape[0]
         self._VT = np.ascontiguousarray(self.basis.nodes.reshape(r, -1).T)  # (nt * 3, r)
         # P_nom tangential, axial and d_eqv direction (Eq. 3-4)
@@ -519,16 +324,54 @@ class RunUpSimulator:
         # envelope integration block (global grid steps): longer for fewer responding modes
         n_act = max(int(self.integrator.active.size), 1)
         self._block = int(np.clip(2 ** int(np.log2(max(32768 // n_act, 1))), 64, 512))
-        acq = scn.acquisition
-        self._signal = _SignalChain(scn, probes.size, float(np.mean(m.tip_ref[:, p, 0]))) if acq.signal.enabled else None
-        self.info = RunInfo(
-            n_blades=nb, n_probes=probes.size, n_revolutions=self.n_revolutions,
+        self.toa_method = toa_method(scn.toa)
+        self.stages = acquisition_stages(scn, self.speed, m.tip_ref[:, p, 0])
+        self.info = self._run_info(probes)
+
+    def _lay_out_carriers(self) -> Carriers:
+        """Every source's forced carriers, then every source's closed-form ones: sets the carrier
+        phases ``eo``, ``omega`` (None: all 0) and each source's carrier indices; returns the
+        forced carriers (the envelope recursion's)."""
+        forced = [s.forced for s in self.sources]
+        closed = [s.closed for s in self.sources]
+        every = forced + closed
+        #: carrier phases ``EO_m phi(t) + omega_m t`` of every carrier (None: all omega 0)
+        self.eo = np.concatenate([c.eo for c in every])
+        self.omega = None
+        if any(c.omega is not None for c in every):
+            self.omega = np.concatenate([np.zeros(c.size) if c.omega is None else c.omega for c in every])
+        n_forced = sum(c.size for c in forced)
+        self._n_forced = n_forced  # carriers of the envelope recursion
+        starts_f = np.cumsum([0] + [c.size for c in forced])
+        starts_c = n_forced + np.cumsum([0] + [c.size for c in closed])
+        self._rows = [_rows(np.r_[starts_f[k]:starts_f[k + 1], starts_c[k]:starts_c[k + 1]])
+                      for k in range(len(self.sources))]
+        C = np.concatenate([c.C for c in forced], axis=1)
+        omega = None if self.omega is None else self.omega[:n_forced]
+        return Carriers(self.eo[:n_forced], omega, C)
+
+    def _build_grid(self, step_s: float) -> None:
+        """The envelope grid: shorter steps where a free response is present (a start from
+        rest, a speed knot); the sources' warnings about the step join the integrator's."""
+        m = self.model
+        radius = float(np.mean(m.tip_ref[:, self.p, 0]))
+        near = np.argsort(np.abs(m.tip_ref[..., 2] - self.z_probe), axis=1)[:, :4]  # candidate nodes
+        reach = radius * float(np.max(np.abs(self.theta_p[:, None] - np.take_along_axis(m.tip_ref[..., 1], near, 1))))
+        self.grid = GridPoints(self.speed, step_s, self.integrator.transient_grid(step_s, radius, reach))
+        self.h_env = step_s
+        for s in self.sources:
+            self.integrator.warnings.extend(s.warnings(step_s, radius, self.speed))
+
+    def _run_info(self, probes: np.ndarray) -> RunInfo:
+        m, scn, p = self.model, self.scn, self.p
+        return RunInfo(
+            n_blades=m.n_blades, n_probes=probes.size, n_revolutions=self.n_revolutions,
             probe_angles_rad=probes, probe_axial_m=self.z_probe,
             tip_radius_m=float(np.mean(m.tip_ref[:, p, 0])), opr_angle_rad=float(self.theta_opr),
-            clock_hz=acq.clock_hz, stagger_deg=float(m.meta["stagger_deg"]),
+            clock_hz=scn.acquisition.clock_hz, stagger_deg=float(m.meta["stagger_deg"]),
             engine_orders=tuple(int(e.engine_order) for e in scn.excitation),
             nodal_diameters=tuple(int(e.nodal_diameter) for e in scn.excitation),
-            toa_method=scn.toa.method, duration_s=self.speed.duration_s, seed=seed, rig=scn.run.rig,
+            toa_method=scn.toa.method, duration_s=self.speed.duration_s, seed=scn.run.seed, rig=scn.run.rig,
             sensing_angles_rad=self.theta_p.copy(),
             family_freq_hz=None if m.campbell_freq_hz is None else np.array(m.campbell_freq_hz, float),
             **_family_curves(m), speed_range_rpm=self.speed.rpm_range())
@@ -565,12 +408,8 @@ class RunUpSimulator:
             # integrator's matrix products straight into the buffer, one contiguous block each
             planes = self._buf[:, hi:hi + n_new].reshape(2, n_exc, 2, n_new, -1)
             self.integrator.advance(t_blk, out=planes[:, :self._n_forced], first=first)
-            if self._n_forced < n_exc:  # the flutter carrier's closed-form envelope
-                G, dG = self.nsv.flutter.envelope(t_blk[first:])
-                for g, X in enumerate((G, dG)):
-                    X = X.reshape(X.shape[0], -1)
-                    planes[g, n_exc - 1, 0] = X.real
-                    planes[g, n_exc - 1, 1] = X.imag
+            if self._n_forced < n_exc:  # closed-form carriers (flutter): the sources' own envelopes
+                self._closed_envelopes(t_blk[first:], planes)
             self._buf_t[hi:hi + n_new] = t_blk[first:]
             self._hi = hi + n_new
             self._i_grid = stop
@@ -579,6 +418,17 @@ class RunUpSimulator:
         lo, hi = self._lo, self._hi
         self._lo = max(lo, lo + int(np.searchsorted(self._buf_t[lo:hi], t_start, side="right")) - 2)
         return self._buf_t[self._lo:hi], self._buf, self._lo
+
+    def _closed_envelopes(self, t: np.ndarray, planes: np.ndarray) -> None:
+        """Write the closed-form carriers' envelopes at ``t`` into ``planes`` (see :meth:`_envelopes`)."""
+        j = self._n_forced
+        for s in self.sources:
+            for G, dG in s.closed_envelopes(t):
+                for g, X in enumerate((G, dG)):
+                    X = X.reshape(X.shape[0], -1)
+                    planes[g, j, 0] = X.real
+                    planes[g, j, 1] = X.imag
+                j += 1
 
     def _reserve(self, n: int, t_start: float) -> None:
         """Room for ``n`` more grid points: when the buffer is full, the points still needed
@@ -615,9 +465,10 @@ class RunUpSimulator:
            Eq. 12-14) and the truth then evaluate short complex cubics only.
         4. Stage B (Eq. 9-11); crossings whose pair did not straddle the probe are redone
            with every node.
+        5. The truth at the TOAs (every excitation source its own part), then the acquisition
+           stages.
         """
-        m, scn = self.model, self.scn
-        nb, npr, nt, p = m.n_blades, self.psi.shape[1], m.n_tip, self.p
+        nb, npr = self.model.n_blades, self.psi.shape[1]
         nr = revs.size
         shape = (nr, nb, npr)
         opr_edges = self.speed.time_at_angle(self.theta_opr + TWO_PI * np.arange(revs[0], revs[-1] + 2))
@@ -629,6 +480,30 @@ class RunUpSimulator:
         env_t, GD, lo = self._envelopes(float(t_r.min()) - margin, float(t_r.max()) + margin)
         self.timing["envelopes_s"] += time.process_time() - t_clock
         t_clock = time.process_time()
+        cx = self._at_rigid_times(env_t, GD, lo, t_r, blade)
+        toa, bracketed, residual = self._toas(cx, phi_c, t_r, blade, z_ref_t)
+        X, cr, ci = self._truth_envelopes(cx, toa, t_r)
+        d_tang = np.sum(X[:, 0, 1] * cr + X[:, 0, 0] * ci, axis=0)
+        d_z = np.sum(X[:, 1, 1] * cr + X[:, 1, 0] * ci, axis=0)
+        d_eqv = d_tang + d_z / np.tan(self.stagger)
+        omega_mean = TWO_PI / np.diff(opr_edges)
+        fields = {}
+        for s, rows in zip(self.sources, self._rows):
+            fields.update(s.truth(X[rows, 2], omega_mean, shape))
+        r_p = self.tip_ref[:, self.p, 0][None, :, None]
+        d_eq1 = omega_mean[:, None, None] * r_p * (t_r.reshape(shape) - toa.reshape(shape))
+        truth = Truth(opr_s=opr_edges[:-1], toa_s=toa.reshape(shape), t_exp_s=t_r.reshape(shape),
+                      d_eqv_m=d_eqv.reshape(shape), d_tang_m=d_tang.reshape(shape),
+                      d_z_m=d_z.reshape(shape), d_eq1_m=d_eq1, omega_mean=omega_mean, **fields)
+        out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape),
+                            Passages(toa, blade, lambda: self._radial_at_toa(cx, toa, cr, ci)))
+        self.timing["crossings_s"] += time.process_time() - t_clock
+        return out
+
+    def _at_rigid_times(self, env_t, GD, lo, t_r, blade) -> _Crossings:
+        """Each crossing's blade envelope as cubic Hermite coefficients, and the tip-node
+        displacements and velocities at its rigid time ``t_r`` (step 2 of :meth:`_chunk`)."""
+        nb, nt = self.model.n_blades, self.model.n_tip
         # 2. Hermite coefficients of each crossing's blade envelope, crossings last
         i = _clip_index(np.searchsorted(env_t, t_r, side="right") - 1, env_t.size - 2)
         t0 = env_t[i]
@@ -639,7 +514,7 @@ class RunUpSimulator:
         idx = ((lo + i) * (nb * r) + blade * r) + self._gather_off  # (2, 2, n_exc, r, 2, n)
         CPr = hermite_in_place(np.take(GD.reshape(-1), idx).reshape(4, n_exc, r, 2, -1), env_t[i + 1] - t0)
         frame = crossing_frame(self.speed, t0, t_r, self.eo, self.omega)
-        phi_r, om_r = frame.phi_ref, frame.om_ref
+        om_r = frame.om_ref
         tau = t_r - t0
         c0, s0 = frame.rot[:, 0, None, :], frame.rot[:, 1, None, :]  # (n_exc, 1, n)
         Gr = eval_planes(CPr, tau)  # (n_exc, r, 2, n) at t_r, no carrier
@@ -667,6 +542,17 @@ class RunUpSimulator:
             w_r, dw_r = w_r[0], dw_r[0]
         u_r = (self._VT @ w_r).reshape(nt, 3, -1)  # (nt, 3, n) at t_r
         du_r = (self._VT @ dw_r).reshape(nt, 3, -1)
+        return _Crossings(CPr, t0, frame, u_r, du_r)
+
+    def _toas(self, cx: _Crossings, phi_c, t_r, blade, z_ref_t):
+        """Stage A for the two candidate nodes of every crossing, stage B between them, and
+        every node where they did not straddle the probe (steps 3-4 of :meth:`_chunk`).
+
+        Returns the TOAs (n,), whether a pair bracketed the probe (n,) and the largest final
+        Newton step."""
+        nt, scn = self.model.n_tip, self.scn
+        frame, CPr, u_r, du_r = cx.frame, cx.CPr, cx.u_r, cx.du_r
+        phi_r, om_r = frame.phi_ref, frame.om_ref
         dz_est = z_ref_t + u_r[:, 2]
         dz_est -= self.z_probe  # (nt, n)
         k = _clip_index(np.sum(dz_est >= 0, axis=0) - 1, nt - 2)  # dz >= 0 for nodes <= k (Eq. 10)
@@ -699,65 +585,27 @@ class RunUpSimulator:
                                              om_r[bad], u_r[..., bad], du_r[..., bad])
             residual = max(residual, res_b)
             toa[bad], _, bracketed[bad] = stage_b(t_b.T, dz_b.T, scn.toa.axial_interpolation)
-        # truth at the TOA: P_nom displacements, d_eqv (Eq. 3-4), Eq. 1 with exact t_exp;
-        # pk-pk envelope of d_eqv: 2 sum_m |G_eqv,m(t_TOA)|
-        P_t = project_planes(CPr, self._V_truth)[:, :, 0]  # (4, n_exc, 3, 2, n): tang, axial, eqv
-        X = eval_planes(P_t, toa - t0)  # (n_exc, 3, 2, n)
+        return toa, bracketed, residual
+
+    def _truth_envelopes(self, cx: _Crossings, toa, t_r):
+        """P_nom's tangential, axial and ``d_eqv`` (Eq. 3-4) envelopes at the TOAs, shape
+        (n_exc, 3, 2 [re, im], n), and every carrier's ``exp(i theta(t_TOA))`` as real and
+        imaginary parts (n_exc, n)."""
+        frame = cx.frame
+        P_t = project_planes(cx.CPr, self._V_truth)[:, :, 0]  # (4, n_exc, 3, 2, n): tang, axial, eqv
+        X = eval_planes(P_t, toa - cx.t0)  # (n_exc, 3, 2, n)
         th = self.eo[:, None] * frame.angle_change(self.speed, toa[None, :])[0]  # (n_exc, n)
         if self.omega is not None:
             th += self.omega[:, None] * (toa - t_r)[None, :]
         cd, sd = np.cos(th), np.sin(th)
         c0, s0 = frame.rot[:, 0], frame.rot[:, 1]
-        cr, ci = cd * c0 - sd * s0, sd * c0 + cd * s0  # exp(i EO phi(t_TOA))
-        d_tang = np.sum(X[:, 0, 1] * cr + X[:, 0, 0] * ci, axis=0)
-        d_z = np.sum(X[:, 1, 1] * cr + X[:, 1, 0] * ci, axis=0)
-        d_eqv = d_tang + d_z / np.tan(self.stagger)
-        sig = None
-        if self._signal is not None:  # radial displacement of P_nom at the TOA: the tip clearance
-            X_r = eval_planes(project_planes(CPr, self.basis.nodes[:, p:p + 1, 0:1])[:, :, 0], toa - t0)
-            d_rad = np.sum(X_r[:, 0, 1] * cr + X_r[:, 0, 0] * ci, axis=0)
-            probe_of = np.tile(np.arange(npr), nr * nb)
-            sig = self._signal(toa, blade, probe_of, d_rad, self.speed.speed(toa), self.tip_ref[blade, p, 0])
-        ne = self._n_eo
-        amp = 2.0 * np.sum(np.hypot(X[:ne, 2, 0], X[:ne, 2, 1]), axis=0)
-        omega_mean = TWO_PI / np.diff(opr_edges)
-        nsv_truth = {} if self.nsv is None else self._nsv_truth(X[ne:, 2], omega_mean, shape)
-        r_p = self.tip_ref[:, p, 0][None, :, None]
-        d_eq1 = omega_mean[:, None, None] * r_p * (t_r.reshape(shape) - toa.reshape(shape))
-        pkpk = amp.reshape(shape).max(axis=2)
-        truth = Truth(opr_s=opr_edges[:-1], toa_s=toa.reshape(shape), t_exp_s=t_r.reshape(shape),
-                      d_eqv_m=d_eqv.reshape(shape), d_tang_m=d_tang.reshape(shape),
-                      d_z_m=d_z.reshape(shape), d_eq1_m=d_eq1, d_eqv_pkpk_m=pkpk,
-                      omega_mean=omega_mean, **nsv_truth)
-        out = self._acquire(revs, truth, float(residual), bracketed.reshape(shape), sig)
-        self.timing["crossings_s"] += time.process_time() - t_clock
-        return out
+        return X, cd * c0 - sd * s0, sd * c0 + cd * s0  # exp(i EO phi(t_TOA))
 
-    def _nsv_truth(self, X, omega_mean, shape) -> dict:
-        """The ``nsv_*`` fields of :class:`Truth` from the NSV carriers' ``d_eqv`` envelopes
-        ``X`` (n_nsv_carriers, 2 [re, im], n) at the TOAs."""
-        comps = self.nsv.components
-        nr, nc = shape[0], len(comps)
-        freq, amp, rms = np.zeros((nr, nc)), np.zeros((nr, nc)), np.zeros((nr, nc))
-        nd = np.zeros((nr, nc), np.int64)
-        band = np.zeros((nr, nc, 2))
-        p2 = (X[:, 0] ** 2 + X[:, 1] ** 2).reshape(X.shape[0], nr, -1)  # |G_eqv|^2 per carrier, arrival
-        for j, c in enumerate(comps):
-            idx = list(c.carriers)
-            ms = 0.5 * np.sum(p2[idx], axis=0)  # mean square of d_eqv per arrival (incommensurate lines)
-            rms[:, j] = np.sqrt(np.mean(ms, axis=1))
-            if c.kind == "broadband":
-                freq[:, j] = c.omega / TWO_PI
-                amp[:, j] = 2.0 * np.sqrt(2.0) * rms[:, j]
-                band[:, j] = c.band_hz
-                continue
-            amp[:, j] = 2.0 * np.sqrt(np.max(p2[idx[0]], axis=1))
-            rate = c.eo * omega_mean + c.omega  # rad/s in the rotor frame
-            freq[:, j] = np.abs(rate) / TWO_PI
-            nd[:, j] = np.where(rate < 0, -c.nodal_diameter, c.nodal_diameter)
-        kind = np.broadcast_to(np.array([c.kind for c in comps]), (nr, nc)).copy()
-        return {"nsv_kind": kind, "nsv_freq_hz": freq, "nsv_nd": nd, "nsv_amp_pkpk_m": amp, "nsv_rms_m": rms,
-                "nsv_band_hz": band}
+    def _radial_at_toa(self, cx: _Crossings, toa, cr, ci) -> np.ndarray:
+        """Radial displacement of P_nom at the TOAs, m (n,): the tip clearance's change."""
+        p = self.p
+        X_r = eval_planes(project_planes(cx.CPr, self.basis.nodes[:, p:p + 1, 0:1])[:, :, 0], toa - cx.t0)
+        return np.sum(X_r[:, 0, 1] * cr + X_r[:, 0, 0] * ci, axis=0)
 
     def _chunk_pattern(self, nr: int):
         """The blade of every crossing of ``nr`` revolutions, shape (n,), and the blades'
@@ -791,48 +639,65 @@ class RunUpSimulator:
         # first-order start: rigid node time corrected by the deflection and its rate at t_r
         t_start = t_r - (delta - target_rel) / (om_r + ddelta)
         t_det, u, residual = hp_crossings(lm, self.speed, target_rel, rad, t_start)
-        method = self.scn.toa.method
-        if method in ("AD", "PAD"):
-            t_det = grid_crossings(lm, self.speed, target_rel, rad, t_det, self.scn.toa.grid_step_s, method)
-            u, _, _, _ = eval_local(lm, self.speed, t_det, derivative=False)
+        t_det, u = self.toa_method.refine(lm, self.speed, target_rel, rad, t_det, u)
         dz = z_ref + u[:, 2] - self.z_probe
         return t_det, dz, residual
 
-    def _acquire(self, revs, truth: Truth, residual: float, bracketed, sig=None) -> RevolutionBatch:
-        acq = self.scn.acquisition
-        toa = truth.toa_s.copy() if sig is None else sig[0].reshape(truth.toa_s.shape)
-        opr = truth.opr_s.copy()
-        if acq.trigger_jitter_s > 0:
-            toa += acq.trigger_jitter_s * self._rng["jitter"].standard_normal(toa.shape)
-        if acq.opr_jitter_s > 0:
-            opr += acq.opr_jitter_s * self._rng["opr"].standard_normal(opr.shape)
-        toa_ticks = opr_ticks = None
-        extra_t = None if sig is None else sig[5]
-        extra_ticks = None
-        if acq.clock_hz > 0:
-            if sig is None:
-                toa_ticks = np.floor(toa * acq.clock_hz).astype(np.int64)
-            else:  # the counter latches the trigger; no pulse: tick -1 and TOA NaN
-                found = np.isfinite(toa)
-                toa_ticks = np.where(found, np.floor(np.where(found, toa, 0.0) * acq.clock_hz), -1).astype(np.int64)
-            opr_ticks = np.floor(opr * acq.clock_hz).astype(np.int64)
-            if sig is not None:
-                extra_ticks = np.floor(extra_t * acq.clock_hz).astype(np.int64)
-                extra_t = extra_ticks / acq.clock_hz
-            toa = toa_ticks / acq.clock_hz
-            if sig is not None:
-                toa[toa_ticks < 0] = np.nan
-            opr = opr_ticks / acq.clock_hz
-        extra = {} if sig is None else {"n_edges": sig[1].reshape(toa.shape), "clearance_m": sig[2].reshape(toa.shape),
-                                        "signal": sig[3], "extra_passage": sig[4], "extra_toa_s": extra_t,
-                                        "extra_toa_ticks": extra_ticks}
-        return RevolutionBatch(revolution=revs.astype(np.int64), opr_s=opr, toa_s=toa,
-                               opr_ticks=opr_ticks, toa_ticks=toa_ticks, truth=truth,
-                               residual_s=residual, bracketed=bracketed, **extra)
+    def _acquire(self, revs, truth: Truth, residual: float, bracketed, passages: Passages) -> RevolutionBatch:
+        """The batch as acquired: the exact TOAs and OPR times through every acquisition stage."""
+        acq = Acquired(toa_s=truth.toa_s.copy(), opr_s=truth.opr_s.copy())
+        for stage in self.stages:
+            stage.apply(acq, passages)
+        return RevolutionBatch(revolution=revs.astype(np.int64), opr_s=acq.opr_s, toa_s=acq.toa_s,
+                               opr_ticks=acq.opr_ticks, toa_ticks=acq.toa_ticks, truth=truth,
+                               residual_s=residual, bracketed=bracketed, n_edges=acq.n_edges,
+                               clearance_m=acq.clearance_m, signal=acq.signal, extra_passage=acq.extra_passage,
+                               extra_toa_s=acq.extra_toa_s, extra_toa_ticks=acq.extra_toa_ticks)
 
     def __iter__(self) -> Iterator[RevolutionBatch]:
         for n0 in range(0, self.n_revolutions, self.chunk):
             yield self._chunk(np.arange(n0, min(n0 + self.chunk, self.n_revolutions)))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Crossings:
+    """A batch's crossings at their rigid times ``t_r`` (crossings on the last axis).
+
+    Attributes
+    ----------
+    CPr : ndarray, shape (4, n_exc, r, 2, n)
+        Cubic Hermite coefficients of each crossing's blade envelope from grid time ``t0``.
+    t0 : ndarray, shape (n,)
+    frame : CrossingFrame
+        Carrier rotation and rotor phase at ``t_r`` (:func:`~bttsim_stream.sim.toa.crossing_frame`).
+    u_r, du_r : ndarray, shape (n_tip, 3, n)
+        Tip-node displacements and velocities at ``t_r``.
+    """
+
+    CPr: np.ndarray
+    t0: np.ndarray
+    frame: object
+    u_r: np.ndarray
+    du_r: np.ndarray
+
+
+def _check_tip_nodes(model, z_probe: float) -> None:
+    """The probe's axial position within the tip nodes, which run from the trailing edge."""
+    z_nodes = model.tip_ref[..., 2]
+    if np.any(z_probe > z_nodes.max(axis=1)) or np.any(z_probe < z_nodes.min(axis=1)):
+        raise BttsimError(
+            f"[probes] axial_position_m = {z_probe * 1e3:.3f} mm lies outside the model's tip "
+            f"nodes (z {z_nodes.min() * 1e3:.3f} .. {z_nodes.max() * 1e3:.3f} mm)")
+    order = np.argsort(-z_nodes, axis=1)
+    if not np.all(order == np.arange(model.n_tip)):
+        raise BttsimError("model: tip nodes must be ordered from the trailing edge (z decreasing)")
+
+
+def _rows(idx: np.ndarray):
+    """Carrier indices as a slice when they run without a gap (a view, not a copy)."""
+    if idx.size and np.all(np.diff(idx) == 1):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
 
 
 def _family_curves(model) -> dict:
@@ -885,63 +750,3 @@ def collect(batches) -> RevolutionBatch:
                                [b.extra_passage + off for b, off in zip(batches, np.cumsum(
                                    [0] + [b.toa_s.size for b in batches[:-1]]))]),
                            extra_toa_s=cat(lambda b: b.extra_toa_s), extra_toa_ticks=cat(lambda b: b.extra_toa_ticks))
-
-
-class _SignalChain:
-    """The scenario's ``[acquisition.signal]``: exact passages in, triggered TOAs out.
-
-    Random streams of their own (``SeedSequence([seed, 3])`` for the white noise,
-    ``[seed, 4]`` for the low-frequency noise), so the other acquisition errors draw what
-    they drew before; the white noise is drawn passage by passage, so the TOAs do not
-    depend on how revolutions are batched.
-    """
-
-    def __init__(self, scn, n_probes: int, radius_m: float) -> None:
-        sig, seed = scn.acquisition.signal, scn.run.seed
-        self.sig = sig
-
-        def per_probe(v):
-            return (v,) * n_probes if isinstance(v, str) else tuple(v)
-
-        self.probes = [ProbeModel(kind=k, diameter_m=sig.spot_diameter_m if k == "optical" else sig.electrode_diameter_m,
-                                  tip_thickness_m=sig.tip_thickness_m,
-                                  reference_clearance_m=sig.reference_clearance_m,
-                                  height_v=sig.height_v, fringe_factor=sig.fringe_factor,
-                                  bandwidth_hz=sig.bandwidth_hz) for k in per_probe(sig.probe_type)]
-        self.triggers = [Trigger(kind=k, level_v=sig.level_v, hysteresis_v=sig.hysteresis_v, edge=sig.edge,
-                                 fraction=sig.fraction) for k in per_probe(sig.trigger)]
-        self.dig = Digitiser(sample_rate_hz=sig.sample_rate_hz, bits=sig.bits, range_lo_v=sig.range_lo_v,
-                             range_hi_v=sig.range_hi_v, noise_v=sig.noise_v, lf_noise_v=sig.lf_noise_v,
-                             lf_corner_hz=sig.lf_corner_hz, offset_v=sig.offset_v,
-                             offset_drift_v_per_s=sig.offset_drift_v_per_s, gain_drift_per_s=sig.gain_drift_per_s)
-        self.rng = np.random.default_rng(np.random.SeedSequence([seed, 3]))
-        self.lf = (LowFrequencyNoise(sig.lf_noise_v, sig.lf_corner_hz, n_probes,
-                                     np.random.default_rng(np.random.SeedSequence([seed, 4])))
-                   if sig.lf_noise_v > 0 else None)
-        self.radius_m = radius_m
-        self.tau_s = np.array([p.tau_s for p in self.probes])
-
-    def __call__(self, toa, blade, probe, d_rad_m, omega, radius_m):
-        """Triggered TOAs, edge counts and clearances of passages (all shape (n,)), their
-        :class:`RawSignals` when the scenario publishes them (else None), and the later edges
-        of double pulses (passage, time)."""
-        sig = self.sig
-        growth = centrifugal_growth_m(omega, self.radius_m, sig.density_kg_m3, sig.youngs_modulus_pa)
-        clearance = sig.clearance_m - growth - d_rad_m
-        speed = omega * (radius_m + growth + d_rad_m)
-        height = np.empty(toa.size)
-        half = np.empty(toa.size)
-        scale = np.empty(toa.size)
-        for j, pm in enumerate(self.probes):
-            cols = probe == j
-            pp = pulse_parameters(pm, clearance[cols], speed[cols])
-            height[cols], half[cols], scale[cols] = pp.height_v, pp.half_width_s, pp.scale_s
-        win = synthesise(toa, PulseParameters(height, half, scale), self.tau_s[probe], probe, self.dig, self.rng,
-                         self.lf)
-        out = apply_triggers(win, self.triggers, probe)
-        raw = None
-        if sig.publish:
-            raw = RawSignals(win.first_sample, win.n_samples, win.codes, win.sample_rate_hz, self.dig.range_lo_v,
-                             self.dig.lsb_v, self.dig.bits, tuple(t.kind for t in self.triggers), sig.level_v,
-                             sig.hysteresis_v, sig.edge, sig.fraction)
-        return out.toa_s, out.n_edges, clearance, raw, out.extra_passage, out.extra_toa_s

@@ -40,7 +40,6 @@ from math import factorial
 
 import numpy as np
 
-from ..errors import BttsimError
 from .speed import SpeedProfile
 
 __all__ = [
@@ -48,12 +47,10 @@ __all__ = [
     "TRANSIENT_TOL_S",
     "chirp_integral",
     "quasi_steady_envelope",
-    "modal_forcing",
-    "EULER_CHORD",
-    "modal_response_bound",
     "TipBasis",
     "tip_basis",
     "EnvelopeIntegrator",
+    "FixedModes",
     "EnvelopeGrid",
     "build_grid",
     "GridPoints",
@@ -257,146 +254,6 @@ def _chirp_given_exp(u: np.ndarray, eu: np.ndarray, v: np.ndarray) -> np.ndarray
     return out
 
 
-def modal_forcing(model, excitations) -> tuple[np.ndarray, np.ndarray]:
-    """Complex modal force amplitudes (paper Eq. 5-7).
-
-    Parameters
-    ----------
-    model : ModalModel
-    excitations : sequence of scenario ``Excitation``
-        Engine order, nodal diameter (travelling-wave phase ``2 pi (b-1) N_ND / N_b``),
-        amplitude (N), direction (radial, tangential, axial; normalised here), edge node.
-
-    Returns
-    -------
-    C : ndarray, shape (n_modes, n_exc), complex
-        Modal force of excitation m is ``Im(C[k, m] exp(i EO_m phi(t)))``, N per unit modal
-        coordinate.
-    eo : ndarray, shape (n_exc,)
-    """
-    n_b = model.n_blades
-    C = np.zeros((model.n_modes, len(excitations)), complex)
-    eo = np.zeros(len(excitations))
-    b = np.arange(n_b)
-    for m, ex in enumerate(excitations):
-        if ex.node == "leading_edge":
-            shapes = model.force_shapes
-        else:
-            if "force_shapes_trailing_edge" not in model.extra:
-                raise BttsimError("excitation node 'trailing_edge' needs force_shapes_trailing_edge "
-                                  "in the model file")
-            shapes = model.extra["force_shapes_trailing_edge"]
-        d = np.asarray(ex.direction, float)
-        d = d / np.linalg.norm(d)
-        phase = np.exp(2j * np.pi * b * ex.nodal_diameter / n_b)
-        C[:, m] = ex.amplitude_n * (shapes @ d) @ phase
-        eo[m] = ex.engine_order
-    return C, eo
-
-
-#: Longest chord of the Euler (Cornu) spiral, ``max |int_s1^s2 exp(i pi x^2 / 2) dx|`` over all
-#: ``s1 < s2`` (1.898113 at ``s2 = -s1 = 1.2094``), rounded up: an undamped mode swept through
-#: resonance at ``r`` rad/s^2 gathers at most ``EULER_CHORD sqrt(pi / r)`` times its forcing
-#: in its envelope, whatever the start and end of the sweep.
-EULER_CHORD = 1.8982
-
-
-def modal_response_bound(freq_hz, damping_ratio, C, eo, speed: SpeedProfile, omega=None,
-                         initial: str = "steady") -> np.ndarray:
-    """Upper bound of every modal coordinate ``|q_k(t)|`` over a whole run (any ``t``).
-
-    Parameters
-    ----------
-    freq_hz, damping_ratio : ndarray, shape (n_modes,)
-        Undamped natural frequencies, Hz, and damping ratios (``< 1``).
-    C : ndarray, shape (n_modes, n_car), complex
-        Modal forces (:func:`modal_forcing`): carrier ``m`` forces mode ``k`` with
-        ``Im(C[k, m] exp(i theta_m(t)))``, ``theta_m = EO_m phi(t) + omega_m t`` (Eq. 5-7).
-    eo : ndarray, shape (n_car,)
-    speed : SpeedProfile
-    omega : ndarray, shape (n_car,), optional
-        Constant rotor-frame carrier frequencies, rad/s (non-synchronous forcing); default 0.
-    initial : {"steady", "rest"}
-        The simulator's start (:class:`EnvelopeIntegrator`).
-
-    Returns
-    -------
-    ndarray, shape (n_modes,)
-        ``Q_k >= max_t |q_k(t)|``, m per unit mass-normalised coordinate.
-
-    Notes
-    -----
-    ``q = Im(a_+ e^{i theta} - conj(a_-) e^{-i theta}) / w_d`` (module conventions), so
-    ``|q| <= (|a_+| + |a_-|) / w_d`` per carrier, summed over carriers. Each envelope is
-    ``a(t) = a(0) exp(int_0^t mu) + c int_0^t exp(int_s^t mu) ds``, ``|c| = |C| / 2``,
-    ``mu = lambda -+ i (EO Omega + omega)``, ``|exp(int_s^t mu)| <= exp(-zeta w (t - s))``; the
-    least of three bounds is kept:
-
-    * any forcing history: ``|a| <= |c| / (zeta w)``, hence
-      ``|q| <= |C| / (2 zeta sqrt(1 - zeta^2) w^2)`` per carrier -- the peak of the SDOF dynamic
-      amplification, reached by the resonant carrier on a dwell; a start in the quasi-steady
-      state (:func:`quasi_steady_envelope`) obeys the same bound;
-    * quasi-statically, ``a = -c / mu(t) + r`` with ``r' = mu r - c mu' / mu^2`` (``mu`` is
-      continuous, ``mu' = -+ i EO alpha`` piecewise constant): ``|a| <= |c| / min |mu| +
-      |a(0) + c / mu(0)| + |c| sum_j EO |alpha_j| min(T_j, 1 / (zeta w)) / m_j^2``, tight for a
-      carrier that stays away from resonance (``m_j``: least ``|mu|`` on segment ``j``);
-    * speed segment by segment, ``|a(t)| <= |a(0)| + sum_j S_j`` with ``S_j`` the least of: the
-      segment's duration; ``1 / (zeta w)``; integration by parts where the carrier stays away
-      from resonance (``|mu| >= m_j`` on the segment), ``2 / m_j + EO |alpha_j| min(T_j,
-      1 / (zeta w)) / m_j^2``; on a ramp, the longest chord of the Euler spiral,
-      ``EULER_CHORD sqrt(pi / (EO |alpha_j|))`` (the damping weight, increasing in ``s`` and at
-      most 1, cannot lengthen a chord). This caps undamped or fast-swept crossings.
-
-    The bound holds for the transient through resonance as well as for any steady state: a
-    linear sweep never exceeds it (the resonant carrier's ``1 / (zeta w)`` is the stationary
-    peak, the other carrier adds ``O(zeta)``).
-    """
-    w = 2.0 * np.pi * np.asarray(freq_hz, float)
-    zeta = np.asarray(damping_ratio, float)
-    C = np.asarray(C, complex).reshape(w.size, -1)
-    eo = np.asarray(eo, float).reshape(-1)
-    om_c = np.zeros(eo.size) if omega is None else np.asarray(omega, float).reshape(-1)
-    wd = w * np.sqrt(1.0 - zeta**2)
-    zw = zeta * w
-    lam = -zw + 1j * wd
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        g = np.where(zw > 0, 1.0 / zw, np.inf)  # any history
-    knots = np.asarray(speed.omega, float)
-    T = np.diff(np.asarray(speed.t_s, float))
-    alpha = np.asarray(speed.alpha, float)[:-1]
-    om0, al0 = float(knots[0]), float(speed.alpha[0])
-    Q = np.zeros(w.size)
-    for m in range(eo.size):
-        c = 0.5 * np.abs(C[:, m])
-        if not np.any(c > 0):
-            continue
-        for sign in (1.0, -1.0):
-            # carrier frequency seen by the envelope over each segment: sign (EO Omega + omega)
-            xa = sign * (eo[m] * knots[:-1] + om_c[m])
-            xb = sign * (eo[m] * knots[1:] + om_c[m])
-            lo, hi = np.minimum(xa, xb), np.maximum(xa, xb)
-            dist = np.maximum(0.0, np.maximum(lo[None, :] - wd[:, None], wd[:, None] - hi[None, :]))
-            mj = np.sqrt(zw[:, None] ** 2 + dist**2)  # least |mu| on the segment, (n_modes, n_seg)
-            rate = np.abs(eo[m] * alpha)[None, :]
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                ibp = 2.0 / mj + rate * np.minimum(T[None, :], g[:, None]) / mj**2
-                chord = np.where(rate > 0, EULER_CHORD * np.sqrt(np.pi / rate), np.inf)
-                S = np.minimum(np.minimum(T[None, :], g[:, None]), np.minimum(np.nan_to_num(ibp, nan=np.inf), chord))
-            mu0 = lam - sign * 1j * (eo[m] * om0 + om_c[m])
-            a0 = np.zeros(w.size, complex)
-            if initial == "steady":
-                q0 = quasi_steady_envelope(np.ones(w.size), mu0, -sign * 1j * eo[m] * al0)
-                a0 = np.where(np.isfinite(q0), q0, 0.0)  # none: the simulator starts at rest
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                # quasi-static part -1/mu(t) plus a remainder r' = mu r - mu' / mu^2 (per unit c)
-                drift = np.sum(rate * np.minimum(T[None, :], g[:, None]) / mj**2, axis=1)
-                qs = 1.0 / np.min(mj, axis=1) + np.abs(a0 + 1.0 / mu0) + drift
-            env = np.minimum(np.minimum(g, np.abs(a0) + np.sum(S, axis=1)), np.nan_to_num(qs, nan=np.inf))
-            with np.errstate(invalid="ignore"):
-                Q += np.where(c > 0, c * env / wd, 0.0)
-    return Q
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class TipBasis:
     """Compressed basis of the tip-node motion, common to all blades.
@@ -424,6 +281,23 @@ def tip_basis(tip_shapes: np.ndarray, rtol: float = 1e-12) -> TipBasis:
     V = Vt[:r]
     psi = (X @ V.T).reshape(n_modes, n_b, r)
     return TipBasis(psi=np.ascontiguousarray(psi), nodes=np.ascontiguousarray(V.reshape(r, n_tip, 3)))
+
+
+class FixedModes:
+    """The modal path of a model whose modes do not change with speed: the tip basis of its
+    tip shapes and an :class:`EnvelopeIntegrator` of any carriers (non-synchronous ones too)."""
+
+    nonsynchronous = True
+
+    def __init__(self, model) -> None:
+        self.model = model
+        self.basis = tip_basis(model.tip_shapes)
+
+    def integrator(self, carriers, excitations, speed: SpeedProfile, initial: str) -> EnvelopeIntegrator:
+        """The integrator of the forced ``carriers`` (:class:`~bttsim_stream.sim.sources.Carriers`)."""
+        m = self.model
+        return EnvelopeIntegrator(m.freq_hz, m.damping_ratio, carriers.C, carriers.eo, self.basis, speed,
+                                  initial=initial, omega=carriers.omega)
 
 
 class GridPoints:
@@ -618,7 +492,7 @@ class EnvelopeIntegrator:
     ----------
     freq_hz, damping_ratio : ndarray, shape (n_modes,)
     C : ndarray, shape (n_modes, n_exc), complex
-        Modal force amplitudes (:func:`modal_forcing`).
+        Modal force amplitudes (:func:`~bttsim_stream.sim.forcing.modal_forcing`).
     eo : ndarray, shape (n_exc,)
     basis : TipBasis
     speed : SpeedProfile

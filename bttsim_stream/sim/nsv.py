@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BttsimError
+from .forcing import edge_shapes
 
 __all__ = ["KINDS", "NsvComponent", "FlutterWave", "NsvSetup", "signed_nd", "build_nsv", "flutter_onset_s"]
 
@@ -152,7 +153,7 @@ class NsvSetup:
     ----------
     C : ndarray, shape (n_modes, n_forced), complex
         Modal forces of the forced carriers (stall, broadband), as
-        :func:`~bttsim_stream.sim.modal.modal_forcing`.
+        :func:`~bttsim_stream.sim.forcing.modal_forcing`.
     eo, omega : ndarray, shape (n_forced,)
     flutter : FlutterWave or None
     components : tuple of NsvComponent
@@ -170,20 +171,11 @@ class NsvSetup:
         return self.eo.size + (self.flutter is not None)
 
 
-def _edge_shapes(model, node: str) -> np.ndarray:
-    """Force-node mode shapes (n_modes, n_blades, 3) of the edge ``node``."""
-    if node == "leading_edge":
-        return model.force_shapes
-    if "force_shapes_trailing_edge" not in model.extra:
-        raise BttsimError("excitation node 'trailing_edge' needs force_shapes_trailing_edge in the model file")
-    return model.extra["force_shapes_trailing_edge"]
-
-
 def _force_column(model, node, direction, pattern: np.ndarray) -> np.ndarray:
     """Modal force ``(shapes @ d) @ pattern`` of a per-blade complex force pattern (N)."""
     d = np.asarray(direction, float)
     d = d / np.linalg.norm(d)
-    return (_edge_shapes(model, node) @ d) @ pattern
+    return (edge_shapes(model, node) @ d) @ pattern
 
 
 def flutter_onset_s(fl, speed) -> float:

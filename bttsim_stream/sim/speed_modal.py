@@ -70,11 +70,12 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..model.speed_modes import speed_modes
+from .forcing import modal_forcing
 from .modal import (TRANSIENT_TOL_S, EnvelopeGrid, EnvelopeIntegrator, TipBasis, _j_moments, _refine_pass,
-                    modal_forcing, quasi_steady_envelope, tip_basis)
+                    quasi_steady_envelope, tip_basis)
 from .speed import SpeedProfile
 
-__all__ = ["SpeedDependentIntegrator", "speed_tip_basis", "chirp_moments", "LEAD_IN_DECAY"]
+__all__ = ["SpeedDependentModes", "SpeedDependentIntegrator", "speed_tip_basis", "chirp_moments", "LEAD_IN_DECAY"]
 
 _log = logging.getLogger(__name__)
 
@@ -99,6 +100,23 @@ def speed_tip_basis(model) -> tuple[TipBasis, np.ndarray]:
     b = tip_basis(ts.reshape((S * n_modes,) + ts.shape[2:]))
     psi = b.psi.reshape((S, n_modes) + b.psi.shape[1:])
     return TipBasis(psi=np.ascontiguousarray(psi[0]), nodes=b.nodes), psi
+
+
+class SpeedDependentModes:
+    """The modal path of a model whose modes follow the speed (centrifugal effects): the tip
+    basis common to its sample speeds and a :class:`SpeedDependentIntegrator` of the
+    engine-order excitations (non-synchronous forcing is not supported with it yet)."""
+
+    nonsynchronous = False
+
+    def __init__(self, model) -> None:
+        self.model = model
+        self.basis, self._psi_at_speed = speed_tip_basis(model)
+
+    def integrator(self, carriers, excitations, speed: SpeedProfile, initial: str) -> SpeedDependentIntegrator:
+        """The integrator of ``excitations`` (the modal forces follow the speed; ``carriers`` are
+        their zero-speed values, not used)."""
+        return SpeedDependentIntegrator(self.model, excitations, self._psi_at_speed, speed, initial=initial)
 
 
 def chirp_moments(u, v) -> tuple[np.ndarray, np.ndarray]:
