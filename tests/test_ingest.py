@@ -436,3 +436,40 @@ def test_encoder_errors():
     with pytest.raises(ValueError, match="tooth positions"):
         encoder_revolutions(gappy, 12)
     assert encoder_revolutions(gappy, 10).opr_s.size == 19  # pulse 0: the first after a gap
+
+
+# -- replay onto Zenoh -------------------------------------------------------------------
+
+@pytest.mark.integration
+def test_replay_of_an_ingested_run_to_the_live_processor(sim, tmp_path):
+    """``bttsim replay`` of an ingested recording, the processor node subscribing on
+    loopback: the same per-blade results as ``bttsim process`` of the file."""
+    import subprocess
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _procs import start, stop
+    from bttsim_stream.testing import free_port
+
+    args, _ = _trains(sim, tmp_path / "t", drop=0.01, extra=0.001, seed=5)
+    rig = tmp_path / "rig.mcap"
+    assert main(["ingest", *args, "--blades", "29", "--tip-radius-m", "0.190104", "--eo", "8", "--out", str(rig)]) == 0
+    assert main(["process", str(rig), "--summary", str(tmp_path / "offline.json")]) == 0
+    port = free_port()
+    live_path = tmp_path / "live.json"
+    proc = start("bttsim_stream.nodes.processor_node", "--rig", "rig1", "--no-score", "--summary", live_path,
+                 "-l", f"tcp/127.0.0.1:{port}")
+    try:  # the replay waits for the processor's subscriptions, then for its done token
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", str(rig), "--rate", "max",
+                              "--wait", "120", "-e", f"tcp/127.0.0.1:{port}"], cwd=Path(__file__).parents[1],
+                             capture_output=True, text=True, timeout=300)
+        assert rep.returncode == 0, rep.stderr
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err
+    finally:
+        stop(proc)
+    live, offline = json.loads(live_path.read_text()), json.loads((tmp_path / "offline.json").read_text())
+    assert live["status"] == offline["status"] == "resonance"
+    for key in ("amp_pkpk_m", "freq_hz"):
+        np.testing.assert_allclose(_blades(live, key), _blades(offline, key), rtol=1e-9)
+    assert live["revolutions_processed"] == offline["revolutions_processed"]
