@@ -180,29 +180,46 @@ def _cmd_export(args: argparse.Namespace) -> None:
           f"{time.perf_counter() - t0:.1f} s")
 
 
+class _Tagged(argparse.Action):
+    """Append ``(option name, value)`` to one list: --probe and --signal keep their order."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        items = list(getattr(namespace, self.dest, None) or [])
+        items.append((option_string.lstrip("-"), values))
+        setattr(namespace, self.dest, items)
+
+
 def _cmd_ingest(args: argparse.Namespace) -> None:
-    from .ingest import ingest_export, ingest_pulses, parse_probe
+    from .ingest import SignalOptions, ingest_export, ingest_pulses, parse_probe, parse_signal
 
     t0 = time.perf_counter()
     if args.from_export:
-        if args.opr or args.probe:
-            raise BttsimError("--from-export takes no --opr / --probe (the export holds them)")
+        if args.opr or args.sources:
+            raise BttsimError("--from-export takes no --opr / --probe / --signal (the export holds them)")
         res = ingest_export(args.from_export, args.out, rig=args.rig)
     else:
         if not args.opr:
             raise BttsimError("--opr FILE is required (the once-per-revolution pulse times), or --from-export DIR")
-        if not args.probe:
-            raise BttsimError("at least one --probe ANGLE_DEG=FILE is required")
+        if not args.sources:
+            raise BttsimError("at least one --probe ANGLE_DEG=FILE (or --signal ANGLE_DEG=FILE) is required")
         eos = parse_engine_orders(args.eo) if args.eo else None
-        res = ingest_pulses(args.opr, [parse_probe(p) for p in args.probe], args.out, n_blades=args.blades,
+        probes = [parse_probe(v) if k == "probe" else parse_signal(v) for k, v in args.sources]
+        trig = args.trigger.split(",") if args.trigger else None
+        signal = SignalOptions(sample_rate_hz=args.sample_rate, start_s=args.signal_start_s,
+                               trigger=None if trig is None else (trig[0] if len(trig) == 1 else tuple(trig)),
+                               level_v=args.level_v, hysteresis_v=args.hysteresis_v, edge=args.edge,
+                               fraction=args.fraction, clock_hz=args.clock_hz, holdoff=args.holdoff)
+        res = ingest_pulses(args.opr, probes, args.out, n_blades=args.blades,
                             tip_radius_m=args.tip_radius_m, rig=args.rig, engine_orders=eos,
-                            scenario_path=args.scenario, column=args.column)
+                            scenario_path=args.scenario, column=args.column, signal=signal,
+                            encoder_pulses=args.encoder_pulses, encoder_index=args.encoder_index)
     dt = time.perf_counter() - t0
     for note in res.notes:
         print(f"bttsim: note: {note}", file=sys.stderr)
     for p in res.per_probe:
         print(f"probe {p['probe']} at {p['angle_deg']:g} deg: {p['toas']} TOAs, {p['missing']} missing, "
-              f"{p['extra']} extra, {p['stray']} stray, {p['outside']} outside "
+              f"{p['extra']} extra, {p['stray']} stray, {p['outside']} outside"
+              + (f", {p['double']} double edges" if "signal" in p else "") + " "
               f"(median {p['median_pulses_per_revolution']:g} pulses/revolution)")
     print(f"wrote {args.out}: {res.revolutions} revolutions, {res.n_blades} blades, {res.n_probes} probes, "
           f"{res.toas} TOAs ({res.missing} missing, {res.extra} extra, {res.stray} stray, {res.outside} outside), "
@@ -515,8 +532,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output recording (MCAP)")
     p.add_argument("--from-export", metavar="DIR", help="the labelled tables of `bttsim export` (csv or parquet)")
     p.add_argument("--opr", metavar="FILE", help="OPR pulse times, s (CSV first column or Parquet)")
-    p.add_argument("--probe", action="append", default=[], metavar="ANGLE_DEG=FILE",
+    p.add_argument("--probe", action=_Tagged, dest="sources", default=[], metavar="ANGLE_DEG=FILE",
                    help="a probe's angle (deg, anticlockwise from +x) and its pulse times, s (repeatable)")
+    p.add_argument("--signal", action=_Tagged, dest="sources", metavar="ANGLE_DEG=FILE",
+                   help="a probe's raw signal, volts (.npy or one-column CSV; NaN = not recorded), "
+                        "triggered like the simulator's signal chain (repeatable)")
+    g = p.add_argument_group("raw signals (defaults: the --scenario's [acquisition.signal], else its defaults)")
+    g.add_argument("--sample-rate", type=float, metavar="HZ", help="ADC sample rate, Hz")
+    g.add_argument("--signal-start-s", type=float, default=0.0, metavar="T",
+                   help="time of each signal file's first sample, s (default 0)")
+    g.add_argument("--trigger", metavar="KIND[,KIND...]", help="threshold, constant_fraction or peak (one per probe)")
+    g.add_argument("--level-v", type=float, help="trigger level (arming level of constant_fraction / peak), V")
+    g.add_argument("--hysteresis-v", type=float, help="threshold hysteresis, V")
+    g.add_argument("--edge", choices=("rising", "falling"), help="threshold edge")
+    g.add_argument("--fraction", type=float, help="constant fraction, in (0, 1)")
+    g.add_argument("--clock-hz", type=float, help="counter latching the trigger, Hz (0: none; default the "
+                                                   "scenario's [acquisition] clock_hz)")
+    g.add_argument("--holdoff", type=float, default=0.25,
+                   help="hold-off between pulses, blade passing periods (default 0.25)")
+    p.add_argument("--encoder-pulses", type=int, metavar="K",
+                   help="the --opr file is a K-pulse shaft encoder (pulse 0: after a missing-tooth gap)")
+    p.add_argument("--encoder-index", type=int, metavar="I",
+                   help="with --encoder-pulses, for a wheel without a gap: pulse I of the file is pulse 0")
     p.add_argument("--blades", type=int, help="number of blades (or from --scenario)")
     p.add_argument("--tip-radius-m", type=float, help="tip radius of the sensing point, m (or from --scenario)")
     p.add_argument("--scenario", metavar="S.toml", help="rotor geometry (blades, radius, OPR angle, model) from a scenario")

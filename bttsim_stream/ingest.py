@@ -11,7 +11,10 @@ also holds ``source`` (what was read) and ``ingest`` (a JSON object of the count
 * :func:`ingest_export`: the labelled ``opr`` / ``toa`` (/ ``extra_edge``) tables of
   ``bttsim export`` and its ``run.json``: the TOAs go in unchanged, to the bit.
 * :func:`ingest_pulses`: unlabelled pulse trains (one OPR file, one file per probe),
-  labelled by :func:`~bttsim_stream.process.identify.identify_pulses`.
+  labelled by :func:`~bttsim_stream.process.identify.identify_pulses`; or raw probe signals
+  (volts, :class:`SignalOptions`) turned into pulses first by the simulator's own trigger
+  (:class:`~bttsim_stream.process.trigger.PulseTrigger`); the OPR file may be a K-pulse
+  shaft encoder (:func:`~bttsim_stream.process.identify.encoder_revolutions`).
 
 Files are read in blocks (:func:`read_times`): a CSV whose first column (or ``column``)
 holds times in s, an optional header line, or a Parquet file; memory holds the times
@@ -38,10 +41,13 @@ from .bus.stream import MessageStream
 from .defaults import DEFAULT_RIG
 from .errors import BttsimError
 from .process.displacement import Geometry
-from .process.identify import identify_pulses, pulses_per_revolution
+from .process.identify import encoder_revolutions, identify_pulses, pulses_per_revolution
+from .process.trigger import PulseTrigger
 from .sim.core import RevolutionBatch, RunInfo
+from .sim.signal import TRIGGER_KINDS, Trigger
 
-__all__ = ["read_times", "ingest_export", "ingest_pulses", "IngestResult", "parse_probe", "MIN_RPM", "MAX_RPM"]
+__all__ = ["read_times", "read_signal_pulses", "ingest_export", "ingest_pulses", "IngestResult", "SignalOptions",
+           "parse_probe", "MIN_RPM", "MAX_RPM"]
 
 #: Slowest and fastest plausible median shaft speed, rpm: beyond, the times are not in s.
 MIN_RPM = 30.0
@@ -49,6 +55,7 @@ MAX_RPM = 300_000.0
 _BLOCK_BYTES = 4 << 20
 _MAX_LINE = 64 << 10
 _REVS_PER_BATCH = 64
+_SIGNAL_BLOCK = 1 << 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +72,9 @@ class IngestResult:
     missing, extra, stray, outside : int
         Empty cells; pulses in a blade's window not kept (double triggers); pulses in no
         blade's window; pulses before the first or after the last recorded revolution.
+    double : int
+        Raw signals: later trigger edges in a pulse's window (the signal chain's double
+        pulses), recorded as extra edges of the pulse's cell (not in ``extra``).
     median_rpm : float
     per_probe : tuple of dict
         The same counts per probe, with its angle and median pulses per revolution.
@@ -82,13 +92,14 @@ class IngestResult:
     extra: int = 0
     stray: int = 0
     outside: int = 0
+    double: int = 0
     median_rpm: float = 0.0
     per_probe: tuple = ()
     notes: tuple = ()
 
     def counts(self) -> dict:
         return {"revolutions": self.revolutions, "toas": self.toas, "missing": self.missing, "extra": self.extra,
-                "stray": self.stray, "outside": self.outside, "median_rpm": round(self.median_rpm, 3),
+                "stray": self.stray, "outside": self.outside, "double": self.double, "median_rpm": round(self.median_rpm, 3),
                 "per_probe": list(self.per_probe), "notes": list(self.notes)}
 
 
@@ -267,6 +278,128 @@ def read_times(path, column: str | None = None, *, what: str = "pulse times", st
     if not out:
         raise BttsimError(f"{p}: no times in the file ({what})")
     return np.concatenate(out)
+
+
+@dataclass(frozen=True, slots=True)
+class SignalOptions:
+    """How raw probe signals become pulses (``--signal``); None: the scenario's
+    ``[acquisition.signal]`` (and ``[acquisition] clock_hz``) when one is given, else the
+    defaults of that table (no latch without a clock).
+
+    Attributes
+    ----------
+    sample_rate_hz : float
+    start_s : float
+        Time of each file's first sample, s (on the counter grid ``k / f_s`` when
+        ``start_s f_s`` is whole).
+    trigger : str or tuple of str
+        ``threshold``, ``constant_fraction`` or ``peak`` (one, or one per probe in order).
+    level_v, hysteresis_v, fraction : float
+    edge : str
+    clock_hz : float
+        Counter that latches the trigger; 0: none.
+    holdoff : float
+        Hold-off between pulses, in blade passing periods at the local speed.
+    """
+
+    sample_rate_hz: float | None = None
+    start_s: float = 0.0
+    trigger: str | tuple | None = None
+    level_v: float | None = None
+    hysteresis_v: float | None = None
+    edge: str | None = None
+    fraction: float | None = None
+    clock_hz: float | None = None
+    holdoff: float = 0.25
+
+    def resolve(self, scenario_path=None) -> "SignalOptions":
+        """Every field filled (flags over the scenario over the table's defaults)."""
+        from .scenario import Scenario, load_scenario
+
+        scn = load_scenario(scenario_path) if scenario_path else Scenario()
+        sig = scn.acquisition.signal
+        kw = {}
+        for name in ("sample_rate_hz", "trigger", "level_v", "hysteresis_v", "edge", "fraction"):
+            v = getattr(self, name)
+            kw[name] = getattr(sig, name) if v is None else v
+        kw["clock_hz"] = (scn.acquisition.clock_hz if scenario_path else 0.0) if self.clock_hz is None else self.clock_hz
+        kinds = (kw["trigger"],) if isinstance(kw["trigger"], str) else tuple(kw["trigger"])
+        bad = [k for k in kinds if k not in TRIGGER_KINDS]
+        if bad:
+            raise BttsimError(f"--trigger must be one of {', '.join(TRIGGER_KINDS)}, got {bad[0]!r}")
+        if kw["edge"] not in ("rising", "falling"):
+            raise BttsimError(f"--edge must be rising or falling, got {kw['edge']!r}")
+        if not (kw["sample_rate_hz"] and math.isfinite(kw["sample_rate_hz"]) and kw["sample_rate_hz"] > 0):
+            raise BttsimError(f"--sample-rate must be a rate in Hz > 0, got {kw['sample_rate_hz']!r}")
+        if not 0.0 < kw["fraction"] < 1.0:
+            raise BttsimError(f"--fraction must be in (0, 1), got {kw['fraction']!r}")
+        if not (math.isfinite(kw["clock_hz"]) and kw["clock_hz"] >= 0):
+            raise BttsimError(f"--clock-hz must be >= 0, got {kw['clock_hz']!r}")
+        if not 0.0 < self.holdoff < 1.0:
+            raise BttsimError(f"--holdoff must be in (0, 1) blade passing periods, got {self.holdoff!r}")
+        return replace(self, **kw)
+
+    def trigger_of(self, j: int) -> Trigger:
+        kinds = self.trigger
+        kind = kinds if isinstance(kinds, str) else kinds[min(j, len(kinds) - 1)]
+        return Trigger(kind=kind, level_v=float(self.level_v), hysteresis_v=float(self.hysteresis_v),
+                       edge=self.edge, fraction=float(self.fraction))
+
+
+def _signal_blocks(p: Path):
+    """Volts of a signal file in blocks: ``.npy`` (memory-mapped, ``allow_pickle=False``) or
+    a one-column CSV (NaN: not recorded)."""
+    if p.suffix.lower() == ".npy":
+        try:
+            arr = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise BttsimError(f"{p}: not a readable .npy array ({str(exc)[:120]})") from None
+        if arr.ndim == 2 and 1 in arr.shape:
+            arr = arr.reshape(-1)
+        if arr.ndim != 1 or arr.dtype.kind not in "fiu":
+            raise BttsimError(f"{p}: a signal must be a 1-D array of volts, got shape {arr.shape} {arr.dtype}")
+        for lo in range(0, arr.size, _SIGNAL_BLOCK):
+            yield lo + 1, np.asarray(arr[lo:lo + _SIGNAL_BLOCK], dtype=float)
+        return
+    yield from _blocks_csv(p, None)
+
+
+def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s):
+    """Pulse times of one probe's raw signal, read in blocks.
+
+    Returns ``(toa_s, double_pulse, double_toa_s, n_samples, unfired)``
+    (:class:`~bttsim_stream.process.trigger.TriggeredPulses`, joined)."""
+    p = Path(path)
+    if not p.is_file():
+        raise BttsimError(f"{p}: no such file (probe signal)")
+    pt = PulseTrigger(trigger, options.sample_rate_hz, options.start_s, holdoff_s, options.clock_hz)
+    toa, dp, dt_, n, unfired, n_pulses = [], [], [], 0, 0, 0
+    unit = "sample" if p.suffix.lower() == ".npy" else "line"
+    blocks = _signal_blocks(p)
+    pending = next(blocks, None)
+    while pending is not None:
+        first, arr = pending
+        pending = next(blocks, None)
+        inf = np.flatnonzero(np.isinf(arr))
+        if inf.size:
+            where = first + int(inf[0]) if isinstance(first, int) else int(first[inf[0]])
+            raise BttsimError(f"{p}: {unit} {where}: {float(arr[inf[0]])!r} is not a voltage")
+        n += arr.size
+        try:
+            res = pt.feed(arr, final=pending is None)
+        except ValueError as exc:
+            raise BttsimError(f"{p}: {exc}") from None
+        toa.append(res.toa_s)
+        dp.append(res.double_pulse + n_pulses)
+        dt_.append(res.double_toa_s)
+        n_pulses += res.toa_s.size
+        unfired += res.unfired
+    if n == 0:
+        raise BttsimError(f"{p}: no samples in the file (probe signal)")
+    if n_pulses == 0:
+        raise BttsimError(f"{p}: no pulse reaches the trigger level {trigger.level_v:g} V ({trigger.kind}, "
+                          f"{trigger.edge}) in {n} samples")
+    return np.concatenate(toa), np.concatenate(dp), np.concatenate(dt_), n, unfired
 
 
 # -- writing ---------------------------------------------------------------------------
@@ -457,6 +590,15 @@ def parse_probe(text: str) -> tuple[float, str]:
     return deg, path
 
 
+def parse_signal(text: str) -> tuple[float, str, str]:
+    """``"23.82=probe2.npy"`` -> ``(23.82, "probe2.npy", "signal")``."""
+    try:
+        deg, path = parse_probe(text)
+    except BttsimError:
+        raise BttsimError(f"--signal must be ANGLE_DEG=FILE (e.g. 23.82=probe2.npy), got {text!r}") from None
+    return deg, path, "signal"
+
+
 def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_orders, rig) -> tuple[RunInfo, list]:
     """The run metadata of a measured run (``n_revolutions``, times and run id left to fill)."""
     from .scenario import MAX_BLADES, Scenario, load_scenario
@@ -504,15 +646,18 @@ def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_or
 
 def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, tip_radius_m: float | None = None,
                   rig: str | None = None, engine_orders=None, scenario_path=None, column: str | None = None,
-                  tolerance: float = 0.25) -> IngestResult:
+                  tolerance: float = 0.25, signal: SignalOptions | None = None, encoder_pulses: int | None = None,
+                  encoder_index: int | None = None) -> IngestResult:
     """A recording from unlabelled pulse trains: one OPR file and one file per probe.
 
     Parameters
     ----------
     opr_path : path-like
         OPR pulse times, s (:func:`read_times`), strictly increasing.
-    probes : list of (float, path-like)
-        Each probe's angle (deg, anticlockwise from +x) and its pulse times, s.
+    probes : list of (float, path-like) or (float, path-like, "signal")
+        Each probe's angle (deg, anticlockwise from +x) and its pulse times, s; or (with
+        ``"signal"``) its raw signal, volts (``.npy`` or one-column CSV), triggered as
+        ``signal`` says.
     out : path-like
         The recording to write (MCAP).
     n_blades, tip_radius_m : optional
@@ -527,15 +672,36 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
         Column of every time file (default: the first).
     tolerance : float
         Blade window half-width, in blade pitches (:func:`identify_pulses`).
+    signal : SignalOptions, optional
+        Sample rate, trigger and clock of the raw-signal probes.
+    encoder_pulses : int, optional
+        The OPR file is a shaft encoder of this many tooth positions per revolution
+        (:func:`~bttsim_stream.process.identify.encoder_revolutions`): pulse 0 of each
+        revolution after a missing-tooth gap, or pulse ``encoder_index`` and every K-th.
 
     Returns
     -------
     IngestResult
     """
     _check_out(out)
-    info, notes = _geometry([a for a, _ in probes], n_blades, tip_radius_m, scenario_path, engine_orders, rig)
+    info, notes = _geometry([pr[0] for pr in probes], n_blades, tip_radius_m, scenario_path, engine_orders, rig)
     nb, npr = info.n_blades, info.n_probes
-    opr = read_times(opr_path, column, what="OPR times", strict=True)
+    opr = read_times(opr_path, column, what="encoder times" if encoder_pulses else "OPR times", strict=True)
+    encoder = None
+    if encoder_pulses:
+        if not 1 <= encoder_pulses <= 100_000:
+            raise BttsimError(f"--encoder-pulses must be in [1, 100000], got {encoder_pulses}")
+        try:
+            encoder = encoder_revolutions(opr, encoder_pulses, encoder_index)
+        except ValueError as exc:
+            raise BttsimError(f"{opr_path}: {exc}") from None
+        opr = encoder.opr_s
+        notes.append(f"OPR from a {encoder_pulses}-pulse encoder (pulse 0 by {encoder.rule}); "
+                     f"rotor angle from its pulses")
+    elif encoder_index is not None:
+        raise BttsimError("--encoder-index needs --encoder-pulses K")
+    if any(len(pr) > 2 for pr in probes):
+        signal = (signal or SignalOptions()).resolve(scenario_path)
     if opr.size < 3:
         raise BttsimError(f"{opr_path}: {opr.size} OPR pulse(s): at least 3 (two revolutions) needed")
     rpm = 60.0 / np.diff(opr)
@@ -547,18 +713,32 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     geometry = Geometry(n_blades=nb, probe_angles_rad=info.probe_angles_rad, tip_radius_m=info.tip_radius_m,
                         opr_angle_rad=info.opr_angle_rad, blade_angles_rad=info.sensing_angles_rad)
     psi = geometry.nominal_arrival_angles()
-    labelled, per_probe = [], []
-    for j, (deg, path) in enumerate(probes):
-        t = read_times(path, column, what=f"pulse times of the probe at {deg:g} deg")
+    labelled, per_probe, doubles = [], [], []
+    period = np.diff(opr)
+
+    def holdoff_s(t):
+        i = np.clip(np.searchsorted(opr, t) - 1, 0, period.size - 1)
+        return signal.holdoff * period[i] / nb
+
+    for j, (deg, path, *kind) in enumerate(probes):
+        extra_info = {}
+        if kind:
+            trig = signal.trigger_of(j)
+            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, signal, holdoff_s)
+            doubles.append((t[dp], dt_))
+            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired}}
+        else:
+            t = read_times(path, column, what=f"pulse times of the probe at {deg:g} deg")
+            doubles.append(None)
         ppr = pulses_per_revolution(opr, t)
         med = float(np.median(ppr))
         if med != nb:
             raise BttsimError(f"{path}: median {med:g} pulses per revolution between OPR pulses, not the "
                               f"{nb} blades given (wrong --blades, or times not in the OPR's clock and unit?)")
-        ident = identify_pulses(opr, t, psi[:, j], calibrate=True, tolerance=tolerance)
+        ident = identify_pulses(opr, t, psi[:, j], calibrate=True, tolerance=tolerance, encoder=encoder)
         labelled.append(ident)
         per_probe.append({"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": int(t.size),
-                          "median_pulses_per_revolution": med})
+                          "median_pulses_per_revolution": med, **extra_info})
     toa = np.stack([r.toa_s for r in labelled], axis=2)  # (n_opr, nb, npr)
     # a revolution is kept when every probe saw at least half the blades (the ends of a
     # recording: the probes started late or stopped before the revolution's end)
@@ -571,8 +751,26 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     toa = toa[lo:hi]
     nr = hi - lo
     passages, times = [], []
-    tot = {"missing": 0, "extra": 0, "stray": 0, "outside": 0}
+    tot = {"missing": 0, "extra": 0, "stray": 0, "outside": 0, "double": 0}
     for j, r in enumerate(labelled):
+        n_double = 0
+        if doubles[j] is not None and doubles[j][0].size:
+            # a double edge joins the cell its pulse was kept in (where the signal chain puts it)
+            parent_t, dbl_t = doubles[j]
+            flat = r.toa_s[lo:hi].ravel()
+            have = np.flatnonzero(np.isfinite(flat))
+            srt = have[np.argsort(flat[have], kind="stable")]
+            k = np.clip(np.searchsorted(flat[srt], parent_t), 0, max(srt.size - 1, 0))
+            found = srt.size > 0
+            hit = (flat[srt[k]] == parent_t) if found else np.zeros(parent_t.size, bool)
+            cell = srt[k[hit]]
+            passages.append(cell * npr + j)
+            times.append(dbl_t[hit])
+            n_double = int(hit.sum())
+            # the others' pulse was extra, stray or outside: they count as stray (or outside)
+            lost = dbl_t[~hit]
+            rev_l = np.clip(np.searchsorted(opr, lost, side="right") - 1, 0, opr.size - 1).astype(np.int64)
+            r = replace(r, stray_toa_s=np.r_[r.stray_toa_s, lost], stray_revolution=np.r_[r.stray_revolution, rev_l])
         sel_e = (r.extra_revolution >= lo) & (r.extra_revolution < hi)
         sel_s = (r.stray_revolution >= lo) & (r.stray_revolution < hi)
         cells = r.toa_s[lo:hi]
@@ -582,7 +780,8 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
                      (r.stray_revolution[sel_s] - lo) * nb * npr + j]
         times += [r.extra_toa_s[sel_e], r.stray_toa_s[sel_s]]
         c = {"toas": int(np.isfinite(cells).sum()), "missing": int(np.isnan(cells).sum()),
-             "extra": int(sel_e.sum()), "stray": int(sel_s.sum()), "outside": r.outside + dropped}
+             "extra": int(sel_e.sum()), "stray": int(sel_s.sum()), "outside": r.outside + dropped,
+             "double": n_double}
         per_probe[j].update(c)
         for k in tot:
             tot[k] += c[k]
@@ -597,8 +796,9 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     res = IngestResult(path=str(out), run_id=run_id, revolutions=nr, n_blades=nb, n_probes=npr,
                        toas=int(np.isfinite(toa).sum()), median_rpm=med_rpm, per_probe=tuple(per_probe),
                        notes=tuple(notes), **tot)
-    source = {"kind": "pulses", "opr": str(opr_path), "probes": [[float(a), str(p)] for a, p in probes],
-              "column": column, "scenario": None if scenario_path is None else str(scenario_path),
+    source = {"kind": "pulses", "opr": str(opr_path), "probes": [[float(a), str(p), *kind] for a, p, *kind in probes],
+              "column": column, "encoder_pulses": encoder_pulses, "encoder_index": encoder_index,
+              "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)}, "scenario": None if scenario_path is None else str(scenario_path),
               "first_opr_pulse": lo}
     record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
               "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}

@@ -263,3 +263,213 @@ def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and words in err, err
     assert not (tmp_path / "x.mcap").exists()
+
+
+# -- raw probe signals -------------------------------------------------------------------
+
+def _signal_traces(mcap: Path, out: Path, fill=np.nan):
+    """Each probe's voltage trace rebuilt from the recording's SignalBatch windows
+    (``range_lo_v + code * lsb_v`` at samples ``first_sample ..``), from one common first
+    sample; ``fill`` where no window was recorded. Returns the files, the first sample's
+    index, the sample rate and the published (missing, double) counts."""
+    from bttsim_stream.bus import codec
+
+    per = {}
+    for m in read_recording(mcap).messages:
+        if "/signal/" in m.key:
+            b = codec.decode_message(m.key, m.payload).body
+            per.setdefault(b.probe, []).append(b)
+    k0 = min(int(b.first_sample.min()) for bs in per.values() for b in bs)
+    files, missing, double = [], 0, 0
+    for j, bs in sorted(per.items()):
+        first = np.concatenate([b.first_sample for b in bs])
+        n = np.concatenate([b.n_samples for b in bs])
+        edges = np.concatenate([b.n_edges for b in bs])
+        missing += int((edges == 0).sum())
+        double += int(np.maximum(edges - 1, 0).sum())
+        y = np.full(int((first + n).max()) - k0, fill)
+        idx = np.repeat(first - k0, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+        assert np.unique(idx).size == idx.size  # the windows do not overlap
+        y[idx] = bs[0].range_lo_v + np.concatenate([b.codes for b in bs]) * bs[0].lsb_v
+        np.save(out / f"signal{j}.npy", y)
+        files.append(out / f"signal{j}.npy")
+    return files, k0, bs[0].sample_rate_hz, missing, double
+
+
+SIGNAL_CASES = {
+    # the example itself (constant fraction, ~1 % of the pulses do not arm it), shortened
+    "constant_fraction": "",
+    # a noisy threshold trigger: double pulses and missing ones
+    "threshold": 'hysteresis_v = 0.01\n',
+}
+_THRESHOLD = {'trigger = "constant_fraction"': 'trigger = "threshold"', "noise_v = 0.01": "noise_v = 0.015"}
+
+
+@pytest.fixture(scope="module", params=list(SIGNAL_CASES), ids=list(SIGNAL_CASES))
+def signal_run(request, tmp_path_factory):
+    d = tmp_path_factory.mktemp(f"signal_{request.param}")
+    text = Path(__file__).resolve().parents[1].joinpath("examples", "signal_chain.toml").read_text()
+    text = text.replace("[acquisition]\n", "[speed]\nstart_rpm = 2400.0\nend_rpm = 2700.0\nduration_s = 3.0\n\n"
+                        "[acquisition]\n") + SIGNAL_CASES[request.param] + "publish = true\n"
+    for a, b in (_THRESHOLD.items() if request.param == "threshold" else ()):
+        text = text.replace(a, b)
+    (d / "s.toml").write_text(text)
+    simulate_to_mcap(load_scenario(d / "s.toml"), d / "sim.mcap", include_truth=False)
+    files, k0, fs, missing, double = _signal_traces(d / "sim.mcap", d)
+    run = load_run(d / "sim.mcap")
+    np.savetxt(d / "opr.csv", run.opr_s, fmt="%.17g")
+    return {"dir": d, "run": run, "files": files, "k0": k0, "fs": fs, "missing": missing, "double": double}
+
+
+def test_raw_signals_give_the_published_toas(signal_run, capsys):
+    """The simulator's windows, ingested as raw signals with the scenario's trigger and
+    clock: the published TOAs to the bit, the same missing and double pulses."""
+    s, d = signal_run, signal_run["dir"]
+    args = ["ingest", "--opr", str(d / "opr.csv"), "--scenario", str(d / "s.toml"), "--out", str(d / "ing.mcap"),
+            f"--signal-start-s={s['k0'] / s['fs']!r}"]
+    for a, f in zip(np.rad2deg(s["run"].meta.probe_angles_rad), s["files"]):
+        args += ["--signal", f"{float(a)!r}={f}"]
+    main(args)
+    counts = json.loads(read_recording(d / "ing.mcap").metadata["bttsim.run"]["ingest"])
+    got = load_run(d / "ing.mcap")
+    np.testing.assert_array_equal(got.toa_s, s["run"].toa_s)
+    np.testing.assert_array_equal(got.opr_s, s["run"].opr_s)
+    assert s["missing"] > 0 and (counts["missing"], counts["double"]) == (s["missing"], s["double"])
+    assert (counts["extra"], counts["stray"], counts["outside"]) == (0, 0, 0)
+    assert got.extra_edges["toa_s"].size == s["double"]
+    np.testing.assert_array_equal(np.sort(got.extra_edges["toa_s"]), np.sort(s["run"].extra_edges["toa_s"]))
+    assert "double edges" in capsys.readouterr().out
+
+
+def test_raw_signals_in_blocks_and_continuous(signal_run, monkeypatch):
+    """Reading in small blocks changes nothing; a continuous trace (the gaps at 0 V) gives
+    the threshold trigger's TOAs too (its state needs no window)."""
+    import bttsim_stream.ingest as ingest_mod
+    from bttsim_stream.ingest import SignalOptions, read_signal_pulses
+
+    s = signal_run
+    scn = load_scenario(s["dir"] / "s.toml")
+    opt = SignalOptions(start_s=s["k0"] / s["fs"]).resolve(s["dir"] / "s.toml")
+    hold = 0.25 * 60.0 / 2400.0 / 29
+    whole = read_signal_pulses(s["files"][2], opt.trigger_of(2), opt, hold)
+    monkeypatch.setattr(ingest_mod, "_SIGNAL_BLOCK", 4099)
+    small = read_signal_pulses(s["files"][2], opt.trigger_of(2), opt, hold)
+    for a, b in zip(whole, small):
+        np.testing.assert_array_equal(a, b)
+    if scn.acquisition.signal.trigger == "threshold":
+        y = np.load(s["files"][2])
+        np.save(s["dir"] / "cont.npy", np.where(np.isnan(y), 0.0, y))
+        cont = read_signal_pulses(s["dir"] / "cont.npy", opt.trigger_of(2), opt, hold)
+        for a, b in zip(whole[:3], cont[:3]):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_raw_signal_errors(sim, tmp_path, capsys):
+    np.savetxt(tmp_path / "opr.csv", sim["run"].opr_s)
+    np.save(tmp_path / "flat.npy", np.zeros(1000))
+    np.save(tmp_path / "two.npy", np.zeros((10, 3)))
+    base = ["ingest", "--opr", str(tmp_path / "opr.csv"), "--blades", "29", "--tip-radius-m", "0.19",
+            "--sample-rate", "2e6", "--out", str(tmp_path / "o.mcap")]
+    for extra, words in [(["--signal", f"5={tmp_path / 'flat.npy'}"], "no pulse reaches"),
+                         (["--signal", f"5={tmp_path / 'two.npy'}"], "1-D array"),
+                         (["--signal", f"5={tmp_path / 'none.npy'}"], "no such file"),
+                         (["--signal", f"5={tmp_path / 'flat.npy'}", "--trigger", "edge"], "--trigger"),
+                         (["--signal", "five"], "--signal must be")]:
+        assert main(base + extra) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err, err
+    assert not (tmp_path / "o.mcap").exists()
+
+
+# -- shaft encoder -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("wheel", ["missing_tooth", "index"], ids=["missing-tooth", "index"])
+def test_encoder_train_gives_the_opr_and_a_better_angle(tmp_path, wheel):
+    """A 36-pulse encoder from the shaft angle of a run with speed fluctuation: the OPR
+    recovered, the blade labels unchanged, the rotor angle at the TOAs 10x closer to the
+    truth than the OPR-only model's."""
+    from bttsim_stream.process.identify import encoder_revolutions, shaft_angle
+    from bttsim_stream.sim.speed import speed_profile_from_scenario
+
+    (tmp_path / "f.toml").write_text(FLUCTUATING)
+    scn = load_scenario(tmp_path / "f.toml")
+    simulate_to_mcap(scn, tmp_path / "f.mcap", include_truth=False)
+    run = load_run(tmp_path / "f.mcap")
+    prof = speed_profile_from_scenario(scn)
+    k = 36
+    base = prof.angle(run.opr_s[0])
+    tooth = np.arange(-5, k * run.opr_s.size)
+    enc = prof.time_at_angle(base + 2 * np.pi * tooth / k)
+    enc = enc[enc < prof.duration_s]
+    if wheel == "missing_tooth":
+        enc_file, index = enc[(tooth[:enc.size] % k) != k - 1], None
+    else:
+        enc_file, index = enc, 5
+    er = encoder_revolutions(enc_file, k, index)
+    n = min(er.opr_s.size, run.opr_s.size)
+    np.testing.assert_allclose(er.opr_s[:n], run.opr_s[:n], rtol=0, atol=1e-12)
+    t = run.toa_s[1:-2].ravel()
+    truth = prof.angle(t) - base
+    err_opr = np.abs(shaft_angle(run.opr_s, t) - truth).max()
+    err_enc = np.abs(shaft_angle(er.opr_s, t, er) - truth).max()
+    assert err_enc < 0.1 * err_opr, (err_enc, err_opr)
+    psi = Geometry.from_info(run.meta).nominal_arrival_angles()
+    got = identify_pulses(er.opr_s, np.sort(run.toa_s[:n - 1, :, 1].ravel()), psi[:, 1], encoder=er)
+    np.testing.assert_array_equal(got.toa_s[:n - 1], run.toa_s[:n - 1, :, 1])
+    np.savetxt(tmp_path / "enc.csv", enc_file, fmt="%.17g")
+    np.savetxt(tmp_path / "p1.csv", np.sort(run.toa_s[:, :, 1].ravel()), fmt="%.17g")
+    res = ingest_pulses(tmp_path / "enc.csv", [(np.rad2deg(run.meta.probe_angles_rad[1]), tmp_path / "p1.csv")],
+                        tmp_path / "e.mcap", scenario_path=tmp_path / "f.toml", encoder_pulses=k,
+                        encoder_index=index)
+    assert res.missing == 0 and res.extra + res.stray == 0 and "encoder" in res.notes[-1]
+
+
+def test_encoder_errors():
+    from bttsim_stream.process.identify import encoder_revolutions
+
+    even = np.arange(200) * 1e-3
+    with pytest.raises(ValueError, match="no missing-tooth gap"):
+        encoder_revolutions(even, 10)
+    with pytest.raises(ValueError, match="encoder pulses missing"):
+        encoder_revolutions(np.delete(even, 50), 10, index=0)
+    gappy = np.delete(even, np.arange(9, 200, 10))
+    with pytest.raises(ValueError, match="tooth positions"):
+        encoder_revolutions(gappy, 12)
+    assert encoder_revolutions(gappy, 10).opr_s.size == 19  # pulse 0: the first after a gap
+
+
+# -- replay onto Zenoh -------------------------------------------------------------------
+
+@pytest.mark.integration
+def test_replay_of_an_ingested_run_to_the_live_processor(sim, tmp_path):
+    """``bttsim replay`` of an ingested recording, the processor node subscribing on
+    loopback: the same per-blade results as ``bttsim process`` of the file."""
+    import subprocess
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _procs import start, stop
+    from bttsim_stream.testing import free_port
+
+    args, _ = _trains(sim, tmp_path / "t", drop=0.01, extra=0.001, seed=5)
+    rig = tmp_path / "rig.mcap"
+    assert main(["ingest", *args, "--blades", "29", "--tip-radius-m", "0.190104", "--eo", "8", "--out", str(rig)]) == 0
+    assert main(["process", str(rig), "--summary", str(tmp_path / "offline.json")]) == 0
+    port = free_port()
+    live_path = tmp_path / "live.json"
+    proc = start("bttsim_stream.nodes.processor_node", "--rig", "rig1", "--no-score", "--summary", live_path,
+                 "-l", f"tcp/127.0.0.1:{port}")
+    try:  # the replay waits for the processor's subscriptions, then for its done token
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", str(rig), "--rate", "max",
+                              "--wait", "120", "-e", f"tcp/127.0.0.1:{port}"], cwd=Path(__file__).parents[1],
+                             capture_output=True, text=True, timeout=300)
+        assert rep.returncode == 0, rep.stderr
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err
+    finally:
+        stop(proc)
+    live, offline = json.loads(live_path.read_text()), json.loads((tmp_path / "offline.json").read_text())
+    assert live["status"] == offline["status"] == "resonance"
+    for key in ("amp_pkpk_m", "freq_hz"):
+        np.testing.assert_allclose(_blades(live, key), _blades(offline, key), rtol=1e-9)
+    assert live["revolutions_processed"] == offline["revolutions_processed"]

@@ -31,6 +31,10 @@ simulator's numbering, that of ``bttsim export``.
    leaves the cell missing -- a spurious pulse where the real one was lost; done twice, the second
    time predicting from the pulses the first accepted;
 5. an empty cell is *missing* (NaN), which the processing already handles.
+
+With a K-pulse shaft encoder (:func:`encoder_revolutions`) the rotor angle of step 1 is
+interpolated between the encoder pulses (:func:`shaft_angle`: the quadratic through three
+consecutive pulses, ``2 pi / K`` apart), which follows speed fluctuation within a revolution.
 """
 
 from __future__ import annotations
@@ -42,7 +46,8 @@ import numpy as np
 
 from .displacement import TWO_PI, rotor_phase_from_opr
 
-__all__ = ["IdentifiedPulses", "identify_pulses", "pulses_per_revolution"]
+__all__ = ["IdentifiedPulses", "EncoderRevolutions", "identify_pulses", "pulses_per_revolution",
+           "encoder_revolutions", "shaft_angle"]
 
 #: Revolutions on each side whose pulses predict a cell's, and how many must be present.
 _REACH = 3
@@ -112,6 +117,119 @@ def pulses_per_revolution(opr_s: np.ndarray, pulse_s: np.ndarray) -> np.ndarray:
     return np.diff(idx).astype(np.int64)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class EncoderRevolutions:
+    """A K-pulse shaft encoder's train, with its once-per-revolution reference.
+
+    Attributes
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        Pulse 0 of each revolution, s.
+    pulse_s : ndarray, shape (n,)
+        Every encoder pulse from the first pulse 0 on, s.
+    angle_rad : ndarray, shape (n,)
+        Shaft angle of each pulse since the first pulse 0, rad (``2 pi tooth / K``).
+    rule : str
+        How pulse 0 was chosen (``"missing tooth"`` or ``"index"``).
+    """
+
+    opr_s: np.ndarray
+    pulse_s: np.ndarray
+    angle_rad: np.ndarray
+    rule: str
+
+
+def encoder_revolutions(encoder_s: np.ndarray, pulses_per_revolution: int, index: int | None = None
+                        ) -> EncoderRevolutions:
+    """Once-per-revolution reference and shaft angles of a K-pulse shaft encoder.
+
+    Parameters
+    ----------
+    encoder_s : ndarray, shape (n,)
+        Encoder pulse times, s, strictly increasing.
+    pulses_per_revolution : int
+        ``K``: tooth positions per revolution, equally spaced.
+    index : int, optional
+        Pulse ``index`` of the file is pulse 0 of a revolution, and every K-th after it
+        (a wheel without a gap; no encoder pulse may be missing). Without it the wheel
+        must have a missing-tooth gap: an interval of 2 or more tooth pitches (against the
+        median of its 4 neighbours), once per revolution; the pulse after it is pulse 0.
+
+    Raises
+    ------
+    ValueError
+        No gap and no index, or a revolution whose teeth do not add up to ``K``.
+    """
+    e = np.asarray(encoder_s, dtype=float)
+    k = int(pulses_per_revolution)
+    d = np.diff(e)
+    if d.size < 5:
+        raise ValueError(f"{e.size} encoder pulses: too few")
+    pad = np.pad(d, 2, mode="edge")
+    ref = np.median(np.stack([pad[0:-4], pad[1:-3], pad[3:-1], pad[4:]]), axis=0)
+    step = np.maximum(np.round(d / ref), 1).astype(np.int64)  # tooth pitches per interval
+    if index is None:
+        gaps = np.flatnonzero(step >= 2)
+        if gaps.size < 2:
+            raise ValueError(f"no missing-tooth gap in the {k}-pulse encoder train (give the index pulse: "
+                             f"--encoder-index)")
+        first = int(gaps[0]) + 1
+        rule = "missing tooth"
+    else:
+        if np.any(step != 1):
+            i = int(np.flatnonzero(step != 1)[0])
+            raise ValueError(f"encoder pulse {i + 1} comes {step[i]} tooth pitches after the previous one: "
+                             f"encoder pulses missing (or a missing-tooth wheel: leave out --encoder-index)")
+        if not 0 <= index < min(k, e.size):
+            raise ValueError(f"--encoder-index {index} must be in [0, {k - 1}]")
+        first = int(index)
+        rule = "index"
+    tooth = np.r_[0, np.cumsum(step[first:])]
+    p = e[first:]
+    if index is None:  # every gap must close a revolution of exactly K tooth positions
+        at_gap = np.r_[False, step[first:] >= 2]
+        bad = np.flatnonzero(at_gap & (tooth % k != 0))
+        if bad.size:
+            raise ValueError(f"encoder pulse {first + int(bad[0])}: a gap after {int(tooth[bad[0]] % k)} tooth "
+                             f"positions of the revolution, not {k} (wrong --encoder-pulses, or pulses missing)")
+    zero = tooth % k == 0
+    return EncoderRevolutions(opr_s=p[zero], pulse_s=p, angle_rad=TWO_PI * tooth / k, rule=rule)
+
+
+def shaft_angle(opr_s: np.ndarray, t_s: np.ndarray, encoder: EncoderRevolutions | None = None) -> np.ndarray:
+    """Total rotor angle since ``opr_s[0]`` at times ``t_s``, rad.
+
+    Without an encoder: ``2 pi n + phi_n(t)`` from the quadratic OPR model
+    (:func:`~bttsim_stream.process.displacement.rotor_phase_from_opr`). With one: the
+    quadratic through the three encoder pulses nearest ``t`` (inside the encoder's span;
+    the OPR model outside it).
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+    t_s : ndarray, shape (n,)
+        Times at or after ``opr_s[0]``, s.
+    encoder : EncoderRevolutions, optional
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    t = np.asarray(t_s, dtype=float)
+    n = np.clip(np.searchsorted(opr, t, side="right") - 1, 0, opr.size - 1)
+    total = TWO_PI * n + rotor_phase_from_opr(opr).rows(n).angle(t)
+    if encoder is None or encoder.pulse_s.size < 3:
+        return total
+    e, a = encoder.pulse_s, encoder.angle_rad
+    inside = (t >= e[0]) & (t <= e[-1])
+    i = np.clip(np.searchsorted(e, t[inside], side="right") - 1, 0, e.size - 3)
+    # Newton form through (e_i, a_i), (e_i+1, a_i+1), (e_i+2, a_i+2)
+    t0, t1, t2 = e[i], e[i + 1], e[i + 2]
+    f01 = (a[i + 1] - a[i]) / (t1 - t0)
+    f12 = (a[i + 2] - a[i + 1]) / (t2 - t1)
+    f012 = (f12 - f01) / (t2 - t0)
+    x = t[inside]
+    total[inside] = a[i] + (x - t0) * (f01 + (x - t1) * f012)
+    return total
+
+
 def _nearest(total: np.ndarray, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Blade of the nearest arrival angle (mod 2 pi) and the signed deviation from it, rad."""
     order = np.argsort(psi)
@@ -135,7 +253,7 @@ def _first_per_cell(key: np.ndarray, score: np.ndarray) -> np.ndarray:
 
 def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: np.ndarray, *,
                     calibrate: bool = True, tolerance: float = 0.25, outlier: float = 20.0,
-                    floor: float = 0.02) -> IdentifiedPulses:
+                    floor: float = 0.02, encoder: EncoderRevolutions | None = None) -> IdentifiedPulses:
     """Assign one probe's unlabelled pulse times to revolutions and blades.
 
     Parameters
@@ -158,6 +276,9 @@ def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: 
         kept pulses' distance from their neighbours' median) from the prediction is extra.
     floor : float
         ... but never for a distance below ``floor`` blade pitches.
+    encoder : EncoderRevolutions, optional
+        The shaft encoder whose pulses 0 are ``opr_s``: the rotor angle from its pulses
+        (:func:`shaft_angle`).
 
     Returns
     -------
@@ -168,11 +289,10 @@ def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: 
     psi = np.mod(np.asarray(arrival_angles_rad, dtype=float).ravel(), TWO_PI)
     nr, nb = opr.size, psi.size
     pitch = TWO_PI / nb
-    phase = rotor_phase_from_opr(opr)
     n = np.searchsorted(opr, t, side="right") - 1
     before = n < 0
     t, n = t[~before], n[~before]
-    total = TWO_PI * n + phase.rows(n).angle(t)
+    total = shaft_angle(opr, t, encoder)
     blade, dev = _nearest(total, psi)
     if calibrate and t.size:
         with warnings.catch_warnings():

@@ -96,7 +96,8 @@ import numpy as np
 __all__ = ["PROBE_KINDS", "TRIGGER_KINDS", "EDGES", "ProbeModel", "Digitiser", "Trigger", "PulseParameters",
            "SignalWindows", "TriggerResult", "RawSignals", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
            "edge_crossing_s", "missing_clearance_m", "lowpass", "synthesise", "apply_triggers",
-           "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise", "constant_fraction_level"]
+           "interpolation_error_bound_s", "trigger_jitter_s", "LowFrequencyNoise", "constant_fraction_level",
+           "latch_s"]
 
 PROBE_KINDS = ("optical", "capacitive")
 TRIGGER_KINDS = ("threshold", "constant_fraction", "peak")
@@ -680,6 +681,15 @@ def apply_triggers(win: SignalWindows, triggers, probe: np.ndarray) -> TriggerRe
     et = np.concatenate(extra_t) if extra_t else np.zeros(0)
     order = np.lexsort((et, ep))
     return TriggerResult(toa_s=toa, n_edges=n_edges, extra_passage=ep[order], extra_toa_s=et[order])
+
+
+def latch_s(t_s, clock_hz: float):
+    """Times as the counter latches them, s: ``floor(t f_c) / f_c`` (the tick of the
+    ``clock_hz`` counter at or before ``t``); NaN (no pulse) stays NaN.
+
+    The simulator's acquisition (``RunUpSimulator``) latches its TOAs this way."""
+    t = np.asarray(t_s, dtype=float)
+    return np.floor(t * clock_hz) / clock_hz
 
 
 def interpolation_error_bound_s(slope_v_s, curvature_v_s2, dt_s):
