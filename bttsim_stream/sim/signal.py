@@ -93,6 +93,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..triggers import constant_fraction_level  # one constant-fraction rule: the views draw it too
+
 __all__ = ["PROBE_KINDS", "TRIGGER_KINDS", "EDGES", "ProbeModel", "Digitiser", "Trigger", "PulseParameters",
            "SignalWindows", "TriggerResult", "RawSignals", "centrifugal_growth_m", "pulse_parameters", "pulse_shape",
            "edge_crossing_s", "missing_clearance_m", "lowpass", "synthesise", "apply_triggers",
@@ -109,7 +111,6 @@ _WINDOW_SCALES = 9.0
 #: Window extension after the pulse, in filter time constants (exp(-7) ~ 1e-3 of the tail).
 _WINDOW_TAUS = 7.0
 #: Samples averaged for the constant-fraction baseline.
-_BASELINE_SAMPLES = 4
 #: Smallest clearance the capacitive model takes (a rubbing tip), m.
 MIN_CLEARANCE_M = 1e-6
 
@@ -604,20 +605,6 @@ def _threshold(y, level, hysteresis, t_first, dt):
         frac = np.where(y1 != y0, (level - y0) / (y1 - y0), 0.0)
     extra = t_first[col] + (k - 1 + np.clip(frac, 0.0, 1.0)) * dt
     return np.where(n_edges > 0, toa, np.nan), n_edges, col.astype(np.int64), extra
-
-
-def constant_fraction_level(y, fraction):
-    """The constant-fraction trigger's level of each window, V: ``b + f (max - b)`` with ``b``
-    the mean of the window's first 4 samples (its baseline).
-
-    Parameters
-    ----------
-    y : ndarray, shape (n_samples, ...)
-        Window samples, V.
-    fraction : float
-    """
-    base = y[:_BASELINE_SAMPLES].mean(axis=0)
-    return base + fraction * (y.max(axis=0) - base)
 
 
 def _constant_fraction(y, level, fraction, t_first, dt):
