@@ -331,3 +331,20 @@ def test_bulk_writer_is_byte_identical_to_the_public_api(messages, tmp_path, chu
         rec.write_run_metadata(**RUN_META)
         rec.write_all(messages)
     assert bulk.read_bytes() == (tmp_path / "fallback.mcap").read_bytes()
+
+
+def test_the_bulk_writer_uses_mcap_internals_of_the_tested_release(messages, tmp_path):
+    """pyproject.toml bounds mcap to the release whose private writer state the bulk writer fills:
+    on it, the fast path must be taken. Fails loudly, naming the release, when mcap moves them."""
+    from importlib.metadata import version
+
+    msgs = list(messages)
+    with McapRecorder(tmp_path / "x.mcap") as rec:
+        seen = set()
+        for m in msgs:  # a first message on each key declares its channel (public API)
+            if m.key not in seen:
+                rec.write_message(m)
+                seen.add(m.key)
+        assert rec._append_records(msgs[-50:]), (
+            f"mcap {version('mcap')}: the Writer's private chunk builder/statistics moved; the recorder "
+            "falls back to add_message (correct, slower): update _append_records or the mcap bound")
