@@ -82,6 +82,12 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "peak_revolution": ("", "revolution of the blade's peak (fractional for refined methods)"),
     "damping_ratio": ("", "damping ratio from the SDOF method (NaN otherwise)"),
     "freq_std_hz": ("Hz", "standard uncertainty of the frequency"),
+    "amp_ci95_lo_m": ("m", "lower end of the 95 % interval of the pk-pk amplitude (NaN: none)"),
+    "amp_ci95_hi_m": ("m", "upper end of the 95 % interval of the pk-pk amplitude"),
+    "freq_ci95_lo_hz": ("Hz", "lower end of the 95 % interval of the frequency"),
+    "freq_ci95_hi_hz": ("Hz", "upper end of the 95 % interval of the frequency"),
+    "phase_ci95_lo_rad": ("rad", "lower end of the 95 % interval of the phase"),
+    "phase_ci95_hi_rad": ("rad", "upper end of the 95 % interval of the phase"),
     "truth_amp_pkpk_m": ("m", "true resonant pk-pk amplitude of d_eqv (Eq. 3-4)"),
     "truth_freq_hz": ("Hz", "true resonant frequency"),
     "E_A_pct": ("%", "amplitude error (Eq. 18)"),
@@ -138,11 +144,16 @@ def _opt(arr, n: int) -> np.ndarray:
     return np.full(n, np.nan) if arr is None or np.size(arr) != n else np.asarray(arr, dtype=np.float64)
 
 
+def _ci(arr, n: int, k: int) -> np.ndarray:
+    return np.full(n, np.nan) if arr is None or np.shape(arr) != (n, 2) else np.asarray(arr, np.float64)[:, k]
+
+
 def _resonance_table(report, revolution0: int) -> dict:
     cols: dict[str, list] = {k: [] for k in (
         "entry", "kind", "eo", "nd", "rpm", "entry_freq_hz", "method", "cn", "first_revolution", "last_revolution",
         "blade", "peak_revolution", "amp_pkpk_m", "freq_hz", "phase_rad", "amp_std_m", "freq_std_hz",
-        "damping_ratio", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct")}
+        "amp_ci95_lo_m", "amp_ci95_hi_m", "freq_ci95_lo_hz", "freq_ci95_hi_hz", "phase_ci95_lo_rad",
+        "phase_ci95_hi_rad", "damping_ratio", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct")}
     for i, e in enumerate(tuple(report.resonances) + tuple(report.steady)):
         p = e.peaks
         n = p.n_blades
@@ -151,6 +162,9 @@ def _resonance_table(report, revolution0: int) -> dict:
             "blade": np.arange(n), "peak_revolution": _opt(p.revolution, n) + revolution0,
             "amp_pkpk_m": _opt(p.amp_pkpk_m, n), "freq_hz": _opt(p.freq_hz, n), "phase_rad": _opt(p.phase_rad, n),
             "amp_std_m": _opt(p.amp_std_m, n), "freq_std_hz": _opt(p.freq_std_hz, n),
+            "amp_ci95_lo_m": _ci(p.amp_ci95_m, n, 0), "amp_ci95_hi_m": _ci(p.amp_ci95_m, n, 1),
+            "freq_ci95_lo_hz": _ci(p.freq_ci95_hz, n, 0), "freq_ci95_hi_hz": _ci(p.freq_ci95_hz, n, 1),
+            "phase_ci95_lo_rad": _ci(p.phase_ci95_rad, n, 0), "phase_ci95_hi_rad": _ci(p.phase_ci95_rad, n, 1),
             "damping_ratio": _opt(p.damping_ratio, n),
             "truth_amp_pkpk_m": _opt(None if t is None else t.amp_pkpk_m, n),
             "truth_freq_hz": _opt(None if t is None else t.freq_hz, n),

@@ -105,6 +105,11 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
 _EXTENDED = ("phase_rad", "amp_std_m", "freq_std_hz", "damping_ratio", "steady_amp_pkpk_m", "natural_freq_hz")
 
 
+#: (dataclass field, (proto lo, proto hi)) of the 95 % intervals.
+_CI95 = (("amp_ci95_m", ("amp_ci95_lo_m", "amp_ci95_hi_m")), ("freq_ci95_hz", ("freq_ci95_lo_hz", "freq_ci95_hi_hz")),
+         ("phase_ci95_rad", ("phase_ci95_lo_rad", "phase_ci95_hi_rad")))
+
+
 def _fill_blades(rows, peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, extended: bool) -> None:
     nan = np.full(peaks.n_blades, np.nan)
     for b in range(peaks.n_blades):
@@ -124,6 +129,12 @@ def _fill_blades(rows, peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f
                 setattr(row, name, float((nan if arr is None or np.size(arr) != peaks.n_blades else arr)[b]))
             row.revolution = float(peaks.revolution[b])
             row.has_extended = True
+        cis = [getattr(peaks, name) for name, _ in _CI95]
+        if all(c is not None and np.shape(c) == (peaks.n_blades, 2) for c in cis):
+            for (name, (lo, hi)), c in zip(_CI95, cis):
+                setattr(row, lo, float(c[b, 0]))
+                setattr(row, hi, float(c[b, 1]))
+            row.has_ci95 = True
 
 
 def _fill_stats(m, e_a, e_f) -> None:
@@ -143,6 +154,7 @@ def _fill_entry(m, e: ResonanceEntry) -> None:
     m.first_revolution, m.last_revolution = int(e.first_revolution), int(e.last_revolution)
     m.peak_revolution, m.sweep_rate = int(e.peak_revolution), float(e.sweep_rate)
     m.zeroing_correction_pct = 100.0 * float(e.zeroing_correction)
+    m.notes.extend(str(n) for n in e.notes)
     _fill_blades(m.blades, e.peaks, e.truth, e.e_a_pct, e.e_f_pct, extended=True)
     if e.truth is not None and e.peaks.n_blades:
         _fill_stats(m, e.e_a_pct, e.e_f_pct)
@@ -282,6 +294,9 @@ def _decode_blades(where: str, m, rows, *, extended: bool):
             raise _corrupt(where, m, "an entry's blade rows lack their extended fields")
         kw = {name: _array([getattr(b, name) for b in rows]) for name in _EXTENDED}
         rev = _array([b.revolution for b in rows])
+    if nb and all(b.has_ci95 for b in rows):  # older writers: no intervals (None)
+        for name, (lo, hi) in _CI95:
+            kw[name] = np.stack([_array([getattr(b, lo) for b in rows]), _array([getattr(b, hi) for b in rows])], 1)
     peaks = ResonancePeaks(revolution=rev, amp_pkpk_m=_array([b.amp_pkpk_m for b in rows]),
                            freq_hz=_array([b.freq_hz for b in rows]),
                            damping_ratio=kw.pop("damping_ratio", nan.copy()), method=method, **kw)
@@ -307,7 +322,8 @@ def _decode_entry(where: str, m, e) -> ResonanceEntry:
                             float(e.detection_snr), float(e.detection_snr_threshold)),
         first_revolution=int(e.first_revolution), last_revolution=int(e.last_revolution),
         peak_revolution=int(e.peak_revolution), peaks=peaks, truth=truth, e_a_pct=e_a, e_f_pct=e_f,
-        sweep_rate=float(e.sweep_rate), zeroing_correction=float(e.zeroing_correction_pct) / 100.0)
+        sweep_rate=float(e.sweep_rate), zeroing_correction=float(e.zeroing_correction_pct) / 100.0,
+        notes=tuple(e.notes))
 
 
 def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:

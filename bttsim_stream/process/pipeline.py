@@ -25,6 +25,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_contamination, predicted_response, resolve_engine_orders, speed_segments)
 from .displacement import TWO_PI, Displacements, Geometry, compute_displacements, rotor_phase_from_opr
 from .fit import SineFit, fit_revolutions
+from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
@@ -184,7 +185,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                    gain_weights=1.0 / (survey.omega * survey.omega) if options.prep_options.noise_weighting else None,
                    truth=rows_truth, revolution0=revolution0, options=options, reference=reference,
                    crossings=tuple(survey.crossings),
-                   offset_removed=bool(prepared is not None and prepared.options.remove_offset))
+                   offset_removed=bool(prepared is not None and prepared.options.remove_offset), nsv=tuple(survey.nsv))
     report = _report(ctx, survey, eos_asked, info, ref_info, notes)
     # 5. travelling waves and the resonance revolutions of the first order
     eo = survey.eos[0]
@@ -541,6 +542,7 @@ class _Context:
     reference: Reference | None = None
     crossings: tuple = ()
     offset_removed: bool = False
+    nsv: tuple = ()
 
 
 #: The zeroing correction fits the response's growth where the predicted response is at most
@@ -628,6 +630,8 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
                 t_sample = np.nanmean(ctx.toa, axis=2)
             pk, sweep = sdof_method(ctx.raw.phasor[..., i], t_sample, ctx.opr, rotor_phase_from_opr(ctx.opr), c.eo,
                                     c.lo, c.hi, fn0_hz=pk.freq_hz, zeta0=c.damping_estimate(ctx.omega))
+    zc = _correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])
+    pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc)
     with _quiet():
         damping = float(np.nanmean(pk.damping_ratio)) if np.isfinite(pk.damping_ratio).any() else math.nan
         f_mean = float(np.nanmean(pk.freq_hz)) if np.isfinite(pk.freq_hz).any() else math.nan
@@ -638,8 +642,33 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         detection=Detection("prominence_ratio", c.ratio, opts.detect.ratio_threshold, c.snr,
                             opts.detect.snr_threshold),
         first_revolution=r0 + c.lo, last_revolution=r0 + c.hi, peak_revolution=r0 + c.peak, peaks=pk,
-        sweep_rate=sweep, zeroing_correction=_correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i]))
+        sweep_rate=sweep, zeroing_correction=zc, notes=crossing_notes)
     return entry.with_truth(window_truth(ctx.truth, c.eo, c.lo, c.hi))
+
+
+def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, freq, zc: float):
+    """The crossing's 95 % intervals and notes (:mod:`.intervals`; the truth is not used)."""
+    eos_fit = ctx.eos if ctx.joint else (c.eo,)
+    rev = np.clip(np.nan_to_num(pk.revolution, nan=c.peak).round().astype(np.int64), 0, ctx.fit.phasor.shape[0] - 1)
+    P = ctx.fit.phasor[rev, np.arange(rev.size), i]
+    gain = layout_gain(ctx.geometry.probe_angles_rad, eos_fit, eos_fit.index(c.eo), P)
+    ref = ctx.reference
+    contamination = float(ref.contamination) if ref is not None and ref.start is not None else math.nan
+    with _quiet():
+        pk, terms = crossing_intervals(
+            pk, amp, ph, ctx.raw.amp_pkpk_m[..., i], freq, c.lo, c.hi, gain=gain,
+            half_power_width=c.half_power_width, zeroing_correction=zc, contamination=contamination,
+            cff_window=cff_window(c.half_power_width) if pk.method == "cff" else None)
+    r0 = ctx.revolution0
+    nsv = [f"order {n.order:.3f}, ND {n.nd:+d}, {1e3 * n.amp_pkpk_m:.4f} mm, revolutions {n.first_revolution}-"
+           f"{n.last_revolution}" for n in ctx.nsv
+           if n.first_revolution - r0 <= c.hi and n.last_revolution - r0 >= c.lo]
+    others = [k.eo for k in ctx.crossings if k.eo != c.eo and k.hp_lo <= c.hp_hi and k.hp_hi >= c.hp_lo]
+    notes = crossing_notes(eo=c.eo, method=pk.method, cn=float(ctx.cns.get(c.eo, ctx.fit.cn)), terms=terms,
+                           amp_pkpk_m=pk.amp_pkpk_m, contamination=contamination,
+                           contamination_limit=ctx.options.detect.contamination_limit, zeroing_correction=zc,
+                           nsv_overlap=nsv, other_crossings=others)
+    return pk, notes
 
 
 def _dwell_entries(ctx: _Context, dw) -> list[ResonanceEntry]:
@@ -664,9 +693,10 @@ def _dwell_entries(ctx: _Context, dw) -> list[ResonanceEntry]:
         nb = amp.size
         with _quiet():
             snr = float(np.nanmean(amp) / max(np.nanmean(std), 1e-300)) if np.isfinite(amp).any() else 0.0
-        peaks = ResonancePeaks(revolution=np.full(nb, float(a)), amp_pkpk_m=amp, freq_hz=np.full(nb, f),
-                               damping_ratio=np.full(nb, np.nan), method="mean", phase_rad=np.angle(mean),
-                               amp_std_m=std, freq_std_hz=np.full(nb, float(np.std(ctx.omega[a:b])) * eo / TWO_PI))
+        peaks = dwell_intervals(ResonancePeaks(
+            revolution=np.full(nb, float(a)), amp_pkpk_m=amp, freq_hz=np.full(nb, f),
+            damping_ratio=np.full(nb, np.nan), method="mean", phase_rad=np.angle(mean),
+            amp_std_m=std, freq_std_hz=np.full(nb, float(np.std(ctx.omega[a:b])) * eo / TWO_PI)))
         nd = identify_nd(fit_spectra(mean, eo, ctx.geometry.blade_angles_rad))
         r0 = ctx.revolution0
         entry = ResonanceEntry(

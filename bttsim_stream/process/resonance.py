@@ -72,6 +72,9 @@ class ResonancePeaks:
     steady_amp_pkpk_m, natural_freq_hz : ndarray, shape (n_blades,), or None
         SDOF method only: the sweep-corrected steady-state resonant amplitude and the
         natural frequency.
+    amp_ci95_m, freq_ci95_hz, phase_ci95_rad : ndarray, shape (n_blades, 2), or None
+        95 % intervals ``[lo, hi]`` of the amplitude (pk-pk, m), frequency (Hz) and phase
+        (rad) (:mod:`~bttsim_stream.process.intervals`).
     """
 
     revolution: np.ndarray
@@ -84,6 +87,9 @@ class ResonancePeaks:
     freq_std_hz: np.ndarray | None = None
     steady_amp_pkpk_m: np.ndarray | None = None
     natural_freq_hz: np.ndarray | None = None
+    amp_ci95_m: np.ndarray | None = None
+    freq_ci95_hz: np.ndarray | None = None
+    phase_ci95_rad: np.ndarray | None = None
 
     @property
     def n_blades(self) -> int:
@@ -348,12 +354,17 @@ def _blade_rows(peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, ex
     opt = (("phase_rad", peaks.phase_rad), ("amp_std_m", peaks.amp_std_m), ("freq_std_hz", peaks.freq_std_hz),
            ("damping_ratio", peaks.damping_ratio), ("steady_amp_pkpk_m", peaks.steady_amp_pkpk_m),
            ("natural_freq_hz", peaks.natural_freq_hz))
+    cis = (("amp_ci95_m", peaks.amp_ci95_m), ("freq_ci95_hz", peaks.freq_ci95_hz),
+           ("phase_ci95_rad", peaks.phase_ci95_rad))
     for b in range(peaks.n_blades):
         row = {"blade": b, "amp_pkpk_m": float(peaks.amp_pkpk_m[b]), "freq_hz": float(peaks.freq_hz[b])}
         if extended:
             for name, arr in opt:
                 if arr is not None and np.size(arr) == peaks.n_blades and np.isfinite(arr[b]):
                     row[name] = float(arr[b])
+        for name, arr in cis:
+            if arr is not None and np.shape(arr) == (peaks.n_blades, 2) and np.all(np.isfinite(arr[b])):
+                row[name] = [float(arr[b, 0]), float(arr[b, 1])]
         if truth is not None:
             row.update(truth_amp_pkpk_m=float(truth.amp_pkpk_m[b]), truth_freq_hz=float(truth.freq_hz[b]),
                        E_A_pct=float(e_a[b]), E_f_pct=float(e_f[b]))
@@ -433,6 +444,9 @@ class ResonanceEntry:
     zeroing_correction : float
         The response the zeroing reference held, added back to this crossing's responses, as a
         fraction of the peak response (blade mean; NaN: none applied).
+    notes : tuple of str
+        What spoils this entry's estimate (a poor layout, a fast sweep, a short window, an
+        overlapping NSV or engine order; :func:`~bttsim_stream.process.intervals.crossing_notes`).
     """
 
     kind: str
@@ -453,6 +467,7 @@ class ResonanceEntry:
     e_f_pct: np.ndarray | None = None
     sweep_rate: float = math.nan
     zeroing_correction: float = math.nan
+    notes: tuple = ()
 
     @property
     def mean_amp_pkpk_m(self) -> float:
@@ -482,6 +497,7 @@ class ResonanceEntry:
         out["blades"] = _blade_rows(self.peaks, self.truth, self.e_a_pct, self.e_f_pct, extended=True)
         if self.truth is not None:
             out.update(_error_stats(self.e_a_pct, self.e_f_pct))
+        out["notes"] = list(self.notes)
         return out
 
 
@@ -603,16 +619,19 @@ def _amp_unit(rows: list[dict]) -> tuple[str, float]:
 
 def _blade_table(title: str, entry: dict) -> list[str]:
     """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
-    uncertainty in um, frequency, phase in degrees, and the truth with E_A / E_f when the
+    uncertainty in um, the half-width of its 95 % interval in um, frequency, phase in degrees, and the truth with E_A / E_f when the
     entry has them."""
     rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
     unc = any("amp_std_m" in r for r in rows)
+    ci = any("amp_ci95_m" in r for r in rows)
     phase = any("phase_rad" in r for r in rows)
     unit, scale = _amp_unit(rows)
     head = f"{'blade':>5}  {f'amp {unit} pk-pk':>12}"
     if unc:
         head += f"  {'+- ' + _UM:>8}"
+    if ci:
+        head += f"  {'95% ' + _UM + ' (half)':>14}"
     head += f"  {'freq Hz':>9}"
     if phase:
         head += f"  {'phase deg':>9}"
@@ -623,6 +642,9 @@ def _blade_table(title: str, entry: dict) -> list[str]:
         s = f"{r['blade']:>5}  {scale * _f(r['amp_pkpk_m']):>12.4f}"
         if unc:
             s += f"  {1e6 * _f(r.get('amp_std_m')):>8.3f}"
+        if ci:
+            lo_hi = r.get("amp_ci95_m") or (None, None)
+            s += f"  {0.5e6 * (_f(lo_hi[1]) - _f(lo_hi[0])):>14.3f}"
         s += f"  {_f(r['freq_hz']):>9.3f}"
         if phase:
             s += f"  {_phase_deg(r.get('phase_rad')):>9.1f}"
@@ -630,6 +652,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
             s += (f"  {scale * _f(r['truth_amp_pkpk_m']):>9.4f}  {_f(r['truth_freq_hz']):>9.3f}"
                   f"  {_f(r['E_A_pct']):>7.3f}  {_f(r['E_f_pct']):>7.4f}")
         lines.append(s)
+    for n in entry.get("notes", []) if "kind" in entry else []:
+        lines.append(f"note: {n}")
     if truth:
         lines.append(f"E_A mean {entry['mean_E_A_pct']:.3f} %  max {entry['max_E_A_pct']:.3f} %   "
                      f"E_f mean {entry['mean_E_f_pct']:.4f} %  max {entry['max_E_f_pct']:.4f} %")
