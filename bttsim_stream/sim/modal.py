@@ -836,7 +836,8 @@ class EnvelopeIntegrator:
         mn, mx = amu2.min(axis=0), np.sqrt(amu2.max(axis=0))
         q = np.abs(self._eo_col) * abs(alpha) / mn
         K = np.zeros(q.shape, int)
-        bound = mx / self._zw_col
+        with np.errstate(divide="ignore"):  # an undamped mode: no bound (inf), never quasi-steady
+            bound = mx / self._zw_col
         for k in range(1, 9):
             bound *= (2 * k - 1) * q  # (2k - 1)!! q^k |mu|_max / (zeta w)
             K[(K == 0) & (bound <= QUASI_STEADY_TOL)] = k
