@@ -27,8 +27,8 @@ from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
 from .nodes import program, programs
-from .offline import (add_processing_arguments, completeness, load_run, parse_engine_orders, processing_options,
-                      result_warnings, with_processing)
+from .offline import (PROCESS_TRUTH_FIELDS, add_processing_arguments, completeness, load_run, parse_engine_orders,
+                      processing_options, result_warnings, with_processing)
 from .orchestrate import run_all
 from .process.pipeline import process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
@@ -234,7 +234,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
     # the phases on a terminal only: on a pipe, stderr stays the errors and warnings
     progress = Progress(sys.stderr.isatty())
     progress.phase(f"reading {args.mcap} ...")
-    run = load_run(args.mcap)
+    run = load_run(args.mcap, truth_fields=PROCESS_TRUTH_FIELDS)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")

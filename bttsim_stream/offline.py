@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from .bus import codec, keys
-from .bus.recording import McapRecorder, read_recording
+from .bus.recording import McapRecorder, RecordingScan
 from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
@@ -29,7 +29,7 @@ from .process.probes import check_engine_orders
 from .processor import ProcessorSession
 from .sim.core import RunInfo, Truth
 
-__all__ = ["RecordedRun", "load_run", "completeness", "result_warnings", "processing_messages", "with_processing",
+__all__ = ["RecordedRun", "PROCESS_TRUTH_FIELDS", "load_run", "messages_of", "completeness", "result_warnings", "processing_messages", "with_processing",
            "add_processing_arguments", "processing_options", "parse_engine_orders"]
 
 
@@ -90,9 +90,11 @@ class RecordedRun:
     opr_s : ndarray, shape (n_rev,)
     toa_s : ndarray, shape (n_rev, n_blades, n_probes)
     truth : Truth or None
-        The simulator's truth of these revolutions, from the truth channel.
-    messages : list of Message
-        Every recorded message, in file order.
+        The simulator's truth of these revolutions, from the truth channel (the fields not
+        asked for by :func:`load_run`'s ``truth_fields`` are None).
+    messages : list of Message or None
+        Every recorded message, in file order (None unless :func:`load_run` was asked to keep
+        them: :func:`messages_of` streams them from ``path`` again).
     doubles : dict
         Double pulses of the recorded TOA batches (``double_pulses``, ``extra_edges``,
         ``stray_edges``; :class:`~bttsim_stream.process.displacement.DoublePulses`).
@@ -101,6 +103,10 @@ class RecordedRun:
         ``blade`` (the window it falls in,
         :func:`~bttsim_stream.process.displacement.assign_extra_edges`; -1: in none) and
         ``toa_s``, sorted by revolution, probe and time.
+    path : str
+        The file read.
+    lost, duplicates : int
+        Acquisition messages missing or repeated by their sequence numbers.
     """
 
     meta: RunInfo
@@ -108,42 +114,172 @@ class RecordedRun:
     opr_s: np.ndarray
     toa_s: np.ndarray
     truth: Truth | None
-    messages: list
+    messages: list | None
     doubles: dict = field(default_factory=lambda: DoublePulses().to_summary())
     extra_edges: dict = field(default_factory=lambda: _edge_rows([]))
+    path: str = ""
+    lost: int = 0
+    duplicates: int = 0
 
 
-def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
+#: The truth fields that ``bttsim process`` reads (E_A / E_f, the NSV scores, exact times).
+PROCESS_TRUTH_FIELDS = ("opr_s", "t_exp_s", "d_eqv_pkpk_m", "omega_mean", "nsv_kind", "nsv_freq_hz", "nsv_nd",
+                        "nsv_amp_pkpk_m", "nsv_rms_m", "nsv_band_hz")
+
+
+class _TruthTable:
+    """Per-revolution truth rows in preallocated arrays (a later message of a revolution
+    replaces the earlier one, as a dict would); memory: the kept fields' arrays, no Python
+    object per revolution."""
+
+    def __init__(self, names, capacity: int, toa_tail: tuple) -> None:
+        self.names = tuple(names)
+        self.capacity = max(int(capacity), 16)
+        self.toa_tail = tuple(toa_tail)
+        self.index: dict[int, int] = {}
+        self.n = 0
+        self.tables: dict[str, np.ndarray] = {}
+        self.tails: dict[str, tuple | None] = {}  # per field: (tail shape, dtype kind), None: absent
+        self.bad: set[int] = set()  # revolutions whose latest truth is of another rotor or layout
+        self.str_size: dict[str, int] = {}
+
+    def _fits(self, t: Truth) -> bool:
+        if t.toa_s.shape[1:] != self.toa_tail:
+            return False
+        return all((getattr(t, n) is None) == (self.tails[n] is None)
+                   and (self.tails[n] is None or (getattr(t, n).shape == (1,) + self.tails[n][0]
+                                                  and getattr(t, n).dtype.kind == self.tails[n][1]))
+                   for n in self.names)
+
+    def add(self, revolution: int, t: Truth) -> None:
+        if not self.tails and t.toa_s.shape[1:] == self.toa_tail:
+            for name in self.names:
+                a = getattr(t, name)
+                self.tails[name] = None if a is None else (a.shape[1:], a.dtype.kind)
+                if a is not None:
+                    self.tables[name] = np.empty((self.capacity,) + a.shape[1:],
+                                                 dtype=object if a.dtype.kind == "U" else a.dtype)
+                    self.str_size[name] = 0
+        if not self.tails or not self._fits(t):
+            self.bad.add(revolution)
+            return
+        self.bad.discard(revolution)
+        i = self.index.get(revolution)
+        if i is None:
+            i = self.index[revolution] = self.n
+            self.n += 1
+            if self.n > self.capacity:
+                self.capacity *= 2
+                for name, a in self.tables.items():
+                    grown = np.empty((self.capacity,) + a.shape[1:], dtype=a.dtype)
+                    grown[: a.shape[0]] = a
+                    self.tables[name] = grown
+        for name, a in self.tables.items():
+            row = getattr(t, name)
+            a[i] = row[0]
+            if row.dtype.kind == "U":
+                self.str_size[name] = max(self.str_size[name], row.dtype.itemsize // 4)
+
+    def rows(self, numbers: list, all_names) -> Truth | None:
+        """The truth of revolutions ``numbers`` (None if one is missing or of another rotor)."""
+        if any(r not in self.index or r in self.bad for r in numbers):
+            return None
+        idx = np.fromiter((self.index[r] for r in numbers), dtype=np.int64, count=len(numbers))
+        contiguous = idx.size and idx[-1] - idx[0] == idx.size - 1 and bool(np.all(np.diff(idx) == 1))
+        out = {}
+        for name in all_names:
+            a = self.tables.get(name)
+            if a is None:
+                out[name] = None
+                continue
+            a = a[idx[0]:idx[-1] + 1] if contiguous else a[idx]
+            if a.dtype == object:
+                a = a.astype(f"<U{max(self.str_size[name], 1)}")
+            out[name] = a
+        return Truth(**out)
+
+
+def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False,
+             truth_fields=None) -> RecordedRun:
     """Read and decode a recording; a corrupt, truncated, foreign or impossible file is a
     one-line error (:class:`BttsimError` naming the file).
 
+    The file is read as a stream into arrays: memory is the run's arrays (TOAs, OPR times and
+    the truth fields kept), not its messages.
+
+    Parameters
+    ----------
+    path : str or Path
+    allow_truncated : bool
+        Read a recording without a footer up to its cut.
+    keep_messages : bool
+        Keep every message (:attr:`RecordedRun.messages`); else None.
+    truth_fields : iterable of str, optional
+        The :class:`~bttsim_stream.sim.core.Truth` fields to keep (default all; the others are
+        None), e.g. :data:`PROCESS_TRUTH_FIELDS`.
+
+    Notes
+    -----
     Beyond the decoders' checks, the acquisition must make sense as a run: OPR times strictly
     increasing, and every TOA either NaN (no pulse) or a finite time within a revolution of
     its own OPR pulse (``[OPR_n - T_n, OPR_n + 2 T_n]``, ``T_n`` the revolution's period).
     """
-    rec = read_recording(path)
-    if rec.truncated and not allow_truncated:
-        raise BttsimError(f"{path}: truncated MCAP (no footer; {len(rec.messages)} messages readable)")
+    scan = RecordingScan(path)
+    all_truth = tuple(f.name for f in fields(Truth))
+    kept_truth = all_truth if truth_fields is None else tuple(n for n in all_truth if n in set(truth_fields))
+    messages: list | None = [] if keep_messages else None
+    n_messages = 0
+    error: BttsimError | None = None  # a decoding error, raised after the truncation check
     meta = None
-    decoded: list[tuple[str, codec.Decoded]] = []
-    truth: dict[int, Truth] = {}
-    try:
-        for m in rec.messages:
+    early: list = []  # acquisition before the run metadata (kept until it comes)
+    asm = truth = None
+    seqs = SequenceTracker()
+    extras: dict = {}  # (revolution, probe) -> (toa_s, extra_toa_s) of the latest batch, when it has extras
+
+    def take(kind: str, d) -> None:
+        nonlocal truth
+        if kind == "truth":
+            if truth is None:
+                truth = _TruthTable(kept_truth, (meta.n_revolutions or 0) + 1, (meta.n_blades, meta.n_probes))
+            truth.add(d.header.revolution, d.body)
+            return
+        asm.add(kind, d)
+        if kind == "toa":  # once each: the latest batch of a (revolution, probe) holds
+            if d.body.extra_toa_s.size:
+                extras[(d.header.revolution, d.body.probe)] = (d.body.toa_s, d.body.extra_toa_s)
+            else:
+                extras.pop((d.header.revolution, d.body.probe), None)
+
+    for m in scan:
+        n_messages += 1
+        if messages is not None:
+            messages.append(m)
+        if error is not None:
+            continue
+        try:
             kind = keys.parse_key(m.key).kind
+            if kind in ("opr", "toa"):
+                seqs.accept(m.key, m.seq)
             if kind == "meta" and meta is None:
                 meta = codec.decode_run_metadata(m.payload, m.key).body
-            elif kind in ("opr", "toa"):
-                decoded.append((kind, codec.decode_message(m.key, m.payload)))
-            elif kind == "truth":
-                t = codec.decode_truth(m.payload, m.key)
-                truth[t.header.revolution] = t.body
-    except BttsimError as exc:
-        raise BttsimError(f"{path}: {exc}") from None
+                asm = RevolutionAssembler(meta.n_blades, meta.n_probes)
+                for item in early:
+                    take(*item)
+                early = []
+            elif kind in ("opr", "toa", "truth"):
+                d = codec.decode_truth(m.payload, m.key) if kind == "truth" else codec.decode_message(m.key, m.payload)
+                if meta is None:
+                    early.append((kind, d))
+                else:
+                    take(kind, d)
+        except BttsimError as exc:
+            error = exc
+    if scan.truncated and not allow_truncated:
+        raise BttsimError(f"{path}: truncated MCAP (no footer; {n_messages} messages readable)")
+    if error is not None:
+        raise BttsimError(f"{path}: {error}") from None
     if meta is None:
         raise BttsimError(f"{path}: no run metadata ({keys.PREFIX}/<rig>/meta) in the recording")
-    asm = RevolutionAssembler(meta.n_blades, meta.n_probes)
-    for kind, d in decoded:
-        asm.add(kind, d)
     revs = [r for r in asm.pop(final=True) if r.complete]
     if len(revs) < 3:
         why = (f" ({asm.ignored} OPR/TOA message(s) ignored: a blade count other than the metadata's "
@@ -158,22 +294,30 @@ def load_run(path, *, allow_truncated: bool = False) -> RecordedRun:
         missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
         raise BttsimError(f"{path}: {missing} revolution(s) missing in the recording")
     opr_s = np.array([r.opr_s for r in revs])
-    toa_s = np.stack([r.toa_s for r in revs])
+    toa_s = np.empty((len(revs), meta.n_blades, meta.n_probes))
+    for i, r in enumerate(revs):  # no second copy of the run beside the revolutions
+        toa_s[i] = r.toa_s
+        revs[i] = None
+    del revs
     _check_times(path, numbers, opr_s, toa_s)
-    tr = None
-    if truth and all(r in truth for r in numbers.tolist()):
-        rows = [truth[r] for r in numbers.tolist()]
-        if all(t.toa_s.shape[1:] == toa_s.shape[1:] for t in rows):  # truth of another rotor: left out
-            tr = Truth(**{f.name: np.concatenate([getattr(t, f.name) for t in rows]) for f in fields(Truth)})
+    tr = None if truth is None else truth.rows(numbers.tolist(), all_truth)
     doubles = DoublePulses()
     rows = []
-    batches = {(d.header.revolution, d.body.probe): d.body for kind, d in decoded if kind == "toa"}  # once each
-    for (rev, probe), b in sorted(batches.items()):
-        if b.extra_toa_s.size and numbers[0] <= rev <= numbers[-1]:
-            doubles.add(b.toa_s, b.extra_toa_s)
-            rows.append((rev, probe, assign_extra_edges(b.toa_s, b.extra_toa_s), b.extra_toa_s))
-    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=rec.messages,
-                       doubles=doubles.to_summary(), extra_edges=_edge_rows(rows))
+    for (rev, probe), (toa, extra) in sorted(extras.items()):
+        if numbers[0] <= rev <= numbers[-1]:
+            doubles.add(toa, extra)
+            rows.append((rev, probe, assign_extra_edges(toa, extra), extra))
+    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=messages,
+                       doubles=doubles.to_summary(), extra_edges=_edge_rows(rows), path=str(path),
+                       lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+
+
+def messages_of(run: RecordedRun):
+    """The recording's messages in file order: :attr:`RecordedRun.messages` if kept, else
+    streamed from the file again (a truncated file up to its cut)."""
+    if run.messages is not None:
+        return iter(run.messages)
+    return iter(RecordingScan(run.path))
 
 
 def _edge_rows(rows: list) -> dict:
@@ -184,6 +328,9 @@ def _edge_rows(rows: list) -> dict:
             "probe": np.repeat(np.array([r[1] for r in rows], np.int64), n),
             "blade": np.concatenate([np.asarray(r[2], np.int64) for r in rows] or [np.zeros(0, np.int64)]),
             "toa_s": np.concatenate([np.asarray(r[3], float) for r in rows] or [np.zeros(0)])}
+
+
+_CHECK_BLOCK = 4096  # revolutions per block of the time checks
 
 
 def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray) -> None:
@@ -197,12 +344,20 @@ def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndar
     if not np.isfinite(period).all():
         raise BttsimError(f"{path}: OPR times must be finite")
     period = np.append(period, period[-1])[:, None, None]
-    rel = toa_s - opr_s[:, None, None]
-    with np.errstate(invalid="ignore"):
-        wrong = ~np.isnan(toa_s) & ~((rel >= -period) & (rel <= 2.0 * period))
-    if wrong.any():
-        n, b, p = (int(x[0]) for x in np.nonzero(wrong))
-        raise BttsimError(f"{path}: {int(wrong.sum())} TOA(s) not within a revolution of their OPR pulse (first: "
+    first, count = None, 0
+    for lo in range(0, toa_s.shape[0], _CHECK_BLOCK):  # in blocks: no run-sized temporaries
+        hi = lo + _CHECK_BLOCK
+        rel = toa_s[lo:hi] - opr_s[lo:hi, None, None]
+        with np.errstate(invalid="ignore"):
+            wrong = ~np.isnan(toa_s[lo:hi]) & ~((rel >= -period[lo:hi]) & (rel <= 2.0 * period[lo:hi]))
+        if wrong.any():
+            count += int(wrong.sum())
+            if first is None:
+                n, b, p = (int(x[0]) for x in np.nonzero(wrong))
+                first = (n + lo, b, p)
+    if first is not None:
+        n, b, p = first
+        raise BttsimError(f"{path}: {count} TOA(s) not within a revolution of their OPR pulse (first: "
                           f"revolution {int(revolution[n])}, blade {b}, probe {p}: {float(toa_s[n, b, p])!r} s, OPR at "
                           f"{float(opr_s[n])!r} s)")
 
@@ -210,12 +365,8 @@ def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndar
 def completeness(run: RecordedRun) -> Completeness:
     """What of the run the recording holds: complete revolutions against the run metadata's
     count, acquisition messages missing or repeated by their sequence numbers."""
-    seqs = SequenceTracker()
-    for m in run.messages:
-        if keys.parse_key(m.key).kind in ("opr", "toa"):
-            seqs.accept(m.key, m.seq)
     return Completeness(revolutions_expected=run.meta.n_revolutions, revolutions_processed=int(run.revolution.size),
-                        lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+                        lost=run.lost, duplicates=run.duplicates)
 
 
 _OTHER_COLUMNS = ("amp_std_m", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct")
@@ -258,7 +409,7 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
     """
     session = ProcessorSession(run.meta, options)
     msgs: list[Message] = []
-    for m in run.messages:
+    for m in messages_of(run):
         kind = keys.parse_key(m.key).kind
         if kind in ("opr", "toa", "truth"):
             msgs += session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
@@ -270,10 +421,16 @@ def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:
     """``path`` if the recording holds the processor's messages, else a copy at ``out_path``
     with them added (:func:`processing_messages`)."""
     run = load_run(path, allow_truncated=allow_truncated)
-    if any(keys.parse_key(m.key).kind == "fit" for m in run.messages):
+    if any(keys.parse_key(m.key).kind == "fit" for m in messages_of(run)):
         return str(path)
     msgs, _ = processing_messages(run)
     with McapRecorder(out_path) as rec:
-        rec.write_all(run.messages)
+        batch: list[Message] = []
+        for m in messages_of(run):  # in batches: the file byte for byte as one call, without the whole run held
+            batch.append(m)
+            if len(batch) == 4096:
+                rec.write_all(batch)
+                batch = []
+        rec.write_all(batch)
         rec.write_all(msgs)
     return str(out_path)

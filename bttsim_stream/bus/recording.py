@@ -45,6 +45,7 @@ __all__ = [
     "McapRecorder",
     "read_messages",
     "read_recording",
+    "RecordingScan",
     "run_metadata_from_mcap",
 ]
 
@@ -502,6 +503,44 @@ def read_messages(path, keys=None) -> Iterator[Message]:
     yield from _messages(scan, keys, {})
     if scan.truncated:
         log.warning("%s: truncated MCAP file (read up to its last complete chunk)", scan.path)
+
+
+class RecordingScan:
+    """One pass over a recording as a stream: iterate for the messages in file order (none is
+    kept); afterwards ``truncated``, ``metadata`` and ``schemas`` say what :func:`read_recording`
+    would have said. Memory does not grow with the file.
+
+    Parameters
+    ----------
+    path : str or Path
+    keys : str or iterable of str, optional
+        Key expressions of the messages to yield.
+
+    Raises
+    ------
+    BttsimError
+        As :func:`read_messages` (while iterating).
+    """
+
+    def __init__(self, path, keys=None) -> None:
+        self._scan = _Scan(str(path))
+        self._keys = keys
+        self.schemas: dict[str, str] = {}
+
+    @property
+    def path(self) -> str:
+        return self._scan.path
+
+    @property
+    def truncated(self) -> bool:
+        return self._scan.truncated
+
+    @property
+    def metadata(self) -> dict:
+        return dict(self._scan.metadata)
+
+    def __iter__(self) -> Iterator[Message]:
+        return _messages(self._scan, self._keys, self.schemas)
 
 
 def read_recording(path, keys=None) -> Recording:
