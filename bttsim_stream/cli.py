@@ -419,11 +419,8 @@ def _cmd_validate(args: argparse.Namespace) -> None:
     print(json.dumps(validate(), indent=2))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
-    parser.add_argument("--version", action="version", version=f"bttsim {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-
+def _add_run_parser(sub) -> None:
+    """``bttsim run``: the whole live system on Zenoh."""
     p = sub.add_parser("run", help="the main job: simulator, processor, recorder and viewer on Zenoh")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output folder: run.mcap, views.rrd, summary.json")
@@ -444,6 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_run)
 
+
+def _add_certs_parser(sub) -> None:
+    """``bttsim certs``: the CA and node certificates for ``--tls-dir``."""
     p = sub.add_parser("certs", help="make a CA and per-node certificates for --tls-dir (docs/security.md)")
     p.add_argument("dir", help="output folder: ca.pem, ca-key.pem, NAME.pem, NAME-key.pem, NAME.json5")
     p.add_argument("--names", default=",".join(IDENTITIES),
@@ -454,10 +454,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace the files of an existing folder")
     p.set_defaults(func=_cmd_certs)
 
+
+def _add_scenario_parser(sub) -> None:
+    """``bttsim scenario``: print or check a scenario."""
     p = sub.add_parser("scenario", help="print the default scenario (TOML) or check one")
     p.add_argument("--check", metavar="SCENARIO.toml", help="validate a scenario file and report")
     p.set_defaults(func=_cmd_scenario)
 
+
+def _add_model_parser(sub) -> None:
+    """``bttsim model build|show|import``."""
     p = sub.add_parser("model", help="build or inspect a bladed-disk modal model")
     msub = p.add_subparsers(dest="model_command", required=True, parser_class=_Parser)
     b = msub.add_parser("build", help="build the parametric bladed-disk model")
@@ -492,6 +498,10 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--speeds-rpm", help="speed of each results file (or of each frequency step of one .frd), rpm, "
                                         "comma-separated, ascending from 0: a speed-dependent model")
     i.set_defaults(func=_cmd_model_import)
+
+
+def _add_simulate_parser(sub) -> None:
+    """``bttsim simulate``: a scenario straight to MCAP."""
     p = sub.add_parser("simulate", help="simulate a scenario straight to MCAP (no Zenoh)")
     p.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     p.add_argument("--out", required=True, help="output MCAP file")
@@ -500,6 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_simulate)
 
 
+def _add_node_parsers(sub) -> None:
+    """``bttsim node NAME`` and the nodes under their historical names (``sim-node``, ``record``, ...)."""
     p = sub.add_parser("node", help="run one node program on Zenoh (sim, recorder, processor, viewer, replay)",
                        description="Run one node program; `bttsim node NAME --help` lists its options.")
     nsub = p.add_subparsers(dest="node", required=True, parser_class=_Parser)
@@ -511,6 +523,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_node_parser(sub, program("replay"), "replay").set_defaults(func=_cmd_node)
     add_node_parser(sub, program("router"), "router").set_defaults(func=_cmd_node)
 
+
+def _add_process_parser(sub) -> None:
+    """``bttsim process``: a recording to the resonance report."""
     p = sub.add_parser("process", help="process a recording offline into the resonance report")
     p.add_argument("mcap", help="recording (MCAP)")
     p.add_argument("--summary", help="write the summary JSON here")
@@ -519,6 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_processing_arguments(p)
     p.set_defaults(func=_cmd_process)
 
+
+def _add_export_parser(sub) -> None:
+    """``bttsim export``: a recording's tables as CSV or Parquet."""
     p = sub.add_parser("export", help="tidy tables of a recording (OPR, TOAs, displacements, fits, truth) as CSV or Parquet")
     p.add_argument("mcap", help="recording (MCAP)")
     p.add_argument("--format", choices=("csv", "parquet"), default="csv",
@@ -526,6 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder: one file per table and run.json")
     p.set_defaults(func=_cmd_export)
 
+
+def _add_ingest_parser(sub) -> None:
+    """``bttsim ingest``: measured pulse trains or raw signals to a recording."""
     p = sub.add_parser("ingest", help="measured pulse trains (or an export folder) to a recording (schemas/ingest.md)",
                        description="A rig's OPR and per-probe pulse times to an MCAP recording that process, view, "
                                    "export and replay treat like a simulated run; see schemas/ingest.md.")
@@ -562,6 +583,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--column", metavar="NAME", help="the column of the time files to read (default: the first)")
     p.set_defaults(func=_cmd_ingest)
 
+
+def _add_view_parser(sub) -> None:
+    """``bttsim view``: Rerun views of a recording."""
     p = sub.add_parser("view", help="Rerun views of a recording (.rrd file and/or web viewer)")
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
     p.add_argument("--rrd", help="write the views to this .rrd file")
@@ -569,6 +593,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_web_arguments(p)
     p.set_defaults(func=_cmd_view)
 
+
+def _add_study_parser(sub) -> None:
+    """``bttsim study``: one of the paper's studies."""
     p = sub.add_parser("study", help="reproduce one of the paper's studies (NAME.md, NAME.json, PNGs) into --out")
     p.add_argument("name", choices=("table2", "table3", "nd", "figures", "probe_count", "bench", "all"),
                    help="the study to run (all: every one)")
@@ -576,6 +603,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (the repository's copy: docs/results); figures need the plot extra")
     p.set_defaults(func=_cmd_study)
 
+
+def _add_campaign_parser(sub) -> None:
+    """``bttsim campaign``: many runs on Dask, scored against truth."""
     p = sub.add_parser("campaign", help="a study of many runs scored against truth, on Dask (docs/campaign.md)")
     p.add_argument("spec", help="campaign spec (TOML): base scenario, axes, seeds, processors")
     p.add_argument("--out", required=True, help="output folder: results.parquet, report.md, runs/")
@@ -589,6 +619,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_campaign)
 
+
+def _add_probe_layout_parsers(sub) -> None:
+    """``bttsim cn`` and ``bttsim probes``: condition numbers of probe layouts."""
     p = sub.add_parser("cn", help="condition number of B (Eq. 16) for an EO and probe angles")
     p.add_argument("--eo", default="8", help="engine order (>= 1), or several comma-separated (fitted jointly)")
     p.add_argument("--probes", default="5,15.15,23.82,220,301.5", help="comma-separated angles, deg")
@@ -601,10 +634,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=int, default=10, help="how many layouts to print (10)")
     p.set_defaults(func=_cmd_probes)
 
+
+def _add_validate_parser(sub) -> None:
+    """``bttsim validate``: the simulator or the processing against the paper."""
     p = sub.add_parser("validate", help="check the simulator (or, --processing, the processing) against the paper")
     p.add_argument("--processing", action="store_true",
                    help="Table 2 (HP/AD/PAD x data prep.), ND 1 vs ND 14, Table 3 (about a minute)")
     p.set_defaults(func=_cmd_validate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
+    parser.add_argument("--version", action="version", version=f"bttsim {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    _add_run_parser(sub)
+    _add_certs_parser(sub)
+    _add_scenario_parser(sub)
+    _add_model_parser(sub)
+    _add_simulate_parser(sub)
+    _add_node_parsers(sub)
+    _add_process_parser(sub)
+    _add_export_parser(sub)
+    _add_ingest_parser(sub)
+    _add_view_parser(sub)
+    _add_study_parser(sub)
+    _add_campaign_parser(sub)
+    _add_probe_layout_parsers(sub)
+    _add_validate_parser(sub)
     return parser
 
 

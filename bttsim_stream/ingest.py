@@ -644,6 +644,135 @@ def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_or
     return info, notes
 
 
+def _read_opr(opr_path, column, encoder_pulses, encoder_index, notes: list):
+    """The OPR pulse times, s, and the encoder decoding (or None); a note when an encoder."""
+    opr = read_times(opr_path, column, what="encoder times" if encoder_pulses else "OPR times", strict=True)
+    encoder = None
+    if encoder_pulses:
+        if not 1 <= encoder_pulses <= 100_000:
+            raise BttsimError(f"--encoder-pulses must be in [1, 100000], got {encoder_pulses}")
+        try:
+            encoder = encoder_revolutions(opr, encoder_pulses, encoder_index)
+        except ValueError as exc:
+            raise BttsimError(f"{opr_path}: {exc}") from None
+        opr = encoder.opr_s
+        notes.append(f"OPR from a {encoder_pulses}-pulse encoder (pulse 0 by {encoder.rule}); "
+                     f"rotor angle from its pulses")
+    elif encoder_index is not None:
+        raise BttsimError("--encoder-index needs --encoder-pulses K")
+    return opr, encoder
+
+
+def _median_rpm(opr_path, opr: np.ndarray) -> float:
+    """The median speed of the OPR pulses, rpm, checked plausible (times in s, not ms)."""
+    if opr.size < 3:
+        raise BttsimError(f"{opr_path}: {opr.size} OPR pulse(s): at least 3 (two revolutions) needed")
+    rpm = 60.0 / np.diff(opr)
+    med_rpm = float(np.median(rpm))
+    if not MIN_RPM <= med_rpm <= MAX_RPM:
+        hint = " (times in ms? they must be in s)" if med_rpm < MIN_RPM else ""
+        raise BttsimError(f"{opr_path}: median speed {med_rpm:.4g} rpm from the OPR pulses is implausible "
+                          f"(expected {MIN_RPM:g} to {MAX_RPM:g} rpm){hint}")
+    return med_rpm
+
+
+def _label_probes(opr, probes: list, info: RunInfo, signal, column, tolerance, encoder):
+    """Each probe's pulses read (or triggered from its signal) and labelled by revolution and blade.
+
+    Returns the labelled pulses, the per-probe report rows and, per probe, the double edges
+    of a signal (``(kept pulse times, double times)``) or None.
+    """
+    nb = info.n_blades
+    geometry = Geometry(n_blades=nb, probe_angles_rad=info.probe_angles_rad, tip_radius_m=info.tip_radius_m,
+                        opr_angle_rad=info.opr_angle_rad, blade_angles_rad=info.sensing_angles_rad)
+    psi = geometry.nominal_arrival_angles()
+    labelled, per_probe, doubles = [], [], []
+    period = np.diff(opr)
+
+    def holdoff_s(t):
+        i = np.clip(np.searchsorted(opr, t) - 1, 0, period.size - 1)
+        return signal.holdoff * period[i] / nb
+
+    for j, (deg, path, *kind) in enumerate(probes):
+        extra_info = {}
+        if kind:
+            trig = signal.trigger_of(j)
+            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, signal, holdoff_s)
+            doubles.append((t[dp], dt_))
+            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired}}
+        else:
+            t = read_times(path, column, what=f"pulse times of the probe at {deg:g} deg")
+            doubles.append(None)
+        ppr = pulses_per_revolution(opr, t)
+        med = float(np.median(ppr))
+        if med != nb:
+            raise BttsimError(f"{path}: median {med:g} pulses per revolution between OPR pulses, not the "
+                              f"{nb} blades given (wrong --blades, or times not in the OPR's clock and unit?)")
+        ident = identify_pulses(opr, t, psi[:, j], calibrate=True, tolerance=tolerance, encoder=encoder)
+        labelled.append(ident)
+        per_probe.append({"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": int(t.size),
+                          "median_pulses_per_revolution": med, **extra_info})
+    return labelled, per_probe, doubles
+
+
+def _full_revolutions(opr_path, labelled: list) -> tuple[np.ndarray, int, int]:
+    """The TOAs, s, shape ``(revolution, blade, probe)``, of the revolutions ``lo:hi`` kept."""
+    toa = np.stack([r.toa_s for r in labelled], axis=2)  # (n_opr, nb, npr)
+    # a revolution is kept when every probe saw at least half the blades (the ends of a
+    # recording: the probes started late or stopped before the revolution's end)
+    full = np.all(np.mean(np.isfinite(toa), axis=1) >= 0.5, axis=1)
+    good = np.flatnonzero(full)
+    if good.size < 3:
+        raise BttsimError(f"{opr_path}: fewer than 3 revolutions with pulses on every probe "
+                          f"({good.size}); do the probe files cover the OPR file's time span?")
+    lo, hi = int(good[0]), int(good[-1]) + 1
+    return toa[lo:hi], lo, hi
+
+
+def _extra_pulses(opr, labelled: list, doubles: list, per_probe: list, lo: int, hi: int, nb: int, npr: int):
+    """The pulses besides the TOAs (extra, stray, double) of revolutions ``lo:hi``, and the counts.
+
+    Returns the flat passage index ``(revolution * nb + blade) * npr + probe`` and time, s,
+    of each such pulse, and the totals; each probe's counts go into its ``per_probe`` row.
+    """
+    passages, times = [], []
+    tot = {"missing": 0, "extra": 0, "stray": 0, "outside": 0, "double": 0}
+    for j, r in enumerate(labelled):
+        n_double = 0
+        if doubles[j] is not None and doubles[j][0].size:
+            # a double edge joins the cell its pulse was kept in (where the signal chain puts it)
+            parent_t, dbl_t = doubles[j]
+            flat = r.toa_s[lo:hi].ravel()
+            have = np.flatnonzero(np.isfinite(flat))
+            srt = have[np.argsort(flat[have], kind="stable")]
+            k = np.clip(np.searchsorted(flat[srt], parent_t), 0, max(srt.size - 1, 0))
+            found = srt.size > 0
+            hit = (flat[srt[k]] == parent_t) if found else np.zeros(parent_t.size, bool)
+            cell = srt[k[hit]]
+            passages.append(cell * npr + j)
+            times.append(dbl_t[hit])
+            n_double = int(hit.sum())
+            # the others' pulse was extra, stray or outside: they count as stray (or outside)
+            lost = dbl_t[~hit]
+            rev_l = np.clip(np.searchsorted(opr, lost, side="right") - 1, 0, opr.size - 1).astype(np.int64)
+            r = replace(r, stray_toa_s=np.r_[r.stray_toa_s, lost], stray_revolution=np.r_[r.stray_revolution, rev_l])
+        sel_e = (r.extra_revolution >= lo) & (r.extra_revolution < hi)
+        sel_s = (r.stray_revolution >= lo) & (r.stray_revolution < hi)
+        cells = r.toa_s[lo:hi]
+        dropped = (int(np.isfinite(r.toa_s).sum() - np.isfinite(cells).sum())
+                   + int((~sel_e).sum()) + int((~sel_s).sum()))
+        passages += [((r.extra_revolution[sel_e] - lo) * nb + r.extra_blade[sel_e]) * npr + j,
+                     (r.stray_revolution[sel_s] - lo) * nb * npr + j]
+        times += [r.extra_toa_s[sel_e], r.stray_toa_s[sel_s]]
+        c = {"toas": int(np.isfinite(cells).sum()), "missing": int(np.isnan(cells).sum()),
+             "extra": int(sel_e.sum()), "stray": int(sel_s.sum()), "outside": r.outside + dropped,
+             "double": n_double}
+        per_probe[j].update(c)
+        for k in tot:
+            tot[k] += c[k]
+    return np.concatenate(passages).astype(np.int64), np.concatenate(times), tot
+
+
 def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, tip_radius_m: float | None = None,
                   rig: str | None = None, engine_orders=None, scenario_path=None, column: str | None = None,
                   tolerance: float = 0.25, signal: SignalOptions | None = None, encoder_pulses: int | None = None,
@@ -686,109 +815,16 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     _check_out(out)
     info, notes = _geometry([pr[0] for pr in probes], n_blades, tip_radius_m, scenario_path, engine_orders, rig)
     nb, npr = info.n_blades, info.n_probes
-    opr = read_times(opr_path, column, what="encoder times" if encoder_pulses else "OPR times", strict=True)
-    encoder = None
-    if encoder_pulses:
-        if not 1 <= encoder_pulses <= 100_000:
-            raise BttsimError(f"--encoder-pulses must be in [1, 100000], got {encoder_pulses}")
-        try:
-            encoder = encoder_revolutions(opr, encoder_pulses, encoder_index)
-        except ValueError as exc:
-            raise BttsimError(f"{opr_path}: {exc}") from None
-        opr = encoder.opr_s
-        notes.append(f"OPR from a {encoder_pulses}-pulse encoder (pulse 0 by {encoder.rule}); "
-                     f"rotor angle from its pulses")
-    elif encoder_index is not None:
-        raise BttsimError("--encoder-index needs --encoder-pulses K")
+    opr, encoder = _read_opr(opr_path, column, encoder_pulses, encoder_index, notes)
     if any(len(pr) > 2 for pr in probes):
         signal = (signal or SignalOptions()).resolve(scenario_path)
-    if opr.size < 3:
-        raise BttsimError(f"{opr_path}: {opr.size} OPR pulse(s): at least 3 (two revolutions) needed")
-    rpm = 60.0 / np.diff(opr)
-    med_rpm = float(np.median(rpm))
-    if not MIN_RPM <= med_rpm <= MAX_RPM:
-        hint = " (times in ms? they must be in s)" if med_rpm < MIN_RPM else ""
-        raise BttsimError(f"{opr_path}: median speed {med_rpm:.4g} rpm from the OPR pulses is implausible "
-                          f"(expected {MIN_RPM:g} to {MAX_RPM:g} rpm){hint}")
-    geometry = Geometry(n_blades=nb, probe_angles_rad=info.probe_angles_rad, tip_radius_m=info.tip_radius_m,
-                        opr_angle_rad=info.opr_angle_rad, blade_angles_rad=info.sensing_angles_rad)
-    psi = geometry.nominal_arrival_angles()
-    labelled, per_probe, doubles = [], [], []
-    period = np.diff(opr)
-
-    def holdoff_s(t):
-        i = np.clip(np.searchsorted(opr, t) - 1, 0, period.size - 1)
-        return signal.holdoff * period[i] / nb
-
-    for j, (deg, path, *kind) in enumerate(probes):
-        extra_info = {}
-        if kind:
-            trig = signal.trigger_of(j)
-            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, signal, holdoff_s)
-            doubles.append((t[dp], dt_))
-            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired}}
-        else:
-            t = read_times(path, column, what=f"pulse times of the probe at {deg:g} deg")
-            doubles.append(None)
-        ppr = pulses_per_revolution(opr, t)
-        med = float(np.median(ppr))
-        if med != nb:
-            raise BttsimError(f"{path}: median {med:g} pulses per revolution between OPR pulses, not the "
-                              f"{nb} blades given (wrong --blades, or times not in the OPR's clock and unit?)")
-        ident = identify_pulses(opr, t, psi[:, j], calibrate=True, tolerance=tolerance, encoder=encoder)
-        labelled.append(ident)
-        per_probe.append({"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": int(t.size),
-                          "median_pulses_per_revolution": med, **extra_info})
-    toa = np.stack([r.toa_s for r in labelled], axis=2)  # (n_opr, nb, npr)
-    # a revolution is kept when every probe saw at least half the blades (the ends of a
-    # recording: the probes started late or stopped before the revolution's end)
-    full = np.all(np.mean(np.isfinite(toa), axis=1) >= 0.5, axis=1)
-    good = np.flatnonzero(full)
-    if good.size < 3:
-        raise BttsimError(f"{opr_path}: fewer than 3 revolutions with pulses on every probe "
-                          f"({good.size}); do the probe files cover the OPR file's time span?")
-    lo, hi = int(good[0]), int(good[-1]) + 1
-    toa = toa[lo:hi]
+    med_rpm = _median_rpm(opr_path, opr)
+    labelled, per_probe, doubles = _label_probes(opr, probes, info, signal, column, tolerance, encoder)
+    toa, lo, hi = _full_revolutions(opr_path, labelled)
     nr = hi - lo
-    passages, times = [], []
-    tot = {"missing": 0, "extra": 0, "stray": 0, "outside": 0, "double": 0}
-    for j, r in enumerate(labelled):
-        n_double = 0
-        if doubles[j] is not None and doubles[j][0].size:
-            # a double edge joins the cell its pulse was kept in (where the signal chain puts it)
-            parent_t, dbl_t = doubles[j]
-            flat = r.toa_s[lo:hi].ravel()
-            have = np.flatnonzero(np.isfinite(flat))
-            srt = have[np.argsort(flat[have], kind="stable")]
-            k = np.clip(np.searchsorted(flat[srt], parent_t), 0, max(srt.size - 1, 0))
-            found = srt.size > 0
-            hit = (flat[srt[k]] == parent_t) if found else np.zeros(parent_t.size, bool)
-            cell = srt[k[hit]]
-            passages.append(cell * npr + j)
-            times.append(dbl_t[hit])
-            n_double = int(hit.sum())
-            # the others' pulse was extra, stray or outside: they count as stray (or outside)
-            lost = dbl_t[~hit]
-            rev_l = np.clip(np.searchsorted(opr, lost, side="right") - 1, 0, opr.size - 1).astype(np.int64)
-            r = replace(r, stray_toa_s=np.r_[r.stray_toa_s, lost], stray_revolution=np.r_[r.stray_revolution, rev_l])
-        sel_e = (r.extra_revolution >= lo) & (r.extra_revolution < hi)
-        sel_s = (r.stray_revolution >= lo) & (r.stray_revolution < hi)
-        cells = r.toa_s[lo:hi]
-        dropped = (int(np.isfinite(r.toa_s).sum() - np.isfinite(cells).sum())
-                   + int((~sel_e).sum()) + int((~sel_s).sum()))
-        passages += [((r.extra_revolution[sel_e] - lo) * nb + r.extra_blade[sel_e]) * npr + j,
-                     (r.stray_revolution[sel_s] - lo) * nb * npr + j]
-        times += [r.extra_toa_s[sel_e], r.stray_toa_s[sel_s]]
-        c = {"toas": int(np.isfinite(cells).sum()), "missing": int(np.isnan(cells).sum()),
-             "extra": int(sel_e.sum()), "stray": int(sel_s.sum()), "outside": r.outside + dropped,
-             "double": n_double}
-        per_probe[j].update(c)
-        for k in tot:
-            tot[k] += c[k]
+    ex_pass, ex_t, tot = _extra_pulses(opr, labelled, doubles, per_probe, lo, hi, nb, npr)
     opr_k = opr[lo:hi]
     rpm_k = 60.0 / np.diff(opr[lo:min(hi + 1, opr.size)])
-    ex_pass = np.concatenate(passages).astype(np.int64)
-    ex_t = np.concatenate(times)
     run_id = _run_id("pulses", opr_k.tobytes(), toa.tobytes(), ex_t.tobytes())
     info = replace(info, n_revolutions=nr, duration_s=float(opr_k[-1] - opr_k[0]), run_id=run_id,
                    speed_range_rpm=(float(rpm_k.min()), float(rpm_k.max())), software_version=__version__,

@@ -294,52 +294,8 @@ def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: f
     return model, report
 
 
-def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, damping_beta_s: float | None = 9e-6,
-                             n_families: int | None = None) -> tuple[ModalModel, dict]:
-    """A speed-dependent model from cyclic sector solutions at several speeds.
-
-    Speed 0 is expanded by :func:`expand_sector` (the model's zero-speed arrays); at every
-    further speed each kept (harmonic index, family) is *tracked*: matched to the previous
-    speed's solution of the same harmonic index by the MAC of the complex sector shapes at the
-    tip and excitation nodes (optimal assignment over all the solutions of that harmonic
-    index), and phase-aligned to it (``u_prev^H u`` real and positive; a standing wave's sign),
-    so that mode ``i`` is the same mode at every speed, in the zero-speed model's order.
-
-    Parameters
-    ----------
-    sectors : sequence of CyclicSector
-        One per speed, same wheel and nodes (tip and excitation node positions equal).
-    speed_rad_s : array_like, shape (S,)
-        Their speeds, rad/s: ``2 <= S <= 64``, strictly ascending from 0.
-
-    Returns
-    -------
-    model : ModalModel
-        With ``speed_rad_s``, ``freq_hz_at_speed``, ``tip_shapes_at_speed``,
-        ``force_shapes_at_speed`` and ``campbell_freq_hz_at_speed``.
-    report : dict
-        :func:`expand_sector`'s report for speed 0, plus ``speed_rad_s`` and ``min_mac`` (the
-        poorest match between consecutive speeds).
-
-    Raises
-    ------
-    ModelFileError
-        Speeds not ascending from 0 or not one per sector, sectors of different wheels or
-        nodes, a harmonic index with fewer solutions than the families kept at speed 0, or a
-        mode that cannot be followed (MAC < 0.5 between two speeds: add speeds in between).
-    """
-    from scipy.optimize import linear_sum_assignment
-
-    from .modal_model import MAX_SPEEDS, _to_polar
-
-    sectors = list(sectors)
-    sp = np.asarray(speed_rad_s, float)
-    S = len(sectors)
-    if sp.shape != (S,):
-        raise ModelFileError(f"{S} sector solutions but {sp.size} speeds: give one speed per solution")
-    if not 2 <= S <= MAX_SPEEDS or not np.all(np.isfinite(sp)) or sp[0] != 0.0 or np.any(np.diff(sp) <= 0):
-        raise ModelFileError(f"speeds must be 2..{MAX_SPEEDS} values strictly ascending from 0, got "
-                             f"{', '.join(f'{v * 30 / np.pi:g}' for v in sp)} rpm")
+def _check_speed_sectors(sectors: list, sp: np.ndarray) -> None:
+    """Every sector solution is of the speed-0 solution's wheel, with its tip and excitation nodes."""
     s0 = sectors[0]
     N = int(s0.n_sectors)
     size = float(np.abs(s0.tip_xyz).max())
@@ -352,9 +308,20 @@ def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, dampin
                 or np.abs(sec.tip_xyz - s0.tip_xyz).max() > 1e-6 * size
                 or np.abs(np.asarray(sec.force_xyz) - s0.force_xyz).max() > 1e-6 * size):
             raise ModelFileError(f"{at} has other tip or excitation nodes than the speed-0 solution")
-    model, report = expand_sector(s0, damping_ratio=damping_ratio, damping_beta_s=damping_beta_s,
-                                  n_families=n_families)
-    n_fam = report["n_families"]
+
+
+def _track_families(sectors: list, sp: np.ndarray, n_fam: int):
+    """Follow each kept (harmonic index, family) of speed 0 through the other speeds.
+
+    Returns, per harmonic index ``k``, the frequencies ``rows_f[k][s][f]``, Hz, and the
+    phase-aligned (tip, excitation) sector shapes ``rows_u[k][s][f]`` of family ``f`` at speed
+    ``s``, and the poorest MAC between consecutive speeds.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    s0 = sectors[0]
+    N = int(s0.n_sectors)
+    S = len(sectors)
     fams0 = s0.families()
 
     def vec(sec, i, k):
@@ -395,6 +362,62 @@ def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, dampin
             prev[k] = [(C_u[j][0] * p, C_u[j][1] * p) for j, p in zip(cols, ph)]
             rows_f[k].append([float(sec.freq_hz[cand[j]]) for j in cols])
             rows_u[k].append(prev[k])
+    return rows_f, rows_u, min_mac
+
+
+def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, damping_beta_s: float | None = 9e-6,
+                             n_families: int | None = None) -> tuple[ModalModel, dict]:
+    """A speed-dependent model from cyclic sector solutions at several speeds.
+
+    Speed 0 is expanded by :func:`expand_sector` (the model's zero-speed arrays); at every
+    further speed each kept (harmonic index, family) is *tracked*: matched to the previous
+    speed's solution of the same harmonic index by the MAC of the complex sector shapes at the
+    tip and excitation nodes (optimal assignment over all the solutions of that harmonic
+    index), and phase-aligned to it (``u_prev^H u`` real and positive; a standing wave's sign),
+    so that mode ``i`` is the same mode at every speed, in the zero-speed model's order.
+
+    Parameters
+    ----------
+    sectors : sequence of CyclicSector
+        One per speed, same wheel and nodes (tip and excitation node positions equal).
+    speed_rad_s : array_like, shape (S,)
+        Their speeds, rad/s: ``2 <= S <= 64``, strictly ascending from 0.
+
+    Returns
+    -------
+    model : ModalModel
+        With ``speed_rad_s``, ``freq_hz_at_speed``, ``tip_shapes_at_speed``,
+        ``force_shapes_at_speed`` and ``campbell_freq_hz_at_speed``.
+    report : dict
+        :func:`expand_sector`'s report for speed 0, plus ``speed_rad_s`` and ``min_mac`` (the
+        poorest match between consecutive speeds).
+
+    Raises
+    ------
+    ModelFileError
+        Speeds not ascending from 0 or not one per sector, sectors of different wheels or
+        nodes, a harmonic index with fewer solutions than the families kept at speed 0, or a
+        mode that cannot be followed (MAC < 0.5 between two speeds: add speeds in between).
+    """
+    from .modal_model import MAX_SPEEDS, _to_polar
+
+    sectors = list(sectors)
+    sp = np.asarray(speed_rad_s, float)
+    S = len(sectors)
+    if sp.shape != (S,):
+        raise ModelFileError(f"{S} sector solutions but {sp.size} speeds: give one speed per solution")
+    if not 2 <= S <= MAX_SPEEDS or not np.all(np.isfinite(sp)) or sp[0] != 0.0 or np.any(np.diff(sp) <= 0):
+        raise ModelFileError(f"speeds must be 2..{MAX_SPEEDS} values strictly ascending from 0, got "
+                             f"{', '.join(f'{v * 30 / np.pi:g}' for v in sp)} rpm")
+    _check_speed_sectors(sectors, sp)
+    s0 = sectors[0]
+    N = int(s0.n_sectors)
+    model, report = expand_sector(s0, damping_ratio=damping_ratio, damping_beta_s=damping_beta_s,
+                                  n_families=n_families)
+    n_fam = report["n_families"]
+    fams0 = s0.families()
+
+    rows_f, rows_u, min_mac = _track_families(sectors, sp, n_fam)
     # expand every speed in the zero-speed order
     theta = 2.0 * np.pi * np.arange(N) / N
     R = _rz(theta)

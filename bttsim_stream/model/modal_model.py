@@ -233,6 +233,40 @@ def _rotor_ref(ref: np.ndarray, n_blades: int) -> np.ndarray:
     return out
 
 
+def _checked_speeds(speed_rad_s) -> np.ndarray:
+    """The speeds of a speed-dependent model, rad/s: 2..MAX_SPEEDS, finite, ascending from 0."""
+    speed_rad_s = np.asarray(speed_rad_s, float)
+    if (speed_rad_s.ndim != 1 or not 2 <= speed_rad_s.size <= MAX_SPEEDS or speed_rad_s[0] != 0.0
+            or np.any(np.diff(speed_rad_s) <= 0) or not np.all(np.isfinite(speed_rad_s))):
+        raise ScenarioError(f"centrifugal speeds must be 2..{MAX_SPEEDS} finite speeds ascending from 0 rad/s")
+    return speed_rad_s
+
+
+def _model_meta(design: BladedDiskDesign, damping_beta_s: float, method: str, build_time: float) -> dict:
+    """The model file's metadata: schema, geometry, units, frames and provenance."""
+    meta = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "n_blades": design.n_blades,
+        "n_tip_nodes": design.n_tip_nodes,
+        "nominal_node": design.nominal_node,
+        "stagger_deg": float(np.rad2deg(design.stagger_rad)),
+        "tip_radius_m": design.tip_radius_m,
+        "damping_beta_s": float(damping_beta_s),
+        "units": "SI: Hz, m, rad; shapes in m per unit mass-normalised modal coordinate",
+        "frames": "ref: (radius, angle anticlockwise from +x, z) at t=0; shapes: (radial, tangential, axial) at each node",
+        "force_node": "leading_edge",
+        "provenance": {
+            "builder": f"bttsim_stream {__version__} parametric bladed disk",
+            "method": method,
+            "design": {k: (list(v) if isinstance(v, tuple) else v)
+                       for k, v in ((f, getattr(design, f)) for f in design.__dataclass_fields__)},
+            "build_time_s": build_time,
+        },
+    }
+    return meta
+
+
 def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s: float | None = None,
                 stiffness_factors=None, mass_factors=None, speed_rad_s=None) -> ModalModel:
     """Build the parametric bladed-disk modal model.
@@ -279,10 +313,7 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
     if speed_rad_s is None and scn is not None and scn.model.centrifugal:
         speed_rad_s = speed_grid(scn.centrifugal_max_rpm() * np.pi / 30.0, scn.model.centrifugal_speeds)
     if speed_rad_s is not None:
-        speed_rad_s = np.asarray(speed_rad_s, float)
-        if (speed_rad_s.ndim != 1 or not 2 <= speed_rad_s.size <= MAX_SPEEDS or speed_rad_s[0] != 0.0
-                or np.any(np.diff(speed_rad_s) <= 0) or not np.all(np.isfinite(speed_rad_s))):
-            raise ScenarioError(f"centrifugal speeds must be 2..{MAX_SPEEDS} finite speeds ascending from 0 rad/s")
+        speed_rad_s = _checked_speeds(speed_rad_s)
 
     with threadpool_limits(limits=1):
         nominal = assemble_sector(design)
@@ -309,26 +340,7 @@ def build_model(scn=None, design: BladedDiskDesign | None = None, damping_beta_s
     force = _sector_points(sector, modes.shapes, sector.force_map)
     omega = 2.0 * np.pi * modes.freq_hz
     build_time = time.perf_counter() - t0
-    meta = {
-        "schema": SCHEMA,
-        "schema_version": SCHEMA_VERSION,
-        "n_blades": N,
-        "n_tip_nodes": design.n_tip_nodes,
-        "nominal_node": design.nominal_node,
-        "stagger_deg": float(np.rad2deg(design.stagger_rad)),
-        "tip_radius_m": design.tip_radius_m,
-        "damping_beta_s": float(damping_beta_s),
-        "units": "SI: Hz, m, rad; shapes in m per unit mass-normalised modal coordinate",
-        "frames": "ref: (radius, angle anticlockwise from +x, z) at t=0; shapes: (radial, tangential, axial) at each node",
-        "force_node": "leading_edge",
-        "provenance": {
-            "builder": f"bttsim_stream {__version__} parametric bladed disk",
-            "method": method,
-            "design": {k: (list(v) if isinstance(v, tuple) else v)
-                       for k, v in ((f, getattr(design, f)) for f in design.__dataclass_fields__)},
-            "build_time_s": build_time,
-        },
-    }
+    meta = _model_meta(design, damping_beta_s, method, build_time)
     model = ModalModel(
         freq_hz=modes.freq_hz, damping_ratio=0.5 * damping_beta_s * omega,
         tip_ref=_rotor_ref(sector.tip_ref, N), tip_shapes=tip[..., :, :],
