@@ -33,8 +33,8 @@ def main() -> None:
         model = build_model()
         times.append(time.perf_counter() - t)
     t = time.perf_counter()
-    mis = build_model(stiffness_factors=1 + 0.02 * np.random.default_rng(0).standard_normal(29),
-                      mass_factors=np.ones(29))
+    _mis = build_model(stiffness_factors=1 + 0.02 * np.random.default_rng(0).standard_normal(29),
+                       mass_factors=np.ones(29))
     mistuned_s = time.perf_counter() - t
 
     d = BladedDiskDesign()

@@ -99,7 +99,8 @@ class IngestResult:
 
     def counts(self) -> dict:
         return {"revolutions": self.revolutions, "toas": self.toas, "missing": self.missing, "extra": self.extra,
-                "stray": self.stray, "outside": self.outside, "double": self.double, "median_rpm": round(self.median_rpm, 3),
+                "stray": self.stray, "outside": self.outside, "double": self.double,
+                "median_rpm": round(self.median_rpm, 3),
                 "per_probe": list(self.per_probe), "notes": list(self.notes)}
 
 
@@ -322,7 +323,8 @@ class SignalOptions:
         for name in ("sample_rate_hz", "trigger", "level_v", "hysteresis_v", "edge", "fraction"):
             v = getattr(self, name)
             kw[name] = getattr(sig, name) if v is None else v
-        kw["clock_hz"] = (scn.acquisition.clock_hz if scenario_path else 0.0) if self.clock_hz is None else self.clock_hz
+        kw["clock_hz"] = ((scn.acquisition.clock_hz if scenario_path else 0.0) if self.clock_hz is None
+                          else self.clock_hz)
         kinds = (kw["trigger"],) if isinstance(kw["trigger"], str) else tuple(kw["trigger"])
         bad = [k for k in kinds if k not in TRIGGER_KINDS]
         if bad:
@@ -494,7 +496,8 @@ def _table(folder: Path, doc: dict, name: str, columns: tuple) -> dict | None:
         try:
             tab = pq.read_table(file, columns=list(columns))
         except Exception as exc:
-            raise BttsimError(f"{file}: not a readable Parquet table ({type(exc).__name__}: {str(exc)[:120]})") from None
+            raise BttsimError(f"{file}: not a readable Parquet table "
+                              f"({type(exc).__name__}: {str(exc)[:120]})") from None
         return {k: tab.column(k).to_numpy(zero_copy_only=False) for k in columns}
     with open(file, encoding="utf-8", errors="replace") as fh:
         head = fh.readline().strip().split(",")
@@ -834,7 +837,8 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
                        notes=tuple(notes), **tot)
     source = {"kind": "pulses", "opr": str(opr_path), "probes": [[float(a), str(p), *kind] for a, p, *kind in probes],
               "column": column, "encoder_pulses": encoder_pulses, "encoder_index": encoder_index,
-              "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)}, "scenario": None if scenario_path is None else str(scenario_path),
+              "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)},
+              "scenario": None if scenario_path is None else str(scenario_path),
               "first_opr_pulse": lo}
     record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
               "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}

@@ -29,8 +29,9 @@ from .process.probes import check_engine_orders
 from .processor import ProcessorSession
 from .sim.core import RunInfo, Truth
 
-__all__ = ["RecordedRun", "PROCESS_TRUTH_FIELDS", "load_run", "messages_of", "completeness", "result_warnings", "processing_messages", "with_processing",
-           "add_processing_arguments", "processing_options", "parse_engine_orders"]
+__all__ = ["RecordedRun", "PROCESS_TRUTH_FIELDS", "load_run", "messages_of", "completeness", "result_warnings",
+           "processing_messages", "with_processing", "add_processing_arguments", "processing_options",
+           "parse_engine_orders"]
 
 
 def add_processing_arguments(p: argparse.ArgumentParser) -> None:

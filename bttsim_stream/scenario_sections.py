@@ -422,7 +422,8 @@ class Toa:
 
 
 def _signal_size(default: float, what: str) -> Any:
-    return spec(default, kind="float", unit="m", lo=0, lo_open=True, hi=MAX_SIGNAL_SIZE_M, doc=what + ", {unit}; {range}")
+    return spec(default, kind="float", unit="m", lo=0, lo_open=True, hi=MAX_SIGNAL_SIZE_M,
+                doc=what + ", {unit}; {range}")
 
 
 @section

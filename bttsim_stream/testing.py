@@ -19,9 +19,10 @@ Or, as a pytest fixture, in your ``conftest.py``::
 loopback port with multicast scouting off, waits until its metadata queryable answers, and
 stops the process by its PID on exit. The simulator waits for ``wait_for`` subscribing nodes
 (liveliness tokens under ``bttsim/<rig>/alive/``); without them it starts at once, and a
-subscriber that comes later gets only the recent history from the publishers' caches: pass ``wait_for=1`` and declare a token ``bttsim/<rig>/alive/<name>`` in your
-subscriber for a lossless start (and, once it has received the run metadata, a token
-``bttsim/<rig>/ready/<name>``; without it the simulator starts 5 s later).
+subscriber that comes later gets only the recent history from the publishers' caches: pass
+``wait_for=1`` and declare a token ``bttsim/<rig>/alive/<name>`` in your subscriber for a
+lossless start (and, once it has received the run metadata, a token ``bttsim/<rig>/ready/<name>``;
+without it the simulator starts 5 s later).
 """
 
 from __future__ import annotations

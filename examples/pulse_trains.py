@@ -52,7 +52,8 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args()
     c = write_pulse_trains(a.mcap, a.out_dir, drop=a.drop, extra=a.extra, seed=a.seed)
-    probes = " ".join(f"--probe {deg:.10g}={Path(a.out_dir) / f'probe{j}.csv'}" for j, deg in enumerate(c["angles_deg"]))
+    probes = " ".join(f"--probe {deg:.10g}={Path(a.out_dir) / f'probe{j}.csv'}"
+                      for j, deg in enumerate(c["angles_deg"]))
     print(f"dropped {c['dropped']}, added {c['extra']} pulses")
     print(f"bttsim ingest --opr {Path(a.out_dir) / 'opr.csv'} {probes} --blades {c['n_blades']} "
           f"--tip-radius-m {c['tip_radius_m']:.6g} --eo 8 --out rig.mcap")

@@ -54,7 +54,7 @@ def main(argv=None) -> int:
                         help="output root (default: bttsim_stream/bus/_gen)")
     args = parser.parse_args(argv)
     try:
-        import grpc_tools
+        import grpc_tools  # noqa: F401  (only checks that grpcio-tools is installed)
         from importlib.metadata import version
         v = version("grpcio-tools")
     except ImportError:

@@ -4,9 +4,9 @@
 scenario's real acquisition messages (metadata, OPR, TOA batches, truth) with the payload of a
 revolution 50 later on each key and sequence number, TOA batches on a probe that does not
 exist (``toa/7``), garbage on the result keys (fit, travelling wave, resonance), and (``--pose-as-sim``) a
-liveliness token posing as the simulator; ``--only toa/7`` keeps the keys so named; ``--once`` puts each message once, as soon as
-its key has a subscriber (a flood that never stops keeps the consumers from ever seeing the
-end of a run). Prints ``forger connected`` once its session is
+liveliness token posing as the simulator; ``--only toa/7`` keeps the keys so named; ``--once`` puts
+each message once, as soon as its key has a subscriber (a flood that never stops keeps the
+consumers from ever seeing the end of a run). Prints ``forger connected`` once its session is
 open, then puts a message every 10 ms until SIGTERM, and finally one JSON line:
 how many messages it put and how many of them while a subscriber matched (they would have
 been delivered without access control). A session that cannot be opened (refused) is the

@@ -4,7 +4,6 @@ bad specs and an unreachable scheduler are one line and exit 2."""
 
 import json
 import os
-import shutil
 import signal
 import socket
 import threading

@@ -302,7 +302,8 @@ def _entry(kind, eo, truth, method="sdof"):
                            damping_ratio=np.array([0.0096, 0.0097, np.nan]), method=method,
                            phase_rad=np.array([0.1, -2.0, np.nan]), amp_std_m=np.array([1e-6, 2e-6, np.nan]),
                            freq_std_hz=np.array([0.01, 0.02, np.nan]),
-                           steady_amp_pkpk_m=np.array([2.31e-3, 2.41e-3, np.nan]), natural_freq_hz=np.array([343.9, 344.0, np.nan]))
+                           steady_amp_pkpk_m=np.array([2.31e-3, 2.41e-3, np.nan]),
+                           natural_freq_hz=np.array([343.9, 344.0, np.nan]))
     det = (Detection("prominence_ratio", 23.7, 2.0, 1e9, 8.0) if kind == "crossing"
            else Detection("amplitude_snr", 55.0, 5.0, 55.0, 5.0))
     e = ResonanceEntry(kind=kind, eo=eo, nd=-3, cn=1.43, method=method if kind == "crossing" else "mean", rpm=2580.5,
@@ -574,7 +575,8 @@ def test_signal_batch_round_trip_and_windows():
 @pytest.mark.parametrize("changes, words", [
     (dict(codes=np.full(int(_signal_batch().n_samples.sum()), 4096)), "an ADC code above 2^12 - 1"),
     (dict(codes=np.zeros(3, int)), "codes has 3 values, expected"),
-    (dict(n_samples=np.full(NB, codec.MAX_WINDOW_SAMPLES + 1), codes=np.zeros(NB * (codec.MAX_WINDOW_SAMPLES + 1), int)),
+    (dict(n_samples=np.full(NB, codec.MAX_WINDOW_SAMPLES + 1),
+          codes=np.zeros(NB * (codec.MAX_WINDOW_SAMPLES + 1), int)),
      "n_samples must be in [1, 65536]"),
     (dict(toa_s=np.zeros(NB - 1)), f"toa_s has {NB - 1} values, expected {NB}"),
     (dict(sample_rate_hz=math.nan), "sample_rate_hz = nan (finite, >= 1)"),

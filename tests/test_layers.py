@@ -25,8 +25,9 @@ FORBIDDEN = {
     ("bttsim_stream.views",): ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.paper",
                                "bttsim_stream.orchestrate", "bttsim_stream.cli", "bttsim_stream.model",
                                "bttsim_stream.sim", "bttsim_stream.scenario"),
-    ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline", "bttsim_stream.export",
-     "bttsim_stream.processor", "bttsim_stream.orchestrate", "bttsim_stream.testing"): ("bttsim_stream.paper",),
+    ("bttsim_stream.runtime", "bttsim_stream.nodes", "bttsim_stream.acquisition", "bttsim_stream.offline",
+     "bttsim_stream.export", "bttsim_stream.processor", "bttsim_stream.orchestrate",
+     "bttsim_stream.testing"): ("bttsim_stream.paper",),
     # studies on Dask: above the simulation and processing, beside the live system
     ("bttsim_stream.campaign",): ("bttsim_stream.nodes", "bttsim_stream.views", "bttsim_stream.orchestrate",
                                   "bttsim_stream.runtime", "bttsim_stream.cli", "bttsim_stream.paper"),

@@ -13,7 +13,7 @@ from bttsim_stream.model.cyclic import builtin_sector, expand_sector, save_secto
 from bttsim_stream.model.frd import read_frd
 from bttsim_stream.model.importers import ImportOptions, import_model, read_deck_sets
 
-from test_model_cyclic import N_NODES, _sector_solution, _spring_wheel
+from test_model_cyclic import _sector_solution, _spring_wheel
 
 N = 7
 IDS = np.array([11, 12, 13, 14])  # the 4 "tip" nodes; node 11 is also the force node
@@ -70,7 +70,8 @@ def test_frd_import_reproduces_the_sector_expansion(wheel, tmp_path, axis_dir):
 def test_nodes_by_deck_set_and_by_coordinates(wheel, tmp_path):
     frd = _write_frd(tmp_path / "s.frd", wheel)
     (tmp_path / "mesh.inp").write_text(
-        "*NODE, NSET=NALL\n" + "".join(f"{i}, {float(p[0])!r}, {float(p[1])!r}, {float(p[2])!r}\n" for i, p in zip(IDS, wheel.tip_xyz))
+        "*NODE, NSET=NALL\n"
+        + "".join(f"{i}, {float(p[0])!r}, {float(p[1])!r}, {float(p[2])!r}\n" for i, p in zip(IDS, wheel.tip_xyz))
         + "1, 0.05, 0., 0.\n*NSET, NSET=TIP, GENERATE\n11, 14, 1\n*NSET, NSET=LE\n11,\n")
     (tmp_path / "s.inp").write_text(f"** deck\n*INCLUDE, INPUT=mesh.inp\n*CYCLIC SYMMETRY MODEL, N={N}, NGRAPH=1\n")
     deck = read_deck_sets(tmp_path / "s.inp")
@@ -114,5 +115,6 @@ def test_neutral_sector_through_the_cli(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "harmonic indices missing from the sector results: 7" in err[0]
     assert not (tmp_path / "c.npz").exists()
-    assert main(["model", "import", str(tmp_path / "cut.npz"), "--format", "rst", "--out", str(tmp_path / "c.npz")]) == 2
+    assert main(["model", "import", str(tmp_path / "cut.npz"), "--format", "rst",
+                 "--out", str(tmp_path / "c.npz")]) == 2
     assert "ANSYS .rst" in capsys.readouterr().err

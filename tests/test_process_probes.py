@@ -31,7 +31,7 @@ def test_layout_search_of_the_paper():
     cns = [c.cn for c in ranked]
     assert cns == sorted(cns)
     by_angles = {c.probe_angles_deg: c.cn for c in ranked}
-    for angles, paper in PAPER_TABLE3:
+    for angles, _paper in PAPER_TABLE3:
         assert by_angles[tuple(angles)] == pytest.approx(condition_number(8, angles), rel=1e-12)
 
 

@@ -261,7 +261,7 @@ def test_killing_a_web_run_leaves_no_node_behind(tmp_path, sig):
 def test_two_web_runs_with_their_own_ports_do_not_clash(tmp_path):
     runs = [_start_web_run(tmp_path, f"out{i}") for i in range(2)]
     try:
-        for proc, err, *_ in runs:
+        for _proc, err, *_ in runs:
             err.wait_for(lambda line: "keeps serving until Ctrl-C" in line, timeout=400)
         for proc, *_ in runs:
             proc.send_signal(signal.SIGINT)

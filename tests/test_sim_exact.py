@@ -151,7 +151,10 @@ def test_hp_toas_match_brute_force_root_finding(dwell_run):
         t_det, dz = np.zeros(9), np.zeros(9)
         for node in range(9):
             state = _reference_node_angle(sim, integ, env, b, node)
-            g = lambda t: state(t)[0] - theta_j - 2 * np.pi * k_turn
+
+            def g(t):
+                return state(t)[0] - theta_j - 2 * np.pi * k_turn
+
             t_det[node] = brentq(g, t_exp - 1e-3, t_exp + 1e-3, xtol=1e-15, rtol=1e-15, maxiter=200)
             dz[node] = state(t_det[node])[1] - scn.probes.axial_position_m
         toa_ref, _, _ = stage_b(t_det[None], dz[None])

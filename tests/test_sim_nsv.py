@@ -53,7 +53,8 @@ STALL_RAMP = {"speed": {"start_rpm": 2990.0, "initial": "rest", "segments": [{"d
 # a 4-lobe pattern at 250 Hz in the stationary frame: rotor-frame 4 x 50 Hz - 250 Hz = -50 Hz ...
 # the first family is reached by the engine-order part only; a steady start with a speed knot
 STALL_FIXED = {"speed": {"start_rpm": 2999.0, "initial": "steady",
-                         "segments": [{"duration_s": 0.04, "end_rpm": 3001.0}, {"duration_s": 0.04, "end_rpm": 3001.0}]},
+                         "segments": [{"duration_s": 0.04, "end_rpm": 3001.0},
+                                      {"duration_s": 0.04, "end_rpm": 3001.0}]},
                "rotating_stall": [{"cells": 4, "frequency_hz": 545.0, "amplitude_n": 2.0, "direction": [0, 1, 0]}]}
 
 

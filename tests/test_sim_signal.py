@@ -15,7 +15,8 @@ from bttsim_stream.sim.signal import (Digitiser, ProbeModel, Trigger, apply_trig
 pytestmark = pytest.mark.unit
 
 OPTICAL = ProbeModel("optical", diameter_m=0.5e-3, tip_thickness_m=1e-3, reference_clearance_m=0.5e-3, height_v=1.0)
-CAPACITIVE = ProbeModel("capacitive", diameter_m=1.5e-3, tip_thickness_m=1e-3, reference_clearance_m=0.5e-3, height_v=1.0)
+CAPACITIVE = ProbeModel("capacitive", diameter_m=1.5e-3, tip_thickness_m=1e-3, reference_clearance_m=0.5e-3,
+                        height_v=1.0)
 
 
 def _passages(n, seed=0, speed=50.0, clearance=0.5e-3, probe=OPTICAL):
@@ -167,8 +168,8 @@ def test_same_seed_bit_identical_and_batching_does_not_matter():
     parts = []
     for sl in (slice(0, 250), slice(250, 600)):
         p = type(pp)(pp.height_v[sl], pp.half_width_s[sl], pp.scale_s[sl])
-        parts.append(apply_triggers(synthesise(toa[sl], p, tau[sl], probe[sl], dig, rng), [Trigger("threshold", .5, .05)],
-                                    probe[sl]).toa_s)
+        parts.append(apply_triggers(synthesise(toa[sl], p, tau[sl], probe[sl], dig, rng),
+                                    [Trigger("threshold", .5, .05)], probe[sl]).toa_s)
     ref = apply_triggers(whole, [Trigger("threshold", .5, .05)], probe).toa_s
     assert np.array_equal(np.concatenate(parts), ref)
 
@@ -192,7 +193,8 @@ def test_default_scenario_text_and_simulation_are_unchanged():
 @pytest.mark.parametrize("table, message", [
     ({"enabled": 1}, "[acquisition.signal] enabled must be true or false"),
     ({"trigger": "cfd"}, "[acquisition.signal] trigger must be one of"),
-    ({"enabled": True, "trigger": ["peak", "peak"]}, "[acquisition.signal] trigger must be one value or one per probe (5)"),
+    ({"enabled": True, "trigger": ["peak", "peak"]},
+     "[acquisition.signal] trigger must be one value or one per probe (5)"),
     ({"level_v": 3.0}, "[acquisition.signal] level_v must lie inside the ADC range"),
     ({"enabled": True, "sample_rate_hz": 1e9}, "[acquisition.signal] sample_rate_hz gives windows of"),
     ({"bits": 40}, "[acquisition.signal] bits must be an integer in [4, 24]"),
@@ -272,7 +274,8 @@ def test_counter_latch_error_is_uniform_over_one_tick(clock_hz):
 def _stream_messages(publish: bool, **signal):
     from bttsim_stream.acquisition import AcquisitionStream
     scn = scenario_from_dict({"speed": {"start_rpm": 2000.0, "end_rpm": 2100.0, "duration_s": 2.0},
-                              "acquisition": {"clock_hz": 1e8, "signal": dict(enabled=True, publish=publish, **signal)}})
+                              "acquisition": {"clock_hz": 1e8,
+                                              "signal": dict(enabled=True, publish=publish, **signal)}})
     stream = AcquisitionStream(scn, run_id="r", n_revolutions=12, chunk_revolutions=5)
     return scn, [m for _, msgs in stream.batches() for m in msgs]
 
@@ -285,7 +288,8 @@ def test_published_windows_are_what_the_trigger_saw():
     from bttsim_stream.sim.signal import SignalWindows
 
     g = 1.05 * missing_clearance_m(CAPACITIVE, 0.2)
-    signal = dict(probe_type="capacitive", fraction=0.4, trigger=["threshold", "constant_fraction", "peak", "threshold", "threshold"],
+    signal = dict(probe_type="capacitive", fraction=0.4,
+                  trigger=["threshold", "constant_fraction", "peak", "threshold", "threshold"],
                   clearance_m=g, level_v=0.2, hysteresis_v=0.01, noise_v=0.02)
     scn, msgs = _stream_messages(True, **signal)
     sig = {(m.key.rsplit("/", 1)[1], codec.decode_message(m.key, m.payload).header.revolution):

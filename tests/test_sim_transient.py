@@ -40,7 +40,8 @@ def _reference_toas(sim, run, blades, y0):
     n = act.size
 
     def rhs(t, y):
-        return np.concatenate([y[n:], np.imag(C @ np.exp(1j * eo * speed.angle(t))) - 2 * zeta * w * y[n:] - w * w * y[:n]])
+        return np.concatenate([y[n:],
+                               np.imag(C @ np.exp(1j * eo * speed.angle(t))) - 2 * zeta * w * y[n:] - w * w * y[:n]])
 
     sol = solve_ivp(rhs, (0.0, speed.duration_s), y0, method="DOP853", rtol=1e-10, atol=1e-16, dense_output=True)
     assert sol.status == 0

@@ -91,7 +91,10 @@ def _interleave(frags, lag, seed=0):
     """The fragments as a receiver sees them: each source (the OPR stream, each probe's
     stream) in its own order, the sources drifting up to ``lag`` revolutions apart."""
     rng = np.random.default_rng(seed)
-    src = lambda kd: -1 if kd[0] == "opr" else kd[1].body.probe
+
+    def src(kd):
+        return -1 if kd[0] == "opr" else kd[1].body.probe
+
     n = 1 + max(d.header.revolution for _, d in frags)
     sources = sorted({src(f) for f in frags})
     offsets = np.linspace(0.0, lag, len(sources))[rng.permutation(len(sources))]

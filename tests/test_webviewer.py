@@ -142,7 +142,8 @@ def test_server_on_a_busy_port_is_one_line():
     port = free_port()
     first = webviewer.WebViewerServer("127.0.0.1", port, assets={})
     try:
-        with pytest.raises(BttsimError, match=f"cannot serve the web viewer on 127.0.0.1:{port}: address already in use"):
+        with pytest.raises(BttsimError,
+                           match=f"cannot serve the web viewer on 127.0.0.1:{port}: address already in use"):
             webviewer.WebViewerServer("127.0.0.1", port, assets={})
     finally:
         first.close()

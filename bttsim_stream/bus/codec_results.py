@@ -131,7 +131,7 @@ def _fill_blades(rows, peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f
             row.has_extended = True
         cis = [getattr(peaks, name) for name, _ in _CI95]
         if all(c is not None and np.shape(c) == (peaks.n_blades, 2) for c in cis):
-            for (name, (lo, hi)), c in zip(_CI95, cis):
+            for (_name, (lo, hi)), c in zip(_CI95, cis):
                 setattr(row, lo, float(c[b, 0]))
                 setattr(row, hi, float(c[b, 1]))
             row.has_ci95 = True

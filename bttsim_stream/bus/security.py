@@ -144,10 +144,12 @@ def access_control_policy(identities=IDENTITIES) -> dict:
     policies = [
         {"id": "members", "rules": ["declare", "see tokens", "internal tokens", "receive data"], "subjects": members},
         {"id": "truth readers", "rules": ["receive truth"], "subjects": readers},
-        {"id": "simulator", "rules": ["publish acquisition"], "subjects": [n for n in ("sim", "router") if n in members]},
+        {"id": "simulator", "rules": ["publish acquisition"],
+         "subjects": [n for n in ("sim", "router") if n in members]},
         {"id": "processor", "rules": ["publish results"],
          "subjects": [n for n in ("processor", "router") if n in members]},
-        {"id": "router", "rules": ["relay tokens", "relay status"], "subjects": [n for n in ("router",) if n in members]},
+        {"id": "router", "rules": ["relay tokens", "relay status"],
+         "subjects": [n for n in ("router",) if n in members]},
     ]
     for n in members:  # each one's own liveliness tokens (alive, ready, done...) and status
         rules.append({"id": f"tokens of {n}", "permission": "allow", "flows": ["ingress"],

@@ -82,7 +82,8 @@ class NodeStatus:
         if not isinstance(self.node, str) or not _NAME_RE.fullmatch(self.node):
             raise BttsimError(f"status: invalid node name {str(self.node)[:40]!r}")
         if self.state not in STATES:
-            raise BttsimError(f"status of {self.node}: state {str(self.state)[:40]!r} is not one of {', '.join(STATES)}")
+            raise BttsimError(f"status of {self.node}: state {str(self.state)[:40]!r} "
+                              f"is not one of {', '.join(STATES)}")
         if isinstance(self.seq, bool) or not isinstance(self.seq, int) or not 0 <= self.seq < _MAX_SEQ:
             raise BttsimError(f"status of {self.node}: seq {str(self.seq)[:40]!r} is not a non-negative integer")
         if not isinstance(self.url, str) or len(self.url) > _MAX_URL:

@@ -338,7 +338,8 @@ class MessageStream:
                                         np.asarray(batch.opr_ticks, dtype=np.int64) if ticked else None)
         toa_pl = codec.encode_toa_batches(
             self.run_id, seq_toa.ravel(), np.repeat(revs_a, npr), latest.ravel(), np.tile(np.arange(npr), nr),
-            toa.transpose(0, 2, 1).reshape(nr * npr, nb), toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None,
+            toa.transpose(0, 2, 1).reshape(nr * npr, nb),
+            toa_ticks.transpose(0, 2, 1).reshape(nr * npr, nb) if ticked else None,
             extra)
         t_opr = codec.log_times_ns(opr).tolist()
         t_toa = codec.log_times_ns(latest).tolist()

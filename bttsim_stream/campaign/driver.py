@@ -209,10 +209,12 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
     write_report(report, rows, spec, interrupted=interrupted, n_runs=len(runs))
     outcome = CampaignOutcome(runs=len(runs), executed=done, skipped=skipped,
                               failed=len({r["run_id"] for r in rows if r["status"] in ("error", "lost")}),
-                              rows=len(rows), wall_s=wall, compute_s=compute, workers=n_workers_seen, results=results, report=report)
+                              rows=len(rows), wall_s=wall, compute_s=compute, workers=n_workers_seen,
+                              results=results, report=report)
     (out / "campaign.json").write_text(json.dumps({
         "runs": outcome.runs, "executed": outcome.executed, "skipped": outcome.skipped, "failed": outcome.failed,
-        "rows": outcome.rows, "wall_s": wall, "compute_s": compute, "runs_per_s": outcome.runs_per_s, "workers": n_workers_seen,
+        "rows": outcome.rows, "wall_s": wall, "compute_s": compute, "runs_per_s": outcome.runs_per_s,
+        "workers": n_workers_seen,
         "scheduler": scheduler or "LocalCluster", "interrupted": interrupted, "python": sys.version.split()[0],
         "software_version": __version__}, indent=2) + "\n")
     if interrupted:

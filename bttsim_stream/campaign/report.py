@@ -48,7 +48,8 @@ def method_stats(rows: list[dict]) -> dict:
     half = 1.96 * float(np.std(means, ddof=1)) / math.sqrt(means.size) if means.size > 1 else math.nan
     return {"runs": len({r["run_id"] for r in rows}), "blades": int(e.size),
             "failed_runs": len({r["run_id"] for r in rows if r["status"] != "ok"}),
-            "E_A_p50": pct(50), "E_A_p90": pct(90), "E_A_p95": pct(95), "E_A_max": float(e.max()) if e.size else math.nan,
+            "E_A_p50": pct(50), "E_A_p90": pct(90), "E_A_p95": pct(95),
+            "E_A_max": float(e.max()) if e.size else math.nan,
             "E_A_mean": float(means.mean()) if means.size else math.nan, "E_A_mean_ci95": half,
             "coverage": inside / len(with_ci) if with_ci else math.nan, "coverage_n": len(with_ci)}
 

@@ -474,7 +474,8 @@ def save_sector(sector: CyclicSector, path) -> None:
                  harmonic_index=np.asarray(sector.harmonic_index, np.int64),
                  freq_hz=np.asarray(sector.freq_hz, float), tip_xyz=np.asarray(sector.tip_xyz, float),
                  force_xyz=np.asarray(sector.force_xyz, float),
-                 tip_shapes=np.asarray(sector.tip_shapes, complex), force_shapes=np.asarray(sector.force_shapes, complex))
+                 tip_shapes=np.asarray(sector.tip_shapes, complex),
+                 force_shapes=np.asarray(sector.force_shapes, complex))
 
 
 def _shapes(z, name: str, where: str) -> np.ndarray:

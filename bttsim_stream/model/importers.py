@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelFileError
-from .cyclic import CyclicSector, expand_sector, load_sector, tip_geometry
+from .cyclic import CyclicSector, expand_sector, load_sector
 from .frd import read_frd
 
 __all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "check_options", "import_model",
@@ -387,7 +387,8 @@ def sector_from_frd(path, options: ImportOptions = ImportOptions(), *, step: int
         try:
             exact = np.array([dk.nodes[int(i)] for i in res.node_ids[rows]])
         except KeyError as exc:
-            raise ModelFileError(f"{where}: node {exc.args[0]} is not in the deck {deck}: not these results' deck") from None
+            raise ModelFileError(f"{where}: node {exc.args[0]} is not in the deck {deck}: "
+                                 "not these results' deck") from None
         if np.max(np.abs(exact - xyz[rows])) > 1e-5 * max(1.0, np.abs(exact).max()):
             raise ModelFileError(f"{where}: the deck {deck} places the nodes elsewhere than the results: "
                                  "not these results' deck")
@@ -531,7 +532,8 @@ def format_report(report: dict) -> str:
                      + (f"; farthest {1e3 * notes['scale'] * t.distance.max():.3g} mm from its point"
                         if t.how == "nearest node" else ""))
         lines.append(f"  excitation node ({f.how}): {int(f.ids[0])}"
-                     + (f", {1e3 * notes['scale'] * f.distance[0]:.3g} mm from its point" if f.how == "nearest node" else ""))
+                     + (f", {1e3 * notes['scale'] * f.distance[0]:.3g} mm from its point"
+                        if f.how == "nearest node" else ""))
         lines.append(f"  cyclic axis {notes['axis'][3:]}: "
                      + ("modes conjugated to the +z convention" if notes["conjugated"] else "+z convention as read")
                      + f"; units {notes['units']}")
@@ -542,7 +544,8 @@ def format_report(report: dict) -> str:
     tip = report["tip"]
     lines.append(f"  tip: {tip['n_tip']} nodes, chord {1e3 * tip['chord_m']:.3f} mm, stagger "
                  f"{tip['stagger_deg']:.2f} deg, radius {1e3 * tip['radius_m']:.2f} mm, axial "
-                 f"{1e3 * tip['axial_m'][0]:.3f} .. {1e3 * tip['axial_m'][1]:.3f} mm, P_nom = node {tip['nominal_node']}")
+                 f"{1e3 * tip['axial_m'][0]:.3f} .. {1e3 * tip['axial_m'][1]:.3f} mm, "
+                 f"P_nom = node {tip['nominal_node']}")
     camp = report["campbell_freq_hz"]
     lines.append("  ND " + "".join(f"  family {f + 1:<2d}(Hz)" for f in range(camp.shape[0])))
     for k in range(camp.shape[1]):

@@ -254,7 +254,8 @@ def _model_meta(design: BladedDiskDesign, damping_beta_s: float, method: str, bu
         "tip_radius_m": design.tip_radius_m,
         "damping_beta_s": float(damping_beta_s),
         "units": "SI: Hz, m, rad; shapes in m per unit mass-normalised modal coordinate",
-        "frames": "ref: (radius, angle anticlockwise from +x, z) at t=0; shapes: (radial, tangential, axial) at each node",
+        "frames": ("ref: (radius, angle anticlockwise from +x, z) at t=0; "
+                   "shapes: (radial, tangential, axial) at each node"),
         "force_node": "leading_edge",
         "provenance": {
             "builder": f"bttsim_stream {__version__} parametric bladed disk",

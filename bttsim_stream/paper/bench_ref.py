@@ -269,7 +269,8 @@ def study_bench(out_dir: Path, *, window: dict | None = None, blades=(0, 14), pr
     rows += [
         [(f"reference (solve_ivp DOP853 rtol 1e-10 + event functions), {r['duration_s']} s window, "
          f"{r['n_modes']} responding modes, blades {r['blades']}, probes {r['probes']}, 9 tip nodes"),
-         f"{r['wall_s']:.2f} s wall, {r['toas']} TOAs, {1e3 * r['s_per_toa']:.2f} ms per TOA, {r['nfev']} RHS evaluations"],
+         (f"{r['wall_s']:.2f} s wall, {r['toas']} TOAs, {1e3 * r['s_per_toa']:.2f} ms per TOA, "
+          f"{r['nfev']} RHS evaluations")],
         ["ours on the same window (all 29 blades, 5 probes, model prebuilt)",
          (f"{r['fast_window_wall_s']:.2f} s wall, {r['fast_window_toas']} TOAs, "
          f"{1e6 * r['fast_window_s_per_toa']:.1f} us per TOA")],

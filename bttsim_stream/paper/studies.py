@@ -157,7 +157,8 @@ def study_table2(out_dir: Path) -> dict:
         "errors left are the peak pick's sampling (one revolution = 0.021 % in frequency) "
         "and the fit's window; the paper's 0.8-1.2 % floor comes from its package and its "
         "model. With preparation, the paper's package *increased* HP/AD errors (to ~3 %), ours "
-        "raises them only slightly (by about 0.05 percentage points): our offset removal bridges the resonance region with a smooth "
+        "raises them only slightly (by about 0.05 percentage points): our offset removal bridges "
+        "the resonance region with a smooth "
         "baseline and our smoothing half-width scales with the half-power width (W/8), costing "
         "0.04 % of amplitude. PAD without preparation matches the paper (noise of ~10 % NSR, "
         "calibrated to the paper's figure); with preparation our smoother removes more of the "
@@ -240,7 +241,8 @@ def study_table3(out_dir: Path, *, simulate_layouts: bool = True) -> dict:
                 ["mean E_A < 4 % for CN < 10", f"mean E_A <= {max(r['mean_E_A_pct'] for r in lo):.2f} % for CN < 10"],
                 ["max E_A local peak > 10 % at CN 7.3",
                  (f"max E_A at CN 7.3: {rs[6]['max_E_A_pct']:.2f} % (largest over layouts "
-                 f"{max(r['max_E_A_pct'] for r in rs):.2f} % at CN {max(rs, key=lambda r: r['max_E_A_pct'])['cn']:.1f})")],
+                 f"{max(r['max_E_A_pct'] for r in rs):.2f} % at CN "
+                 f"{max(rs, key=lambda r: r['max_E_A_pct'])['cn']:.1f})")],
                 ["max E_f has a local peak at CN 7.3 (mirroring max E_A)",
                  (f"max E_f at CN 5.0 / 7.3 / 10.0: {rs[5]['max_E_f_pct']:.3f} / {rs[6]['max_E_f_pct']:.3f} / "
                  f"{rs[7]['max_E_f_pct']:.3f} %")],
@@ -313,7 +315,8 @@ def study_nd(out_dir: Path) -> dict:
          f"{res[1]['amp_mm'].mean():.3f} / {res[14]['amp_mm'].mean():.3f}", "-"],
         ["mean amplitude difference (A_ND1 - A_ND14) / A_ND14, BTT", f"{d['btt_amp_pct']:.2f} %", "11.62 %"],
         ["mean amplitude difference, d_eqv truth", f"{d['truth_amp_pct']:.2f} %", "11.48 % (ii) / 11.57 % (iii)"],
-        ["mean abs(A_ND14 - A_ND1) / A_ND1, BTT / truth", f"{d_abs_amp['btt']:.2f} % / {d_abs_amp['truth']:.2f} %", "-"],
+        ["mean abs(A_ND14 - A_ND1) / A_ND1, BTT / truth",
+         f"{d_abs_amp['btt']:.2f} % / {d_abs_amp['truth']:.2f} %", "-"],
         ["mean E_A / E_f %, ND 1", f"{res[1]['mean_E_A_pct']:.3f} / {res[1]['mean_E_f_pct']:.4f}", "-"],
         ["mean E_A / E_f %, ND 14", f"{res[14]['mean_E_A_pct']:.3f} / {res[14]['mean_E_f_pct']:.4f}", "-"],
     ]

@@ -28,9 +28,9 @@ frequencies), amplitudes peak-to-peak, blades and probes numbered from 0, NaN fo
 missing arrival. Nothing here imports the transport, codec or viewer layers.
 """
 
-from .displacement import (Displacements, DoublePulses, Geometry, assign_extra_edges, RotorPhase, btt_displacement, calibrate_arrival_angles,
-                           compute_displacements, expected_times, identify_blades, mean_speed_from_opr,
-                           rotor_phase_from_opr)
+from .displacement import (Displacements, DoublePulses, Geometry, assign_extra_edges, RotorPhase, btt_displacement,
+                           calibrate_arrival_angles, compute_displacements, expected_times, identify_blades,
+                           mean_speed_from_opr, rotor_phase_from_opr)
 from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
                      predicted_response, speed_segments)
 from .fit import SineFit, design_matrix, fit_revolutions, sine_at_probes
@@ -51,7 +51,7 @@ from .nsv import NsvDetection, NsvOptions, NsvScan, detect_nsv, scan_blocks
 __all__ = [
     "Geometry", "RotorPhase", "Displacements", "mean_speed_from_opr", "rotor_phase_from_opr",
     "calibrate_arrival_angles", "expected_times", "btt_displacement", "compute_displacements",
-    "identify_blades",
+    "identify_blades", "DoublePulses", "assign_extra_edges",
     "PrepOptions", "ResonanceRegion", "PreparedData", "locate_resonance", "remove_offset",
     "smooth_revolutions", "speed_adaptive_half_width", "prepare",
     "SineFit", "design_matrix", "fit_revolutions", "sine_at_probes",

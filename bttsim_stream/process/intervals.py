@@ -58,8 +58,8 @@ import numpy as np
 
 from .fit import design_matrix
 
-__all__ = ["Z95", "MODEL_ERROR", "ZEROING_SHARE", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms", "crossing_intervals",
-           "dwell_intervals", "layout_gain", "crossing_notes"]
+__all__ = ["Z95", "MODEL_ERROR", "ZEROING_SHARE", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms",
+           "crossing_intervals", "dwell_intervals", "layout_gain", "crossing_notes"]
 
 #: Share of the zeroing reference's response (the correction added back, or the window's
 #: estimated contamination) left as an error after the correction / baseline removal: a bound

@@ -443,7 +443,7 @@ def _num(x):
 def _misfits(d: np.ndarray, angles, eos: tuple, fit: SineFit) -> dict:
     """Per order: relative misfit of its own single-order fit over a range of revolutions."""
     out = {}
-    for i, eo in enumerate(eos):
+    for _i, eo in enumerate(eos):
         f = fit if len(eos) == 1 else fit_revolutions(d, angles, (eo,))
         res = f.residual_rms_m
         amp = f.amp_pkpk_m[..., 0]

@@ -619,8 +619,8 @@ def _amp_unit(rows: list[dict]) -> tuple[str, float]:
 
 def _blade_table(title: str, entry: dict) -> list[str]:
     """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
-    uncertainty in um, the half-width of its 95 % interval in um, frequency, phase in degrees, and the truth with E_A / E_f when the
-    entry has them."""
+    uncertainty in um, the half-width of its 95 % interval in um, frequency, phase in degrees, and
+    the truth with E_A / E_f when the entry has them."""
     rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
     unc = any("amp_std_m" in r for r in rows)

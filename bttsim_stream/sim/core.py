@@ -566,7 +566,8 @@ class RunUpSimulator:
         lm = frame.with_P(P2)
         tgt = (phi_c - phi_r)[None, :] + np.take(self._dtheta, cand)  # rotor-angle target minus phi(t_r)
         t_det, dz, residual = self._stage_a(lm, np.take(self._radius, cand), np.take(self._z_ref, cand), tgt,
-                                            t_r, om_r, _pair(lambda o: u_r[k_lo + o:k_lo + o + 2], k - k_lo, k_hi - k_lo),
+                                            t_r, om_r,
+                                            _pair(lambda o: u_r[k_lo + o:k_lo + o + 2], k - k_lo, k_hi - k_lo),
                                             _pair(lambda o: du_r[k_lo + o:k_lo + o + 2], k - k_lo, k_hi - k_lo))
         if scn.toa.axial_interpolation:  # stage B for a pair (Eq. 9-11), as stage_b does
             pos0 = dz[0] >= 0
@@ -745,7 +746,8 @@ def collect(batches) -> RevolutionBatch:
                            residual_s=max(b.residual_s for b in batches),
                            bracketed=cat(lambda b: b.bracketed), n_edges=cat(lambda b: b.n_edges),
                            clearance_m=cat(lambda b: b.clearance_m),
-                           signal=None if batches[0].signal is None else RawSignals.concatenate(b.signal for b in batches),
+                           signal=(None if batches[0].signal is None
+                                   else RawSignals.concatenate(b.signal for b in batches)),
                            extra_passage=None if batches[0].extra_passage is None else np.concatenate(
                                [b.extra_passage + off for b, off in zip(batches, np.cumsum(
                                    [0] + [b.toa_s.size for b in batches[:-1]]))]),

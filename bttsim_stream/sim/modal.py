@@ -906,7 +906,8 @@ class EnvelopeIntegrator:
         if self._om_s is None:
             Phi = np.exp(-1j * self._eo_s[None, :] * dphi[:, None])[:, car]
         else:
-            Phi = np.exp(-1j * (self._eo_s[None, :] * dphi[:, None] + self._om_s[None, :] * (ts - ts[0])[:, None]))[:, car]
+            Phi = np.exp(-1j * (self._eo_s[None, :] * dphi[:, None]
+                                + self._om_s[None, :] * (ts - ts[0])[:, None]))[:, car]
         return E, Phi
 
     def _run_exact(self, A, cols, start, stop, t, phi, om, alpha):

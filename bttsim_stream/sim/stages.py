@@ -189,7 +189,8 @@ class SignalChain:
         def per_probe(v):
             return (v,) * n_probes if isinstance(v, str) else tuple(v)
 
-        self.probes = [ProbeModel(kind=k, diameter_m=sig.spot_diameter_m if k == "optical" else sig.electrode_diameter_m,
+        self.probes = [ProbeModel(kind=k,
+                                  diameter_m=sig.spot_diameter_m if k == "optical" else sig.electrode_diameter_m,
                                   tip_thickness_m=sig.tip_thickness_m,
                                   reference_clearance_m=sig.reference_clearance_m,
                                   height_v=sig.height_v, fringe_factor=sig.fringe_factor,

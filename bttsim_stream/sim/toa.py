@@ -43,8 +43,8 @@ import numpy as np
 
 from .speed import SpeedProfile
 
-__all__ = ["stage_b", "hermite_in_place", "LocalMotion", "crossing_frame", "project_planes", "eval_planes", "eval_local",
-           "node_angle_residual", "hp_crossings", "grid_crossings"]
+__all__ = ["stage_b", "hermite_in_place", "LocalMotion", "crossing_frame", "project_planes", "eval_planes",
+           "eval_local", "node_angle_residual", "hp_crossings", "grid_crossings"]
 
 
 def stage_b(t_det: np.ndarray, dz: np.ndarray, axial_interpolation: bool = True):
@@ -164,8 +164,8 @@ class LocalMotion:
     def with_P(self, P: np.ndarray) -> "LocalMotion":
         """The same crossings with other components."""
         return LocalMotion(P=P, t0=self.t0, t_ref=self.t_ref, om_ref=self.om_ref, alpha=self.alpha,
-                           seg_lo=self.seg_lo, seg_hi=self.seg_hi, phi_ref=self.phi_ref, margin=self.margin, rot=self.rot,
-                           eo=self.eo, omega=self.omega)
+                           seg_lo=self.seg_lo, seg_hi=self.seg_hi, phi_ref=self.phi_ref, margin=self.margin,
+                           rot=self.rot, eo=self.eo, omega=self.omega)
 
     def angle_change(self, speed: SpeedProfile, t: np.ndarray):
         """Rotor angle turned since ``t_ref`` (rad) and speed (rad/s) at times ``t`` (q, n).

@@ -15,8 +15,8 @@ line's value at the right edge). ``campbell/data/engine_orders`` (EO 1..12 lines
 ``f = EO rpm / 60``, excited EOs red), ``families``, ``run_range`` (the run's speed range),
 ``resonance`` (each excited EO's crossings with its ND in every family: where the EO line
 meets the family's line or curve; the ND is the force's own, set by its travelling-wave
-phase, Eq. 5-7, which a legend label "force: EO 8 x ND 1" states), ``labels``, all static; ``speed`` (the current speed, one
-line per revolution).
+phase, Eq. 5-7, which a legend label "force: EO 8 x ND 1" states), ``labels``, all static;
+``speed`` (the current speed, one line per revolution).
 
 Labels are laid out so that they do not overlap (:func:`~._plot2d.place_labels`): an EO
 line's label sits just outside the box where the line leaves it (right edge for shallow

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 __all__ = ["tw_path", "tw_map_path", "signal_path", "displacement_path", "fit_path", "fit_rpm_path", "SPEED",
            "TRUTH_AMP", "TW_ND",
-           "ROTOR", "CAMPBELL", "RESONANCE_TABLE", "RESONANCE_BARS", "NSV_AMP", "NSV_REV_AMP", "NSV_ND", "NSV_ORDER", "NSV_TW", "NSV_TABLE"]
+           "ROTOR", "CAMPBELL", "RESONANCE_TABLE", "RESONANCE_BARS", "NSV_AMP", "NSV_REV_AMP", "NSV_ND", "NSV_ORDER",
+           "NSV_TW", "NSV_TABLE"]
 
 #: Speed of each revolution, rpm (time series).
 SPEED = "speed/rpm"

@@ -4,9 +4,10 @@ Run ``python examples/calculix_sector/sector.py OUT_DIR`` (needs ``pip install g
 ``ccx`` program, Debian package ``calculix-ccx``): it meshes one sector with gmsh, writes the
 CalculiX decks ``sector.inp`` (cyclic symmetry, every nodal diameter) and, with ``--full``,
 ``wheel.inp`` (the same mesh copied round the whole wheel, for a direct check), runs ``ccx``
-on them, imports the sector results into ``OUT_DIR/model.npz`` (what ``bttsim model import sector.frd --options import.toml --out
-model.npz`` does) and writes ``scenario.toml`` for ``bttsim run`` / ``bttsim simulate``: a
-run-up through the first family's EO 8 crossing.
+on them, imports the sector results into ``OUT_DIR/model.npz`` (what
+``bttsim model import sector.frd --options import.toml --out model.npz`` does) and writes
+``scenario.toml`` for ``bttsim run`` / ``bttsim simulate``: a run-up through the first family's
+EO 8 crossing.
 
 Geometry (SI units; every dimension is a :class:`SectorDesign` field): a disk segment from the
 bore to the rim, ``2 pi / n_blades`` wide, centred on angle 0; a blade from inside the rim to
