@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from bttsim_stream.bus import codec, keys
+from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, pack_attachment
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import add_processing_arguments, processing_options
@@ -114,7 +115,7 @@ MAX_EARLY = 100_000
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rig", default="rig1", help="rig to process (rig1)")
+    p.add_argument("--rig", default=DEFAULT_RIG, help=f"rig to process ({DEFAULT_RIG})")
     p.add_argument("--summary", metavar="FILE.json", help="write the summary JSON here at the end")
     p.add_argument("--no-score", action="store_true", help="do not read truth (no E_A / E_f)")
     add_processing_arguments(p)  # --method, --eo, --eo-range, --no-prep, --window

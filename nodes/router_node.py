@@ -16,6 +16,7 @@ import logging
 import sys
 
 from bttsim_stream.bus import keys
+from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, config_from_args, open_session
 from bttsim_stream.bus.security import tls_from_args
 from bttsim_stream.runtime import NodeProgram, run_node
@@ -41,7 +42,7 @@ def main(conf, args: argparse.Namespace) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rig", default="rig1", help="rig whose liveliness the router announces (rig1)")
+    p.add_argument("--rig", default=DEFAULT_RIG, help=f"rig whose liveliness the router announces ({DEFAULT_RIG})")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
 
 

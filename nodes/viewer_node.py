@@ -23,6 +23,7 @@ import logging
 import sys
 
 from bttsim_stream.bus import keys
+from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
 from bttsim_stream.runtime import NodeProgram, add_status_argument, add_web_arguments, node_session, run_node
@@ -93,7 +94,7 @@ def _report(st: dict, seqs: SequenceTracker) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rig", default="rig1", help="rig to show (rig1)")
+    p.add_argument("--rig", default=DEFAULT_RIG, help=f"rig to show ({DEFAULT_RIG})")
     p.add_argument("--rrd", metavar="OUT.rrd", help="write an .rrd file (open it with: rerun OUT.rrd)")
     p.add_argument("--rerun-url", metavar="URL",
                    help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")

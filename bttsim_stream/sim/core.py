@@ -17,6 +17,7 @@ from typing import Iterator
 
 import numpy as np
 
+from ..defaults import DEFAULT_RIG
 from ..errors import BttsimError
 from ..model import build_model, load_model
 from ..model.speed_modes import is_speed_dependent
@@ -106,7 +107,7 @@ class RunInfo:
     toa_method: str
     duration_s: float
     seed: int
-    rig: str = "rig1"
+    rig: str = DEFAULT_RIG
     sensing_angles_rad: np.ndarray | None = None
     family_freq_hz: np.ndarray | None = None
     family_speed_rad_s: np.ndarray | None = None
