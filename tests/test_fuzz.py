@@ -1,6 +1,6 @@
 """Issue 16: a bounded, seeded fuzz of every input the CLI reads -- scenario TOML, model
-``.npz``, MCAP bytes and well-formed MCAP files with wrong content (raw probe signals and double
-pulses included) -- ends in 0 tracebacks and 0 hangs.
+``.npz``, CalculiX ``.frd`` results, MCAP bytes and well-formed MCAP files with wrong content (raw
+probe signals and double pulses included) -- ends in 0 tracebacks and 0 hangs.
 
 Every case runs ``bttsim`` in-process (:func:`bttsim_stream.cli.main`, a few through a real
 subprocess) under a per-case alarm, and must end with
@@ -13,7 +13,7 @@ subprocess) under a per-case alarm, and must end with
 * within :data:`CASE_TIMEOUT_S`.
 
 The generator is seeded (:data:`SEED`): a failure names its case (kind, number, mutation), and
-the same seed gives the same cases. About 450 cases, 40-70 s on a loaded 2-core machine.
+the same seed gives the same cases. About 650 cases, 50-80 s on a loaded 2-core machine.
 """
 
 from __future__ import annotations
@@ -57,8 +57,9 @@ BASE_TOML = ("[speed]\nstart_rpm = 2450.0\nsegments = [{duration_s = 4.0, end_rp
 N_TOML, N_TOML_TEXT, N_SIMULATE = 130, 30, 20
 N_NPZ, N_NPZ_PLOT = 45, 6
 N_MCAP_BYTES, N_MCAP_CONTENT, N_VIEW = 50, 110, 24
-N_SUBPROCESS = 4
+N_SUBPROCESS = 5
 N_SIGNAL = 24
+N_FRD = 200
 #: The base run with the probe signal chain on, its raw windows published, and double pulses
 #: (no hysteresis on a noisy pulse): the fields a forger of signals and extra edges aims at.
 SIGNAL_TOML = BASE_TOML + ("[acquisition]\nclock_hz = 1e8\n[acquisition.signal]\nenabled = true\npublish = true\n"
@@ -424,6 +425,149 @@ def test_fuzz_model_npz(workdir, monkeypatch):
 
 
 # --------------------------------------------------------------------------------------
+# CalculiX .frd (``bttsim model import``)
+# --------------------------------------------------------------------------------------
+
+#: Hostile contents of one fixed-width field (E12.5 value, I5/I10 node number, header count).
+_FRD_NUMBERS = ["abcdefghijkl", "nan", "-nan", "inf", "-inf", "1.0E+999", "-1.0E+999", "************", "1.2.3",
+                "1e308", "-1e308", "5e-324", "", "0x10", "1_000", "+", "-", "E", "1.0E", "9" * 12, "-0.0"]
+_FRD_INTS = ["x", "-1", "0", "1", "2", "99", "2147483648", "9999999999", "-9999999999", "1.5", "", "  1 2",
+             str(2**63), "1e3"]
+
+
+def _frd_field(line: str, start: int, width: int, token: str) -> str:
+    """``line`` with columns [start, start + width) replaced by ``token`` (right-aligned, cut to width)."""
+    line = line.ljust(start + width)
+    return line[:start] + token.rjust(width)[-width:] + line[start + width:]
+
+
+def mutate_frd(rng: random.Random, text: str) -> tuple[bytes, str]:
+    """One or two hostile changes to a valid ``.frd`` file: a field's value, a header count or
+    format flag, a component count, a parameter (1P) value, a cut, moved or repeated line, stray
+    bytes."""
+    lines = text.splitlines()
+    what = []
+    for _ in range(rng.choice([1, 1, 1, 2])):
+        op = rng.randrange(12)
+        data = [i for i, ln in enumerate(lines) if ln.startswith(" -1")]
+        heads = [i for i, ln in enumerate(lines) if ln.lstrip().startswith(("2C", "100C"))]
+        params = [i for i, ln in enumerate(lines) if ln.lstrip().startswith("1P")]
+        comps = [i for i, ln in enumerate(lines) if ln.startswith(" -4")]
+        if op == 0 and data:  # one value of a node or result line
+            i, k = rng.choice(data), rng.randrange(3)
+            tok = rng.choice(_FRD_NUMBERS)
+            lines[i] = _frd_field(lines[i], 13 + 12 * k, 12, tok)
+            what.append(f"line {i + 1} value {k} = {tok!r}")
+        elif op == 1 and data:  # a node number (I10), or a short-format id in the long layout
+            i = rng.choice(data)
+            tok = rng.choice(_FRD_INTS + [lines[rng.choice(data)][3:13].strip()])
+            lines[i] = _frd_field(lines[i], 3, rng.choice([10, 5]), tok)
+            what.append(f"line {i + 1} node number {tok!r}")
+        elif op == 2 and lines:
+            i = rng.randrange(len(lines))
+            n = rng.randrange(len(lines[i]) + 1)
+            lines[i] = lines[i][:n]
+            what.append(f"line {i + 1} cut at column {n}")
+        elif op == 3 and heads:  # the node count of a block header (I12 at columns 25-36)
+            i = rng.choice(heads)
+            n = int(lines[i][24:36] or 0)
+            tok = rng.choice([str(n + 1), str(max(n - 1, 0)), "0", "-1", str(10**11), "abc", ""])
+            lines[i] = _frd_field(lines[i], 24, 12, tok)
+            what.append(f"line {i + 1} count {tok!r}")
+        elif op == 4 and heads:  # the format flag (0 short, 1 long, 2 binary)
+            i = rng.choice(heads)
+            tok = rng.choice(["0", "2", "x", " ", "9"])
+            lines[i] = _frd_field(lines[i], 73, 2 if "100C" in lines[i] else 1, tok)
+            what.append(f"line {i + 1} format flag {tok!r}")
+        elif op == 5 and comps:  # the component count of a result block (I5 at columns 14-18)
+            i = rng.choice(comps)
+            tok = rng.choice(["0", "1", "2", "5", "99", "99999", "x", "-3"])
+            lines[i] = _frd_field(lines[i], 13, 5, tok)
+            what.append(f"line {i + 1} components {tok!r}")
+        elif op == 6 and params:  # a parameter's value (1PHID, 1PMODE, 1PSTEP, 1PGM, 1PAX)
+            i = rng.choice(params)
+            head = lines[i][:10].rstrip()
+            tok = rng.choice(_FRD_INTS + _FRD_NUMBERS + ["1 2", "0 0 0 0 0 0", "1 2 3 4 5 nan"])
+            lines[i] = f"{head:<26}{tok:>10}"
+            what.append(f"line {i + 1} {head.strip()} {tok!r}")
+        elif op == 7 and heads:  # the value field of a header: a result's frequency
+            i = rng.choice(heads)
+            tok = rng.choice(_FRD_NUMBERS + ["-2134.35", "0"])
+            lines[i] = _frd_field(lines[i], 12, 12, tok)
+            what.append(f"line {i + 1} frequency {tok!r}")
+        elif op == 8 and lines:
+            i, j = rng.randrange(len(lines)), rng.randrange(len(lines))
+            kind = rng.randrange(3)
+            if kind == 0:
+                del lines[i]
+                what.append(f"line {i + 1} dropped")
+            elif kind == 1:
+                lines.insert(j, lines[i])
+                what.append(f"line {i + 1} repeated at {j + 1}")
+            else:
+                lines[i], lines[j] = lines[j], lines[i]
+                what.append(f"lines {i + 1} and {j + 1} swapped")
+        elif op == 9 and lines:  # a stray line, or junk at the end of one
+            i = rng.randrange(len(lines))
+            if rng.random() < 0.5:
+                tok = rng.choice([" -1", " -3", " -4", " -5", "    2C", "  100C", "    3C", " 9999", "garbage",
+                                  " -1        11" + " 1.00000E+00" * 7, "    1PHID"])
+                lines.insert(i, tok)
+                what.append(f"stray line {tok[:20]!r} at {i + 1}")
+            else:
+                lines[i] += rng.choice([" 1.00000E+00", "xyz", " " * 80])
+                what.append(f"junk after line {i + 1}")
+        elif op == 10:
+            b = bytearray("\n".join(lines).encode())
+            for _ in range(rng.randint(1, 6)):
+                b[rng.randrange(len(b))] = rng.choice([rng.randrange(32, 127), rng.randrange(256)])
+            return bytes(b), "; ".join(what + ["random bytes"])
+        else:
+            b = "\n".join(lines).encode()
+            n = rng.randrange(len(b))
+            return b[:n], "; ".join(what + [f"cut at byte {n}"])
+    return ("\n".join(lines) + "\n").encode(), "; ".join(what) or "unchanged"
+
+
+@pytest.fixture(scope="module")
+def frd_text(workdir):
+    """A small valid cyclic-symmetry ``.frd`` (7 sectors, 4 tip nodes 11-14, 2 families) in
+    CalculiX's layout, from the exact spring-mass wheel of ``test_model_cyclic``."""
+    from test_model_cyclic import _sector_solution, _spring_wheel
+    from test_model_frd import N, _write_frd
+
+    xyz, K, M = _spring_wheel(N)
+    return _write_frd(workdir / "wheel.frd", _sector_solution(N, xyz, K, M, 2)).read_text()
+
+
+#: ``bttsim model import`` of the fixture: the number of sectors and the nodes on the command line.
+FRD_ARGS = ["--n-sectors", "7", "--tip-nodes", "11,12,13,14", "--force-node", "11", "--nominal-node", "1"]
+
+
+def test_fuzz_frd(workdir, frd_text):
+    rng = random.Random(SEED + 6)
+    good = workdir / "wheel.frd"
+    o = run_case("frd base", ["model", "import", good, *FRD_ARGS, "--out", workdir / "wheel.npz"])
+    assert o.status == 0 and not o.problem, o.err
+    outcomes = []
+    t0 = time.perf_counter()
+    for i in range(N_FRD):
+        path = workdir / f"f{i}.frd"
+        data, what = mutate_frd(rng, frd_text)
+        path.write_bytes(data)
+        o = run_case(f"frd #{i} ({what})", ["model", "import", path, *FRD_ARGS, "--out", path.with_suffix(".npz")])
+        if o.problem is None and o.status == 2 and len(o.err.strip().splitlines()) != 1:
+            o.problem = "exit status 2 with more than the one error line on stderr"
+        if o.problem is None and o.status == 2 and path.with_suffix(".npz").exists():
+            o.problem = "exit status 2 but the model file was written"
+        outcomes.append(o)
+    tally = _tally(outcomes)
+    print(f"frd: {len(outcomes)} cases, statuses {tally}, {time.perf_counter() - t0:.1f} s")
+    assert not any(o.problem for o in outcomes), report(outcomes)
+    assert tally.get(2, 0) > len(outcomes) // 2 and tally.get(0, 0) > 5, tally  # the fuzz reaches both sides
+
+
+# --------------------------------------------------------------------------------------
 # MCAP bytes
 # --------------------------------------------------------------------------------------
 
@@ -647,7 +791,7 @@ def test_fuzz_signal_and_double_pulse_content(workdir):
 # --------------------------------------------------------------------------------------
 
 
-def test_fuzz_sample_in_subprocesses(workdir, base_mcap):
+def test_fuzz_sample_in_subprocesses(workdir, base_mcap, frd_text):
     rng = random.Random(SEED + 4)
     bad_toml = workdir / "sub.toml"
     bad_toml.write_text("[[excitation]]\nengine_order = 4294967296\n")
@@ -657,8 +801,14 @@ def test_fuzz_sample_in_subprocesses(workdir, base_mcap):
     cut.write_bytes(mutate_bytes(rng, base_mcap.read_bytes())[0])
     forged = workdir / "sub_forged.mcap"
     _write(forged, forge(rng, read_recording(base_mcap).messages, ("meta", "opr", "toa"))[0])
+    frd = workdir / "sub.frd"
+    rows = frd_text.splitlines()
+    i = next(k for k, ln in enumerate(rows) if ln.startswith(" -1"))
+    rows[i] = _frd_field(rows[i], 25, 12, rows[i][25:37].replace("0", "O", 1))  # a letter O for a zero
+    frd.write_text("\n".join(rows) + "\n")
     cases = [["scenario", "--check", bad_toml], ["simulate", big_force, "--out", workdir / "x.mcap"],
-             ["process", cut], ["process", forged]][:N_SUBPROCESS]
+             ["process", cut], ["process", forged],
+             ["model", "import", frd, *FRD_ARGS, "--out", workdir / "sub.npz"]][:N_SUBPROCESS]
     for argv in cases:
         p = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", *map(str, argv)], capture_output=True,
                            text=True, timeout=120)
