@@ -30,6 +30,7 @@ import subprocess
 import sys
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,7 +97,11 @@ def run_case(case: str, argv: list) -> Outcome:
     signal.setitimer(signal.ITIMER_REAL, CASE_TIMEOUT_S)
     status, problem = None, None
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        # warnings as a console shows them (pytest would otherwise record them out of sight)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = lambda m, c, f, n, file=None, line=None: err.write(
+                warnings.formatwarning(m, c, f, n, line))
             try:
                 status = cli.main([str(a) for a in argv])
             except SystemExit as exc:  # argparse
@@ -157,8 +162,10 @@ def _tally(outcomes) -> dict:
 # Scenario TOML
 # --------------------------------------------------------------------------------------
 
+#: Magnitudes at the ends of the float range (the largest, the smallest subnormal, a signed zero).
+_MAGNITUDES = [1e308, -1e308, 1.7976931348623157e308, 5e-324, -5e-324, -0.0]
 _NASTY = [0, -1, 1, 2, 3, 7, 1000, 1001, 2**31, 2**32, 2**63 - 1, -(2**63), 0.0, -0.0, 1e-300, 5e-324, 1e300,
-          -1e300, 1e6, 1e9, math.nan, math.inf, -math.inf, 0.5, 359.9999, 360.0, True, False, "", "x",
+          -1e300, 1e308, -1e308, 1e6, 1e9, math.nan, math.inf, -math.inf, 0.5, 359.9999, 360.0, True, False, "", "x",
           "builtin", "leading_edge", "HP", "rig 1", [], [0.0], [1e300, 2.0, 3.0], [[1]], [1, "a"], {}, {"a": 1},
           {"duration_s": 1e-300, "end_rpm": 2500.0}]
 
@@ -195,7 +202,7 @@ def dumps(d: dict) -> str:
 
 def _nasty_number(rng: random.Random, v):
     if isinstance(v, (int, float)) and not isinstance(v, bool) and rng.random() < 0.4:
-        scale = rng.choice([-1, 0, 1e-9, 1e-3, 0.5, 2, 10, 1e3, 1e6, 1e300])
+        scale = rng.choice([-1, 0, 1e-9, 1e-3, 0.5, 2, 10, 1e3, 1e6, 1e300, 1e308, 5e-324])
         x = v * scale
         return int(x) if isinstance(v, int) and abs(x) < 2**62 else float(x)
     return rng.choice(_NASTY)
@@ -316,6 +323,7 @@ def test_fuzz_scenario_toml(workdir):
             data, what = mutate_text(rng, BASE_TOML + dumps({"probes": base["probes"]}))
             path.write_bytes(data)
         o = run_case(f"toml #{i} ({what})", ["scenario", "--check", path])
+        _one_line(o)
         outcomes.append(o)
         if o.status == 0 and not o.problem and _fits_a_quick_simulation(path):
             passed.append((o.case, path))
@@ -326,6 +334,61 @@ def test_fuzz_scenario_toml(workdir):
           f"{time.perf_counter() - t0:.1f} s")
     assert not any(o.problem for o in outcomes), report(outcomes)
     assert tally.get(2, 0) > len(outcomes) // 3 and tally.get(0, 0) > 10, tally  # the fuzz reaches both sides
+
+
+def _one_line(o: Outcome) -> None:
+    """A refusal (status 2) is its one error line and nothing else on stderr: no numpy
+    warning printed on the way to it."""
+    if o.problem is None and o.status == 2 and len(o.err.strip().splitlines()) != 1:
+        o.problem = f"exit status 2 with {len(o.err.strip().splitlines())} lines on stderr (one expected)"
+
+
+def _numeric_fields(d: dict):
+    """``(label, setter)`` of every number (and the first of every number array) of a scenario dict."""
+    def num(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for s, sec in d.items():
+        tables = [(f"[{s}]", sec)] if isinstance(sec, dict) else [(f"[[{s}]]", t) for t in sec[:1]]
+        for label, table in tables:
+            for k, v in table.items():
+                if num(v):
+                    yield f"{label} {k}", (lambda t, k=k: lambda x: t.__setitem__(k, x))
+                elif isinstance(v, list) and v and all(num(a) for a in v):
+                    yield f"{label} {k}[0]", (lambda t, k=k: lambda x: t[k].__setitem__(0, x))
+                elif isinstance(v, list) and v and all(isinstance(a, dict) for a in v):
+                    for sk in sorted(v[0]):  # every segment's member at once
+                        yield f"{label} {k}[].{sk}", (lambda t, k=k, sk=sk: lambda x: [g.__setitem__(sk, x)
+                                                                                       for g in t[k]])
+
+
+def _path_in(d: dict, label: str) -> dict:
+    """The table of ``d`` that ``label`` (``[s] key`` or ``[[s]] key``) lives in."""
+    s = label.split("]")[0].strip("[")
+    return d[s] if isinstance(d[s], dict) else d[s][0]
+
+
+def test_fuzz_scenario_magnitudes(workdir):
+    """Every number of a scenario (the default run-up, and a segmented one) at the ends of the
+    float range: a checked scenario or exactly one stderr line, never a numpy warning."""
+    outcomes = []
+    bases = {"run-up": {}, "segments": {"speed": {"start_rpm": 2450.0, "segments": [
+        {"duration_s": 4.0, "end_rpm": 2700.0}, {"duration_s": 1.0, "end_rpm": 2700.0}]}}}
+    for name, partial in bases.items():
+        base = scenario_to_dict(scenario_from_dict(partial))
+        for label, setter in list(_numeric_fields(base)):
+            for x in _MAGNITUDES:
+                d = json.loads(json.dumps(base))
+                setter(_path_in(d, label))(x)
+                path = workdir / f"mag-{len(outcomes)}.toml"
+                path.write_text(dumps(d))
+                o = run_case(f"{name}: {label} = {x!r}", ["scenario", "--check", path])
+                _one_line(o)
+                outcomes.append(o)
+    tally = _tally(outcomes)
+    print(f"scenario magnitudes: {len(outcomes)} cases, statuses {tally}")
+    assert not any(o.problem for o in outcomes), report(outcomes)
+    assert tally.get(2, 0) > len(outcomes) // 3, tally
 
 
 # --------------------------------------------------------------------------------------

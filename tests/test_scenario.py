@@ -241,13 +241,17 @@ BAD = [
     pytest.param("[toa]\naxial_interpolation = 1\n", ["[toa] axial_interpolation"],
                  id="int for bool"),
     pytest.param('[toa]\nmethod = "hp"\n', ["[toa] method"], id="bad choice"),
-    pytest.param("[speed]\nstart_rpm = -1000.0\n", ["[speed] start_rpm must be in (0, 1e+06], got -1000.0"],
+    pytest.param("[speed]\nstart_rpm = -1000.0\n", ["[speed] start_rpm must be in [0.001, 1e+06], got -1000.0"],
                  id="negative speed"),
     pytest.param("[rotor]\nn_blades = 1000\n", ["[rotor] n_blades must be an integer in [2, 200], got 1000"],
                  id="too many blades"),
     pytest.param("[[excitation]]\nengine_order = 4294967296\n", ["engine_order must be an integer in [1, 1000]"],
                  id="engine order beyond 1000"),
-    pytest.param("[speed]\nduration_s = 1e300\n", ["[speed] makes", "revolutions"], id="endless run"),
+    pytest.param("[speed]\nduration_s = 1e9\n", ["[speed] makes", "revolutions"], id="endless run"),
+    pytest.param("[speed]\nduration_s = 1e308\n", ["[speed] duration_s must be in [0.001, 1e+09], got 1e+308"],
+                 id="duration beyond float arithmetic"),
+    pytest.param("[speed]\nsegments = [{duration_s = 5e-324, end_rpm = 2000.0}]\n",
+                 ["[speed] segments[0].duration_s must be in [0.001, 1e+09], got 5e-324"], id="subnormal segment"),
     pytest.param("[speed]\nstart_rpm = " + "9" * 400 + "\n", ["start_rpm must be finite"], id="huge integer"),
     pytest.param("[run]\nseed = " + "9" * 30 + "\n", ["[run] seed must be an integer in [0, "], id="huge seed"),
     pytest.param("[acquisition]\nclock_hz = 1e-300\n", ["[acquisition] clock_hz must be 0"], id="clock too slow"),
@@ -429,7 +433,7 @@ def test_schema_md_field_tables_are_generated():
 @pytest.mark.parametrize("cls, name, shown", [
     (Rotor, "tip_chord_m", "in (0, tip_radius_m]"),
     (Rotor, "n_blades", "integer in [2, 200]"),
-    (Speed, "segments", "{duration_s (s, > 0),\nend_rpm (rpm, in (0, 1e6])}"),
+    (Speed, "segments", "{duration_s (s, in [0.001, 1e9]),\nend_rpm (rpm, in [0.001, 1e6])}"),
     (Signal, "sample_rate_hz", "Hz; in [1e5, 1e9]"),
 ], ids=["sibling bound", "integer", "segment members", "unit and range"])
 def test_comment_docstring_and_schema_show_the_declared_bounds(cls, name, shown):

@@ -149,10 +149,12 @@ class _Lines:
     def float(self, j: int, a: int, b: int, what: str) -> float:
         """The number in columns [a, b) of line j, within +-:data:`MAX_ABS_VALUE`."""
         field = self._field(j, a, b, what, "a number")
-        v = float(field) if _FLOAT_FIELD.match(field) else math.nan
-        if not abs(v) <= MAX_ABS_VALUE:  # NaN too
-            raise self.error(j, f"{what}: expected a number (E12.5) within +-{MAX_ABS_VALUE:g} in columns "
-                                f"{a + 1}-{b}, got {field.strip()!r}")
+        if not _FLOAT_FIELD.match(field):
+            raise self.error(j, f"{what}: expected a number (E12.5) in columns {a + 1}-{b}, got {field.strip()!r}")
+        v = float(field)
+        if not abs(v) <= MAX_ABS_VALUE:
+            raise self.error(j, f"{what}: expected a number within +-{MAX_ABS_VALUE:g} in columns {a + 1}-{b}, "
+                                f"got {field.strip()!r}")
         return v
 
     def word(self, j: int, text: str, what: str, lo: int = 0, hi: int = MAX_PARAMETER) -> int:
