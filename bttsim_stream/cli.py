@@ -319,8 +319,11 @@ def _cmd_view(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
         src = with_processing(args.mcap, Path(tmp) / "processed.mcap")
-        session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
-                                grpc_port=args.grpc_port, bind=args.bind)
+        try:
+            session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
+                                    grpc_port=args.grpc_port, bind=args.bind)
+        except BttsimError as exc:  # name the user's file, not the processed copy
+            raise BttsimError(str(exc).replace(str(src), str(args.mcap), 1)) from None
         if args.web:
             from .bus.session import StopFlag
 

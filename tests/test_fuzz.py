@@ -58,9 +58,10 @@ BASE_TOML = ("[speed]\nstart_rpm = 2450.0\nsegments = [{duration_s = 4.0, end_rp
 N_TOML, N_TOML_TEXT, N_SIMULATE = 130, 30, 20
 N_NPZ, N_NPZ_PLOT = 45, 6
 N_MCAP_BYTES, N_MCAP_CONTENT, N_VIEW = 50, 110, 24
-N_SUBPROCESS = 5
+N_SUBPROCESS = 6
 N_SIGNAL = 24
 N_FRD = 200
+N_EXTREME = 90
 #: The base run with the probe signal chain on, its raw windows published, and double pulses
 #: (no hysteresis on a noisy pulse): the fields a forger of signals and extra edges aims at.
 SIGNAL_TOML = BASE_TOML + ("[acquisition]\nclock_hz = 1e8\n[acquisition.signal]\nenabled = true\npublish = true\n"
@@ -824,6 +825,118 @@ def test_fuzz_mcap_content(workdir, base_mcap, processed_mcap):
     assert not any(o.problem for o in outcomes), report(outcomes)
 
 
+def _extremes(f) -> list:
+    """The ends of a field's type: int64 / int32 / uint64 / uint32 limits, NaN, +-inf, +-1e308."""
+    if f.type in (f.TYPE_DOUBLE, f.TYPE_FLOAT):
+        return [math.nan, math.inf, -math.inf, 1e308, -1e308, -0.0, 5e-324]
+    if f.type in (f.TYPE_INT64, f.TYPE_SINT64, f.TYPE_SFIXED64):
+        return [-(2**63), 2**63 - 1]
+    if f.type in (f.TYPE_INT32, f.TYPE_SINT32, f.TYPE_SFIXED32):
+        return [-(2**31), 2**31 - 1]
+    if f.type in (f.TYPE_UINT64, f.TYPE_FIXED64):
+        return [2**64 - 1, 2**63]
+    if f.type in (f.TYPE_UINT32, f.TYPE_FIXED32):
+        return [2**32 - 1, 2**31]
+    return []
+
+
+def _number_paths(desc, prefix: tuple = ()):
+    """Paths (field names) of every number of a message type, through nested messages."""
+    for f in desc.fields:
+        if f.type == f.TYPE_MESSAGE:
+            yield from _number_paths(f.message_type, prefix + (f.name,))
+        elif _extremes(f):
+            yield prefix + (f.name,)
+
+
+def _set_extreme(msg, path: tuple, value, rng: random.Random) -> bool:
+    """Set the number at ``path`` of ``msg`` (one element of a repeated field, one item of a
+    repeated message) to ``value``, in place; False when the message has no such number."""
+    f = msg.DESCRIPTOR.fields_by_name[path[0]]
+    if len(path) > 1:
+        if codec.is_repeated(f):
+            items = getattr(msg, f.name)
+            return bool(len(items)) and _set_extreme(items[rng.randrange(len(items))], path[1:], value, rng)
+        return _set_extreme(getattr(msg, f.name), path[1:], value, rng)
+    if codec.is_repeated(f):
+        items = getattr(msg, f.name)
+        if not len(items):
+            return False
+        items[rng.randrange(len(items))] = value
+    else:
+        setattr(msg, f.name, value)
+    return True
+
+
+def forge_extreme(rng: random.Random, messages: list[Message], kinds) -> tuple[list[Message], str]:
+    """Messages with one number of one message kind (in one message, or in every message of the
+    kind) set to an extreme of its type: a well-formed recording with absurd values."""
+    present = sorted({keys.parse_key(m.key).kind for m in messages} & set(kinds))
+    kind = rng.choice(present)
+    paths = list(_number_paths(_PB[kind].DESCRIPTOR))
+    path = rng.choice(paths)
+    f = _PB[kind].DESCRIPTOR
+    for name in path[:-1]:
+        f = f.fields_by_name[name].message_type
+    value = rng.choice(_extremes(f.fields_by_name[path[-1]]))
+    targets = [i for i, m in enumerate(messages) if keys.parse_key(m.key).kind == kind]
+    every = rng.random() < 0.3
+    chosen = set(targets if every else [rng.choice(targets)])
+    out, changed = [], 0
+    for i, m in enumerate(messages):
+        if i in chosen:
+            p = _PB[kind]()
+            p.ParseFromString(m.payload)
+            if _set_extreme(p, path, value, random.Random(rng.random())):
+                changed += 1
+                m = Message(m.key, p.SerializeToString(), m.log_time_ns, m.seq)
+        out.append(m)
+    return out, f"{'every' if every else 'one'} {kind}: {'.'.join(path)} = {value!r} ({changed} changed)"
+
+
+def test_fuzz_extreme_values(workdir, base_mcap, processed_mcap):
+    """Well-formed recordings whose numbers sit at the ends of their types (int64 min/max,
+    uint64 max, NaN, +-inf, +-1e308), processed, viewed and exported: results, one-line
+    errors (and nothing else on stderr), never a traceback or a hang."""
+    rng = random.Random(SEED + 7)
+    raw = read_recording(base_mcap).messages
+    processed = read_recording(processed_mcap).messages
+    outcomes = []
+    t0 = time.perf_counter()
+    for i in range(N_EXTREME):
+        command = ("process", "view", "export")[i % 3]
+        path = workdir / f"x{i}.mcap"
+        if command == "process":
+            msgs, what = forge_extreme(rng, raw, ("meta", "opr", "toa", "truth"))
+        else:
+            msgs, what = forge_extreme(rng, processed, tuple(_PB))
+        _write(path, msgs)
+        argv = {"process": ["process", path], "view": ["view", path, "--rrd", path.with_suffix(".rrd")],
+                "export": ["export", path, "--format", "csv", "--out", workdir / f"x{i}"]}[command]
+        o = run_case(f"extreme #{i} ({what})", argv)
+        _one_line(o)
+        outcomes.append(o)
+    tally = _tally(outcomes)
+    print(f"extreme values: {len(outcomes)} cases, statuses {tally}, {time.perf_counter() - t0:.1f} s")
+    assert not any(o.problem for o in outcomes), report(outcomes)
+
+
+@pytest.mark.parametrize("value", [-(2**63), 2**63 - 1, codec.MAX_REVOLUTIONS + 1], ids=["int64_min", "int64_max",
+                                                                                         "above_limit"])
+def test_issue_view_of_an_extreme_travelling_wave_revolution(workdir, processed_mcap, value):
+    """The issue: one TravellingWave at revolution -2^63 made ``bttsim view`` raise ValueError."""
+    msgs = read_recording(processed_mcap).messages
+    i = next(k for k, m in enumerate(msgs) if keys.parse_key(m.key).kind == "tw")
+    p = pb.TravellingWave.FromString(msgs[i].payload)
+    p.header.revolution = value
+    msgs[i] = Message(msgs[i].key, p.SerializeToString(), msgs[i].log_time_ns, msgs[i].seq)
+    path = workdir / f"tw-rev-{value}.mcap"
+    _write(path, msgs)
+    o = run_case("tw revolution", ["view", path, "--rrd", path.with_suffix(".rrd")])
+    _one_line(o)
+    assert o.problem is None and o.status == 2 and "header revolution" in o.err, report([o]) if o.problem else o.err
+
+
 def test_fuzz_signal_and_double_pulse_content(workdir):
     """Forged raw-signal windows (``SignalBatch``) and TOA batches carrying double pulses
     (``extra_toa_s`` / ``extra_toa_ticks``), processed and viewed: one-line errors, warnings
@@ -854,7 +967,7 @@ def test_fuzz_signal_and_double_pulse_content(workdir):
 # --------------------------------------------------------------------------------------
 
 
-def test_fuzz_sample_in_subprocesses(workdir, base_mcap, frd_text):
+def test_fuzz_sample_in_subprocesses(workdir, base_mcap, processed_mcap, frd_text):
     rng = random.Random(SEED + 4)
     bad_toml = workdir / "sub.toml"
     bad_toml.write_text("[[excitation]]\nengine_order = 4294967296\n")
@@ -871,12 +984,16 @@ def test_fuzz_sample_in_subprocesses(workdir, base_mcap, frd_text):
     frd.write_text("\n".join(rows) + "\n")
     cases = [["scenario", "--check", bad_toml], ["simulate", big_force, "--out", workdir / "x.mcap"],
              ["process", cut], ["process", forged],
-             ["model", "import", frd, *FRD_ARGS, "--out", workdir / "sub.npz"]][:N_SUBPROCESS]
+             ["model", "import", frd, *FRD_ARGS, "--out", workdir / "sub.npz"]]
+    extreme = workdir / "sub_extreme.mcap"  # the view's log records would show here, not in-process
+    _write(extreme, forge_extreme(rng, read_recording(processed_mcap).messages, ("tw",))[0])
+    cases = (cases + [["view", extreme, "--rrd", extreme.with_suffix(".rrd")]])[:N_SUBPROCESS]
     for argv in cases:
         p = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", *map(str, argv)], capture_output=True,
                            text=True, timeout=120)
         o = Outcome(f"subprocess {argv[0]}", argv, p.returncode, p.stdout, p.stderr)
         o.problem = judge(o)
+        _one_line(o)
         assert o.problem is None, report([o])
 
 

@@ -275,7 +275,17 @@ def _parse(cls, payload, where: str | None):
         raise BttsimError(f"{where}: corrupt {name} ({text})") from None
     if not msg.HasField("header"):
         raise BttsimError(f"{where}: corrupt {name} (no header)")
+    if not -1 <= msg.header.revolution <= MAX_REVOLUTIONS:
+        raise BttsimError(f"{where}: corrupt {name} (header revolution {msg.header.revolution} "
+                          f"out of [-1, {MAX_REVOLUTIONS}])")
     return msg, where
+
+
+def _check_magnitudes(where: str, msg, field: str) -> None:
+    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative."""
+    v = _array(getattr(msg, field))
+    if np.any(np.isinf(v) | (v < 0)):  # NaN compares False
+        raise _corrupt(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
 
 
 def _corrupt(where: str, msg, problem: str) -> BttsimError:
@@ -459,6 +469,8 @@ def _run_metadata_problem(m) -> str | None:
         v = getattr(m, name)
         if not math.isfinite(v) or (name != "probe_axial_m" and v < 0):
             return f"{name} = {v!r} must be finite" + ("" if name == "probe_axial_m" else " and >= 0")
+    if not m.speed_min_rpm <= MAX_RPM or not m.speed_max_rpm <= MAX_RPM:
+        return f"speed range {m.speed_min_rpm!r}..{m.speed_max_rpm!r} rpm is above {MAX_RPM:g} rpm"
     if m.n_revolutions > MAX_REVOLUTIONS:
         return f"n_revolutions = {m.n_revolutions} is above the {MAX_REVOLUTIONS} of one run"
     if not len(m.engine_orders):
@@ -1183,8 +1195,12 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     """
     m, where = _parse(_pb.TravellingWave, payload, key)
     n = int(m.n_nd)
+    if n > MAX_BLADES // 2 + 1:
+        raise _corrupt(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
     _check_len(where, m, "forward_m", n, f"({n},)")
     _check_len(where, m, "backward_m", n, f"({n},)")
+    _check_magnitudes(where, m, "forward_m")
+    _check_magnitudes(where, m, "backward_m")
     if abs(m.dominant_nd) >= max(n, 1):
         raise _corrupt(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
     _check_probe_key(where, m, key, "tw")
