@@ -52,6 +52,12 @@ MAX_STALL_FREQUENCY_HZ = 1e6
 MAX_BROADBAND_HZ = 1e5
 MAX_BROADBAND_LINES = 256
 MAX_SIGNAL_SIZE_M = 0.05
+#: Slowest speed of a profile point, rpm: far below any run, far above a speed whose
+#: rad/s underflows (the checks divide by it and square it).
+MIN_RPM = 1e-3
+#: Shortest and longest speed ramp or dwell, s: a shorter one's acceleration, a longer
+#: one's revolution count overflow before the revolution limit can refuse them.
+MIN_DURATION_S, MAX_DURATION_S = 1e-3, 1e9
 _RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
 
 
@@ -99,6 +105,10 @@ def _check_direction(where: str, key: str, direction: tuple[float, ...]) -> tupl
         raise _FieldError(where, key, f"must have 3 components (radial, tangential, axial), got {len(direction)}")
     if not any(direction):
         raise _FieldError(where, key, "must not be the zero vector")
+    norm2 = math.fsum(float(c) * float(c) for c in direction)  # Python floats: inf, not a warning
+    if not 0.0 < norm2 < math.inf:
+        raise _FieldError(where, key, f"cannot be normalised (its squared length is {norm2:g}): give components "
+                          "of a usual size, e.g. (0, 0, 1)")
     return direction
 
 
@@ -252,7 +262,7 @@ class Model:
     source: str = spec(BUILTIN_MODEL, kind="str", check=_check_source, doc=(
         '"builtin" (parametric bladed disk from [rotor]) or the path of a modal model .npz\n'
         "(a relative path is relative to this file's directory)"))
-    damping_beta_s: float = spec(9e-6, kind="float", unit="s", lo=0, doc=(
+    damping_beta_s: float = spec(9e-6, kind="float", unit="s", lo=0, hi=1.0, doc=(
         "stiffness-proportional damping beta, {unit}; zeta = beta * omega / 2; {range}"))
     n_families: int = spec(5, kind="int", lo=1, hi=MAX_FAMILIES, doc=(
         "mode families kept per nodal diameter (modes = n_families * n_blades); {range}"))
@@ -301,11 +311,11 @@ class Speed:
     1,000,000 revolutions (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`).
     """
 
-    start_rpm: float = spec(1000.0, kind="float", unit="rpm", lo=0, lo_open=True, hi=MAX_RPM, doc=(
+    start_rpm: float = spec(1000.0, kind="float", unit="rpm", lo=MIN_RPM, hi=MAX_RPM, doc=(
         "speed at t = 0, {unit}; {range} (paper Eq. 6: linear run-up)"))
-    end_rpm: float = spec(4000.0, kind="float", unit="rpm", lo=0, lo_open=True, hi=MAX_RPM, doc=(
+    end_rpm: float = spec(4000.0, kind="float", unit="rpm", lo=MIN_RPM, hi=MAX_RPM, doc=(
         "speed at the end of the run-up, {unit}; {range}. Leave out when segments is given"))
-    duration_s: float = spec(130.0, kind="float", unit="s", lo=0, lo_open=True, doc=(
+    duration_s: float = spec(130.0, kind="float", unit="s", lo=MIN_DURATION_S, hi=MAX_DURATION_S, doc=(
         "duration of the run-up, {unit}; {range}. Leave out when segments is given"))
     segments: tuple[tuple[float, float], ...] = spec((), kind="custom", check=_check_segments,
                                                      type_name="tuple of (float, float)", doc=(

@@ -1,6 +1,6 @@
 """Issue 16: a bounded, seeded fuzz of every input the CLI reads -- scenario TOML, model
-``.npz``, MCAP bytes and well-formed MCAP files with wrong content (raw probe signals and double
-pulses included) -- ends in 0 tracebacks and 0 hangs.
+``.npz``, CalculiX ``.frd`` results, MCAP bytes and well-formed MCAP files with wrong content (raw
+probe signals and double pulses included) -- ends in 0 tracebacks and 0 hangs.
 
 Every case runs ``bttsim`` in-process (:func:`bttsim_stream.cli.main`, a few through a real
 subprocess) under a per-case alarm, and must end with
@@ -13,7 +13,7 @@ subprocess) under a per-case alarm, and must end with
 * within :data:`CASE_TIMEOUT_S`.
 
 The generator is seeded (:data:`SEED`): a failure names its case (kind, number, mutation), and
-the same seed gives the same cases. About 450 cases, 40-70 s on a loaded 2-core machine.
+the same seed gives the same cases. About 650 cases, 50-80 s on a loaded 2-core machine.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import subprocess
 import sys
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,8 +58,10 @@ BASE_TOML = ("[speed]\nstart_rpm = 2450.0\nsegments = [{duration_s = 4.0, end_rp
 N_TOML, N_TOML_TEXT, N_SIMULATE = 130, 30, 20
 N_NPZ, N_NPZ_PLOT = 45, 6
 N_MCAP_BYTES, N_MCAP_CONTENT, N_VIEW = 50, 110, 24
-N_SUBPROCESS = 4
+N_SUBPROCESS = 6
 N_SIGNAL = 24
+N_FRD = 200
+N_EXTREME = 90
 #: The base run with the probe signal chain on, its raw windows published, and double pulses
 #: (no hysteresis on a noisy pulse): the fields a forger of signals and extra edges aims at.
 SIGNAL_TOML = BASE_TOML + ("[acquisition]\nclock_hz = 1e8\n[acquisition.signal]\nenabled = true\npublish = true\n"
@@ -95,7 +98,11 @@ def run_case(case: str, argv: list) -> Outcome:
     signal.setitimer(signal.ITIMER_REAL, CASE_TIMEOUT_S)
     status, problem = None, None
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        # warnings as a console shows them (pytest would otherwise record them out of sight)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = lambda m, c, f, n, file=None, line=None: err.write(
+                warnings.formatwarning(m, c, f, n, line))
             try:
                 status = cli.main([str(a) for a in argv])
             except SystemExit as exc:  # argparse
@@ -156,8 +163,10 @@ def _tally(outcomes) -> dict:
 # Scenario TOML
 # --------------------------------------------------------------------------------------
 
+#: Magnitudes at the ends of the float range (the largest, the smallest subnormal, a signed zero).
+_MAGNITUDES = [1e308, -1e308, 1.7976931348623157e308, 5e-324, -5e-324, -0.0]
 _NASTY = [0, -1, 1, 2, 3, 7, 1000, 1001, 2**31, 2**32, 2**63 - 1, -(2**63), 0.0, -0.0, 1e-300, 5e-324, 1e300,
-          -1e300, 1e6, 1e9, math.nan, math.inf, -math.inf, 0.5, 359.9999, 360.0, True, False, "", "x",
+          -1e300, 1e308, -1e308, 1e6, 1e9, math.nan, math.inf, -math.inf, 0.5, 359.9999, 360.0, True, False, "", "x",
           "builtin", "leading_edge", "HP", "rig 1", [], [0.0], [1e300, 2.0, 3.0], [[1]], [1, "a"], {}, {"a": 1},
           {"duration_s": 1e-300, "end_rpm": 2500.0}]
 
@@ -194,7 +203,7 @@ def dumps(d: dict) -> str:
 
 def _nasty_number(rng: random.Random, v):
     if isinstance(v, (int, float)) and not isinstance(v, bool) and rng.random() < 0.4:
-        scale = rng.choice([-1, 0, 1e-9, 1e-3, 0.5, 2, 10, 1e3, 1e6, 1e300])
+        scale = rng.choice([-1, 0, 1e-9, 1e-3, 0.5, 2, 10, 1e3, 1e6, 1e300, 1e308, 5e-324])
         x = v * scale
         return int(x) if isinstance(v, int) and abs(x) < 2**62 else float(x)
     return rng.choice(_NASTY)
@@ -315,6 +324,7 @@ def test_fuzz_scenario_toml(workdir):
             data, what = mutate_text(rng, BASE_TOML + dumps({"probes": base["probes"]}))
             path.write_bytes(data)
         o = run_case(f"toml #{i} ({what})", ["scenario", "--check", path])
+        _one_line(o)
         outcomes.append(o)
         if o.status == 0 and not o.problem and _fits_a_quick_simulation(path):
             passed.append((o.case, path))
@@ -325,6 +335,61 @@ def test_fuzz_scenario_toml(workdir):
           f"{time.perf_counter() - t0:.1f} s")
     assert not any(o.problem for o in outcomes), report(outcomes)
     assert tally.get(2, 0) > len(outcomes) // 3 and tally.get(0, 0) > 10, tally  # the fuzz reaches both sides
+
+
+def _one_line(o: Outcome) -> None:
+    """A refusal (status 2) is its one error line and nothing else on stderr: no numpy
+    warning printed on the way to it."""
+    if o.problem is None and o.status == 2 and len(o.err.strip().splitlines()) != 1:
+        o.problem = f"exit status 2 with {len(o.err.strip().splitlines())} lines on stderr (one expected)"
+
+
+def _numeric_fields(d: dict):
+    """``(label, setter)`` of every number (and the first of every number array) of a scenario dict."""
+    def num(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for s, sec in d.items():
+        tables = [(f"[{s}]", sec)] if isinstance(sec, dict) else [(f"[[{s}]]", t) for t in sec[:1]]
+        for label, table in tables:
+            for k, v in table.items():
+                if num(v):
+                    yield f"{label} {k}", (lambda t, k=k: lambda x: t.__setitem__(k, x))
+                elif isinstance(v, list) and v and all(num(a) for a in v):
+                    yield f"{label} {k}[0]", (lambda t, k=k: lambda x: t[k].__setitem__(0, x))
+                elif isinstance(v, list) and v and all(isinstance(a, dict) for a in v):
+                    for sk in sorted(v[0]):  # every segment's member at once
+                        yield f"{label} {k}[].{sk}", (lambda t, k=k, sk=sk: lambda x: [g.__setitem__(sk, x)
+                                                                                       for g in t[k]])
+
+
+def _path_in(d: dict, label: str) -> dict:
+    """The table of ``d`` that ``label`` (``[s] key`` or ``[[s]] key``) lives in."""
+    s = label.split("]")[0].strip("[")
+    return d[s] if isinstance(d[s], dict) else d[s][0]
+
+
+def test_fuzz_scenario_magnitudes(workdir):
+    """Every number of a scenario (the default run-up, and a segmented one) at the ends of the
+    float range: a checked scenario or exactly one stderr line, never a numpy warning."""
+    outcomes = []
+    bases = {"run-up": {}, "segments": {"speed": {"start_rpm": 2450.0, "segments": [
+        {"duration_s": 4.0, "end_rpm": 2700.0}, {"duration_s": 1.0, "end_rpm": 2700.0}]}}}
+    for name, partial in bases.items():
+        base = scenario_to_dict(scenario_from_dict(partial))
+        for label, setter in list(_numeric_fields(base)):
+            for x in _MAGNITUDES:
+                d = json.loads(json.dumps(base))
+                setter(_path_in(d, label))(x)
+                path = workdir / f"mag-{len(outcomes)}.toml"
+                path.write_text(dumps(d))
+                o = run_case(f"{name}: {label} = {x!r}", ["scenario", "--check", path])
+                _one_line(o)
+                outcomes.append(o)
+    tally = _tally(outcomes)
+    print(f"scenario magnitudes: {len(outcomes)} cases, statuses {tally}")
+    assert not any(o.problem for o in outcomes), report(outcomes)
+    assert tally.get(2, 0) > len(outcomes) // 3, tally
 
 
 # --------------------------------------------------------------------------------------
@@ -424,6 +489,149 @@ def test_fuzz_model_npz(workdir, monkeypatch):
 
 
 # --------------------------------------------------------------------------------------
+# CalculiX .frd (``bttsim model import``)
+# --------------------------------------------------------------------------------------
+
+#: Hostile contents of one fixed-width field (E12.5 value, I5/I10 node number, header count).
+_FRD_NUMBERS = ["abcdefghijkl", "nan", "-nan", "inf", "-inf", "1.0E+999", "-1.0E+999", "************", "1.2.3",
+                "1e308", "-1e308", "5e-324", "", "0x10", "1_000", "+", "-", "E", "1.0E", "9" * 12, "-0.0"]
+_FRD_INTS = ["x", "-1", "0", "1", "2", "99", "2147483648", "9999999999", "-9999999999", "1.5", "", "  1 2",
+             str(2**63), "1e3"]
+
+
+def _frd_field(line: str, start: int, width: int, token: str) -> str:
+    """``line`` with columns [start, start + width) replaced by ``token`` (right-aligned, cut to width)."""
+    line = line.ljust(start + width)
+    return line[:start] + token.rjust(width)[-width:] + line[start + width:]
+
+
+def mutate_frd(rng: random.Random, text: str) -> tuple[bytes, str]:
+    """One or two hostile changes to a valid ``.frd`` file: a field's value, a header count or
+    format flag, a component count, a parameter (1P) value, a cut, moved or repeated line, stray
+    bytes."""
+    lines = text.splitlines()
+    what = []
+    for _ in range(rng.choice([1, 1, 1, 2])):
+        op = rng.randrange(12)
+        data = [i for i, ln in enumerate(lines) if ln.startswith(" -1")]
+        heads = [i for i, ln in enumerate(lines) if ln.lstrip().startswith(("2C", "100C"))]
+        params = [i for i, ln in enumerate(lines) if ln.lstrip().startswith("1P")]
+        comps = [i for i, ln in enumerate(lines) if ln.startswith(" -4")]
+        if op == 0 and data:  # one value of a node or result line
+            i, k = rng.choice(data), rng.randrange(3)
+            tok = rng.choice(_FRD_NUMBERS)
+            lines[i] = _frd_field(lines[i], 13 + 12 * k, 12, tok)
+            what.append(f"line {i + 1} value {k} = {tok!r}")
+        elif op == 1 and data:  # a node number (I10), or a short-format id in the long layout
+            i = rng.choice(data)
+            tok = rng.choice(_FRD_INTS + [lines[rng.choice(data)][3:13].strip()])
+            lines[i] = _frd_field(lines[i], 3, rng.choice([10, 5]), tok)
+            what.append(f"line {i + 1} node number {tok!r}")
+        elif op == 2 and lines:
+            i = rng.randrange(len(lines))
+            n = rng.randrange(len(lines[i]) + 1)
+            lines[i] = lines[i][:n]
+            what.append(f"line {i + 1} cut at column {n}")
+        elif op == 3 and heads:  # the node count of a block header (I12 at columns 25-36)
+            i = rng.choice(heads)
+            n = int(lines[i][24:36] or 0)
+            tok = rng.choice([str(n + 1), str(max(n - 1, 0)), "0", "-1", str(10**11), "abc", ""])
+            lines[i] = _frd_field(lines[i], 24, 12, tok)
+            what.append(f"line {i + 1} count {tok!r}")
+        elif op == 4 and heads:  # the format flag (0 short, 1 long, 2 binary)
+            i = rng.choice(heads)
+            tok = rng.choice(["0", "2", "x", " ", "9"])
+            lines[i] = _frd_field(lines[i], 73, 2 if "100C" in lines[i] else 1, tok)
+            what.append(f"line {i + 1} format flag {tok!r}")
+        elif op == 5 and comps:  # the component count of a result block (I5 at columns 14-18)
+            i = rng.choice(comps)
+            tok = rng.choice(["0", "1", "2", "5", "99", "99999", "x", "-3"])
+            lines[i] = _frd_field(lines[i], 13, 5, tok)
+            what.append(f"line {i + 1} components {tok!r}")
+        elif op == 6 and params:  # a parameter's value (1PHID, 1PMODE, 1PSTEP, 1PGM, 1PAX)
+            i = rng.choice(params)
+            head = lines[i][:10].rstrip()
+            tok = rng.choice(_FRD_INTS + _FRD_NUMBERS + ["1 2", "0 0 0 0 0 0", "1 2 3 4 5 nan"])
+            lines[i] = f"{head:<26}{tok:>10}"
+            what.append(f"line {i + 1} {head.strip()} {tok!r}")
+        elif op == 7 and heads:  # the value field of a header: a result's frequency
+            i = rng.choice(heads)
+            tok = rng.choice(_FRD_NUMBERS + ["-2134.35", "0"])
+            lines[i] = _frd_field(lines[i], 12, 12, tok)
+            what.append(f"line {i + 1} frequency {tok!r}")
+        elif op == 8 and lines:
+            i, j = rng.randrange(len(lines)), rng.randrange(len(lines))
+            kind = rng.randrange(3)
+            if kind == 0:
+                del lines[i]
+                what.append(f"line {i + 1} dropped")
+            elif kind == 1:
+                lines.insert(j, lines[i])
+                what.append(f"line {i + 1} repeated at {j + 1}")
+            else:
+                lines[i], lines[j] = lines[j], lines[i]
+                what.append(f"lines {i + 1} and {j + 1} swapped")
+        elif op == 9 and lines:  # a stray line, or junk at the end of one
+            i = rng.randrange(len(lines))
+            if rng.random() < 0.5:
+                tok = rng.choice([" -1", " -3", " -4", " -5", "    2C", "  100C", "    3C", " 9999", "garbage",
+                                  " -1        11" + " 1.00000E+00" * 7, "    1PHID"])
+                lines.insert(i, tok)
+                what.append(f"stray line {tok[:20]!r} at {i + 1}")
+            else:
+                lines[i] += rng.choice([" 1.00000E+00", "xyz", " " * 80])
+                what.append(f"junk after line {i + 1}")
+        elif op == 10:
+            b = bytearray("\n".join(lines).encode())
+            for _ in range(rng.randint(1, 6)):
+                b[rng.randrange(len(b))] = rng.choice([rng.randrange(32, 127), rng.randrange(256)])
+            return bytes(b), "; ".join(what + ["random bytes"])
+        else:
+            b = "\n".join(lines).encode()
+            n = rng.randrange(len(b))
+            return b[:n], "; ".join(what + [f"cut at byte {n}"])
+    return ("\n".join(lines) + "\n").encode(), "; ".join(what) or "unchanged"
+
+
+@pytest.fixture(scope="module")
+def frd_text(workdir):
+    """A small valid cyclic-symmetry ``.frd`` (7 sectors, 4 tip nodes 11-14, 2 families) in
+    CalculiX's layout, from the exact spring-mass wheel of ``test_model_cyclic``."""
+    from test_model_cyclic import _sector_solution, _spring_wheel
+    from test_model_frd import N, _write_frd
+
+    xyz, K, M = _spring_wheel(N)
+    return _write_frd(workdir / "wheel.frd", _sector_solution(N, xyz, K, M, 2)).read_text()
+
+
+#: ``bttsim model import`` of the fixture: the number of sectors and the nodes on the command line.
+FRD_ARGS = ["--n-sectors", "7", "--tip-nodes", "11,12,13,14", "--force-node", "11", "--nominal-node", "1"]
+
+
+def test_fuzz_frd(workdir, frd_text):
+    rng = random.Random(SEED + 6)
+    good = workdir / "wheel.frd"
+    o = run_case("frd base", ["model", "import", good, *FRD_ARGS, "--out", workdir / "wheel.npz"])
+    assert o.status == 0 and not o.problem, o.err
+    outcomes = []
+    t0 = time.perf_counter()
+    for i in range(N_FRD):
+        path = workdir / f"f{i}.frd"
+        data, what = mutate_frd(rng, frd_text)
+        path.write_bytes(data)
+        o = run_case(f"frd #{i} ({what})", ["model", "import", path, *FRD_ARGS, "--out", path.with_suffix(".npz")])
+        if o.problem is None and o.status == 2 and len(o.err.strip().splitlines()) != 1:
+            o.problem = "exit status 2 with more than the one error line on stderr"
+        if o.problem is None and o.status == 2 and path.with_suffix(".npz").exists():
+            o.problem = "exit status 2 but the model file was written"
+        outcomes.append(o)
+    tally = _tally(outcomes)
+    print(f"frd: {len(outcomes)} cases, statuses {tally}, {time.perf_counter() - t0:.1f} s")
+    assert not any(o.problem for o in outcomes), report(outcomes)
+    assert tally.get(2, 0) > len(outcomes) // 2 and tally.get(0, 0) > 5, tally  # the fuzz reaches both sides
+
+
+# --------------------------------------------------------------------------------------
 # MCAP bytes
 # --------------------------------------------------------------------------------------
 
@@ -482,7 +690,8 @@ def _nasty_scalar(rng: random.Random, f, value):
     t = f.type
     if t in (f.TYPE_DOUBLE, f.TYPE_FLOAT):
         return rng.choice([math.nan, math.inf, -math.inf, 0.0, -0.0, -1.0, 1e300, -1e300, 1e-300,
-                           value * (1 + 1e-6) if isinstance(value, float) else 1.0, (value or 0) + 1.0, (value or 0) - 1e3])
+                           value * (1 + 1e-6) if isinstance(value, float) else 1.0, (value or 0) + 1.0,
+                           (value or 0) - 1e3])
     if t in (f.TYPE_INT64, f.TYPE_SINT64, f.TYPE_SFIXED64):
         return rng.choice([0, -1, -5, 2**63 - 1, -(2**63), (value or 0) + 1, (value or 0) + 40, (value or 0) + 100000])
     if t in (f.TYPE_INT32, f.TYPE_SINT32, f.TYPE_SFIXED32, f.TYPE_ENUM):
@@ -617,6 +826,118 @@ def test_fuzz_mcap_content(workdir, base_mcap, processed_mcap):
     assert not any(o.problem for o in outcomes), report(outcomes)
 
 
+def _extremes(f) -> list:
+    """The ends of a field's type: int64 / int32 / uint64 / uint32 limits, NaN, +-inf, +-1e308."""
+    if f.type in (f.TYPE_DOUBLE, f.TYPE_FLOAT):
+        return [math.nan, math.inf, -math.inf, 1e308, -1e308, -0.0, 5e-324]
+    if f.type in (f.TYPE_INT64, f.TYPE_SINT64, f.TYPE_SFIXED64):
+        return [-(2**63), 2**63 - 1]
+    if f.type in (f.TYPE_INT32, f.TYPE_SINT32, f.TYPE_SFIXED32):
+        return [-(2**31), 2**31 - 1]
+    if f.type in (f.TYPE_UINT64, f.TYPE_FIXED64):
+        return [2**64 - 1, 2**63]
+    if f.type in (f.TYPE_UINT32, f.TYPE_FIXED32):
+        return [2**32 - 1, 2**31]
+    return []
+
+
+def _number_paths(desc, prefix: tuple = ()):
+    """Paths (field names) of every number of a message type, through nested messages."""
+    for f in desc.fields:
+        if f.type == f.TYPE_MESSAGE:
+            yield from _number_paths(f.message_type, prefix + (f.name,))
+        elif _extremes(f):
+            yield prefix + (f.name,)
+
+
+def _set_extreme(msg, path: tuple, value, rng: random.Random) -> bool:
+    """Set the number at ``path`` of ``msg`` (one element of a repeated field, one item of a
+    repeated message) to ``value``, in place; False when the message has no such number."""
+    f = msg.DESCRIPTOR.fields_by_name[path[0]]
+    if len(path) > 1:
+        if codec.is_repeated(f):
+            items = getattr(msg, f.name)
+            return bool(len(items)) and _set_extreme(items[rng.randrange(len(items))], path[1:], value, rng)
+        return _set_extreme(getattr(msg, f.name), path[1:], value, rng)
+    if codec.is_repeated(f):
+        items = getattr(msg, f.name)
+        if not len(items):
+            return False
+        items[rng.randrange(len(items))] = value
+    else:
+        setattr(msg, f.name, value)
+    return True
+
+
+def forge_extreme(rng: random.Random, messages: list[Message], kinds) -> tuple[list[Message], str]:
+    """Messages with one number of one message kind (in one message, or in every message of the
+    kind) set to an extreme of its type: a well-formed recording with absurd values."""
+    present = sorted({keys.parse_key(m.key).kind for m in messages} & set(kinds))
+    kind = rng.choice(present)
+    paths = list(_number_paths(_PB[kind].DESCRIPTOR))
+    path = rng.choice(paths)
+    f = _PB[kind].DESCRIPTOR
+    for name in path[:-1]:
+        f = f.fields_by_name[name].message_type
+    value = rng.choice(_extremes(f.fields_by_name[path[-1]]))
+    targets = [i for i, m in enumerate(messages) if keys.parse_key(m.key).kind == kind]
+    every = rng.random() < 0.3
+    chosen = set(targets if every else [rng.choice(targets)])
+    out, changed = [], 0
+    for i, m in enumerate(messages):
+        if i in chosen:
+            p = _PB[kind]()
+            p.ParseFromString(m.payload)
+            if _set_extreme(p, path, value, random.Random(rng.random())):
+                changed += 1
+                m = Message(m.key, p.SerializeToString(), m.log_time_ns, m.seq)
+        out.append(m)
+    return out, f"{'every' if every else 'one'} {kind}: {'.'.join(path)} = {value!r} ({changed} changed)"
+
+
+def test_fuzz_extreme_values(workdir, base_mcap, processed_mcap):
+    """Well-formed recordings whose numbers sit at the ends of their types (int64 min/max,
+    uint64 max, NaN, +-inf, +-1e308), processed, viewed and exported: results, one-line
+    errors (and nothing else on stderr), never a traceback or a hang."""
+    rng = random.Random(SEED + 7)
+    raw = read_recording(base_mcap).messages
+    processed = read_recording(processed_mcap).messages
+    outcomes = []
+    t0 = time.perf_counter()
+    for i in range(N_EXTREME):
+        command = ("process", "view", "export")[i % 3]
+        path = workdir / f"x{i}.mcap"
+        if command == "process":
+            msgs, what = forge_extreme(rng, raw, ("meta", "opr", "toa", "truth"))
+        else:
+            msgs, what = forge_extreme(rng, processed, tuple(_PB))
+        _write(path, msgs)
+        argv = {"process": ["process", path], "view": ["view", path, "--rrd", path.with_suffix(".rrd")],
+                "export": ["export", path, "--format", "csv", "--out", workdir / f"x{i}"]}[command]
+        o = run_case(f"extreme #{i} ({what})", argv)
+        _one_line(o)
+        outcomes.append(o)
+    tally = _tally(outcomes)
+    print(f"extreme values: {len(outcomes)} cases, statuses {tally}, {time.perf_counter() - t0:.1f} s")
+    assert not any(o.problem for o in outcomes), report(outcomes)
+
+
+@pytest.mark.parametrize("value", [-(2**63), 2**63 - 1, codec.MAX_REVOLUTIONS + 1], ids=["int64_min", "int64_max",
+                                                                                         "above_limit"])
+def test_issue_view_of_an_extreme_travelling_wave_revolution(workdir, processed_mcap, value):
+    """The issue: one TravellingWave at revolution -2^63 made ``bttsim view`` raise ValueError."""
+    msgs = read_recording(processed_mcap).messages
+    i = next(k for k, m in enumerate(msgs) if keys.parse_key(m.key).kind == "tw")
+    p = pb.TravellingWave.FromString(msgs[i].payload)
+    p.header.revolution = value
+    msgs[i] = Message(msgs[i].key, p.SerializeToString(), msgs[i].log_time_ns, msgs[i].seq)
+    path = workdir / f"tw-rev-{value}.mcap"
+    _write(path, msgs)
+    o = run_case("tw revolution", ["view", path, "--rrd", path.with_suffix(".rrd")])
+    _one_line(o)
+    assert o.problem is None and o.status == 2 and "header revolution" in o.err, report([o]) if o.problem else o.err
+
+
 def test_fuzz_signal_and_double_pulse_content(workdir):
     """Forged raw-signal windows (``SignalBatch``) and TOA batches carrying double pulses
     (``extra_toa_s`` / ``extra_toa_ticks``), processed and viewed: one-line errors, warnings
@@ -647,7 +968,7 @@ def test_fuzz_signal_and_double_pulse_content(workdir):
 # --------------------------------------------------------------------------------------
 
 
-def test_fuzz_sample_in_subprocesses(workdir, base_mcap):
+def test_fuzz_sample_in_subprocesses(workdir, base_mcap, processed_mcap, frd_text):
     rng = random.Random(SEED + 4)
     bad_toml = workdir / "sub.toml"
     bad_toml.write_text("[[excitation]]\nengine_order = 4294967296\n")
@@ -657,13 +978,23 @@ def test_fuzz_sample_in_subprocesses(workdir, base_mcap):
     cut.write_bytes(mutate_bytes(rng, base_mcap.read_bytes())[0])
     forged = workdir / "sub_forged.mcap"
     _write(forged, forge(rng, read_recording(base_mcap).messages, ("meta", "opr", "toa"))[0])
+    frd = workdir / "sub.frd"
+    rows = frd_text.splitlines()
+    i = next(k for k, ln in enumerate(rows) if ln.startswith(" -1"))
+    rows[i] = _frd_field(rows[i], 25, 12, rows[i][25:37].replace("0", "O", 1))  # a letter O for a zero
+    frd.write_text("\n".join(rows) + "\n")
     cases = [["scenario", "--check", bad_toml], ["simulate", big_force, "--out", workdir / "x.mcap"],
-             ["process", cut], ["process", forged]][:N_SUBPROCESS]
+             ["process", cut], ["process", forged],
+             ["model", "import", frd, *FRD_ARGS, "--out", workdir / "sub.npz"]]
+    extreme = workdir / "sub_extreme.mcap"  # the view's log records would show here, not in-process
+    _write(extreme, forge_extreme(rng, read_recording(processed_mcap).messages, ("tw",))[0])
+    cases = (cases + [["view", extreme, "--rrd", extreme.with_suffix(".rrd")]])[:N_SUBPROCESS]
     for argv in cases:
         p = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", *map(str, argv)], capture_output=True,
                            text=True, timeout=120)
         o = Outcome(f"subprocess {argv[0]}", argv, p.returncode, p.stdout, p.stderr)
         o.problem = judge(o)
+        _one_line(o)
         assert o.problem is None, report([o])
 
 

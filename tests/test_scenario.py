@@ -100,7 +100,7 @@ def test_empty_file_is_default(tmp_path):
 def test_every_field_documented():
     text = default_toml()
     lines = text.splitlines()
-    for name, cls in [*SECTIONS.items(), ("acquisition.signal", Signal)]:
+    for _name, cls in [*SECTIONS.items(), ("acquisition.signal", Signal)]:
         for f in dataclasses.fields(cls):
             assert f.name in cls.__doc__, f"{cls.__name__}.{f.name} missing from docstring"
             assert comments(cls)[f.name], f"{cls.__name__}.{f.name} has no TOML comment"
@@ -241,13 +241,17 @@ BAD = [
     pytest.param("[toa]\naxial_interpolation = 1\n", ["[toa] axial_interpolation"],
                  id="int for bool"),
     pytest.param('[toa]\nmethod = "hp"\n', ["[toa] method"], id="bad choice"),
-    pytest.param("[speed]\nstart_rpm = -1000.0\n", ["[speed] start_rpm must be in (0, 1e+06], got -1000.0"],
+    pytest.param("[speed]\nstart_rpm = -1000.0\n", ["[speed] start_rpm must be in [0.001, 1e+06], got -1000.0"],
                  id="negative speed"),
     pytest.param("[rotor]\nn_blades = 1000\n", ["[rotor] n_blades must be an integer in [2, 200], got 1000"],
                  id="too many blades"),
     pytest.param("[[excitation]]\nengine_order = 4294967296\n", ["engine_order must be an integer in [1, 1000]"],
                  id="engine order beyond 1000"),
-    pytest.param("[speed]\nduration_s = 1e300\n", ["[speed] makes", "revolutions"], id="endless run"),
+    pytest.param("[speed]\nduration_s = 1e9\n", ["[speed] makes", "revolutions"], id="endless run"),
+    pytest.param("[speed]\nduration_s = 1e308\n", ["[speed] duration_s must be in [0.001, 1e+09], got 1e+308"],
+                 id="duration beyond float arithmetic"),
+    pytest.param("[speed]\nsegments = [{duration_s = 5e-324, end_rpm = 2000.0}]\n",
+                 ["[speed] segments[0].duration_s must be in [0.001, 1e+09], got 5e-324"], id="subnormal segment"),
     pytest.param("[speed]\nstart_rpm = " + "9" * 400 + "\n", ["start_rpm must be finite"], id="huge integer"),
     pytest.param("[run]\nseed = " + "9" * 30 + "\n", ["[run] seed must be an integer in [0, "], id="huge seed"),
     pytest.param("[acquisition]\nclock_hz = 1e-300\n", ["[acquisition] clock_hz must be 0"], id="clock too slow"),
@@ -384,8 +388,8 @@ def test_cli_check_bad_file(tmp_path):
 def test_probe_axial_position_is_checked_against_a_user_models_tip_nodes(tmp_path):
     """With a user's model the tip nodes, not ``[rotor]``, bound the probe's axial position:
     a model built with a 30 mm chord at 60 deg stagger (axial extent 26 mm) takes a probe at
-    24 mm (its tip nodes span 23-26 mm) that the default ``[rotor]`` (about 13 mm) would refuse; a probe beyond its nodes is
-    one line naming them."""
+    24 mm (its tip nodes span 23-26 mm) that the default ``[rotor]`` (about 13 mm) would refuse; a
+    probe beyond its nodes is one line naming them."""
     from bttsim_stream.model.modal_model import build_model, save_model
     from bttsim_stream.sim.core import RunUpSimulator
     from bttsim_stream.scenario import scenario_from_dict
@@ -429,7 +433,7 @@ def test_schema_md_field_tables_are_generated():
 @pytest.mark.parametrize("cls, name, shown", [
     (Rotor, "tip_chord_m", "in (0, tip_radius_m]"),
     (Rotor, "n_blades", "integer in [2, 200]"),
-    (Speed, "segments", "{duration_s (s, > 0),\nend_rpm (rpm, in (0, 1e6])}"),
+    (Speed, "segments", "{duration_s (s, in [0.001, 1e9]),\nend_rpm (rpm, in [0.001, 1e6])}"),
     (Signal, "sample_rate_hz", "Hz; in [1e5, 1e9]"),
 ], ids=["sibling bound", "integer", "segment members", "unit and range"])
 def test_comment_docstring_and_schema_show_the_declared_bounds(cls, name, shown):

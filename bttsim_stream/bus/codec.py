@@ -289,6 +289,8 @@ def _run_metadata_problem(m) -> str | None:
         v = getattr(m, name)
         if not math.isfinite(v) or (name != "probe_axial_m" and v < 0):
             return f"{name} = {v!r} must be finite" + ("" if name == "probe_axial_m" else " and >= 0")
+    if not m.speed_min_rpm <= MAX_RPM or not m.speed_max_rpm <= MAX_RPM:
+        return f"speed range {m.speed_min_rpm!r}..{m.speed_max_rpm!r} rpm is above {MAX_RPM:g} rpm"
     if m.n_revolutions > MAX_REVOLUTIONS:
         return f"n_revolutions = {m.n_revolutions} is above the {MAX_REVOLUTIONS} of one run"
     if not len(m.engine_orders):

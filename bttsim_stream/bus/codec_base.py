@@ -15,6 +15,7 @@ import numpy as np
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError
 
+from ..defaults import MAX_REVOLUTIONS
 from ..errors import BttsimError
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
@@ -109,6 +110,9 @@ def _parse(cls, payload, where: str | None):
         raise BttsimError(f"{where}: corrupt {name} ({text})") from None
     if not msg.HasField("header"):
         raise BttsimError(f"{where}: corrupt {name} (no header)")
+    if not -1 <= msg.header.revolution <= MAX_REVOLUTIONS:
+        raise BttsimError(f"{where}: corrupt {name} (header revolution {msg.header.revolution} "
+                          f"out of [-1, {MAX_REVOLUTIONS}])")
     return msg, where
 
 

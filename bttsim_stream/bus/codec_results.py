@@ -83,6 +83,13 @@ def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
     return _serialize(m)
 
 
+def _check_magnitudes(where: str, msg, field: str) -> None:
+    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative."""
+    v = _array(getattr(msg, field))
+    if np.any(np.isinf(v) | (v < 0)):  # NaN compares False
+        raise _corrupt(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
+
+
 def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     """Decode a :class:`bttsim.v1.TravellingWave` payload into ``(Header, ProbeWave)``.
 
@@ -93,8 +100,12 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     """
     m, where = _parse(_pb.TravellingWave, payload, key)
     n = int(m.n_nd)
+    if n > MAX_BLADES // 2 + 1:
+        raise _corrupt(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
     _check_len(where, m, "forward_m", n, f"({n},)")
     _check_len(where, m, "backward_m", n, f"({n},)")
+    _check_magnitudes(where, m, "forward_m")
+    _check_magnitudes(where, m, "backward_m")
     if abs(m.dominant_nd) >= max(n, 1):
         raise _corrupt(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
     _check_probe_key(where, m, key, "tw")

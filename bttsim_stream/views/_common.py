@@ -9,6 +9,7 @@ degrees, rpm, Hz.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -154,6 +155,8 @@ def selection_colors(n: int, light: bool = False) -> np.ndarray:
 def nice_step(span: float, n: int = 5) -> float:
     """A round step (1, 2, 2.5 or 5 times a power of ten) giving about ``n`` intervals over ``span``."""
     raw = max(abs(float(span)), 1e-12) / max(n, 1)
+    if not math.isfinite(raw):  # an infinite (or NaN) span: the largest finite one
+        raw = sys.float_info.max / max(n, 1)
     step = 10.0 ** math.floor(math.log10(raw))
     for m in (1.0, 2.0, 2.5, 5.0, 10.0):
         if m * step >= raw:
@@ -162,7 +165,9 @@ def nice_step(span: float, n: int = 5) -> float:
 
 
 def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
-    """Round tick values in ``[lo, hi]`` (about ``n`` intervals)."""
-    step = nice_step(hi - lo, n)
-    first = math.ceil(lo / step - 1e-9) * step
-    return np.round(np.arange(first, hi + 1e-9 * step, step) / step) * step
+    """Round tick values in ``[lo, hi]`` (about ``n`` intervals; none for an infinite or NaN end)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return np.zeros(0)
+    step = nice_step(hi / 2 - lo / 2, n) if abs(hi - lo) == math.inf else nice_step(hi - lo, n)
+    first, last = math.ceil(lo / step - 1e-9), math.floor(hi / step + 1e-9)  # in steps: no overflow
+    return np.arange(first, last + 1, dtype=float) * step

@@ -55,9 +55,11 @@ class MessageDecoder:
     are logged).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, log_bad: bool = True) -> None:
+        self.log_bad = log_bad  # False where a bad payload is an error of its own (a recording file)
         self.ignored = 0
         self.bad = 0
+        self.first_bad: str | None = None  # why the first bad payload was refused
         self._seqs = SequenceTracker()
         self._keys: dict[str, keys.KeyInfo | None] = {}  # a bus has few keys: parse each once
 
@@ -77,7 +79,8 @@ class MessageDecoder:
             decoded = codec.decode_message(key, payload)
         except BttsimError as exc:
             self.bad += 1
-            if self.bad <= 3:
+            self.first_bad = self.first_bad or str(exc)
+            if self.log_bad and self.bad <= 3:
                 log.warning("skipped a message: %s", exc)
             return None
         if not self._seqs.accept(key, decoded.header.seq):  # history already received live

@@ -12,6 +12,7 @@ import rerun as rr
 from ..bus import keys
 from ..bus.recording import read_recording
 from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+from ..errors import BttsimError
 from ..process.options import ProcessOptions, engine_orders_of
 from .blueprint import build_blueprint
 from .live import LiveViews, MessageDecoder
@@ -86,14 +87,15 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
     Raises
     ------
     BttsimError
-        Unreadable recording, or no output requested.
+        Unreadable recording, a message in it that does not decode (corrupt, or a value out
+        of range: nothing is written), or no output requested.
     """
     t_start = time.perf_counter()
     recording = read_recording(recording_path)
     decoder = MessageDecoder()
     meta = next((d.decoded.body for m in recording.messages if m.key.endswith("/meta")
                  and (d := decoder.decode(m.key, m.payload)) is not None), None)
-    decoder = MessageDecoder()
+    decoder = MessageDecoder(log_bad=False)  # a bad message is refused below, in one line
     # raw signals: decode only the windows the signal view shows (one probe, every stride-th
     # revolution; a signal key's sequence number is its revolution count)
     stride = signal_stride(meta.n_revolutions) if meta is not None else 1
@@ -107,6 +109,9 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
                 continue
         if (msg := decoder.decode(m.key, m.payload)) is not None:
             messages.append(msg)
+    if decoder.bad:  # a file is not a live bus: a message that does not decode makes it corrupt
+        more = f" ({decoder.bad - 1} more refused)" if decoder.bad > 1 else ""
+        raise BttsimError(f"{recording_path}: {decoder.first_bad}{more}")
     fitted = [msg.decoded.body.engine_order for msg in messages if msg.kind == "fit"]
     eos = list(dict.fromkeys(fitted)) or (list(engine_orders_of(meta, ProcessOptions())) if meta else [8])
     n_probes = meta.n_probes if meta is not None else 1 + max(

@@ -142,7 +142,8 @@ class TravellingWaveView:
             self.count += len(rows)
             nd_rows = {}  # one ND per revolution (every probe's message carries it)
             for d in rows:
-                spec = (d.body.signed_spectrum() * MM).astype(np.float32)
+                # magnitudes beyond float32 (a forged 1e308 m) are drawn at its largest value
+                spec = np.clip(d.body.signed_spectrum() * MM, 0.0, np.finfo(np.float32).max).astype(np.float32)
                 self._spectra.setdefault(d.body.probe, {})[d.header.revolution] = spec
                 self._max_mm = max(self._max_mm, float(np.nanmax(spec, initial=0.0)))
                 if d.header.revolution > self._nd_until:
