@@ -241,19 +241,8 @@ def _parameter(lines: _Lines, j: int, key: str, value: str):
     return None
 
 
-def read_frd(path) -> FrdResults:
-    """Read the nodes and the eigenmode displacements of an ASCII CalculiX ``.frd`` file.
-
-    Every field the importer uses is checked as it is read: node numbers and values in their
-    columns, finite numbers, block sizes against their headers, component counts, parameter
-    values.
-
-    Raises
-    ------
-    ModelFileError
-        Missing, binary, truncated or malformed file (one line: the file, the line number, the
-        columns and what was expected); no node block; no displacement result.
-    """
+def _frd_lines(path) -> _Lines:
+    """The lines of an ASCII ``.frd`` file, numbered as an editor does; refuses what is not one."""
     where = str(path)
     try:
         with open(path, "rb") as fh:
@@ -272,9 +261,26 @@ def read_frd(path) -> FrdResults:
     if "\0" in text:
         raise ModelFileError(f"{where}: not a text file (NUL bytes)")
     lines = _Lines(where, [ln.rstrip("\r") for ln in text.split("\n")])  # numbered as an editor does
-    n = len(lines.lines)
-    if not n or not lines.lines[0].lstrip().startswith("1C"):
+    if not lines.lines or not lines.lines[0].lstrip().startswith("1C"):
         raise ModelFileError(f"{where}: not a CalculiX .frd file (it must start with '1C')")
+    return lines
+
+
+def read_frd(path) -> FrdResults:
+    """Read the nodes and the eigenmode displacements of an ASCII CalculiX ``.frd`` file.
+
+    Every field the importer uses is checked as it is read: node numbers and values in their
+    columns, finite numbers, block sizes against their headers, component counts, parameter
+    values.
+
+    Raises
+    ------
+    ModelFileError
+        Missing, binary, truncated or malformed file (one line: the file, the line number, the
+        columns and what was expected); no node block; no displacement result.
+    """
+    lines = _frd_lines(path)
+    where, n = lines.where, len(lines.lines)
     node_ids = xyz = None
     row_of: dict[int, int] = {}
     modes: list[FrdMode] = []
