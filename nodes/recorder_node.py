@@ -8,10 +8,11 @@ Completeness: the run metadata fixes the count of the metadata, OPR, TOA and tru
 (``n_revolutions`` each, numbered from 0); the recording is complete when every one of them
 is whole to its last number and nothing is missing on the other keys (result keys: fits,
 travelling waves, resonance reports -- checked before their first and between their numbers
-received; their count is not known). A run with no metadata received is incomplete. The
-statistics -- ``complete``, ``missing`` and ``missing_by_key`` (head, gaps, tail per key),
-sequence gaps, duplicates, rejected -- are logged, printed as one JSON line on stdout,
-written as the ``bttsim.recorder`` metadata record and sent as the ``stats`` of the node's
+received; their count is not known). A run with no metadata received is incomplete. A key of
+no run (another rig, a probe the run does not have) cannot make it incomplete: it is listed
+in ``foreign_keys``. The statistics -- ``complete``, ``missing`` and ``missing_by_key`` (head,
+gaps, tail per key), ``foreign_keys``, sequence gaps, duplicates, rejected -- are logged, printed
+as one JSON line on stdout, written as the ``bttsim.recorder`` metadata record and sent as the ``stats`` of the node's
 final status (``bttsim/<rig>/status/recorder``, state ``done``; also to ``--status-file``).
 Status keys themselves are not recorded. Liveliness: ``bttsim/<rig>/alive/recorder``.
 
@@ -102,7 +103,9 @@ def _completeness(stats: SequenceTracker, ends: dict[str, StreamEnd], rig: str |
     expected: dict[str, int] = {}
     for end in ends.values():
         expected.update(end.counts)
-    missing = stats.missing(expected)
+    missing, foreign = {}, {}
+    for key, m in stats.missing(expected).items():
+        (missing if _of_the_run(key, expected, ends) else foreign)[key] = m
     why = []
     if not ends or (rig is not None and rig not in ends):
         why.append(f"no run metadata received{f' for {rig}' if rig else ''}")
@@ -112,7 +115,19 @@ def _completeness(stats: SequenceTracker, ends: dict[str, StreamEnd], rig: str |
             f"{k.split('/', 2)[-1]} {m.total}" for k, m in missing.items()) + ")")
     return {"complete": not why, "missing": sum(m.total for m in missing.values()),
             "missing_by_key": {k: m.to_dict() for k, m in missing.items()}, "run_metadata": sorted(ends),
-            "incomplete": "; ".join(why)}
+            "foreign_keys": sorted(foreign), "incomplete": "; ".join(why)}
+
+
+def _of_the_run(key: str, expected: dict[str, int], ends: dict[str, StreamEnd]) -> bool:
+    """Does ``key`` belong to a run whose metadata came (its rig; a probe's key only for a probe
+    the run has)? A key of no run (a forger's ``toa/7`` of a 5-probe run) cannot make the
+    recording incomplete: its numbers are counted under ``foreign_keys``, not as missing."""
+    parts = key.split("/")
+    if len(parts) < 3 or parts[1] not in ends:
+        return False
+    if len(parts) == 4 and parts[2] in ("toa", "tw", "signal"):
+        return f"{parts[0]}/{parts[1]}/toa/{parts[3]}" in expected
+    return True
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
