@@ -87,9 +87,12 @@ def test_the_board_keeps_the_latest_status_of_the_expected_nodes_only(tmp_path):
     with zenoh.open(listen) as a, zenoh.open(join) as b:
         board = StatusBoard(a, "rig1", ("recorder", "viewer"), files={"viewer": tmp_path / "viewer.json"})
         try:
-            time.sleep(0.5)  # the subscription reaches b
             pubs = {k: b.declare_publisher(k) for k in
                     (KEY, "bttsim/rig1/status/viewer", "bttsim/rig1/status/intruder", "bttsim/rig1/status/sim")}
+            deadline = time.monotonic() + 30  # ready once the board's subscription has reached b
+            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert all(p.matching_status.matching for p in pubs.values()), "the board never subscribed"
             pubs[KEY].put(encode_status(NodeStatus("recorder", "ready", 1)))
             pubs[KEY].put(encode_status(NodeStatus("recorder", "done", 3, "", STATS)))
             pubs[KEY].put(encode_status(NodeStatus("recorder", "ready", 2)))  # older: kept out
