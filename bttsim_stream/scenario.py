@@ -113,6 +113,7 @@ __all__ = [
     "Scenario",
     "SECTIONS",
     "load_scenario",
+    "read_toml_file",
     "scenario_from_dict",
     "scenario_to_dict",
     "dumps_toml",
@@ -482,6 +483,41 @@ def scenario_from_dict(d: Mapping[str, Any], source: str = "<dict>", *,
         raise ScenarioError(f"{source}: {_one_line(str(exc))}") from None
 
 
+def read_toml_file(path, what: str, error: type[Exception]) -> dict:
+    """A UTF-8 TOML file as a dict (a leading BOM allowed); any problem is one ``error`` starting
+    with the path as given: no such file, a directory (not ``what``), unreadable, not UTF-8,
+    malformed TOML."""
+    name = os.fspath(path)
+    p = Path(name)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{name}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{name}: is a directory, not {what}") from None
+    except PermissionError:
+        raise error(f"{name}: permission denied") from None
+    except OSError as exc:
+        if p.is_dir():
+            raise error(f"{name}: is a directory, not {what}") from None
+        raise error(f"{name}: cannot read ({exc.strerror or exc})") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{name}: not UTF-8 text (byte 0x{data[exc.start]:02x} at "
+                    f"offset {exc.start})") from None
+    text = text.removeprefix("\ufeff")
+    try:
+        d = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise error(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
+    except RecursionError:
+        raise error(f"{name}: malformed TOML: arrays or tables nested too deep") from None
+    return d
+
+
 def load_scenario(path: str | os.PathLike[str]) -> Scenario:
     """Read, parse and validate a scenario TOML file.
 
@@ -502,34 +538,8 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
         not UTF-8, malformed TOML, or any error of :func:`scenario_from_dict`.
     """
     name = os.fspath(path)
-    p = Path(name)
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise ScenarioError(f"{name}: no such file") from None
-    except IsADirectoryError:
-        raise ScenarioError(f"{name}: is a directory, not a scenario file") from None
-    except PermissionError:
-        raise ScenarioError(f"{name}: permission denied") from None
-    except OSError as exc:
-        if p.is_dir():
-            raise ScenarioError(f"{name}: is a directory, not a scenario file") from None
-        raise ScenarioError(f"{name}: cannot read ({exc.strerror or exc})") from None
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ScenarioError(f"{name}: not UTF-8 text (byte 0x{data[exc.start]:02x} at "
-                            f"offset {exc.start})") from None
-    text = text.removeprefix("\ufeff")
-    try:
-        d = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
-    except ValueError as exc:  # e.g. an integer of more than 4300 digits
-        raise ScenarioError(f"{name}: malformed TOML: {_one_line(str(exc))}") from None
-    except RecursionError:
-        raise ScenarioError(f"{name}: malformed TOML: arrays or tables nested too deep") from None
-    return scenario_from_dict(d, source=name, base_dir=p.absolute().parent)
+    d = read_toml_file(name, "a scenario file", ScenarioError)
+    return scenario_from_dict(d, source=name, base_dir=Path(name).absolute().parent)
 
 
 # --------------------------------------------------------------------------------------

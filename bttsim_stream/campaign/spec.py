@@ -34,7 +34,6 @@ import itertools
 import json
 import math
 import os
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,7 @@ import numpy as np
 from .. import __version__
 from ..errors import BttsimError
 from ..process.pipeline import METHODS
-from ..scenario import MAX_SEED, dumps_toml, load_scenario, scenario_from_dict, scenario_to_dict
+from ..scenario import MAX_SEED, dumps_toml, load_scenario, read_toml_file, scenario_from_dict, scenario_to_dict
 
 __all__ = ["SpecError", "Processor", "Axis", "CampaignSpec", "RunSpec", "load_spec", "spec_from_dict", "expand",
            "run_seed", "MAX_RUNS"]
@@ -153,22 +152,8 @@ def _fail(source: str, text: str) -> SpecError:
 def load_spec(path) -> CampaignSpec:
     """Read and validate a campaign spec file (:class:`SpecError`, one line, on any problem)."""
     name = os.fspath(path)
-    p = Path(name)
-    try:
-        text = p.read_bytes().decode("utf-8")
-    except FileNotFoundError:
-        raise SpecError(f"{name}: no such file") from None
-    except IsADirectoryError:
-        raise SpecError(f"{name}: is a directory, not a campaign spec") from None
-    except UnicodeDecodeError:
-        raise SpecError(f"{name}: not UTF-8 text") from None
-    except OSError as exc:
-        raise SpecError(f"{name}: cannot read ({exc.strerror or exc})") from None
-    try:
-        d = tomllib.loads(text.removeprefix("\ufeff"))
-    except (tomllib.TOMLDecodeError, ValueError, RecursionError) as exc:
-        raise SpecError(f"{name}: malformed TOML: {' '.join(str(exc).split())}") from None
-    return spec_from_dict(d, source=name, base_dir=p.absolute().parent)
+    d = read_toml_file(name, "a campaign spec", SpecError)
+    return spec_from_dict(d, source=name, base_dir=Path(name).absolute().parent)
 
 
 def _hint(key: str, known) -> str:
