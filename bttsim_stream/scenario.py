@@ -53,7 +53,7 @@ from .fieldspec import show as _show
 from .fieldspec import toml_key as _key
 from .fieldspec import toml_value as _toml_value
 from .scenario_sections import (
-    _CENTRIFUGAL_KEYS,
+    CENTRIFUGAL_KEYS,
     BUILTIN_MODEL,
     MAX_WINDOW_SAMPLES,
     Acquisition,
@@ -68,10 +68,10 @@ from .scenario_sections import (
     Signal,
     Speed,
     Toa,
-    _check_keys,
-    _field_names,
-    _hint,
-    _set,
+    check_keys,
+    field_names,
+    did_you_mean,
+    set_normalised,
 )
 
 # Re-exported: the sections' bounds and choices, importable from here as before the split.
@@ -177,10 +177,11 @@ class Scenario:
     broadband: Broadband = field(default_factory=Broadband)
 
     def __post_init__(self) -> None:
-        _set(self, "rotating_stall", _entries("rotating_stall", self.rotating_stall, RotatingStall, allow_empty=True))
+        set_normalised(self, "rotating_stall",
+                       _entries("rotating_stall", self.rotating_stall, RotatingStall, allow_empty=True))
         self._check_flutter()
         self._check_section_types()
-        _set(self, "excitation", _entries("excitation", self.excitation, Excitation, allow_empty=False))
+        set_normalised(self, "excitation", _entries("excitation", self.excitation, Excitation, allow_empty=False))
         self._check_nodal_diameters()
         self._check_probe_position()
         self._check_centrifugal()
@@ -385,10 +386,10 @@ def _check_top_level(d: Any) -> None:
         elif isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
             what = f"unknown section [[{_key(name)}]]"
         else:
-            owners = [s for s, c in SECTIONS.items() if name in _field_names(c)]
+            owners = [s for s, c in SECTIONS.items() if name in field_names(c)]
             hint = f" (keys belong in a section: put it under [{owners[0]}])" if owners else ""
             raise ScenarioError(f"unknown top-level key {_key(name)}{hint}")
-        raise ScenarioError(what + _hint(name, list(SECTIONS) + list(OPTIONAL_ARRAYS)))
+        raise ScenarioError(what + did_you_mean(name, list(SECTIONS) + list(OPTIONAL_ARRAYS)))
 
 
 def _tables(d: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:
@@ -400,7 +401,7 @@ def _tables(d: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:
         table = d.get(name, {})
         if not isinstance(table, Mapping):
             raise ScenarioError(f"[{name}] must be a table, {_got(table)}")
-        _check_keys(f"[{name}]", table, cls)
+        check_keys(f"[{name}]", table, cls)
         tables[name] = table
     speed = tables["speed"]
     if speed.get("segments"):
@@ -419,7 +420,7 @@ def _array_tables(d: Mapping[str, Any], name: str, default: list[Any]) -> list[M
     for i, entry in enumerate(entries):
         if not isinstance(entry, Mapping):
             raise ScenarioError(f"[[{name}]][{i}] must be a table, {_got(entry)}")
-        _check_keys(f"[[{name}]][{i}]", entry, SECTIONS.get(name) or OPTIONAL_ARRAYS[name])
+        check_keys(f"[[{name}]][{i}]", entry, SECTIONS.get(name) or OPTIONAL_ARRAYS[name])
     return entries
 
 
@@ -652,7 +653,7 @@ def dumps_toml(scn: Scenario, *, comments: bool = False) -> str:
         if name == "speed" and not comments and table.get("initial") == "steady":
             del table["initial"]  # written only when changed: a default run's id (a hash of this text) stays
         if name == "model" and not comments and not scn.model.centrifugal:
-            for k in _CENTRIFUGAL_KEYS:  # written only when on: a default run's id stays
+            for k in CENTRIFUGAL_KEYS:  # written only when on: a default run's id stays
                 table.pop(k, None)
         _emit_table(lines, cls, table, comments)
         # only a changed [acquisition.signal] is written (the run id of a default run, a hash

@@ -38,7 +38,7 @@ MAX_FAMILIES = 20
 MAX_MODEL_SPEEDS = 64
 #: ``[model]`` keys written only when ``centrifugal`` is on (a default run's id, a hash of the
 #: scenario text, stays what it was before they existed).
-_CENTRIFUGAL_KEYS = ("centrifugal", "centrifugal_speeds", "centrifugal_max_rpm")
+CENTRIFUGAL_KEYS = ("centrifugal", "centrifugal_speeds", "centrifugal_max_rpm")
 MAX_TIP_NODES = 100
 MIN_CLOCK_HZ, MAX_CLOCK_HZ = 1e3, 1e12
 MAX_PROBE_ANGLE_ERROR_DEG = 5.0
@@ -61,23 +61,23 @@ MIN_DURATION_S, MAX_DURATION_S = 1e-3, 1e9
 _RIG_RE = re.compile(r"[A-Za-z0-9_-]+")
 
 
-def _hint(name: Any, candidates: Sequence[str]) -> str:
+def did_you_mean(name: Any, candidates: Sequence[str]) -> str:
     close = difflib.get_close_matches(str(name), list(candidates), n=1)
     return f" (did you mean {close[0]}?)" if close else ""
 
 
-def _field_names(cls: type) -> tuple[str, ...]:
+def field_names(cls: type) -> tuple[str, ...]:
     return tuple(f.name for f in dataclasses.fields(cls))
 
 
-def _check_keys(where: str, table: Mapping[str, Any], cls: type) -> None:
-    names = _field_names(cls)
+def check_keys(where: str, table: Mapping[str, Any], cls: type) -> None:
+    names = field_names(cls)
     for k in table:
         if k not in names:
-            raise ScenarioError(f"unknown key {where} {_key(k)}{_hint(k, names)}")
+            raise ScenarioError(f"unknown key {where} {_key(k)}{did_you_mean(k, names)}")
 
 
-def _set(obj: Any, name: str, value: Any) -> None:
+def set_normalised(obj: Any, name: str, value: Any) -> None:
     """Store a normalised value on a frozen dataclass (inside ``__post_init__`` only)."""
     object.__setattr__(obj, name, value)
 
@@ -143,7 +143,7 @@ def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
     if isinstance(value, Mapping):
         for k in value:
             if k not in _SEGMENT_KEYS:
-                raise _FieldError(where, key, f"has unknown key {_key(k)}{_hint(k, _SEGMENT_KEYS)}"
+                raise _FieldError(where, key, f"has unknown key {_key(k)}{did_you_mean(k, _SEGMENT_KEYS)}"
                                   " (expected duration_s and end_rpm)")
         for k in _SEGMENT_KEYS:
             if k not in value:
@@ -161,7 +161,7 @@ def _segment(where: str, key: str, value: Any) -> tuple[float, float]:
 
 def _check_signal_table(where: str, key: str, value: Any) -> "Signal":
     if isinstance(value, Mapping):
-        _check_keys("[acquisition.signal]", value, Signal)
+        check_keys("[acquisition.signal]", value, Signal)
         return Signal(**value)
     if not isinstance(value, Signal):
         raise _FieldError(where, key, f"must be a table ([acquisition.signal]), {_got(value)}")
@@ -330,8 +330,8 @@ class Speed:
         w = "[speed]"
         validate_fields(self, w, skip=("end_rpm", "duration_s") if self._has_segments() else ())
         if self.segments:
-            _set(self, "end_rpm", self.segments[-1][1])
-            _set(self, "duration_s", math.fsum(d for d, _ in self.segments))
+            set_normalised(self, "end_rpm", self.segments[-1][1])
+            set_normalised(self, "duration_s", math.fsum(d for d, _ in self.segments))
         t_s, rpm = self.breakpoints()
         revolutions = math.fsum(0.5 * (a + b) * d for a, b, d in zip(rpm[:-1], rpm[1:], np.diff(t_s))) / 60.0
         if not revolutions <= MAX_REVOLUTIONS:

@@ -16,7 +16,7 @@ from bttsim_stream.model.modal_model import to_cartesian
 N_NODES = 4  # nodes per sector: the "tip" line of 4 nodes; node 0 is also the force node
 
 
-def _rz(t):
+def rotation_z(t):
     c, s = np.cos(t), np.sin(t)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
@@ -40,7 +40,7 @@ def _spring_wheel(N, seed=1):
     K, M = np.zeros((n, n)), np.zeros((n, n))
     dof = lambda s, a: slice(3 * (N_NODES * (s % N) + a), 3 * (N_NODES * (s % N) + a) + 3)  # noqa: E731
     for s in range(N):
-        R = _rz(2 * np.pi * s / N)
+        R = rotation_z(2 * np.pi * s / N)
         for a in range(N_NODES):
             M[dof(s, a), dof(s, a)] += masses[a] * np.eye(3)
         for a, b, off, k in springs:
@@ -58,7 +58,7 @@ def _sector_solution(N, xyz, K, M, n_fam):
     """Solve every harmonic index on the cyclic-reduced matrices (u^H M_k u = 1)."""
     ks, fs, us = [], [], []
     for k in range(N // 2 + 1):
-        T = np.concatenate([np.kron(np.eye(N_NODES), _rz(2 * np.pi * s / N)) * np.exp(2j * np.pi * k * s / N)
+        T = np.concatenate([np.kron(np.eye(N_NODES), rotation_z(2 * np.pi * s / N)) * np.exp(2j * np.pi * k * s / N)
                             for s in range(N)])
         Kk, Mk = T.conj().T @ K @ T / N, T.conj().T @ M @ T / N
         w2, v = sla.eigh(Kk, Mk, subset_by_index=[0, n_fam - 1])

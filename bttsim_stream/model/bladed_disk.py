@@ -215,9 +215,11 @@ class SectorModel:
         return self.K.shape[0]
 
 
-def _rz(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+def rotation_z(theta) -> np.ndarray:
+    """Rotation matrices about +z by ``theta`` (rad), shape ``(..., 3, 3)``."""
+    c, s = np.cos(theta), np.sin(theta)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
 
 
 def _rect_torsion(a: float, b: float) -> float:
@@ -247,7 +249,7 @@ def _blade_section(d: BladedDiskDesign, r: float, k_scale: float, m_scale: float
     return sec, stagger
 
 
-def _scatter(K: np.ndarray, k: np.ndarray, dofs: np.ndarray) -> None:
+def scatter_add(K: np.ndarray, k: np.ndarray, dofs: np.ndarray) -> None:
     keep = dofs >= 0
     idx = dofs[keep]
     K[np.ix_(idx, idx)] += k[np.ix_(keep, keep)]
@@ -293,8 +295,8 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
         k, mm = beam_matrices(p1, p2, yh, sec)
         idx = np.concatenate([dofs(e), dofs(e + 1)])
         elements.append(BeamElement(p1, p2, yh, sec, idx))
-        _scatter(K, k, idx)
-        _scatter(M, mm, idx)
+        scatter_add(K, k, idx)
+        scatter_add(M, mm, idx)
 
     # blade: pretwisted, tapered beam; root node = rim node (index nd)
     blade_nodes = [nd] + [nd + i for i in range(1, nb + 1)]
@@ -305,14 +307,14 @@ def assemble_sector(d: BladedDiskDesign, blade_k: float = 1.0, blade_m: float = 
         k, mm = beam_matrices(p1, p2, yh, sec)
         idx = np.concatenate([dofs(blade_nodes[e]), dofs(blade_nodes[e + 1])])
         elements.append(BeamElement(p1, p2, yh, sec, idx))
-        _scatter(K, k, idx)
-        _scatter(M, mm, idx)
+        scatter_add(K, k, idx)
+        scatter_add(M, mm, idx)
     blade_dofs = np.concatenate([dofs(n) for n in blade_nodes[1:]])
 
     # ring beams between this sector's grid nodes and the next sector's (rotated frame)
     alpha = 2.0 * np.pi / d.n_blades
     Q = np.eye(12)
-    Rn = _rz(alpha)
+    Rn = rotation_z(alpha)
     Q[6:9, 6:9] = Rn
     Q[9:12, 9:12] = Rn
     ring_dofs, ring_K, ring_M = [], [], []
@@ -398,7 +400,7 @@ def _point_maps(points: np.ndarray, foot: np.ndarray, node_dofs: np.ndarray, m: 
     A = np.eye(6) if axis_map is None else axis_map
     for i, p in enumerate(points):
         ang = np.arctan2(p[1], p[0])
-        local = _rz(ang).T @ rigid_offset_matrix(p - foot) @ A  # sector xyz -> node (r, t, z)
+        local = rotation_z(ang).T @ rigid_offset_matrix(p - foot) @ A  # sector xyz -> node (r, t, z)
         maps[i][:, node_dofs] = local
         ref[i] = (np.hypot(p[0], p[1]), ang, p[2])
     return maps, ref
@@ -413,7 +415,7 @@ def blade_alone_frequencies(d: BladedDiskDesign, n: int = 3) -> np.ndarray:
     return np.sqrt(w2) / (2.0 * np.pi)
 
 
-def _cyclic_matrices(sec: SectorModel, n_blades: int, nd: int) -> tuple[np.ndarray, np.ndarray]:
+def cyclic_matrices(sec: SectorModel, n_blades: int, nd: int) -> tuple[np.ndarray, np.ndarray]:
     phase = np.exp(2j * np.pi * nd / n_blades)
     K = sec.K.astype(complex)
     M = sec.M.astype(complex)
@@ -450,7 +452,7 @@ def solve_cyclic(d: BladedDiskDesign, sec: SectorModel | None = None,
     nds = list(range(d.n_blades // 2 + 1)) if nds is None else nds
     freqs, vecs = [], []
     for nd in nds:
-        K, M = _cyclic_matrices(sec, d.n_blades, nd)
+        K, M = cyclic_matrices(sec, d.n_blades, nd)
         w2, v = sla.eigh(K, M, subset_by_index=[0, n_families - 1], driver="gvx")
         freqs.append(np.sqrt(np.maximum(w2, 0.0)) / (2.0 * np.pi))
         vecs.append(v)
@@ -477,12 +479,12 @@ class WheelModes:
     nodal_diameter: np.ndarray
 
 
-def _fix_phase(v: np.ndarray) -> np.ndarray:
+def normalise_phase(v: np.ndarray) -> np.ndarray:
     """The complex eigenvector with its largest entry turned real and positive."""
     return v * np.exp(-1j * np.angle(v[np.argmax(np.abs(v))]))
 
 
-def _expand_unsorted(d: BladedDiskDesign, sol: CyclicSolution, fix_phase: bool = True):
+def expand_unsorted(d: BladedDiskDesign, sol: CyclicSolution, fix_phase: bool = True):
     N = d.n_blades
     s = np.arange(N)
     freqs, shapes, fam, nds = [], [], [], []
@@ -490,13 +492,13 @@ def _expand_unsorted(d: BladedDiskDesign, sol: CyclicSolution, fix_phase: bool =
         for k in range(v_nd.shape[1]):
             v = v_nd[:, k]
             if nd == 0 or 2 * nd == N:
-                v = np.real(_fix_phase(v) if fix_phase else v)
+                v = np.real(normalise_phase(v) if fix_phase else v)
                 shapes.append(np.tile(v, (N, 1)) / np.sqrt(N))
                 freqs.append(f_nd[k]); fam.append(k); nds.append(nd)
                 continue
             # fix the arbitrary complex phase so the expansion is deterministic
             if fix_phase:
-                v = _fix_phase(v)
+                v = normalise_phase(v)
             u = np.exp(1j * 2 * np.pi * nd * s / N)[:, None] * v[None, :]
             for part in (u.real, u.imag):
                 shapes.append(part * np.sqrt(2.0 / N))
@@ -517,7 +519,7 @@ def expand_cyclic(d: BladedDiskDesign, sol: CyclicSolution, order: np.ndarray | 
         Turn each complex vector's largest entry real (default); False keeps the phase of
         vectors already aligned (:func:`solve_cyclic_speeds`).
     """
-    freqs, shapes, fam, nds = _expand_unsorted(d, sol, fix_phase)
+    freqs, shapes, fam, nds = expand_unsorted(d, sol, fix_phase)
     if order is None:
         order = np.lexsort((nds, freqs, fam))
     return WheelModes(freq_hz=freqs[order], shapes=shapes[order], family=fam[order], nodal_diameter=nds[order])

@@ -37,8 +37,8 @@ import numpy as np
 import scipy.linalg as sla
 
 from .beam import IN_PLANE, beam_axial_force, beam_geometric_stiffness, beam_spin_mass
-from .bladed_disk import (BladedDiskDesign, CyclicSolution, SectorModel, _cyclic_matrices, _fix_phase, _rz,
-                          _scatter)
+from .bladed_disk import (BladedDiskDesign, CyclicSolution, SectorModel, cyclic_matrices, normalise_phase, rotation_z,
+                          scatter_add)
 
 __all__ = ["CentrifugalSector", "SpeedSolution", "axial_force_profile", "blade_alone_at_speed", "centrifugal_sector",
            "full_wheel_centrifugal", "solve_full_wheel_speeds", "cyclic_speed_matrices",
@@ -85,7 +85,7 @@ class CentrifugalSector:
 def _ring_transform(n_blades: int) -> np.ndarray:
     """Ring element DOF (own sector, next sector's frame) -> reference sector frame."""
     Q = np.eye(12)
-    Rn = _rz(2.0 * np.pi / n_blades)
+    Rn = rotation_z(2.0 * np.pi / n_blades)
     Q[6:9, 6:9] = Rn
     Q[9:12, 9:12] = Rn
     return Q
@@ -130,7 +130,7 @@ def _spin(sec: SectorModel, n_blades: int):
     load = np.zeros(m + 1)  # the last entry collects the clamped DOF (index -1)
     for el in sec.elements:
         ks = beam_spin_mass(el.p1, el.p2, el.y_hint, el.section)
-        _scatter(K_s, ks, el.dofs)
+        scatter_add(K_s, ks, el.dofs)
         # consistent centrifugal load at 1 rad/s: element K_s times its node positions
         # (rotations 0; the position field is linear, which the interpolation holds exactly),
         # with the positions of clamped nodes too
@@ -152,7 +152,7 @@ def _geometric(sec: SectorModel, n_blades: int, u: np.ndarray, u_next: np.ndarra
                        for el in sec.ring_elements])
     K_g = np.zeros((m, m))
     for el, n in zip(sec.elements, N_el):
-        _scatter(K_g, beam_geometric_stiffness(el.p1, el.p2, el.y_hint, el.section, axial_force_profile(el, n)),
+        scatter_add(K_g, beam_geometric_stiffness(el.p1, el.p2, el.y_hint, el.section, axial_force_profile(el, n)),
                  el.dofs)
     ring_K_g = np.array([Q.T @ beam_geometric_stiffness(el.p1, el.p2, el.y_hint, el.section,
                                                         axial_force_profile(el, n)) @ Q
@@ -177,7 +177,7 @@ def centrifugal_sector(sec: SectorModel, n_blades: int) -> CentrifugalSector:
     """
     m = sec.n_dof
     K_s, load, ring_K_s = _spin(sec, n_blades)
-    K0, _ = _cyclic_matrices(sec, n_blades, 0)
+    K0, _ = cyclic_matrices(sec, n_blades, 0)
     ring_load = _cyclic_one(np.zeros((m, m)), sec.ring_dofs, ring_K_s, n_blades, 0) @ _positions(sec)
     u = sla.solve(K0, load + ring_load, assume_a="pos")
     K_g, ring_K_g, N_el, N_ring = _geometric(sec, n_blades, u, u)  # ND 0: the next sector moves alike
@@ -235,7 +235,7 @@ def full_wheel_centrifugal(sectors, K):
 
 def cyclic_speed_matrices(sec: SectorModel, cent: CentrifugalSector, n_blades: int, nd: int):
     """ND ``nd``'s ``(K_e, K_g - K_s, M)`` (complex Hermitian; real for ND 0 and N/2)."""
-    K, M = _cyclic_matrices(sec, n_blades, nd)
+    K, M = cyclic_matrices(sec, n_blades, nd)
     G = (_cyclic_one(cent.K_g, sec.ring_dofs, cent.ring_K_g, n_blades, nd)
          - _cyclic_one(cent.K_s, sec.ring_dofs, cent.ring_K_s, n_blades, nd))
     return K, G, M
@@ -330,7 +330,7 @@ def solve_cyclic_speeds(d: BladedDiskDesign, sec: SectorModel, cent: Centrifugal
     N = d.n_blades
     nds = list(range(N // 2 + 1)) if nds is None else nds
     per_speed_f = [[zero.freq_hz[i]] for i in range(len(nds))]
-    per_speed_v = [[np.array([_fix_phase(v) for v in zero.vectors[i].T]).T] for i in range(len(nds))]
+    per_speed_v = [[np.array([normalise_phase(v) for v in zero.vectors[i].T]).T] for i in range(len(nds))]
     min_mac = 1.0
     for i, nd in enumerate(nds):
         K, G, M = cyclic_speed_matrices(sec, cent, N, nd)

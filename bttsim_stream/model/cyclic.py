@@ -45,8 +45,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ModelFileError
+from .bladed_disk import rotation_z
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
-from .modal_model import ModalModel, model_from_cartesian
+from .modal_model import MAX_SPEEDS, ModalModel, model_from_cartesian, to_polar
 
 __all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "expand_sectors_at_speeds",
            "save_sector",
@@ -55,13 +56,6 @@ __all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sec
 SECTOR_SCHEMA = "bttsim.cyclic_sector"
 SECTOR_SCHEMA_VERSION = 1
 NORMALISATIONS = ("sector", "wheel")
-
-
-def _rz(theta) -> np.ndarray:
-    """Rotation matrices about +z, shape (..., 3, 3)."""
-    c, s = np.cos(theta), np.sin(theta)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -202,7 +196,7 @@ def _expand_entries(N: int, entries, wheel: bool, fix_phase: bool = True):
     (module conventions); ``fix_phase`` turns standing-wave solutions real by their largest
     entry (False: they are real already, aligned by the caller)."""
     theta = 2.0 * np.pi * np.arange(N) / N
-    R = _rz(theta)
+    R = rotation_z(theta)
     freqs, tips, forces, fam_of, nd_of = [], [], [], [], []
     for k, f, freq, ut, uf in entries:
         standing = k == 0 or 2 * k == N
@@ -258,7 +252,7 @@ def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: f
         raise ModelFileError(f"{n_fam} families requested but some harmonic index has only "
                              f"{min(len(v) for v in fams.values())} solutions")
     theta = 2.0 * np.pi * np.arange(N) / N
-    R = _rz(theta)                                                     # (N, 3, 3)
+    R = rotation_z(theta)                                                     # (N, 3, 3)
     tip_xyz = np.einsum("sij,pj->spi", R, sector.tip_xyz)             # (N, n_tip, 3)
     force_xyz = np.einsum("sij,j->si", R, sector.force_xyz)           # (N, 3)
     entries = [(k, f, float(sector.freq_hz[i]), np.asarray(sector.tip_shapes[i], complex),
@@ -399,7 +393,6 @@ def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, dampin
         nodes, a harmonic index with fewer solutions than the families kept at speed 0, or a
         mode that cannot be followed (MAC < 0.5 between two speeds: add speeds in between).
     """
-    from .modal_model import MAX_SPEEDS, _to_polar
 
     sectors = list(sectors)
     sp = np.asarray(speed_rad_s, float)
@@ -420,7 +413,7 @@ def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, dampin
     rows_f, rows_u, min_mac = _track_families(sectors, sp, n_fam)
     # expand every speed in the zero-speed order
     theta = 2.0 * np.pi * np.arange(N) / N
-    R = _rz(theta)
+    R = rotation_z(theta)
     tip_xyz = np.einsum("sij,pj->spi", R, s0.tip_xyz)
     force_xyz = np.einsum("sij,j->si", R, s0.force_xyz)
     wheel = s0.normalisation == "wheel"
@@ -433,8 +426,8 @@ def expand_sectors_at_speeds(sectors, speed_rad_s, *, damping_ratio=None, dampin
         freqs = np.array(freqs)
         if order is None:
             order = np.lexsort((np.array(nd_of), freqs, np.array(fam_of)))
-        _, tp = _to_polar(tip_xyz, np.array(tips)[order])
-        _, fp = _to_polar(force_xyz, np.array(forces)[order])
+        _, tp = to_polar(tip_xyz, np.array(tips)[order])
+        _, fp = to_polar(force_xyz, np.array(forces)[order])
         freq_at.append(freqs[order]); tip_at.append(tp); force_at.append(fp)
     campbell = np.array([[[rows_f[k][s][f] for k in range(N // 2 + 1)] for f in range(n_fam)] for s in range(S)])
     arrays = {"speed_rad_s": sp, "freq_hz_at_speed": np.array(freq_at), "tip_shapes_at_speed": np.array(tip_at),

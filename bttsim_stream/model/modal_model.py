@@ -41,7 +41,7 @@ from .bladed_disk import (
     solve_cyclic,
     solve_full_wheel,
 )
-from .bladed_disk import _expand_unsorted
+from .bladed_disk import expand_unsorted
 from .centrifugal import (MAC_REFINE, N_SPARE, centrifugal_sector, full_wheel_centrifugal, solve_cyclic_speeds,
                           solve_full_wheel_speeds, speed_grid)
 
@@ -418,7 +418,7 @@ def _speed_modes(design: BladedDiskDesign, nominal, campbell, sector, sol, speed
     t0 = time.perf_counter()
     cent = centrifugal_sector(sector, design.n_blades)
     track = solve_cyclic_speeds(design, sector, cent, speed_rad_s, sol)
-    freqs, _, fam, nds = _expand_unsorted(design, sol)
+    freqs, _, fam, nds = expand_unsorted(design, sol)
     order = np.lexsort((nds, freqs, fam))  # the zero-speed model's mode order, kept at every speed
     S = speed_rad_s.size
     tip, force, freq = [], [], []
@@ -467,7 +467,7 @@ def to_cartesian(ref: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.nd
     return xyz, uxyz
 
 
-def _to_polar(xyz: np.ndarray, uxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def to_polar(xyz: np.ndarray, uxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x, y, z = np.moveaxis(xyz, -1, 0)
     ang = np.unwrap(np.arctan2(y, x), axis=0) if xyz.ndim > 1 else np.arctan2(y, x)
     c, s = np.cos(ang), np.sin(ang)
@@ -504,8 +504,8 @@ def model_from_cartesian(freq_hz, tip_xyz, tip_shapes_xyz, force_xyz, force_shap
     if damping_ratio is None:
         beta = 9e-6 if damping_beta_s is None else float(damping_beta_s)
         damping_ratio = 0.5 * beta * 2.0 * np.pi * freq
-    tip_ref, tip_shapes = _to_polar(np.asarray(tip_xyz, float), np.asarray(tip_shapes_xyz, float))
-    force_ref, force_shapes = _to_polar(np.asarray(force_xyz, float), np.asarray(force_shapes_xyz, float))
+    tip_ref, tip_shapes = to_polar(np.asarray(tip_xyz, float), np.asarray(tip_shapes_xyz, float))
+    force_ref, force_shapes = to_polar(np.asarray(force_xyz, float), np.asarray(force_shapes_xyz, float))
     n_blades, n_tip = tip_ref.shape[:2]
     if family is None or nodal_diameter is None:
         fam, nd = label_modes(freq, tip_shapes)

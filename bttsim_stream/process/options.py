@@ -21,13 +21,18 @@ from .prep import PrepOptions
 from .probes import CN_SINGULAR, LayoutError, condition_number
 from .resonance import PEAK_METHODS
 
-__all__ = ["EXPECTED_TIMES", "CN_JOINT_MAX", "ProcessOptions", "engine_orders_of", "layout_condition_numbers",
-           "fits_jointly"]
+__all__ = ["EXPECTED_TIMES", "CN_JOINT_MAX", "LIVE_CALIBRATION", "ProcessOptions", "engine_orders_of",
+           "layout_condition_numbers", "fits_jointly"]
 
 EXPECTED_TIMES = ("opr", "exact")
 #: Joint fits of several engine orders are used when their condition number is below this;
 #: above, each order is fitted on its own (and the orders are told apart by their residuals).
 CN_JOINT_MAX = 100.0
+
+#: Calibration window (revolutions from the start) of every live consumer of a stream, the
+#: streaming processor's per-revolution outputs and the views, when the final report's window
+#: is chosen automatically: the live outputs cannot wait for the whole run.
+LIVE_CALIBRATION = 64
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,16 +26,13 @@ import numpy as np
 from .displacement import TWO_PI, Geometry, calibrate_arrival_angles, revolution_displacements, rotor_phase_from_opr
 from .fit import design_matrix, fit_revolutions
 from .nsv import NsvDetection, detections, scan_blocks, screen_block
-from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
+from .options import LIVE_CALIBRATION, ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .pipeline import process_arrays
 from .results import ProcessingResult, RevolutionOutput
 from .travelling_wave import TravellingWaveSpectra, fit_spectra, probe_spectra
 
-__all__ = ["LIVE_CALIBRATION", "StreamingProcessor"]
+__all__ = ["StreamingProcessor"]
 
-#: Calibration window of the streaming processor's live outputs when the final report's is
-#: chosen automatically (the live outputs cannot wait for the whole run).
-LIVE_CALIBRATION = 64
 
 
 class _Growable:

@@ -138,7 +138,7 @@ def _j_series(u: np.ndarray, kmax: int, radius: float) -> np.ndarray:
     return pw @ (1.0 / (n[:, None] + np.arange(kmax + 1)[None, :] + 1.0))
 
 
-def _j_moments(u: np.ndarray, kmax: int, vabs: np.ndarray | float = 0.0) -> np.ndarray:
+def j_moments(u: np.ndarray, kmax: int, vabs: np.ndarray | float = 0.0) -> np.ndarray:
     """``J_k(u) = int_0^1 x^k exp(u x) dx`` for k = 0..kmax (last axis).
 
     ``J_0 = expm1(u) / u`` is exact to round-off. The forward recurrence
@@ -178,7 +178,7 @@ def chirp_integral(u, v) -> np.ndarray:
     n_v = 1
     while vmax ** n_v / factorial(n_v) > 1e-18 and n_v < 12:
         n_v += 1
-    J = _j_moments(u, 2 * (n_v - 1), np.abs(v))
+    J = j_moments(u, 2 * (n_v - 1), np.abs(v))
     out = J[..., 0] * np.ones(np.broadcast(u, v).shape)
     vn = np.ones_like(out)
     for n in range(1, n_v):
@@ -193,7 +193,7 @@ def _chirp_given_exp(u: np.ndarray, eu: np.ndarray, v: np.ndarray) -> np.ndarray
     The same sums as :func:`chirp_integral` -- ``I = sum_n v^n / n! J_2n(u)`` with the
     moments ``J_k`` by the forward recurrence ``J_k = (e^u - k J_k-1) / u`` wherever
     ``|u| >= 1/4`` and ``|v| <= |u|^2 / 10`` (round-off stays at the level of ``e^u``,
-    see :func:`_j_moments`) -- but ``e^u`` is given: the recursion forms it as a product of
+    see :func:`j_moments`) -- but ``e^u`` is given: the recursion forms it as a product of
     per-mode and per-step factors (two roundings instead of a complex exponential).
     Elsewhere (``|u| < 0.32`` there) the Taylor series of the integrand,
     ``I = sum_m c_m / (m + 1)`` with ``(m + 1) c_m+1 = u c_m + 2 v c_m-1``, is summed to
@@ -425,7 +425,7 @@ class EnvelopeGrid:
     a_minus: np.ndarray | None = None
 
 
-def _refine_pass(k: int, t_k: float, t_end: float, zone: float, amp: float, reach_m: float, radius_m: float,
+def refine_pass(k: int, t_k: float, t_end: float, zone: float, amp: float, reach_m: float, radius_m: float,
                  om_min: float, sig: np.ndarray, S0: np.ndarray, tol_s: float, h_max: float, warn: bool,
                  warnings: list) -> tuple[np.ndarray, float | None]:
     """One pass of a speed segment's refinement (:meth:`EnvelopeIntegrator.transient_grid`).
@@ -690,7 +690,7 @@ class EnvelopeIntegrator:
                 amp = float(np.sum(wn * (np.abs(c) / mu_min + e)))
             om_min = min(om_a, om_b)
             amp = min(amp, 0.05 * radius_m)  # larger amplitudes are refused (check_tip_amplitude)
-            pts, zone = _refine_pass(k, t_k, t_end, zone, amp, reach_m, radius_m, om_min, sig, S0, tol_s, h_max,
+            pts, zone = refine_pass(k, t_k, t_end, zone, amp, reach_m, radius_m, om_min, sig, S0, tol_s, h_max,
                                      _ == 1, self.warnings)
             if zone is None:
                 break

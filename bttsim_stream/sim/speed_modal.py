@@ -71,7 +71,7 @@ import numpy as np
 
 from ..model.speed_modes import speed_modes
 from .forcing import modal_forcing
-from .modal import (TRANSIENT_TOL_S, EnvelopeGrid, EnvelopeIntegrator, TipBasis, _j_moments, _refine_pass,
+from .modal import (TRANSIENT_TOL_S, EnvelopeGrid, EnvelopeIntegrator, TipBasis, j_moments, refine_pass,
                     quasi_steady_envelope, tip_basis)
 from .speed import SpeedProfile
 
@@ -132,7 +132,7 @@ def chirp_moments(u, v) -> tuple[np.ndarray, np.ndarray]:
     n_v = 1
     while vmax ** n_v / factorial(n_v) > 1e-18 and n_v < 12:
         n_v += 1
-    J = _j_moments(u, 2 * n_v - 1, vabs)
+    J = j_moments(u, 2 * n_v - 1, vabs)
     I0 = J[..., 2 * n_v - 2].copy()
     I1 = J[..., 2 * n_v - 1].copy()
     for n in range(n_v - 1, 0, -1):  # Horner in v
@@ -472,7 +472,7 @@ class SpeedDependentIntegrator:
                 amp = float(np.sum(wn * (c / mu_min + e)))
             om_min = min(om_k, om_b)
             amp = min(amp, 0.05 * radius_m)
-            pts, zone = _refine_pass(k, t_k, t_end, zone, amp, reach_m, radius_m, om_min, sig, S0, tol_s, h_max,
+            pts, zone = refine_pass(k, t_k, t_end, zone, amp, reach_m, radius_m, om_min, sig, S0, tol_s, h_max,
                                      _ == 1, self.warnings)
             if zone is None:
                 break

@@ -31,11 +31,13 @@ import numpy as np
 from ..bus.stream import Revolution, RevolutionAssembler
 from ..process.displacement import (Geometry, RotorPhase, calibrate_arrival_angles,
                                     displacements_from_phase, rotor_phase_from_opr)
+from ..process.options import LIVE_CALIBRATION
 
 __all__ = ["CALIBRATION_REVOLUTIONS", "ShownRevolutions", "RevolutionDisplacements"]
 
-#: Revolutions of the arrival-angle calibration when the metadata has no sensing angles.
-CALIBRATION_REVOLUTIONS = 16
+#: Revolutions of the arrival-angle calibration when the metadata has no sensing angles: the
+#: streaming processor's live window, so that the views and the live fits agree.
+CALIBRATION_REVOLUTIONS = LIVE_CALIBRATION
 
 
 @dataclass(frozen=True, slots=True, eq=False)
