@@ -31,7 +31,7 @@ from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
-                        TruthRows, find_peaks, window_truth)
+                        TruthRows, find_peaks, own_envelope, window_truth)
 from .results import ProcessingResult, RevolutionFit, RevolutionOutput
 from .travelling_wave import fit_spectra, identify_nd, probe_spectra
 
@@ -61,7 +61,11 @@ def _truth_rows(truth, n_rev: int, revolution0: int):
     pk, om = np.asarray(pk, float), np.asarray(om, float)
     if pk.shape[0] != n_rev:
         raise ValueError(f"the truth has {pk.shape[0]} revolutions, the data {n_rev}")
-    return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om)
+    orders, own = getattr(truth, "eo_engine_order", None), getattr(truth, "eo_pkpk_m", None)
+    if orders is None or own is None or np.shape(orders)[0] == 0:
+        return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om)
+    return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om, eo_engine_order=np.asarray(orders)[0],
+                     eo_pkpk_m=np.asarray(own, float))
 
 
 def _fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius: float | None = None) -> SineFit:
@@ -375,7 +379,7 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
-    if ctx.truth is not None and len(eos) > 1:
+    if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo) is None for eo in eos):
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
                      "engine orders' off-resonance response at its speed")
     return ResonanceReport.from_entries(entries, steady, eo=eos[0], cn=ctx.cns.get(eos[0], ctx.fit.cn),
