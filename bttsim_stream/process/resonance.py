@@ -77,6 +77,9 @@ class ResonancePeaks:
     amp_ci95_m, freq_ci95_hz, phase_ci95_rad : ndarray, shape (n_blades, 2), or None
         95 % intervals ``[lo, hi]`` of the amplitude (pk-pk, m), frequency (Hz) and phase
         (rad) (:mod:`~bttsim_stream.process.intervals`).
+    crb_amp_m, crb_freq_hz : ndarray, shape (n_blades,), or None
+        Cramér-Rao lower bounds (standard deviations) of the pk-pk amplitude and of the
+        frequency for the run's layout, noise and revolutions (:mod:`~bttsim_stream.process.crb`).
     """
 
     revolution: np.ndarray
@@ -92,6 +95,8 @@ class ResonancePeaks:
     amp_ci95_m: np.ndarray | None = None
     freq_ci95_hz: np.ndarray | None = None
     phase_ci95_rad: np.ndarray | None = None
+    crb_amp_m: np.ndarray | None = None
+    crb_freq_hz: np.ndarray | None = None
 
     @property
     def n_blades(self) -> int:
@@ -404,7 +409,8 @@ def _blade_rows(peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, ex
     rows = []
     opt = (("phase_rad", peaks.phase_rad), ("amp_std_m", peaks.amp_std_m), ("freq_std_hz", peaks.freq_std_hz),
            ("damping_ratio", peaks.damping_ratio), ("steady_amp_pkpk_m", peaks.steady_amp_pkpk_m),
-           ("natural_freq_hz", peaks.natural_freq_hz))
+           ("natural_freq_hz", peaks.natural_freq_hz), ("crb_amp_m", peaks.crb_amp_m),
+           ("crb_freq_hz", peaks.crb_freq_hz))
     cis = (("amp_ci95_m", peaks.amp_ci95_m), ("freq_ci95_hz", peaks.freq_ci95_hz),
            ("phase_ci95_rad", peaks.phase_ci95_rad))
     for b in range(peaks.n_blades):
