@@ -196,8 +196,9 @@ def resonance_bound(probe_angles_rad, engine_orders, index: int, freq_hz, sigma_
     good &= np.linalg.cond(np.where(good[:, None, None], Ns, np.eye(4))) < 1e12
     cov = np.linalg.inv(np.where(good[:, None, None], Ns, np.eye(4))) / (d[:, :, None] * d[:, None, :])
     nan = np.full(nb, np.nan)
-    return ResonanceBound(amp_pkpk_m=np.where(good, np.sqrt(np.abs(cov[:, 0, 0])), nan),
-                          freq_hz=np.where(good, np.sqrt(np.abs(cov[:, 1, 1])), nan))
+    exact = ok & np.all(np.isfinite(f)[None, :] & (s == 0), axis=1)  # no noise at all: exact
+    return ResonanceBound(amp_pkpk_m=np.where(exact, 0.0, np.where(good, np.sqrt(np.abs(cov[:, 0, 0])), nan)),
+                          freq_hz=np.where(exact, 0.0, np.where(good, np.sqrt(np.abs(cov[:, 1, 1])), nan)))
 
 
 def residual_sigma(d_m: np.ndarray, probe_angles_rad, engine_orders) -> np.ndarray:
