@@ -76,6 +76,22 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
     sys.stdout.write(scenario.default_toml())
 
 
+def _cmd_crb(args: argparse.Namespace) -> None:
+    from .crb_report import bounds_table, scenario_bounds
+
+    if args.toa_sigma_s is not None and not (np.isfinite(args.toa_sigma_s) and args.toa_sigma_s >= 0):
+        raise BttsimError(f"--toa-sigma-s must be a finite number >= 0, got {args.toa_sigma_s!r}")
+    scn = scenario.load_scenario(args.scenario)
+    try:
+        bounds = scenario_bounds(scn, args.toa_sigma_s)
+    except (ValueError, LayoutError) as exc:
+        raise BttsimError(f"{args.scenario}: {exc}") from None
+    print(bounds_table(bounds))
+    if bounds and bounds[0].toa_sigma_s == 0:
+        print("bttsim: note: the scenario has no TOA noise (trigger_jitter_s 0, no clock): every bound is 0; "
+              "give --toa-sigma-s", file=sys.stderr)
+
+
 def _cmd_model_build(args: argparse.Namespace) -> None:
     scn = scenario.load_scenario(args.scenario) if args.scenario else scenario.Scenario()
     model = build_model(scn)
@@ -531,6 +547,19 @@ def _add_node_parsers(sub) -> None:
     add_node_parser(sub, program("router"), "router").set_defaults(func=_cmd_node)
 
 
+def _add_crb_parser(sub) -> None:
+    """``bttsim crb``: Cramér-Rao bounds of a scenario's resonances."""
+    p = sub.add_parser("crb", help="Cramér-Rao lower bounds of the resonance amplitude and frequency of a scenario",
+                       description="For each engine order's predicted crossing: the least standard deviation "
+                                   "any unbiased estimate of each blade's resonant amplitude and frequency can have, "
+                                   "from the probe layout, the TOA noise and the revolutions through the resonance "
+                                   "(docs/processing.md).")
+    p.add_argument("scenario", help="scenario (TOML)")
+    p.add_argument("--toa-sigma-s", type=float, metavar="S",
+                   help="TOA noise standard deviation, s (default: the scenario's trigger_jitter_s and clock)")
+    p.set_defaults(func=_cmd_crb)
+
+
 def _add_process_parser(sub) -> None:
     """``bttsim process``: a recording to the resonance report."""
     p = sub.add_parser("process", help="process a recording offline into the resonance report")
@@ -663,6 +692,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate_parser(sub)
     _add_node_parsers(sub)
     _add_process_parser(sub)
+    _add_crb_parser(sub)
     _add_export_parser(sub)
     _add_ingest_parser(sub)
     _add_view_parser(sub)

@@ -15,6 +15,8 @@ run, blades and probes 0-based. The tables (documented in ``schemas/export.md``)
 ``resonance``             entry, kind, eo, nd, rpm, ..., blade, amp_pkpk_m, freq_hz, E_A_pct, ...
 ``truth``                 revolution, blade, probe, toa_s, t_exp_s, d_eqv_m, ... (when recorded)
 ``truth_revolution``      revolution, blade, opr_s, omega_mean_rad_s, d_eqv_pkpk_m (when recorded)
+``truth_eo``              revolution, blade, eo, eo_pkpk_m (each engine order's own response;
+                          when recorded)
 ``truth_nsv``             revolution, component, nsv_kind, nsv_freq_hz, nsv_nd, ... (non-synchronous
                           vibration in the truth; when any)
 ========================  ================================================================
@@ -99,6 +101,7 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "d_eq1_m": ("m", "Eq. 1 displacement from the simulated TOA and the exact expected time"),
     "omega_mean_rad_s": ("rad/s", "true mean speed over the revolution"),
     "d_eqv_pkpk_m": ("m", "true pk-pk envelope of d_eqv(t) over the revolution (engine orders)"),
+    "eo_pkpk_m": ("m", "true pk-pk envelope of this engine order's own part of d_eqv(t) over the revolution"),
     "component": ("", "non-synchronous vibration component index (scenario order: stalls, broadband, flutter)"),
     "nsv_kind": ("", "'rotating_stall', 'flutter' or 'broadband'"),
     "nsv_freq_hz": ("Hz", "true frequency in the rotor frame at the revolution's mean speed (broadband: band centre)"),
@@ -265,6 +268,10 @@ def run_tables(run, result=None) -> RunTables:
             _long((n_rev, n_b), ("revolution", "blade"), rev),
             opr_s=_f(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=_f(np.repeat(tr.omega_mean, n_b)),
             d_eqv_pkpk_m=_f(tr.d_eqv_pkpk_m))
+        if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
+            cols = _long(tr.eo_pkpk_m.shape, ("revolution", "blade", "eo"), rev)
+            cols["eo"] = np.asarray(tr.eo_engine_order[0], np.int64)[cols["eo"]]
+            t["truth_eo"] = dict(cols, eo_pkpk_m=_f(tr.eo_pkpk_m))
         if tr.nsv_kind is not None and tr.nsv_kind.size:
             shp = tr.nsv_kind.shape
             t["truth_nsv"] = dict(

@@ -124,8 +124,8 @@ class RecordedRun:
 
 
 #: The truth fields that ``bttsim process`` reads (E_A / E_f, the NSV scores, exact times).
-PROCESS_TRUTH_FIELDS = ("opr_s", "t_exp_s", "d_eqv_pkpk_m", "omega_mean", "nsv_kind", "nsv_freq_hz", "nsv_nd",
-                        "nsv_amp_pkpk_m", "nsv_rms_m", "nsv_band_hz")
+PROCESS_TRUTH_FIELDS = ("opr_s", "t_exp_s", "d_eqv_pkpk_m", "omega_mean", "eo_engine_order", "eo_pkpk_m", "nsv_kind",
+                        "nsv_freq_hz", "nsv_nd", "nsv_amp_pkpk_m", "nsv_rms_m", "nsv_band_hz")
 
 
 class _TruthTable:

@@ -96,7 +96,8 @@ class ProcessorSession:
             nsv = None
             if getattr(t, "nsv_kind", None) is not None:  # the non-synchronous components (issue 13)
                 nsv = (t.nsv_kind[0], t.nsv_freq_hz[0], t.nsv_nd[0], t.nsv_amp_pkpk_m[0])
-            self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]), nsv=nsv)
+            eo = None if t.eo_pkpk_m is None else (t.eo_engine_order[0], t.eo_pkpk_m[0])
+            self.tracker.update(decoded.header.revolution, t.d_eqv_pkpk_m[0], float(t.omega_mean[0]), nsv=nsv, eo=eo)
             return []
         if kind == "toa":
             self.missing_toas += int(np.count_nonzero(np.isnan(decoded.body.toa_s)))

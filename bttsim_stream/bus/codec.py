@@ -489,7 +489,26 @@ def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
         getattr(m, name).extend(np.asarray(getattr(truth, name)[i], dtype=np.float64).ravel().tolist())
     m.d_eqv_pkpk_m.extend(np.asarray(truth.d_eqv_pkpk_m[i], dtype=np.float64).tolist())
     _fill_nsv(m, truth, i)
+    if truth.eo_pkpk_m is not None:
+        m.eo_engine_order.extend(np.asarray(truth.eo_engine_order[i], dtype=np.int64).tolist())
+        m.eo_pkpk_m.extend(np.asarray(truth.eo_pkpk_m[i], dtype=np.float64).ravel().tolist())
     return _serialize(m)
+
+
+def _decode_eo(where: str, m, nb: int) -> dict:
+    """``eo_engine_order`` (1, n_eo) and ``eo_pkpk_m`` (1, n_blades, n_eo) of one revolution
+    after size and range checks (n_eo = 0 for a recording made before the fields existed)."""
+    k = len(m.eo_engine_order)
+    if k > MAX_ENGINE_ORDER:
+        raise _corrupt(where, m, f"{k} eo_engine_order entries, more than {MAX_ENGINE_ORDER}")
+    _check_len(where, m, "eo_pkpk_m", nb * k, f"({nb}, {k})")
+    orders = _array(m.eo_engine_order, np.int64)
+    if k and not (np.all((orders >= 1) & (orders <= MAX_ENGINE_ORDER)) and np.all(np.diff(orders) > 0)):
+        raise _corrupt(where, m, f"eo_engine_order must ascend strictly within [1, {MAX_ENGINE_ORDER}]")
+    amp = _array(m.eo_pkpk_m).reshape(1, nb, k)
+    if not np.all(np.isfinite(amp) & (amp >= 0)):
+        raise _corrupt(where, m, "eo_pkpk_m values must be finite and >= 0")
+    return {"eo_engine_order": orders.reshape(1, k), "eo_pkpk_m": amp}
 
 
 #: Largest number of non-synchronous components a TruthBatch may carry.
@@ -555,7 +574,8 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
         raise _corrupt(where, m, f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
     arrays = {name: _array(getattr(m, name)).reshape(1, nb, npr) for name in _TRUTH_2D}
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
-                  d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays, **_decode_nsv(where, m, nb))
+                  d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays, **_decode_nsv(where, m, nb),
+                  **_decode_eo(where, m, nb))
     return Decoded(_header(m.header), truth)
 
 
@@ -948,6 +968,11 @@ def encode_truth_batch(run_id: str, seq, revolution, t_s, truth: Truth) -> list[
             m = _pb.TruthBatch()
             _fill_nsv(m, truth, i)
             out[i] = out[i] + m.SerializeToString(deterministic=True)
+    if truth.eo_pkpk_m is not None and np.shape(truth.eo_engine_order)[1]:  # fields 14-15, after nsv (13)
+        amp = _doubles(np.asarray(truth.eo_pkpk_m).reshape(n, -1))
+        tail = _assemble(_packed_varints(_tag(_pb.TruthBatch, "eo_engine_order"), np.asarray(truth.eo_engine_order))
+                         + _packed(_tag(_pb.TruthBatch, "eo_pkpk_m"), amp))
+        out = [a + b for a, b in zip(out, tail)]
     return out
 
 

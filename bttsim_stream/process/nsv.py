@@ -157,6 +157,10 @@ class NsvScan:
     whole_run : bool
         A run shorter than ``min_blocks`` blocks (and at least :data:`MIN_WHOLE_RUN`
         revolutions) is one block of all its revolutions; its detection needs no persistence.
+    near_sync : ndarray of bool, shape (n_blocks,), or None
+        The block's power peak is at the edge of the searched band and not a local maximum
+        (the bin below it, in the synchronous band, is as strong): the alias, and with it the
+        order's branch and the amplitude, are not resolved (an order passing a whole number).
     """
 
     start: np.ndarray
@@ -174,6 +178,7 @@ class NsvScan:
     detected: np.ndarray
     blade_amp_pkpk_m: np.ndarray
     whole_run: bool = False
+    near_sync: np.ndarray | None = None
 
     @property
     def n_blocks(self) -> int:
@@ -337,6 +342,7 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     S, ratio, i_pk, peak = _band_power(d[idx].reshape(nblk, L, nb * npr), sp)
     out["ratio"] = ratio
     k_pk = i_pk + band[0]
+    out["near"] = (i_pk == 0) & (S[:, band[0] - 1] >= S[:, band[0]])
     # a rough pk-pk amplitude of the peak (a wave equal on every series): blocks far below
     # the amplitude threshold are not analysed further
     rough = 4.0 * np.sqrt(peak / (nb * npr)) / w_sum
@@ -418,7 +424,8 @@ def _scan(st, L, out, alternatives, om_blk, detected, whole) -> NsvScan:
     return NsvScan(start=st, block=L, whole_run=bool(whole), ratio=out["ratio"], alias=out["alias"], order=out["order"],
                    alternatives=tuple(alternatives), coherence=out["coherence"], nd=out["nd"],
                    amp_pkpk_m=out["amp"], forward_m=out["fwd"], backward_m=out["bwd"], omega_rad_s=om_blk,
-                   detected=np.asarray(detected, bool), blade_amp_pkpk_m=out["blade"])
+                   detected=np.asarray(detected, bool), blade_amp_pkpk_m=out["blade"],
+                   near_sync=out.get("near", np.zeros(st.size, bool)))
 
 
 def _spectrum(L: int, pad: int, guard: float):
@@ -566,27 +573,19 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
     -------
     tuple of NsvDetection
     """
-    runs: list[list[int]] = []
-    tol = 3.0 / scan.block
-    for k in np.flatnonzero(scan.detected):
-        last = runs[-1][-1] if runs else None
-        # the same vibration: the next block, and its order within tol of the last block's
-        # order or of one it could not be told from (the ND goes with the order)
-        if (last is not None and scan.start[k] == scan.start[last] + scan.block
-                and any(abs(scan.order[k] - o) <= tol and scan.nd[k] == n
-                        for o, n in ((scan.order[last], scan.nd[last]), *scan.alternatives[last]))):
-            runs[-1].append(int(k))
-        else:
-            runs.append([int(k)])
+    near = np.zeros(scan.n_blocks, bool) if scan.near_sync is None else np.asarray(scan.near_sync, bool)
     out = []
     d = np.asarray(d_m, dtype=float)
-    for run in runs:
+    for run in _group_blocks(scan, near):
         if len(run) < int(options.min_blocks) and not scan.whole_run:
             continue
-        r = np.asarray(run)
+        # the blocks whose alias is resolved give the order, frequency and per-revolution
+        # amplitudes (all of them when none is)
+        resolved = [k for k in run if not near[k]] or run
+        r = np.asarray(resolved)
         top = int(r[np.argmax(scan.amp_pkpk_m[r])])
         revs, amps, f = [], [], []
-        for k in run:
+        for k in resolved:
             s = int(scan.start[k])
             revs.append(np.arange(s, s + scan.block))
             a = revolution_amplitudes(d[s:s + scan.block], arrival_angles_rad, float(scan.order[k]),
@@ -603,18 +602,75 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
         last = rev_amp[-LAST_REVOLUTIONS:]
         last_amp = float(np.median(last[np.isfinite(last)])) if np.isfinite(last).any() else math.nan
         out.append(NsvDetection(
-            first_revolution=revolution0 + int(scan.start[r[0]]),
-            last_revolution=revolution0 + int(scan.start[r[-1]]) + scan.block - 1,
+            first_revolution=revolution0 + int(scan.start[run[0]]),
+            last_revolution=revolution0 + int(scan.start[run[-1]]) + scan.block - 1,
             order=float(scan.order[top]), order_alternatives=tuple(o for o, _ in scan.alternatives[top]),
             nd_alternatives=tuple(n for _, n in scan.alternatives[top]), alias=float(scan.alias[top]),
-            freq_hz=float(f[run.index(top)]), freq_min_hz=float(np.min(f)), freq_max_hz=float(np.max(f)),
+            freq_hz=float(f[resolved.index(top)]), freq_min_hz=float(np.min(f)), freq_max_hz=float(np.max(f)),
             nd=int(scan.nd[top]), amp_pkpk_m=float(scan.amp_pkpk_m[top]),
             amp_first_pkpk_m=float(scan.amp_pkpk_m[r[0]]), amp_last_pkpk_m=last_amp,
-            ratio=float(np.max(scan.ratio[r])),
+            ratio=float(np.max(scan.ratio[np.asarray(run)])),
             ratio_threshold=float(options.ratio_threshold), coherence=float(scan.coherence[top]), blocks=len(run),
             revolutions=revolution0 + np.concatenate(revs), rev_amp_pkpk_m=rev_amp,
             forward_m=scan.forward_m[top].copy(), backward_m=scan.backward_m[top].copy()))
     return tuple(out)
+
+
+def _same_wave(scan: NsvScan, k: int, j: int, tol: float, predicted: float | None = None) -> bool:
+    """Block ``k``'s order within ``tol`` of block ``j``'s (or of ``predicted``), or of one
+    block ``j`` could not be told from, with the ND that goes with it."""
+    ref = ((scan.order[j] if predicted is None else predicted, scan.nd[j]), *scan.alternatives[j])
+    return any(abs(scan.order[k] - o) <= tol and scan.nd[k] == n for o, n in ref)
+
+
+def _bridges(scan: NsvScan, run: list, k: int, tol: float, near: np.ndarray) -> bool:
+    """Whether resolved block ``k`` continues ``run`` across blocks where the order passed a
+    whole or half number (near-synchronous or undetected blocks in between): the same ND, such
+    a number between the orders (or next to one), and ``k``'s order where the run's last
+    resolved blocks' trend puts it, within a gap no longer than that trend needs to cross the
+    unresolved band (at least 4 blocks)."""
+    res = [j for j in run if not near[j]]
+    if not res:
+        return False
+    j = res[-1]
+    steps = int(scan.start[k] - scan.start[j]) // scan.block
+    rate = 0.0
+    if len(res) > 1:
+        span = max(int(scan.start[j] - scan.start[res[-2]]) // scan.block, 1)
+        rate = float(scan.order[j] - scan.order[res[-2]]) / span
+    edge = float(np.nanmin(scan.alias[np.asarray(res)])) + tol
+    max_steps = min(64, max(4, int(math.ceil(2.0 * edge / abs(rate))) + 2 if rate else 4))
+    a, b = float(scan.order[j]), float(scan.order[k])
+    # a whole order (alias 0: the synchronous band) or a half one (alias 0.5: the two
+    # branches m + 1/2 and m + 1 - 1/2 coincide) between them, or next to one of them
+    crosses = (math.floor(2.0 * a) != math.floor(2.0 * b)
+               or min(abs(2.0 * x - round(2.0 * x)) for x in (a, b)) <= 2.0 * edge)
+    return (1 < steps <= max_steps and crosses and scan.nd[k] == scan.nd[j]
+            and _same_wave(scan, k, j, 2.0 * tol, predicted=a + rate * steps))
+
+
+def _group_blocks(scan: NsvScan, near: np.ndarray) -> list[list[int]]:
+    """The detected blocks grouped into vibrations: consecutive blocks whose orders are within
+    ``3 / block`` (or of an order the last block could not be told from, the ND going with
+    it). A near-synchronous block (``scan.near_sync``: its alias unresolved, next to a whole
+    order) joins the run before it when its ND matches and at most one block lies between;
+    a resolved block continues a run across such blocks when the order passed a whole number
+    (:func:`_bridges`): one continuous vibration is one detection."""
+    runs: list[list[int]] = []
+    tol = 3.0 / scan.block
+    for k in (int(i) for i in np.flatnonzero(scan.detected)):
+        run = runs[-1] if runs else None
+        last = run[-1] if run else None
+        steps = None if last is None else int(scan.start[k] - scan.start[last]) // scan.block
+        if steps == 1 and _same_wave(scan, k, last, tol):
+            run.append(k)
+        elif near[k] and steps is not None and steps <= 2 and scan.nd[k] == scan.nd[last]:
+            run.append(k)
+        elif run is not None and not near[k] and _bridges(scan, run, k, tol, near):
+            run.append(k)
+        else:
+            runs.append([k])
+    return runs
 
 
 def revolution_amplitudes(d_m: np.ndarray, arrival_angles_rad: np.ndarray, order: float,
@@ -708,11 +764,16 @@ def score_nsv(det: NsvDetection, truth: NsvTruthRows, revolution0: int = 0) -> d
     -------
     dict
         ``{"kind", "freq_hz" (mean where present), "nd", "amp_pkpk_m" (largest),
-        "amp_last_pkpk_m" (median of the last LAST_REVOLUTIONS revolutions)}``.
+        "amp_last_pkpk_m"}``: the median at the revolutions of the detection's
+        ``amp_last_pkpk_m`` (its last :data:`LAST_REVOLUTIONS` per-revolution amplitudes;
+        without them, the component's last revolutions present in the detection's span).
     """
     n_rev = truth.freq_hz.shape[0]
     lo = max(int(det.first_revolution) - revolution0, 0)
     hi = min(int(det.last_revolution) - revolution0 + 1, n_rev)
+    revs = np.asarray(det.revolutions, np.int64)[np.isfinite(np.asarray(det.rev_amp_pkpk_m, float))]
+    rows = revs[-LAST_REVOLUTIONS:] - int(revolution0)
+    rows = rows[(rows >= 0) & (rows < n_rev)]
     best, key = None, None
     for c in range(truth.freq_hz.shape[1]):
         amp = truth.amp_pkpk_m[lo:hi, c]
@@ -724,7 +785,8 @@ def score_nsv(det: NsvDetection, truth: NsvTruthRows, revolution0: int = 0) -> d
         nd = int(nds[np.argmax(counts)])
         k = (nd != int(det.nd), abs(f - float(det.freq_hz)))
         if key is None or k < key:
-            last = amp[present][-LAST_REVOLUTIONS:]
+            last = truth.amp_pkpk_m[rows, c] if rows.size else amp[present][-LAST_REVOLUTIONS:]
+            last = last[np.isfinite(last)] if np.isfinite(last).any() else amp[present][-LAST_REVOLUTIONS:]
             best, key = {"kind": str(truth.kind[lo:hi, c][present][0]), "freq_hz": f, "nd": nd,
                          "amp_pkpk_m": float(np.max(amp[present])), "amp_last_pkpk_m": float(np.median(last))}, k
     return best if best is not None else {"kind": None}

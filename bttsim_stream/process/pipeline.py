@@ -27,11 +27,12 @@ from .displacement import TWO_PI, Displacements, Geometry, compute_displacements
 from .fit import SineFit, fit_revolutions
 from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
+from . import crb
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
-                        TruthRows, find_peaks, window_truth)
+                        TruthRows, find_peaks, own_envelope, window_truth)
 from .results import ProcessingResult, RevolutionFit, RevolutionOutput
 from .travelling_wave import fit_spectra, identify_nd, probe_spectra
 
@@ -61,7 +62,11 @@ def _truth_rows(truth, n_rev: int, revolution0: int):
     pk, om = np.asarray(pk, float), np.asarray(om, float)
     if pk.shape[0] != n_rev:
         raise ValueError(f"the truth has {pk.shape[0]} revolutions, the data {n_rev}")
-    return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om)
+    orders, own = getattr(truth, "eo_engine_order", None), getattr(truth, "eo_pkpk_m", None)
+    if orders is None or own is None or np.shape(orders)[0] == 0:
+        return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om)
+    return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om, eo_engine_order=np.asarray(orders)[0],
+                     eo_pkpk_m=np.asarray(own, float))
 
 
 def _fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius: float | None = None) -> SineFit:
@@ -375,7 +380,7 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
-    if ctx.truth is not None and len(eos) > 1:
+    if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo) is None for eo in eos):
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
                      "engine orders' off-resonance response at its speed")
     return ResonanceReport.from_entries(entries, steady, eo=eos[0], cn=ctx.cns.get(eos[0], ctx.fit.cn),
@@ -632,6 +637,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
                                     c.lo, c.hi, fn0_hz=pk.freq_hz, zeta0=c.damping_estimate(ctx.omega))
     zc = _correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])
     pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc)
+    pk = _with_bound(ctx, c, pk)
     with _quiet():
         damping = float(np.nanmean(pk.damping_ratio)) if np.isfinite(pk.damping_ratio).any() else math.nan
         f_mean = float(np.nanmean(pk.freq_hz)) if np.isfinite(pk.freq_hz).any() else math.nan
@@ -644,6 +650,31 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         first_revolution=r0 + c.lo, last_revolution=r0 + c.hi, peak_revolution=r0 + c.peak, peaks=pk,
         sweep_rate=sweep, zeroing_correction=zc, notes=crossing_notes)
     return entry.with_truth(window_truth(ctx.truth, c.eo, c.lo, c.hi))
+
+
+def _with_bound(ctx: _Context, c: Crossing, pk: ResonancePeaks) -> ResonancePeaks:
+    """The crossing's Cramér-Rao bounds (:mod:`.crb`): the layout and fitted orders, the noise
+    of the Eq. 16 fits' residuals over revolutions ``lo .. hi`` (truth-free; without
+    redundancy, of the responses' scatter), the SDOF model at
+    the estimated amplitude, frequency, phase and damping (the half-power estimate without an
+    SDOF fit)."""
+    eos_fit = ctx.eos if ctx.joint else (c.eo,)
+    angles = ctx.geometry.probe_angles_rad
+    sl = slice(c.lo, c.hi + 1)
+    try:
+        K = crb.phasor_covariance(angles, eos_fit, eos_fit.index(c.eo))
+    except ValueError:
+        return pk
+    sigma = crb.residual_sigma(ctx.d_flat[sl], angles, eos_fit)
+    if not np.isfinite(sigma).any():  # no redundancy: the scatter of the unsmoothed responses
+        sigma = crb.scatter_sigma(ctx.raw.phasor[sl, :, ctx.eos.index(c.eo)], K)
+    zeta = np.where(np.isfinite(pk.damping_ratio), pk.damping_ratio, c.damping_estimate(ctx.omega))
+    phase = np.zeros(pk.n_blades) if pk.phase_rad is None else np.nan_to_num(pk.phase_rad)
+    with _quiet():
+        b = crb.resonance_bound(angles, eos_fit, eos_fit.index(c.eo), ctx.omega[sl] * c.eo / TWO_PI,
+                                np.broadcast_to(sigma, (c.hi + 1 - c.lo, sigma.size)), pk.amp_pkpk_m, pk.freq_hz,
+                                zeta, phase)
+    return replace(pk, crb_amp_m=b.amp_pkpk_m, crb_freq_hz=b.freq_hz)
 
 
 def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, freq, zc: float):

@@ -41,6 +41,8 @@ __all__ = [
     "ResonanceReport",
     "find_peaks",
     "truth_peaks",
+    "own_envelope",
+    "truth_envelope",
     "resonance_errors",
     "resonance_report",
     "summary_table",
@@ -75,6 +77,9 @@ class ResonancePeaks:
     amp_ci95_m, freq_ci95_hz, phase_ci95_rad : ndarray, shape (n_blades, 2), or None
         95 % intervals ``[lo, hi]`` of the amplitude (pk-pk, m), frequency (Hz) and phase
         (rad) (:mod:`~bttsim_stream.process.intervals`).
+    crb_amp_m, crb_freq_hz : ndarray, shape (n_blades,), or None
+        Cramér-Rao lower bounds (standard deviations) of the pk-pk amplitude and of the
+        frequency for the run's layout, noise and revolutions (:mod:`~bttsim_stream.process.crb`).
     """
 
     revolution: np.ndarray
@@ -90,6 +95,8 @@ class ResonancePeaks:
     amp_ci95_m: np.ndarray | None = None
     freq_ci95_hz: np.ndarray | None = None
     phase_ci95_rad: np.ndarray | None = None
+    crb_amp_m: np.ndarray | None = None
+    crb_freq_hz: np.ndarray | None = None
 
     @property
     def n_blades(self) -> int:
@@ -117,10 +124,35 @@ class TruthPeaks:
     freq_hz: np.ndarray
 
 
+def own_envelope(truth, engine_order: int) -> np.ndarray | None:
+    """The truth's envelope of ``engine_order``'s own response, (n_rev, n_blades): the column
+    of ``eo_pkpk_m`` (n_rev, n_blades, n_eo) whose ``eo_engine_order`` (n_eo,), or
+    (n_rev, n_eo) with the same orders on every row, is ``engine_order``; None when the truth
+    does not carry it (then only the sum over the engine orders, ``d_eqv_pkpk_m``, is known)."""
+    amp = getattr(truth, "eo_pkpk_m", None)
+    orders = getattr(truth, "eo_engine_order", None)
+    if amp is None or orders is None:
+        return None
+    orders = np.asarray(orders)
+    if orders.ndim == 2:
+        orders = orders[0] if orders.shape[0] else np.zeros(0, np.int64)
+    j = np.flatnonzero(orders == int(engine_order))
+    return np.asarray(amp, dtype=float)[..., int(j[0])] if j.size else None
+
+
+def truth_envelope(truth, engine_order: int) -> np.ndarray:
+    """The truth envelope a crossing of ``engine_order`` is scored against, (n_rev, n_blades):
+    its own response (:func:`own_envelope`) when the truth carries it, else the sum over the
+    engine orders ``d_eqv_pkpk_m`` (the same with one engine order)."""
+    own = own_envelope(truth, engine_order)
+    return np.asarray(truth.d_eqv_pkpk_m, dtype=float) if own is None else own
+
+
 def truth_peaks(truth, engine_order: int) -> TruthPeaks:
     """Truth peaks from a truth-like object (``Truth`` of the simulator, or anything with
-    ``d_eqv_pkpk_m`` (n_rev, n_blades) and ``omega_mean`` (n_rev,) in rad/s)."""
-    pk = np.asarray(truth.d_eqv_pkpk_m, dtype=float)
+    ``d_eqv_pkpk_m`` (n_rev, n_blades) and ``omega_mean`` (n_rev,) in rad/s; with
+    ``eo_pkpk_m`` / ``eo_engine_order``, ``engine_order``'s own response)."""
+    pk = truth_envelope(truth, engine_order)
     om = np.asarray(truth.omega_mean, dtype=float)
     rev = np.argmax(pk, axis=0)
     return TruthPeaks(revolution=rev.astype(np.int64), amp_pkpk_m=pk[rev, np.arange(pk.shape[1])],
@@ -137,10 +169,15 @@ class TruthRows:
         NaN for revolutions without truth.
     omega_mean : ndarray, shape (n_rev,)
         Mean speed, rad/s (NaN without truth).
+    eo_engine_order : ndarray of int64, shape (n_eo,), or None
+    eo_pkpk_m : ndarray, shape (n_rev, n_blades, n_eo), or None
+        Each engine order's own envelope (:func:`own_envelope`); None: not carried.
     """
 
     d_eqv_pkpk_m: np.ndarray
     omega_mean: np.ndarray
+    eo_engine_order: np.ndarray | None = None
+    eo_pkpk_m: np.ndarray | None = None
 
 
 class TruthPeakTracker:
@@ -167,15 +204,20 @@ class TruthPeakTracker:
         self._omega: np.ndarray | None = None
         self._rows: dict[int, tuple[np.ndarray, float]] = {}
         self._nsv: dict[int, tuple] = {}
+        self._eo: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float, nsv=None) -> None:
+    def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float, nsv=None,
+               eo=None) -> None:
         """Add one revolution: ``d_eqv_pkpk_m`` (n_blades,) m, mean speed rad/s; ``nsv``: its
         non-synchronous components ``(kind, freq_hz, nd, amp_pkpk_m)``, each (k,), when the
-        truth carries them (to score NSV detections)."""
+        truth carries them (to score NSV detections); ``eo``: each engine order's own envelope
+        ``(engine_orders (n_eo,), eo_pkpk_m (n_blades, n_eo))`` when the truth carries it."""
         a = np.asarray(d_eqv_pkpk_m, dtype=float)
         self._rows[int(revolution)] = (a.copy(), float(omega_mean_rad_s))
         if nsv is not None:
             self._nsv[int(revolution)] = tuple(np.asarray(x).reshape(-1) for x in nsv)
+        if eo is not None and np.size(eo[0]):
+            self._eo[int(revolution)] = (np.asarray(eo[0], np.int64).reshape(-1), np.array(eo[1], dtype=float))
         if self._amp is None:
             self._amp = np.full(a.shape, -np.inf)
             self._rev = np.full(a.shape, -1, dtype=np.int64)
@@ -204,7 +246,21 @@ class TruthPeakTracker:
             i = rev - int(first_revolution)
             if 0 <= i < n_revolutions and a.shape == (nb,):
                 amp[i], om[i] = a, w
-        return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om)
+        orders, own = self._eo_rows(first_revolution, n_revolutions, nb)
+        return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om, eo_engine_order=orders, eo_pkpk_m=own)
+
+    def _eo_rows(self, first_revolution: int, n_revolutions: int, nb: int):
+        """The engine orders' own envelopes of the rows (NaN where a revolution carried none,
+        or other orders than the first revolution that did), or (None, None)."""
+        if not self._eo:
+            return None, None
+        orders = self._eo[min(self._eo)][0]
+        own = np.full((int(n_revolutions), nb, orders.size), np.nan)
+        for rev, (o, a) in self._eo.items():
+            i = rev - int(first_revolution)
+            if 0 <= i < n_revolutions and np.array_equal(o, orders) and a.shape == own.shape[1:]:
+                own[i] = a
+        return orders.copy(), own
 
 
     def nsv_rows(self, first_revolution: int, n_revolutions: int):
@@ -353,7 +409,8 @@ def _blade_rows(peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f, *, ex
     rows = []
     opt = (("phase_rad", peaks.phase_rad), ("amp_std_m", peaks.amp_std_m), ("freq_std_hz", peaks.freq_std_hz),
            ("damping_ratio", peaks.damping_ratio), ("steady_amp_pkpk_m", peaks.steady_amp_pkpk_m),
-           ("natural_freq_hz", peaks.natural_freq_hz))
+           ("natural_freq_hz", peaks.natural_freq_hz), ("crb_amp_m", peaks.crb_amp_m),
+           ("crb_freq_hz", peaks.crb_freq_hz))
     cis = (("amp_ci95_m", peaks.amp_ci95_m), ("freq_ci95_hz", peaks.freq_ci95_hz),
            ("phase_ci95_rad", peaks.phase_ci95_rad))
     for b in range(peaks.n_blades):
@@ -767,9 +824,10 @@ def window_truth(truth, engine_order: int, first: int, last: int, *, mean: bool 
 
     Notes
     -----
-    The simulator's envelope sums the responses to every excitation (``2 sum_m |G_m|``):
-    with several engine orders, the window's truth includes the other orders' off-resonance
-    response.
+    The crossing is scored against its engine order's own response when the truth carries it
+    (:func:`truth_envelope`); a truth without it (a recording made before it was recorded)
+    gives only the sum over the engine orders, which includes the other orders'
+    off-resonance response.
     """
     if truth is None:
         return None
@@ -781,7 +839,7 @@ def window_truth(truth, engine_order: int, first: int, last: int, *, mean: bool 
         nan = np.full(rev.shape, np.nan)
         return TruthPeaks(revolution=np.where(inside, rev, -1), amp_pkpk_m=np.where(inside, truth.amp_pkpk_m, nan),
                           freq_hz=np.where(inside, truth.freq_hz, nan))
-    pk = np.asarray(truth.d_eqv_pkpk_m, dtype=float)[first:last + 1]
+    pk = truth_envelope(truth, engine_order)[first:last + 1]
     om = np.asarray(truth.omega_mean, dtype=float)[first:last + 1]
     if pk.size == 0 or not np.isfinite(pk).any():
         return None

@@ -146,6 +146,14 @@ class Truth:
         exact for one engine order).
     omega_mean : ndarray, shape (n_rev,)
         Mean speed over the revolution, rad/s.
+    eo_engine_order : ndarray of int64, shape (n_rev, n_eo), or None
+        The run's distinct engine orders, ascending (the columns of ``eo_pkpk_m``); None:
+        not known (a truth recorded before the field existed).
+    eo_pkpk_m : ndarray, shape (n_rev, n_blades, n_eo), or None
+        Each engine order's own response: peak-to-peak envelope of its part of ``d_eqv(t)``,
+        largest over the revolution's arrivals of ``2 |sum_m G_eqv,m|`` over the excitations
+        of that order (the system is linear: the responses superpose, and excitations of one
+        order share its carrier). With one engine order it equals ``d_eqv_pkpk_m``.
     nsv_kind : ndarray of str, shape (n_rev, n_nsv), or None
         With non-synchronous vibration in the scenario (:mod:`~bttsim_stream.sim.nsv`), per
         revolution and component: ``"rotating_stall"``, ``"flutter"`` or ``"broadband"``
@@ -176,6 +184,8 @@ class Truth:
     d_eq1_m: np.ndarray
     d_eqv_pkpk_m: np.ndarray
     omega_mean: np.ndarray
+    eo_engine_order: np.ndarray | None = None
+    eo_pkpk_m: np.ndarray | None = None
     nsv_kind: np.ndarray | None = None
     nsv_freq_hz: np.ndarray | None = None
     nsv_nd: np.ndarray | None = None

@@ -103,9 +103,20 @@ class EngineOrderForcing:
         return iter(())
 
     def truth(self, X, omega_mean, shape) -> dict:
-        """``d_eqv_pkpk_m``: largest over the revolution's arrivals of ``2 sum_m |G_eqv,m|``."""
+        """``d_eqv_pkpk_m``: largest over the revolution's arrivals of ``2 sum_m |G_eqv,m|``;
+        ``eo_pkpk_m``: the same of each engine order's own response, ``2 |sum_m G_eqv,m|``
+        over its excitations (one carrier ``EO phi(t)``: their envelopes add), and the orders
+        ``eo_engine_order`` of its columns."""
         amp = 2.0 * np.sum(np.hypot(X[:, 0], X[:, 1]), axis=0)
-        return {"d_eqv_pkpk_m": amp.reshape(shape).max(axis=2)}
+        orders = np.unique(self.forced.eo)
+        per_eo = np.empty((orders.size,) + amp.shape)
+        for j, eo in enumerate(orders):
+            rows = np.flatnonzero(self.forced.eo == eo)
+            per_eo[j] = 2.0 * np.hypot(X[rows, 0].sum(axis=0), X[rows, 1].sum(axis=0))
+        nr = shape[0]
+        return {"d_eqv_pkpk_m": amp.reshape(shape).max(axis=2),
+                "eo_pkpk_m": np.moveaxis(per_eo.reshape((orders.size,) + shape).max(axis=3), 0, -1),
+                "eo_engine_order": np.broadcast_to(orders.astype(np.int64), (nr, orders.size)).copy()}
 
     def warnings(self, step_s, radius_m, speed) -> list[str]:
         return []
