@@ -30,7 +30,9 @@ import hashlib
 import json
 import math
 import os
-from dataclasses import dataclass, fields, replace
+import shutil
+import tempfile
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,8 +42,9 @@ from .bus.recording import McapRecorder
 from .bus.stream import MessageStream
 from .defaults import DEFAULT_RIG
 from .errors import BttsimError
-from .process.displacement import Geometry
-from .process.identify import encoder_revolutions, identify_pulses, pulses_per_revolution
+from .process.displacement import Geometry, rotor_phase_from_opr
+from .process.identify import (calibration_end, encoder_revolutions, identification_params, identify_window,
+                               window_revolutions)
 from .process.trigger import PulseTrigger
 from .sim.core import RevolutionBatch, RunInfo
 from .sim.signal import TRIGGER_KINDS, Trigger
@@ -55,6 +58,7 @@ MAX_RPM = 300_000.0
 _BLOCK_BYTES = 4 << 20
 _MAX_LINE = 64 << 10
 _REVS_PER_BATCH = 64
+_CHUNK_REVS = 2048  # revolutions identified at a time
 _SIGNAL_BLOCK = 1 << 20
 
 
@@ -254,11 +258,19 @@ def read_times(path, column: str | None = None, *, what: str = "pulse times", st
         Missing or empty file, a value that is not a number, NaN or infinite, times going
         backwards (one line naming the file and the line or row).
     """
+    out = list(_checked_blocks(path, column, what, strict))
+    if not out:
+        raise BttsimError(f"{Path(path)}: no times in the file ({what})")
+    return np.concatenate(out)
+
+
+def _checked_blocks(path, column: str | None, what: str, strict: bool):
+    """The blocks of :func:`read_times`, each checked (finite, in order) as it is read."""
     p = Path(path)
     if not p.is_file():
         raise BttsimError(f"{p}: no such file ({what})")
     blocks = _blocks_parquet(p, column) if _is_parquet(p) else _blocks_csv(p, column)
-    out, prev = [], -math.inf
+    prev = -math.inf
     unit = "row" if _is_parquet(p) else "line"
     for first, arr in blocks:
         at = (lambda i: first + i) if isinstance(first, int) else (lambda i: int(first[i]))  # noqa: E731
@@ -275,10 +287,7 @@ def read_times(path, column: str | None = None, *, what: str = "pulse times", st
                               f"({before!r} s): {what} must {'strictly ' if strict else ''}increase")
         if arr.size:
             prev = float(arr[-1])
-            out.append(arr)
-    if not out:
-        raise BttsimError(f"{p}: no times in the file ({what})")
-    return np.concatenate(out)
+            yield arr
 
 
 @dataclass(frozen=True, slots=True)
@@ -424,14 +433,15 @@ def _check_out(out) -> None:
         raise BttsimError(f"{out}: cannot write (folder {out.parent} not writable)")
 
 
-def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray,
+def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_rows, shape: tuple,
            extra_passage: np.ndarray, extra_toa_s: np.ndarray, record: dict) -> None:
     """The recording, written to ``out`` through a temporary file (``out`` untouched on error).
 
-    ``extra_passage`` indexes ``(revolution, blade, probe)`` of the whole run flattened."""
+    ``toa_rows(a, b)`` gives the TOAs of revolutions ``a:b``, ``shape`` those of the run
+    ``(revolution, blade, probe)``; ``extra_passage`` indexes it flattened."""
     out = Path(out)
     stream = MessageStream(info.run_id, info.rig)
-    nr, nb, npr = toa_s.shape
+    nr, nb, npr = shape
     tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
     per_rev = nb * npr
     order = np.argsort(extra_passage, kind="stable")
@@ -443,7 +453,7 @@ def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_s:
                 hi = min(nr, lo + _REVS_PER_BATCH)
                 a, b = np.searchsorted(extra_passage, [lo * per_rev, hi * per_rev])
                 batch = RevolutionBatch(
-                    revolution=revolution[lo:hi], opr_s=opr_s[lo:hi], toa_s=toa_s[lo:hi], opr_ticks=None,
+                    revolution=revolution[lo:hi], opr_s=opr_s[lo:hi], toa_s=toa_rows(lo, hi), opr_ticks=None,
                     toa_ticks=None, truth=None, residual_s=0.0, bracketed=np.ones((hi - lo, nb, npr), bool),
                     extra_passage=extra_passage[a:b] - lo * per_rev, extra_toa_s=extra_toa_s[a:b])
                 rec.write_all(stream.acquisition(batch, include_truth=False))
@@ -575,7 +585,7 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
                        median_rpm=float(60.0 / np.median(np.diff(opr_s))))
     record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
               "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
-    _write(out, info, rev, opr_s, toa_s, ex_pass, ex_t, record)
+    _write(out, info, rev, opr_s, lambda a, b: toa_s[a:b], toa_s.shape, ex_pass, ex_t, record)
     return res
 
 
@@ -679,97 +689,192 @@ def _median_rpm(opr_path, opr: np.ndarray) -> float:
     return med_rpm
 
 
-def _label_probes(opr, probes: list, info: RunInfo, signal, column, tolerance, encoder):
-    """Each probe's pulses read (or triggered from its signal) and labelled by revolution and blade.
+class _Train:
+    """One probe's pulse times, s, spilled as float64 to a file while they are read, with the
+    count of pulses before each OPR pulse (``offset[n]``: before ``opr[n]``; ``offset[-1]``:
+    all)."""
 
-    Returns the labelled pulses, the per-probe report rows and, per probe, the double edges
-    of a signal (``(kept pulse times, double times)``) or None.
-    """
+    def __init__(self, path: Path, opr: np.ndarray):
+        self.path, self._opr = path, opr
+        self._cnt = np.zeros(opr.size + 1, np.int64)
+        self._fh = open(path, "wb")
+        self.offset = None
+
+    def add(self, t: np.ndarray) -> None:
+        np.asarray(t, dtype="<f8").tofile(self._fh)
+        self._cnt += np.bincount(np.searchsorted(self._opr, t, side="right"), minlength=self._cnt.size)
+
+    def close(self) -> "_Train":
+        self._fh.close()
+        self.offset = np.cumsum(self._cnt)
+        return self
+
+    @property
+    def size(self) -> int:
+        return int(self._cnt.sum())
+
+    @property
+    def per_revolution(self) -> np.ndarray:
+        """Pulses in ``[OPR_n, OPR_n+1)`` (:func:`~bttsim_stream.process.identify.pulses_per_revolution`)."""
+        return self._cnt[1:-1]
+
+    def read(self, i0: int, i1: int) -> np.ndarray:
+        return np.fromfile(self.path, dtype="<f8", count=max(int(i1) - int(i0), 0), offset=8 * int(i0))
+
+    def window(self, lo: int, hi: int) -> np.ndarray:
+        """The pulses of OPR intervals ``lo:hi`` (:func:`window_revolutions`)."""
+        return self.read(0 if lo == 0 else self.offset[lo], self.offset[hi])
+
+
+def _read_probe(j, probe, opr, tmp: Path, signal, column, holdoff_s):
+    """Probe ``j``'s pulses spilled (:class:`_Train`), its report row and (a signal) the
+    times of its pulses with a double edge and of those edges."""
+    deg, path, *kind = probe
+    train, extra_info, doubles = _Train(tmp / f"pulses{j}.f8", opr), {}, None
+    try:
+        if kind:
+            sig = signal if len(kind) < 2 or kind[1] is None else replace(signal, start_s=float(kind[1]))
+            trig = sig.trigger_of(j)
+            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, sig, holdoff_s)
+            train.add(t)
+            doubles = (t[dp], dt_)
+            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired,
+                                     "start_s": sig.start_s}}
+            del t
+        else:
+            what = f"pulse times of the probe at {deg:g} deg"
+            for arr in _checked_blocks(path, column, what, False):
+                train.add(arr)
+            if train.size == 0:
+                raise BttsimError(f"{Path(path)}: no times in the file ({what})")
+    finally:
+        train.close()
+    return train, {"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": train.size, **extra_info}, doubles
+
+
+def _read_probes(opr, probes: list, info: RunInfo, signal, column, tolerance, encoder, phase, tmp: Path):
+    """Each probe's pulses read (or triggered from its signal) into a :class:`_Train`, the
+    blade count checked, and its identification parameters found on the calibration span."""
     nb = info.n_blades
     geometry = Geometry(n_blades=nb, probe_angles_rad=info.probe_angles_rad, tip_radius_m=info.tip_radius_m,
                         opr_angle_rad=info.opr_angle_rad, blade_angles_rad=info.sensing_angles_rad)
     psi = geometry.nominal_arrival_angles()
-    labelled, per_probe, doubles = [], [], []
+    trains, params, per_probe, doubles = [], [], [], []
     period = np.diff(opr)
 
     def holdoff_s(t):
         i = np.clip(np.searchsorted(opr, t) - 1, 0, period.size - 1)
         return signal.holdoff * period[i] / nb
 
-    for j, (deg, path, *kind) in enumerate(probes):
-        extra_info = {}
-        if kind:
-            trig = signal.trigger_of(j)
-            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, signal, holdoff_s)
-            doubles.append((t[dp], dt_))
-            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired}}
-        else:
-            t = read_times(path, column, what=f"pulse times of the probe at {deg:g} deg")
-            doubles.append(None)
-        ppr = pulses_per_revolution(opr, t)
-        med = float(np.median(ppr))
+    for j, probe in enumerate(probes):
+        train, row, dbl = _read_probe(j, probe, opr, tmp, signal, column, holdoff_s)
+        med = float(np.median(train.per_revolution))
         if med != nb:
-            raise BttsimError(f"{path}: median {med:g} pulses per revolution between OPR pulses, not the "
+            raise BttsimError(f"{probe[1]}: median {med:g} pulses per revolution between OPR pulses, not the "
                               f"{nb} blades given (wrong --blades, or times not in the OPR's clock and unit?)")
-        ident = identify_pulses(opr, t, psi[:, j], calibrate=True, tolerance=tolerance, encoder=encoder)
-        labelled.append(ident)
-        per_probe.append({"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": int(t.size),
-                          "median_pulses_per_revolution": med, **extra_info})
-    return labelled, per_probe, doubles
+        k = calibration_end(opr, float(train.read(0, 1)[0]))
+        span = train.read(0, train.offset[-1] if k == opr.size else train.offset[k - 1])
+        params.append(identification_params(opr, span, psi[:, j], calibrate=True, tolerance=tolerance,
+                                            encoder=encoder, phase=phase))
+        trains.append(train)
+        doubles.append(dbl)
+        per_probe.append({**row, "median_pulses_per_revolution": med})
+    return trains, params, per_probe, doubles
 
 
-def _full_revolutions(opr_path, labelled: list) -> tuple[np.ndarray, int, int]:
-    """The TOAs, s, shape ``(revolution, blade, probe)``, of the revolutions ``lo:hi`` kept."""
-    toa = np.stack([r.toa_s for r in labelled], axis=2)  # (n_opr, nb, npr)
-    # a revolution is kept when every probe saw at least half the blades (the ends of a
-    # recording: the probes started late or stopped before the revolution's end)
-    full = np.all(np.mean(np.isfinite(toa), axis=1) >= 0.5, axis=1)
-    good = np.flatnonzero(full)
-    if good.size < 3:
-        raise BttsimError(f"{opr_path}: fewer than 3 revolutions with pulses on every probe "
-                          f"({good.size}); do the probe files cover the OPR file's time span?")
-    lo, hi = int(good[0]), int(good[-1]) + 1
-    return toa[lo:hi], lo, hi
+@dataclass(eq=False)
+class _Labels:
+    """One probe's labelling gathered over the windows (all but its TOAs, which are spilled)."""
+
+    extra: list = field(default_factory=list)  # (revolution, blade, time) per window
+    stray: list = field(default_factory=list)  # (revolution, time) per window
+    outside: int = 0
+    parent_rev: np.ndarray | None = None  # a signal's double edges: cell of their pulse, -1: not kept
+    parent_blade: np.ndarray | None = None
 
 
-def _extra_pulses(opr, labelled: list, doubles: list, per_probe: list, lo: int, hi: int, nb: int, npr: int):
+def _match_parents(lab: _Labels, parent_t: np.ndarray, toa: np.ndarray, start: int) -> None:
+    """Cells (revolution, blade) of the kept pulses ``toa`` (revolutions from ``start``) that
+    are the pulses of double edges (``parent_t``, increasing)."""
+    flat = toa.ravel()
+    have = np.flatnonzero(np.isfinite(flat))
+    if not have.size:
+        return
+    srt = have[np.argsort(flat[have], kind="stable")]
+    vals = flat[srt]
+    i0, i1 = np.searchsorted(parent_t, vals[0], side="left"), np.searchsorted(parent_t, vals[-1], side="right")
+    k = np.clip(np.searchsorted(vals, parent_t[i0:i1]), 0, vals.size - 1)
+    hit = np.flatnonzero(vals[k] == parent_t[i0:i1])
+    cell = srt[k[hit]]
+    lab.parent_rev[i0 + hit] = start + cell // toa.shape[1]
+    lab.parent_blade[i0 + hit] = cell % toa.shape[1]
+
+
+def _identify(opr, trains: list, params: list, doubles: list, encoder, phase, nb: int, toa_path: Path):
+    """Every probe labelled window by window (:func:`identify_window`); the TOAs spilled to
+    ``toa_path`` as float64 ``(revolution, blade, probe)``. Returns the labels and, per
+    revolution and probe, the TOA count and whether at least half the blades were seen."""
+    nr, npr = opr.size, len(trains)
+    labs = [_Labels() for _ in trains]
+    for lab, dbl in zip(labs, doubles):
+        if dbl is not None:
+            lab.parent_rev, lab.parent_blade = np.full(dbl[0].size, -1, np.int64), np.zeros(dbl[0].size, np.int64)
+    fin = np.zeros((nr, npr), np.int32)
+    half = np.zeros((nr, npr), bool)
+    with open(toa_path, "wb") as fh:
+        for a in range(0, nr, _CHUNK_REVS):
+            b = min(nr, a + _CHUNK_REVS)
+            lo, hi = window_revolutions(a, b, nr)
+            toa = np.empty((b - a, nb, npr))
+            for j, (train, lab) in enumerate(zip(trains, labs)):
+                r = identify_window(opr, train.window(lo, hi), params[j], a, b, encoder=encoder, phase=phase)
+                toa[:, :, j] = r.toa_s
+                lab.extra.append((r.extra_revolution, r.extra_blade, r.extra_toa_s))
+                lab.stray.append((r.stray_revolution, r.stray_toa_s))
+                lab.outside += r.outside
+                if doubles[j] is not None:
+                    _match_parents(lab, doubles[j][0], r.toa_s, a)
+            toa.tofile(fh)
+            seen = np.isfinite(toa)
+            fin[a:b] = seen.sum(axis=1)
+            # a revolution is kept when every probe saw at least half the blades (the ends of a
+            # recording: the probes started late or stopped before the revolution's end)
+            half[a:b] = np.mean(seen, axis=1) >= 0.5
+    return labs, fin, half
+
+
+def _extra_pulses(opr, labs: list, doubles: list, fin: np.ndarray, per_probe: list, lo: int, hi: int, nb: int):
     """The pulses besides the TOAs (extra, stray, double) of revolutions ``lo:hi``, and the counts.
 
     Returns the flat passage index ``(revolution * nb + blade) * npr + probe`` and time, s,
     of each such pulse, and the totals; each probe's counts go into its ``per_probe`` row.
     """
+    npr = len(labs)
     passages, times = [], []
     tot = {"missing": 0, "extra": 0, "stray": 0, "outside": 0, "double": 0}
-    for j, r in enumerate(labelled):
+    for j, lab in enumerate(labs):
+        ex_r, ex_b, ex_t = (np.concatenate([x[k] for x in lab.extra]) for k in range(3))
+        st_r, st_t = (np.concatenate([x[k] for x in lab.stray]) for k in range(2))
         n_double = 0
         if doubles[j] is not None and doubles[j][0].size:
             # a double edge joins the cell its pulse was kept in (where the signal chain puts it)
-            parent_t, dbl_t = doubles[j]
-            flat = r.toa_s[lo:hi].ravel()
-            have = np.flatnonzero(np.isfinite(flat))
-            srt = have[np.argsort(flat[have], kind="stable")]
-            k = np.clip(np.searchsorted(flat[srt], parent_t), 0, max(srt.size - 1, 0))
-            found = srt.size > 0
-            hit = (flat[srt[k]] == parent_t) if found else np.zeros(parent_t.size, bool)
-            cell = srt[k[hit]]
-            passages.append(cell * npr + j)
+            dbl_t = doubles[j][1]
+            hit = (lab.parent_rev >= lo) & (lab.parent_rev < hi)
+            passages.append(((lab.parent_rev[hit] - lo) * nb + lab.parent_blade[hit]) * npr + j)
             times.append(dbl_t[hit])
             n_double = int(hit.sum())
             # the others' pulse was extra, stray or outside: they count as stray (or outside)
             lost = dbl_t[~hit]
             rev_l = np.clip(np.searchsorted(opr, lost, side="right") - 1, 0, opr.size - 1).astype(np.int64)
-            r = replace(r, stray_toa_s=np.r_[r.stray_toa_s, lost], stray_revolution=np.r_[r.stray_revolution, rev_l])
-        sel_e = (r.extra_revolution >= lo) & (r.extra_revolution < hi)
-        sel_s = (r.stray_revolution >= lo) & (r.stray_revolution < hi)
-        cells = r.toa_s[lo:hi]
-        dropped = (int(np.isfinite(r.toa_s).sum() - np.isfinite(cells).sum())
-                   + int((~sel_e).sum()) + int((~sel_s).sum()))
-        passages += [((r.extra_revolution[sel_e] - lo) * nb + r.extra_blade[sel_e]) * npr + j,
-                     (r.stray_revolution[sel_s] - lo) * nb * npr + j]
-        times += [r.extra_toa_s[sel_e], r.stray_toa_s[sel_s]]
-        c = {"toas": int(np.isfinite(cells).sum()), "missing": int(np.isnan(cells).sum()),
-             "extra": int(sel_e.sum()), "stray": int(sel_s.sum()), "outside": r.outside + dropped,
-             "double": n_double}
+            st_r, st_t = np.r_[st_r, rev_l], np.r_[st_t, lost]
+        sel_e = (ex_r >= lo) & (ex_r < hi)
+        sel_s = (st_r >= lo) & (st_r < hi)
+        toas = int(fin[lo:hi, j].sum())
+        dropped = int(fin[:, j].sum()) - toas + int((~sel_e).sum()) + int((~sel_s).sum())
+        passages += [((ex_r[sel_e] - lo) * nb + ex_b[sel_e]) * npr + j, (st_r[sel_s] - lo) * nb * npr + j]
+        times += [ex_t[sel_e], st_t[sel_s]]
+        c = {"toas": toas, "missing": (hi - lo) * nb - toas, "extra": int(sel_e.sum()), "stray": int(sel_s.sum()),
+             "outside": lab.outside + dropped, "double": n_double}
         per_probe[j].update(c)
         for k in tot:
             tot[k] += c[k]
@@ -822,25 +927,47 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     if any(len(pr) > 2 for pr in probes):
         signal = (signal or SignalOptions()).resolve(scenario_path)
     med_rpm = _median_rpm(opr_path, opr)
-    labelled, per_probe, doubles = _label_probes(opr, probes, info, signal, column, tolerance, encoder)
-    toa, lo, hi = _full_revolutions(opr_path, labelled)
-    nr = hi - lo
-    ex_pass, ex_t, tot = _extra_pulses(opr, labelled, doubles, per_probe, lo, hi, nb, npr)
-    opr_k = opr[lo:hi]
-    rpm_k = 60.0 / np.diff(opr[lo:min(hi + 1, opr.size)])
-    run_id = _run_id("pulses", opr_k.tobytes(), toa.tobytes(), ex_t.tobytes())
-    info = replace(info, n_revolutions=nr, duration_s=float(opr_k[-1] - opr_k[0]), run_id=run_id,
-                   speed_range_rpm=(float(rpm_k.min()), float(rpm_k.max())), software_version=__version__,
-                   has_truth=False)
-    res = IngestResult(path=str(out), run_id=run_id, revolutions=nr, n_blades=nb, n_probes=npr,
-                       toas=int(np.isfinite(toa).sum()), median_rpm=med_rpm, per_probe=tuple(per_probe),
-                       notes=tuple(notes), **tot)
-    source = {"kind": "pulses", "opr": str(opr_path), "probes": [[float(a), str(p), *kind] for a, p, *kind in probes],
-              "column": column, "encoder_pulses": encoder_pulses, "encoder_index": encoder_index,
-              "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)},
-              "scenario": None if scenario_path is None else str(scenario_path),
-              "first_opr_pulse": lo}
-    record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
-              "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
-    _write(out, info, np.arange(nr, dtype=np.int64), opr_k, toa, ex_pass, ex_t, record)
+    phase = rotor_phase_from_opr(opr)
+    out = Path(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".spill", dir=out.parent))
+    try:
+        trains, params, per_probe, doubles = _read_probes(opr, probes, info, signal, column, tolerance, encoder,
+                                                          phase, tmp)
+        labs, fin, half = _identify(opr, trains, params, doubles, encoder, phase, nb, tmp / "toa.f8")
+        good = np.flatnonzero(np.all(half, axis=1))
+        if good.size < 3:
+            raise BttsimError(f"{opr_path}: fewer than 3 revolutions with pulses on every probe "
+                              f"({good.size}); do the probe files cover the OPR file's time span?")
+        lo, hi = int(good[0]), int(good[-1]) + 1
+        nr = hi - lo
+        ex_pass, ex_t, tot = _extra_pulses(opr, labs, doubles, fin, per_probe, lo, hi, nb)
+        del labs, doubles
+
+        def toa_rows(a: int, b: int) -> np.ndarray:
+            return np.fromfile(tmp / "toa.f8", dtype=float, count=(b - a) * nb * npr,
+                               offset=8 * (lo + a) * nb * npr).reshape(b - a, nb, npr)
+
+        opr_k = opr[lo:hi]
+        rpm_k = 60.0 / np.diff(opr[lo:min(hi + 1, opr.size)])
+        h = hashlib.sha256(b"pulses" + opr_k.tobytes())
+        for a in range(0, nr, _CHUNK_REVS):
+            h.update(toa_rows(a, min(nr, a + _CHUNK_REVS)).tobytes())
+        h.update(ex_t.tobytes())
+        run_id = h.hexdigest()[:16]
+        info = replace(info, n_revolutions=nr, duration_s=float(opr_k[-1] - opr_k[0]), run_id=run_id,
+                       speed_range_rpm=(float(rpm_k.min()), float(rpm_k.max())), software_version=__version__,
+                       has_truth=False)
+        res = IngestResult(path=str(out), run_id=run_id, revolutions=nr, n_blades=nb, n_probes=npr,
+                           toas=int(fin[lo:hi].sum()), median_rpm=med_rpm, per_probe=tuple(per_probe),
+                           notes=tuple(notes), **tot)
+        source = {"kind": "pulses", "opr": str(opr_path),
+                  "probes": [[float(a), str(p), *kind] for a, p, *kind in probes], "column": column,
+                  "encoder_pulses": encoder_pulses, "encoder_index": encoder_index,
+                  "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)},
+                  "scenario": None if scenario_path is None else str(scenario_path), "first_opr_pulse": lo}
+        record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
+                  "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
+        _write(out, info, np.arange(nr, dtype=np.int64), opr_k, toa_rows, (nr, nb, npr), ex_pass, ex_t, record)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return res
