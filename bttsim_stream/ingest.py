@@ -17,11 +17,15 @@ also holds ``source`` (what was read) and ``ingest`` (a JSON object of the count
   shaft encoder (:func:`~bttsim_stream.process.identify.encoder_revolutions`).
 
 Files are read in blocks (:func:`read_times`): a CSV whose first column (or ``column``)
-holds times in s, an optional header line, or a Parquet file; memory holds the times
-(8 bytes each), never the text. Every problem with the input (empty, not numbers, NaN,
-times going backwards, an implausible speed, a blade count the data do not show) is a
-one-line :class:`~bttsim_stream.errors.BttsimError`, raised before the output is touched:
-the recording is written to a temporary file and renamed at the end.
+holds times in s, an optional header line, or a Parquet file. Pulse trains are streamed:
+each block, once checked, is spilled as float64 to a temporary folder beside the output
+(:class:`_Train`); the identification runs on windows of revolutions
+(:func:`~bttsim_stream.process.identify.identify_window`), spilling the TOAs, and the
+recording is written from that spill, so memory does not grow with the number of pulses.
+Every problem with the input (empty, not numbers, NaN, times going backwards, an
+implausible speed, a blade count the data do not show) is a one-line
+:class:`~bttsim_stream.errors.BttsimError`, raised before the output is touched: the
+recording is written to a temporary file and renamed at the end; the spill is removed.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ from .defaults import DEFAULT_RIG
 from .errors import BttsimError
 from .process.displacement import Geometry, rotor_phase_from_opr
 from .process.identify import (calibration_end, encoder_revolutions, identification_params, identify_window,
-                               window_revolutions)
+                               last_pulse_s, window_revolutions)
 from .process.trigger import PulseTrigger
 from .sim.core import RevolutionBatch, RunInfo
 from .sim.signal import TRIGGER_KINDS, Trigger
@@ -60,6 +64,7 @@ _MAX_LINE = 64 << 10
 _REVS_PER_BATCH = 64
 _CHUNK_REVS = 2048  # revolutions identified at a time
 _SIGNAL_BLOCK = 1 << 20
+_PARQUET_ROWS = 1 << 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -210,7 +215,7 @@ def _blocks_parquet(path: Path, column: str | None):
         raise BttsimError(f"{path}: reading Parquet needs pyarrow: pip install 'bttsim-stream[parquet]' "
                           f"(or give a CSV file)") from None
     try:
-        pf = pq.ParquetFile(path)
+        pf = pq.ParquetFile(path, pre_buffer=False, buffer_size=1 << 20)  # pre-buffered: memory grows
         names = pf.schema_arrow.names
         if not names:
             raise BttsimError(f"{path}: the Parquet file has no column")
@@ -218,7 +223,7 @@ def _blocks_parquet(path: Path, column: str | None):
         if name not in names:
             raise BttsimError(f"{path}: no column {column!r} (the file has {', '.join(names)})")
         row = 1
-        for batch in pf.iter_batches(batch_size=1 << 20, columns=[name]):
+        for batch in pf.iter_batches(batch_size=_PARQUET_ROWS, columns=[name]):
             arr = batch.column(0).to_numpy(zero_copy_only=False)
             try:
                 arr = np.asarray(arr, dtype=float)
@@ -372,6 +377,13 @@ def _signal_blocks(p: Path):
         for lo in range(0, arr.size, _SIGNAL_BLOCK):
             yield lo + 1, np.asarray(arr[lo:lo + _SIGNAL_BLOCK], dtype=float)
         return
+    with open(p, "rb") as fh:  # a time column before the volts would be read as volts: refuse
+        lines = [ln.strip() for ln in fh.read(_MAX_LINE).decode("utf-8", "replace").splitlines()[:-1]]
+    first = next((ln for ln in lines if ln and not ln.startswith("#")), "")
+    cols = next((first.split(d) for d in (",", ";", "\t") if d in first), first.split())
+    if len(cols) > 1:
+        raise BttsimError(f"{p}: a signal CSV holds one column, volts (this one has {len(cols)}: "
+                          f"{first[:40]!r}); the time of sample i is START + i / --sample-rate")
     yield from _blocks_csv(p, None)
 
 
@@ -603,13 +615,26 @@ def parse_probe(text: str) -> tuple[float, str]:
     return deg, path
 
 
-def parse_signal(text: str) -> tuple[float, str, str]:
-    """``"23.82=probe2.npy"`` -> ``(23.82, "probe2.npy", "signal")``."""
+def parse_signal(text: str) -> tuple[float, str, str, float | None]:
+    """``"23.82=probe2.npy"`` -> ``(23.82, "probe2.npy", "signal", None)``;
+    ``"23.82=probe2.npy@0.0125"`` -> ``(23.82, "probe2.npy", "signal", 0.0125)``: the time of
+    the file's first sample, s (else ``--signal-start-s``). A file whose own name is the
+    whole text after ``=`` is taken as it is."""
     try:
         deg, path = parse_probe(text)
     except BttsimError:
-        raise BttsimError(f"--signal must be ANGLE_DEG=FILE (e.g. 23.82=probe2.npy), got {text!r}") from None
-    return deg, path, "signal"
+        raise BttsimError(f"--signal must be ANGLE_DEG=FILE[@START_S] (e.g. 23.82=probe2.npy@0.0125), "
+                          f"got {text!r}") from None
+    head, at, tail = path.rpartition("@")
+    if not at or not head or Path(path).is_file():
+        return deg, path, "signal", None
+    try:
+        start = float(tail)
+    except ValueError:
+        start = math.nan
+    if not math.isfinite(start):
+        raise BttsimError(f"--signal {text!r}: the start time after '@' must be a time in s, got {tail!r}")
+    return deg, head, "signal", start
 
 
 def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_orders, rig) -> tuple[RunInfo, list]:
@@ -721,9 +746,23 @@ class _Train:
     def read(self, i0: int, i1: int) -> np.ndarray:
         return np.fromfile(self.path, dtype="<f8", count=max(int(i1) - int(i0), 0), offset=8 * int(i0))
 
-    def window(self, lo: int, hi: int) -> np.ndarray:
-        """The pulses of OPR intervals ``lo:hi`` (:func:`window_revolutions`)."""
-        return self.read(0 if lo == 0 else self.offset[lo], self.offset[hi])
+    def until(self, i0: int, end_s: float) -> np.ndarray:
+        """The pulses from number ``i0`` on that come before ``end_s``, read in blocks."""
+        parts, i, n = [], int(i0), int(self.offset[-1])
+        while i < n:
+            blk = self.read(i, min(n, i + (1 << 20)))
+            k = int(np.searchsorted(blk, end_s))
+            parts.append(blk[:k])
+            i += blk.size
+            if k < blk.size:
+                break
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def window(self, lo: int, hi: int, end_s: float) -> np.ndarray:
+        """The pulses of OPR intervals ``lo:hi`` (:func:`window_revolutions`) from the first
+        OPR pulse on and before ``end_s`` (:func:`last_pulse_s`): the others are outside."""
+        return self.read(self.offset[lo], self.offset[hi]) if hi < self.offset.size - 1 \
+            else self.until(self.offset[lo], end_s)
 
 
 def _read_probe(j, probe, opr, tmp: Path, signal, column, holdoff_s):
@@ -772,8 +811,8 @@ def _read_probes(opr, probes: list, info: RunInfo, signal, column, tolerance, en
         if med != nb:
             raise BttsimError(f"{probe[1]}: median {med:g} pulses per revolution between OPR pulses, not the "
                               f"{nb} blades given (wrong --blades, or times not in the OPR's clock and unit?)")
-        k = calibration_end(opr, float(train.read(0, 1)[0]))
-        span = train.read(0, train.offset[-1] if k == opr.size else train.offset[k - 1])
+        k, end = calibration_end(opr, float(train.read(0, 1)[0]))
+        span = train.read(train.offset[0], train.offset[k - 1]) if k < opr.size else train.until(train.offset[0], end)
         params.append(identification_params(opr, span, psi[:, j], calibrate=True, tolerance=tolerance,
                                             encoder=encoder, phase=phase))
         trains.append(train)
@@ -821,17 +860,21 @@ def _identify(opr, trains: list, params: list, doubles: list, encoder, phase, nb
             lab.parent_rev, lab.parent_blade = np.full(dbl[0].size, -1, np.int64), np.zeros(dbl[0].size, np.int64)
     fin = np.zeros((nr, npr), np.int32)
     half = np.zeros((nr, npr), bool)
+    end_s = last_pulse_s(opr)
     with open(toa_path, "wb") as fh:
         for a in range(0, nr, _CHUNK_REVS):
             b = min(nr, a + _CHUNK_REVS)
             lo, hi = window_revolutions(a, b, nr)
             toa = np.empty((b - a, nb, npr))
             for j, (train, lab) in enumerate(zip(trains, labs)):
-                r = identify_window(opr, train.window(lo, hi), params[j], a, b, encoder=encoder, phase=phase)
+                t = train.window(lo, hi, end_s)
+                r = identify_window(opr, t, params[j], a, b, encoder=encoder, phase=phase)
                 toa[:, :, j] = r.toa_s
                 lab.extra.append((r.extra_revolution, r.extra_blade, r.extra_toa_s))
                 lab.stray.append((r.stray_revolution, r.stray_toa_s))
-                lab.outside += r.outside
+                # before the first OPR pulse, after the last pulse of the last revolution
+                lab.outside += r.outside + (int(train.offset[0]) if a == 0 else 0) + (
+                    int(train.offset[-1] - train.offset[lo]) - t.size if b == nr else 0)
                 if doubles[j] is not None:
                     _match_parents(lab, doubles[j][0], r.toa_s, a)
             toa.tofile(fh)
@@ -891,10 +934,11 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     ----------
     opr_path : path-like
         OPR pulse times, s (:func:`read_times`), strictly increasing.
-    probes : list of (float, path-like) or (float, path-like, "signal")
+    probes : list of (float, path-like) or (float, path-like, "signal"[, start_s])
         Each probe's angle (deg, anticlockwise from +x) and its pulse times, s; or (with
         ``"signal"``) its raw signal, volts (``.npy`` or one-column CSV), triggered as
-        ``signal`` says.
+        ``signal`` says, its first sample at ``start_s`` (None or absent:
+        ``signal.start_s``).
     out : path-like
         The recording to write (MCAP).
     n_blades, tip_radius_m : optional

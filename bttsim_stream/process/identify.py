@@ -47,7 +47,7 @@ import numpy as np
 from .displacement import TWO_PI, RotorPhase, rotor_phase_from_opr
 
 __all__ = ["IdentifiedPulses", "EncoderRevolutions", "IdentifyParams", "identify_pulses", "identify_window",
-           "identification_params", "calibration_end", "window_revolutions", "pulses_per_revolution",
+           "identification_params", "calibration_end", "last_pulse_s", "window_revolutions", "pulses_per_revolution",
            "encoder_revolutions", "shaft_angle", "CALIBRATION_REVOLUTIONS", "HALO_REVOLUTIONS"]
 
 #: Revolutions on each side whose pulses predict a cell's, and how many must be present.
@@ -60,6 +60,8 @@ CALIBRATION_REVOLUTIONS = 6000
 #: a pulse lands at most one revolution from its OPR interval: a window of revolutions is
 #: labelled from the pulses of its OPR intervals widened by this many on each side.
 HALO_REVOLUTIONS = 2 * _REACH + 4
+#: Revolution periods after the last OPR pulse beyond which a pulse is outside.
+TRAILING_PERIODS = 3
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -285,12 +287,19 @@ class IdentifyParams:
     floor: float = 0.02
 
 
-def calibration_end(opr_s: np.ndarray, first_pulse_s: float) -> int:
-    """OPR pulses of the calibration span: ``opr_s[:k]`` and the pulses before ``opr_s[k - 1]``
-    (all pulses when ``k == opr_s.size``): the first :data:`CALIBRATION_REVOLUTIONS`
-    revolutions from the one of the probe's first pulse."""
+def calibration_end(opr_s: np.ndarray, first_pulse_s: float) -> tuple[int, float]:
+    """The calibration span: the first :data:`CALIBRATION_REVOLUTIONS` revolutions from the
+    one of the probe's first pulse, ``opr_s[:k]`` and the pulses from ``opr_s[0]`` to the
+    time returned (``opr_s[k - 1]``, or :func:`last_pulse_s` when ``k == opr_s.size``)."""
     n0 = max(int(np.searchsorted(opr_s, first_pulse_s, side="right")) - 1, 0)
-    return int(min(opr_s.size, n0 + CALIBRATION_REVOLUTIONS + 1))
+    k = int(min(opr_s.size, n0 + CALIBRATION_REVOLUTIONS + 1))
+    return k, (float(opr_s[k - 1]) if k < opr_s.size else last_pulse_s(opr_s))
+
+
+def last_pulse_s(opr_s: np.ndarray) -> float:
+    """Time after which a pulse can only be *outside* (beyond the last revolution): the last
+    OPR pulse plus :data:`TRAILING_PERIODS` of its revolution period."""
+    return float(opr_s[-1] + TRAILING_PERIODS * (opr_s[-1] - opr_s[-2]))
 
 
 def window_revolutions(start: int, stop: int, n_rev: int) -> tuple[int, int]:
@@ -364,8 +373,8 @@ def identification_params(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles
     opr_s : ndarray, shape (n_rev,)
         All the OPR times, s.
     pulse_s : ndarray
-        The probe's pulses, sorted, s: at least those before ``opr_s[k - 1]`` (all of them
-        when ``k == n_rev``); later ones are ignored.
+        The probe's pulses, sorted, s: at least those of the calibration span; others are
+        ignored.
     arrival_angles_rad, calibrate, tolerance, outlier, floor, encoder
         As :func:`identify_pulses`.
     phase : RotorPhase, optional
@@ -377,9 +386,9 @@ def identification_params(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles
     nb = psi.size
     pitch = TWO_PI / nb
     if t.size:
-        k = calibration_end(opr, float(t[0]))
+        k, end = calibration_end(opr, float(t[0]))
+        t = t[np.searchsorted(t, opr[0], side="left"):np.searchsorted(t, end)]
         if k < opr.size:
-            t = t[:np.searchsorted(t, opr[k - 1])]
             opr, phase, encoder = opr[:k], None, _encoder_until(encoder, opr[k - 1])
     nr = opr.size
     phase = rotor_phase_from_opr(opr) if phase is None else phase
@@ -431,8 +440,10 @@ def identify_window(opr_s: np.ndarray, pulse_s: np.ndarray, params: IdentifyPara
     IdentifiedPulses
         ``toa_s`` of shape ``(stop - start, n_blades)``; the extra pulses of those
         revolutions; the stray and outside pulses of OPR intervals ``start:stop`` (with the
-        pulses before the first OPR pulse when ``start == 0``). Windows that tile ``0:n_rev``
-        give, joined, exactly what one window ``0:n_rev`` gives.
+        pulses given before the first OPR pulse when ``start == 0``). Windows that tile
+        ``0:n_rev`` give, joined, exactly what one window ``0:n_rev`` gives. The pulses
+        before ``opr_s[0]`` and after :func:`last_pulse_s` can only be outside: a caller
+        may count them instead of passing them.
     """
     opr = np.asarray(opr_s, dtype=float)
     t = np.asarray(pulse_s, dtype=float).ravel()
