@@ -186,6 +186,7 @@ def test_windows_and_blocks_change_nothing(sim, tmp_path, monkeypatch):
     the whole-array :func:`identify_pulses`."""
     import bttsim_stream.ingest as ingest_mod
     import bttsim_stream.process.identify as identify_mod
+    import bttsim_stream.timefiles as timefiles_mod
 
     pa = pytest.importorskip("pyarrow")
     import pyarrow.parquet as pq
@@ -202,8 +203,8 @@ def test_windows_and_blocks_change_nothing(sim, tmp_path, monkeypatch):
 
     whole = ingest("whole.mcap")
     monkeypatch.setattr(ingest_mod, "_CHUNK_REVS", 7)
-    monkeypatch.setattr(ingest_mod, "_BLOCK_BYTES", 997)
-    monkeypatch.setattr(ingest_mod, "_PARQUET_ROWS", 1000)
+    monkeypatch.setattr(timefiles_mod, "_BLOCK_BYTES", 997)
+    monkeypatch.setattr(timefiles_mod, "_PARQUET_ROWS", 1000)
     assert ingest("small.mcap") == whole
     monkeypatch.setattr(identify_mod, "CALIBRATION_REVOLUTIONS", 40)
     ingest("cal40.mcap")
@@ -428,7 +429,7 @@ def test_raw_signals_give_the_published_toas(signal_run, capsys):
 def test_raw_signals_in_blocks_and_continuous(signal_run, monkeypatch):
     """Reading in small blocks changes nothing; a continuous trace (the gaps at 0 V) gives
     the threshold trigger's TOAs too (its state needs no window)."""
-    import bttsim_stream.ingest as ingest_mod
+    import bttsim_stream.timefiles as timefiles_mod
     from bttsim_stream.ingest import SignalOptions, read_signal_pulses
 
     s = signal_run
@@ -436,7 +437,7 @@ def test_raw_signals_in_blocks_and_continuous(signal_run, monkeypatch):
     opt = SignalOptions(start_s=s["k0"] / s["fs"]).resolve(s["dir"] / "s.toml")
     hold = 0.25 * 60.0 / 2400.0 / 29
     whole = read_signal_pulses(s["files"][2], opt.trigger_of(2), opt, hold)
-    monkeypatch.setattr(ingest_mod, "_SIGNAL_BLOCK", 4099)
+    monkeypatch.setattr(timefiles_mod, "_SIGNAL_BLOCK", 4099)
     small = read_signal_pulses(s["files"][2], opt.trigger_of(2), opt, hold)
     for a, b in zip(whole, small):
         np.testing.assert_array_equal(a, b)
