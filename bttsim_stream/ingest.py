@@ -52,7 +52,7 @@ from .process.identify import (calibration_end, encoder_revolutions, identificat
 from .process.trigger import PulseTrigger
 from .sim.core import RevolutionBatch, RunInfo
 from .sim.signal import TRIGGER_KINDS, Trigger
-from .timefiles import checked_blocks, read_times, signal_blocks
+from .timefiles import checked_blocks, read_columns, read_times, signal_blocks
 
 __all__ = ["read_times", "read_signal_pulses", "ingest_export", "ingest_pulses", "IngestResult", "SignalOptions",
            "parse_probe", "MIN_RPM", "MAX_RPM"]
@@ -313,17 +313,7 @@ def _table(folder: Path, doc: dict, name: str, columns: tuple) -> dict | None:
             raise BttsimError(f"{file}: not a readable Parquet table "
                               f"({type(exc).__name__}: {str(exc)[:120]})") from None
         return {k: tab.column(k).to_numpy(zero_copy_only=False) for k in columns}
-    with open(file, encoding="utf-8", errors="replace") as fh:
-        head = fh.readline().strip().split(",")
-    missing = [c for c in columns if c not in head]
-    if missing:
-        raise BttsimError(f"{file}: no column(s) {', '.join(missing)} (header: {','.join(head)[:80]})")
-    try:
-        raw = np.loadtxt(file, delimiter=",", skiprows=1, usecols=[head.index(c) for c in columns], ndmin=2,
-                         dtype=float)
-    except ValueError as exc:
-        raise BttsimError(f"{file}: not a table of numbers ({str(exc)[:120]})") from None
-    return {c: raw[:, i] for i, c in enumerate(columns)}
+    return read_columns(file, columns)
 
 
 def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:

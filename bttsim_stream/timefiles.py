@@ -19,7 +19,7 @@ import numpy as np
 
 from .errors import BttsimError
 
-__all__ = ["read_times", "checked_blocks", "signal_blocks"]
+__all__ = ["read_times", "read_columns", "checked_blocks", "signal_blocks"]
 
 _BLOCK_BYTES = 4 << 20
 _MAX_LINE = 64 << 10
@@ -36,7 +36,11 @@ def _split(line: str, delim: str | None) -> list[str]:
     return line.split(delim) if delim else line.split()
 
 
-def _blocks_csv(path: Path, column: str | None):
+def _plural(kind: str) -> str:
+    return "times" if kind == "a time in s" else "numbers"
+
+
+def _blocks_csv(path: Path, column: str | None, kind: str = "a time in s"):
     """Yield ``(first_line_number, float array)`` blocks of one CSV column."""
     idx = 0 if column is None else None
     delim: str | None = None
@@ -59,12 +63,13 @@ def _blocks_csv(path: Path, column: str | None):
                 if cut < 0:
                     if len(text) > _MAX_LINE:
                         raise BttsimError(f"{path}: line {line_no + 1} is longer than {_MAX_LINE // 1024} KiB: "
-                                          f"not a CSV of times")
+                                          f"not a CSV of {_plural(kind)}")
                     carry = text
                     continue
                 lines, carry = text[:cut].splitlines(), text[cut + 1:]
             if len(carry) > _MAX_LINE:
-                raise BttsimError(f"{path}: a line is longer than {_MAX_LINE // 1024} KiB: not a CSV of times")
+                raise BttsimError(f"{path}: a line is longer than {_MAX_LINE // 1024} KiB: "
+                                  f"not a CSV of {_plural(kind)}")
             first = line_no + 1
             line_no += len(lines)
             nums = lines
@@ -113,7 +118,7 @@ def _blocks_csv(path: Path, column: str | None):
                         float(_split(ln.strip(), delim)[idx])
                     except (ValueError, IndexError):
                         where = first + k if rows is None else int(rows[k])
-                        raise BttsimError(f"{path}: line {where}: not a time in s: {ln.strip()[:40]!r}") from None
+                        raise BttsimError(f"{path}: line {where}: not {kind}: {ln.strip()[:40]!r}") from None
                 raise
             yield (first if rows is None else rows), arr
             if last:
@@ -230,3 +235,10 @@ def signal_blocks(p: Path):
         raise BttsimError(f"{p}: a signal CSV holds one column, volts (this one has {len(cols)}: "
                           f"{first[:40]!r}); the time of sample i is START + i / --sample-rate")
     yield from _blocks_csv(p, None)
+
+
+def read_columns(path, columns) -> dict:
+    """Named columns of numbers of a CSV with a header line, read in blocks (one pass per
+    column); a garbage file fails at its first block."""
+    p = Path(path)
+    return {c: np.concatenate([np.zeros(0)] + [a for _, a in _blocks_csv(p, c, "a number")]) for c in columns}

@@ -324,9 +324,16 @@ def test_a_2_gb_garbage_file_in_bounded_memory(sim, tmp_path):
     assert not (tmp_path / "o.mcap").exists()
 
 
-def test_export_folder_errors(tmp_path):
+def test_export_folder_errors(sim, tmp_path):
     with pytest.raises(BttsimError, match="no run.json"):
         ingest_export(tmp_path, tmp_path / "x.mcap")
+    export_run(sim["mcap"], tmp_path / "exp", "csv")
+    with open(tmp_path / "exp" / "toa.csv", "wb") as fh:  # 2 GB of NUL bytes, sparse: fails at its first block
+        fh.truncate(2 << 30)
+    t0 = time.perf_counter()
+    with pytest.raises(BttsimError, match="toa.csv: .*longer than 64 KiB: not a CSV of numbers"):
+        ingest_export(tmp_path / "exp", tmp_path / "x.mcap")
+    assert time.perf_counter() - t0 < 10
 
 
 def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
