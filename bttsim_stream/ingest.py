@@ -184,11 +184,27 @@ def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s
 
     Returns ``(toa_s, double_pulse, double_toa_s, n_samples, unfired)``
     (:class:`~bttsim_stream.process.trigger.TriggeredPulses`, joined)."""
+    toa, dp, dt_, count = [], [], [], [0]
+
+    def keep(res):
+        dp.append(res.double_pulse + count[0])
+        toa.append(res.toa_s)
+        dt_.append(res.double_toa_s)
+        count[0] += res.toa_s.size
+
+    n, unfired = _trigger_file(path, trigger, options, holdoff_s, keep)
+    return np.concatenate(toa), np.concatenate(dp), np.concatenate(dt_), n, unfired
+
+
+def _trigger_file(path, trigger: Trigger, options: SignalOptions, holdoff_s, sink) -> tuple[int, int]:
+    """One probe's raw signal through the trigger block by block, each block's
+    :class:`~bttsim_stream.process.trigger.TriggeredPulses` to ``sink``; returns the
+    sample count and the unfired windows."""
     p = Path(path)
     if not p.is_file():
         raise BttsimError(f"{p}: no such file (probe signal)")
     pt = PulseTrigger(trigger, options.sample_rate_hz, options.start_s, holdoff_s, options.clock_hz)
-    toa, dp, dt_, n, unfired, n_pulses = [], [], [], 0, 0, 0
+    n, unfired, n_pulses = 0, 0, 0
     unit = "sample" if p.suffix.lower() == ".npy" else "line"
     blocks = signal_blocks(p)
     pending = next(blocks, None)
@@ -204,9 +220,7 @@ def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s
             res = pt.feed(arr, final=pending is None)
         except ValueError as exc:
             raise BttsimError(f"{p}: {exc}") from None
-        toa.append(res.toa_s)
-        dp.append(res.double_pulse + n_pulses)
-        dt_.append(res.double_toa_s)
+        sink(res)
         n_pulses += res.toa_s.size
         unfired += res.unfired
     if n == 0:
@@ -214,7 +228,7 @@ def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s
     if n_pulses == 0:
         raise BttsimError(f"{p}: no pulse reaches the trigger level {trigger.level_v:g} V ({trigger.kind}, "
                           f"{trigger.edge}) in {n} samples")
-    return np.concatenate(toa), np.concatenate(dp), np.concatenate(dt_), n, unfired
+    return n, unfired
 
 
 # -- writing ---------------------------------------------------------------------------
@@ -556,12 +570,17 @@ def _read_probe(j, probe, opr, tmp: Path, signal, column, holdoff_s):
         if kind:
             sig = signal if len(kind) < 2 or kind[1] is None else replace(signal, start_s=float(kind[1]))
             trig = sig.trigger_of(j)
-            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, sig, holdoff_s)
-            train.add(t)
-            doubles = (t[dp], dt_)
+            parent, dbl = [np.zeros(0)], [np.zeros(0)]
+
+            def spill(res):  # the pulses to the spill; the double edges (few) and their pulses kept
+                train.add(res.toa_s)
+                parent.append(res.toa_s[res.double_pulse])
+                dbl.append(res.double_toa_s)
+
+            n_samp, unfired = _trigger_file(path, trig, sig, holdoff_s, spill)
+            doubles = (np.concatenate(parent), np.concatenate(dbl))
             extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired,
                                      "start_s": sig.start_s}}
-            del t
         else:
             what = f"pulse times of the probe at {deg:g} deg"
             for arr in checked_blocks(path, column, what, False):
