@@ -592,13 +592,14 @@ def _add_ingest_parser(sub) -> None:
     p.add_argument("--opr", metavar="FILE", help="OPR pulse times, s (CSV first column or Parquet)")
     p.add_argument("--probe", action=_Tagged, dest="sources", default=[], metavar="ANGLE_DEG=FILE",
                    help="a probe's angle (deg, anticlockwise from +x) and its pulse times, s (repeatable)")
-    p.add_argument("--signal", action=_Tagged, dest="sources", metavar="ANGLE_DEG=FILE",
+    p.add_argument("--signal", action=_Tagged, dest="sources", metavar="ANGLE_DEG=FILE[@START_S]",
                    help="a probe's raw signal, volts (.npy or one-column CSV; NaN = not recorded), "
-                        "triggered like the simulator's signal chain (repeatable)")
+                        "triggered like the simulator's signal chain; @START_S: its first sample's time, s "
+                        "(repeatable)")
     g = p.add_argument_group("raw signals (defaults: the --scenario's [acquisition.signal], else its defaults)")
     g.add_argument("--sample-rate", type=float, metavar="HZ", help="ADC sample rate, Hz")
     g.add_argument("--signal-start-s", type=float, default=0.0, metavar="T",
-                   help="time of each signal file's first sample, s (default 0)")
+                   help="time of the first sample of each signal file without @START_S, s (default 0)")
     g.add_argument("--trigger", metavar="KIND[,KIND...]", help="threshold, constant_fraction or peak (one per probe)")
     g.add_argument("--level-v", type=float, help="trigger level (arming level of constant_fraction / peak), V")
     g.add_argument("--hysteresis-v", type=float, help="threshold hysteresis, V")

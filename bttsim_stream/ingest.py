@@ -16,12 +16,16 @@ also holds ``source`` (what was read) and ``ingest`` (a JSON object of the count
   (:class:`~bttsim_stream.process.trigger.PulseTrigger`); the OPR file may be a K-pulse
   shaft encoder (:func:`~bttsim_stream.process.identify.encoder_revolutions`).
 
-Files are read in blocks (:func:`read_times`): a CSV whose first column (or ``column``)
-holds times in s, an optional header line, or a Parquet file; memory holds the times
-(8 bytes each), never the text. Every problem with the input (empty, not numbers, NaN,
-times going backwards, an implausible speed, a blade count the data do not show) is a
-one-line :class:`~bttsim_stream.errors.BttsimError`, raised before the output is touched:
-the recording is written to a temporary file and renamed at the end.
+Files are read in blocks (:mod:`~bttsim_stream.timefiles`): a CSV whose first column (or
+``column``) holds times in s, an optional header line, or a Parquet file. Pulse trains are streamed:
+each block, once checked, is spilled as float64 to a temporary folder beside the output
+(:class:`_Train`); the identification runs on windows of revolutions
+(:func:`~bttsim_stream.process.identify.identify_window`), spilling the TOAs, and the
+recording is written from that spill, so memory does not grow with the number of pulses.
+Every problem with the input (empty, not numbers, NaN, times going backwards, an
+implausible speed, a blade count the data do not show) is a one-line
+:class:`~bttsim_stream.errors.BttsimError`, raised before the output is touched: the
+recording is written to a temporary file and renamed at the end; the spill is removed.
 """
 
 from __future__ import annotations
@@ -30,7 +34,9 @@ import hashlib
 import json
 import math
 import os
-from dataclasses import dataclass, fields, replace
+import shutil
+import tempfile
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +46,13 @@ from .bus.recording import McapRecorder
 from .bus.stream import MessageStream
 from .defaults import DEFAULT_RIG
 from .errors import BttsimError
-from .process.displacement import Geometry
-from .process.identify import encoder_revolutions, identify_pulses, pulses_per_revolution
+from .process.displacement import Geometry, rotor_phase_from_opr
+from .process.identify import (calibration_end, encoder_revolutions, identification_params, identify_window,
+                               last_pulse_s, window_revolutions)
 from .process.trigger import PulseTrigger
 from .sim.core import RevolutionBatch, RunInfo
 from .sim.signal import TRIGGER_KINDS, Trigger
+from .timefiles import checked_blocks, read_columns, read_times, signal_blocks
 
 __all__ = ["read_times", "read_signal_pulses", "ingest_export", "ingest_pulses", "IngestResult", "SignalOptions",
            "parse_probe", "MIN_RPM", "MAX_RPM"]
@@ -52,10 +60,8 @@ __all__ = ["read_times", "read_signal_pulses", "ingest_export", "ingest_pulses",
 #: Slowest and fastest plausible median shaft speed, rpm: beyond, the times are not in s.
 MIN_RPM = 30.0
 MAX_RPM = 300_000.0
-_BLOCK_BYTES = 4 << 20
-_MAX_LINE = 64 << 10
 _REVS_PER_BATCH = 64
-_SIGNAL_BLOCK = 1 << 20
+_CHUNK_REVS = 2048  # revolutions identified at a time
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,181 +111,6 @@ class IngestResult:
 
 
 # -- reading ---------------------------------------------------------------------------
-
-def _is_parquet(path: Path) -> bool:
-    with open(path, "rb") as fh:
-        return fh.read(4) == b"PAR1"
-
-
-def _split(line: str, delim: str | None) -> list[str]:
-    return line.split(delim) if delim else line.split()
-
-
-def _blocks_csv(path: Path, column: str | None):
-    """Yield ``(first_line_number, float array)`` blocks of one CSV column."""
-    idx = 0 if column is None else None
-    delim: str | None = None
-    line_no = 0
-    started = False
-    carry = ""
-    with open(path, "r", encoding="utf-8", errors="strict", newline="") as fh:
-        while True:
-            try:
-                text = fh.read(_BLOCK_BYTES)
-            except UnicodeDecodeError:
-                raise BttsimError(f"{path}: not a text CSV file (undecodable bytes near line {line_no + 1}); "
-                                  f"give times in s, one per line, or a Parquet file") from None
-            last = not text
-            text = carry + text
-            if last:
-                lines, carry = text.splitlines(), ""
-            else:
-                cut = text.rfind("\n")
-                if cut < 0:
-                    if len(text) > _MAX_LINE:
-                        raise BttsimError(f"{path}: line {line_no + 1} is longer than {_MAX_LINE // 1024} KiB: "
-                                          f"not a CSV of times")
-                    carry = text
-                    continue
-                lines, carry = text[:cut].splitlines(), text[cut + 1:]
-            if len(carry) > _MAX_LINE:
-                raise BttsimError(f"{path}: a line is longer than {_MAX_LINE // 1024} KiB: not a CSV of times")
-            first = line_no + 1
-            line_no += len(lines)
-            nums = lines
-            for k, ln in enumerate([] if started else lines):  # up to the first data (or header) line
-                s = ln.strip()
-                if not s or s.startswith("#"):
-                    continue
-                delim = next((d for d in (",", ";", "\t") if d in s), None)
-                head = [c.strip().strip('"') for c in _split(s, delim)]
-                try:
-                    float(head[0 if idx is None else idx])
-                    is_header = False
-                except (ValueError, IndexError):
-                    is_header = True
-                if column is not None:
-                    if not is_header:
-                        raise BttsimError(f"{path}: --column {column!r} needs a header line naming the columns")
-                    if column not in head:
-                        raise BttsimError(f"{path}: no column {column!r} (the header has {', '.join(head)})")
-                    idx = head.index(column)
-                started = True
-                first = first + k + (1 if is_header else 0)
-                nums = lines[k + (1 if is_header else 0):]
-                break
-            if not started:
-                if last:
-                    break
-                continue
-            if not nums:
-                if last:
-                    break
-                continue
-            skip = [k for k, ln in enumerate(nums) if not ln.strip() or ln.lstrip().startswith("#")]
-            rows = None
-            if skip:  # blank and comment lines are left out; the others keep their line numbers
-                rows = np.delete(np.arange(first, first + len(nums)), skip)
-                gone = set(skip)
-                nums = [ln for k, ln in enumerate(nums) if k not in gone]
-            try:
-                vals = ([ln.split()[idx] for ln in nums] if delim is None
-                        else [ln.split(delim, idx + 1)[idx] for ln in nums])
-                arr = np.array(vals, dtype=float)
-            except (ValueError, IndexError):
-                for k, ln in enumerate(nums):
-                    try:
-                        float(_split(ln.strip(), delim)[idx])
-                    except (ValueError, IndexError):
-                        where = first + k if rows is None else int(rows[k])
-                        raise BttsimError(f"{path}: line {where}: not a time in s: {ln.strip()[:40]!r}") from None
-                raise
-            yield (first if rows is None else rows), arr
-            if last:
-                break
-
-
-def _blocks_parquet(path: Path, column: str | None):
-    try:
-        import pyarrow.parquet as pq
-    except ImportError:
-        raise BttsimError(f"{path}: reading Parquet needs pyarrow: pip install 'bttsim-stream[parquet]' "
-                          f"(or give a CSV file)") from None
-    try:
-        pf = pq.ParquetFile(path)
-        names = pf.schema_arrow.names
-        if not names:
-            raise BttsimError(f"{path}: the Parquet file has no column")
-        name = names[0] if column is None else column
-        if name not in names:
-            raise BttsimError(f"{path}: no column {column!r} (the file has {', '.join(names)})")
-        row = 1
-        for batch in pf.iter_batches(batch_size=1 << 20, columns=[name]):
-            arr = batch.column(0).to_numpy(zero_copy_only=False)
-            try:
-                arr = np.asarray(arr, dtype=float)
-            except (TypeError, ValueError):
-                raise BttsimError(f"{path}: column {name!r} does not hold numbers (times in s)") from None
-            yield row, arr
-            row += arr.size
-    except BttsimError:
-        raise
-    except Exception as exc:  # pyarrow's errors of a corrupt file: one line
-        raise BttsimError(f"{path}: not a readable Parquet file ({type(exc).__name__}: {str(exc)[:120]})") from None
-
-
-def read_times(path, column: str | None = None, *, what: str = "pulse times", strict: bool = False) -> np.ndarray:
-    """Times in s from a CSV or Parquet file, read in blocks.
-
-    Parameters
-    ----------
-    path : path-like
-        CSV (first column, or ``column`` named in a header line; comma, semicolon, tab or
-        blank separated; a header line and ``#`` comment lines allowed before the data) or
-        Parquet (recognised by its magic bytes; first column or ``column``).
-    column : str, optional
-    what : str
-        What the file holds (for the messages).
-    strict : bool
-        Times must strictly increase (OPR); else they must not decrease.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        Finite, sorted times, s.
-
-    Raises
-    ------
-    BttsimError
-        Missing or empty file, a value that is not a number, NaN or infinite, times going
-        backwards (one line naming the file and the line or row).
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise BttsimError(f"{p}: no such file ({what})")
-    blocks = _blocks_parquet(p, column) if _is_parquet(p) else _blocks_csv(p, column)
-    out, prev = [], -math.inf
-    unit = "row" if _is_parquet(p) else "line"
-    for first, arr in blocks:
-        at = (lambda i: first + i) if isinstance(first, int) else (lambda i: int(first[i]))  # noqa: E731
-        bad = np.flatnonzero(~np.isfinite(arr))
-        if bad.size:
-            raise BttsimError(f"{p}: {unit} {at(int(bad[0]))}: {float(arr[bad[0]])!r} is not a time ({what} "
-                              f"must be finite numbers in s)")
-        steps = np.diff(np.r_[prev, arr])
-        back = np.flatnonzero(steps <= 0 if strict else steps < 0)
-        if back.size:
-            i = int(back[0])
-            before = prev if i == 0 else float(arr[i - 1])
-            raise BttsimError(f"{p}: {unit} {at(i)}: time {float(arr[i])!r} s is not after the previous one "
-                              f"({before!r} s): {what} must {'strictly ' if strict else ''}increase")
-        if arr.size:
-            prev = float(arr[-1])
-            out.append(arr)
-    if not out:
-        raise BttsimError(f"{p}: no times in the file ({what})")
-    return np.concatenate(out)
-
 
 @dataclass(frozen=True, slots=True)
 class SignalOptions:
@@ -348,36 +179,34 @@ class SignalOptions:
                        edge=self.edge, fraction=float(self.fraction))
 
 
-def _signal_blocks(p: Path):
-    """Volts of a signal file in blocks: ``.npy`` (memory-mapped, ``allow_pickle=False``) or
-    a one-column CSV (NaN: not recorded)."""
-    if p.suffix.lower() == ".npy":
-        try:
-            arr = np.load(p, mmap_mode="r", allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
-            raise BttsimError(f"{p}: not a readable .npy array ({str(exc)[:120]})") from None
-        if arr.ndim == 2 and 1 in arr.shape:
-            arr = arr.reshape(-1)
-        if arr.ndim != 1 or arr.dtype.kind not in "fiu":
-            raise BttsimError(f"{p}: a signal must be a 1-D array of volts, got shape {arr.shape} {arr.dtype}")
-        for lo in range(0, arr.size, _SIGNAL_BLOCK):
-            yield lo + 1, np.asarray(arr[lo:lo + _SIGNAL_BLOCK], dtype=float)
-        return
-    yield from _blocks_csv(p, None)
-
-
 def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s):
     """Pulse times of one probe's raw signal, read in blocks.
 
     Returns ``(toa_s, double_pulse, double_toa_s, n_samples, unfired)``
     (:class:`~bttsim_stream.process.trigger.TriggeredPulses`, joined)."""
+    toa, dp, dt_, count = [], [], [], [0]
+
+    def keep(res):
+        dp.append(res.double_pulse + count[0])
+        toa.append(res.toa_s)
+        dt_.append(res.double_toa_s)
+        count[0] += res.toa_s.size
+
+    n, unfired = _trigger_file(path, trigger, options, holdoff_s, keep)
+    return np.concatenate(toa), np.concatenate(dp), np.concatenate(dt_), n, unfired
+
+
+def _trigger_file(path, trigger: Trigger, options: SignalOptions, holdoff_s, sink) -> tuple[int, int]:
+    """One probe's raw signal through the trigger block by block, each block's
+    :class:`~bttsim_stream.process.trigger.TriggeredPulses` to ``sink``; returns the
+    sample count and the unfired windows."""
     p = Path(path)
     if not p.is_file():
         raise BttsimError(f"{p}: no such file (probe signal)")
     pt = PulseTrigger(trigger, options.sample_rate_hz, options.start_s, holdoff_s, options.clock_hz)
-    toa, dp, dt_, n, unfired, n_pulses = [], [], [], 0, 0, 0
+    n, unfired, n_pulses = 0, 0, 0
     unit = "sample" if p.suffix.lower() == ".npy" else "line"
-    blocks = _signal_blocks(p)
+    blocks = signal_blocks(p)
     pending = next(blocks, None)
     while pending is not None:
         first, arr = pending
@@ -391,9 +220,7 @@ def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s
             res = pt.feed(arr, final=pending is None)
         except ValueError as exc:
             raise BttsimError(f"{p}: {exc}") from None
-        toa.append(res.toa_s)
-        dp.append(res.double_pulse + n_pulses)
-        dt_.append(res.double_toa_s)
+        sink(res)
         n_pulses += res.toa_s.size
         unfired += res.unfired
     if n == 0:
@@ -401,7 +228,7 @@ def read_signal_pulses(path, trigger: Trigger, options: SignalOptions, holdoff_s
     if n_pulses == 0:
         raise BttsimError(f"{p}: no pulse reaches the trigger level {trigger.level_v:g} V ({trigger.kind}, "
                           f"{trigger.edge}) in {n} samples")
-    return np.concatenate(toa), np.concatenate(dp), np.concatenate(dt_), n, unfired
+    return n, unfired
 
 
 # -- writing ---------------------------------------------------------------------------
@@ -424,14 +251,15 @@ def _check_out(out) -> None:
         raise BttsimError(f"{out}: cannot write (folder {out.parent} not writable)")
 
 
-def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray,
+def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_rows, shape: tuple,
            extra_passage: np.ndarray, extra_toa_s: np.ndarray, record: dict) -> None:
     """The recording, written to ``out`` through a temporary file (``out`` untouched on error).
 
-    ``extra_passage`` indexes ``(revolution, blade, probe)`` of the whole run flattened."""
+    ``toa_rows(a, b)`` gives the TOAs of revolutions ``a:b``, ``shape`` those of the run
+    ``(revolution, blade, probe)``; ``extra_passage`` indexes it flattened."""
     out = Path(out)
     stream = MessageStream(info.run_id, info.rig)
-    nr, nb, npr = toa_s.shape
+    nr, nb, npr = shape
     tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
     per_rev = nb * npr
     order = np.argsort(extra_passage, kind="stable")
@@ -443,7 +271,7 @@ def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_s:
                 hi = min(nr, lo + _REVS_PER_BATCH)
                 a, b = np.searchsorted(extra_passage, [lo * per_rev, hi * per_rev])
                 batch = RevolutionBatch(
-                    revolution=revolution[lo:hi], opr_s=opr_s[lo:hi], toa_s=toa_s[lo:hi], opr_ticks=None,
+                    revolution=revolution[lo:hi], opr_s=opr_s[lo:hi], toa_s=toa_rows(lo, hi), opr_ticks=None,
                     toa_ticks=None, truth=None, residual_s=0.0, bracketed=np.ones((hi - lo, nb, npr), bool),
                     extra_passage=extra_passage[a:b] - lo * per_rev, extra_toa_s=extra_toa_s[a:b])
                 rec.write_all(stream.acquisition(batch, include_truth=False))
@@ -499,17 +327,7 @@ def _table(folder: Path, doc: dict, name: str, columns: tuple) -> dict | None:
             raise BttsimError(f"{file}: not a readable Parquet table "
                               f"({type(exc).__name__}: {str(exc)[:120]})") from None
         return {k: tab.column(k).to_numpy(zero_copy_only=False) for k in columns}
-    with open(file, encoding="utf-8", errors="replace") as fh:
-        head = fh.readline().strip().split(",")
-    missing = [c for c in columns if c not in head]
-    if missing:
-        raise BttsimError(f"{file}: no column(s) {', '.join(missing)} (header: {','.join(head)[:80]})")
-    try:
-        raw = np.loadtxt(file, delimiter=",", skiprows=1, usecols=[head.index(c) for c in columns], ndmin=2,
-                         dtype=float)
-    except ValueError as exc:
-        raise BttsimError(f"{file}: not a table of numbers ({str(exc)[:120]})") from None
-    return {c: raw[:, i] for i, c in enumerate(columns)}
+    return read_columns(file, columns)
 
 
 def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
@@ -575,7 +393,7 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
                        median_rpm=float(60.0 / np.median(np.diff(opr_s))))
     record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
               "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
-    _write(out, info, rev, opr_s, toa_s, ex_pass, ex_t, record)
+    _write(out, info, rev, opr_s, lambda a, b: toa_s[a:b], toa_s.shape, ex_pass, ex_t, record)
     return res
 
 
@@ -593,13 +411,26 @@ def parse_probe(text: str) -> tuple[float, str]:
     return deg, path
 
 
-def parse_signal(text: str) -> tuple[float, str, str]:
-    """``"23.82=probe2.npy"`` -> ``(23.82, "probe2.npy", "signal")``."""
+def parse_signal(text: str) -> tuple[float, str, str, float | None]:
+    """``"23.82=probe2.npy"`` -> ``(23.82, "probe2.npy", "signal", None)``;
+    ``"23.82=probe2.npy@0.0125"`` -> ``(23.82, "probe2.npy", "signal", 0.0125)``: the time of
+    the file's first sample, s (else ``--signal-start-s``). A file whose own name is the
+    whole text after ``=`` is taken as it is."""
     try:
         deg, path = parse_probe(text)
     except BttsimError:
-        raise BttsimError(f"--signal must be ANGLE_DEG=FILE (e.g. 23.82=probe2.npy), got {text!r}") from None
-    return deg, path, "signal"
+        raise BttsimError(f"--signal must be ANGLE_DEG=FILE[@START_S] (e.g. 23.82=probe2.npy@0.0125), "
+                          f"got {text!r}") from None
+    head, at, tail = path.rpartition("@")
+    if not at or not head or Path(path).is_file():
+        return deg, path, "signal", None
+    try:
+        start = float(tail)
+    except ValueError:
+        start = math.nan
+    if not math.isfinite(start):
+        raise BttsimError(f"--signal {text!r}: the start time after '@' must be a time in s, got {tail!r}")
+    return deg, head, "signal", start
 
 
 def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_orders, rig) -> tuple[RunInfo, list]:
@@ -679,97 +510,215 @@ def _median_rpm(opr_path, opr: np.ndarray) -> float:
     return med_rpm
 
 
-def _label_probes(opr, probes: list, info: RunInfo, signal, column, tolerance, encoder):
-    """Each probe's pulses read (or triggered from its signal) and labelled by revolution and blade.
+class _Train:
+    """One probe's pulse times, s, spilled as float64 to a file while they are read, with the
+    count of pulses before each OPR pulse (``offset[n]``: before ``opr[n]``; ``offset[-1]``:
+    all)."""
 
-    Returns the labelled pulses, the per-probe report rows and, per probe, the double edges
-    of a signal (``(kept pulse times, double times)``) or None.
-    """
+    def __init__(self, path: Path, opr: np.ndarray):
+        self.path, self._opr = path, opr
+        self._cnt = np.zeros(opr.size + 1, np.int64)
+        self._fh = open(path, "wb")
+        self.offset = None
+
+    def add(self, t: np.ndarray) -> None:
+        np.asarray(t, dtype="<f8").tofile(self._fh)
+        self._cnt += np.bincount(np.searchsorted(self._opr, t, side="right"), minlength=self._cnt.size)
+
+    def close(self) -> "_Train":
+        self._fh.close()
+        self.offset = np.cumsum(self._cnt)
+        return self
+
+    @property
+    def size(self) -> int:
+        return int(self._cnt.sum())
+
+    @property
+    def per_revolution(self) -> np.ndarray:
+        """Pulses in ``[OPR_n, OPR_n+1)`` (:func:`~bttsim_stream.process.identify.pulses_per_revolution`)."""
+        return self._cnt[1:-1]
+
+    def read(self, i0: int, i1: int) -> np.ndarray:
+        return np.fromfile(self.path, dtype="<f8", count=max(int(i1) - int(i0), 0), offset=8 * int(i0))
+
+    def until(self, i0: int, end_s: float) -> np.ndarray:
+        """The pulses from number ``i0`` on that come before ``end_s``, read in blocks."""
+        parts, i, n = [], int(i0), int(self.offset[-1])
+        while i < n:
+            blk = self.read(i, min(n, i + (1 << 20)))
+            k = int(np.searchsorted(blk, end_s))
+            parts.append(blk[:k])
+            i += blk.size
+            if k < blk.size:
+                break
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def window(self, lo: int, hi: int, end_s: float) -> np.ndarray:
+        """The pulses of OPR intervals ``lo:hi`` (:func:`window_revolutions`) from the first
+        OPR pulse on and before ``end_s`` (:func:`last_pulse_s`): the others are outside."""
+        return self.read(self.offset[lo], self.offset[hi]) if hi < self.offset.size - 1 \
+            else self.until(self.offset[lo], end_s)
+
+
+def _read_probe(j, probe, opr, tmp: Path, signal, column, holdoff_s):
+    """Probe ``j``'s pulses spilled (:class:`_Train`), its report row and (a signal) the
+    times of its pulses with a double edge and of those edges."""
+    deg, path, *kind = probe
+    train, extra_info, doubles = _Train(tmp / f"pulses{j}.f8", opr), {}, None
+    try:
+        if kind:
+            sig = signal if len(kind) < 2 or kind[1] is None else replace(signal, start_s=float(kind[1]))
+            trig = sig.trigger_of(j)
+            parent, dbl = [np.zeros(0)], [np.zeros(0)]
+
+            def spill(res):  # the pulses to the spill; the double edges (few) and their pulses kept
+                train.add(res.toa_s)
+                parent.append(res.toa_s[res.double_pulse])
+                dbl.append(res.double_toa_s)
+
+            n_samp, unfired = _trigger_file(path, trig, sig, holdoff_s, spill)
+            doubles = (np.concatenate(parent), np.concatenate(dbl))
+            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired,
+                                     "start_s": sig.start_s}}
+        else:
+            what = f"pulse times of the probe at {deg:g} deg"
+            for arr in checked_blocks(path, column, what, False):
+                train.add(arr)
+            if train.size == 0:
+                raise BttsimError(f"{Path(path)}: no times in the file ({what})")
+    finally:
+        train.close()
+    return train, {"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": train.size, **extra_info}, doubles
+
+
+def _read_probes(opr, probes: list, info: RunInfo, signal, column, tolerance, encoder, phase, tmp: Path):
+    """Each probe's pulses read (or triggered from its signal) into a :class:`_Train`, the
+    blade count checked, and its identification parameters found on the calibration span."""
     nb = info.n_blades
     geometry = Geometry(n_blades=nb, probe_angles_rad=info.probe_angles_rad, tip_radius_m=info.tip_radius_m,
                         opr_angle_rad=info.opr_angle_rad, blade_angles_rad=info.sensing_angles_rad)
     psi = geometry.nominal_arrival_angles()
-    labelled, per_probe, doubles = [], [], []
+    trains, params, per_probe, doubles = [], [], [], []
     period = np.diff(opr)
 
     def holdoff_s(t):
         i = np.clip(np.searchsorted(opr, t) - 1, 0, period.size - 1)
         return signal.holdoff * period[i] / nb
 
-    for j, (deg, path, *kind) in enumerate(probes):
-        extra_info = {}
-        if kind:
-            trig = signal.trigger_of(j)
-            t, dp, dt_, n_samp, unfired = read_signal_pulses(path, trig, signal, holdoff_s)
-            doubles.append((t[dp], dt_))
-            extra_info = {"signal": {"samples": n_samp, "trigger": trig.kind, "unfired_windows": unfired}}
-        else:
-            t = read_times(path, column, what=f"pulse times of the probe at {deg:g} deg")
-            doubles.append(None)
-        ppr = pulses_per_revolution(opr, t)
-        med = float(np.median(ppr))
+    for j, probe in enumerate(probes):
+        train, row, dbl = _read_probe(j, probe, opr, tmp, signal, column, holdoff_s)
+        med = float(np.median(train.per_revolution))
         if med != nb:
-            raise BttsimError(f"{path}: median {med:g} pulses per revolution between OPR pulses, not the "
+            raise BttsimError(f"{probe[1]}: median {med:g} pulses per revolution between OPR pulses, not the "
                               f"{nb} blades given (wrong --blades, or times not in the OPR's clock and unit?)")
-        ident = identify_pulses(opr, t, psi[:, j], calibrate=True, tolerance=tolerance, encoder=encoder)
-        labelled.append(ident)
-        per_probe.append({"probe": j, "angle_deg": float(deg), "file": str(path), "pulses": int(t.size),
-                          "median_pulses_per_revolution": med, **extra_info})
-    return labelled, per_probe, doubles
+        k, end = calibration_end(opr, float(train.read(0, 1)[0]))
+        span = train.read(train.offset[0], train.offset[k - 1]) if k < opr.size else train.until(train.offset[0], end)
+        params.append(identification_params(opr, span, psi[:, j], calibrate=True, tolerance=tolerance,
+                                            encoder=encoder, phase=phase))
+        trains.append(train)
+        doubles.append(dbl)
+        per_probe.append({**row, "median_pulses_per_revolution": med})
+    return trains, params, per_probe, doubles
 
 
-def _full_revolutions(opr_path, labelled: list) -> tuple[np.ndarray, int, int]:
-    """The TOAs, s, shape ``(revolution, blade, probe)``, of the revolutions ``lo:hi`` kept."""
-    toa = np.stack([r.toa_s for r in labelled], axis=2)  # (n_opr, nb, npr)
-    # a revolution is kept when every probe saw at least half the blades (the ends of a
-    # recording: the probes started late or stopped before the revolution's end)
-    full = np.all(np.mean(np.isfinite(toa), axis=1) >= 0.5, axis=1)
-    good = np.flatnonzero(full)
-    if good.size < 3:
-        raise BttsimError(f"{opr_path}: fewer than 3 revolutions with pulses on every probe "
-                          f"({good.size}); do the probe files cover the OPR file's time span?")
-    lo, hi = int(good[0]), int(good[-1]) + 1
-    return toa[lo:hi], lo, hi
+@dataclass(eq=False)
+class _Labels:
+    """One probe's labelling gathered over the windows (all but its TOAs, which are spilled)."""
+
+    extra: list = field(default_factory=list)  # (revolution, blade, time) per window
+    stray: list = field(default_factory=list)  # (revolution, time) per window
+    outside: int = 0
+    parent_rev: np.ndarray | None = None  # a signal's double edges: cell of their pulse, -1: not kept
+    parent_blade: np.ndarray | None = None
 
 
-def _extra_pulses(opr, labelled: list, doubles: list, per_probe: list, lo: int, hi: int, nb: int, npr: int):
+def _match_parents(lab: _Labels, parent_t: np.ndarray, toa: np.ndarray, start: int) -> None:
+    """Cells (revolution, blade) of the kept pulses ``toa`` (revolutions from ``start``) that
+    are the pulses of double edges (``parent_t``, increasing)."""
+    flat = toa.ravel()
+    have = np.flatnonzero(np.isfinite(flat))
+    if not have.size:
+        return
+    srt = have[np.argsort(flat[have], kind="stable")]
+    vals = flat[srt]
+    i0, i1 = np.searchsorted(parent_t, vals[0], side="left"), np.searchsorted(parent_t, vals[-1], side="right")
+    k = np.clip(np.searchsorted(vals, parent_t[i0:i1]), 0, vals.size - 1)
+    hit = np.flatnonzero(vals[k] == parent_t[i0:i1])
+    cell = srt[k[hit]]
+    lab.parent_rev[i0 + hit] = start + cell // toa.shape[1]
+    lab.parent_blade[i0 + hit] = cell % toa.shape[1]
+
+
+def _identify(opr, trains: list, params: list, doubles: list, encoder, phase, nb: int, toa_path: Path):
+    """Every probe labelled window by window (:func:`identify_window`); the TOAs spilled to
+    ``toa_path`` as float64 ``(revolution, blade, probe)``. Returns the labels and, per
+    revolution and probe, the TOA count and whether at least half the blades were seen."""
+    nr, npr = opr.size, len(trains)
+    labs = [_Labels() for _ in trains]
+    for lab, dbl in zip(labs, doubles):
+        if dbl is not None:
+            lab.parent_rev, lab.parent_blade = np.full(dbl[0].size, -1, np.int64), np.zeros(dbl[0].size, np.int64)
+    fin = np.zeros((nr, npr), np.int32)
+    half = np.zeros((nr, npr), bool)
+    end_s = last_pulse_s(opr)
+    with open(toa_path, "wb") as fh:
+        for a in range(0, nr, _CHUNK_REVS):
+            b = min(nr, a + _CHUNK_REVS)
+            lo, hi = window_revolutions(a, b, nr)
+            toa = np.empty((b - a, nb, npr))
+            for j, (train, lab) in enumerate(zip(trains, labs)):
+                t = train.window(lo, hi, end_s)
+                r = identify_window(opr, t, params[j], a, b, encoder=encoder, phase=phase)
+                toa[:, :, j] = r.toa_s
+                lab.extra.append((r.extra_revolution, r.extra_blade, r.extra_toa_s))
+                lab.stray.append((r.stray_revolution, r.stray_toa_s))
+                # before the first OPR pulse, after the last pulse of the last revolution
+                lab.outside += r.outside + (int(train.offset[0]) if a == 0 else 0) + (
+                    int(train.offset[-1] - train.offset[lo]) - t.size if b == nr else 0)
+                if doubles[j] is not None:
+                    _match_parents(lab, doubles[j][0], r.toa_s, a)
+            toa.tofile(fh)
+            seen = np.isfinite(toa)
+            fin[a:b] = seen.sum(axis=1)
+            # a revolution is kept when every probe saw at least half the blades (the ends of a
+            # recording: the probes started late or stopped before the revolution's end)
+            half[a:b] = np.mean(seen, axis=1) >= 0.5
+    return labs, fin, half
+
+
+def _extra_pulses(opr, labs: list, doubles: list, fin: np.ndarray, per_probe: list, lo: int, hi: int, nb: int):
     """The pulses besides the TOAs (extra, stray, double) of revolutions ``lo:hi``, and the counts.
 
     Returns the flat passage index ``(revolution * nb + blade) * npr + probe`` and time, s,
     of each such pulse, and the totals; each probe's counts go into its ``per_probe`` row.
     """
+    npr = len(labs)
     passages, times = [], []
     tot = {"missing": 0, "extra": 0, "stray": 0, "outside": 0, "double": 0}
-    for j, r in enumerate(labelled):
+    for j, lab in enumerate(labs):
+        ex_r, ex_b, ex_t = (np.concatenate([x[k] for x in lab.extra]) for k in range(3))
+        st_r, st_t = (np.concatenate([x[k] for x in lab.stray]) for k in range(2))
         n_double = 0
         if doubles[j] is not None and doubles[j][0].size:
             # a double edge joins the cell its pulse was kept in (where the signal chain puts it)
-            parent_t, dbl_t = doubles[j]
-            flat = r.toa_s[lo:hi].ravel()
-            have = np.flatnonzero(np.isfinite(flat))
-            srt = have[np.argsort(flat[have], kind="stable")]
-            k = np.clip(np.searchsorted(flat[srt], parent_t), 0, max(srt.size - 1, 0))
-            found = srt.size > 0
-            hit = (flat[srt[k]] == parent_t) if found else np.zeros(parent_t.size, bool)
-            cell = srt[k[hit]]
-            passages.append(cell * npr + j)
+            dbl_t = doubles[j][1]
+            hit = (lab.parent_rev >= lo) & (lab.parent_rev < hi)
+            passages.append(((lab.parent_rev[hit] - lo) * nb + lab.parent_blade[hit]) * npr + j)
             times.append(dbl_t[hit])
             n_double = int(hit.sum())
             # the others' pulse was extra, stray or outside: they count as stray (or outside)
             lost = dbl_t[~hit]
             rev_l = np.clip(np.searchsorted(opr, lost, side="right") - 1, 0, opr.size - 1).astype(np.int64)
-            r = replace(r, stray_toa_s=np.r_[r.stray_toa_s, lost], stray_revolution=np.r_[r.stray_revolution, rev_l])
-        sel_e = (r.extra_revolution >= lo) & (r.extra_revolution < hi)
-        sel_s = (r.stray_revolution >= lo) & (r.stray_revolution < hi)
-        cells = r.toa_s[lo:hi]
-        dropped = (int(np.isfinite(r.toa_s).sum() - np.isfinite(cells).sum())
-                   + int((~sel_e).sum()) + int((~sel_s).sum()))
-        passages += [((r.extra_revolution[sel_e] - lo) * nb + r.extra_blade[sel_e]) * npr + j,
-                     (r.stray_revolution[sel_s] - lo) * nb * npr + j]
-        times += [r.extra_toa_s[sel_e], r.stray_toa_s[sel_s]]
-        c = {"toas": int(np.isfinite(cells).sum()), "missing": int(np.isnan(cells).sum()),
-             "extra": int(sel_e.sum()), "stray": int(sel_s.sum()), "outside": r.outside + dropped,
-             "double": n_double}
+            st_r, st_t = np.r_[st_r, rev_l], np.r_[st_t, lost]
+        sel_e = (ex_r >= lo) & (ex_r < hi)
+        sel_s = (st_r >= lo) & (st_r < hi)
+        toas = int(fin[lo:hi, j].sum())
+        dropped = int(fin[:, j].sum()) - toas + int((~sel_e).sum()) + int((~sel_s).sum())
+        passages += [((ex_r[sel_e] - lo) * nb + ex_b[sel_e]) * npr + j, (st_r[sel_s] - lo) * nb * npr + j]
+        times += [ex_t[sel_e], st_t[sel_s]]
+        c = {"toas": toas, "missing": (hi - lo) * nb - toas, "extra": int(sel_e.sum()), "stray": int(sel_s.sum()),
+             "outside": lab.outside + dropped, "double": n_double}
         per_probe[j].update(c)
         for k in tot:
             tot[k] += c[k]
@@ -786,10 +735,11 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     ----------
     opr_path : path-like
         OPR pulse times, s (:func:`read_times`), strictly increasing.
-    probes : list of (float, path-like) or (float, path-like, "signal")
+    probes : list of (float, path-like) or (float, path-like, "signal"[, start_s])
         Each probe's angle (deg, anticlockwise from +x) and its pulse times, s; or (with
         ``"signal"``) its raw signal, volts (``.npy`` or one-column CSV), triggered as
-        ``signal`` says.
+        ``signal`` says, its first sample at ``start_s`` (None or absent:
+        ``signal.start_s``).
     out : path-like
         The recording to write (MCAP).
     n_blades, tip_radius_m : optional
@@ -822,25 +772,47 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     if any(len(pr) > 2 for pr in probes):
         signal = (signal or SignalOptions()).resolve(scenario_path)
     med_rpm = _median_rpm(opr_path, opr)
-    labelled, per_probe, doubles = _label_probes(opr, probes, info, signal, column, tolerance, encoder)
-    toa, lo, hi = _full_revolutions(opr_path, labelled)
-    nr = hi - lo
-    ex_pass, ex_t, tot = _extra_pulses(opr, labelled, doubles, per_probe, lo, hi, nb, npr)
-    opr_k = opr[lo:hi]
-    rpm_k = 60.0 / np.diff(opr[lo:min(hi + 1, opr.size)])
-    run_id = _run_id("pulses", opr_k.tobytes(), toa.tobytes(), ex_t.tobytes())
-    info = replace(info, n_revolutions=nr, duration_s=float(opr_k[-1] - opr_k[0]), run_id=run_id,
-                   speed_range_rpm=(float(rpm_k.min()), float(rpm_k.max())), software_version=__version__,
-                   has_truth=False)
-    res = IngestResult(path=str(out), run_id=run_id, revolutions=nr, n_blades=nb, n_probes=npr,
-                       toas=int(np.isfinite(toa).sum()), median_rpm=med_rpm, per_probe=tuple(per_probe),
-                       notes=tuple(notes), **tot)
-    source = {"kind": "pulses", "opr": str(opr_path), "probes": [[float(a), str(p), *kind] for a, p, *kind in probes],
-              "column": column, "encoder_pulses": encoder_pulses, "encoder_index": encoder_index,
-              "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)},
-              "scenario": None if scenario_path is None else str(scenario_path),
-              "first_opr_pulse": lo}
-    record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
-              "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
-    _write(out, info, np.arange(nr, dtype=np.int64), opr_k, toa, ex_pass, ex_t, record)
+    phase = rotor_phase_from_opr(opr)
+    out = Path(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".spill", dir=out.parent))
+    try:
+        trains, params, per_probe, doubles = _read_probes(opr, probes, info, signal, column, tolerance, encoder,
+                                                          phase, tmp)
+        labs, fin, half = _identify(opr, trains, params, doubles, encoder, phase, nb, tmp / "toa.f8")
+        good = np.flatnonzero(np.all(half, axis=1))
+        if good.size < 3:
+            raise BttsimError(f"{opr_path}: fewer than 3 revolutions with pulses on every probe "
+                              f"({good.size}); do the probe files cover the OPR file's time span?")
+        lo, hi = int(good[0]), int(good[-1]) + 1
+        nr = hi - lo
+        ex_pass, ex_t, tot = _extra_pulses(opr, labs, doubles, fin, per_probe, lo, hi, nb)
+        del labs, doubles
+
+        def toa_rows(a: int, b: int) -> np.ndarray:
+            return np.fromfile(tmp / "toa.f8", dtype=float, count=(b - a) * nb * npr,
+                               offset=8 * (lo + a) * nb * npr).reshape(b - a, nb, npr)
+
+        opr_k = opr[lo:hi]
+        rpm_k = 60.0 / np.diff(opr[lo:min(hi + 1, opr.size)])
+        h = hashlib.sha256(b"pulses" + opr_k.tobytes())
+        for a in range(0, nr, _CHUNK_REVS):
+            h.update(toa_rows(a, min(nr, a + _CHUNK_REVS)).tobytes())
+        h.update(ex_t.tobytes())
+        run_id = h.hexdigest()[:16]
+        info = replace(info, n_revolutions=nr, duration_s=float(opr_k[-1] - opr_k[0]), run_id=run_id,
+                       speed_range_rpm=(float(rpm_k.min()), float(rpm_k.max())), software_version=__version__,
+                       has_truth=False)
+        res = IngestResult(path=str(out), run_id=run_id, revolutions=nr, n_blades=nb, n_probes=npr,
+                           toas=int(fin[lo:hi].sum()), median_rpm=med_rpm, per_probe=tuple(per_probe),
+                           notes=tuple(notes), **tot)
+        source = {"kind": "pulses", "opr": str(opr_path),
+                  "probes": [[float(a), str(p), *kind] for a, p, *kind in probes], "column": column,
+                  "encoder_pulses": encoder_pulses, "encoder_index": encoder_index,
+                  "signal": None if signal is None else {f.name: getattr(signal, f.name) for f in fields(signal)},
+                  "scenario": None if scenario_path is None else str(scenario_path), "first_opr_pulse": lo}
+        record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
+                  "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
+        _write(out, info, np.arange(nr, dtype=np.int64), opr_k, toa_rows, (nr, nb, npr), ex_pass, ex_t, record)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return res

@@ -179,6 +179,65 @@ def test_pulse_trains_with_a_scenario(sim, tmp_path):
     np.testing.assert_allclose(_blades(summary, "amp_pkpk_m"), _blades(sim["summary"], "amp_pkpk_m"), rtol=2e-3)
 
 
+def test_windows_and_blocks_change_nothing(sim, tmp_path, monkeypatch):
+    """Identification in windows of revolutions and reading in small blocks (a CSV block
+    boundary inside a line, Parquet batches and windows ending inside revolutions) give the
+    recording byte for byte; with a short calibration span the TOAs and counts are those of
+    the whole-array :func:`identify_pulses`."""
+    import bttsim_stream.ingest as ingest_mod
+    import bttsim_stream.process.identify as identify_mod
+    import bttsim_stream.timefiles as timefiles_mod
+
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    args, _ = _trains(sim, tmp_path / "t", drop=0.01, extra=0.002, seed=11)
+    p1 = Path(args[5].split("=", 1)[1])  # one probe as Parquet
+    pq.write_table(pa.table({"toa_s": np.loadtxt(p1, skiprows=1)}), tmp_path / "p1.parquet")
+    args[5] = args[5].split("=")[0] + f"={tmp_path / 'p1.parquet'}"
+    flags = ["--blades", "29", "--tip-radius-m", "0.19010353787923925", "--eo", "8"]
+
+    def ingest(name):
+        assert main(["ingest", *args, *flags, "--out", str(tmp_path / name)]) == 0
+        return (tmp_path / name).read_bytes()
+
+    whole = ingest("whole.mcap")
+    monkeypatch.setattr(ingest_mod, "_CHUNK_REVS", 7)
+    monkeypatch.setattr(timefiles_mod, "_BLOCK_BYTES", 997)
+    monkeypatch.setattr(timefiles_mod, "_PARQUET_ROWS", 1000)
+    assert ingest("small.mcap") == whole
+    monkeypatch.setattr(identify_mod, "CALIBRATION_REVOLUTIONS", 40)
+    ingest("cal40.mcap")
+    got = load_run(tmp_path / "cal40.mcap")
+    counts = json.loads(read_recording(tmp_path / "cal40.mcap").run_metadata["ingest"])
+    opr = read_times(args[1])
+    psi = Geometry.from_info(got.meta).nominal_arrival_angles()
+    lo = json.loads(read_recording(tmp_path / "cal40.mcap").run_metadata["source"])["first_opr_pulse"]
+    for j in range(got.meta.n_probes):
+        ref = identify_pulses(opr, read_times(args[3 + 2 * j].split("=", 1)[1]), psi[:, j])
+        np.testing.assert_array_equal(got.toa_s[:, :, j], ref.toa_s[lo:lo + got.toa_s.shape[0]])
+        row = counts["per_probe"][j]
+        assert (row["missing"], row["extra"], row["stray"]) == (ref.missing, ref.extra, ref.stray)
+
+
+def test_pulses_beyond_the_opr_file_are_outside(sim, tmp_path):
+    """A probe recorded long before and after the OPR file: those pulses count as outside
+    and change nothing else (they are counted, not read into the identification)."""
+    args, _ = _trains(sim, tmp_path / "t", drop=0.01, extra=0.001, seed=2)
+    flags = ["--blades", "29", "--tip-radius-m", "0.19", "--eo", "8"]
+    assert main(["ingest", *args, *flags, "--out", str(tmp_path / "a.mcap")]) == 0
+    p0 = Path(args[3].split("=", 1)[1])
+    t, opr = np.loadtxt(p0, skiprows=1), sim["run"].opr_s
+    np.savetxt(p0, np.r_[opr[0] - np.arange(500, 0, -1) * 1e-4, t, opr[-1] + 1.0 + np.arange(2000) * 1e-3],
+               fmt="%.17g")
+    assert main(["ingest", *args, *flags, "--out", str(tmp_path / "b.mcap")]) == 0
+    a, b = (json.loads(read_recording(tmp_path / f).run_metadata["ingest"]) for f in ("a.mcap", "b.mcap"))
+    assert b["per_probe"][0]["outside"] == a["per_probe"][0]["outside"] + 2500
+    assert {k: v for k, v in a.items() if k not in ("outside", "per_probe")} == \
+        {k: v for k, v in b.items() if k not in ("outside", "per_probe")}
+    np.testing.assert_array_equal(load_run(tmp_path / "a.mcap").toa_s, load_run(tmp_path / "b.mcap").toa_s)
+
+
 # -- reading ---------------------------------------------------------------------------
 
 def test_read_times_formats(tmp_path):
@@ -240,12 +299,41 @@ def test_bad_input_one_line_exit_2(sim, tmp_path, capsys, case, words):
     assert err.startswith("bttsim: error: ") and err.count("\n") == 1 and words in err, err
     assert "Traceback" not in err
     assert out.read_bytes() == b"keep me"
+    assert not list(tmp_path.glob(".out.mcap*"))  # neither the partial recording nor the spilled pulses
     assert time.perf_counter() - t0 < 20
 
 
-def test_export_folder_errors(tmp_path):
+@pytest.mark.slow
+def test_a_2_gb_garbage_file_in_bounded_memory(sim, tmp_path):
+    """A 2 GB file (sparse: NUL bytes, no line end) given as a probe: one line, exit 2, in a
+    fresh process whose peak resident memory stays far below the file's size."""
+    import subprocess
+    import sys
+
+    args, _ = _trains(sim, tmp_path / "t")
+    big = tmp_path / "big.csv"
+    with open(big, "wb") as fh:
+        fh.truncate(2 << 30)
+    args[3] = args[3].split("=")[0] + f"={big}"
+    code = ("import resource, sys; from bttsim_stream.cli import main; rc = main(sys.argv[1:]); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
+    res = subprocess.run([sys.executable, "-c", code, "ingest", *args, "--blades", "29", "--tip-radius-m", "0.19",
+                          "--out", str(tmp_path / "o.mcap")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "not a CSV of times" in res.stderr, res.stderr
+    assert int(res.stdout) < 300 * 1024, res.stdout  # KiB: the file is 2048 MiB
+    assert not (tmp_path / "o.mcap").exists()
+
+
+def test_export_folder_errors(sim, tmp_path):
     with pytest.raises(BttsimError, match="no run.json"):
         ingest_export(tmp_path, tmp_path / "x.mcap")
+    export_run(sim["mcap"], tmp_path / "exp", "csv")
+    with open(tmp_path / "exp" / "toa.csv", "wb") as fh:  # 2 GB of NUL bytes, sparse: fails at its first block
+        fh.truncate(2 << 30)
+    t0 = time.perf_counter()
+    with pytest.raises(BttsimError, match="toa.csv: .*longer than 64 KiB: not a CSV of numbers"):
+        ingest_export(tmp_path / "exp", tmp_path / "x.mcap")
+    assert time.perf_counter() - t0 < 10
 
 
 def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
@@ -327,7 +415,11 @@ def test_raw_signals_give_the_published_toas(signal_run, capsys):
     s, d = signal_run, signal_run["dir"]
     args = ["ingest", "--opr", str(d / "opr.csv"), "--scenario", str(d / "s.toml"), "--out", str(d / "ing.mcap"),
             f"--signal-start-s={s['k0'] / s['fs']!r}"]
-    for a, f in zip(np.rad2deg(s["run"].meta.probe_angles_rad), s["files"]):
+    files = list(s["files"])
+    early = 54_321  # probe 1's digitiser started earlier (at 0 V): its own start time after '@'
+    np.save(d / "early.npy", np.r_[np.zeros(early), np.load(files[1])])
+    files[1] = f"{d / 'early.npy'}@{(s['k0'] - early) / s['fs']!r}"
+    for a, f in zip(np.rad2deg(s["run"].meta.probe_angles_rad), files):
         args += ["--signal", f"{float(a)!r}={f}"]
     main(args)
     counts = json.loads(read_recording(d / "ing.mcap").metadata["bttsim.run"]["ingest"])
@@ -344,7 +436,7 @@ def test_raw_signals_give_the_published_toas(signal_run, capsys):
 def test_raw_signals_in_blocks_and_continuous(signal_run, monkeypatch):
     """Reading in small blocks changes nothing; a continuous trace (the gaps at 0 V) gives
     the threshold trigger's TOAs too (its state needs no window)."""
-    import bttsim_stream.ingest as ingest_mod
+    import bttsim_stream.timefiles as timefiles_mod
     from bttsim_stream.ingest import SignalOptions, read_signal_pulses
 
     s = signal_run
@@ -352,9 +444,15 @@ def test_raw_signals_in_blocks_and_continuous(signal_run, monkeypatch):
     opt = SignalOptions(start_s=s["k0"] / s["fs"]).resolve(s["dir"] / "s.toml")
     hold = 0.25 * 60.0 / 2400.0 / 29
     whole = read_signal_pulses(s["files"][2], opt.trigger_of(2), opt, hold)
-    monkeypatch.setattr(ingest_mod, "_SIGNAL_BLOCK", 4099)
+    monkeypatch.setattr(timefiles_mod, "_SIGNAL_BLOCK", 4099)
     small = read_signal_pulses(s["files"][2], opt.trigger_of(2), opt, hold)
     for a, b in zip(whole, small):
+        np.testing.assert_array_equal(a, b)
+    y = np.load(s["files"][2])[:300_000]  # volts as a one-column CSV: the same pulses as the .npy
+    np.save(s["dir"] / "part.npy", y)
+    np.savetxt(s["dir"] / "part.csv", y, fmt="%.17g", header="volts", comments="")
+    for a, b in zip(read_signal_pulses(s["dir"] / "part.npy", opt.trigger_of(2), opt, hold),
+                    read_signal_pulses(s["dir"] / "part.csv", opt.trigger_of(2), opt, hold)):
         np.testing.assert_array_equal(a, b)
     if scn.acquisition.signal.trigger == "threshold":
         y = np.load(s["files"][2])
@@ -368,13 +466,16 @@ def test_raw_signal_errors(sim, tmp_path, capsys):
     np.savetxt(tmp_path / "opr.csv", sim["run"].opr_s)
     np.save(tmp_path / "flat.npy", np.zeros(1000))
     np.save(tmp_path / "two.npy", np.zeros((10, 3)))
+    (tmp_path / "two.csv").write_text("t,v\n0,0.1\n1e-6,0.2\n")
     base = ["ingest", "--opr", str(tmp_path / "opr.csv"), "--blades", "29", "--tip-radius-m", "0.19",
             "--sample-rate", "2e6", "--out", str(tmp_path / "o.mcap")]
     for extra, words in [(["--signal", f"5={tmp_path / 'flat.npy'}"], "no pulse reaches"),
                          (["--signal", f"5={tmp_path / 'two.npy'}"], "1-D array"),
                          (["--signal", f"5={tmp_path / 'none.npy'}"], "no such file"),
                          (["--signal", f"5={tmp_path / 'flat.npy'}", "--trigger", "edge"], "--trigger"),
-                         (["--signal", "five"], "--signal must be")]:
+                         (["--signal", "five"], "--signal must be"),
+                         (["--signal", f"5={tmp_path / 'flat.npy'}@soon"], "must be a time in s"),
+                         (["--signal", f"5={tmp_path / 'two.csv'}"], "holds one column")]:
         assert main(base + extra) == 2
         err = capsys.readouterr().err.strip()
         assert words in err and "\n" not in err, err

@@ -44,14 +44,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .displacement import TWO_PI, rotor_phase_from_opr
+from .displacement import TWO_PI, RotorPhase, rotor_phase_from_opr
 
-__all__ = ["IdentifiedPulses", "EncoderRevolutions", "identify_pulses", "pulses_per_revolution",
-           "encoder_revolutions", "shaft_angle"]
+__all__ = ["IdentifiedPulses", "EncoderRevolutions", "IdentifyParams", "identify_pulses", "identify_window",
+           "identification_params", "calibration_end", "last_pulse_s", "window_revolutions", "pulses_per_revolution",
+           "encoder_revolutions", "shaft_angle", "CALIBRATION_REVOLUTIONS", "HALO_REVOLUTIONS"]
 
 #: Revolutions on each side whose pulses predict a cell's, and how many must be present.
 _REACH = 3
 _MIN_NEIGHBOURS = 3
+#: Revolutions from the probe's first pulse whose pulses calibrate the arrival angles and
+#: the robust scales (all of a shorter run).
+CALIBRATION_REVOLUTIONS = 6000
+#: A cell's labelling depends on the pulses within 2 * _REACH revolutions (two rounds) of it,
+#: a pulse lands at most one revolution from its OPR interval: a window of revolutions is
+#: labelled from the pulses of its OPR intervals widened by this many on each side.
+HALO_REVOLUTIONS = 2 * _REACH + 4
+#: Revolution periods after the last OPR pulse beyond which a pulse is outside.
+TRAILING_PERIODS = 3
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -196,7 +206,8 @@ def encoder_revolutions(encoder_s: np.ndarray, pulses_per_revolution: int, index
     return EncoderRevolutions(opr_s=p[zero], pulse_s=p, angle_rad=TWO_PI * tooth / k, rule=rule)
 
 
-def shaft_angle(opr_s: np.ndarray, t_s: np.ndarray, encoder: EncoderRevolutions | None = None) -> np.ndarray:
+def shaft_angle(opr_s: np.ndarray, t_s: np.ndarray, encoder: EncoderRevolutions | None = None,
+                phase: RotorPhase | None = None) -> np.ndarray:
     """Total rotor angle since ``opr_s[0]`` at times ``t_s``, rad.
 
     Without an encoder: ``2 pi n + phi_n(t)`` from the quadratic OPR model
@@ -210,11 +221,14 @@ def shaft_angle(opr_s: np.ndarray, t_s: np.ndarray, encoder: EncoderRevolutions 
     t_s : ndarray, shape (n,)
         Times at or after ``opr_s[0]``, s.
     encoder : EncoderRevolutions, optional
+    phase : RotorPhase, optional
+        ``rotor_phase_from_opr(opr_s)``, when already computed.
     """
     opr = np.asarray(opr_s, dtype=float)
     t = np.asarray(t_s, dtype=float)
     n = np.clip(np.searchsorted(opr, t, side="right") - 1, 0, opr.size - 1)
-    total = TWO_PI * n + rotor_phase_from_opr(opr).rows(n).angle(t)
+    phase = rotor_phase_from_opr(opr) if phase is None else phase
+    total = TWO_PI * n + phase.rows(n).angle(t)
     if encoder is None or encoder.pulse_s.size < 3:
         return total
     e, a = encoder.pulse_s, encoder.angle_rad
@@ -251,10 +265,226 @@ def _first_per_cell(key: np.ndarray, score: np.ndarray) -> np.ndarray:
     return srt[first]
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class IdentifyParams:
+    """What :func:`identify_window` needs besides the pulses: found once per probe by
+    :func:`identification_params` on the calibration span.
+
+    Attributes
+    ----------
+    arrival_angles_rad : ndarray, shape (n_blades,)
+        Arrival angles, calibrated unless given exactly, rad.
+    scale_rad : ndarray, shape (2, n_blades)
+        Robust scale per blade of each selection round (NaN: none), rad.
+    tolerance, outlier, floor : float
+        As :func:`identify_pulses` takes them.
+    """
+
+    arrival_angles_rad: np.ndarray
+    scale_rad: np.ndarray
+    tolerance: float = 0.25
+    outlier: float = 20.0
+    floor: float = 0.02
+
+
+def calibration_end(opr_s: np.ndarray, first_pulse_s: float) -> tuple[int, float]:
+    """The calibration span: the first :data:`CALIBRATION_REVOLUTIONS` revolutions from the
+    one of the probe's first pulse, ``opr_s[:k]`` and the pulses from ``opr_s[0]`` to the
+    time returned (``opr_s[k - 1]``, or :func:`last_pulse_s` when ``k == opr_s.size``)."""
+    n0 = max(int(np.searchsorted(opr_s, first_pulse_s, side="right")) - 1, 0)
+    k = int(min(opr_s.size, n0 + CALIBRATION_REVOLUTIONS + 1))
+    return k, (float(opr_s[k - 1]) if k < opr_s.size else last_pulse_s(opr_s))
+
+
+def last_pulse_s(opr_s: np.ndarray) -> float:
+    """Time after which a pulse can only be *outside* (beyond the last revolution): the last
+    OPR pulse plus :data:`TRAILING_PERIODS` of its revolution period."""
+    return float(opr_s[-1] + TRAILING_PERIODS * (opr_s[-1] - opr_s[-2]))
+
+
+def window_revolutions(start: int, stop: int, n_rev: int) -> tuple[int, int]:
+    """OPR intervals ``[lo, hi)`` whose pulses :func:`identify_window` needs for revolutions
+    ``start:stop`` (``lo == 0``: also the pulses before the first OPR pulse; ``hi == n_rev``:
+    also those after the last)."""
+    lo, hi = start - HALO_REVOLUTIONS, stop + HALO_REVOLUTIONS
+    return (0 if lo <= 0 else lo), (n_rev if hi >= n_rev else hi)
+
+
+def _labels(opr, t, psi, encoder, phase):
+    """Revolution interval, total rotor angle, nearest blade and deviation of each pulse."""
+    n = np.searchsorted(opr, t, side="right") - 1
+    total = shaft_angle(opr, t, encoder, phase)
+    blade, dev = _nearest(total, psi)
+    return n, total, blade, dev
+
+
+def _select(m, blade, dev, ci, r0, r1, nb, pitch, outlier, floor, scale):
+    """Steps 4 of the module notes on the cell pulses ``ci`` whose revolutions lie in
+    ``[r0, r1)``: the kept pulses and the scale of each round (``scale`` None: measured)."""
+    key = m[ci] * nb + blade[ci]
+    kept = ci[_first_per_cell(key, np.abs(dev[ci]))]
+    nw = r1 - r0
+    scales = []
+    for rnd in range(2):
+        dev_cell = np.full((nw + 2 * _REACH, nb), np.nan)
+        dev_cell[m[kept] - r0 + _REACH, blade[kept]] = dev[kept]
+        neigh = np.stack([dev_cell[k:k + nw] for k in range(2 * _REACH + 1) if k != _REACH])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            pred = np.nanmedian(neigh, axis=0)  # (nw, nb)
+        trusted = np.sum(np.isfinite(neigh), axis=0) >= _MIN_NEIGHBOURS
+        pred = np.where(trusted, pred, 0.0)
+        # what the neighbouring blades of the same revolution share beyond their own trend:
+        # the rotor-angle model's error between OPR pulses (a speed change), common to
+        # arrivals close in time
+        r_cell = dev_cell[_REACH:_REACH + nw] - pred
+        side = np.stack([np.roll(r_cell, k, axis=1) for k in range(-_REACH, _REACH + 1) if k])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            common = np.nanmedian(side, axis=0)
+        pred = pred + np.where(trusted & np.isfinite(common), common, 0.0)
+        resid = np.abs(dev[ci] - pred[m[ci] - r0, blade[ci]])
+        keep = ci[_first_per_cell(key, resid)]
+        r_keep = np.abs(dev[keep] - pred[m[keep] - r0, blade[keep]])
+        tr = trusted[m[keep] - r0, blade[keep]]
+        if scale is None:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                sc = 1.4826 * np.array([np.median(r_keep[tr & (blade[keep] == b)])
+                                        if np.any(tr & (blade[keep] == b)) else np.nan for b in range(nb)])
+        else:
+            sc = scale[rnd]
+        scales.append(sc)
+        limit = np.fmax(outlier * sc, floor * pitch)
+        kept = keep[~tr | (r_keep <= limit[blade[keep]])]
+    return kept, np.array(scales)
+
+
+def identification_params(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: np.ndarray, *,
+                          calibrate: bool = True, tolerance: float = 0.25, outlier: float = 20.0,
+                          floor: float = 0.02, encoder: EncoderRevolutions | None = None,
+                          phase: RotorPhase | None = None) -> IdentifyParams:
+    """Arrival angles (step 2) and robust scales (step 4) of one probe, from its pulses of the
+    calibration span (:func:`calibration_end`): the steps of :func:`identify_pulses` on
+    ``opr_s[:k]`` and those pulses alone.
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        All the OPR times, s.
+    pulse_s : ndarray
+        The probe's pulses, sorted, s: at least those of the calibration span; others are
+        ignored.
+    arrival_angles_rad, calibrate, tolerance, outlier, floor, encoder
+        As :func:`identify_pulses`.
+    phase : RotorPhase, optional
+        ``rotor_phase_from_opr(opr_s)``, when already computed.
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    t = np.asarray(pulse_s, dtype=float).ravel()
+    psi = np.mod(np.asarray(arrival_angles_rad, dtype=float).ravel(), TWO_PI)
+    nb = psi.size
+    pitch = TWO_PI / nb
+    if t.size:
+        k, end = calibration_end(opr, float(t[0]))
+        t = t[np.searchsorted(t, opr[0], side="left"):np.searchsorted(t, end)]
+        if k < opr.size:
+            opr, phase, encoder = opr[:k], None, _encoder_until(encoder, opr[k - 1])
+    nr = opr.size
+    phase = rotor_phase_from_opr(opr) if phase is None else phase
+    n, total, blade, dev = _labels(opr, t, psi, encoder, phase)
+    after = n >= 0
+    if calibrate and after.any():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            shift = np.array([np.median(dev[after & (blade == b)]) if np.any(after & (blade == b)) else 0.0
+                              for b in range(nb)])
+        psi = np.mod(psi + np.where(np.abs(shift) < 0.5 * pitch, shift, 0.0), TWO_PI)
+        blade, dev = _nearest(total, psi)
+    m = np.round((total - dev - psi[blade]) / TWO_PI).astype(np.int64)
+    ci = np.flatnonzero(after & (m >= 0) & (m < nr) & (np.abs(dev) <= tolerance * pitch))
+    _, scale = _select(m, blade, dev, ci, 0, nr, nb, pitch, outlier, floor, None)
+    return IdentifyParams(arrival_angles_rad=psi, scale_rad=scale, tolerance=tolerance, outlier=outlier,
+                          floor=floor)
+
+
+def _encoder_until(encoder: EncoderRevolutions | None, end_s: float) -> EncoderRevolutions | None:
+    if encoder is None:
+        return None
+    k = int(np.searchsorted(encoder.pulse_s, end_s, side="right"))
+    return EncoderRevolutions(opr_s=encoder.opr_s[encoder.opr_s <= end_s], pulse_s=encoder.pulse_s[:k],
+                              angle_rad=encoder.angle_rad[:k], rule=encoder.rule)
+
+
+def identify_window(opr_s: np.ndarray, pulse_s: np.ndarray, params: IdentifyParams, start: int, stop: int, *,
+                    encoder: EncoderRevolutions | None = None, phase: RotorPhase | None = None
+                    ) -> IdentifiedPulses:
+    """Revolutions ``start:stop`` of one probe's labelling (steps 1-5 with ``params``).
+
+    Parameters
+    ----------
+    opr_s : ndarray, shape (n_rev,)
+        All the OPR times, s.
+    pulse_s : ndarray
+        The probe's pulses, sorted, s: those of OPR intervals
+        :func:`window_revolutions(start, stop, n_rev) <window_revolutions>` (more do no harm).
+    params : IdentifyParams
+    start, stop : int
+        Revolutions to label, ``0 <= start < stop <= n_rev``.
+    encoder : EncoderRevolutions, optional
+    phase : RotorPhase, optional
+        ``rotor_phase_from_opr(opr_s)``, when already computed.
+
+    Returns
+    -------
+    IdentifiedPulses
+        ``toa_s`` of shape ``(stop - start, n_blades)``; the extra pulses of those
+        revolutions; the stray and outside pulses of OPR intervals ``start:stop`` (with the
+        pulses given before the first OPR pulse when ``start == 0``). Windows that tile
+        ``0:n_rev`` give, joined, exactly what one window ``0:n_rev`` gives. The pulses
+        before ``opr_s[0]`` and after :func:`last_pulse_s` can only be outside: a caller
+        may count them instead of passing them.
+    """
+    opr = np.asarray(opr_s, dtype=float)
+    t = np.asarray(pulse_s, dtype=float).ravel()
+    psi = params.arrival_angles_rad
+    nr, nb = opr.size, psi.size
+    pitch = TWO_PI / nb
+    phase = rotor_phase_from_opr(opr) if phase is None else phase
+    n, total, blade, dev = _labels(opr, t, psi, encoder, phase)
+    before = n < 0
+    m = np.round((total - dev - psi[blade]) / TWO_PI).astype(np.int64)
+    outside = ~before & ((m < 0) | (m >= nr))
+    stray = ~before & ~outside & (np.abs(dev) > params.tolerance * pitch)
+    cell = ~before & ~outside & ~stray
+    r0 = max(start - HALO_REVOLUTIONS - 1, 0)
+    r1 = min(stop + HALO_REVOLUTIONS + 1, nr)
+    ci = np.flatnonzero(cell & (m >= r0) & (m < r1))
+    kept, _ = _select(m, blade, dev, ci, r0, r1, nb, pitch, params.outlier, params.floor, params.scale_rad)
+    mine = (m[kept] >= start) & (m[kept] < stop)
+    kept = kept[mine]
+    toa = np.full((stop - start, nb), np.nan)
+    toa[m[kept] - start, blade[kept]] = t[kept]
+    is_kept = np.zeros(t.size, bool)
+    is_kept[kept] = True
+    ex = np.flatnonzero(cell & ~is_kept & (m >= start) & (m < stop))
+    owner = np.clip(n, 0, nr - 1)
+    own = (owner >= start) & (owner < stop)
+    st = np.flatnonzero(stray & own)
+    return IdentifiedPulses(
+        toa_s=toa, extra_revolution=m[ex], extra_blade=blade[ex].astype(np.int64), extra_toa_s=t[ex],
+        stray_revolution=owner[st].astype(np.int64), stray_toa_s=t[st],
+        outside=int(np.count_nonzero((before | outside) & own)), arrival_angles_rad=psi)
+
+
 def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: np.ndarray, *,
                     calibrate: bool = True, tolerance: float = 0.25, outlier: float = 20.0,
                     floor: float = 0.02, encoder: EncoderRevolutions | None = None) -> IdentifiedPulses:
     """Assign one probe's unlabelled pulse times to revolutions and blades.
+
+    :func:`identification_params` on the calibration span, then :func:`identify_window` on
+    every revolution; ``bttsim ingest`` runs the same two steps over windows of revolutions,
+    with the same result.
 
     Parameters
     ----------
@@ -286,64 +516,7 @@ def identify_pulses(opr_s: np.ndarray, pulse_s: np.ndarray, arrival_angles_rad: 
     """
     opr = np.asarray(opr_s, dtype=float)
     t = np.sort(np.asarray(pulse_s, dtype=float).ravel())
-    psi = np.mod(np.asarray(arrival_angles_rad, dtype=float).ravel(), TWO_PI)
-    nr, nb = opr.size, psi.size
-    pitch = TWO_PI / nb
-    n = np.searchsorted(opr, t, side="right") - 1
-    before = n < 0
-    t, n = t[~before], n[~before]
-    total = shaft_angle(opr, t, encoder)
-    blade, dev = _nearest(total, psi)
-    if calibrate and t.size:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            shift = np.array([np.median(dev[blade == b]) if np.any(blade == b) else 0.0 for b in range(nb)])
-        psi = np.mod(psi + np.where(np.abs(shift) < 0.5 * pitch, shift, 0.0), TWO_PI)
-        blade, dev = _nearest(total, psi)
-    m = np.round((total - dev - psi[blade]) / TWO_PI).astype(np.int64)
-    outside = (m < 0) | (m >= nr)
-    stray = ~outside & (np.abs(dev) > tolerance * pitch)
-    cell = ~outside & ~stray
-    ci = np.flatnonzero(cell)
-    key = m[ci] * nb + blade[ci]
-    # a first pick per cell (nearest the blade's angle) sets the neighbours' prediction; the
-    # second round predicts from the first round's accepted pulses only
-    kept = ci[_first_per_cell(key, np.abs(dev[ci]))]
-    for _ in range(2):
-        dev_cell = np.full((nr + 2 * _REACH, nb), np.nan)
-        dev_cell[m[kept] + _REACH, blade[kept]] = dev[kept]
-        neigh = np.stack([dev_cell[k:k + nr] for k in range(2 * _REACH + 1) if k != _REACH])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            pred = np.nanmedian(neigh, axis=0)  # (nr, nb)
-        trusted = np.sum(np.isfinite(neigh), axis=0) >= _MIN_NEIGHBOURS
-        pred = np.where(trusted, pred, 0.0)
-        # what the neighbouring blades of the same revolution share beyond their own trend:
-        # the rotor-angle model's error between OPR pulses (a speed change), common to
-        # arrivals close in time
-        r_cell = dev_cell[_REACH:_REACH + nr] - pred
-        side = np.stack([np.roll(r_cell, k, axis=1) for k in range(-_REACH, _REACH + 1) if k])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            common = np.nanmedian(side, axis=0)
-        pred = pred + np.where(trusted & np.isfinite(common), common, 0.0)
-        resid = np.abs(dev[ci] - pred[m[ci], blade[ci]])
-        keep = ci[_first_per_cell(key, resid)]
-        r_keep = np.abs(dev[keep] - pred[m[keep], blade[keep]])
-        tr = trusted[m[keep], blade[keep]]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            scale = 1.4826 * np.array([np.median(r_keep[tr & (blade[keep] == b)]) if np.any(tr & (blade[keep] == b))
-                                       else np.nan for b in range(nb)])
-        limit = np.fmax(outlier * scale, floor * pitch)
-        kept = keep[~tr | (r_keep <= limit[blade[keep]])]
-    toa = np.full((nr, nb), np.nan)
-    toa[m[kept], blade[kept]] = t[kept]
-    is_kept = np.zeros(t.size, bool)
-    is_kept[kept] = True
-    ex = cell & ~is_kept
-    st = np.flatnonzero(stray)
-    return IdentifiedPulses(
-        toa_s=toa, extra_revolution=m[ex], extra_blade=blade[ex].astype(np.int64), extra_toa_s=t[ex],
-        stray_revolution=np.clip(n[st], 0, nr - 1).astype(np.int64), stray_toa_s=t[st],
-        outside=int(before.sum() + outside.sum()), arrival_angles_rad=psi)
+    phase = rotor_phase_from_opr(opr)
+    params = identification_params(opr, t, arrival_angles_rad, calibrate=calibrate, tolerance=tolerance,
+                                   outlier=outlier, floor=floor, encoder=encoder, phase=phase)
+    return identify_window(opr, t, params, 0, opr.size, encoder=encoder, phase=phase)
