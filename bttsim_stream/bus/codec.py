@@ -466,7 +466,7 @@ def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | 
         raise _corrupt(where, m, f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
     _check_ticks(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
     extra = _array(m.extra_toa_s)
-    if not np.all(np.isfinite(extra)):
+    if n_extra and not np.isfinite(extra).all():
         raise _corrupt(where, m, "an extra edge time is not finite")
     _check_probe_key(where, m, key, "toa")
     return Decoded(_header(m.header), ToaBatch(
