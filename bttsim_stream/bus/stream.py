@@ -562,6 +562,12 @@ class RevolutionAssembler:
             return True
         return self._last_out < revolution <= self._last_out + self.max_ahead
 
+    def next_opr(self, revolution: int) -> float | None:
+        """The OPR time of ``revolution`` if it is the next one to be given out and its pulse
+        is in (its TOAs may not be), else None."""
+        nxt = 0 if self._last_out is None else self._last_out + 1
+        return self._opr.get(int(revolution)) if int(revolution) == nxt else None
+
     @property
     def finished(self) -> bool:
         """Has the run's last revolution been given out (``n_revolutions`` known)?"""
