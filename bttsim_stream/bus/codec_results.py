@@ -86,7 +86,7 @@ def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
 def _check_magnitudes(where: str, msg, field: str) -> np.ndarray:
     """Magnitudes: >= 0 or NaN (not measured); never infinite or negative. Returns them."""
     v = _array(getattr(msg, field))
-    if np.any(np.isinf(v) | (v < 0)):  # NaN compares False
+    if v.size and (np.fmin.reduce(v) < 0 or np.fmax.reduce(v) == np.inf):  # fmin/fmax skip NaN
         raise _corrupt(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
     return v
 
