@@ -40,7 +40,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
     with node_session(conf, rig, "processor", status_file=args.status_file) as node:
         for k in (keys.meta_key(rig), keys.opr_key(rig), keys.toa_all_key(rig)) + (
                 () if args.no_score else (keys.truth_key(rig),)):
-            node.subscribe(k)
+            node.subscribe(k, fifo=False)  # in arrival order across the keys: revolutions complete as they come
         node.watch_nodes(("sim",))
         node.announce()
 
