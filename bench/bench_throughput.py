@@ -156,7 +156,7 @@ def run_level(factor: float, minutes: float, n_stages: int, work: Path, source: 
             scn.write_text(stage_scenario(rig, wall_s * factor))
             if source == "replay":  # the same stage, recorded first (not timed)
                 subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "simulate", "-q", "--no-truth",
-                                "--out", str(work / f"{rig}.mcap"), str(scn)], check=True)
+                                "--out", str(work / f"{rig}.mcap"), str(scn)], check=True, stdout=subprocess.DEVNULL)
             status[rig] = work / f"{rig}-processor.json"
             ports[rig] = free_port()
         if router is None:  # the watching session listens: the processors and sources reach it
