@@ -103,7 +103,21 @@ class ProcessorSession:
             self.missing_toas += int(np.count_nonzero(np.isnan(decoded.body.toa_s)))
             self.doubles.add(decoded.body.toa_s, decoded.body.extra_toa_s)
         self.asm.add(kind, decoded)
-        return self._push(self.asm.pop())
+        out = self._push(self.asm.pop())
+        if kind == "opr":  # the previous revolution's outputs need no more than this pulse
+            out += self._advance(int(decoded.header.revolution))
+        return out
+
+    def _advance(self, revolution: int) -> list[Message]:
+        """The outputs that ``revolution``'s OPR pulse completes, before its TOAs come: the
+        live fit of a revolution goes out as soon as the pulse that ends it is in."""
+        opr = self.asm.next_opr(revolution)
+        if opr is None:
+            return []
+        out: list[Message] = []
+        for o in self.proc.advance(revolution, opr):
+            out += self.out.processing(o)
+        return out + self._nsv() if out else out
 
     def _check(self, kind: str, d: Decoded) -> None:
         g = self.proc.geometry

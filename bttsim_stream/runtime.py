@@ -21,10 +21,11 @@ import argparse
 import contextlib
 import logging
 import os
-import queue
 import re
 import sys
+import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -166,6 +167,65 @@ def add_web_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
                    help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")
 
+#: Samples taken from one subscription's FIFO at a time; how long an idle node sleeps between
+#: two looks at the FIFOs (s): the longest a sample waits when nothing else is coming.
+_BATCH = 4096
+_IDLE_POLL_S = 0.002
+
+
+class Inbox:
+    """A bounded FIFO from Zenoh's receiving threads to the node's main thread.
+
+    Cheaper per sample than :class:`queue.Queue`: :meth:`put` wakes the consumer only when it
+    sleeps on an empty inbox, and :meth:`take` hands out everything waiting at once (one lock
+    round per batch, not per sample). A full inbox blocks :meth:`put` (back-pressure).
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        self._items: deque = deque()
+        self._max = max(1, int(maxsize))
+        self._lock = threading.Lock()
+        self._nonempty = threading.Condition(self._lock)
+        self._nonfull = threading.Condition(self._lock)
+        self._sleeping = False  # the consumer waits for a sample
+        self._full = 0  # producers waiting for room
+
+    def put(self, item) -> None:
+        with self._lock:
+            while len(self._items) >= self._max:
+                self._full += 1
+                self._nonfull.wait()
+                self._full -= 1
+            self._items.append(item)
+            if self._sleeping:
+                self._nonempty.notify()
+
+    def qsize(self) -> int:
+        return len(self._items)
+
+    def wait(self, timeout: float) -> None:
+        """Sleep up to ``timeout`` s, or until something is put."""
+        with self._lock:
+            if not self._items:
+                self._sleeping = True
+                self._nonempty.wait(timeout)
+                self._sleeping = False
+
+    def take(self, timeout: float) -> list:
+        """Everything waiting, in order; waits up to ``timeout`` s for the first (``[]``:
+        nothing came)."""
+        with self._lock:
+            if not self._items and timeout > 0:
+                self._sleeping = True
+                self._nonempty.wait(timeout)
+                self._sleeping = False
+            items = list(self._items)
+            self._items.clear()
+            if self._full:
+                self._nonfull.notify_all()
+        return items
+
+
 class NodeContext:
     """A node's presence on the bus (see :func:`node_session`).
 
@@ -178,7 +238,9 @@ class NodeContext:
         self.session = session
         self.rig = rig
         self.name = name
-        self._inbox: queue.Queue = queue.Queue(maxsize=int(inbox_size))
+        self._inbox = Inbox(inbox_size)
+        self._inbox_size = int(inbox_size)
+        self._live: list = []  # subscribers whose samples wait in Zenoh's FIFOs
         self._subs: list = []
         self._pubs: dict[str, object] = {}
         self._others: list = []
@@ -191,10 +253,22 @@ class NodeContext:
         self._status_seq = 0
 
     # -- declarations --------------------------------------------------------------------
-    def subscribe(self, key_expr: str, *, history: bool = False) -> None:
-        """Receive ``key_expr`` into the inbox (``history``: also late-joiner history)."""
+    def subscribe(self, key_expr: str, *, history: bool = False, fifo: bool = True) -> None:
+        """Receive ``key_expr`` (``history``: also late-joiner history, into the inbox).
+
+        With ``fifo`` the live samples wait in a bounded FIFO inside Zenoh that
+        :meth:`samples` drains in batches: Zenoh's receiving thread runs no Python (nor waits
+        for the interpreter lock) per sample. A subscription's samples keep their arrival
+        order, but those of two such subscriptions come a batch of one, then a batch of the
+        other: a node that needs the arrival order across its subscriptions (OPR pulses
+        between TOA batches) says ``fifo=False`` and gets every sample through the inbox, in
+        arrival order."""
         put = self._inbox.put
-        self._subs.append(declare_subscriber(self.session, key_expr, lambda s: put(Received.of(s)), history=history))
+        sub = declare_subscriber(self.session, key_expr, lambda s: put(Received.of(s)), history=history,
+                                 channel=self._inbox_size if fifo else None)
+        self._subs.append(sub)
+        if fifo:
+            self._live.append(sub)
 
     def publisher(self, key: str, *, cache_samples: int = 64, lossy: bool = False):
         """The publisher of ``key`` (declared on first use)."""
@@ -276,29 +350,53 @@ class NodeContext:
         """
         idle_since = None
         left = None  # samples still to hand out once stopped
+        batch: list = []  # taken from the inbox, not yet handed out
+        i = 0
         while True:
             if left is None and stop:
-                left = self._inbox.qsize()
+                batch, i = batch[i:] + self._take(0.0), 0
+                left = len(batch)
             if left is not None:
                 if left <= 0:
                     return
                 left -= 1
-            try:
-                sample = self._inbox.get(timeout=poll_s) if left is None else self._inbox.get_nowait()
-            except queue.Empty:
-                if left is not None:
-                    return
-                sample = None
-            if sample is not None:
+            if i == len(batch):
+                batch, i = self._take(poll_s if left is None else 0.0), 0
+            if i < len(batch):
+                sample = batch[i]
+                i += 1
                 idle_since = None
                 yield sample
                 continue
+            if left is not None:
+                return
             if self.watch is not None and self.watch.ended():
                 idle_since = idle_since or time.monotonic()
                 wait = idle_s if done is None or done() else patience_s
                 if time.monotonic() - idle_since > wait:
                     return
             yield None
+
+    def _take(self, timeout_s: float) -> list:
+        """Everything received (the inbox first: history and query replies, then each
+        subscription's FIFO), waiting up to ``timeout_s`` for something to come."""
+        deadline = None
+        while True:
+            out = self._inbox.take(0.0)
+            for sub in self._live:
+                recv = sub.try_recv
+                while len(out) < _BATCH:
+                    s = recv()
+                    if s is None:
+                        break
+                    out.append(Received.of(s))
+            if out or timeout_s <= 0:
+                return out
+            now = time.monotonic()
+            deadline = deadline or now + timeout_s
+            if now >= deadline:
+                return out
+            self._inbox.wait(min(_IDLE_POLL_S, deadline - now))
 
     def close(self, linger_s: float = 0.0) -> None:
         """Undeclare everything (after ``linger_s``, so that the last samples leave first)."""

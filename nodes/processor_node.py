@@ -40,7 +40,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
     with node_session(conf, rig, "processor", status_file=args.status_file) as node:
         for k in (keys.meta_key(rig), keys.opr_key(rig), keys.toa_all_key(rig)) + (
                 () if args.no_score else (keys.truth_key(rig),)):
-            node.subscribe(k)
+            node.subscribe(k, fifo=False)  # in arrival order across the keys: revolutions complete as they come
         node.watch_nodes(("sim",))
         node.announce()
 
@@ -52,6 +52,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         early: list = []  # data that came before the metadata (callbacks of different keys race)
         bad = 0
         asked_meta = 0.0
+        kinds: dict[str, str] = {}
         for sample in node.samples(stop, done=lambda: run is not None and run.received_all):
             if sample is None:
                 if run is None and time.monotonic() - asked_meta > 1.0:  # missed the sample? ask
@@ -60,7 +61,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                 continue
             key, payload, att = sample.key, sample.payload, sample.att
             try:  # every sample is untrusted: a bad one is counted and skipped
-                kind = keys.parse_key(key).kind
+                kind = kinds.get(key) or _kind(kinds, key)
                 item = (kind, key, codec.decode_message(key, payload), att[0] if att else None)
             except BttsimError as exc:
                 if run is not None:
@@ -110,6 +111,16 @@ def _final_stats(summary: dict | None, path: str | None) -> dict:
                                            "lost", "duplicates", "rejected")}}
 
 
+def _kind(kinds: dict, key: str) -> str:
+    """The key's kind, parsed once per key (at most ``MAX_KEYS`` kept: keys are untrusted)."""
+    kind = keys.parse_key(key).kind
+    if len(kinds) < MAX_KEYS:
+        kinds[key] = kind
+    return kind
+
+
+#: Keys whose kind is remembered (a run has a few dozen).
+MAX_KEYS = 1024
 #: Samples kept while the run metadata has not arrived.
 MAX_EARLY = 100_000
 

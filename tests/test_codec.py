@@ -647,3 +647,50 @@ def test_toa_batch_with_bad_extra_edges_is_refused(extra_s, extra_ticks, words):
     with pytest.raises(BttsimError) as excinfo:
         codec.decode_toa_batch(payload, "bttsim/rig1/toa/0")
     assert words in _one_line_error(excinfo)
+
+
+def _truth_message(rng, nb=7, npr=3, nsv=2):
+    from bttsim_stream.bus._gen.bttsim.v1 import bttsim_pb2 as pb
+
+    m = pb.TruthBatch()
+    m.header.run_id, m.header.seq, m.header.revolution, m.header.t_s = "r", 4, 4, 0.1
+    m.opr_s, m.omega_mean_rad_s, m.n_blades, m.n_probes = 0.1, 200.0, nb, npr
+    for name in TRUTH_2D:
+        getattr(m, name).extend(rng.normal(size=nb * npr).tolist())
+    m.d_eqv_pkpk_m.extend(rng.random(nb).tolist())
+    for j in range(nsv):
+        c = m.nsv.add()
+        c.kind, c.freq_hz, c.nodal_diameter, c.amp_pkpk_m, c.rms_m = "flutter", 300.0 + j, 2, 1e-4, 3e-5
+        c.band_lo_hz, c.band_hi_hz = 290.0, 310.0
+    return m
+
+
+def test_truth_arrays_read_from_the_bytes_equal_the_parsed_fields():
+    """decode_truth reads its packed arrays straight from the payload; valid encodings it
+    does not take that way (an array unpacked, or split in two runs) are read from the
+    parsed message: every value the same."""
+    rng = np.random.default_rng(3)
+    m = _truth_message(rng)
+    payload = m.SerializeToString(deterministic=True)
+    assert codec_base._packed_doubles(payload, codec._TRUTH_NUMBERS) is not None  # the fast path
+    want = {name: np.array(getattr(m, name)) for name in (*TRUTH_2D, "d_eqv_pkpk_m")}
+
+    def check(data):
+        t = codec.decode_truth(data).body
+        for name, v in want.items():
+            np.testing.assert_array_equal(getattr(t, name).ravel(), v)
+        assert t.nsv_freq_hz.tolist() == [[300.0, 301.0]]
+
+    check(payload)
+    num = m.DESCRIPTOR.fields_by_name["d_z_m"].number
+    rest = type(m)()
+    rest.CopyFrom(m)
+    rest.ClearField("d_z_m")
+    unpacked = b"".join(bytes([num << 3 | 1]) + np.float64(v).tobytes() for v in want["d_z_m"])
+    assert codec_base._packed_doubles(rest.SerializeToString() + unpacked, codec._TRUTH_NUMBERS) is None
+    check(rest.SerializeToString() + unpacked)
+    half = len(want["d_z_m"]) // 2
+    split = b"".join(bytes([num << 3 | 2, 8 * len(p)]) + p.astype("<f8").tobytes()
+                     for p in (want["d_z_m"][:half], want["d_z_m"][half:]))
+    assert codec_base._packed_doubles(rest.SerializeToString() + split, codec._TRUTH_NUMBERS) is None
+    check(rest.SerializeToString() + split)

@@ -54,8 +54,8 @@ from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 from .codec_base import (MAX_PAYLOAD_BYTES, PROTO_FILE, _MAX_NS, Decoded, Header, _array, _check_len, _check_probe_key,
-                         _corrupt, _fill_header, _header, _parse, _serialize, _vec, file_descriptor_set,
-                         log_time_ns, schema_name_for)
+                         _corrupt, _fill_header, _header, _packed_doubles, _parse, _serialize, _vec,
+                         file_descriptor_set, log_time_ns, schema_name_for)
 from .codec_results import (decode_fit, decode_nsv, decode_probe_wave, decode_resonance_report, encode_fit,
                             encode_nsv, encode_probe_wave, encode_resonance_report)
 
@@ -187,6 +187,9 @@ class SignalBatch:
 
 
 _TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
+_TRUTH_NUMBERS_2D = tuple(_pb.TruthBatch.DESCRIPTOR.fields_by_name[f].number for f in _TRUTH_2D)
+_TRUTH_NUMBER_PKPK = _pb.TruthBatch.DESCRIPTOR.fields_by_name["d_eqv_pkpk_m"].number
+_TRUTH_NUMBERS = frozenset((*_TRUTH_NUMBERS_2D, _TRUTH_NUMBER_PKPK))
 
 
 # --------------------------------------------------------------------------------------
@@ -466,7 +469,7 @@ def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | 
         raise _corrupt(where, m, f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
     _check_ticks(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
     extra = _array(m.extra_toa_s)
-    if not np.all(np.isfinite(extra)):
+    if n_extra and not np.isfinite(extra).all():
         raise _corrupt(where, m, "an extra edge time is not finite")
     _check_probe_key(where, m, key, "toa")
     return Decoded(_header(m.header), ToaBatch(
@@ -572,10 +575,15 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     _check_len(where, m, "d_eqv_pkpk_m", nb, f"({nb},)")
     if not (math.isfinite(m.opr_s) and math.isfinite(m.omega_mean_rad_s) and m.omega_mean_rad_s > 0):
         raise _corrupt(where, m, f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
-    arrays = {name: _array(getattr(m, name)).reshape(1, nb, npr) for name in _TRUTH_2D}
+    raw = _packed_doubles(bytes(payload), _TRUTH_NUMBERS)  # the lengths are checked above
+    if raw is None:
+        raw = {}
+    arrays = {name: (raw[k] if k in raw else _array(getattr(m, name))).reshape(1, nb, npr)
+              for name, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D)}
+    k = _TRUTH_NUMBER_PKPK
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
-                  d_eqv_pkpk_m=_array(m.d_eqv_pkpk_m).reshape(1, nb), **arrays, **_decode_nsv(where, m, nb),
-                  **_decode_eo(where, m, nb))
+                  d_eqv_pkpk_m=(raw[k] if k in raw else _array(m.d_eqv_pkpk_m)).reshape(1, nb), **arrays,
+                  **_decode_nsv(where, m, nb), **_decode_eo(where, m, nb))
     return Decoded(_header(m.header), truth)
 
 

@@ -126,7 +126,52 @@ def _header(h) -> Header:
 
 
 def _array(values, dtype=np.float64) -> np.ndarray:
-    return np.array(values, dtype=dtype)
+    """A 1-D array of a repeated protobuf field (or a list): ``np.fromiter`` with the length
+    known, about 4x faster than ``np.array`` on protobuf's containers (same values)."""
+    return np.fromiter(values, dtype=dtype, count=len(values))
+
+
+def _packed_doubles(payload: bytes, numbers: frozenset) -> dict | None:
+    """The top-level repeated double fields ``numbers`` of a message that parsed, read
+    straight from its bytes (``{number: array}``, absent fields left out): ``np.frombuffer``
+    instead of protobuf's containers, element by element. None when a field of ``numbers``
+    is not one packed run (unpacked or split: valid protobuf, read the slow way then)."""
+    out: dict = {}
+    i, n = 0, len(payload)
+    while i < n:
+        key, i = _varint_at(payload, i)
+        num, wire = key >> 3, key & 7
+        if wire == 2:
+            size, i = _varint_at(payload, i)
+            if num in numbers:
+                if num in out or size % 8:
+                    return None
+                out[num] = np.frombuffer(payload, "<f8", size // 8, i).astype(np.float64)
+            i += size
+        elif num in numbers:
+            return None
+        elif wire == 0:
+            _, i = _varint_at(payload, i)
+        elif wire in (1, 5):
+            i += 8 if wire == 1 else 4
+        else:
+            return None
+    return out
+
+
+def _varint_at(data: bytes, i: int) -> tuple[int, int]:
+    """The varint at ``data[i]`` and the index after it."""
+    b = data[i]
+    if b < 0x80:
+        return b, i + 1
+    value, shift = 0, 0
+    while True:
+        b = data[i]
+        i += 1
+        value |= (b & 0x7F) << shift
+        shift += 7
+        if b < 0x80:
+            return value, i
 
 
 def _check_len(where: str, msg, field: str, n: int, shape: str) -> None:

@@ -83,11 +83,12 @@ def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
     return _serialize(m)
 
 
-def _check_magnitudes(where: str, msg, field: str) -> None:
-    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative."""
+def _check_magnitudes(where: str, msg, field: str) -> np.ndarray:
+    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative. Returns them."""
     v = _array(getattr(msg, field))
-    if np.any(np.isinf(v) | (v < 0)):  # NaN compares False
+    if v.size and (np.fmin.reduce(v) < 0 or np.fmax.reduce(v) == np.inf):  # fmin/fmax skip NaN
         raise _corrupt(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
+    return v
 
 
 def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
@@ -104,13 +105,12 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
         raise _corrupt(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
     _check_len(where, m, "forward_m", n, f"({n},)")
     _check_len(where, m, "backward_m", n, f"({n},)")
-    _check_magnitudes(where, m, "forward_m")
-    _check_magnitudes(where, m, "backward_m")
+    forward, backward = _check_magnitudes(where, m, "forward_m"), _check_magnitudes(where, m, "backward_m")
     if abs(m.dominant_nd) >= max(n, 1):
         raise _corrupt(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
     _check_probe_key(where, m, key, "tw")
-    return Decoded(_header(m.header), ProbeWave(probe=int(m.probe), forward_m=_array(m.forward_m),
-                                                backward_m=_array(m.backward_m), nd=int(m.dominant_nd)))
+    return Decoded(_header(m.header), ProbeWave(probe=int(m.probe), forward_m=forward, backward_m=backward,
+                                                nd=int(m.dominant_nd)))
 
 
 _EXTENDED = ("phase_rad", "amp_std_m", "freq_std_hz", "damping_ratio", "steady_amp_pkpk_m", "natural_freq_hz")

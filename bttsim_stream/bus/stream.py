@@ -547,11 +547,13 @@ class RevolutionAssembler:
 
     def _passed(self, revolution: int) -> bool:
         """Has every source missing from ``revolution`` delivered a later revolution?"""
+        # equivalently: every source not yet beyond it has delivered its part (the sources
+        # behind are few, often the ones still sending it: the first such one decides)
         seen = self._seen.get(revolution, ())
-        missing = [p for p in range(self.n_probes) if p not in seen]
-        if revolution not in self._opr:
-            missing.append(-1)
-        return bool(np.all(self._newest[missing] > revolution))
+        for src in np.flatnonzero(self._newest <= revolution).tolist():
+            if not (revolution in self._opr if src == self.n_probes else src in seen):
+                return False
+        return True
 
     def _acceptable(self, revolution: int) -> bool:
         if revolution < 0 or (self.n_revolutions is not None and revolution >= self.n_revolutions):
@@ -559,6 +561,12 @@ class RevolutionAssembler:
         if self._last_out is None:
             return True
         return self._last_out < revolution <= self._last_out + self.max_ahead
+
+    def next_opr(self, revolution: int) -> float | None:
+        """The OPR time of ``revolution`` if it is the next one to be given out and its pulse
+        is in (its TOAs may not be), else None."""
+        nxt = 0 if self._last_out is None else self._last_out + 1
+        return self._opr.get(int(revolution)) if int(revolution) == nxt else None
 
     @property
     def finished(self) -> bool:

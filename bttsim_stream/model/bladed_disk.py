@@ -33,7 +33,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from .beam import BeamSection, beam_matrices, rigid_offset_matrix, rotation_matrix
 
@@ -408,6 +407,7 @@ def _point_maps(points: np.ndarray, foot: np.ndarray, node_dofs: np.ndarray, m: 
 
 def blade_alone_frequencies(d: BladedDiskDesign, n: int = 3) -> np.ndarray:
     """First ``n`` natural frequencies (Hz) of one blade clamped at its root."""
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     sec = assemble_sector(d)
     b = sec.blade_dofs
     w2 = sla.eigh(sec.K[np.ix_(b, b)], sec.M[np.ix_(b, b)], eigvals_only=True,
@@ -447,6 +447,7 @@ class CyclicSolution:
 def solve_cyclic(d: BladedDiskDesign, sec: SectorModel | None = None,
                  nds: list[int] | None = None, n_families: int | None = None) -> CyclicSolution:
     """Solve every nodal diameter 0..floor(N/2) of the tuned wheel."""
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     sec = assemble_sector(d) if sec is None else sec
     n_families = d.n_families if n_families is None else n_families
     nds = list(range(d.n_blades // 2 + 1)) if nds is None else nds
@@ -606,6 +607,7 @@ def solve_full_wheel(d: BladedDiskDesign, n_modes: int, blade_k=None, blade_m=No
     assigned by frequency rank (``rank // n_blades``); the ND by the spatial DFT of blade
     participation.
     """
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     import scipy.sparse.linalg as spla  # imported here: the tuned wheel never needs it
     K, M, sectors = assemble_full_wheel(d, blade_k, blade_m, disk_k)
     N = d.n_blades

@@ -34,7 +34,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from .beam import IN_PLANE, beam_axial_force, beam_geometric_stiffness, beam_spin_mass
 from .bladed_disk import (BladedDiskDesign, CyclicSolution, SectorModel, cyclic_matrices, normalise_phase, rotation_z,
@@ -175,6 +174,7 @@ def centrifugal_sector(sec: SectorModel, n_blades: int) -> CentrifugalSector:
         From :func:`~bttsim_stream.model.bladed_disk.assemble_sector` (with its elements).
     n_blades : int
     """
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     m = sec.n_dof
     K_s, load, ring_K_s = _spin(sec, n_blades)
     K0, _ = cyclic_matrices(sec, n_blades, 0)
@@ -296,6 +296,7 @@ def _track(K, G, M, n_ev: int, prev: np.ndarray, w2_lo: float, w2_hi: float, dep
     below :data:`MAC_REFINE` is tracked through its midpoint (in ``Omega^2``, up to
     :data:`MAX_REFINE` halvings), so that a veering or crossing inside it is followed.
     """
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     from scipy.optimize import linear_sum_assignment  # only a speed-dependent build needs it
 
     w2, V = sla.eigh(K + w2_hi * G, M, subset_by_index=[0, n_ev - 1], driver="gvx")
@@ -380,6 +381,7 @@ def blade_alone_at_speed(sec: SectorModel, cent: CentrifugalSector, speed_rad_s,
     ndarray, shape (S, n)
         The lowest ``n`` per speed, ascending (not tracked).
     """
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     b = sec.blade_dofs
     ix = np.ix_(b, b)
     K, G, M = sec.K[ix], cent.K_g[ix] - cent.K_s[ix], sec.M[ix]
@@ -414,6 +416,7 @@ def solve_full_wheel_speeds(K, M, G, zero_shapes: np.ndarray, speed_rad_s):
         ``shapes[0]`` is ``zero_shapes``.
     min_mac : float
     """
+    import scipy.linalg as sla  # here: the nodes that only read the bus never load it
     import scipy.sparse as sps
     import scipy.sparse.linalg as spla
     sp = np.asarray(speed_rad_s, float)

@@ -198,6 +198,31 @@ class StreamingProcessor:
             out.extend(self._emit_ready(final=False))
         return out
 
+    def advance(self, revolution: int, opr_s: float) -> list[RevolutionOutput]:
+        """The OPR pulse of ``revolution``, ahead of its TOAs: the outputs it completes now.
+
+        The previous revolution's speed needs only this pulse, so its displacements, fit and
+        spectra need not wait for the new revolution's TOAs (a whole revolution later on real
+        hardware). :meth:`push` of ``revolution`` follows as usual, with the same OPR time;
+        the outputs are those :meth:`push` would have given. Nothing is done (``[]``) unless
+        ``revolution`` is the next one; a step that would complete the calibration window
+        waits for :meth:`push` (it needs the new TOAs).
+        """
+        if self._finished or self._first_rev is None or int(revolution) != self._first_rev + self._opr.n:
+            return []
+        out: list[RevolutionOutput] = []
+        self._opr.append(float(opr_s))  # for this step only: push appends it with the TOAs
+        try:
+            while self._n_done < self._opr.n - 1 and (self._n_done > 0 or self._opr.n >= 3):
+                if self._cal_window is not None and not self._calibrated and self._n_done + 1 >= self._cal_window[1]:
+                    break  # completing the calibration window takes the new TOAs: push does it
+                self._displace(self._n_done, final=False)
+                self._n_done += 1
+                out.extend(self._emit_ready(final=False))
+        finally:
+            self._opr.n -= 1
+        return out
+
     def flush(self) -> list[RevolutionOutput]:
         """Outputs of the revolutions still pending at the end of the stream (the last
         revolution uses an extrapolated speed)."""

@@ -107,6 +107,17 @@ class _WaveMap:
                                                             show_labels=True), revolution)
 
 
+def _by_size(rows: list) -> list[list]:
+    """Messages grouped by their number of nodal diameters (all of one run's share it)."""
+    n = rows[0].body.forward_m.size
+    if all(d.body.forward_m.size == n for d in rows):
+        return [rows]
+    groups: dict[int, list] = {}
+    for d in rows:
+        groups.setdefault(d.body.forward_m.size, []).append(d)
+    return list(groups.values())
+
+
 class TravellingWaveView:
     """Travelling-wave matrices of every probe and the identified ND.
 
@@ -141,11 +152,10 @@ class TravellingWaveView:
         if rows:
             self.count += len(rows)
             nd_rows = {}  # one ND per revolution (every probe's message carries it)
+            for group in _by_size(rows):
+                for d, spec in zip(group, self._signed_mm(group)):
+                    self._spectra.setdefault(d.body.probe, {})[d.header.revolution] = spec
             for d in rows:
-                # magnitudes beyond float32 (a forged 1e308 m) are drawn at its largest value
-                spec = np.clip(d.body.signed_spectrum() * MM, 0.0, np.finfo(np.float32).max).astype(np.float32)
-                self._spectra.setdefault(d.body.probe, {})[d.header.revolution] = spec
-                self._max_mm = max(self._max_mm, float(np.nanmax(spec, initial=0.0)))
                 if d.header.revolution > self._nd_until:
                     nd_rows.setdefault(d.header.revolution, d)
             if nd_rows:
@@ -159,6 +169,18 @@ class TravellingWaveView:
         due = time.monotonic() - self._last_log >= self.period_s
         if self._spectra and (final or (self.out.live and rows and due)):
             self._log_matrices()
+
+    def _signed_mm(self, group: list) -> np.ndarray:
+        """The signed spectra (:meth:`~bttsim_stream.process.travelling_wave.ProbeWave.signed_spectrum`)
+        of messages of one size, mm, as the rows of one float32 matrix; the largest seen updated."""
+        fwd = np.array([d.body.forward_m for d in group])
+        bwd = np.array([d.body.backward_m for d in group])
+        zero = np.fmax(fwd[:, :1], bwd[:, :1])
+        # magnitudes beyond float32 (a forged 1e308 m) are drawn at its largest value
+        spec = np.clip(np.concatenate([fwd[:, :0:-1], zero, bwd[:, 1:]], axis=1) * MM, 0.0,
+                       np.finfo(np.float32).max).astype(np.float32)
+        self._max_mm = max(self._max_mm, float(np.nanmax(spec, initial=0.0)))
+        return spec
 
     def _trim(self) -> None:
         """Forget revolutions that left the live window (amortised: at twice its size)."""
