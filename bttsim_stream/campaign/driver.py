@@ -27,7 +27,7 @@ from .results import PARTS, read_rows, sort_rows, write_rows
 from .run import execute_run, warm_up
 from .spec import CampaignSpec, RunSpec, expand
 
-__all__ = ["CampaignOutcome", "run_campaign", "connect"]
+__all__ = ["CampaignOutcome", "run_campaign", "connect", "tls_security"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,17 +78,35 @@ def _dask():
     return distributed
 
 
-def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 10.0, dashboard: str | None = None):
-    """``(client, cluster or None)``: a client of ``scheduler``, or of a new loopback
-    ``LocalCluster`` of ``n_workers`` single-threaded worker processes (default: one per core).
-    An unreachable scheduler is a one-line :class:`BttsimError`."""
+def tls_security(tls_dir, name: str = "campaign"):
+    """Dask's ``Security`` for a client with the certificates of ``bttsim certs``: ``ca.pem``
+    and ``NAME.pem`` / ``NAME-key.pem`` of ``tls_dir``, encryption required."""
+    distributed = _dask()
+    d = Path(tls_dir)
+    files = {"ca": d / "ca.pem", "cert": d / f"{name}.pem", "key": d / f"{name}-key.pem"}
+    missing = [str(f) for f in files.values() if not f.is_file()]
+    if missing:
+        raise BttsimError(f"--tls-dir {d}: missing {', '.join(missing)} (bttsim certs {d} --names scheduler,"
+                          f"worker,{name} --host SCHEDULER_HOST)")
+    return distributed.Security(tls_ca_file=str(files["ca"]), tls_client_cert=str(files["cert"]),
+                                tls_client_key=str(files["key"]), require_encryption=True)
+
+
+def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 10.0, dashboard: str | None = None,
+            security=None):
+    """``(client, cluster or None)``: a client of ``scheduler`` (with Dask ``security`` for a
+    ``tls://`` address), or of a new loopback ``LocalCluster`` of ``n_workers``
+    single-threaded worker processes (default: one per core). An unreachable scheduler, or
+    one that refuses the client's TLS handshake, is a one-line :class:`BttsimError`."""
     distributed = _dask()
     if scheduler:
         try:
-            return distributed.Client(scheduler, timeout=timeout_s), None
-        except (OSError, TimeoutError, ValueError) as exc:
+            return distributed.Client(scheduler, timeout=timeout_s, security=security), None
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            hint = ("; a tls:// scheduler needs --tls-dir (or Dask's distributed.comm.tls configuration)"
+                    if scheduler.startswith("tls://") and security is None and "ssl_context" in str(exc) else "")
             raise BttsimError(f"cannot reach the Dask scheduler at {scheduler} "
-                              f"({' '.join(str(exc).split())[:200]})") from None
+                              f"({' '.join(str(exc).split())[:200]}){hint}") from None
     n = int(n_workers) if n_workers else (os.cpu_count() or 1)
     if n < 1:
         raise BttsimError(f"--workers must be >= 1, got {n}")
@@ -112,7 +130,7 @@ def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
 
 def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n_workers: int | None = None,
                  resume: bool = False, progress=None, timeout_s: float = 10.0,
-                 dashboard: str | None = None) -> CampaignOutcome:
+                 dashboard: str | None = None, security=None) -> CampaignOutcome:
     """Run every run of ``spec`` on Dask and write ``results.parquet`` and ``report.md``.
 
     Parameters
@@ -125,6 +143,8 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
         ``tcp://HOST:PORT`` of a running Dask scheduler; None: an embedded ``LocalCluster``.
     n_workers : int, optional
         Workers of the embedded cluster (default: one per core).
+    security : distributed.Security, optional
+        TLS for a ``tls://`` scheduler (:func:`tls_security`).
     resume : bool
         Keep the runs already in ``out_dir``; without it a folder holding a campaign is refused.
     progress : Progress, optional
@@ -157,7 +177,7 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
     n_workers_seen = 0
     interrupted = False
     if todo:
-        client, cluster = connect(scheduler, n_workers, timeout_s=timeout_s, dashboard=dashboard)
+        client, cluster = connect(scheduler, n_workers, timeout_s=timeout_s, dashboard=dashboard, security=security)
         try:
             distributed = _dask()
             n_workers_seen = len(client.scheduler_info().get("workers", {}))
