@@ -435,3 +435,34 @@ def test_quick_example_end_to_end(tmp_path):
         assert mean[2e-6] > 1.5 * mean[5e-7], (method, mean)
     report = (tmp_path / "quick" / "report.md").read_text()
     assert "## By `speed.duration_s`" in report and "| peak_raw | 12 |" in report
+
+
+def test_ctrl_c_keeps_every_finished_run(tmp_path):
+    """Ctrl-C (SIGINT to the campaign's process group, as a terminal sends it) once runs have
+    finished: exit status 130, a valid results.parquet holding exactly the finished runs, a
+    report saying so; --resume then runs only the rest."""
+    (tmp_path / "spec.toml").write_text(SPEC.replace("seeds = 2", "seeds = 3").replace('["peak", "sdof"]', '["peak"]'))
+    cmd = [sys.executable, "-m", "bttsim_stream.cli", "campaign", tmp_path / "spec.toml", "--out", tmp_path / "out",
+           "--workers", "1", "-q"]
+    p = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        deadline = time.monotonic() + 300
+        while not list((tmp_path / "out" / "runs").glob("*.parquet")) and p.poll() is None:
+            assert time.monotonic() < deadline, "no run finished"
+            time.sleep(0.1)  # waiting for the first part file
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, err
+    finished = {f.stem for f in (tmp_path / "out" / "runs").glob("*.parquet")}
+    rows = pq.read_table(tmp_path / "out" / "results.parquet").to_pylist()
+    assert {r["run_id"] for r in rows} == finished and 1 <= len(finished) < 6
+    assert len(rows) == len(finished) * N_BLADES and {r["status"] for r in rows} == {"ok"}
+    assert "(interrupted: the rest did not run)" in (tmp_path / "out" / "report.md").read_text()
+    resumed = run_campaign(load_spec(tmp_path / "spec.toml"), tmp_path / "out", n_workers=1, resume=True)
+    assert (resumed.executed, resumed.skipped) == (6 - len(finished), len(finished))
+    _check_rows(tmp_path / "out", 6, 1)
