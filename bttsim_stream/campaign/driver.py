@@ -1,7 +1,8 @@
 """``bttsim campaign``: submit a spec's runs to Dask distributed and gather the results.
 
 Without a scheduler address an embedded ``LocalCluster`` runs on loopback (one
-single-threaded worker process per core, BLAS threads 1, no dashboard unless asked); with one,
+single-threaded worker process per core, BLAS threads 1, the dashboard on a free loopback
+port when bokeh is installed); with one,
 the runs go to that scheduler's workers. Each run is one task (``Client.submit`` with the
 spec's ``retries``); results are taken as they finish (``as_completed``) and written at once,
 one part file per run, so an interrupted campaign keeps every finished run and ``resume``
@@ -117,6 +118,20 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
     return distributed.Client(cluster), cluster
 
 
+def _dashboard(client, scheduler: str | None, asked: str | None) -> str | None:
+    """The dashboard's address when one is served: a remote scheduler's (if it has one), or
+    the embedded cluster's when asked for or when bokeh is there to serve it (on loopback)."""
+    try:
+        link = client.dashboard_link
+    except (KeyError, AttributeError):
+        return None
+    if not link or scheduler or asked:
+        return link or None
+    import importlib.util
+
+    return link if importlib.util.find_spec("bokeh") is not None else None
+
+
 def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
     """Rows of a run whose task failed on the cluster after Dask's retries (a worker died
     each time, or the task could not be unpickled): ``status = "lost"``, rerun by ``resume``."""
@@ -183,8 +198,9 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
             n_workers_seen = len(client.scheduler_info().get("workers", {}))
             client.run(warm_up)  # imports on every worker now, not in the first runs' timings
             t_submit = time.perf_counter()
-            if progress is not None and client.dashboard_link and dashboard:
-                progress.note(f"campaign: Dask dashboard at {client.dashboard_link}")
+            link = _dashboard(client, scheduler, dashboard)
+            if progress is not None and link:
+                progress.note(f"campaign: Dask dashboard at {link}")
             by_key = {}
             futures = []
             for r in todo:
