@@ -23,7 +23,18 @@ from .._plotting import PlotExtraMissing
 from .figures import axis_key, write_figures
 from .spec import CampaignSpec
 
-__all__ = ["write_report", "method_stats"]
+__all__ = ["write_report", "method_stats", "ci95_half_width"]
+
+
+def ci95_half_width(x) -> float:
+    """Half width of the 95 % confidence interval of the mean of the samples ``x`` (Student's
+    t with ``n - 1`` degrees of freedom; NaN below two samples)."""
+    from scipy.stats import t
+
+    x = np.asarray(x, float)
+    if x.size < 2:
+        return math.nan
+    return float(t.ppf(0.975, x.size - 1) * np.std(x, ddof=1) / math.sqrt(x.size))
 
 
 def _ok(rows):
@@ -37,7 +48,7 @@ def method_stats(rows: list[dict]) -> dict:
     -------
     dict
         ``runs``, ``blades`` (scored), ``failed_runs``, ``E_A_p50``, ``E_A_p90``, ``E_A_p95``,
-        ``E_A_max``, ``E_A_mean``, ``E_A_mean_ci95`` (half width over the run means),
+        ``E_A_max``, ``E_A_mean``, ``E_A_mean_ci95`` (half width over the run means, Student's t),
         ``coverage`` (fraction, NaN without intervals), ``coverage_n``.
     """
     ok = [r for r in _ok(rows) if math.isfinite(r["E_A_pct"])]
@@ -50,7 +61,7 @@ def method_stats(rows: list[dict]) -> dict:
                and math.isfinite(r["truth_amp_pkpk_m"])]
     inside = sum(r["amp_ci95_lo_m"] <= r["truth_amp_pkpk_m"] <= r["amp_ci95_hi_m"] for r in with_ci)
     pct = (lambda q: float(np.percentile(e, q))) if e.size else (lambda q: math.nan)
-    half = 1.96 * float(np.std(means, ddof=1)) / math.sqrt(means.size) if means.size > 1 else math.nan
+    half = ci95_half_width(means)
     return {"runs": len({r["run_id"] for r in rows}), "blades": int(e.size),
             "failed_runs": len({r["run_id"] for r in rows if r["status"] != "ok"}),
             "E_A_p50": pct(50), "E_A_p90": pct(90), "E_A_p95": pct(95),
@@ -97,7 +108,7 @@ def _mean_ci(x: np.ndarray) -> str:
         return "–"
     if x.size == 1:
         return _g(float(x[0]))
-    return f"{_g(float(x.mean()))} ± {_g(1.96 * float(x.std(ddof=1)) / math.sqrt(x.size), '.2g')}"
+    return f"{_g(float(x.mean()))} ± {_g(ci95_half_width(x), '.2g')}"
 
 
 def _summary(by_method: dict, spec: CampaignSpec) -> list[str]:
