@@ -125,18 +125,18 @@ class _Sampler:
 
 
 class _Cluster:
-    """A loopback ``LocalCluster`` of ``n`` single-threaded workers, warmed up."""
+    """The embedded loopback ``LocalCluster`` of ``n`` single-threaded workers, warmed up."""
 
     def __init__(self, n: int, folder: Path, paper: bool) -> None:
-        import distributed
         import psutil
 
-        self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                                dashboard_address="127.0.0.1:0")
+        from bttsim_stream.campaign import connect
+
+        client, self.cluster = connect(None, n)  # the embedded cluster of `bttsim campaign --workers n`
         self.address = self.cluster.scheduler_address
-        with distributed.Client(self.address) as client:
-            self.worker_pids = {str(client.scheduler_info()["workers"][a]["name"]): pid
-                                for a, pid in client.run(os.getpid).items()}
+        self.worker_pids = {str(client.scheduler_info()["workers"][a]["name"]): pid
+                            for a, pid in client.run(os.getpid).items()}
+        client.close()
         me = psutil.Process()
         self.pids = [me.pid] + [c.pid for c in me.children(recursive=True)]
         from bttsim_stream.campaign import run_campaign

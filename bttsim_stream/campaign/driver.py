@@ -100,6 +100,8 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
     single-threaded worker processes (default: one per core). An unreachable scheduler, or
     one that refuses the client's TLS handshake, is a one-line :class:`BttsimError`."""
     distributed = _dask()
+    import dask
+
     if scheduler:
         try:
             return distributed.Client(scheduler, timeout=timeout_s, security=security), None
@@ -113,9 +115,27 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
         raise BttsimError(f"--workers must be >= 1, got {n}")
     # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
     # on a free loopback port unless an address is asked for
-    cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address=dashboard or "127.0.0.1:0", silence_logs=logging.CRITICAL)
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environ()}):
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                           dashboard_address=dashboard or "127.0.0.1:0",
+                                           silence_logs=logging.CRITICAL)
     return distributed.Client(cluster), cluster
+
+
+def worker_environ() -> dict:
+    """The environment a nanny gives its worker: Dask's, without ``MALLOC_TRIM_THRESHOLD_``.
+
+    Dask sets it (65536) to hand freed memory back to the OS at once; setting it also turns
+    off glibc's dynamic mmap threshold, so every array over 128 kB of a run is mapped and
+    unmapped afresh: about 40,000 page faults and a third more CPU per short run than the same
+    run in a plain process. Without it a worker allocates as ``bttsim simulate`` does and its
+    memory stays flat at one run's peak (``bench/bench_campaign.py``)."""
+    import dask
+
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = env["OPENBLAS_NUM_THREADS"] = 1
+    return env
 
 
 def _dashboard(client, scheduler: str | None, asked: str | None) -> str | None:
