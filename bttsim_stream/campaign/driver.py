@@ -115,7 +115,10 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
         raise BttsimError(f"--workers must be >= 1, got {n}")
     # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
     # on a free loopback port unless an address is asked for
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environ()}):
+    # no statistical profiler in the workers: its history (a snapshot of the task stacks every
+    # second, the last 1000 kept) grew a worker by 10 MB per 100 short runs
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environ(),
+                          "distributed.worker.profile.enabled": False}):
         cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                            dashboard_address=dashboard or "127.0.0.1:0",
                                            silence_logs=logging.CRITICAL)
