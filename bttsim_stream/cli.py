@@ -422,10 +422,15 @@ def _cmd_study(args: argparse.Namespace) -> None:
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
     from .campaign import load_spec, run_campaign
+    from .campaign.driver import tls_security
 
     spec = load_spec(args.spec)  # a bad spec is one line before any cluster starts
+    if args.tls_dir and not args.scheduler:
+        raise BttsimError("--tls-dir needs --scheduler tls://HOST:PORT (the embedded cluster stays on loopback)")
+    security = tls_security(args.tls_dir) if args.tls_dir else None
     res = run_campaign(spec, args.out, scheduler=args.scheduler, n_workers=args.workers, resume=args.resume,
-                       progress=Progress(not args.quiet), timeout_s=args.connect_timeout, dashboard=args.dashboard)
+                       progress=Progress(not args.quiet), timeout_s=args.connect_timeout, dashboard=args.dashboard,
+                       security=security)
     print(f"wrote {res.results} ({res.rows} rows) and {res.report}: {res.executed} run(s) in {res.wall_s:.1f} s "
           f"on {res.workers} worker(s) ({res.runs_per_s:.3g} runs/s), {res.skipped} resumed, {res.failed} failed")
     return 0
@@ -651,6 +656,8 @@ def _add_campaign_parser(sub) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://HOST:PORT); default: an "
                                                          "embedded LocalCluster on loopback")
     p.add_argument("--workers", type=int, metavar="N", help="workers of the embedded cluster (default: one per core)")
+    p.add_argument("--tls-dir", metavar="DIR", help="TLS to a tls:// scheduler with the certificates of bttsim certs: "
+                                                   "DIR/ca.pem, DIR/campaign.pem, DIR/campaign-key.pem")
     p.add_argument("--resume", action="store_true", help="keep the runs already in --out, run the rest")
     p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="scheduler connect timeout (10)")
     p.add_argument("--dashboard", metavar="HOST:PORT", help="serve the embedded cluster's Dask dashboard there "

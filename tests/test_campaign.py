@@ -1,11 +1,16 @@
 """``bttsim campaign`` on Dask: a tiny study on a two-worker LocalCluster, scored the same as
 ``bttsim simulate`` + ``bttsim process``, deterministic, resumable, surviving a killed worker;
-bad specs and an unreachable scheduler are one line and exit 2."""
+on a real ``dask scheduler`` + two ``dask worker`` processes (one of them killed mid-campaign),
+and across network namespaces with TLS; bad specs and an unreachable scheduler are one line
+and exit 2."""
 
 import json
 import os
+import shutil
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -16,6 +21,8 @@ import pytest
 distributed = pytest.importorskip("distributed")
 pq = pytest.importorskip("pyarrow.parquet")
 
+from _procs import LineWatch  # noqa: E402
+from bttsim_stream.bus.certs import generate_certificates  # noqa: E402
 from bttsim_stream.campaign import expand, load_spec, run_campaign  # noqa: E402
 from bttsim_stream.campaign.run import ROW_COLUMNS, TIMING_COLUMNS  # noqa: E402
 from bttsim_stream.cli import main  # noqa: E402
@@ -205,3 +212,257 @@ def test_quick_example_expands():
     runs = expand(load_spec(EXAMPLES / "campaign_quick.toml"))
     assert len(runs) == 12 and len({r.run_id for r in runs}) == 12
     assert len({r.seed for r in runs}) == 3  # paired: one seed per replicate at every point
+
+
+# --- a real Dask cluster: `dask scheduler` and `dask worker` processes ---------------------
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class DaskProcs:
+    """``dask scheduler`` / ``dask worker`` processes (optionally in a network namespace),
+    each in its own process group, stopped by it; readiness from their log lines."""
+
+    def __init__(self):
+        self.procs: list[tuple[subprocess.Popen, LineWatch]] = []
+
+    def start(self, cli: str, *args, ns: str | None = None) -> tuple[subprocess.Popen, LineWatch]:
+        cmd = [sys.executable, "-m", f"distributed.cli.dask_{cli}", *map(str, args)]
+        if ns:
+            cmd = ["ip", "netns", "exec", ns, *cmd]  # exec: the PID is the scheduler's / worker's
+        p = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        watch = LineWatch(p.stderr)
+        self.procs.append((p, watch))
+        return p, watch
+
+    def scheduler(self, *args, ns=None) -> str:
+        """Start a scheduler; its address once it listens."""
+        _, watch = self.start("scheduler", "--no-dashboard", *args, ns=ns)
+        line = watch.wait_for(lambda ln: "Scheduler at:" in ln, timeout=120)
+        return line.split("Scheduler at:")[1].strip()
+
+    def worker(self, address: str, name: str, *args, ns=None) -> subprocess.Popen:
+        """Start a single-threaded worker; returned once it has registered with the scheduler."""
+        p, watch = self.start("worker", address, "--name", name, "--nthreads", "1", "--no-dashboard", *args, ns=ns)
+        watch.wait_for(lambda ln: "Registered to:" in ln, timeout=120)
+        return p
+
+    def stop(self) -> None:
+        for p, _ in reversed(self.procs):
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGTERM)
+                    p.wait(30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
+                except ProcessLookupError:
+                    pass
+
+
+@pytest.fixture
+def dask_procs():
+    procs = DaskProcs()
+    try:
+        yield procs
+    finally:
+        procs.stop()
+
+
+def _check_rows(out: Path, n_runs: int, methods: int) -> list[dict]:
+    rows = pq.read_table(out / "results.parquet").to_pylist()
+    assert {r["status"] for r in rows} == {"ok"}
+    assert len(rows) == n_runs * N_BLADES * methods
+    assert len({(r["run_id"], r["method"], r["blade"]) for r in rows}) == len(rows)  # none twice
+    assert len({r["run_id"] for r in rows}) == n_runs  # none lost
+    return rows
+
+
+def test_real_scheduler_and_two_worker_processes(dask_procs, tmp_path, capsys):
+    """`dask scheduler` + two `dask worker` processes (with nannies) on loopback, the campaign
+    through `bttsim campaign --scheduler`: every run once, both workers named in the rows, the
+    same values as on a LocalCluster."""
+    address = dask_procs.scheduler("--host", "127.0.0.1", "--port", "0")
+    for name in ("wa", "wb"):
+        dask_procs.worker(address, name, "--host", "127.0.0.1")
+    (tmp_path / "spec.toml").write_text(SPEC.replace('["peak", "sdof"]', '["peak"]'))
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--out", str(tmp_path / "out"), "-q",
+                 "--scheduler", address]) == 0
+    assert "on 2 worker(s)" in capsys.readouterr().out
+    rows = _check_rows(tmp_path / "out", 4, 1)
+    assert {r["worker"] for r in rows} == {"wa", "wb"}
+    assert json.loads((tmp_path / "out" / "campaign.json").read_text())["scheduler"] == address
+
+
+def test_worker_process_killed_mid_campaign(dask_procs, tmp_path):
+    """SIGKILL of a `dask worker` process (no nanny: nothing restarts it) while it runs a
+    task: the scheduler reruns its tasks on the other worker; no row lost or duplicated."""
+    address = dask_procs.scheduler("--host", "127.0.0.1", "--port", "0")
+    workers = {name: dask_procs.worker(address, name, "--host", "127.0.0.1", "--no-nanny") for name in ("wa", "wb")}
+    (tmp_path / "spec.toml").write_text(SPEC.replace('["peak", "sdof"]', '["peak"]'))
+    spec = load_spec(tmp_path / "spec.toml")
+    killed = {}
+    with distributed.Client(address) as client:
+        names = {a: w["name"] for a, w in client.scheduler_info()["workers"].items()}
+
+        def killer():
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not killed:
+                executing = {a: ks for a, ks in client.processing().items() if ks}
+                if executing:
+                    time.sleep(0.3)  # inside the run, not at its very start
+                    name = names[next(iter(executing))]
+                    os.kill(workers[name].pid, signal.SIGKILL)
+                    killed[name] = list(next(iter(executing.values())))
+                time.sleep(0.05)
+
+        th = threading.Thread(target=killer, daemon=True)
+        th.start()
+        res = run_campaign(spec, tmp_path / "out", scheduler=address)
+        th.join(5)
+    assert killed, "no worker was killed"
+    (dead,) = killed
+    assert workers[dead].wait(10) == -signal.SIGKILL
+    assert res.executed == 4 and res.failed == 0 and res.workers == 2
+    rows = _check_rows(tmp_path / "out", 4, 1)
+    alive = ({"wa", "wb"} - {dead}).pop()
+    # the killed worker's tasks ran again on the other one
+    assert alive in {r["worker"] for r in rows}
+    assert {r["worker"] for r in rows if f"bttsim-run-{r['run_id']}" in killed[dead]} == {alive}
+
+
+# --- several hosts: network namespaces, TLS ---------------------------------------------------
+
+NET = "10.78.0"
+
+
+def _ip(*args, check: bool = True) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30, check=check)
+
+
+@pytest.fixture
+def lan():
+    """Three namespaces on one LAN: the scheduler host (a bridge, 10.78.0.1) and two worker
+    hosts (10.78.0.11, 10.78.0.12), each linked to the bridge by a veth pair; deleted after."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("network namespaces need root and iproute2 (ip netns)")
+    probe = f"bttsim-probe-{os.getpid()}"
+    res = _ip("netns", "add", probe, check=False)
+    if res.returncode != 0:
+        pytest.skip(f"ip netns add is not permitted here: {res.stderr.strip()}")
+    _ip("netns", "del", probe, check=False)
+    ns = {k: f"bc{os.getpid()}{k}" for k in ("s", "a", "b")}
+    try:
+        for name in ns.values():
+            _ip("netns", "add", name)
+            _ip("-n", name, "link", "set", "lo", "up")
+        res = _ip("-n", ns["s"], "link", "add", "br0", "type", "bridge", check=False)
+        if res.returncode != 0:
+            pytest.skip(f"no Linux bridge here: {res.stderr.strip()}")
+        _ip("-n", ns["s"], "addr", "add", f"{NET}.1/24", "dev", "br0")
+        _ip("-n", ns["s"], "link", "set", "br0", "up")
+        for host, last in (("a", 11), ("b", 12)):
+            _ip("-n", ns[host], "link", "add", "eth0", "type", "veth", "peer", "name", f"p{host}", "netns", ns["s"])
+            _ip("-n", ns["s"], "link", "set", f"p{host}", "master", "br0")
+            _ip("-n", ns["s"], "link", "set", f"p{host}", "up")
+            _ip("-n", ns[host], "addr", "add", f"{NET}.{last}/24", "dev", "eth0")
+            _ip("-n", ns[host], "link", "set", "eth0", "up")
+        yield ns
+    finally:
+        for name in ns.values():
+            _ip("netns", "del", name, check=False)
+
+
+def _campaign_in(ns: str, *args) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-m", "bttsim_stream.cli", "campaign",
+                           *map(str, args)], cwd=REPO, capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+def test_multi_host_with_tls_in_network_namespaces(lan, dask_procs, tmp_path):
+    """Scheduler | worker host A | worker host B, each its own network stack, mutual TLS with
+    `bttsim certs` certificates (Dask's Security, tls:// addresses): the campaign, run on the
+    scheduler host, gets every run from both remote workers; no certificate, or one of another
+    CA, is one line and exit 2."""
+    certs = tmp_path / "certs"
+    generate_certificates(certs, ["scheduler", "worker", "campaign"], hosts=[f"{NET}.1", f"{NET}.11", f"{NET}.12"])
+
+    def tls(name, d=certs):
+        return ["--tls-ca-file", d / "ca.pem", "--tls-cert", d / f"{name}.pem", "--tls-key", d / f"{name}-key.pem"]
+
+    address = dask_procs.scheduler("--host", f"tls://{NET}.1", "--port", "8786", *tls("scheduler"), ns=lan["s"])
+    assert address == f"tls://{NET}.1:8786"
+    for host, last in (("a", 11), ("b", 12)):
+        dask_procs.worker(address, f"host-{host}", "--host", f"{NET}.{last}", "--no-nanny", *tls("worker"),
+                          ns=lan[host])
+    (tmp_path / "spec.toml").write_text(SPEC.replace('["peak", "sdof"]', '["peak"]'))
+    res = _campaign_in(lan["s"], tmp_path / "spec.toml", "--out", tmp_path / "out", "-q", "--scheduler", address,
+                       "--tls-dir", certs)
+    assert res.returncode == 0, res.stderr
+    assert "on 2 worker(s)" in res.stdout
+    rows = _check_rows(tmp_path / "out", 4, 1)
+    assert {r["worker"] for r in rows} == {"host-a", "host-b"}
+    # the same values as the LocalCluster campaign of the same spec (worker and timings apart)
+    local = run_campaign(load_spec(tmp_path / "spec.toml"), tmp_path / "local", n_workers=1)
+    assert local.failed == 0 and _values(tmp_path / "out" / "results.parquet") == _values(local.results)
+
+    other = tmp_path / "other"
+    generate_certificates(other, ["campaign"])  # a certificate of another CA
+    for extra in ([], ["--tls-dir", other]):
+        res = _campaign_in(lan["s"], tmp_path / "spec.toml", "--out", tmp_path / f"refused{len(extra)}", "-q",
+                           "--scheduler", address, "--connect-timeout", "3", *extra)
+        assert res.returncode == 2, res.stderr
+        assert res.stderr.count("\n") == 1 and "cannot reach the Dask scheduler" in res.stderr, res.stderr
+
+
+def test_quick_example_end_to_end(tmp_path):
+    """`examples/campaign_quick.toml` through the CLI on a 2-worker LocalCluster (what the docs
+    promise in under 2 minutes on 2 cores): every run scored, and the errors respond to the
+    noise as they must: more trigger jitter, larger amplitude errors for every processor."""
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "campaign", EXAMPLES / "campaign_quick.toml",
+                          "--out", tmp_path / "quick", "--workers", "2", "-q"], cwd=REPO, capture_output=True,
+                         text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    print(f"campaign_quick.toml: {time.perf_counter() - t0:.1f} s wall")
+    assert res.returncode == 0, res.stderr
+    assert "12 run(s)" in res.stdout and "0 failed" in res.stdout
+    rows = _check_rows(tmp_path / "quick", 12, 3)
+    assert {r["worker"] for r in rows} <= {"0", "1"}
+    for method in ("peak", "sdof", "peak_raw"):
+        mean = {j: np.mean([r["E_A_pct"] for r in rows if r["method"] == method
+                            and r["acquisition.trigger_jitter_s"] == j]) for j in (5e-7, 2e-6)}
+        assert mean[2e-6] > 1.5 * mean[5e-7], (method, mean)
+    report = (tmp_path / "quick" / "report.md").read_text()
+    assert "## By `speed.duration_s`" in report and "| peak_raw | 12 |" in report
+
+
+def test_ctrl_c_keeps_every_finished_run(tmp_path):
+    """Ctrl-C (SIGINT to the campaign's process group, as a terminal sends it) once runs have
+    finished: exit status 130, a valid results.parquet holding exactly the finished runs, a
+    report saying so; --resume then runs only the rest."""
+    (tmp_path / "spec.toml").write_text(SPEC.replace("seeds = 2", "seeds = 3").replace('["peak", "sdof"]', '["peak"]'))
+    cmd = [sys.executable, "-m", "bttsim_stream.cli", "campaign", tmp_path / "spec.toml", "--out", tmp_path / "out",
+           "--workers", "1", "-q"]
+    p = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        deadline = time.monotonic() + 300
+        while not list((tmp_path / "out" / "runs").glob("*.parquet")) and p.poll() is None:
+            assert time.monotonic() < deadline, "no run finished"
+            time.sleep(0.1)  # waiting for the first part file
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, err
+    finished = {f.stem for f in (tmp_path / "out" / "runs").glob("*.parquet")}
+    rows = pq.read_table(tmp_path / "out" / "results.parquet").to_pylist()
+    assert {r["run_id"] for r in rows} == finished and 1 <= len(finished) < 6
+    assert len(rows) == len(finished) * N_BLADES and {r["status"] for r in rows} == {"ok"}
+    assert "(interrupted: the rest did not run)" in (tmp_path / "out" / "report.md").read_text()
+    resumed = run_campaign(load_spec(tmp_path / "spec.toml"), tmp_path / "out", n_workers=1, resume=True)
+    assert (resumed.executed, resumed.skipped) == (6 - len(finished), len(finished))
+    _check_rows(tmp_path / "out", 6, 1)

@@ -1,7 +1,8 @@
 """``bttsim campaign``: submit a spec's runs to Dask distributed and gather the results.
 
 Without a scheduler address an embedded ``LocalCluster`` runs on loopback (one
-single-threaded worker process per core, BLAS threads 1, no dashboard unless asked); with one,
+single-threaded worker process per core, BLAS threads 1, the dashboard on a free loopback
+port when bokeh is installed); with one,
 the runs go to that scheduler's workers. Each run is one task (``Client.submit`` with the
 spec's ``retries``); results are taken as they finish (``as_completed``) and written at once,
 one part file per run, so an interrupted campaign keeps every finished run and ``resume``
@@ -27,7 +28,7 @@ from .results import PARTS, read_rows, sort_rows, write_rows
 from .run import execute_run, warm_up
 from .spec import CampaignSpec, RunSpec, expand
 
-__all__ = ["CampaignOutcome", "run_campaign", "connect"]
+__all__ = ["CampaignOutcome", "run_campaign", "connect", "tls_security"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,25 +79,91 @@ def _dask():
     return distributed
 
 
-def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 10.0, dashboard: str | None = None):
-    """``(client, cluster or None)``: a client of ``scheduler``, or of a new loopback
-    ``LocalCluster`` of ``n_workers`` single-threaded worker processes (default: one per core).
-    An unreachable scheduler is a one-line :class:`BttsimError`."""
+def tls_security(tls_dir, name: str = "campaign"):
+    """Dask's ``Security`` for a client with the certificates of ``bttsim certs``: ``ca.pem``
+    and ``NAME.pem`` / ``NAME-key.pem`` of ``tls_dir``, encryption required."""
     distributed = _dask()
+    d = Path(tls_dir)
+    files = {"ca": d / "ca.pem", "cert": d / f"{name}.pem", "key": d / f"{name}-key.pem"}
+    missing = [str(f) for f in files.values() if not f.is_file()]
+    if missing:
+        raise BttsimError(f"--tls-dir {d}: missing {', '.join(missing)} (bttsim certs {d} --names scheduler,"
+                          f"worker,{name} --host SCHEDULER_HOST)")
+    return distributed.Security(tls_ca_file=str(files["ca"]), tls_client_cert=str(files["cert"]),
+                                tls_client_key=str(files["key"]), require_encryption=True)
+
+
+def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 10.0, dashboard: str | None = None,
+            security=None):
+    """``(client, cluster or None)``: a client of ``scheduler`` (with Dask ``security`` for a
+    ``tls://`` address), or of a new loopback ``LocalCluster`` of ``n_workers``
+    single-threaded worker processes (default: one per core). An unreachable scheduler, or
+    one that refuses the client's TLS handshake, is a one-line :class:`BttsimError`."""
+    distributed = _dask()
+    import dask
+
     if scheduler:
         try:
-            return distributed.Client(scheduler, timeout=timeout_s), None
-        except (OSError, TimeoutError, ValueError) as exc:
+            return distributed.Client(scheduler, timeout=timeout_s, security=security), None
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            hint = ("; a tls:// scheduler needs --tls-dir (or Dask's distributed.comm.tls configuration)"
+                    if scheduler.startswith("tls://") and security is None and "ssl_context" in str(exc) else "")
             raise BttsimError(f"cannot reach the Dask scheduler at {scheduler} "
-                              f"({' '.join(str(exc).split())[:200]})") from None
+                              f"({' '.join(str(exc).split())[:200]}){hint}") from None
     n = int(n_workers) if n_workers else (os.cpu_count() or 1)
     if n < 1:
         raise BttsimError(f"--workers must be >= 1, got {n}")
     # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
     # on a free loopback port unless an address is asked for
-    cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address=dashboard or "127.0.0.1:0", silence_logs=logging.CRITICAL)
+    with dask.config.set(EMBEDDED_CONFIG | {"distributed.nanny.pre-spawn-environ": worker_environ()}):
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                           dashboard_address=dashboard or "127.0.0.1:0",
+                                           silence_logs=logging.CRITICAL)
     return distributed.Client(cluster), cluster
+
+
+#: Dask configuration of the embedded cluster. No statistical profiler in the workers: its
+#: history (a snapshot of the task stacks every second, the last 1000 kept) grew a worker by
+#: 10 MB per 100 short runs. Slower housekeeping loops (event-loop tick, system and memory
+#: monitors, work stealing): an idle one-worker cluster then costs about 1 % of a core
+#: instead of 3 %, CPU that every run paid in proportion to its wall time.
+EMBEDDED_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "500ms",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.scheduler.work-stealing-interval": "1s",
+}
+
+
+def worker_environ() -> dict:
+    """The environment a nanny gives its worker: Dask's, without ``MALLOC_TRIM_THRESHOLD_``.
+
+    Dask sets it (65536) to hand freed memory back to the OS at once; setting it also turns
+    off glibc's dynamic mmap threshold, so every array over 128 kB of a run is mapped and
+    unmapped afresh: about 40,000 page faults and a third more CPU per short run than the same
+    run in a plain process. Without it a worker allocates as ``bttsim simulate`` does and its
+    memory stays flat at one run's peak (``bench/bench_campaign.py``)."""
+    import dask
+
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = env["OPENBLAS_NUM_THREADS"] = 1
+    return env
+
+
+def _dashboard(client, scheduler: str | None, asked: str | None) -> str | None:
+    """The dashboard's address when one is served: a remote scheduler's (if it has one), or
+    the embedded cluster's when asked for or when bokeh is there to serve it (on loopback)."""
+    try:
+        link = client.dashboard_link
+    except (KeyError, AttributeError):
+        return None
+    if not link or scheduler or asked:
+        return link or None
+    import importlib.util
+
+    return link if importlib.util.find_spec("bokeh") is not None else None
 
 
 def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
@@ -112,7 +179,7 @@ def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
 
 def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n_workers: int | None = None,
                  resume: bool = False, progress=None, timeout_s: float = 10.0,
-                 dashboard: str | None = None) -> CampaignOutcome:
+                 dashboard: str | None = None, security=None) -> CampaignOutcome:
     """Run every run of ``spec`` on Dask and write ``results.parquet`` and ``report.md``.
 
     Parameters
@@ -125,6 +192,8 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
         ``tcp://HOST:PORT`` of a running Dask scheduler; None: an embedded ``LocalCluster``.
     n_workers : int, optional
         Workers of the embedded cluster (default: one per core).
+    security : distributed.Security, optional
+        TLS for a ``tls://`` scheduler (:func:`tls_security`).
     resume : bool
         Keep the runs already in ``out_dir``; without it a folder holding a campaign is refused.
     progress : Progress, optional
@@ -157,14 +226,15 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
     n_workers_seen = 0
     interrupted = False
     if todo:
-        client, cluster = connect(scheduler, n_workers, timeout_s=timeout_s, dashboard=dashboard)
+        client, cluster = connect(scheduler, n_workers, timeout_s=timeout_s, dashboard=dashboard, security=security)
         try:
             distributed = _dask()
             n_workers_seen = len(client.scheduler_info().get("workers", {}))
             client.run(warm_up)  # imports on every worker now, not in the first runs' timings
             t_submit = time.perf_counter()
-            if progress is not None and client.dashboard_link and dashboard:
-                progress.note(f"campaign: Dask dashboard at {client.dashboard_link}")
+            link = _dashboard(client, scheduler, dashboard)
+            if progress is not None and link:
+                progress.note(f"campaign: Dask dashboard at {link}")
             by_key = {}
             futures = []
             for r in todo:
