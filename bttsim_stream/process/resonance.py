@@ -75,6 +75,9 @@ class ResonancePeaks:
     amp_ci95_m, freq_ci95_hz, phase_ci95_rad : ndarray, shape (n_blades, 2), or None
         95 % intervals ``[lo, hi]`` of the amplitude (pk-pk, m), frequency (Hz) and phase
         (rad) (:mod:`~bttsim_stream.process.intervals`).
+    offset_m : ndarray of complex, shape (n_blades,), or None
+        SDOF method only: the fitted constant ``c`` (what the zeroing left in the responses
+        ``a1 + i a2``, m); not reported, it checks the zeroing correction of the other methods.
     """
 
     revolution: np.ndarray
@@ -90,6 +93,7 @@ class ResonancePeaks:
     amp_ci95_m: np.ndarray | None = None
     freq_ci95_hz: np.ndarray | None = None
     phase_ci95_rad: np.ndarray | None = None
+    offset_m: np.ndarray | None = None
 
     @property
     def n_blades(self) -> int:
