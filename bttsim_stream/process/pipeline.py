@@ -727,7 +727,8 @@ def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, 
     with _quiet():
         pk, terms = crossing_intervals(
             pk, amp, ph, raw, freq, c.lo, c.hi, gain=gain,
-            half_power_width=c.half_power_width, zeroing_m=check[0], zeroing_error=check[1], second_m=check[2], orders_m=orders,
+            half_power_width=c.half_power_width, zeroing_m=check[0], zeroing_error=check[1], second_m=check[2],
+            orders_m=orders,
             cff_window=cff_window(c.half_power_width) if pk.method == "cff" else None)
     r0 = ctx.revolution0
     nsv = [f"order {n.order:.3f}, ND {n.nd:+d}, {1e3 * n.amp_pkpk_m:.4f} mm, revolutions {n.first_revolution}-"
