@@ -152,6 +152,7 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
                        freq_hz: np.ndarray, lo: int, hi: int, *, gain: np.ndarray, half_power_width: int,
                        zeroing_m: np.ndarray | None = None, zeroing_error: np.ndarray | None = None,
                        second_m: np.ndarray | None = None, orders_m: np.ndarray | None = None,
+                       probe_spread: float = 0.0,
                        cff_window: int | None = None):
     """The 95 % intervals of one crossing's peaks (see the module docstring).
 
@@ -179,6 +180,8 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
     second_m : ndarray, shape (n_blades,), optional
         A second, independent estimate of the amplitude (pk-pk, m): the spread to it bounds
         the method's bias.
+    probe_spread : float
+        Variance of the probes' arrival times within a revolution, revolutions^2.
     orders_m : ndarray, shape (n_blades,), optional
         Several engine orders fitted jointly: the spread between the joint and the
         single-order amplitude (pk-pk, m), added to the model term.
@@ -222,6 +225,7 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
             warnings.simplefilter("ignore", RuntimeWarning)
             d2 = np.abs(A + shift - np.asarray(second_m, dtype=float))
         model = np.maximum(model, np.where(np.isfinite(d2), d2, 0.0))
+    model = model + _sampling(amp, ph, rev, lo, hi, probe_spread)
     if orders_m is not None:  # the other engine orders fitted jointly: a bias bound of its own
         model = model + np.where(np.isfinite(orders_m), np.asarray(orders_m, dtype=float), 0.0)
     rand = Z95 * np.sqrt(s_noise ** 2 + s_layout ** 2)
@@ -258,6 +262,27 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
             pci[b] = (psi[b] - hp, psi[b] + hp)
     aci = np.stack([A + np.minimum(shift, 0.0) - h, A + np.maximum(shift, 0.0) + h], axis=1)
     return replace(peaks, amp_ci95_m=aci, freq_ci95_hz=fci, phase_ci95_rad=pci), terms
+
+
+def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int, spread: float) -> np.ndarray:
+    """The revolution sampling's bias bound per blade (pk-pk, m): ``2 |P''| (1/8 + spread / 2)``.
+
+    ``P''`` is the second difference of the complex response at the peak (per revolution^2).
+    The continuous peak lies within half a revolution of a sampled one (``|P''| / 8``), and one
+    revolution's fit averages the response over the probes' arrival times, of variance
+    ``spread`` (revolutions^2; ``|P''| spread / 2``). Negligible for a slow sweep (``P''``
+    goes as the inverse square of the half-power width in revolutions).
+    """
+    n, nb = amp.shape
+    ok = np.isfinite(rev)
+    k = np.clip(np.where(ok, rev, lo).round().astype(np.int64), max(lo, 1), max(min(hi, n - 2), 1))
+    P = 0.5 * amp * np.exp(1j * ph)
+    cols = np.arange(nb)
+    if n < 3:
+        return np.zeros(nb)
+    d2 = np.abs(P[k + 1, cols] - 2.0 * P[k, cols] + P[k - 1, cols])
+    out = 2.0 * d2 * (0.125 + 0.5 * float(spread))
+    return np.where(ok & np.isfinite(out), out, 0.0)
 
 
 def _plateau(a: np.ndarray, k: int, floor: float, lo: int, hi: int) -> tuple[int, int]:

@@ -684,6 +684,12 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     return np.where(np.isfinite(err), 0.0, bound), err, sd.amp_pkpk_m
 
 
+def _probe_spread(geometry: Geometry) -> float:
+    """Variance of the probes' arrival times within a revolution (from the OPR), rev^2."""
+    pos = np.mod(np.asarray(geometry.probe_angles_rad, float) - float(geometry.opr_angle_rad), TWO_PI) / TWO_PI
+    return float(np.var(pos))
+
+
 def _joint_spread(ctx: _Context, c: Crossing, i: int, rev: np.ndarray) -> np.ndarray:
     """``|A_joint - A_single|`` per blade at its peak revolution ``rev`` (pk-pk, m): the
     unsmoothed amplitude of the joint fit of every order against that of a fit of this
@@ -728,7 +734,7 @@ def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, 
         pk, terms = crossing_intervals(
             pk, amp, ph, raw, freq, c.lo, c.hi, gain=gain,
             half_power_width=c.half_power_width, zeroing_m=check[0], zeroing_error=check[1], second_m=check[2],
-            orders_m=orders,
+            orders_m=orders, probe_spread=_probe_spread(ctx.geometry),
             cff_window=cff_window(c.half_power_width) if pk.method == "cff" else None)
     r0 = ctx.revolution0
     nsv = [f"order {n.order:.3f}, ND {n.nd:+d}, {1e3 * n.amp_pkpk_m:.4f} mm, revolutions {n.first_revolution}-"
