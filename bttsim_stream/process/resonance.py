@@ -78,6 +78,9 @@ class ResonancePeaks:
     offset_m : ndarray of complex, shape (n_blades,), or None
         SDOF method only: the fitted constant ``c`` (what the zeroing left in the responses
         ``a1 + i a2``, m); not reported, it checks the zeroing correction of the other methods.
+    misfit_m : ndarray, shape (n_blades,), or None
+        SDOF method only: rms of the fit's complex residuals, m (how far the one-mode model
+        holds; an error of that size may sit in ``offset_m``).
     """
 
     revolution: np.ndarray
@@ -94,6 +97,7 @@ class ResonancePeaks:
     freq_ci95_hz: np.ndarray | None = None
     phase_ci95_rad: np.ndarray | None = None
     offset_m: np.ndarray | None = None
+    misfit_m: np.ndarray | None = None
 
     @property
     def n_blades(self) -> int:
