@@ -225,7 +225,8 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
             warnings.simplefilter("ignore", RuntimeWarning)
             d2 = np.abs(A + shift - np.asarray(second_m, dtype=float))
         model = np.maximum(model, np.where(np.isfinite(d2), d2, 0.0))
-    model = model + _sampling(amp, ph, rev, lo, hi, probe_spread)
+    w = 1 if cff_window is None else max(int(cff_window), 1)  # the CFF averages w revolutions too
+    model = model + _sampling(amp, ph, rev, lo, hi, probe_spread + (w * w - 1) / 12.0)
     if orders_m is not None:  # the other engine orders fitted jointly: a bias bound of its own
         model = model + np.where(np.isfinite(orders_m), np.asarray(orders_m, dtype=float), 0.0)
     rand = Z95 * np.sqrt(s_noise ** 2 + s_layout ** 2)
@@ -270,7 +271,8 @@ def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int
     ``P''`` is the second difference of the complex response at the peak (per revolution^2).
     The continuous peak lies within half a revolution of a sampled one (``|P''| / 8``), and one
     revolution's fit averages the response over the probes' arrival times, of variance
-    ``spread`` (revolutions^2; ``|P''| spread / 2``). Negligible for a slow sweep (``P''``
+    ``spread`` (revolutions^2; ``|P''| spread / 2``; the CFF's ``w`` revolutions add
+    ``(w^2 - 1) / 12``). Negligible for a slow sweep (``P''``
     goes as the inverse square of the half-power width in revolutions).
     """
     n, nb = amp.shape

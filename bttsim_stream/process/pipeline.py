@@ -25,7 +25,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_contamination, predicted_response, resolve_engine_orders, speed_segments)
 from .displacement import TWO_PI, Displacements, Geometry, compute_displacements, rotor_phase_from_opr
 from .fit import SineFit, fit_revolutions
-from .intervals import Z95, crossing_intervals, crossing_notes, dwell_intervals, layout_gain
+from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
 from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
@@ -649,7 +649,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         P[c.lo:c.hi + 1] += corr[None, :]
         amp, ph = 2.0 * np.abs(P), np.angle(P)
         with _quiet():
-            check = (2.0 * Z95 * np.asarray(pk.misfit_m, float), None, None)
+            check = (2.0 * np.asarray(pk.misfit_m, float), None, None)
     pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc, corr, check)
     with _quiet():
         damping = float(np.nanmean(pk.damping_ratio)) if np.isfinite(pk.damping_ratio).any() else math.nan
@@ -674,8 +674,8 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     """``(bound, error, swept)``: what the zeroing left in the crossing's responses when its reference
     was not quiet (or the sweep is fast), per blade. ``error`` (complex, ``a1 + i a2``, m): the responses' constant
     measured by the swept SDOF fit (whose constant takes it, :func:`~.methods.sdof_method`),
-    plus the correction added; ``bound`` (pk-pk, m): ``1.96`` times the fit's residual rms (a
-    misfit of that size may sit in the constant) or, where the fit failed (NaN ``error``),
+    plus the correction added; ``bound`` (pk-pk, m): the fit's residual rms (a misfit of
+    that size may sit in the constant) or, where the fit failed (NaN ``error``),
     the reference's estimated response (``contamination``) or twice the correction; ``swept``:
     the SDOF fit's swept peak (pk-pk, m), a second estimate free of the zeroing and of the sweep
     rate. ``None`` each: a quiet reference, or the SDOF method itself."""
@@ -690,7 +690,7 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     err = off + add
     with _quiet():
         bound = np.maximum(2.0 * np.abs(add), cont * np.asarray(pk.amp_pkpk_m, float))
-        misfit = 2.0 * Z95 * np.asarray(sd.misfit_m, float)  # the model's misfit may sit in its constant
+        misfit = 2.0 * np.asarray(sd.misfit_m, float)  # the model's misfit may sit in its constant
     return np.where(np.isfinite(err), misfit, bound), err, sd.amp_pkpk_m
 
 
