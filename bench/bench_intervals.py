@@ -5,6 +5,7 @@ Usage::
     python bench/bench_intervals.py                          # every class, seeds 0-2, every method
     python bench/bench_intervals.py --seeds 2 --seed0 10     # seeds 10, 11 (held out of any tuning)
     python bench/bench_intervals.py --classes fast_sweep,two_eo --out intervals.json
+    python bench/bench_intervals.py --from-json intervals.json   # the Markdown table of docs/processing.md
 
 Simulates a matrix of short run-ups (several seeds per class), processes each with ``peak``,
 ``sdof`` and ``cff`` (the truth never enters the estimate: it only scores the result), and
@@ -214,8 +215,25 @@ def run_matrix(classes: dict, seeds, methods=METHODS) -> dict:
     return {"classes": table, "pooled": pooled}
 
 
+def markdown(res: dict) -> str:
+    """The calibration table of a result (per class and method, then pooled) in Markdown."""
+    lines = ["| class | method | blades | coverage amp / freq / phase % | median half-width % | mean / max E_A % "
+             "| E_A > 3 % (without a note) |", "|---|---|---|---|---|---|---|"]
+    rows = [(c, t) for c, t in res["classes"].items()] + [("**pooled**", res["pooled"])]
+    for c, t in rows:
+        for m, s in t.items():
+            if not s.get("blades"):
+                lines.append(f"| {c} | {m} | 0 ({s['missing_runs']} runs without a crossing) | | | | |")
+                continue
+            ph = "n/a" if s["phase_coverage_pct"] is None else f"{s['phase_coverage_pct']:.1f}"
+            lines.append(f"| {c} | {m} | {s['blades']} | {s['amp_coverage_pct']:.1f} / {s['freq_coverage_pct']:.1f} / "
+                         f"{ph} | {s['median_half_width_pct']:.2f} | {s['mean_E_A_pct']:.2f} / "
+                         f"{s['max_E_A_pct']:.1f} | {s['gt3pct']} ({s['unexplained_gt3pct']}) |")
+    return "\n".join(lines)
+
+
 def main(seeds: int = 3, out: str | None = None, seed0: int = 0, names: str | None = None,
-         methods: str | None = None) -> dict:
+         methods: str | None = None, as_markdown: bool = False) -> dict:
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
     every = {**CLASSES, **HELD_OUT}
     classes = every if not names else {k: every[k] for k in names.split(",")}
@@ -227,7 +245,7 @@ def main(seeds: int = 3, out: str | None = None, seed0: int = 0, names: str | No
     if out:
         with open(out, "w") as fh:
             fh.write(text + "\n")
-    print(text)
+    print(markdown(res) if as_markdown else text)
     return res
 
 
@@ -237,6 +255,12 @@ if __name__ == "__main__":
     p.add_argument("--seed0", type=int, default=0, help="first seed")
     p.add_argument("--classes", help="comma-separated class names (default: all)")
     p.add_argument("--methods", help="comma-separated methods (default: peak,sdof,cff)")
-    p.add_argument("--out")
+    p.add_argument("--out", help="also write the JSON here")
+    p.add_argument("--markdown", action="store_true", help="print the table in Markdown instead of the JSON")
+    p.add_argument("--from-json", help="only format a result written by --out")
     a = p.parse_args()
-    main(a.seeds, a.out, a.seed0, a.classes, a.methods)
+    if a.from_json:
+        with open(a.from_json) as fh:
+            print(markdown(json.load(fh)))
+    else:
+        main(a.seeds, a.out, a.seed0, a.classes, a.methods, a.markdown)

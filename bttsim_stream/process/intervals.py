@@ -226,7 +226,7 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
             d2 = np.abs(A + shift - np.asarray(second_m, dtype=float))
         model = np.maximum(model, np.where(np.isfinite(d2), d2, 0.0))
     w = 1 if cff_window is None else max(int(cff_window), 1)  # the CFF averages w revolutions too
-    model = model + _sampling(amp, ph, rev, lo, hi, probe_spread + (w * w - 1) / 12.0)
+    model = model + _sampling(amp, ph, rev, lo, hi, probe_spread + (w * w - 1) / 12.0, half)
     if orders_m is not None:  # the other engine orders fitted jointly: a bias bound of its own
         model = model + np.where(np.isfinite(orders_m), np.asarray(orders_m, dtype=float), 0.0)
     rand = Z95 * np.sqrt(s_noise ** 2 + s_layout ** 2)
@@ -265,10 +265,13 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
     return replace(peaks, amp_ci95_m=aci, freq_ci95_hz=fci, phase_ci95_rad=pci), terms
 
 
-def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int, spread: float) -> np.ndarray:
+def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int, spread: float,
+              step: int = 1) -> np.ndarray:
     """The revolution sampling's bias bound per blade (pk-pk, m): ``2 |P''| (1/8 + spread / 2)``.
 
-    ``P''`` is the second difference of the complex response at the peak (per revolution^2).
+    ``P''`` is the curvature of the complex response at the peak (per revolution^2): its second
+    difference over ``step`` revolutions each side, divided by ``step^2`` (the parabola's
+    half-width: the noise's share falls as ``step^-2``).
     The continuous peak lies within half a revolution of a sampled one (``|P''| / 8``), and one
     revolution's fit averages the response over the probes' arrival times, of variance
     ``spread`` (revolutions^2; ``|P''| spread / 2``; the CFF's ``w`` revolutions add
@@ -276,13 +279,14 @@ def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int
     goes as the inverse square of the half-power width in revolutions).
     """
     n, nb = amp.shape
-    ok = np.isfinite(rev)
-    k = np.clip(np.where(ok, rev, lo).round().astype(np.int64), max(lo, 1), max(min(hi, n - 2), 1))
-    P = 0.5 * amp * np.exp(1j * ph)
-    cols = np.arange(nb)
+    s = max(1, min(int(step), (n - 1) // 2))
     if n < 3:
         return np.zeros(nb)
-    d2 = np.abs(P[k + 1, cols] - 2.0 * P[k, cols] + P[k - 1, cols])
+    ok = np.isfinite(rev)
+    k = np.clip(np.where(ok, rev, lo).round().astype(np.int64), s, n - 1 - s)
+    P = 0.5 * amp * np.exp(1j * ph)
+    cols = np.arange(nb)
+    d2 = np.abs(P[k + s, cols] - 2.0 * P[k, cols] + P[k - s, cols]) / (s * s)
     out = 2.0 * d2 * (0.125 + 0.5 * float(spread))
     return np.where(ok & np.isfinite(out), out, 0.0)
 

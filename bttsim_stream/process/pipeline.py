@@ -649,7 +649,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         P[c.lo:c.hi + 1] += corr[None, :]
         amp, ph = 2.0 * np.abs(P), np.angle(P)
         with _quiet():
-            check = (2.0 * np.asarray(pk.misfit_m, float), None, None)
+            check = (_model_misfit(pk.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i]), None, None)
     pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc, corr, check)
     with _quiet():
         damping = float(np.nanmean(pk.damping_ratio)) if np.isfinite(pk.damping_ratio).any() else math.nan
@@ -674,8 +674,8 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     """``(bound, error, swept)``: what the zeroing left in the crossing's responses when its reference
     was not quiet (or the sweep is fast), per blade. ``error`` (complex, ``a1 + i a2``, m): the responses' constant
     measured by the swept SDOF fit (whose constant takes it, :func:`~.methods.sdof_method`),
-    plus the correction added; ``bound`` (pk-pk, m): the fit's residual rms (a misfit of
-    that size may sit in the constant) or, where the fit failed (NaN ``error``),
+    plus the correction added; ``bound`` (pk-pk, m): the fit's misfit beyond the noise (a
+    misfit of that size may sit in the constant, :func:`_model_misfit`) or, where the fit failed (NaN ``error``),
     the reference's estimated response (``contamination``) or twice the correction; ``swept``:
     the SDOF fit's swept peak (pk-pk, m), a second estimate free of the zeroing and of the sweep
     rate. ``None`` each: a quiet reference, or the SDOF method itself."""
@@ -690,7 +690,7 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     err = off + add
     with _quiet():
         bound = np.maximum(2.0 * np.abs(add), cont * np.asarray(pk.amp_pkpk_m, float))
-        misfit = 2.0 * np.asarray(sd.misfit_m, float)  # the model's misfit may sit in its constant
+        misfit = _model_misfit(sd.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i])
     return np.where(np.isfinite(err), misfit, bound), err, sd.amp_pkpk_m
 
 
@@ -715,6 +715,18 @@ def _joint_spread(ctx: _Context, c: Crossing, i: int, rev: np.ndarray) -> np.nda
     with _quiet():
         d = np.abs(ctx.raw.amp_pkpk_m[rev, cols, i] - single)
     return np.where(np.isfinite(d), d, 0.0)
+
+
+def _model_misfit(misfit_m, amp_raw: np.ndarray) -> np.ndarray:
+    """The SDOF fit's misfit beyond the measurement noise, pk-pk (m): ``2 sqrt(m^2 - s^2 / 2)``,
+    ``m`` the rms of its complex residuals, ``s`` the revolution-to-revolution noise of the
+    amplitudes (:func:`~.methods.amplitude_noise`; complex noise of rms ``s / sqrt(2)``)."""
+    from .methods import amplitude_noise
+
+    with _quiet():
+        s = amplitude_noise(amp_raw)
+        m = np.asarray(misfit_m, float)
+        return 2.0 * np.sqrt(np.maximum(m * m - 0.5 * np.where(np.isfinite(s), s, 0.0) ** 2, 0.0))
 
 
 def _sdof(ctx: _Context, c: Crossing, i: int, fn0_hz: np.ndarray):
