@@ -212,7 +212,9 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
         s_layout = np.where(np.isfinite(gain), gain, 0.0) * MODEL_ERROR * A
         half = max(2, int(half_power_width) // 6)
         par = _parabola_peak(raw, rev, half)
-        model = np.abs(A - par)
+        par2 = _parabola_peak(raw, rev, max(2, half // 2))
+        # the vertex's own flattening goes as half^4: extrapolated from the two half-widths
+        model = np.maximum(np.abs(A - par), np.abs(A - (par2 + (par2 - par) / 15.0)))
         model = np.where(np.isfinite(model), model, 0.0)
         zero = np.zeros(nb) if zeroing_m is None else np.asarray(zeroing_m, dtype=float)
         zero = np.where(np.isfinite(zero), zero, 0.0)

@@ -627,7 +627,7 @@ def _amp_unit(rows: list[dict]) -> tuple[str, float]:
 
 def _blade_table(title: str, entry: dict) -> list[str]:
     """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
-    uncertainty in um, the half-width of its 95 % interval in um, frequency, phase in degrees, and
+    uncertainty in um, the ends of its 95 % interval relative to it in um, frequency, phase in degrees, and
     the truth with E_A / E_f when the entry has them."""
     rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
@@ -639,7 +639,7 @@ def _blade_table(title: str, entry: dict) -> list[str]:
     if unc:
         head += f"  {'+- ' + _UM:>8}"
     if ci:
-        head += f"  {'95% ' + _UM + ' (half)':>14}"
+        head += f"  {'95% ' + _UM + ' (lo/hi)':>19}"
     head += f"  {'freq Hz':>9}"
     if phase:
         head += f"  {'phase deg':>9}"
@@ -652,7 +652,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
             s += f"  {1e6 * _f(r.get('amp_std_m')):>8.3f}"
         if ci:
             lo_hi = r.get("amp_ci95_m") or (None, None)
-            s += f"  {0.5e6 * (_f(lo_hi[1]) - _f(lo_hi[0])):>14.3f}"
+            a = _f(r["amp_pkpk_m"])
+            s += f"  {f'{1e6 * (_f(lo_hi[0]) - a):+.3f}/{1e6 * (_f(lo_hi[1]) - a):+.3f}':>19}"
         s += f"  {_f(r['freq_hz']):>9.3f}"
         if phase:
             s += f"  {_phase_deg(r.get('phase_rad')):>9.1f}"
