@@ -8,7 +8,7 @@ never used: it only validates, ``bench/bench_intervals.py``). Amplitudes are pea
 Amplitude half-width (conservative sum of the bias bounds on top of the root-sum-square of
 the random terms)::
 
-    h_A = 1.96 sqrt(s_noise^2 + s_layout^2) + D_model + b_zero
+    h_A = 1.96 sqrt(s_noise^2 + s_layout^2) + D_model + D_sampling + D_orders + b_zero
 
 ``s_noise`` (a)
     The method's residual-noise standard error: ``amp_std_m`` of :mod:`.methods` (the
@@ -29,17 +29,26 @@ the random terms)::
     ``peak``; the window for ``cff``; the SDOF model for ``sdof``), bounded by the spread
     between the method's amplitude and a second estimate: the vertex of a least-squares
     parabola through the unsmoothed per-revolution amplitudes around the peak (zeroing
-    correction included), and, when the sweep is fast (the half-power band crossed in fewer
+    correction included; its own flattening, which goes as the half-width^4, extrapolated
+    from two half-widths), and, when the sweep is fast (the half-power band crossed in fewer
     than ``FAST_SWEEP_REVOLUTIONS`` of :mod:`.pipeline`) or the reference not quiet, the swept
     SDOF fit's peak (:func:`~.methods.sdof_method`: the sweep is in its model, the zeroing
     in its constant). The largest spread counts. ``peak`` is not corrected (the paper's
     definition): its interval is widened, and the crossing's note says so.
+``D_sampling`` (c, e)
+    Revolution quantisation of the amplitude: ``2 |P''| (1/8 + v/2)`` (:func:`_sampling`),
+    ``P''`` the curvature of the complex response at the peak, ``v`` the variance of the
+    probes' arrival times in a revolution (plus the CFF window's).
+``D_orders`` (another EO)
+    Several engine orders fitted jointly: the spread between the joint and a single-order
+    amplitude at the peak (``orders_m``).
 ``b_zero`` (d)
-    Data preparation / zeroing, when the reference window was not quiet: the swept SDOF fit's
+    Data preparation / zeroing, when the reference window was not quiet (or the sweep fast): the swept SDOF fit's
     constant ``c`` measures what the zeroing (and its correction) left in the responses, a
     complex error ``e`` per blade. The sequences with ``e`` taken out give a second peak; the
     interval spans both peaks (so it is asymmetric), and the frequency and phase intervals
-    both plateaus. Where the SDOF fit fails: ``max(2 |correction|, contamination A)``.
+    both plateaus; plus the fit's misfit beyond the noise. Where the SDOF fit fails:
+    ``max(2 |correction|, contamination A)``.
 
 Frequency (c): the truth's resonant frequency is ``EO Omega / 2 pi`` of one revolution. With
 the amplitude sequence within ``h_A`` of the truth's everywhere, the truth's peak revolution
