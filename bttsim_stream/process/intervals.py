@@ -383,10 +383,14 @@ def crossing_notes(*, eo: int, method: str, cn: float, terms: IntervalTerms, amp
                      f"{1.96 * _median_pct(terms.layout_m, A):.2g} % (layout term)")
     model = _median_pct(terms.model_m, A)
     if half_power_width < fast_sweep_revolutions:
-        what = "the per-revolution fits and the smoothing" if method == "peak" else "the method"
+        what = {"peak": "the per-revolution fits and the smoothing flatten the peak, not corrected: the interval is "
+                        "widened by the spread to the swept SDOF fit and the revolution sampling",
+                "cff": "the CFF window and the per-revolution fits flatten the peak, not corrected: the interval is "
+                       "widened by the spread to the swept SDOF fit and the revolution sampling",
+                "sdof": "the SDOF model carries the sweep; the interval holds its misfit and the revolution "
+                        "sampling"}.get(method, "the interval is widened for the sweep")
         notes.append(f"fast sweep: the half-power band is crossed in {half_power_width:.0f} revolutions (< "
-                     f"{fast_sweep_revolutions:g}): {what} flatten the peak; not corrected, the interval is widened "
-                     f"by the spread to the swept SDOF fit, {model:.2g} % (blade median)")
+                     f"{fast_sweep_revolutions:g}): {what}, {model:.2g} % (blade median)")
     elif model > TERM_NOTE_PCT:
         what = ("a peak sharp for the smoothing: the peak pick is not corrected, its interval is "
                 "widened" if method.startswith("peak") else "the method's model departs from the data: the "
