@@ -8,7 +8,7 @@ never used: it only validates, ``bench/bench_intervals.py``). Amplitudes are pea
 Amplitude half-width (conservative sum of the bias bounds on top of the root-sum-square of
 the random terms)::
 
-    h_A = 1.96 sqrt(s_noise^2 + s_layout^2) + D_model + b_zero
+    h_A = 1.96 sqrt(s_noise^2 + s_layout^2) + D_model + D_sampling + D_orders + b_zero
 
 ``s_noise`` (a)
     The method's residual-noise standard error: ``amp_std_m`` of :mod:`.methods` (the
@@ -26,26 +26,39 @@ the random terms)::
     cannot show it: a 3-probe fit has none).
 ``D_model`` (b, e)
     The method's own bias (the sweep rate and the smoothing flatten the swept peak for
-    ``peak``; the window for ``cff``; the SDOF model for ``sdof``), bounded empirically by the
-    spread between the method's amplitude and the vertex of a least-squares parabola through
-    the unsmoothed per-revolution amplitudes around the peak. ``peak`` is not corrected
-    (the paper's definition): its interval is widened, and the crossing's note says so when
-    this term dominates.
+    ``peak``; the window for ``cff``; the SDOF model for ``sdof``), bounded by the spread
+    between the method's amplitude and a second estimate: the vertex of a least-squares
+    parabola through the unsmoothed per-revolution amplitudes around the peak (zeroing
+    correction included; its own flattening, which goes as the half-width^4, extrapolated
+    from two half-widths), and, when the sweep is fast (the half-power band crossed in fewer
+    than ``FAST_SWEEP_REVOLUTIONS`` of :mod:`.pipeline`) or the reference not quiet, the swept
+    SDOF fit's peak (:func:`~.methods.sdof_method`: the sweep is in its model, the zeroing
+    in its constant). The largest spread counts. ``peak`` is not corrected (the paper's
+    definition): its interval is widened, and the crossing's note says so.
+``D_sampling`` (c, e)
+    Revolution quantisation of the amplitude: ``2 |P''| (1/8 + v/2)`` (:func:`_sampling`),
+    ``P''`` the curvature of the complex response at the peak, ``v`` the variance of the
+    probes' arrival times in a revolution (plus the CFF window's).
+``D_orders`` (another EO)
+    Several engine orders fitted jointly: the spread between the joint and a single-order
+    amplitude at the peak (``orders_m``).
 ``b_zero`` (d)
-    Data preparation / zeroing: what the zeroing reference held, ``A ZEROING_SHARE max(zc,
-    contamination)``: a share (:data:`ZEROING_SHARE`, 1/8) of the zeroing correction added
-    back (``zeroing_correction_pct``; the growth law it assumes is uncertain) or of the
-    reference window's estimated contamination (``contamination_pct``; the baseline removal
-    takes most of it).
+    Data preparation / zeroing, when the reference window was not quiet (or the sweep fast): the swept SDOF fit's
+    constant ``c`` measures what the zeroing (and its correction) left in the responses, a
+    complex error ``e`` per blade. The sequences with ``e`` taken out give a second peak; the
+    interval spans both peaks (so it is asymmetric), and the frequency and phase intervals
+    both plateaus; plus the fit's misfit beyond the noise. Where the SDOF fit fails:
+    ``max(2 |correction|, contamination A)``.
 
-Frequency (c): the truth's resonant frequency is ``EO Omega / 2 pi`` of one revolution, and
-every revolution whose amplitude lies within ``h_A`` of the estimate may be it. The interval
-spans the frequencies of that plateau of revolutions (contiguous around the peak) widened by
-half a revolution's frequency step on each side, and at least ``f +- 1.96 freq_std_hz``.
+Frequency (c): the truth's resonant frequency is ``EO Omega / 2 pi`` of one revolution. With
+the amplitude sequence within ``h_A`` of the truth's everywhere, the truth's peak revolution
+has an amplitude within ``2 h_A`` of the estimate: the interval spans the frequencies of that
+plateau of revolutions (contiguous around the peak) widened by half a revolution's frequency
+step on each side, and at least ``f +- 1.96 freq_std_hz``.
 
-Phase: ``psi +- (1.96 sqrt(s_noise^2 + s_layout^2) / A + max |psi_k - psi|)`` over the same
-plateau revolutions ``k`` (the phase turns by pi through a resonance, so which revolution is
-the peak matters).
+Phase: ``psi +- (asin(h_A / A) + max |psi_k - psi|)`` over the same plateau revolutions ``k``
+(an error of ``h_A`` in the complex response turns it by at most ``asin(h_A / A)``; the phase
+turns by pi through a resonance, so which revolution is the peak matters).
 """
 
 from __future__ import annotations
@@ -58,13 +71,9 @@ import numpy as np
 
 from .fit import design_matrix
 
-__all__ = ["Z95", "MODEL_ERROR", "ZEROING_SHARE", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms",
+__all__ = ["Z95", "MODEL_ERROR", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms",
            "crossing_intervals", "dwell_intervals", "layout_gain", "crossing_notes"]
 
-#: Share of the zeroing reference's response (the correction added back, or the window's
-#: estimated contamination) left as an error after the correction / baseline removal: a bound
-#: calibrated with ``bench/bench_intervals.py`` (errors of 0.2-0.4 % after 9 % corrections).
-ZEROING_SHARE = 0.125
 #: Two-sided 95 % normal quantile.
 Z95 = 1.959963984540054
 #: Unmodelled per-probe content relative to the response's amplitude (the layout term).
@@ -88,6 +97,8 @@ class IntervalTerms:
         Bias bounds (b, e) and (d).
     half_width_m : ndarray, shape (n_blades,)
         ``1.96 sqrt(noise^2 + layout^2) + model + zeroing``.
+    orders_m : ndarray, shape (n_blades,), or None
+        The part of ``model_m`` due to the other engine orders fitted jointly.
     """
 
     noise_m: np.ndarray
@@ -95,6 +106,7 @@ class IntervalTerms:
     model_m: np.ndarray
     zeroing_m: np.ndarray
     half_width_m: np.ndarray
+    orders_m: np.ndarray | None = None
 
 
 def layout_gain(probe_angles_rad, engine_orders, index: int, phasor: np.ndarray) -> np.ndarray:
@@ -147,7 +159,9 @@ def _parabola_peak(amp: np.ndarray, rev: np.ndarray, half: int) -> np.ndarray:
 
 def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, amp_raw_m: np.ndarray,
                        freq_hz: np.ndarray, lo: int, hi: int, *, gain: np.ndarray, half_power_width: int,
-                       zeroing_correction: float = math.nan, contamination: float = math.nan,
+                       zeroing_m: np.ndarray | None = None, zeroing_error: np.ndarray | None = None,
+                       second_m: np.ndarray | None = None, orders_m: np.ndarray | None = None,
+                       probe_spread: float = 0.0,
                        cff_window: int | None = None):
     """The 95 % intervals of one crossing's peaks (see the module docstring).
 
@@ -168,8 +182,18 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
         :func:`layout_gain`.
     half_power_width : int
         Revolutions; sets the parabola's half-width (a sixth of it, at least 2).
-    zeroing_correction, contamination : float
-        Fractions of the peak (NaN: none).
+    zeroing_m : ndarray, shape (n_blades,), optional
+        A bound on the zeroing error (pk-pk, m) where ``zeroing_error`` is not known.
+    zeroing_error : ndarray of complex, shape (n_blades,), optional
+        What the zeroing left in the responses ``a1 + i a2`` (m; NaN: unknown).
+    second_m : ndarray, shape (n_blades,), optional
+        A second, independent estimate of the amplitude (pk-pk, m): the spread to it bounds
+        the method's bias.
+    probe_spread : float
+        Variance of the probes' arrival times within a revolution, revolutions^2.
+    orders_m : ndarray, shape (n_blades,), optional
+        Several engine orders fitted jointly: the spread between the joint and the
+        single-order amplitude (pk-pk, m), added to the model term.
     cff_window : int, optional
         The CFF's revolutions per fit (its noise term, see the module docstring).
 
@@ -197,18 +221,31 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
         s_layout = np.where(np.isfinite(gain), gain, 0.0) * MODEL_ERROR * A
         half = max(2, int(half_power_width) // 6)
         par = _parabola_peak(raw, rev, half)
-        model = np.abs(A - par)
+        par2 = _parabola_peak(raw, rev, max(2, half // 2))
+        # the vertex's own flattening goes as half^4: extrapolated from the two half-widths
+        model = np.maximum(np.abs(A - par), np.abs(A - (par2 + (par2 - par) / 15.0)))
         model = np.where(np.isfinite(model), model, 0.0)
-        zc = zeroing_correction if math.isfinite(zeroing_correction) else 0.0
-        ct = contamination if math.isfinite(contamination) else 0.0
-        zero = A * ZEROING_SHARE * max(zc, ct)
-    rand = Z95 * np.sqrt(s_noise ** 2 + s_layout ** 2)
-    h = rand + model + zero
-    terms = IntervalTerms(noise_m=s_noise, layout_m=s_layout, model_m=model, zeroing_m=zero, half_width_m=h)
-    f = np.asarray(freq_hz, dtype=float)
-    step = np.abs(np.gradient(f)) if n > 1 else np.zeros(n)
+        zero = np.zeros(nb) if zeroing_m is None else np.asarray(zeroing_m, dtype=float)
+        zero = np.where(np.isfinite(zero), zero, 0.0)
     amp = np.asarray(amp_seq_m, dtype=float)
     ph = np.asarray(phase_seq_rad, dtype=float)
+    alt = _without_error(amp, ph, lo, hi, zeroing_error)
+    shift = np.zeros(nb) if alt is None else alt[2]
+    if second_m is not None:  # an independent estimate (the swept SDOF fit): the spread to it
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d2 = np.abs(A + shift - np.asarray(second_m, dtype=float))
+        model = np.maximum(model, np.where(np.isfinite(d2), d2, 0.0))
+    w = 1 if cff_window is None else max(int(cff_window), 1)  # the CFF averages w revolutions too
+    model = model + _sampling(amp, ph, rev, lo, hi, probe_spread + (w * w - 1) / 12.0, half)
+    if orders_m is not None:  # the other engine orders fitted jointly: a bias bound of its own
+        model = model + np.where(np.isfinite(orders_m), np.asarray(orders_m, dtype=float), 0.0)
+    rand = Z95 * np.sqrt(s_noise ** 2 + s_layout ** 2)
+    h = rand + model + zero
+    terms = IntervalTerms(noise_m=s_noise, layout_m=s_layout, model_m=model, zeroing_m=zero + np.abs(shift),
+                          half_width_m=h + np.abs(shift), orders_m=orders_m)
+    f = np.asarray(freq_hz, dtype=float)
+    step = np.abs(np.gradient(f)) if n > 1 else np.zeros(n)
     fci = np.full((nb, 2), np.nan)
     pci = np.full((nb, 2), np.nan)
     fstd = np.asarray(peaks.freq_std_hz if peaks.freq_std_hz is not None else np.zeros(nb), dtype=float)
@@ -217,26 +254,83 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
         if not (np.isfinite(A[b]) and np.isfinite(rev[b])):
             continue
         k = int(np.clip(round(rev[b]), lo, hi))
-        floor = A[b] - h[b]
-        a0 = k
-        while a0 > lo and np.isfinite(amp[a0 - 1, b]) and amp[a0 - 1, b] >= floor:
-            a0 -= 1
-        a1 = k
-        while a1 < hi and np.isfinite(amp[a1 + 1, b]) and amp[a1 + 1, b] >= floor:
-            a1 += 1
+        a0, a1 = _plateau(amp[:, b], k, A[b] - 2.0 * h[b], lo, hi)
+        dphi = ph[a0:a1 + 1, b] - psi[b]
+        if alt is not None and np.isfinite(alt[3][b]):  # the sequence without the zeroing error
+            k2 = int(alt[3][b])
+            c0, c1 = _plateau(alt[0][:, b], k2, float(alt[0][k2, b]) - 2.0 * h[b], lo, hi)
+            a0, a1 = min(a0, c0), max(a1, c1)
+            dphi = np.concatenate([dphi, alt[1][c0:c1 + 1, b] - ph[k, b] + np.angle(np.exp(1j * (ph[k, b] - psi[b])))])
         fs = f[a0:a1 + 1]
         st = 0.5 * float(np.max(step[a0:a1 + 1]))
         fb = float(peaks.freq_hz[b])
         fz = Z95 * (float(fstd[b]) if np.isfinite(fstd[b]) else 0.0)
         fci[b] = (min(float(np.min(fs)) - st, fb - fz), max(float(np.max(fs)) + st, fb + fz))
         if np.isfinite(psi[b]):
-            dphi = np.angle(np.exp(1j * (ph[a0:a1 + 1, b] - psi[b])))
+            dphi = np.angle(np.exp(1j * dphi))
             dphi = dphi[np.isfinite(dphi)]
-            hp = rand[b] / A[b] + (float(np.max(np.abs(dphi))) if dphi.size else 0.0)
+            hp = math.asin(min(h[b] / A[b], 1.0)) + (float(np.max(np.abs(dphi))) if dphi.size else 0.0)
             hp = min(hp, math.pi)
             pci[b] = (psi[b] - hp, psi[b] + hp)
-    aci = np.stack([A - h, A + h], axis=1)
+    aci = np.stack([A + np.minimum(shift, 0.0) - h, A + np.maximum(shift, 0.0) + h], axis=1)
     return replace(peaks, amp_ci95_m=aci, freq_ci95_hz=fci, phase_ci95_rad=pci), terms
+
+
+def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int, spread: float,
+              step: int = 1) -> np.ndarray:
+    """The revolution sampling's bias bound per blade (pk-pk, m): ``2 |P''| (1/8 + spread / 2)``.
+
+    ``P''`` is the curvature of the complex response at the peak (per revolution^2): its second
+    difference over ``step`` revolutions each side, divided by ``step^2`` (the parabola's
+    half-width: the noise's share falls as ``step^-2``).
+    The continuous peak lies within half a revolution of a sampled one (``|P''| / 8``), and one
+    revolution's fit averages the response over the probes' arrival times, of variance
+    ``spread`` (revolutions^2; ``|P''| spread / 2``; the CFF's ``w`` revolutions add
+    ``(w^2 - 1) / 12``). Negligible for a slow sweep (``P''``
+    goes as the inverse square of the half-power width in revolutions).
+    """
+    n, nb = amp.shape
+    s = max(1, min(int(step), (n - 1) // 2))
+    if n < 3:
+        return np.zeros(nb)
+    ok = np.isfinite(rev)
+    k = np.clip(np.where(ok, rev, lo).round().astype(np.int64), s, n - 1 - s)
+    P = 0.5 * amp * np.exp(1j * ph)
+    cols = np.arange(nb)
+    d2 = np.abs(P[k + s, cols] - 2.0 * P[k, cols] + P[k - s, cols]) / (s * s)
+    out = 2.0 * d2 * (0.125 + 0.5 * float(spread))
+    return np.where(ok & np.isfinite(out), out, 0.0)
+
+
+def _plateau(a: np.ndarray, k: int, floor: float, lo: int, hi: int) -> tuple[int, int]:
+    """The revolutions contiguous with ``k`` (within ``lo .. hi``) whose amplitude is at least
+    ``floor``."""
+    a0 = k
+    while a0 > lo and np.isfinite(a[a0 - 1]) and a[a0 - 1] >= floor:
+        a0 -= 1
+    a1 = k
+    while a1 < hi and np.isfinite(a[a1 + 1]) and a[a1 + 1] >= floor:
+        a1 += 1
+    return a0, a1
+
+
+def _without_error(amp: np.ndarray, ph: np.ndarray, lo: int, hi: int, error):
+    """The crossing's sequences with a complex error ``error`` (per blade, ``a1 + i a2``, m)
+    taken out: ``(amp, phase, peak shift, peak revolution)`` (None without an error; NaN
+    revolution for a blade without)."""
+    if error is None:
+        return None
+    e = np.asarray(error, dtype=complex)
+    P = 0.5 * amp * np.exp(1j * ph)
+    P2 = P.copy()
+    P2[lo:hi + 1] = P[lo:hi + 1] - np.where(np.isfinite(e), e, 0.0)[None, :]
+    a2 = 2.0 * np.abs(P2)
+    w1 = np.where(np.isfinite(amp[lo:hi + 1]), amp[lo:hi + 1], -np.inf)
+    w2 = np.where(np.isfinite(a2[lo:hi + 1]), a2[lo:hi + 1], -np.inf)
+    k2 = lo + np.argmax(w2, axis=0)
+    ok = np.isfinite(e) & np.isfinite(w2).any(axis=0)
+    shift = np.where(ok, np.max(w2, axis=0) - np.max(w1, axis=0), 0.0)
+    return a2, np.angle(P2), np.where(np.isfinite(shift), shift, 0.0), np.where(ok, k2, np.nan)
 
 
 def dwell_intervals(peaks):
@@ -265,11 +359,17 @@ def _median_pct(x: np.ndarray, A: np.ndarray) -> float:
 
 def crossing_notes(*, eo: int, method: str, cn: float, terms: IntervalTerms, amp_pkpk_m: np.ndarray,
                    contamination: float, contamination_limit: float, zeroing_correction: float,
-                   nsv_overlap: list, other_crossings: list) -> tuple:
-    """Notes naming what spoils one crossing's estimate (and so widens its interval).
+                   nsv_overlap: list, other_crossings: list, half_power_width: float = math.inf,
+                   fast_sweep_revolutions: float = 0.0) -> tuple:
+    """Notes naming what spoils one crossing's estimate (and so widens its interval); each is
+    computed from the data only.
 
     Parameters
     ----------
+    half_power_width : float
+        Revolutions over which the sweep crosses the half-power band.
+    fast_sweep_revolutions : float
+        Below this, the sweep is named as fast.
     nsv_overlap : list of str
         Descriptions of detected non-synchronous vibrations overlapping the crossing.
     other_crossings : list of int
@@ -282,12 +382,20 @@ def crossing_notes(*, eo: int, method: str, cn: float, terms: IntervalTerms, amp
                      f"the response, its amplitude is uncertain by about "
                      f"{1.96 * _median_pct(terms.layout_m, A):.2g} % (layout term)")
     model = _median_pct(terms.model_m, A)
-    if model > TERM_NOTE_PCT:
-        what = ("fast sweep or a peak sharp for the smoothing: the peak pick is not corrected, its interval is "
+    if half_power_width < fast_sweep_revolutions:
+        what = {"peak": "the per-revolution fits and the smoothing flatten the peak, not corrected: the interval is "
+                        "widened by the spread to the swept SDOF fit and the revolution sampling",
+                "cff": "the CFF window and the per-revolution fits flatten the peak, not corrected: the interval is "
+                       "widened by the spread to the swept SDOF fit and the revolution sampling",
+                "sdof": "the SDOF model carries the sweep; the interval holds its misfit and the revolution "
+                        "sampling"}.get(method, "the interval is widened for the sweep")
+        notes.append(f"fast sweep: the half-power band is crossed in {half_power_width:.0f} revolutions (< "
+                     f"{fast_sweep_revolutions:g}): {what}, {model:.2g} % (blade median)")
+    elif model > TERM_NOTE_PCT:
+        what = ("a peak sharp for the smoothing: the peak pick is not corrected, its interval is "
                 "widened" if method.startswith("peak") else "the method's model departs from the data: the "
                 "interval is widened")
-        notes.append(f"{what} by the spread to a parabola through the unsmoothed amplitudes, {model:.2g} % "
-                     f"(blade median)")
+        notes.append(f"{what} by the spread to a second estimate of the peak, {model:.2g} % (blade median)")
     ct = 100.0 * contamination if math.isfinite(contamination) else 0.0
     zc = 100.0 * zeroing_correction if math.isfinite(zeroing_correction) else 0.0
     if contamination > contamination_limit or zc > 2 * TERM_NOTE_PCT:
@@ -296,6 +404,9 @@ def crossing_notes(*, eo: int, method: str, cn: float, terms: IntervalTerms, amp
     for s in nsv_overlap:
         notes.append(f"contaminated: a non-synchronous vibration overlaps this crossing's revolutions ({s}); the "
                      f"EO {eo} amplitudes include part of it")
+    if terms.orders_m is not None and _median_pct(terms.orders_m, A) > TERM_NOTE_PCT:
+        notes.append(f"other engine orders fitted jointly with EO {eo}: the joint and the single-order amplitudes "
+                     f"differ by {_median_pct(terms.orders_m, A):.2g} % (blade median), added to the interval")
     if other_crossings:
         notes.append(f"a crossing of EO {', '.join(map(str, sorted(set(other_crossings))))} overlaps this one's "
                      f"revolutions: the responses add up in these amplitudes")

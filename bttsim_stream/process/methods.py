@@ -259,7 +259,8 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     phi = eo * (TWO_PI * n_g + phase.rows(n_g).angle(grid))
     w_exc = np.gradient(phi, h)
     out = {k: np.full(nb, np.nan) for k in ("amp", "freq", "phase", "amp_std", "freq_std", "zeta", "steady",
-                                            "fn", "rev", "zeta_std")}
+                                            "fn", "rev", "zeta_std", "misfit")}
+    out["offset"] = np.full(nb, np.nan + 0j)
     etas = []
     sel = slice(lo, hi + 1)
     for b in range(nb):
@@ -322,6 +323,8 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
         out["freq"][b] = w_exc[k] / TWO_PI
         out["phase"][b] = float(np.angle(C * z_grid[k]))
         out["steady"][b] = 2.0 * abs(C) * hmax
+        out["offset"][b] = c[1] * scale
+        out["misfit"][b] = math.sqrt(float(np.mean(np.abs(r) ** 2))) * scale
         out["zeta"][b] = zeta
         out["fn"][b] = fn
         out["rev"][b] = float(np.interp(grid[k], opr, np.arange(n_rev)))
@@ -332,5 +335,10 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     peaks = ResonancePeaks(revolution=out["rev"], amp_pkpk_m=out["amp"], freq_hz=out["freq"],
                            damping_ratio=out["zeta"], method="sdof", phase_rad=out["phase"],
                            amp_std_m=out["amp_std"], freq_std_hz=out["freq_std"],
-                           steady_amp_pkpk_m=out["steady"], natural_freq_hz=out["fn"])
+                           steady_amp_pkpk_m=out["steady"], natural_freq_hz=out["fn"], **_sdof_extra(out))
     return peaks, (float(np.median(etas)) if etas else math.nan)
+
+
+def _sdof_extra(out: dict) -> dict:
+    """The SDOF fit's constant and misfit (:class:`~.resonance.ResonancePeaks`' ``offset_m``, ``misfit_m``)."""
+    return {"offset_m": out["offset"], "misfit_m": out["misfit"]}

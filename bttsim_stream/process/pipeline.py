@@ -568,6 +568,17 @@ def _zeroing_correction(ctx: _Context, c: Crossing, i: int) -> np.ndarray | None
     around the reference, that baseline took the reference's response already: no
     correction.
     """
+    tail = _zeroing_tail(ctx, c, i)
+    if tail is None:
+        return None
+    h_ref, g, P = tail
+    return _tail_gain(g, P) * h_ref
+
+
+def _zeroing_tail(ctx: _Context, c: Crossing, i: int):
+    """``(h_ref, g, P)`` of :func:`_zeroing_correction` (None: no correction): the growth law
+    at the reference, its rise ``g = h - h_ref`` over the skirt's revolutions (in revolution
+    order) and the responses there."""
     ref = ctx.reference
     if ref is None or ref.start is None or ctx.offset_removed:
         return None
@@ -578,13 +589,16 @@ def _zeroing_correction(ctx: _Context, c: Crossing, i: int) -> np.ndarray | None
     idx = idx[np.abs(h[idx]) <= TAIL_LEVEL]
     if idx.size < 16:
         return None
-    g = h[idx] - h_ref
-    P = ctx.fit.phasor[idx, :, i]
+    return h_ref, h[idx] - h_ref, ctx.fit.phasor[idx, :, i]
+
+
+def _tail_gain(g: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Least-squares ``K`` per blade of ``P = K g`` (0 where no data)."""
     ok = np.isfinite(P)
     w = np.where(ok, np.abs(g)[:, None] ** 2, 0.0).sum(axis=0)
     with np.errstate(all="ignore"):
         K = np.where(ok, np.conj(g)[:, None] * np.where(ok, P, 0.0), 0.0).sum(axis=0) / w
-    return np.where(w > 0, K * h_ref, 0.0)
+    return np.where(w > 0, K, 0.0)
 
 
 def _correction_size(corr, P) -> float:
@@ -631,12 +645,17 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
                             c.lo, c.hi, cff_window(c.half_power_width),
                             tip_radius_m=ctx.geometry.tip_radius_m if opts.sampling_angles else None, offset=corr)
         elif opts.method == "sdof":
-            with np.errstate(all="ignore"), _quiet():
-                t_sample = np.nanmean(ctx.toa, axis=2)
-            pk, sweep = sdof_method(ctx.raw.phasor[..., i], t_sample, ctx.opr, rotor_phase_from_opr(ctx.opr), c.eo,
-                                    c.lo, c.hi, fn0_hz=pk.freq_hz, zeta0=c.damping_estimate(ctx.omega))
+            pk, sweep = _sdof(ctx, c, i, pk.freq_hz)
     zc = _correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])
-    pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc)
+    check = _zeroing_check(ctx, c, i, pk, corr)
+    if pk.method == "sdof" and pk.offset_m is not None:  # its own frame: the responses less its constant
+        corr = -np.where(np.isfinite(pk.offset_m), pk.offset_m, 0.0)
+        P = ctx.raw.phasor[..., i].copy()
+        P[c.lo:c.hi + 1] += corr[None, :]
+        amp, ph = 2.0 * np.abs(P), np.angle(P)
+        with _quiet():
+            check = (_model_misfit(pk.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i]), None, None)
+    pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc, corr, check)
     pk = _with_bound(ctx, c, pk)
     with _quiet():
         damping = float(np.nanmean(pk.damping_ratio)) if np.isfinite(pk.damping_ratio).any() else math.nan
@@ -677,18 +696,98 @@ def _with_bound(ctx: _Context, c: Crossing, pk: ResonancePeaks) -> ResonancePeak
     return replace(pk, crb_amp_m=b.amp_pkpk_m, crb_freq_hz=b.freq_hz)
 
 
-def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, freq, zc: float):
-    """The crossing's 95 % intervals and notes (:mod:`.intervals`; the truth is not used)."""
+#: A crossing whose half-power band is swept in fewer revolutions than this is fast: the
+#: per-revolution fits and the smoothing flatten its peak (checked against the swept SDOF fit).
+FAST_SWEEP_REVOLUTIONS = 60
+
+
+def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr):
+    """``(bound, error, swept)``: what the zeroing left in the crossing's responses when its reference
+    was not quiet (or the sweep is fast), per blade. ``error`` (complex, ``a1 + i a2``, m): the responses' constant
+    measured by the swept SDOF fit (whose constant takes it, :func:`~.methods.sdof_method`),
+    plus the correction added; ``bound`` (pk-pk, m): the fit's misfit beyond the noise (a
+    misfit of that size may sit in the constant, :func:`_model_misfit`) or, where the fit failed (NaN ``error``),
+    the reference's estimated response (``contamination``) or twice the correction; ``swept``:
+    the SDOF fit's swept peak (pk-pk, m), a second estimate free of the zeroing and of the sweep
+    rate. ``None`` each: a quiet reference, or the SDOF method itself."""
+    ref = ctx.reference
+    cont = float(ref.contamination) if ref is not None and ref.start is not None else 0.0
+    fast = c.half_power_width < FAST_SWEEP_REVOLUTIONS
+    if pk.method == "sdof" or (corr is None and not cont > ctx.options.detect.contamination_limit and not fast):
+        return None, None, None
+    sd = _sdof(ctx, c, i, pk.freq_hz)[0]
+    off = sd.offset_m
+    add = np.zeros(off.size, complex) if corr is None else corr
+    err = off + add
+    with _quiet():
+        bound = np.maximum(2.0 * np.abs(add), cont * np.asarray(pk.amp_pkpk_m, float))
+        misfit = _model_misfit(sd.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i])
+    return np.where(np.isfinite(err), misfit, bound), err, sd.amp_pkpk_m
+
+
+def _probe_spread(geometry: Geometry) -> float:
+    """Variance of the probes' arrival times within a revolution (from the OPR), rev^2."""
+    pos = np.mod(np.asarray(geometry.probe_angles_rad, float) - float(geometry.opr_angle_rad), TWO_PI) / TWO_PI
+    return float(np.var(pos))
+
+
+def _joint_spread(ctx: _Context, c: Crossing, i: int, rev: np.ndarray) -> np.ndarray:
+    """``|A_joint - A_single|`` per blade at its peak revolution ``rev`` (pk-pk, m): the
+    unsmoothed amplitude of the joint fit of every order against that of a fit of this
+    crossing's order alone. The joint fit has less redundancy (it amplifies the probes'
+    unmodelled content), the single one holds the other orders' response: their spread bounds
+    the effect of the other engine orders."""
+    radius = ctx.geometry.tip_radius_m if ctx.options.sampling_angles else None
+    rows, inv = np.unique(rev, return_inverse=True)
+    f = fit_revolutions(ctx.d_flat[rows], ctx.geometry.probe_angles_rad, (c.eo,), omega_rad_s=ctx.omega[rows],
+                        tip_radius_m=radius)
+    cols = np.arange(rev.size)
+    single = f.amp_pkpk_m[inv, cols, 0]
+    with _quiet():
+        d = np.abs(ctx.raw.amp_pkpk_m[rev, cols, i] - single)
+    return np.where(np.isfinite(d), d, 0.0)
+
+
+def _model_misfit(misfit_m, amp_raw: np.ndarray) -> np.ndarray:
+    """The SDOF fit's misfit beyond the measurement noise, pk-pk (m): ``2 sqrt(m^2 - s^2 / 2)``,
+    ``m`` the rms of its complex residuals, ``s`` the revolution-to-revolution noise of the
+    amplitudes (:func:`~.methods.amplitude_noise`; complex noise of rms ``s / sqrt(2)``)."""
+    from .methods import amplitude_noise
+
+    with _quiet():
+        s = amplitude_noise(amp_raw)
+        m = np.asarray(misfit_m, float)
+        return 2.0 * np.sqrt(np.maximum(m * m - 0.5 * np.where(np.isfinite(s), s, 0.0) ** 2, 0.0))
+
+
+def _sdof(ctx: _Context, c: Crossing, i: int, fn0_hz: np.ndarray):
+    """The swept SDOF fit of one crossing (:func:`~.methods.sdof_method`) and its sweep rate."""
+    with np.errstate(all="ignore"), _quiet():
+        t_sample = np.nanmean(ctx.toa, axis=2)
+    return sdof_method(ctx.raw.phasor[..., i], t_sample, ctx.opr, rotor_phase_from_opr(ctx.opr), c.eo,
+                       c.lo, c.hi, fn0_hz=fn0_hz, zeta0=c.damping_estimate(ctx.omega))
+
+
+def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, freq, zc: float, corr, check):
+    """The crossing's 95 % intervals and notes (:mod:`.intervals`; the truth is not used).
+    ``corr``: the zeroing correction (added to the unsmoothed responses as to the others);
+    ``check``: :func:`_zeroing_check`."""
+    raw = ctx.raw.amp_pkpk_m[..., i]
+    if corr is not None:
+        raw = raw.copy()
+        raw[c.lo:c.hi + 1] = 2.0 * np.abs(ctx.raw.phasor[c.lo:c.hi + 1, :, i] + corr[None, :])
     eos_fit = ctx.eos if ctx.joint else (c.eo,)
     rev = np.clip(np.nan_to_num(pk.revolution, nan=c.peak).round().astype(np.int64), 0, ctx.fit.phasor.shape[0] - 1)
     P = ctx.fit.phasor[rev, np.arange(rev.size), i]
     gain = layout_gain(ctx.geometry.probe_angles_rad, eos_fit, eos_fit.index(c.eo), P)
     ref = ctx.reference
     contamination = float(ref.contamination) if ref is not None and ref.start is not None else math.nan
+    orders = _joint_spread(ctx, c, i, rev) if len(eos_fit) > 1 else None
     with _quiet():
         pk, terms = crossing_intervals(
-            pk, amp, ph, ctx.raw.amp_pkpk_m[..., i], freq, c.lo, c.hi, gain=gain,
-            half_power_width=c.half_power_width, zeroing_correction=zc, contamination=contamination,
+            pk, amp, ph, raw, freq, c.lo, c.hi, gain=gain,
+            half_power_width=c.half_power_width, zeroing_m=check[0], zeroing_error=check[1], second_m=check[2],
+            orders_m=orders, probe_spread=_probe_spread(ctx.geometry),
             cff_window=cff_window(c.half_power_width) if pk.method == "cff" else None)
     r0 = ctx.revolution0
     nsv = [f"order {n.order:.3f}, ND {n.nd:+d}, {1e3 * n.amp_pkpk_m:.4f} mm, revolutions {n.first_revolution}-"
@@ -698,7 +797,8 @@ def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, 
     notes = crossing_notes(eo=c.eo, method=pk.method, cn=float(ctx.cns.get(c.eo, ctx.fit.cn)), terms=terms,
                            amp_pkpk_m=pk.amp_pkpk_m, contamination=contamination,
                            contamination_limit=ctx.options.detect.contamination_limit, zeroing_correction=zc,
-                           nsv_overlap=nsv, other_crossings=others)
+                           nsv_overlap=nsv, other_crossings=others, half_power_width=float(c.half_power_width),
+                           fast_sweep_revolutions=FAST_SWEEP_REVOLUTIONS)
     return pk, notes
 
 

@@ -80,6 +80,12 @@ class ResonancePeaks:
     crb_amp_m, crb_freq_hz : ndarray, shape (n_blades,), or None
         Cramér-Rao lower bounds (standard deviations) of the pk-pk amplitude and of the
         frequency for the run's layout, noise and revolutions (:mod:`~bttsim_stream.process.crb`).
+    offset_m : ndarray of complex, shape (n_blades,), or None
+        SDOF method only: the fitted constant ``c`` (what the zeroing left in the responses
+        ``a1 + i a2``, m); not reported, it checks the zeroing correction of the other methods.
+    misfit_m : ndarray, shape (n_blades,), or None
+        SDOF method only: rms of the fit's complex residuals, m (how far the one-mode model
+        holds; an error of that size may sit in ``offset_m``).
     """
 
     revolution: np.ndarray
@@ -97,6 +103,8 @@ class ResonancePeaks:
     phase_ci95_rad: np.ndarray | None = None
     crb_amp_m: np.ndarray | None = None
     crb_freq_hz: np.ndarray | None = None
+    offset_m: np.ndarray | None = None
+    misfit_m: np.ndarray | None = None
 
     @property
     def n_blades(self) -> int:
@@ -676,7 +684,7 @@ def _amp_unit(rows: list[dict]) -> tuple[str, float]:
 
 def _blade_table(title: str, entry: dict) -> list[str]:
     """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
-    uncertainty in um, the half-width of its 95 % interval in um, frequency, phase in degrees, and
+    uncertainty in um, the ends of its 95 % interval relative to it in um, frequency, phase in degrees, and
     the truth with E_A / E_f when the entry has them."""
     rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
@@ -688,7 +696,7 @@ def _blade_table(title: str, entry: dict) -> list[str]:
     if unc:
         head += f"  {'+- ' + _UM:>8}"
     if ci:
-        head += f"  {'95% ' + _UM + ' (half)':>14}"
+        head += f"  {'95% ' + _UM + ' (lo/hi)':>19}"
     head += f"  {'freq Hz':>9}"
     if phase:
         head += f"  {'phase deg':>9}"
@@ -701,7 +709,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
             s += f"  {1e6 * _f(r.get('amp_std_m')):>8.3f}"
         if ci:
             lo_hi = r.get("amp_ci95_m") or (None, None)
-            s += f"  {0.5e6 * (_f(lo_hi[1]) - _f(lo_hi[0])):>14.3f}"
+            a = _f(r["amp_pkpk_m"])
+            s += f"  {f'{1e6 * (_f(lo_hi[0]) - a):+.3f}/{1e6 * (_f(lo_hi[1]) - a):+.3f}':>19}"
         s += f"  {_f(r['freq_hz']):>9.3f}"
         if phase:
             s += f"  {_phase_deg(r.get('phase_rad')):>9.1f}"
