@@ -50,7 +50,7 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * np.pi
-PEAK_METHODS = ("max", "parabolic", "sdof")
+PEAK_METHODS = ("fit", "max", "parabolic", "sdof")
 STATUSES = ("resonance", "steady", "none")
 
 
@@ -365,8 +365,8 @@ def find_peaks(amp_pkpk_m: np.ndarray, freq_hz: np.ndarray, *, method: str = "ma
     -------
     ResonancePeaks
     """
-    if method not in PEAK_METHODS:
-        raise ValueError(f"method must be one of {PEAK_METHODS}, got {method!r}")
+    if method not in ("max", "parabolic", "sdof"):
+        raise ValueError(f"method must be one of ('max', 'parabolic', 'sdof'), got {method!r}")
     amp = np.asarray(amp_pkpk_m, dtype=float)
     f = np.asarray(freq_hz, dtype=float)
     n, nb = amp.shape
