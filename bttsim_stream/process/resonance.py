@@ -676,12 +676,13 @@ def _amp_unit(rows: list[dict]) -> tuple[str, float]:
 
 def _blade_table(title: str, entry: dict) -> list[str]:
     """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
-    uncertainty in um, the half-width of its 95 % interval in um, frequency, phase in degrees, and
-    the truth with E_A / E_f when the entry has them."""
+    uncertainty in um, the half-width of its 95 % interval in um, its Cramér-Rao lower bound in
+    um, frequency, phase in degrees, and the truth with E_A / E_f when the entry has them."""
     rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
     unc = any("amp_std_m" in r for r in rows)
     ci = any("amp_ci95_m" in r for r in rows)
+    crb = any("crb_amp_m" in r for r in rows)
     phase = any("phase_rad" in r for r in rows)
     unit, scale = _amp_unit(rows)
     head = f"{'blade':>5}  {f'amp {unit} pk-pk':>12}"
@@ -689,6 +690,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
         head += f"  {'+- ' + _UM:>8}"
     if ci:
         head += f"  {'95% ' + _UM + ' (half)':>14}"
+    if crb:
+        head += f"  {'CRB ' + _UM:>8}"
     head += f"  {'freq Hz':>9}"
     if phase:
         head += f"  {'phase deg':>9}"
@@ -702,6 +705,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
         if ci:
             lo_hi = r.get("amp_ci95_m") or (None, None)
             s += f"  {0.5e6 * (_f(lo_hi[1]) - _f(lo_hi[0])):>14.3f}"
+        if crb:
+            s += f"  {1e6 * _f(r.get('crb_amp_m')):>8.3f}"
         s += f"  {_f(r['freq_hz']):>9.3f}"
         if phase:
             s += f"  {_phase_deg(r.get('phase_rad')):>9.1f}"
