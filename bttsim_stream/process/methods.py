@@ -51,6 +51,7 @@ Amplitudes are peak-to-peak (``2 |P|``); the phase is that of ``d_j = a0 + A sin
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -93,9 +94,24 @@ def _freq_step_std(freq_hz: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return step[idx] / math.sqrt(12.0)
 
 
-def fit_half_width(half_power_width: int) -> int:
-    """Half-width of the peak's parabola: a quarter of the half-power width, >= 2 revolutions."""
-    return max(2, int(round(int(half_power_width) / 4.0)))
+def fit_half_width(half_power_width: int, amp_pkpk_m=None, noise_m=None) -> int:
+    """Half-width ``h`` of the peak's parabola, revolutions: the one of ``2 .. W / 4`` that
+    minimises its expected squared error at the blade-median amplitude ``A`` and
+    per-revolution noise ``s``: the shape bias of a parabola on a resonance's top,
+    ``0.514 (h / W)^4 A`` (the quartic term of ``|H| = (1 + u^2)^(-1/2)``, ``u = 2 x / W``,
+    projected on ``1, x^2`` over ``+- h``), squared, plus its noise ``2.25 s^2 / (2 h + 1)``
+    (the variance of a parabola's value at the centre). Without ``A`` or ``s``: ``W / 4``."""
+    W = max(int(half_power_width), 1)
+    top = max(2, int(round(W / 4.0)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        A = float(np.nanmedian(amp_pkpk_m)) if amp_pkpk_m is not None else math.nan
+        s = float(np.nanmedian(noise_m)) if noise_m is not None else math.nan
+    if not (math.isfinite(A) and math.isfinite(s) and A > 0 and s > 0):
+        return top
+    h = np.arange(2, top + 1, dtype=float)
+    mse = (0.514 * A * (h / W) ** 4) ** 2 + 2.25 * s * s / (2 * h + 1)
+    return int(h[int(np.argmin(mse))])
 
 
 def quadratic_peak(amp: np.ndarray, center: np.ndarray, half: int):
@@ -161,7 +177,7 @@ def _refine(amp_fit: np.ndarray, k: np.ndarray, half: int, noise: np.ndarray, f:
 
 def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarray, lo: int, hi: int, *,
                 amp_raw_m: np.ndarray | None = None, gain: np.ndarray | float = 1.0,
-                fit_half: int | None = None) -> ResonancePeaks:
+                half_power_width: int | None = None) -> ResonancePeaks:
     """Resonance of each blade in revolutions ``lo .. hi`` (paper Sec. 2.3).
 
     Parameters
@@ -175,10 +191,11 @@ def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarr
         Unsmoothed amplitudes, for the noise and the parabola (default ``amp_pkpk_m``).
     gain : float or ndarray, shape (n_rev,)
         Noise gain of the smoothing at each revolution (1: none), for the largest value.
-    fit_half : int, optional
-        Half-width of the parabola through ``amp_raw_m`` around the largest prepared
-        amplitude (:func:`quadratic_peak`, :func:`fit_half_width`); None: the largest
-        prepared amplitude itself (the paper's definition).
+    half_power_width : int, optional
+        The crossing's, revolutions: the peak is the vertex of a parabola through
+        ``amp_raw_m`` around the largest prepared amplitude (:func:`quadratic_peak`, its
+        half-width from :func:`fit_half_width`); None: the largest prepared amplitude itself
+        (the paper's definition).
 
     Returns
     -------
@@ -198,8 +215,9 @@ def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarr
     noise = amplitude_noise(raw)
     val, rev, fr = amp[k, cols], idx.astype(float), f[idx]
     std, fstd = noise * g, _freq_step_std(f, idx)
-    if fit_half is not None:
-        ok, v, r, sv, fv, sf = _refine(raw_all, idx, int(fit_half), noise, f)
+    if half_power_width is not None:
+        h = fit_half_width(half_power_width, val, noise)
+        ok, v, r, sv, fv, sf = _refine(raw_all, idx, h, noise, f)
         val, rev, fr = np.where(ok, v, val), np.where(ok, r, rev), np.where(ok, fv, fr)
         std, fstd = np.where(ok, sv, std), np.where(ok, np.hypot(sf, fstd), fstd)
     ph = np.asarray(phase_rad, float)[np.clip(np.round(rev).astype(np.int64), 0, f.size - 1), cols]
@@ -235,7 +253,8 @@ def _box_flattening(P: np.ndarray, center: np.ndarray, half: int, box: int) -> n
 
 def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, omega_rad_s: np.ndarray,
                lo: int, hi: int, window: int, *, tip_radius_m: float | None = None,
-               offset: np.ndarray | None = None, half_power_width: int | None = None) -> ResonancePeaks:
+               offset: np.ndarray | None = None, half_power_width: int | None = None,
+               amp_noise_m: np.ndarray | None = None) -> ResonancePeaks:
     """Circumferential Fourier fit over ``window`` revolutions, peak of each blade.
 
     Parameters
@@ -258,7 +277,11 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
         Added to every fitted response ``a1 + i a2`` (the zeroing correction).
     half_power_width : int, optional
         The crossing's, revolutions: the peak is the vertex of a parabola through the CFF
-        amplitudes over ``+- W / 4`` (:func:`quadratic_peak`); None: their largest value.
+        amplitudes around their largest value (:func:`quadratic_peak`, its half-width from
+        :func:`fit_half_width`); None: their largest value.
+    amp_noise_m : ndarray, shape (n_blades,), optional
+        One revolution's amplitude noise (:func:`amplitude_noise` of the unsmoothed fits);
+        None: the CFF's covariance times ``sqrt(window)``.
 
     Returns
     -------
@@ -283,8 +306,8 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
     val, rev, fr = amp[k, cols], j.astype(float), freq[j]
     std, fstd = f.amp_std_m[j, cols, index], _freq_step_std(freq, j)
     if half_power_width is not None:  # the vertex of a parabola through the CFF amplitudes
-        one = std * math.sqrt(window)  # one revolution's amplitude noise
-        h = fit_half_width(half_power_width)
+        one = std * math.sqrt(window) if amp_noise_m is None else np.asarray(amp_noise_m, dtype=float)
+        h = fit_half_width(half_power_width, val, one)
         ok, v, r, sv, fv, sf = _refine(amp_all, j, h, one, freq)
         v = v - _box_flattening(P, np.where(ok, r, j).round().astype(np.int64), h, window)
         val, rev, fr = np.where(ok, v, val), np.where(ok, r, rev), np.where(ok, fv, fr)
