@@ -152,12 +152,12 @@ def test_noise_limited_run_errors_against_the_bound():
 
 def test_peak_and_cff_within_three_times_the_bound_and_the_bound_on_the_bus():
     """A short noise-limited run (2 us TOA jitter, 0.05 deg probe errors, 2200 -> 3000 rpm in
-    20 s, six seeds, 174 blades; one seed's RMS alone varies between 2.4 and 3.2): `peak` and `cff` (the vertex of a parabola through the
-    amplitudes around the peak) have an RMS amplitude error within 3 times the summary's
-    bound and a mean error within one bound (the largest of the noisy values is biased up
-    by about two bounds: `peak_method="max"`, for comparison); their frequency is not a
-    revolution's speed (interpolated). The bound travels on the bus: the ResonanceReport
-    carries it per blade, decoded equal."""
+    20 s, six seeds, 174 blades; one seed's RMS alone varies between about 2.4 and 3.2):
+    `peak` and `cff` (the vertex of a parabola through the amplitudes around the peak) have
+    an RMS amplitude error within 3 times the summary's bound and a mean error within one
+    bound (the largest of the noisy values, `peak_method="max"`, is biased up by more than
+    one bound); their frequency is not a revolution's speed (interpolated). The bound
+    travels on the bus: the ResonanceReport carries it per blade, decoded equal."""
     from bttsim_stream.bus import codec
     from bttsim_stream.model import build_model
     from bttsim_stream.process.options import ProcessOptions

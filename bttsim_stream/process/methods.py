@@ -7,25 +7,25 @@ amplitude (pk-pk, m), frequency (Hz, Eq. 17), phase (rad) and their standard unc
 
 ``"peak"`` -- the resonance of the per-revolution fits (Sec. 2.3). By default
     (``peak_method="fit"``) the vertex of a least-squares parabola through the *unsmoothed*
-    (offset-removed, zeroing-corrected) amplitudes over the central half of the half-power
-    width, ``+- W / 4`` revolutions around the largest *prepared* (smoothed) amplitude
-    (:func:`quadratic_peak`): the largest of noisy values is biased upwards by about the
-    noise (and scatters with it); the fit averages ``W / 2`` revolutions instead, at a
-    shape bias of about ``-0.5 (h / W)^4``, 0.2 % of the amplitude. Its frequency is
-    interpolated at the vertex (below one revolution). Uncertainty: the revolution-to-
-    revolution scatter of the unsmoothed amplitudes (robust second differences) times the
-    fit's noise gain at the vertex; the vertex's for the frequency. ``peak_method="max"``
-    is the paper's literal definition, the largest amplitude of the prepared data (its
-    uncertainty: the scatter times the smoother's noise gain ``||L||``; frequency: a
-    uniform half-revolution, ``|Delta f| / sqrt(12)``).
+    (offset-removed, zeroing-corrected) amplitudes over ``+- h`` revolutions around the
+    largest *prepared* (smoothed) amplitude (:func:`quadratic_peak`): the largest of noisy
+    values is biased upwards by about the noise (and scatters with it); the fit averages
+    ``2 h + 1`` revolutions instead. ``h`` (2 to ``W / 4``, :func:`fit_half_width`) balances
+    the parabola's shape bias on a resonance top, ``-0.514 (h / W)^4`` of the amplitude,
+    against its noise. Its frequency is interpolated at the vertex (below one revolution).
+    Uncertainty: the revolution-to-revolution scatter of the unsmoothed amplitudes (robust
+    second differences) times the fit's noise gain at the vertex; the vertex's for the
+    frequency. ``peak_method="max"`` is the paper's literal definition, the largest
+    amplitude of the prepared data (its uncertainty: the scatter times the smoother's
+    noise gain ``||L||``; frequency: a uniform half-revolution, ``|Delta f| / sqrt(12)``).
 ``"cff"`` -- circumferential Fourier fit: Eq. 16 fitted to a centred window of ``w``
     consecutive revolutions at once (constant coefficients, ``w N_p`` samples; the multi-
     revolution form of the fit, e.g. the Bladesight tutorial's CFF) on the offset-removed,
     *unsmoothed* data, ``w`` odd, about a twelfth of the half-power width. The peak is the
-    vertex of a least-squares parabola through the CFF amplitudes over ``+- W / 4``
-    (:func:`quadratic_peak`, as ``peak``), plus the window's own flattening of the complex
-    response (a centred mean of ``w`` revolutions adds ``P'' (w^2 - 1) / 24`` to it, ``P''``
-    of a complex parabola through the same revolutions).
+    vertex of a least-squares parabola through the CFF amplitudes over ``+- h``
+    (:func:`quadratic_peak`, :func:`fit_half_width`, as ``peak``), plus the window's own
+    flattening of the complex response (a centred mean of ``w`` revolutions adds
+    ``P'' (w^2 - 1) / 24`` to it, ``P''`` of a complex parabola through the same revolutions).
     Uncertainty: the least-squares covariance ``s^2 (B^T C B)^-1`` of one revolution times
     the parabola's noise gain.
 ``"sdof"`` -- single-degree-of-freedom fit of amplitude *and* phase through the resonance,
