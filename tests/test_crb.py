@@ -158,7 +158,8 @@ def test_peak_and_cff_within_three_times_the_bound_and_the_bound_on_the_bus():
     `peak` and `cff` (the vertex of a parabola through the amplitudes around the peak) have
     an RMS amplitude error within 3 times the summary's bound (2.6) and a mean error within
     one bound (the largest of the noisy values, `peak_method="max"`: 3.5 and +2.0 bounds);
-    their frequency is not a revolution's speed (interpolated). The bound travels on the bus: the ResonanceReport carries it per blade, decoded equal."""
+    their frequency is not a revolution's speed (interpolated). The bound travels on the bus:
+    the ResonanceReport carries it per blade, decoded equal."""
     from bttsim_stream.bus import codec
     from bttsim_stream.model import build_model
     from bttsim_stream.process.options import ProcessOptions
