@@ -90,6 +90,8 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "freq_ci95_hi_hz": ("Hz", "upper end of the 95 % interval of the frequency"),
     "phase_ci95_lo_rad": ("rad", "lower end of the 95 % interval of the phase"),
     "phase_ci95_hi_rad": ("rad", "upper end of the 95 % interval of the phase"),
+    "crb_amp_m": ("m", "Cramér-Rao lower bound (standard deviation) of the pk-pk amplitude (NaN: none)"),
+    "crb_freq_hz": ("Hz", "Cramér-Rao lower bound (standard deviation) of the frequency (NaN: none)"),
     "truth_amp_pkpk_m": ("m", "true resonant pk-pk amplitude of d_eqv (Eq. 3-4)"),
     "truth_freq_hz": ("Hz", "true resonant frequency"),
     "E_A_pct": ("%", "amplitude error (Eq. 18)"),
@@ -156,7 +158,8 @@ def _resonance_table(report, revolution0: int) -> dict:
         "entry", "kind", "eo", "nd", "rpm", "entry_freq_hz", "method", "cn", "first_revolution", "last_revolution",
         "blade", "peak_revolution", "amp_pkpk_m", "freq_hz", "phase_rad", "amp_std_m", "freq_std_hz",
         "amp_ci95_lo_m", "amp_ci95_hi_m", "freq_ci95_lo_hz", "freq_ci95_hi_hz", "phase_ci95_lo_rad",
-        "phase_ci95_hi_rad", "damping_ratio", "truth_amp_pkpk_m", "truth_freq_hz", "E_A_pct", "E_f_pct")}
+        "phase_ci95_hi_rad", "crb_amp_m", "crb_freq_hz", "damping_ratio", "truth_amp_pkpk_m", "truth_freq_hz",
+        "E_A_pct", "E_f_pct")}
     for i, e in enumerate(tuple(report.resonances) + tuple(report.steady)):
         p = e.peaks
         n = p.n_blades
@@ -168,6 +171,7 @@ def _resonance_table(report, revolution0: int) -> dict:
             "amp_ci95_lo_m": _ci(p.amp_ci95_m, n, 0), "amp_ci95_hi_m": _ci(p.amp_ci95_m, n, 1),
             "freq_ci95_lo_hz": _ci(p.freq_ci95_hz, n, 0), "freq_ci95_hi_hz": _ci(p.freq_ci95_hz, n, 1),
             "phase_ci95_lo_rad": _ci(p.phase_ci95_rad, n, 0), "phase_ci95_hi_rad": _ci(p.phase_ci95_rad, n, 1),
+            "crb_amp_m": _opt(p.crb_amp_m, n), "crb_freq_hz": _opt(p.crb_freq_hz, n),
             "damping_ratio": _opt(p.damping_ratio, n),
             "truth_amp_pkpk_m": _opt(None if t is None else t.amp_pkpk_m, n),
             "truth_freq_hz": _opt(None if t is None else t.freq_hz, n),

@@ -120,8 +120,10 @@ def test_noise_limited_run_errors_against_the_bound():
     """1 us TOA jitter and 0.1 deg probe errors, the paper's sweep rate, two seeds: the
     summary's bound (noise from the residuals) agrees with `bttsim crb`'s (from the jitter)
     within 15 %; the SDOF fit, which models the resonance, reaches it (RMS error 0.6-1.6
-    times the bound); `peak` and `cff` stay within 3.5 times it (about 3: the largest of a
-    noisy curve is biased up and uses few revolutions)."""
+    times the bound); `peak` and `cff` (a parabola's vertex over half the half-power width)
+    stay within 3.5 times it (3.1 on these two seeds, 2.3-2.6 on the benchmark's four, 3.3
+    over seeds 1-8: one seed alone varies between 2.5 and 4.7, while the largest value,
+    `peak_method="max"`, is 3.9 over seeds 1-8)."""
     from bttsim_stream.crb_report import scenario_bounds
     from bttsim_stream.model import build_model
     from bttsim_stream.process.options import ProcessOptions
@@ -148,3 +150,50 @@ def test_noise_limited_run_errors_against_the_bound():
     rms = {m: float(np.sqrt(np.mean(np.square(v)))) / predicted for m, v in err.items()}
     assert 0.6 <= rms["sdof"] <= 1.6, rms
     assert rms["peak"] <= 3.5 and rms["cff"] <= 3.5, rms
+
+
+def test_peak_and_cff_within_three_times_the_bound_and_the_bound_on_the_bus():
+    """A short noise-limited run (2 us TOA jitter, 0.05 deg probe errors, 2200 -> 3000 rpm in
+    20 s, six seeds, 174 blades; one seed's RMS alone varies between about 2.4 and 3.6):
+    `peak` and `cff` (the vertex of a parabola through the amplitudes around the peak) have
+    an RMS amplitude error within 3 times the summary's bound (2.6) and a mean error within
+    one bound (the largest of the noisy values, `peak_method="max"`: 3.5 and +2.0 bounds);
+    their frequency is not a revolution's speed (interpolated). The bound travels on the bus:
+    the ResonanceReport carries it per blade, decoded equal."""
+    from bttsim_stream.bus import codec
+    from bttsim_stream.model import build_model
+    from bttsim_stream.process.options import ProcessOptions
+    from bttsim_stream.process.pipeline import process_arrays
+    from bttsim_stream.scenario import scenario_from_dict
+    from bttsim_stream.sim.core import RunUpSimulator, collect
+
+    model = build_model()
+    cases = {"peak": ProcessOptions(method="peak"), "cff": ProcessOptions(method="cff"),
+             "max": ProcessOptions(method="peak", peak_method="max")}
+    err = {m: [] for m in cases}
+    freq = {m: [] for m in cases}
+    for seed in range(3, 9):
+        scn = scenario_from_dict({"speed": {"start_rpm": 2200.0, "end_rpm": 3000.0, "duration_s": 20.0},
+                                  "acquisition": {"trigger_jitter_s": 2e-6, "probe_angle_error_deg": 0.05},
+                                  "run": {"seed": seed}})
+        sim = RunUpSimulator(scn, model)
+        res = collect(sim)
+        for m, opts in cases.items():
+            out = process_arrays(res.opr_s, res.toa_s, sim.info, opts, truth=res.truth)
+            (e,) = [e for e in out.summary["resonances"] if e["eo"] == 8]
+            err[m] += [(r["amp_pkpk_m"] - r["truth_amp_pkpk_m"]) / r["crb_amp_m"] for r in e["blades"]]
+            freq[m] += [r["freq_hz"] for r in e["blades"]]
+            if m == "peak" and seed == 3:
+                (entry,) = [x for x in out.report.resonances if x.eo == 8]
+                payload = codec.encode_resonance_report(codec.Header("run-a", 0, -1, 0.0), out.report)
+                d = codec.decode_resonance_report(payload, "bttsim/rig1/resonance")
+                (got,) = [x for x in d.body.resonances if x.eo == 8]
+                np.testing.assert_array_equal(got.peaks.crb_amp_m, entry.peaks.crb_amp_m)
+                np.testing.assert_array_equal(got.peaks.crb_freq_hz, entry.peaks.crb_freq_hz)
+                assert np.all(entry.peaks.crb_amp_m > 0)
+    rms = {m: float(np.sqrt(np.mean(np.square(v)))) for m, v in err.items()}
+    mean = {m: float(np.mean(v)) for m, v in err.items()}
+    assert rms["peak"] <= 3.0 and rms["cff"] <= 3.0, rms
+    assert abs(mean["peak"]) <= 1.0 and abs(mean["cff"]) <= 1.0, mean
+    assert mean["max"] > 1.0 and rms["max"] > rms["peak"], (mean, rms)
+    assert len(set(np.round(freq["peak"], 6))) > 10  # not one of a few revolutions' frequencies

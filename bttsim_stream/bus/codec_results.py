@@ -146,6 +146,11 @@ def _fill_blades(rows, peaks: ResonancePeaks, truth: TruthPeaks | None, e_a, e_f
                 setattr(row, lo, float(c[b, 0]))
                 setattr(row, hi, float(c[b, 1]))
             row.has_ci95 = True
+        if peaks.crb_amp_m is not None and np.size(peaks.crb_amp_m) == peaks.n_blades:
+            row.crb_amp_m = float(peaks.crb_amp_m[b])
+            crb_f = peaks.crb_freq_hz
+            row.crb_freq_hz = float((nan if crb_f is None or np.size(crb_f) != peaks.n_blades else crb_f)[b])
+            row.has_crb = True
 
 
 def _fill_stats(m, e_a, e_f) -> None:
@@ -308,6 +313,9 @@ def _decode_blades(where: str, m, rows, *, extended: bool):
     if nb and all(b.has_ci95 for b in rows):  # older writers: no intervals (None)
         for name, (lo, hi) in _CI95:
             kw[name] = np.stack([_array([getattr(b, lo) for b in rows]), _array([getattr(b, hi) for b in rows])], 1)
+    if nb and all(b.has_crb for b in rows):  # older writers: no bounds (None)
+        kw["crb_amp_m"] = _array([b.crb_amp_m for b in rows])
+        kw["crb_freq_hz"] = _array([b.crb_freq_hz for b in rows])
     peaks = ResonancePeaks(revolution=rev, amp_pkpk_m=_array([b.amp_pkpk_m for b in rows]),
                            freq_hz=_array([b.freq_hz for b in rows]),
                            damping_ratio=kw.pop("damping_ratio", nan.copy()), method=method, **kw)

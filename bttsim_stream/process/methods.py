@@ -5,17 +5,29 @@ All three work on the Eq. 16 fits of one engine order inside a crossing's window
 amplitude (pk-pk, m), frequency (Hz, Eq. 17), phase (rad) and their standard uncertainties
 (:class:`~bttsim_stream.process.resonance.ResonancePeaks`):
 
-``"peak"`` -- the paper's definition (Sec. 2.3): the largest amplitude of the per-revolution
-    fits of the *prepared* data (offset removed, smoothed). Uncertainty: the
-    revolution-to-revolution scatter of the unsmoothed amplitudes (robust second
-    differences), times the noise gain ``||L||`` of the smoother at the peak; frequency: a
-    uniform half-revolution, ``|Delta f| / sqrt(12)``.
+``"peak"`` -- the resonance of the per-revolution fits (Sec. 2.3). By default
+    (``peak_method="fit"``) the vertex of a least-squares parabola through the *unsmoothed*
+    (offset-removed, zeroing-corrected) amplitudes over ``+- h`` revolutions around the
+    largest *prepared* (smoothed) amplitude (:func:`quadratic_peak`): the largest of noisy
+    values is biased upwards by about the noise (and scatters with it); the fit averages
+    ``2 h + 1`` revolutions instead. ``h`` (2 to ``W / 4``, :func:`fit_half_width`) balances
+    the parabola's shape bias on a resonance top, ``-0.514 (h / W)^4`` of the amplitude,
+    against its noise. Its frequency is interpolated at the vertex (below one revolution).
+    Uncertainty: the revolution-to-revolution scatter of the unsmoothed amplitudes (robust
+    second differences) times the fit's noise gain at the vertex; the vertex's for the
+    frequency. ``peak_method="max"`` is the paper's literal definition, the largest
+    amplitude of the prepared data (its uncertainty: the scatter times the smoother's
+    noise gain ``||L||``; frequency: a uniform half-revolution, ``|Delta f| / sqrt(12)``).
 ``"cff"`` -- circumferential Fourier fit: Eq. 16 fitted to a centred window of ``w``
     consecutive revolutions at once (constant coefficients, ``w N_p`` samples; the multi-
     revolution form of the fit, e.g. the Bladesight tutorial's CFF) on the offset-removed,
-    *unsmoothed* data, ``w`` odd, about a twelfth of the half-power width (bias of the
-    window on a resonance: about ``(w / W)^2 / 3``, 0.2 %). Uncertainty: the least-squares
-    covariance ``s^2 (B^T C B)^-1`` at the peak.
+    *unsmoothed* data, ``w`` odd, about a twelfth of the half-power width. The peak is the
+    vertex of a least-squares parabola through the CFF amplitudes over ``+- h``
+    (:func:`quadratic_peak`, :func:`fit_half_width`, as ``peak``), plus the window's own
+    flattening of the complex response (a centred mean of ``w`` revolutions adds
+    ``P'' (w^2 - 1) / 24`` to it, ``P''`` of a complex parabola through the same revolutions).
+    Uncertainty: the least-squares covariance ``s^2 (B^T C B)^-1`` of one revolution times
+    the parabola's noise gain.
 ``"sdof"`` -- single-degree-of-freedom fit of amplitude *and* phase through the resonance,
     with the sweep in the model. The modal coordinate ``q'' + 2 zeta w_n q' + w_n^2 q =
     exp(i phi(t))``, ``phi = EO x`` rotor angle (the OPR model of :mod:`.displacement`), is
@@ -39,6 +51,7 @@ Amplitudes are peak-to-peak (``2 |P|``); the phase is that of ``d_j = a0 + A sin
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -46,7 +59,8 @@ from .displacement import RotorPhase
 from .fit import fit_revolutions
 from .resonance import ResonancePeaks
 
-__all__ = ["METHODS", "amplitude_noise", "peak_method", "cff_method", "sdof_method", "sdof_envelope"]
+__all__ = ["METHODS", "amplitude_noise", "quadratic_peak", "fit_half_width", "peak_method", "cff_method",
+           "sdof_method", "sdof_envelope"]
 
 TWO_PI = 2.0 * np.pi
 METHODS = ("peak", "sdof", "cff")
@@ -80,9 +94,91 @@ def _freq_step_std(freq_hz: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return step[idx] / math.sqrt(12.0)
 
 
+def fit_half_width(half_power_width: int, amp_pkpk_m=None, noise_m=None) -> int:
+    """Half-width ``h`` of the peak's parabola, revolutions: the one of ``2 .. W / 4`` that
+    minimises its expected squared error at the blade-median amplitude ``A`` and
+    per-revolution noise ``s``: the shape bias of a parabola on a resonance's top,
+    ``0.514 (h / W)^4 A`` (the quartic term of ``|H| = (1 + u^2)^(-1/2)``, ``u = 2 x / W``,
+    projected on ``1, x^2`` over ``+- h``), squared, plus its noise ``2.25 s^2 / (2 h + 1)``
+    (the variance of a parabola's value at the centre). Without ``A`` or ``s``: ``W / 4``."""
+    W = max(int(half_power_width), 1)
+    top = max(2, int(round(W / 4.0)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        A = float(np.nanmedian(amp_pkpk_m)) if amp_pkpk_m is not None else math.nan
+        s = float(np.nanmedian(noise_m)) if noise_m is not None else math.nan
+    if not (math.isfinite(A) and math.isfinite(s) and A > 0 and s > 0):
+        return top
+    h = np.arange(2, top + 1, dtype=float)
+    mse = (0.514 * A * (h / W) ** 4) ** 2 + 2.25 * s * s / (2 * h + 1)
+    return int(h[int(np.argmin(mse))])
+
+
+def quadratic_peak(amp: np.ndarray, center: np.ndarray, half: int):
+    """Vertex of a least-squares parabola through ``center +- half`` of each blade's sequence.
+
+    Parameters
+    ----------
+    amp : ndarray, shape (n_rev, n_blades)
+        Amplitudes (NaN skipped).
+    center : ndarray of int, shape (n_blades,)
+        Revolution the window is centred on.
+    half : int
+
+    Returns
+    -------
+    value, revolution : ndarray, shape (n_blades,)
+        The vertex (NaN where the parabola is not concave or its vertex lies outside the
+        window: no peak to refine).
+    value_gain, revolution_gain : ndarray, shape (n_blades,)
+        Standard deviations of the vertex's value and revolution per unit white noise of
+        one sample (``sqrt(g^T (V^T V)^-1 g)``, ``g`` the gradient at the vertex).
+    """
+    amp = np.asarray(amp, dtype=float)
+    n, nb = amp.shape
+    c0 = np.asarray(center, dtype=np.int64)
+    j = np.arange(-half, half + 1, dtype=float)
+    idx = c0[None, :] + j.astype(np.int64)[:, None]
+    ok = (idx >= 0) & (idx < n)
+    y = amp[np.clip(idx, 0, n - 1), np.arange(nb)[None, :]]
+    ok &= np.isfinite(y)
+    w = ok.astype(float)
+    V = np.stack([np.ones_like(j), j, j * j], axis=1)
+    G = np.einsum("jb,jp,jq->bpq", w, V, V)
+    bad = np.linalg.matrix_rank(G) < 3
+    G[bad] = np.eye(3)
+    Gi = np.linalg.inv(G)
+    c = np.einsum("bpq,bq->bp", Gi, np.einsum("jb,jp->bp", w * np.where(ok, y, 0.0), V))
+    good = ~bad & (c[:, 2] < 0)
+    with np.errstate(all="ignore"):
+        x = -c[:, 1] / (2.0 * c[:, 2])
+        good &= np.abs(x) <= half
+        x = np.where(good, x, 0.0)
+        val = c[:, 0] + c[:, 1] * x + c[:, 2] * x * x
+        gv = np.stack([np.ones(nb), x, x * x], axis=1)  # d value / d c (the vertex is stationary)
+        gx = np.stack([np.zeros(nb), -1.0 / (2.0 * c[:, 2]), c[:, 1] / (2.0 * c[:, 2] ** 2)], axis=1)
+        sv = np.sqrt(np.einsum("bp,bpq,bq->b", gv, Gi, gv))
+        sx = np.sqrt(np.einsum("bp,bpq,bq->b", gx, Gi, gx))
+    nan = np.full(nb, np.nan)
+    return (np.where(good, val, nan), np.where(good, c0 + x, nan), np.where(good, sv, nan), np.where(good, sx, nan))
+
+
+def _refine(amp_fit: np.ndarray, k: np.ndarray, half: int, noise: np.ndarray, f: np.ndarray):
+    """The parabola's vertex where it refines the pick at ``k`` (else the pick itself):
+    value, revolution, amplitude std, frequency std per blade (NaN std: keep the pick's)."""
+    val, rev, sv, sx = quadratic_peak(amp_fit, k, half)
+    ok = np.isfinite(val)
+    n = f.size
+    with np.errstate(all="ignore"):
+        fr = np.interp(np.where(ok, rev, 0.0), np.arange(n), f)
+        step = np.abs(np.interp(np.where(ok, rev, 0.0), np.arange(n), np.gradient(f) if n > 1 else np.zeros(n)))
+    return ok, val, rev, noise * sv, fr, step * noise * sx
+
+
 def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarray, lo: int, hi: int, *,
-                amp_raw_m: np.ndarray | None = None, gain: np.ndarray | float = 1.0) -> ResonancePeaks:
-    """Largest amplitude of each blade in revolutions ``lo .. hi`` (paper Sec. 2.3).
+                amp_raw_m: np.ndarray | None = None, gain: np.ndarray | float = 1.0,
+                half_power_width: int | None = None) -> ResonancePeaks:
+    """Resonance of each blade in revolutions ``lo .. hi`` (paper Sec. 2.3).
 
     Parameters
     ----------
@@ -92,9 +188,14 @@ def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarr
         ``EO Omega / 2 pi`` (Eq. 17).
     lo, hi : int
     amp_raw_m : ndarray, shape (n_rev, n_blades), optional
-        Unsmoothed amplitudes, for the noise (default ``amp_pkpk_m``).
+        Unsmoothed amplitudes, for the noise and the parabola (default ``amp_pkpk_m``).
     gain : float or ndarray, shape (n_rev,)
-        Noise gain of the smoothing at each revolution (1: none).
+        Noise gain of the smoothing at each revolution (1: none), for the largest value.
+    half_power_width : int, optional
+        The crossing's, revolutions: the peak is the vertex of a parabola through
+        ``amp_raw_m`` around the largest prepared amplitude (:func:`quadratic_peak`, its
+        half-width from :func:`fit_half_width`); None: the largest prepared amplitude itself
+        (the paper's definition).
 
     Returns
     -------
@@ -106,15 +207,24 @@ def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarr
     k = np.argmax(np.where(np.isfinite(amp), amp, -np.inf), axis=0)
     cols = np.arange(nb)
     idx = lo + k
-    raw = amp if amp_raw_m is None else np.asarray(amp_raw_m, dtype=float)[lo:hi + 1]
+    raw_all = np.asarray(amp_pkpk_m if amp_raw_m is None else amp_raw_m, dtype=float)
+    raw = raw_all[lo:hi + 1]
     g = np.broadcast_to(np.asarray(gain, dtype=float), (np.asarray(freq_hz).size,))[idx]
     nan = np.full(nb, np.nan)
     f = np.asarray(freq_hz, dtype=float)
+    noise = amplitude_noise(raw)
+    val, rev, fr = amp[k, cols], idx.astype(float), f[idx]
+    std, fstd = noise * g, _freq_step_std(f, idx)
+    if half_power_width is not None:
+        h = fit_half_width(half_power_width, val, noise)
+        ok, v, r, sv, fv, sf = _refine(raw_all, idx, h, noise, f)
+        val, rev, fr = np.where(ok, v, val), np.where(ok, r, rev), np.where(ok, fv, fr)
+        std, fstd = np.where(ok, sv, std), np.where(ok, np.hypot(sf, fstd), fstd)
+    ph = np.asarray(phase_rad, float)[np.clip(np.round(rev).astype(np.int64), 0, f.size - 1), cols]
     return ResonancePeaks(
-        revolution=np.where(has, idx.astype(float), nan), amp_pkpk_m=np.where(has, amp[k, cols], nan),
-        freq_hz=np.where(has, f[idx], nan), damping_ratio=nan.copy(), method="peak",
-        phase_rad=np.where(has, np.asarray(phase_rad, float)[idx, cols], nan),
-        amp_std_m=np.where(has, amplitude_noise(raw) * g, nan), freq_std_hz=np.where(has, _freq_step_std(f, idx), nan))
+        revolution=np.where(has, rev, nan), amp_pkpk_m=np.where(has, val, nan),
+        freq_hz=np.where(has, fr, nan), damping_ratio=nan.copy(), method="peak",
+        phase_rad=np.where(has, ph, nan), amp_std_m=np.where(has, std, nan), freq_std_hz=np.where(has, fstd, nan))
 
 
 def cff_window(half_power_width: int) -> int:
@@ -122,9 +232,29 @@ def cff_window(half_power_width: int) -> int:
     return max(3, 2 * int(round(half_power_width / 24.0)) + 1)
 
 
+def _box_flattening(P: np.ndarray, center: np.ndarray, half: int, box: int) -> np.ndarray:
+    """How much a centred mean of ``box`` revolutions lowered the pk-pk amplitude of the complex
+    responses ``P`` at ``center``: ``2 Re(conj(u) P'') (box^2 - 1) / 24`` (``u`` the unit
+    response, ``P''`` of a complex parabola through ``center +- half``; negative at a peak)."""
+    n, nb = P.shape
+    j = np.arange(-half, half + 1)
+    idx = center[None, :] + j[:, None]
+    y = P[np.clip(idx, 0, n - 1), np.arange(nb)[None, :]]
+    ok = (idx >= 0) & (idx < n) & np.isfinite(y)
+    V = np.stack([np.ones(j.size), j, j * j], axis=1).astype(float)
+    G = np.einsum("jb,jp,jq->bpq", ok.astype(float), V, V)
+    G[np.linalg.matrix_rank(G) < 3] = np.eye(3)
+    c = np.linalg.solve(G, np.einsum("jb,jp->bp", np.where(ok, y, 0.0), V)[..., None])[..., 0]
+    with np.errstate(all="ignore"):
+        u = c[:, 0] / np.abs(c[:, 0])
+        d = 2.0 * np.real(np.conj(u) * 2.0 * c[:, 2]) * (int(box) ** 2 - 1) / 24.0
+    return np.where(np.isfinite(d), d, 0.0)
+
+
 def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, omega_rad_s: np.ndarray,
                lo: int, hi: int, window: int, *, tip_radius_m: float | None = None,
-               offset: np.ndarray | None = None) -> ResonancePeaks:
+               offset: np.ndarray | None = None, half_power_width: int | None = None,
+               amp_noise_m: np.ndarray | None = None) -> ResonancePeaks:
     """Circumferential Fourier fit over ``window`` revolutions, peak of each blade.
 
     Parameters
@@ -145,6 +275,13 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
         Fit at the sampling angles (:func:`~bttsim_stream.process.fit.fit_revolutions`).
     offset : ndarray of complex, shape (n_blades,), optional
         Added to every fitted response ``a1 + i a2`` (the zeroing correction).
+    half_power_width : int, optional
+        The crossing's, revolutions: the peak is the vertex of a parabola through the CFF
+        amplitudes around their largest value (:func:`quadratic_peak`, its half-width from
+        :func:`fit_half_width`); None: their largest value.
+    amp_noise_m : ndarray, shape (n_blades,), optional
+        One revolution's amplitude noise (:func:`amplitude_noise` of the unsmoothed fits);
+        None: the CFF's covariance times ``sqrt(window)``.
 
     Returns
     -------
@@ -156,7 +293,8 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
                         tip_radius_m=tip_radius_m)
     i0, i1 = lo - a, hi - a
     P = f.phasor[..., index] + (0.0 if offset is None else np.asarray(offset)[None, :])
-    amp = 2.0 * np.abs(P[i0:i1 + 1])
+    amp_all = 2.0 * np.abs(P)
+    amp = amp_all[i0:i1 + 1]
     phase = np.angle(P)
     nb = amp.shape[1]
     has = np.isfinite(amp).any(axis=0)
@@ -164,12 +302,22 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
     cols = np.arange(nb)
     freq = f.freq_hz[:, index]
     nan = np.full(nb, np.nan)
+    j = i0 + k
+    val, rev, fr = amp[k, cols], j.astype(float), freq[j]
+    std, fstd = f.amp_std_m[j, cols, index], _freq_step_std(freq, j)
+    if half_power_width is not None:  # the vertex of a parabola through the CFF amplitudes
+        one = std * math.sqrt(window) if amp_noise_m is None else np.asarray(amp_noise_m, dtype=float)
+        h = fit_half_width(half_power_width, val, one)
+        ok, v, r, sv, fv, sf = _refine(amp_all, j, h, one, freq)
+        v = v - _box_flattening(P, np.where(ok, r, j).round().astype(np.int64), h, window)
+        val, rev, fr = np.where(ok, v, val), np.where(ok, r, rev), np.where(ok, fv, fr)
+        std, fstd = np.where(ok, sv, std), np.where(ok, np.hypot(sf, fstd), fstd)
+    ph = phase[np.clip(np.round(rev).astype(np.int64), 0, freq.size - 1), cols]
     return ResonancePeaks(
-        revolution=np.where(has, (lo + k).astype(float), nan), amp_pkpk_m=np.where(has, amp[k, cols], nan),
-        freq_hz=np.where(has, freq[i0 + k], nan), damping_ratio=nan.copy(), method="cff",
-        phase_rad=np.where(has, phase[i0 + k, cols], nan),
-        amp_std_m=np.where(has, f.amp_std_m[i0 + k, cols, index], nan),
-        freq_std_hz=np.where(has, _freq_step_std(freq, i0 + k), nan))
+        revolution=np.where(has, rev + a, nan), amp_pkpk_m=np.where(has, val, nan),
+        freq_hz=np.where(has, fr, nan), damping_ratio=nan.copy(), method="cff",
+        phase_rad=np.where(has, ph, nan), amp_std_m=np.where(has, std, nan),
+        freq_std_hz=np.where(has, fstd, nan))
 
 
 def sdof_envelope(fn_hz: float, zeta: float, grid_s: np.ndarray, phi_rad: np.ndarray) -> np.ndarray:

@@ -61,8 +61,12 @@ class ProcessOptions:
         Revolutions per sine fit (centred).
     method : {"peak", "sdof", "cff"}
         Resonance method (:mod:`~bttsim_stream.process.methods`).
-    peak_method : {"max", "parabolic", "sdof"}
-        Refinement of the ``"peak"`` method (legacy: ``"sdof"`` here is an amplitude-only
+    peak_method : {"fit", "max", "parabolic", "sdof"}
+        Refinement of the ``"peak"`` method: ``"fit"`` the vertex of a parabola through the
+        unsmoothed amplitudes over a quarter of the half-power width each side
+        (:func:`~bttsim_stream.process.methods.quadratic_peak`); ``"max"`` the largest
+        prepared amplitude (the paper's definition); ``"parabolic"`` a parabola through 5
+        prepared revolutions each side (legacy: ``"sdof"`` here is an amplitude-only
         curve fit without uncertainty; the method ``"sdof"`` is the swept complex fit).
     detect : DetectOptions
         Segmentation, detection thresholds, reference window.
@@ -82,7 +86,7 @@ class ProcessOptions:
     prep_options: PrepOptions = field(default_factory=PrepOptions)
     window: int = 1
     method: str = "peak"
-    peak_method: str = "max"
+    peak_method: str = "fit"
     detect: DetectOptions = field(default_factory=DetectOptions)
     sampling_angles: bool = True
     nsv: NsvOptions = field(default_factory=NsvOptions)

@@ -26,7 +26,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
 from .displacement import TWO_PI, Displacements, Geometry, compute_displacements, rotor_phase_from_opr
 from .fit import SineFit, fit_revolutions
 from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
-from .methods import METHODS, cff_method, cff_window, peak_method, sdof_method
+from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
@@ -626,13 +626,16 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         P[c.lo:c.hi + 1] += corr[None, :]
         amp, ph = 2.0 * np.abs(P), np.angle(P)
     method, sweep = opts.method, math.nan
-    if opts.method == "peak" and opts.peak_method != "max":
+    if opts.method == "peak" and opts.peak_method not in ("max", "fit"):
         pk = find_peaks(amp[c.lo:c.hi + 1], freq[c.lo:c.hi + 1], method=opts.peak_method)
         pk = replace(pk, revolution=pk.revolution + c.lo, method=f"peak/{opts.peak_method}")
         method = pk.method
     else:
-        pk = peak_method(amp, ph, freq, c.lo, c.hi, amp_raw_m=ctx.raw.amp_pkpk_m[..., i])
-        if ctx.half_width is not None and np.isfinite(ctx.half_width).any():  # the smoother's noise gain
+        fitted = opts.method == "peak" and opts.peak_method == "fit"
+        raw = ctx.raw.amp_pkpk_m[..., i] if corr is None else 2.0 * np.abs(ctx.raw.phasor[..., i] + corr[None, :])
+        pk = peak_method(amp, ph, freq, c.lo, c.hi, amp_raw_m=raw,
+                         half_power_width=c.half_power_width if fitted else None)
+        if not fitted and ctx.half_width is not None and np.isfinite(ctx.half_width).any():  # the smoother's gain
             rev = pk.revolution
             ok = np.isfinite(rev)
             uniq, inv = np.unique(rev[ok].astype(np.int64), return_inverse=True)
@@ -643,7 +646,8 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
             eos_fit = ctx.eos if ctx.joint else (c.eo,)
             pk = cff_method(ctx.d_flat, ctx.geometry.probe_angles_rad, eos_fit, eos_fit.index(c.eo), ctx.omega,
                             c.lo, c.hi, cff_window(c.half_power_width),
-                            tip_radius_m=ctx.geometry.tip_radius_m if opts.sampling_angles else None, offset=corr)
+                            tip_radius_m=ctx.geometry.tip_radius_m if opts.sampling_angles else None, offset=corr,
+                            half_power_width=c.half_power_width, amp_noise_m=amplitude_noise(raw[c.lo:c.hi + 1]))
         elif opts.method == "sdof":
             pk, sweep = _sdof(ctx, c, i, pk.freq_hz)
     zc = _correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])

@@ -50,7 +50,7 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * np.pi
-PEAK_METHODS = ("max", "parabolic", "sdof")
+PEAK_METHODS = ("fit", "max", "parabolic", "sdof")
 STATUSES = ("resonance", "steady", "none")
 
 
@@ -373,8 +373,8 @@ def find_peaks(amp_pkpk_m: np.ndarray, freq_hz: np.ndarray, *, method: str = "ma
     -------
     ResonancePeaks
     """
-    if method not in PEAK_METHODS:
-        raise ValueError(f"method must be one of {PEAK_METHODS}, got {method!r}")
+    if method not in ("max", "parabolic", "sdof"):
+        raise ValueError(f"method must be one of ('max', 'parabolic', 'sdof'), got {method!r}")
     amp = np.asarray(amp_pkpk_m, dtype=float)
     f = np.asarray(freq_hz, dtype=float)
     n, nb = amp.shape
@@ -684,12 +684,13 @@ def _amp_unit(rows: list[dict]) -> tuple[str, float]:
 
 def _blade_table(title: str, entry: dict) -> list[str]:
     """One entry's per-blade rows: amplitude (mm, or um for small ones), its standard
-    uncertainty in um, the ends of its 95 % interval relative to it in um, frequency, phase in degrees, and
-    the truth with E_A / E_f when the entry has them."""
+    uncertainty in um, the ends of its 95 % interval relative to it in um, its Cramér-Rao lower
+    bound in um, frequency, phase in degrees, and the truth with E_A / E_f when the entry has them."""
     rows = entry["blades"]
     truth = "mean_E_A_pct" in entry
     unc = any("amp_std_m" in r for r in rows)
     ci = any("amp_ci95_m" in r for r in rows)
+    crb = any("crb_amp_m" in r for r in rows)
     phase = any("phase_rad" in r for r in rows)
     unit, scale = _amp_unit(rows)
     head = f"{'blade':>5}  {f'amp {unit} pk-pk':>12}"
@@ -697,6 +698,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
         head += f"  {'+- ' + _UM:>8}"
     if ci:
         head += f"  {'95% ' + _UM + ' (lo/hi)':>19}"
+    if crb:
+        head += f"  {'CRB ' + _UM:>8}"
     head += f"  {'freq Hz':>9}"
     if phase:
         head += f"  {'phase deg':>9}"
@@ -711,6 +714,8 @@ def _blade_table(title: str, entry: dict) -> list[str]:
             lo_hi = r.get("amp_ci95_m") or (None, None)
             a = _f(r["amp_pkpk_m"])
             s += f"  {f'{1e6 * (_f(lo_hi[0]) - a):+.3f}/{1e6 * (_f(lo_hi[1]) - a):+.3f}':>19}"
+        if crb:
+            s += f"  {1e6 * _f(r.get('crb_amp_m')):>8.3f}"
         s += f"  {_f(r['freq_hz']):>9.3f}"
         if phase:
             s += f"  {_phase_deg(r.get('phase_rad')):>9.1f}"
