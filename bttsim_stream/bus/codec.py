@@ -51,8 +51,8 @@ from ..sim.core import RunInfo, Truth
 from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
-from .codec_base import (MAX_PAYLOAD_BYTES, PROTO_FILE, Decoded, Header, _array, _check_len, _check_probe_key,
-                         _corrupt, _fill_header, _header, _packed_doubles, _parse, _serialize, _vec,
+from .codec_base import (MAX_PAYLOAD_BYTES, PROTO_FILE, Decoded, Header, as_array, check_len, check_probe_key,
+                         corrupt_error, fill_header, header_of, packed_doubles, parse_payload, serialize, as_vector,
                          file_descriptor_set, log_time_ns, schema_name_for)
 from .codec_bulk import (assemble, encode_opr_batch, encode_toa_batches, field_tag, header_parts, is_repeated,
                          le_doubles, log_times_ns, packed_field, packed_varints, scalar_field)
@@ -214,13 +214,13 @@ def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
         Payload for the ``bttsim/<rig>/meta`` queryable and recording channel.
     """
     rig = _keys.validate_rig(info.rig)
-    angles = _vec(info.probe_angles_rad, "probe_angles_rad", int(info.n_probes))
+    angles = as_vector(info.probe_angles_rad, "probe_angles_rad", int(info.n_probes))
     eos = [int(e) for e in info.engine_orders]
     nds = [int(n) for n in info.nodal_diameters]
     if len(eos) != len(nds):
         raise ValueError("engine_orders and nodal_diameters must have the same length")
     m = _pb.RunMetadata()
-    _fill_header(m.header, header.run_id, int(header.seq), int(header.revolution), float(header.t_s))
+    fill_header(m.header, header.run_id, int(header.seq), int(header.revolution), float(header.t_s))
     m.run_id = info.run_id or header.run_id
     m.rig = rig
     m.n_blades = int(info.n_blades)
@@ -242,7 +242,8 @@ def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
     m.software_version = info.software_version
     m.has_truth = bool(info.has_truth)
     if info.sensing_angles_rad is not None:
-        m.sensing_angles_rad.extend(_vec(info.sensing_angles_rad, "sensing_angles_rad", int(info.n_blades)).tolist())
+        sensing = as_vector(info.sensing_angles_rad, "sensing_angles_rad", int(info.n_blades))
+        m.sensing_angles_rad.extend(sensing.tolist())
     if info.family_freq_hz is not None:
         fam = np.asarray(info.family_freq_hz, dtype=float)
         if fam.ndim != 2 or fam.shape[1] != int(info.n_blades) // 2 + 1:
@@ -255,7 +256,7 @@ def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
     if info.family_speed_rad_s is not None:
         if info.family_freq_hz is None:
             raise ValueError("family_freq_hz_at_speed needs family_freq_hz")
-        speeds = _vec(info.family_speed_rad_s, "family_speed_rad_s")
+        speeds = as_vector(info.family_speed_rad_s, "family_speed_rad_s")
         at_speed = np.asarray(info.family_freq_hz_at_speed, dtype=float)
         if at_speed.shape != (speeds.size,) + fam.shape:
             raise ValueError(f"family_freq_hz_at_speed: expected shape {(speeds.size,) + fam.shape}, "
@@ -263,7 +264,7 @@ def encode_run_metadata(header: Header, info: RunInfo) -> bytes:
         m.family_speed_rad_s.extend(speeds.tolist())
         m.family_freq_hz_at_speed.extend(at_speed.ravel().tolist())
     m.speed_min_rpm, m.speed_max_rpm = (float(v) for v in info.speed_range_rpm)
-    return _serialize(m)
+    return serialize(m)
 
 
 #: Highest family frequency at speed a decoder accepts, Hz (far above any bladed-disk mode;
@@ -334,41 +335,41 @@ def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable, oversized or inconsistent payload (one line, naming ``key``).
     """
-    m, where = _parse(_pb.RunMetadata, payload, key)
+    m, where = parse_payload(_pb.RunMetadata, payload, key)
     if not (1 <= m.n_blades <= MAX_BLADES and 1 <= m.n_probes <= MAX_PROBES):
-        raise _corrupt(where, m, f"n_blades = {m.n_blades}, n_probes = {m.n_probes} (1..{MAX_BLADES} blades, "
+        raise corrupt_error(where, m, f"n_blades = {m.n_blades}, n_probes = {m.n_probes} (1..{MAX_BLADES} blades, "
                                  f"1..{MAX_PROBES} probes)")
-    _check_len(where, m, "probe_angles_rad", m.n_probes, "(n_probes,)")
+    check_len(where, m, "probe_angles_rad", m.n_probes, "(n_probes,)")
     if len(m.engine_orders) != len(m.nodal_diameters):
-        raise _corrupt(where, m, f"{len(m.engine_orders)} engine_orders but "
+        raise corrupt_error(where, m, f"{len(m.engine_orders)} engine_orders but "
                                  f"{len(m.nodal_diameters)} nodal_diameters")
     problem = _run_metadata_problem(m)
     if problem:
-        raise _corrupt(where, m, problem)
+        raise corrupt_error(where, m, problem)
     if m.header.run_id and m.run_id and m.header.run_id != m.run_id:
-        raise _corrupt(where, m, f"run_id {m.run_id!r} differs from header {m.header.run_id!r}")
+        raise corrupt_error(where, m, f"run_id {m.run_id!r} differs from header {m.header.run_id!r}")
     try:
         _keys.validate_rig(m.rig)
     except BttsimError:
-        raise _corrupt(where, m, f"invalid rig name {m.rig!r}") from None
+        raise corrupt_error(where, m, f"invalid rig name {m.rig!r}") from None
     sensing = None
     if len(m.sensing_angles_rad):
-        _check_len(where, m, "sensing_angles_rad", m.n_blades, "(n_blades,)")
-        sensing = _array(m.sensing_angles_rad)
+        check_len(where, m, "sensing_angles_rad", m.n_blades, "(n_blades,)")
+        sensing = as_array(m.sensing_angles_rad)
     families = None
     if m.n_families:
         n_nd = m.n_blades // 2 + 1
-        _check_len(where, m, "family_freq_hz", m.n_families * n_nd, f"({m.n_families}, {n_nd})")
-        families = _array(m.family_freq_hz).reshape(m.n_families, n_nd)
+        check_len(where, m, "family_freq_hz", m.n_families * n_nd, f"({m.n_families}, {n_nd})")
+        families = as_array(m.family_freq_hz).reshape(m.n_families, n_nd)
     speeds = at_speed = None
     if len(m.family_speed_rad_s) or len(m.family_freq_hz_at_speed):
         n_s = len(m.family_speed_rad_s)
-        _check_len(where, m, "family_freq_hz_at_speed", n_s * families.size, f"({n_s}, {m.n_families}, {n_nd})")
-        speeds = _array(m.family_speed_rad_s)
-        at_speed = _array(m.family_freq_hz_at_speed).reshape((n_s,) + families.shape)
+        check_len(where, m, "family_freq_hz_at_speed", n_s * families.size, f"({n_s}, {m.n_families}, {n_nd})")
+        speeds = as_array(m.family_speed_rad_s)
+        at_speed = as_array(m.family_freq_hz_at_speed).reshape((n_s,) + families.shape)
     info = RunInfo(
         n_blades=int(m.n_blades), n_probes=int(m.n_probes), n_revolutions=int(m.n_revolutions),
-        probe_angles_rad=_array(m.probe_angles_rad), probe_axial_m=m.probe_axial_m,
+        probe_angles_rad=as_array(m.probe_angles_rad), probe_axial_m=m.probe_axial_m,
         tip_radius_m=m.tip_radius_m, opr_angle_rad=m.opr_angle_rad, clock_hz=m.clock_hz,
         stagger_deg=m.stagger_deg, engine_orders=tuple(int(e) for e in m.engine_orders),
         nodal_diameters=tuple(int(n) for n in m.nodal_diameters), toa_method=m.toa_method,
@@ -377,7 +378,7 @@ def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
         speed_range_rpm=(m.speed_min_rpm, m.speed_max_rpm),
         run_id=m.run_id or m.header.run_id, scenario_toml=m.scenario_toml,
         software_version=m.software_version, has_truth=bool(m.has_truth))
-    return Decoded(_header(m.header), info)
+    return Decoded(header_of(m.header), info)
 
 
 # --------------------------------------------------------------------------------------
@@ -388,12 +389,12 @@ def decode_run_metadata(payload: bytes, key: str | None = None) -> Decoded:
 def encode_opr(header: Header, pulse: OprPulse) -> bytes:
     """Encode one OPR pulse (:class:`bttsim.v1.Opr`)."""
     m = _pb.Opr()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.opr_s = pulse.opr_s
     if pulse.opr_ticks is not None:
         m.opr_ticks = pulse.opr_ticks
         m.has_ticks = True
-    return _serialize(m)
+    return serialize(m)
 
 
 def decode_opr(payload: bytes, key: str | None = None) -> Decoded:
@@ -404,10 +405,10 @@ def decode_opr(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable or oversized payload, missing header.
     """
-    m, where = _parse(_pb.Opr, payload, key)
+    m, where = parse_payload(_pb.Opr, payload, key)
     if not m.has_ticks and m.opr_ticks != 0:
-        raise _corrupt(where, m, "opr_ticks set but has_ticks is false")
-    return Decoded(_header(m.header), OprPulse(opr_s=m.opr_s,
+        raise corrupt_error(where, m, "opr_ticks set but has_ticks is false")
+    return Decoded(header_of(m.header), OprPulse(opr_s=m.opr_s,
                                                opr_ticks=int(m.opr_ticks) if m.has_ticks else None))
 
 
@@ -419,7 +420,7 @@ def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | 
     ``extra_toa_s`` (and ``extra_toa_ticks`` when ticked) the later edges of double pulses.
     """
     m = _pb.ToaBatch()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.probe = probe
     m.toa_s.extend(toa_s)
     if toa_ticks is not None:
@@ -430,15 +431,15 @@ def encode_toa_batch(header: Header, probe: int, toa_s: list, toa_ticks: list | 
         if extra_toa_ticks is None:  # the decoder would refuse the message
             raise ValueError("ticked TOAs with extra edges need their extra_toa_ticks")
         m.extra_toa_ticks.extend(np.asarray(extra_toa_ticks, dtype=np.int64).tolist())
-    return _serialize(m)
+    return serialize(m)
 
 
 def _check_ticks(where: str, m, name: str, n: int, shape: str) -> None:
     """A ticks field: ``n`` values with ``has_ticks``, none without."""
     if m.has_ticks:
-        _check_len(where, m, name, n, shape)
+        check_len(where, m, name, n, shape)
     elif len(getattr(m, name)):
-        raise _corrupt(where, m, f"{name} set but has_ticks is false")
+        raise corrupt_error(where, m, f"{name} set but has_ticks is false")
 
 
 def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | None = None) -> Decoded:
@@ -457,25 +458,26 @@ def decode_toa_batch(payload: bytes, key: str | None = None, *, n_blades: int | 
     BttsimError
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
-    m, where = _parse(_pb.ToaBatch, payload, key)
+    m, where = parse_payload(_pb.ToaBatch, payload, key)
     n = len(m.toa_s)
     if n == 0:
-        raise _corrupt(where, m, "toa_s is empty")
+        raise corrupt_error(where, m, "toa_s is empty")
     if n_blades is not None and n != n_blades:
-        raise _corrupt(where, m, f"toa_s has {n} values, expected n_blades = {n_blades}")
+        raise corrupt_error(where, m, f"toa_s has {n} values, expected n_blades = {n_blades}")
     _check_ticks(where, m, "toa_ticks", n, "(n_blades,)")
     n_extra = len(m.extra_toa_s)
     if n_extra > MAX_EXTRA_EDGES_PER_BLADE * n:
-        raise _corrupt(where, m, f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
+        raise corrupt_error(where, m,
+                            f"{n_extra} extra edges for {n} blades (at most {MAX_EXTRA_EDGES_PER_BLADE} a blade)")
     _check_ticks(where, m, "extra_toa_ticks", n_extra, "(n_extra,)")
-    extra = _array(m.extra_toa_s)
+    extra = as_array(m.extra_toa_s)
     if n_extra and not np.isfinite(extra).all():
-        raise _corrupt(where, m, "an extra edge time is not finite")
-    _check_probe_key(where, m, key, "toa")
-    return Decoded(_header(m.header), ToaBatch(
-        probe=int(m.probe), toa_s=_array(m.toa_s),
-        toa_ticks=_array(m.toa_ticks, np.int64) if m.has_ticks else None, extra_toa_s=extra,
-        extra_toa_ticks=_array(m.extra_toa_ticks, np.int64) if m.has_ticks else None))
+        raise corrupt_error(where, m, "an extra edge time is not finite")
+    check_probe_key(where, m, key, "toa")
+    return Decoded(header_of(m.header), ToaBatch(
+        probe=int(m.probe), toa_s=as_array(m.toa_s),
+        toa_ticks=as_array(m.toa_ticks, np.int64) if m.has_ticks else None, extra_toa_s=extra,
+        extra_toa_ticks=as_array(m.extra_toa_ticks, np.int64) if m.has_ticks else None))
 
 
 def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
@@ -483,7 +485,7 @@ def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
     toa = truth.toa_s[i]
     nb, npr = toa.shape
     m = _pb.TruthBatch()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.opr_s = float(truth.opr_s[i])
     m.omega_mean_rad_s = float(truth.omega_mean[i])
     m.n_blades = nb
@@ -495,7 +497,7 @@ def encode_truth(header: Header, truth: Truth, i: int = 0) -> bytes:
     if truth.eo_pkpk_m is not None:
         m.eo_engine_order.extend(np.asarray(truth.eo_engine_order[i], dtype=np.int64).tolist())
         m.eo_pkpk_m.extend(np.asarray(truth.eo_pkpk_m[i], dtype=np.float64).ravel().tolist())
-    return _serialize(m)
+    return serialize(m)
 
 
 def _decode_eo(where: str, m, nb: int) -> dict:
@@ -503,14 +505,14 @@ def _decode_eo(where: str, m, nb: int) -> dict:
     after size and range checks (n_eo = 0 for a recording made before the fields existed)."""
     k = len(m.eo_engine_order)
     if k > MAX_ENGINE_ORDER:
-        raise _corrupt(where, m, f"{k} eo_engine_order entries, more than {MAX_ENGINE_ORDER}")
-    _check_len(where, m, "eo_pkpk_m", nb * k, f"({nb}, {k})")
-    orders = _array(m.eo_engine_order, np.int64)
+        raise corrupt_error(where, m, f"{k} eo_engine_order entries, more than {MAX_ENGINE_ORDER}")
+    check_len(where, m, "eo_pkpk_m", nb * k, f"({nb}, {k})")
+    orders = as_array(m.eo_engine_order, np.int64)
     if k and not (np.all((orders >= 1) & (orders <= MAX_ENGINE_ORDER)) and np.all(np.diff(orders) > 0)):
-        raise _corrupt(where, m, f"eo_engine_order must ascend strictly within [1, {MAX_ENGINE_ORDER}]")
-    amp = _array(m.eo_pkpk_m).reshape(1, nb, k)
+        raise corrupt_error(where, m, f"eo_engine_order must ascend strictly within [1, {MAX_ENGINE_ORDER}]")
+    amp = as_array(m.eo_pkpk_m).reshape(1, nb, k)
     if not np.all(np.isfinite(amp) & (amp >= 0)):
-        raise _corrupt(where, m, "eo_pkpk_m values must be finite and >= 0")
+        raise corrupt_error(where, m, "eo_pkpk_m values must be finite and >= 0")
     return {"eo_engine_order": orders.reshape(1, k), "eo_pkpk_m": amp}
 
 
@@ -538,17 +540,17 @@ def _decode_nsv(where: str, m, nb: int) -> dict:
     recordings made before the field existed), after size and range checks."""
     k = len(m.nsv)
     if k > MAX_NSV_COMPONENTS:
-        raise _corrupt(where, m, f"{k} nsv components, more than {MAX_NSV_COMPONENTS}")
+        raise corrupt_error(where, m, f"{k} nsv components, more than {MAX_NSV_COMPONENTS}")
     kind, nd = [], []
     vals = np.zeros((5, k))
     for j, c in enumerate(m.nsv):
         if c.kind not in _NSV_KINDS:
-            raise _corrupt(where, m, f"nsv[{j}].kind = {c.kind[:40]!r} (expected one of {', '.join(_NSV_KINDS)})")
+            raise corrupt_error(where, m, f"nsv[{j}].kind = {c.kind[:40]!r} (expected one of {', '.join(_NSV_KINDS)})")
         v = (c.freq_hz, c.amp_pkpk_m, c.rms_m, c.band_lo_hz, c.band_hi_hz)
         if not all(math.isfinite(x) and x >= 0 for x in v) or c.band_lo_hz > c.band_hi_hz:
-            raise _corrupt(where, m, f"nsv[{j}] values must be finite and >= 0 with band_lo_hz <= band_hi_hz")
+            raise corrupt_error(where, m, f"nsv[{j}] values must be finite and >= 0 with band_lo_hz <= band_hi_hz")
         if abs(c.nodal_diameter) > nb:
-            raise _corrupt(where, m, f"nsv[{j}].nodal_diameter = {c.nodal_diameter}, beyond the {nb} blades")
+            raise corrupt_error(where, m, f"nsv[{j}].nodal_diameter = {c.nodal_diameter}, beyond the {nb} blades")
         kind.append(c.kind)
         nd.append(int(c.nodal_diameter))
         vals[:, j] = v
@@ -566,25 +568,26 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
-    m, where = _parse(_pb.TruthBatch, payload, key)
+    m, where = parse_payload(_pb.TruthBatch, payload, key)
     nb, npr = int(m.n_blades), int(m.n_probes)
     if nb < 1 or npr < 1:
-        raise _corrupt(where, m, f"n_blades = {nb}, n_probes = {npr}")
+        raise corrupt_error(where, m, f"n_blades = {nb}, n_probes = {npr}")
     for name in _TRUTH_2D:
-        _check_len(where, m, name, nb * npr, f"({nb}, {npr})")
-    _check_len(where, m, "d_eqv_pkpk_m", nb, f"({nb},)")
+        check_len(where, m, name, nb * npr, f"({nb}, {npr})")
+    check_len(where, m, "d_eqv_pkpk_m", nb, f"({nb},)")
     if not (math.isfinite(m.opr_s) and math.isfinite(m.omega_mean_rad_s) and m.omega_mean_rad_s > 0):
-        raise _corrupt(where, m, f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
-    raw = _packed_doubles(bytes(payload), _TRUTH_NUMBERS)  # the lengths are checked above
+        raise corrupt_error(where, m,
+                            f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
+    raw = packed_doubles(bytes(payload), _TRUTH_NUMBERS)  # the lengths are checked above
     if raw is None:
         raw = {}
-    arrays = {name: (raw[k] if k in raw else _array(getattr(m, name))).reshape(1, nb, npr)
+    arrays = {name: (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr)
               for name, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D)}
     k = _TRUTH_NUMBER_PKPK
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
-                  d_eqv_pkpk_m=(raw[k] if k in raw else _array(m.d_eqv_pkpk_m)).reshape(1, nb), **arrays,
+                  d_eqv_pkpk_m=(raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb), **arrays,
                   **_decode_nsv(where, m, nb), **_decode_eo(where, m, nb))
-    return Decoded(_header(m.header), truth)
+    return Decoded(header_of(m.header), truth)
 
 
 # --------------------------------------------------------------------------------------
@@ -595,7 +598,7 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
 def encode_signal_batch(header: Header, batch: SignalBatch) -> bytes:
     """Encode one probe's raw windows of one revolution (:class:`bttsim.v1.SignalBatch`)."""
     m = _pb.SignalBatch()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.probe = int(batch.probe)
     m.sample_rate_hz, m.range_lo_v, m.lsb_v = float(batch.sample_rate_hz), float(batch.range_lo_v), float(batch.lsb_v)
     m.bits, m.trigger, m.edge = int(batch.bits), batch.trigger, batch.edge
@@ -605,7 +608,7 @@ def encode_signal_batch(header: Header, batch: SignalBatch) -> bytes:
     m.codes.extend(np.asarray(batch.codes, dtype=np.int64).tolist())
     m.toa_s.extend(np.asarray(batch.toa_s, dtype=np.float64).tolist())
     m.n_edges.extend(np.asarray(batch.n_edges, dtype=np.int64).tolist())
-    return _serialize(m)
+    return serialize(m)
 
 
 def encode_signal_batches(run_id: str, seq, revolution, t_s, raw: RawSignals, toa_s, n_edges) -> list[bytes]:
@@ -656,46 +659,46 @@ def decode_signal_batch(payload: bytes, key: str | None = None, *, n_blades: int
         rate or one below 1 Hz, a non-positive or non-finite code size, an ADC range that
         overflows a float, an unknown trigger or edge.
     """
-    m, where = _parse(_pb.SignalBatch, payload, key)
+    m, where = parse_payload(_pb.SignalBatch, payload, key)
     n = len(m.first_sample)
     if n == 0:
-        raise _corrupt(where, m, "first_sample is empty")
+        raise corrupt_error(where, m, "first_sample is empty")
     if n_blades is not None and n != n_blades:
-        raise _corrupt(where, m, f"first_sample has {n} values, expected n_blades = {n_blades}")
+        raise corrupt_error(where, m, f"first_sample has {n} values, expected n_blades = {n_blades}")
     for name in ("n_samples", "toa_s", "n_edges"):
-        _check_len(where, m, name, n, "(n_blades,)")
-    n_samp = _array(m.n_samples, np.int64)
+        check_len(where, m, name, n, "(n_blades,)")
+    n_samp = as_array(m.n_samples, np.int64)
     if n_samp.min() < 1 or n_samp.max() > MAX_WINDOW_SAMPLES:
-        raise _corrupt(where, m, f"n_samples must be in [1, {MAX_WINDOW_SAMPLES}]")
-    _check_len(where, m, "codes", int(n_samp.sum()), "(sum(n_samples),)")
+        raise corrupt_error(where, m, f"n_samples must be in [1, {MAX_WINDOW_SAMPLES}]")
+    check_len(where, m, "codes", int(n_samp.sum()), "(sum(n_samples),)")
     if not 1 <= m.bits <= 31:
-        raise _corrupt(where, m, f"bits = {m.bits} (1..31)")
-    codes = _array(m.codes, np.int64)
+        raise corrupt_error(where, m, f"bits = {m.bits} (1..31)")
+    codes = as_array(m.codes, np.int64)
     if codes.size and codes.max() >= (1 << m.bits):
-        raise _corrupt(where, m, f"an ADC code above 2^{m.bits} - 1")
-    first = _array(m.first_sample, np.int64)  # negative: a window opened before t = 0
+        raise corrupt_error(where, m, f"an ADC code above 2^{m.bits} - 1")
+    first = as_array(m.first_sample, np.int64)  # negative: a window opened before t = 0
     if np.abs(first).max() > MAX_FIRST_SAMPLE:  # sample indices stay exact as floats, and never wrap
-        raise _corrupt(where, m, "first_sample beyond +-2^52")
+        raise corrupt_error(where, m, "first_sample beyond +-2^52")
     # an ADC samples at >= 1 Hz: a window's times (and its plot) stay finite
     if not (math.isfinite(m.sample_rate_hz) and m.sample_rate_hz >= 1.0):
-        raise _corrupt(where, m, f"sample_rate_hz = {m.sample_rate_hz!r} (finite, >= 1)")
+        raise corrupt_error(where, m, f"sample_rate_hz = {m.sample_rate_hz!r} (finite, >= 1)")
     if not (math.isfinite(m.lsb_v) and m.lsb_v > 0):
-        raise _corrupt(where, m, f"lsb_v = {m.lsb_v!r} (finite, > 0)")
+        raise corrupt_error(where, m, f"lsb_v = {m.lsb_v!r} (finite, > 0)")
     for name in ("range_lo_v", "level_v", "hysteresis_v"):
         if not math.isfinite(getattr(m, name)):
-            raise _corrupt(where, m, f"{name} = {getattr(m, name)!r} (finite)")
+            raise corrupt_error(where, m, f"{name} = {getattr(m, name)!r} (finite)")
     span = ((1 << m.bits) - 1) * m.lsb_v
     if not (math.isfinite(span) and math.isfinite(m.range_lo_v + span)):
-        raise _corrupt(where, m, f"ADC range {m.range_lo_v!r} + (2^{m.bits} - 1) * {m.lsb_v!r} V is not finite")
+        raise corrupt_error(where, m, f"ADC range {m.range_lo_v!r} + (2^{m.bits} - 1) * {m.lsb_v!r} V is not finite")
     if not 0.0 <= m.fraction <= 1.0:
-        raise _corrupt(where, m, f"fraction = {m.fraction!r} (in [0, 1])")
+        raise corrupt_error(where, m, f"fraction = {m.fraction!r} (in [0, 1])")
     if m.trigger not in TRIGGER_KINDS or m.edge not in EDGES:
-        raise _corrupt(where, m, f"trigger {m.trigger!r}, edge {m.edge!r}")
-    _check_probe_key(where, m, key, "signal")
-    return Decoded(_header(m.header), SignalBatch(
+        raise corrupt_error(where, m, f"trigger {m.trigger!r}, edge {m.edge!r}")
+    check_probe_key(where, m, key, "signal")
+    return Decoded(header_of(m.header), SignalBatch(
         probe=int(m.probe), sample_rate_hz=m.sample_rate_hz, range_lo_v=m.range_lo_v, lsb_v=m.lsb_v, bits=int(m.bits),
         trigger=m.trigger, level_v=m.level_v, hysteresis_v=m.hysteresis_v, edge=m.edge, first_sample=first,
-        n_samples=n_samp, codes=codes, toa_s=_array(m.toa_s), n_edges=_array(m.n_edges, np.int64),
+        n_samples=n_samp, codes=codes, toa_s=as_array(m.toa_s), n_edges=as_array(m.n_edges, np.int64),
         fraction=m.fraction))
 
 

@@ -22,14 +22,17 @@ from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 
 
 __all__ = ["MAX_PAYLOAD_BYTES", "PROTO_FILE", "Header", "Decoded", "log_time_ns", "schema_name_for",
-           "file_descriptor_set"]
+           "file_descriptor_set",
+           # the codec modules' shared helpers
+           "MAX_NS", "as_array", "as_vector", "check_len", "check_probe_key", "corrupt_error", "fill_header",
+           "header_of", "packed_doubles", "parse_payload", "serialize"]
 
 #: Largest payload a decoder accepts, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
 #: Name of the schema file inside the descriptor (and path under ``schemas/``).
 PROTO_FILE = "bttsim/v1/bttsim.proto"
 _PACKAGE = "bttsim.v1"
-_MAX_NS = (1 << 63) - 1
+MAX_NS = (1 << 63) - 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,22 +73,22 @@ def log_time_ns(t_s: float) -> int:
     """MCAP log time of a message: ``round(t_s * 1e9)`` clamped to ``[0, 2**63 - 1]``."""
     t = float(t_s)
     if not math.isfinite(t):
-        return 0 if t != math.inf else _MAX_NS
-    return min(max(int(round(t * 1e9)), 0), _MAX_NS)
+        return 0 if t != math.inf else MAX_NS
+    return min(max(int(round(t * 1e9)), 0), MAX_NS)
 
 
-def _fill_header(h, run_id: str, seq: int, revolution: int, t_s: float) -> None:
+def fill_header(h, run_id: str, seq: int, revolution: int, t_s: float) -> None:
     h.run_id = run_id
     h.seq = seq
     h.revolution = revolution
     h.t_s = t_s
 
 
-def _serialize(msg) -> bytes:
+def serialize(msg) -> bytes:
     return msg.SerializeToString(deterministic=True)
 
 
-def _vec(values, name: str, n: int | None = None, dtype=float) -> np.ndarray:
+def as_vector(values, name: str, n: int | None = None, dtype=float) -> np.ndarray:
     arr = np.asarray(values, dtype=dtype)
     if arr.ndim != 1 or (n is not None and arr.size != n):
         want = f"({n},)" if n is not None else "1-D"
@@ -93,7 +96,7 @@ def _vec(values, name: str, n: int | None = None, dtype=float) -> np.ndarray:
     return arr
 
 
-def _parse(cls, payload, where: str | None):
+def parse_payload(cls, payload, where: str | None):
     name = cls.DESCRIPTOR.name
     where = where or cls.DESCRIPTOR.full_name
     if not isinstance(payload, (bytes, bytearray, memoryview)):
@@ -116,22 +119,22 @@ def _parse(cls, payload, where: str | None):
     return msg, where
 
 
-def _corrupt(where: str, msg, problem: str) -> BttsimError:
+def corrupt_error(where: str, msg, problem: str) -> BttsimError:
     return BttsimError(f"{where}: corrupt {msg.DESCRIPTOR.name} ({problem})")
 
 
-def _header(h) -> Header:
+def header_of(h) -> Header:
     return Header(run_id=h.run_id, seq=int(h.seq), revolution=int(h.revolution),
                      t_s=float(h.t_s))
 
 
-def _array(values, dtype=np.float64) -> np.ndarray:
+def as_array(values, dtype=np.float64) -> np.ndarray:
     """A 1-D array of a repeated protobuf field (or a list): ``np.fromiter`` with the length
     known, about 4x faster than ``np.array`` on protobuf's containers (same values)."""
     return np.fromiter(values, dtype=dtype, count=len(values))
 
 
-def _packed_doubles(payload: bytes, numbers: frozenset) -> dict | None:
+def packed_doubles(payload: bytes, numbers: frozenset) -> dict | None:
     """The top-level repeated double fields ``numbers`` of a message that parsed, read
     straight from its bytes (``{number: array}``, absent fields left out): ``np.frombuffer``
     instead of protobuf's containers, element by element. None when a field of ``numbers``
@@ -174,13 +177,13 @@ def _varint_at(data: bytes, i: int) -> tuple[int, int]:
             return value, i
 
 
-def _check_len(where: str, msg, field: str, n: int, shape: str) -> None:
+def check_len(where: str, msg, field: str, n: int, shape: str) -> None:
     got = len(getattr(msg, field))
     if got != n:
-        raise _corrupt(where, msg, f"{field} has {got} values, expected {n} for shape {shape}")
+        raise corrupt_error(where, msg, f"{field} has {got} values, expected {n} for shape {shape}")
 
 
-def _check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
+def check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
     if key is None:
         return
     try:
@@ -188,7 +191,7 @@ def _check_probe_key(where: str, msg, key: str | None, kind: str) -> None:
     except BttsimError:
         return
     if info.kind == kind and info.probe != msg.probe:
-        raise _corrupt(where, msg, f"probe {msg.probe} on the key of probe {info.probe}")
+        raise corrupt_error(where, msg, f"probe {msg.probe} on the key of probe {info.probe}")
 
 
 # --------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import numpy as np
 from google.protobuf import descriptor_pb2
 
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
-from .codec_base import _MAX_NS
+from .codec_base import MAX_NS
 
 __all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "assemble", "field_tag",
            "header_parts", "le_doubles", "packed_field", "packed_varints", "scalar_field", "varint_bytes"]
@@ -188,7 +188,7 @@ def log_times_ns(t_s: np.ndarray) -> np.ndarray:
     out = np.zeros(t.shape, np.int64)
     ok = (ns > 0) & (ns < 2.0 ** 63)
     out[ok] = ns[ok].astype(np.int64)
-    out[ns >= 2.0 ** 63] = _MAX_NS  # also +inf; NaN and -inf stay 0
+    out[ns >= 2.0 ** 63] = MAX_NS  # also +inf; NaN and -inf stay 0
     return out
 
 

@@ -18,8 +18,8 @@ from ..process.resonance import (STATUSES, Detection, ResonanceEntry, ResonanceP
 from ..process.nsv import NsvDetection
 from ..process.travelling_wave import ProbeWave
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
-from .codec_base import (Decoded, Header, _array, _check_len, _check_probe_key, _corrupt,
-                         _fill_header, _header, _parse, _serialize, _vec)
+from .codec_base import (Decoded, Header, as_array, check_len, check_probe_key, corrupt_error,
+                         fill_header, header_of, parse_payload, serialize, as_vector)
 
 
 __all__ = ["encode_fit", "decode_fit", "encode_probe_wave", "decode_probe_wave", "encode_resonance_report",
@@ -36,18 +36,18 @@ _FIT_ARRAYS = (("amp_pkpk_m", "amp_pkpk_m"), ("phase_rad", "phase_rad"), ("dc_m"
 
 def encode_fit(header: Header, fit: RevolutionFit) -> bytes:
     """Encode one revolution's fits at one EO (:class:`bttsim.v1.BladeFits`, key ``fit``)."""
-    amp = _vec(fit.amp_pkpk_m, "amp_pkpk_m")
+    amp = as_vector(fit.amp_pkpk_m, "amp_pkpk_m")
     nb = amp.size
     m = _pb.BladeFits()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.n_blades = nb
     m.engine_order = int(fit.engine_order)
     m.omega_mean_rad_s = float(fit.omega_rad_s)
     m.freq_hz = float(fit.freq_hz)
     m.cn = float(fit.cn)
     for proto_name, name in _FIT_ARRAYS:
-        getattr(m, proto_name).extend(_vec(getattr(fit, name), name, nb).tolist())
-    return _serialize(m)
+        getattr(m, proto_name).extend(as_vector(getattr(fit, name), name, nb).tolist())
+    return serialize(m)
 
 
 def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
@@ -58,36 +58,36 @@ def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
-    m, where = _parse(_pb.BladeFits, payload, key)
+    m, where = parse_payload(_pb.BladeFits, payload, key)
     nb = int(m.n_blades)
     for proto_name, _ in _FIT_ARRAYS:
-        _check_len(where, m, proto_name, nb, f"({nb},)")
+        check_len(where, m, proto_name, nb, f"({nb},)")
     fit = RevolutionFit(engine_order=int(m.engine_order), omega_rad_s=m.omega_mean_rad_s, freq_hz=m.freq_hz,
-                        cn=m.cn, **{name: _array(getattr(m, proto_name)) for proto_name, name in _FIT_ARRAYS})
-    return Decoded(_header(m.header), fit)
+                        cn=m.cn, **{name: as_array(getattr(m, proto_name)) for proto_name, name in _FIT_ARRAYS})
+    return Decoded(header_of(m.header), fit)
 
 
 def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
     """Encode one probe's travelling-wave spectrum (:class:`bttsim.v1.TravellingWave`, key ``tw/<probe>``)."""
-    fwd = _vec(wave.forward_m, "forward_m")
-    bwd = _vec(wave.backward_m, "backward_m", fwd.size)
+    fwd = as_vector(wave.forward_m, "forward_m")
+    bwd = as_vector(wave.backward_m, "backward_m", fwd.size)
     if fwd.size == 0:
         raise ValueError("forward_m: at least one nodal diameter is needed")
     m = _pb.TravellingWave()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.probe = int(wave.probe)
     m.n_nd = fwd.size
     m.forward_m.extend(fwd.tolist())
     m.backward_m.extend(bwd.tolist())
     m.dominant_nd = int(wave.nd)
-    return _serialize(m)
+    return serialize(m)
 
 
 def _check_magnitudes(where: str, msg, field: str) -> np.ndarray:
     """Magnitudes: >= 0 or NaN (not measured); never infinite or negative. Returns them."""
-    v = _array(getattr(msg, field))
+    v = as_array(getattr(msg, field))
     if v.size and (np.fmin.reduce(v) < 0 or np.fmax.reduce(v) == np.inf):  # fmin/fmax skip NaN
-        raise _corrupt(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
+        raise corrupt_error(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
     return v
 
 
@@ -99,17 +99,17 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
-    m, where = _parse(_pb.TravellingWave, payload, key)
+    m, where = parse_payload(_pb.TravellingWave, payload, key)
     n = int(m.n_nd)
     if n > MAX_BLADES // 2 + 1:
-        raise _corrupt(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
-    _check_len(where, m, "forward_m", n, f"({n},)")
-    _check_len(where, m, "backward_m", n, f"({n},)")
+        raise corrupt_error(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
+    check_len(where, m, "forward_m", n, f"({n},)")
+    check_len(where, m, "backward_m", n, f"({n},)")
     forward, backward = _check_magnitudes(where, m, "forward_m"), _check_magnitudes(where, m, "backward_m")
     if abs(m.dominant_nd) >= max(n, 1):
-        raise _corrupt(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
-    _check_probe_key(where, m, key, "tw")
-    return Decoded(_header(m.header), ProbeWave(probe=int(m.probe), forward_m=forward, backward_m=backward,
+        raise corrupt_error(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
+    check_probe_key(where, m, key, "tw")
+    return Decoded(header_of(m.header), ProbeWave(probe=int(m.probe), forward_m=forward, backward_m=backward,
                                                 nd=int(m.dominant_nd)))
 
 
@@ -185,7 +185,7 @@ def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
     travel too (fields 10-18).
     """
     m = _pb.ResonanceReport()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     m.nd = int(report.nd)
     m.eo = int(report.eo)
     m.cn = float(report.cn)
@@ -208,7 +208,7 @@ def encode_resonance_report(header: Header, report: ResonanceReport) -> bytes:
     m.notes.extend(str(n) for n in report.notes)
     for n in report.non_synchronous:
         _fill_nsv_detection(m.non_synchronous.add(), n)
-    return _serialize(m)
+    return serialize(m)
 
 
 def _fill_nsv_detection(m, n: NsvDetection) -> None:
@@ -237,35 +237,36 @@ def _fill_nsv_detection(m, n: NsvDetection) -> None:
 def encode_nsv(header: Header, nsv: NsvDetection) -> bytes:
     """Encode a non-synchronous vibration (:class:`bttsim.v1.NonSynchronous`, key ``nsv``)."""
     m = _pb.NonSynchronous()
-    _fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
+    fill_header(m.header, header.run_id, header.seq, header.revolution, header.t_s)
     _fill_nsv_detection(m, nsv)
-    return _serialize(m)
+    return serialize(m)
 
 
 def _decode_nsv_body(where: str, m, n) -> NsvDetection:
     """One ``NonSynchronous`` body, checked: sizes against the blade limit, values in range."""
     n_nd = len(n.forward_m)
     if len(n.backward_m) != n_nd or n_nd > MAX_BLADES // 2 + 1:
-        raise _corrupt(where, m, f"non-synchronous spectrum of {n_nd} forward and {len(n.backward_m)} backward NDs")
+        raise corrupt_error(where, m,
+                            f"non-synchronous spectrum of {n_nd} forward and {len(n.backward_m)} backward NDs")
     if len(n.order_alternatives) != len(n.nd_alternatives) or len(n.order_alternatives) > 2 * MAX_BLADES + 4:
-        raise _corrupt(where, m, "non-synchronous order alternatives and their NDs differ in number (or too many)")
+        raise corrupt_error(where, m, "non-synchronous order alternatives and their NDs differ in number (or too many)")
     if not (0 <= n.first_revolution <= n.last_revolution <= MAX_REVOLUTIONS):
-        raise _corrupt(where, m, f"non-synchronous revolutions {n.first_revolution}-{n.last_revolution}")
+        raise corrupt_error(where, m, f"non-synchronous revolutions {n.first_revolution}-{n.last_revolution}")
     if not (math.isfinite(n.order) and 0.0 < n.order <= MAX_BLADES + 1 and 0.0 <= n.alias_per_rev <= 0.5):
-        raise _corrupt(where, m, f"non-synchronous order {n.order!r} / alias {n.alias_per_rev!r}")
+        raise corrupt_error(where, m, f"non-synchronous order {n.order!r} / alias {n.alias_per_rev!r}")
     if abs(n.nd) > MAX_BLADES // 2 or any(abs(a) > MAX_BLADES // 2 for a in n.nd_alternatives):
-        raise _corrupt(where, m, f"non-synchronous ND {n.nd}")
+        raise corrupt_error(where, m, f"non-synchronous ND {n.nd}")
     if not (math.isfinite(n.amp_pkpk_m) and n.amp_pkpk_m >= 0.0):
-        raise _corrupt(where, m, f"non-synchronous amplitude {n.amp_pkpk_m!r}")
+        raise corrupt_error(where, m, f"non-synchronous amplitude {n.amp_pkpk_m!r}")
     n_rev = int(n.last_revolution) - int(n.first_revolution) + 1
     if len(n.rev_amp_pkpk_m) not in (0, n_rev):
-        raise _corrupt(where, m, f"{len(n.rev_amp_pkpk_m)} per-revolution amplitudes for revolutions "
+        raise corrupt_error(where, m, f"{len(n.rev_amp_pkpk_m)} per-revolution amplitudes for revolutions "
                                  f"{n.first_revolution}-{n.last_revolution}")
-    rev_amp = _array(n.rev_amp_pkpk_m)
+    rev_amp = as_array(n.rev_amp_pkpk_m)
     truth = None
     if n.has_truth:
         if n.truth_kind not in ("", "rotating_stall", "flutter", "broadband") or abs(n.truth_nd) > MAX_BLADES // 2:
-            raise _corrupt(where, m, f"non-synchronous truth {n.truth_kind[:40]!r}, ND {n.truth_nd}")
+            raise corrupt_error(where, m, f"non-synchronous truth {n.truth_kind[:40]!r}, ND {n.truth_nd}")
         truth = {"kind": None} if not n.truth_kind else {
             "kind": n.truth_kind, "freq_hz": float(n.truth_freq_hz), "nd": int(n.truth_nd),
             "amp_pkpk_m": float(n.truth_amp_pkpk_m), "amp_last_pkpk_m": float(n.truth_amp_last_pkpk_m)}
@@ -277,7 +278,7 @@ def _decode_nsv_body(where: str, m, n) -> NsvDetection:
         amp_pkpk_m=float(n.amp_pkpk_m), amp_first_pkpk_m=float(n.amp_first_pkpk_m),
         amp_last_pkpk_m=float(n.amp_last_pkpk_m), ratio=float(n.ratio),
         ratio_threshold=float(n.ratio_threshold), coherence=float(n.coherence), blocks=int(n.blocks),
-        forward_m=_array(n.forward_m), backward_m=_array(n.backward_m), rev_amp_pkpk_m=rev_amp,
+        forward_m=as_array(n.forward_m), backward_m=as_array(n.backward_m), rev_amp_pkpk_m=rev_amp,
         revolutions=np.arange(n.first_revolution, n.first_revolution + rev_amp.size, dtype=np.int64), truth=truth)
 
 
@@ -290,48 +291,48 @@ def decode_nsv(payload: bytes, key: str | None = None) -> Decoded:
         Unparsable or oversized payload, missing header, spectra longer than the largest
         wheel's ND count, order / alias / ND / revolutions out of range.
     """
-    m, where = _parse(_pb.NonSynchronous, payload, key)
-    return Decoded(_header(m.header), _decode_nsv_body(where, m, m))
+    m, where = parse_payload(_pb.NonSynchronous, payload, key)
+    return Decoded(header_of(m.header), _decode_nsv_body(where, m, m))
 
 
 def _decode_blades(where: str, m, rows, *, extended: bool):
     nb = len(rows)
     if [b.blade for b in rows] != list(range(nb)):
-        raise _corrupt(where, m, "blades must be numbered 0..n_blades-1 in order")
+        raise corrupt_error(where, m, "blades must be numbered 0..n_blades-1 in order")
     has_truth = [bool(b.has_truth) for b in rows]
     if any(has_truth) and not all(has_truth):
-        raise _corrupt(where, m, "truth on some blades only")
+        raise corrupt_error(where, m, "truth on some blades only")
     nan = np.full(nb, np.nan)
     kw = {}
     rev = nan
     method = "reported"
     if extended and nb:
         if not all(b.has_extended for b in rows):
-            raise _corrupt(where, m, "an entry's blade rows lack their extended fields")
-        kw = {name: _array([getattr(b, name) for b in rows]) for name in _EXTENDED}
-        rev = _array([b.revolution for b in rows])
+            raise corrupt_error(where, m, "an entry's blade rows lack their extended fields")
+        kw = {name: as_array([getattr(b, name) for b in rows]) for name in _EXTENDED}
+        rev = as_array([b.revolution for b in rows])
     if nb and all(b.has_ci95 for b in rows):  # older writers: no intervals (None)
         for name, (lo, hi) in _CI95:
-            kw[name] = np.stack([_array([getattr(b, lo) for b in rows]), _array([getattr(b, hi) for b in rows])], 1)
+            kw[name] = np.stack([as_array([getattr(b, lo) for b in rows]), as_array([getattr(b, hi) for b in rows])], 1)
     if nb and all(b.has_crb for b in rows):  # older writers: no bounds (None)
-        kw["crb_amp_m"] = _array([b.crb_amp_m for b in rows])
-        kw["crb_freq_hz"] = _array([b.crb_freq_hz for b in rows])
-    peaks = ResonancePeaks(revolution=rev, amp_pkpk_m=_array([b.amp_pkpk_m for b in rows]),
-                           freq_hz=_array([b.freq_hz for b in rows]),
+        kw["crb_amp_m"] = as_array([b.crb_amp_m for b in rows])
+        kw["crb_freq_hz"] = as_array([b.crb_freq_hz for b in rows])
+    peaks = ResonancePeaks(revolution=rev, amp_pkpk_m=as_array([b.amp_pkpk_m for b in rows]),
+                           freq_hz=as_array([b.freq_hz for b in rows]),
                            damping_ratio=kw.pop("damping_ratio", nan.copy()), method=method, **kw)
     truth = e_a = e_f = None
     if nb and all(has_truth):
         truth = TruthPeaks(revolution=np.full(nb, -1, np.int64),
-                           amp_pkpk_m=_array([b.truth_amp_pkpk_m for b in rows]),
-                           freq_hz=_array([b.truth_freq_hz for b in rows]))
-        e_a = _array([b.e_a_pct for b in rows])
-        e_f = _array([b.e_f_pct for b in rows])
+                           amp_pkpk_m=as_array([b.truth_amp_pkpk_m for b in rows]),
+                           freq_hz=as_array([b.truth_freq_hz for b in rows]))
+        e_a = as_array([b.e_a_pct for b in rows])
+        e_f = as_array([b.e_f_pct for b in rows])
     return peaks, truth, e_a, e_f
 
 
 def _decode_entry(where: str, m, e) -> ResonanceEntry:
     if e.kind not in ("crossing", "dwell"):
-        raise _corrupt(where, m, f"entry kind {e.kind!r}")
+        raise corrupt_error(where, m, f"entry kind {e.kind!r}")
     peaks, truth, e_a, e_f = _decode_blades(where, m, e.blades, extended=True)
     peaks = replace(peaks, method=e.method)
     return ResonanceEntry(
@@ -359,9 +360,9 @@ def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
         Unparsable or oversized payload, missing header, blades out of order, truth on
         only some blades, an unknown status or entry kind.
     """
-    m, where = _parse(_pb.ResonanceReport, payload, key)
+    m, where = parse_payload(_pb.ResonanceReport, payload, key)
     if m.status not in ("",) + STATUSES:
-        raise _corrupt(where, m, f"status {m.status!r}")
+        raise corrupt_error(where, m, f"status {m.status!r}")
     peaks, truth, e_a, e_f = _decode_blades(where, m, m.blades, extended=False)
     ref = None
     if m.reference_method:
@@ -375,4 +376,4 @@ def decode_resonance_report(payload: bytes, key: str | None = None) -> Decoded:
                              steady=tuple(_decode_entry(where, m, e) for e in m.steady),
                              reference=ref, notes=tuple(m.notes),
                              non_synchronous=tuple(_decode_nsv_body(where, m, n) for n in m.non_synchronous))
-    return Decoded(_header(m.header), report)
+    return Decoded(header_of(m.header), report)

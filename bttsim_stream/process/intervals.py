@@ -148,12 +148,12 @@ def _noise(amp_raw: np.ndarray) -> np.ndarray:
 
 def _parabola_peak(amp: np.ndarray, rev: np.ndarray, half: int) -> np.ndarray:
     """Vertex of a least-squares parabola through ``rev +- half`` of each blade's sequence."""
-    from .resonance import _parabolic
+    from .resonance import parabolic_peak
 
     n, nb = amp.shape
     ok = np.isfinite(rev)
     r = np.clip(np.where(ok, rev, 0).round().astype(np.int64), 0, n - 1)
-    _, val = _parabolic(amp, r, half)
+    _, val = parabolic_peak(amp, r, half)
     return np.where(ok, val, np.nan)
 
 

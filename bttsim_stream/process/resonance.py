@@ -292,7 +292,7 @@ class TruthPeakTracker:
         return NsvTruthRows(kind=kind.astype(str), freq_hz=freq, nd=nd, amp_pkpk_m=amp)
 
 
-def _parabolic(amp: np.ndarray, peak: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+def parabolic_peak(amp: np.ndarray, peak: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     """Vertex of a least-squares parabola through ``peak +- half`` revolutions, per blade."""
     n, nb = amp.shape
     j = np.arange(-half, half + 1)
@@ -386,7 +386,7 @@ def find_peaks(amp_pkpk_m: np.ndarray, freq_hz: np.ndarray, *, method: str = "ma
     zeta = np.full(nb, np.nan)
     fr = f[peak]
     if method == "parabolic":
-        rev, val = _parabolic(amp, peak, int(half_width))
+        rev, val = parabolic_peak(amp, peak, int(half_width))
         fr = np.interp(rev, np.arange(n), f)
     elif method == "sdof":
         a_s, f_s, z_s = _sdof(amp, f, peak)
