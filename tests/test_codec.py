@@ -672,7 +672,7 @@ def test_truth_arrays_read_from_the_bytes_equal_the_parsed_fields():
     rng = np.random.default_rng(3)
     m = _truth_message(rng)
     payload = m.SerializeToString(deterministic=True)
-    assert codec_base._packed_doubles(payload, codec._TRUTH_NUMBERS) is not None  # the fast path
+    assert codec_base.packed_doubles(payload, codec._TRUTH_NUMBERS) is not None  # the fast path
     want = {name: np.array(getattr(m, name)) for name in (*TRUTH_2D, "d_eqv_pkpk_m")}
 
     def check(data):
@@ -687,10 +687,10 @@ def test_truth_arrays_read_from_the_bytes_equal_the_parsed_fields():
     rest.CopyFrom(m)
     rest.ClearField("d_z_m")
     unpacked = b"".join(bytes([num << 3 | 1]) + np.float64(v).tobytes() for v in want["d_z_m"])
-    assert codec_base._packed_doubles(rest.SerializeToString() + unpacked, codec._TRUTH_NUMBERS) is None
+    assert codec_base.packed_doubles(rest.SerializeToString() + unpacked, codec._TRUTH_NUMBERS) is None
     check(rest.SerializeToString() + unpacked)
     half = len(want["d_z_m"]) // 2
     split = b"".join(bytes([num << 3 | 2, 8 * len(p)]) + p.astype("<f8").tobytes()
                      for p in (want["d_z_m"][:half], want["d_z_m"][half:]))
-    assert codec_base._packed_doubles(rest.SerializeToString() + split, codec._TRUTH_NUMBERS) is None
+    assert codec_base.packed_doubles(rest.SerializeToString() + split, codec._TRUTH_NUMBERS) is None
     check(rest.SerializeToString() + split)
