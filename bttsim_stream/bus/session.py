@@ -260,17 +260,23 @@ class Received:
     payload : bytes
     att : tuple of (int, int) or None
         ``(seq, log_time_ns)`` from the attachment (None if missing or malformed).
+    source : str or None
+        The id of the Zenoh session that published it (from its timestamp: sessions stamp
+        what they publish), None if it has no timestamp.
     """
 
     key: str
     payload: bytes
     att: tuple[int, int] | None
+    source: str | None = None
 
     @classmethod
     def of(cls, sample) -> "Received":
         """Copy ``sample`` while Zenoh still owns it (inside its callback: a sample kept past
         the callback that delivered it on Zenoh's own thread can see its buffer reused)."""
-        return cls(str(sample.key_expr), sample.payload.to_bytes(), unpack_attachment(sample.attachment))
+        ts = sample.timestamp
+        return cls(str(sample.key_expr), sample.payload.to_bytes(), unpack_attachment(sample.attachment),
+                   None if ts is None else str(ts.get_id()))
 
 
 class StopFlag:
