@@ -53,7 +53,8 @@ def main(conf, args: argparse.Namespace) -> dict:
     with node_session(conf, stream.rig, "sim", linger_s=0.0, status_file=args.status_file) as node:
         node.announce()
         node.declare(node.session.declare_queryable(
-            meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0))))
+            meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0),
+                                        timestamp=node.session.new_timestamp())))  # stamped: it names this session
         if args.wait_for:
             # the others: not this node, nor a router (which routes, and consumes nothing)
             seen = wait_for_liveliness(node.session, keys.alive_all_key(stream.rig), args.wait_for,
