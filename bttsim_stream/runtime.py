@@ -32,7 +32,7 @@ import zenoh
 
 from .bus import keys
 from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
-    declare_subscriber, open_session, pack_attachment
+    declare_subscriber, opened, pack_attachment
 from .bus.status import STATES as STATUS_STATES
 from .bus.status import NodeStatus, encode_status, write_status_file
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
@@ -308,7 +308,8 @@ class NodeContext:
             with contextlib.suppress(Exception):
                 entity.undeclare()
         if self.watch is not None:
-            self.watch.undeclare()
+            with contextlib.suppress(Exception):
+                self.watch.undeclare()
         self._pubs.clear()
         self._subs.clear()
         self._others.clear()
@@ -320,7 +321,7 @@ def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, linger
     """Open a session and a :class:`NodeContext` for node ``name`` on ``rig``; on exit,
     wait ``linger_s`` if anything was published, undeclare everything and close.
     ``status_file``: where the node's status is also written (``--status-file``)."""
-    with open_session(conf) as session:
+    with opened(conf) as session:
         ctx = NodeContext(session, rig, name, inbox_size=inbox_size, status_file=status_file)
         try:
             yield ctx
