@@ -180,6 +180,7 @@ class NodeContext:
         self.name = name
         self._inbox: queue.Queue = queue.Queue(maxsize=int(inbox_size))
         self._subs: list = []
+        self._history: list[str] = []  # key expressions subscribed with history
         self._pubs: dict[str, object] = {}
         self._others: list = []
         self.watch: NodeWatch | None = None
@@ -195,6 +196,26 @@ class NodeContext:
         """Receive ``key_expr`` into the inbox (``history``: also late-joiner history)."""
         put = self._inbox.put
         self._subs.append(declare_subscriber(self.session, key_expr, lambda s: put(Received.of(s)), history=history))
+        if history:
+            self._history.append(key_expr)
+
+    def catch_up(self, timeout_s: float = 2.0) -> int:
+        """Ask the publishers' caches (zenoh-ext advanced publishers) again for what they hold on
+        the keys subscribed with ``history``; the replies join the inbox (a receiver tells them
+        from samples already in by their numbers). Returns how many came; a query that fails
+        (no route now) is 0."""
+        n = 0
+        for expr in self._history:
+            try:
+                for reply in self.session.get(f"{expr}/@adv/**", consolidation=zenoh.ConsolidationMode.NONE,
+                                              accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout_s):
+                    sample = reply.ok
+                    if sample is not None and keys.key_matches(expr, str(sample.key_expr)):
+                        self._inbox.put(Received.of(sample))
+                        n += 1
+            except zenoh.ZError:
+                pass
+        return n
 
     def publisher(self, key: str, *, cache_samples: int = 64, lossy: bool = False):
         """The publisher of ``key`` (declared on first use)."""

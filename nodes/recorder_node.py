@@ -31,7 +31,10 @@ Stops when the liveliness tokens of the nodes named by ``--until`` (default: the
 ``alive/sim``) have gone -- at once if the whole acquisition stream came in, else after
 ``--drain-timeout`` seconds of silence (they may come back: a router restart) -- after
 ``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every case. After
-SIGKILL the file reads back up to its last complete chunk.
+SIGKILL the file reads back up to its last complete chunk. A recorder that misses numbers (a
+stall, a lost link) asks the publishers' caches for them again -- the simulator's keep its
+last 1024 messages a key -- and counts the rest as missing. Exit status 3 when the recording
+is not complete.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import argparse
 import json
 import logging
 import sys
+import time
 
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.admission import RecordGate
@@ -51,6 +55,12 @@ from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session
 log = logging.getLogger("bttsim.recorder")
 #: How long the recorder waits, in silence, for the rest of a run whose nodes have gone.
 DRAIN_TIMEOUT_S = 30.0
+#: After a gap opened, the publishers' caches are asked again at most this often (s) ...
+CATCH_UP_EVERY_S = 1.0
+#: ... and their answers awaited this long (s).
+CATCH_UP_TIMEOUT_S = 2.0
+#: Exit status of a recording that is not complete (as ``bttsim run``'s).
+EXIT_INCOMPLETE = 3
 
 
 def main(conf, args: argparse.Namespace) -> dict:
@@ -70,10 +80,13 @@ def main(conf, args: argparse.Namespace) -> dict:
         act = _Actions(rec, node, gate, ends)
         whole = lambda: bool(ends) and all(e.done for e in ends.values())  # noqa: E731
         for sample in node.samples(stop, done=whole, patience_s=args.drain_timeout):
-            if sample is None or keys.is_status_key(sample.key):  # status: not part of the run's record
-                continue
-            for verdict in gate.admit(sample.key, sample.payload, sample.att, sample.source):
-                act(verdict)
+            act.take(sample)
+        if gate.missing() and not stop.signal:  # a last look in the publishers' caches
+            act.catch_up(force=True)
+            drained = StopFlag(install=False)
+            drained.set()
+            for sample in node.samples(drained):
+                act.take(sample)
         for verdict in gate.finish():
             act(verdict)
         summary = dict(gate.summary(), **_completeness(gate, ends, None if rig == "*" else rig))
@@ -96,6 +109,26 @@ class _Actions:
 
     def __init__(self, rec: McapRecorder, node, gate: RecordGate, ends: dict) -> None:
         self.rec, self.node, self.gate, self.ends = rec, node, gate, ends
+        self._jumps = 0
+        self._asked = 0.0
+        self.recovered = 0
+
+    def take(self, sample) -> None:
+        """Judge a received sample and act on the verdicts; after a gap opened, ask the
+        publishers' caches for what was missed (at most every :data:`CATCH_UP_EVERY_S`)."""
+        if sample is not None and not keys.is_status_key(sample.key):  # status: not part of the run's record
+            for verdict in self.gate.admit(sample.key, sample.payload, sample.att, sample.source):
+                self(verdict)
+        if self.gate.jumps > self._jumps:
+            self.catch_up()
+
+    def catch_up(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._asked < CATCH_UP_EVERY_S:
+            return
+        self._jumps, self._asked = self.gate.jumps, now
+        n = self.node.catch_up(CATCH_UP_TIMEOUT_S)
+        log.info("a gap opened: asked the publishers' caches, %d message(s) came back", n)
 
     def __call__(self, v) -> None:
         if v.action == "write":
@@ -110,6 +143,8 @@ class _Actions:
             if end is not None and not end.done:
                 end.note(v.key, v.seq)
                 if end.done:
+                    if self.gate.missing():  # the last numbers are in, not all before: ask before saying so
+                        self.catch_up(force=True)
                     self.node.done(key_rig)
         elif v.action == "reject":
             n = self.gate.rejected
@@ -169,7 +204,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_status_argument(p)
 
 
-PROGRAM = NodeProgram("recorder", __doc__, add_arguments, main)
+def _main(conf, args: argparse.Namespace) -> int:
+    """:func:`main` as a program: exit status 3 when the recording is not complete."""
+    return 0 if main(conf, args)["complete"] else EXIT_INCOMPLETE
+
+
+PROGRAM = NodeProgram("recorder", __doc__, add_arguments, _main)
 
 
 def run(argv=None) -> int:

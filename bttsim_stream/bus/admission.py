@@ -171,6 +171,8 @@ class RecordGate:
         self.reasons: dict[str, int] = {}
         self.conflicts_by_key: dict[str, int] = {}
         self.duplicates = 0
+        #: Times a key's numbers jumped (a gap opened): the time to ask the publishers' caches.
+        self.jumps = 0
         self.kept_rejected = 0
         self._kept_bytes = 0
         self._kept_by_key: dict[str, int] = {}
@@ -292,6 +294,8 @@ class RecordGate:
                 return self._reject(key, payload, att, "a second, different payload for a number")
             self.duplicates += 1
             return Verdict("duplicate", key, payload, seq)
+        if seq > st.last + 1:
+            self.jumps += 1  # numbers skipped (for now): a publisher's cache may still hold them
         st.add(seq, digest, t_ns)
         self._last_log_ns = max(self._last_log_ns, t_ns)
         return Verdict("write", key, payload, seq, t_ns)
