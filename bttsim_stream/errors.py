@@ -37,17 +37,17 @@ def exit_status(fn, *args) -> int:
     except BttsimError as exc:
         print(f"bttsim: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # ``bttsim process F.mcap | head``: the reader has all it wanted
+        _quiet_stdout()
+        return 141  # as a shell tool killed by SIGPIPE
     except OSError as exc:
         if exc.errno not in _FILE_ERRNOS:
             raise
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"bttsim: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
-    except BrokenPipeError:  # ``bttsim process F.mcap | head``: the reader has all it wanted
-        _quiet_stdout()
-        return 141  # as a shell tool killed by SIGPIPE
     return status if isinstance(status, int) and not isinstance(status, bool) else 0
 
 
