@@ -21,7 +21,8 @@ received sample is written to its key's channel, is a duplicate, or is refused:
 Refused messages are counted per key and reason; the first :data:`KEEP_REJECTED` of each key
 (at most :data:`KEEP_REJECTED_BYTES` in all) may be kept on a ``rejected/<key>`` channel, which
 the readers of the data (``process``, ``export``, ``view``) never read. Samples that come before
-their run's metadata wait (at most :data:`MAX_EARLY` of them) and are judged when it comes.
+their run's metadata wait (at most :data:`MAX_EARLY` of them, :data:`MAX_EARLY_BYTES` in all) and
+are judged when it comes.
 
 Completeness (:meth:`RecordGate.missing`): per key, the numbers written, kept as a bitmap (a
 number filling a gap -- from a publisher's cache after a stall -- is written late, and the gap
@@ -49,8 +50,9 @@ WINDOW = 4096
 KEEP_REJECTED = 1000
 #: Bytes of refused messages kept in all.
 KEEP_REJECTED_BYTES = 16 << 20
-#: Samples held while their run's metadata has not come.
+#: Samples (and bytes) held while their run's metadata has not come.
 MAX_EARLY = 100_000
+MAX_EARLY_BYTES = 64 << 20
 #: Largest jump of a result key's numbers believed (its count is not known).
 MAX_JUMP = 1 << 16
 
@@ -166,6 +168,7 @@ class RecordGate:
         self.runs: dict[str, _Run] = {}
         self._keys: dict[str, _KeyState] = {}
         self._early: list = []
+        self._early_bytes = 0
         self._early_rigs: set[str] = set()
         self.rejected_by_key: dict[str, int] = {}
         self.reasons: dict[str, int] = {}
@@ -184,21 +187,22 @@ class RecordGate:
         for a run's metadata, those of the samples that waited for it)."""
         verdict = self._judge(key, payload, att, source)
         if verdict.action == "wait":
-            if len(self._early) < MAX_EARLY:
+            if len(self._early) < MAX_EARLY and self._early_bytes + len(payload) <= MAX_EARLY_BYTES:
                 self._early.append((key, payload, att, source))
+                self._early_bytes += len(payload)
                 self._early_rigs.add(key.split("/", 2)[1])
                 return []
             verdict = self._reject(key, payload, att, "received before its run's metadata (too many waiting)")
         out = [verdict]
         if verdict.meta is not None and self._early:
-            waiting, self._early = self._early, []
+            waiting, self._early, self._early_bytes = self._early, [], 0
             for item in waiting:
                 out += self.admit(*item)
         return out
 
     def finish(self) -> list:
         """Verdicts of the samples still waiting for a metadata that never came (refused)."""
-        waiting, self._early = self._early, []
+        waiting, self._early, self._early_bytes = self._early, [], 0
         return [self._reject(k, p, a, "no run metadata received for its rig") for k, p, a, _ in waiting]
 
     def _judge(self, key: str, payload: bytes, att, source) -> Verdict:
