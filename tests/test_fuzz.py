@@ -1111,7 +1111,7 @@ def test_fuzz_recorder_gate(processed_mcap):
     keyset = sorted({m.key for m in real}) + ["bttsim/rig1/toa/99", "bttsim/rig2/opr", "bttsim/rig1/status/sim",
                                              "bttsim/rig1", "other/key", "bttsim/rig1/toa/x"]
     forged = []
-    for i in range(N_GATE):
+    for _ in range(N_GATE):
         m = real[rng.randrange(len(real))]
         payload, _ = mutate_bytes(rng, m.payload) if rng.random() < 0.8 else (m.payload, "as is")
         key = m.key if rng.random() < 0.7 else rng.choice(keyset)
