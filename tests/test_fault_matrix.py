@@ -28,7 +28,7 @@ import pytest
 from _procs import LineWatch, stop
 from bttsim_stream.bus.recording import read_recording
 from test_deployment import ROUTER_ADDR, _node, namespaces  # noqa: F401 (a fixture)
-from test_faults import _node_pid, _wait_mid_run
+from test_faults import _finish, _node_pid, _wait_mid_run
 
 pytestmark = pytest.mark.integration
 
@@ -47,16 +47,6 @@ def _start(tmp_path: Path, tag: str):
                              "--realtime"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
     return proc, out
-
-
-def _finish(proc) -> tuple[int, str]:
-    try:
-        text, _ = proc.communicate(timeout=600)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    return proc.returncode, text
 
 
 def _data(run) -> list:
@@ -83,6 +73,9 @@ def check_honest(rc: int, text: str, out: Path, clean: list, logs=NODES) -> str:
         assert "the recorder node failed" in text, text
         return "incomplete"
     summary = json.loads((out / "summary.json").read_text())
+    if rec["complete"] and summary["complete"]:  # nothing missing: a node failed (the viewer), and the run says so
+        assert "node failed" in text and _data(run) == clean, text
+        return "node failed"
     if rec["complete"]:  # then the result is what is incomplete: the processor lost data, and says how much
         short = summary["revolutions_processed"] < summary["revolutions_expected"]
         assert summary["complete"] is False and (summary["lost"] or short or summary["status"] == "none"), summary
