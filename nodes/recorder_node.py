@@ -59,6 +59,8 @@ DRAIN_TIMEOUT_S = 30.0
 CATCH_UP_EVERY_S = 1.0
 #: ... and their answers awaited this long (s).
 CATCH_UP_TIMEOUT_S = 2.0
+#: Counts of refused messages at which the recorder logs one more line.
+_LOG_AT = frozenset(10 ** k for k in range(1, 13))
 #: Exit status of a recording that is not complete (as ``bttsim run``'s).
 EXIT_INCOMPLETE = 3
 
@@ -148,7 +150,7 @@ class _Actions:
                     self.node.done(key_rig)
         elif v.action == "reject":
             n = self.gate.rejected
-            if n <= 3 or n % 1000 == 0:
+            if n <= 3 or n in _LOG_AT:  # a flood is logged a few times, counted whole
                 log.warning("refused %d message(s); latest on %s (sequence %d): %s", n, v.key[:200], v.seq, v.reason)
             if v.keep:
                 self.rec.write_rejected(v.key, v.payload, v.log_time_ns, seq=v.seq)
