@@ -122,13 +122,15 @@ def run_next(session, args, stop) -> dict:
 
 
 def run_flood(session, args, stop) -> dict:
-    """``--flood KEY``: ``--rate`` messages a second on KEY for ``--seconds`` (garbage, and
-    re-sent copies of the key's real messages under other numbers), from the first match."""
+    """``--flood KEY``: ``--rate`` messages a second on KEY for ``--seconds`` (garbage; with
+    ``--copies`` also re-sent copies of the key's real messages under other numbers), from the
+    first match."""
     pub = session.declare_publisher(args.flood, congestion_control=zenoh.CongestionControl.DROP)
     seen: list = []
     while not stop and not pub.matching_status.matching:  # before a subscriber of its own matches it
         time.sleep(0.01)
-    sub = session.declare_subscriber(args.flood, lambda s: len(seen) < 100 and seen.append(s.payload.to_bytes()))
+    sub = session.declare_subscriber(args.flood, lambda s: args.copies and len(seen) < 100 and
+                                     seen.append(s.payload.to_bytes()))
     put = 0
     t0 = time.monotonic()
     while not stop and time.monotonic() - t0 < args.seconds:
@@ -200,4 +202,6 @@ if __name__ == "__main__":
     p.add_argument("--period", type=float, default=PERIOD_S, help="seconds between two puts (0.01)")
     p.add_argument("--rate", type=float, default=10000.0)
     p.add_argument("--seconds", type=float, default=20.0)
+    p.add_argument("--copies", action="store_true",
+                   help="--flood: every other message a copy of a real one on the key, under another number")
     sys.exit(exit_status(main, p.parse_args()))
