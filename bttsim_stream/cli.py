@@ -19,6 +19,7 @@ import numpy as np
 from . import __version__, scenario
 from ._plotting import PlotExtraMissing
 from .acquisition import simulate_to_mcap
+from .diskspace import check_free_space, estimate_output_bytes
 from .bus.certs import IDENTITIES, generate_certificates
 from .bus.ports import check_web_ports
 from .bus.security import write_config_files
@@ -181,6 +182,10 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
 
 
     scn = _scenario(args.scenario)
+    if not args.force:  # a run that cannot fit is refused before it starts
+        with np.errstate(over="ignore", invalid="ignore"):
+            need = estimate_output_bytes(scn, include_truth=not args.no_truth)
+        check_free_space(args.out, need, what="bttsim simulate")
     t0 = time.perf_counter()
     progress = Progress(not args.quiet)
     out = simulate_to_mcap(scn, args.out, include_truth=not args.no_truth,
@@ -312,7 +317,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     res = run_all(args.scenario, args.out, web=args.web, web_port=args.web_port, grpc_port=args.grpc_port,
                   bind=args.bind, realtime=args.realtime, connect=args.connect, config=args.config,
                   quiet=args.quiet, mode=args.mode, on_serving=on_serving, tls_dir=args.tls_dir,
-                  access_control=not args.no_access_control, connect_timeout_s=args.connect_timeout)
+                  access_control=not args.no_access_control, connect_timeout_s=args.connect_timeout,
+                  force=args.force)
     if served:
         res = served[0]  # the run's result: the Ctrl-C after it only ended the serving
     else:
@@ -329,6 +335,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     recording = res["recording"]
     if not recording["complete"] and "recorder" not in res["failed"]:
         problems.append(f"the recording is incomplete: {recording.get('incomplete') or 'see recorder.log'}")
+    if res.get("write_error"):
+        problems.append(res["write_error"])
     if res["viewer"].get("gaps"):
         problems.append(f"the views miss {res['viewer']['gaps']} messages{_by_key(res['viewer'].get('gaps_by_key'))}")
     if problems:
@@ -467,6 +475,8 @@ def _add_run_parser(sub) -> None:
                    help="mutual TLS and access control for every node, certificates from DIR (bttsim certs DIR)")
     p.add_argument("--no-access-control", action="store_true", help="with --tls-dir, authenticate only")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    p.add_argument("--force", action="store_true",
+                   help="run even when the estimated output size exceeds the free space of --out")
     p.set_defaults(func=_cmd_run)
 
 
@@ -535,6 +545,8 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument("--out", required=True, help="output MCAP file")
     p.add_argument("--no-truth", action="store_true", help="leave the truth channel out")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    p.add_argument("--force", action="store_true",
+                   help="write even when the estimated file size exceeds the free space")
     p.set_defaults(func=_cmd_simulate)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import sys
 
 __all__ = ["BttsimError", "ScenarioError", "ModelFileError", "exit_status"]
@@ -19,10 +20,17 @@ class ModelFileError(BttsimError):
     """A modal model file is missing, corrupt, pickled, or inconsistent."""
 
 
+#: File-system errors that are the environment's, not a bug: a full disk, no permission, a
+#: read-only file system, a missing folder... (one line, status 2, like bad input).
+_FILE_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT,
+                          errno.ENOTDIR, errno.EISDIR, errno.EFBIG, errno.EEXIST))
+
+
 def exit_status(fn, *args) -> int:
     """Run ``fn(*args)`` for a program: its return value if that is an int (an exit status),
     else 0; a
-    :class:`BttsimError` becomes one line ``bttsim: error: ...`` on stderr and status 2;
+    :class:`BttsimError`, or a file-system error of the environment (a full disk, no
+    permission), becomes one line ``bttsim: error: ...`` on stderr and status 2;
     Ctrl-C status 130, a closed output pipe 141 (no traceback)."""
     try:
         status = fn(*args)
@@ -34,6 +42,12 @@ def exit_status(fn, *args) -> int:
     except BrokenPipeError:  # ``bttsim process F.mcap | head``: the reader has all it wanted
         _quiet_stdout()
         return 141  # as a shell tool killed by SIGPIPE
+    except OSError as exc:
+        if exc.errno not in _FILE_ERRNOS:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"bttsim: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     return status if isinstance(status, int) and not isinstance(status, bool) else 0
 
 

@@ -47,12 +47,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from .bus import codec, keys
 from .bus.ports import check_web_ports
 from .bus.security import TlsFiles
-from .bus.session import CONNECT_TIMEOUT_S, declare_subscriber, free_port, make_config, open_session
+from .bus.session import CONNECT_TIMEOUT_S, declare_subscriber, free_port, make_config, opened
 from .bus.status import StatusBoard
 from .children import die_with_parent
+from .diskspace import check_free_space, estimate_output_bytes
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError
 from .runtime import Progress
@@ -74,6 +77,9 @@ RECORDER_KILL_S = 10.0
 #: since the first OPR seen (the start-up is no rate).
 ESTIMATE_AFTER_S = 1.0
 ESTIMATE_AFTER_REVS = 5
+#: The recorder's exit status for a recording it finished, incomplete (its statistics say what
+#: is missing): not a failure of the node.
+RECORDER_INCOMPLETE = 3
 #: How long, after a node ended normally, its final status may still be on its way on the bus
 #: before its status file is read instead (s).
 FINAL_STATUS_WAIT_S = 2.0
@@ -119,13 +125,17 @@ def plan_run(scenario_path: str | None, out_dir: str, *, web: bool = False, web_
              grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
              connect: list[str] | None = None, config: str | None = None, mode: str = "peer",
              tls_dir: str | None = None, access_control: bool = True,
-             connect_timeout_s: float = CONNECT_TIMEOUT_S) -> RunPlan:
+             connect_timeout_s: float = CONNECT_TIMEOUT_S, force: bool = False) -> RunPlan:
     """Check the inputs and prepare the output folder (``scenario.toml`` written, old outputs
     removed); bad input is a :class:`BttsimError` before any node starts."""
     if mode == "client" and not connect:
         raise BttsimError("client mode needs a Zenoh router: -e tcp/HOST:PORT (bttsim router)")
     tls, security = _security(tls_dir, access_control, connect_timeout_s)
     scn = load_scenario(scenario_path) if scenario_path else Scenario()  # bad input: exit 2 now
+    if not force:  # an output that cannot fit, or an absurd force (the simulator refuses it), is refused now
+        with np.errstate(over="ignore", invalid="ignore"):
+            need = estimate_output_bytes(scn, run=True)
+        check_free_space(out_dir, need, what="bttsim run")
     if web:  # a busy port is an error now, not after the run (Rerun would only log it)
         bind = check_web_ports(bind, web_port, grpc_port)
     out, files = _prepare_folder(Path(out_dir), scn)
@@ -204,7 +214,7 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
             connect: list[str] | None = None, config: str | None = None, quiet: bool = False,
             mode: str = "peer", on_serving=None, tls_dir: str | None = None, access_control: bool = True,
-            connect_timeout_s: float = CONNECT_TIMEOUT_S) -> dict:
+            connect_timeout_s: float = CONNECT_TIMEOUT_S, force: bool = False) -> dict:
     """Run the main job; returns the result (:meth:`Run.result`; its summary is also written to
     ``OUT/summary.json``).
 
@@ -217,11 +227,11 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     """
     plan = plan_run(scenario_path, out_dir, web=web, web_port=web_port, grpc_port=grpc_port, bind=bind,
                     realtime=realtime, connect=connect, config=config, mode=mode, tls_dir=tls_dir,
-                    access_control=access_control, connect_timeout_s=connect_timeout_s)
+                    access_control=access_control, connect_timeout_s=connect_timeout_s, force=force)
     run = Run(plan, Progress(not quiet, period_s=5.0))
     with run.handling_signals():
         try:
-            with open_session(plan.conf) as session:
+            with opened(plan.conf) as session:
                 run.start(session)
                 run.watch(session)
                 run.collect()
@@ -261,6 +271,7 @@ class Run:
         self.viewer: dict = {}
         self.failed: dict = {}
         self.result_complete = False  # the processor's own verdict, before the recording's
+        self.write_error = ""  # the summary could not be written (a full disk)
         self._logs: dict = {}
         self._url_shown = not plan.web
 
@@ -346,8 +357,9 @@ class Run:
             self.serving = False
         if not self.serving:
             self._wait("viewer", grace)
-        self.failed = {n: p.returncode for n, p in self.procs.items() if p.returncode not in (0, None)}
         self.recorder = self._final_stats("recorder")
+        self.failed = {n: p.returncode for n, p in self.procs.items() if p.returncode not in (0, None)
+                       and not (n == "recorder" and p.returncode == RECORDER_INCOMPLETE and self.recorder)}
         self.viewer = self._final_stats("viewer")  # its own counts: what the views lost
         self.summary, self.result_complete = self._summary()
         self.finished = True
@@ -383,7 +395,8 @@ class Run:
         return {"summary": self.summary, "files": {k: str(v) for k, v in self.plan.files.items()},
                 "recorder": self.recorder, "viewer": self.viewer, "interrupted": self.interrupted,
                 "failed": self.failed, "wall_s": time.monotonic() - self.t0,
-                "result_complete": self.result_complete, "recording": recording_block(self.recorder)}
+                "result_complete": self.result_complete, "recording": recording_block(self.recorder),
+                "write_error": self.write_error}
 
     # -- helpers -------------------------------------------------------------------------
     def _show_url(self) -> None:
@@ -442,7 +455,7 @@ class Run:
         p = self.procs.get(name)
         if p is None or self.board is None:
             return {}
-        ended_well = p.returncode in (0, None)  # None: the viewer, serving
+        ended_well = p.returncode in (0, None) or (name == "recorder" and p.returncode == RECORDER_INCOMPLETE)
         status = self.board.final(name, wait_s=FINAL_STATUS_WAIT_S if ended_well else 0.0)
         return dict(status.stats) if status is not None else {}
 
@@ -450,16 +463,36 @@ class Run:
         """The processor's summary (or, if it failed, one that says so) with the recording
         block, written back to ``summary.json``; and the processor's own verdict."""
         path = self.plan.files["summary"]
+        summary = None
         if path.exists():
-            summary = json.loads(path.read_text())
-        elif "processor" in self.failed:  # no report: say so in the file a reader looks at
+            try:
+                summary = json.loads(path.read_text())
+            except (OSError, ValueError):  # cut short (a full disk): the processor failed too, or says so below
+                self.failed.setdefault("processor", 2)
+        if summary is None and "processor" in self.failed:  # no report: say so in the file a reader looks at
             summary = no_report_summary(self.n_rev, self.failed["processor"], self.plan.files["mcap"])
-        else:
+        elif summary is None:
             return None, False
         result_complete = bool(summary.get("complete", False))
         summary = with_recording(summary, self.recorder)  # complete only with a complete recording
-        path.write_text(json.dumps(summary, indent=2) + "\n")
+        try:
+            _write_atomically(path, json.dumps(summary, indent=2) + "\n")
+        except OSError as exc:
+            self.write_error = f"{path}: cannot write ({exc.strerror or exc})"
         return summary, result_complete
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    """Write ``path`` through a temporary file and a rename: a full disk leaves the old file
+    (or none), never a cut one."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _signal(proc: subprocess.Popen | None, sig: int) -> None:

@@ -33,7 +33,7 @@ import zenoh
 
 from .bus import keys
 from .bus.session import NodeWatch, Received, StopFlag, add_session_args, config_from_args, declare_publisher, \
-    declare_subscriber, open_session, pack_attachment
+    declare_subscriber, opened, pack_attachment
 from .bus.status import STATES as STATUS_STATES
 from .bus.status import NodeStatus, encode_status, write_status_file
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
@@ -242,6 +242,7 @@ class NodeContext:
         self._inbox_size = int(inbox_size)
         self._live: list = []  # subscribers whose samples wait in Zenoh's FIFOs
         self._subs: list = []
+        self._history: list[str] = []  # key expressions subscribed with history
         self._pubs: dict[str, object] = {}
         self._others: list = []
         self.watch: NodeWatch | None = None
@@ -269,6 +270,26 @@ class NodeContext:
         self._subs.append(sub)
         if fifo:
             self._live.append(sub)
+        if history:
+            self._history.append(key_expr)
+
+    def catch_up(self, timeout_s: float = 2.0) -> int:
+        """Ask the publishers' caches (zenoh-ext advanced publishers) again for what they hold on
+        the keys subscribed with ``history``; the replies join the inbox (a receiver tells them
+        from samples already in by their numbers). Returns how many came; a query that fails
+        (no route now) is 0."""
+        n = 0
+        for expr in self._history:
+            try:
+                for reply in self.session.get(f"{expr}/@adv/**", consolidation=zenoh.ConsolidationMode.NONE,
+                                              accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout_s):
+                    sample = reply.ok
+                    if sample is not None and keys.key_matches(expr, str(sample.key_expr)):
+                        self._inbox.put(Received.of(sample))
+                        n += 1
+            except zenoh.ZError:
+                pass
+        return n
 
     def publisher(self, key: str, *, cache_samples: int = 64, lossy: bool = False):
         """The publisher of ``key`` (declared on first use)."""
@@ -406,7 +427,8 @@ class NodeContext:
             with contextlib.suppress(Exception):
                 entity.undeclare()
         if self.watch is not None:
-            self.watch.undeclare()
+            with contextlib.suppress(Exception):
+                self.watch.undeclare()
         self._pubs.clear()
         self._subs.clear()
         self._others.clear()
@@ -418,7 +440,7 @@ def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, linger
     """Open a session and a :class:`NodeContext` for node ``name`` on ``rig``; on exit,
     wait ``linger_s`` if anything was published, undeclare everything and close.
     ``status_file``: where the node's status is also written (``--status-file``)."""
-    with open_session(conf) as session:
+    with opened(conf) as session:
         ctx = NodeContext(session, rig, name, inbox_size=inbox_size, status_file=status_file)
         try:
             yield ctx

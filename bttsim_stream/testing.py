@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .bus import codec, keys
-from .bus.session import free_port, make_config, open_session
+from .bus.session import free_port, make_config, opened
 from .scenario import Scenario, dumps_toml, load_scenario, scenario_from_dict
 
 __all__ = ["free_port", "VirtualAcquisition", "virtual_acquisition", "virtual_acquisition_fixture"]
@@ -108,7 +108,7 @@ def virtual_acquisition(scenario: str | os.PathLike | dict | None = None, *, rev
         try:
             meta = None
             deadline = time.monotonic() + start_timeout_s
-            with open_session(make_config(connect=[endpoint])) as session:
+            with opened(make_config(connect=[endpoint])) as session:
                 while meta is None and time.monotonic() < deadline:
                     if proc.poll() is not None:
                         raise RuntimeError(f"simulator node exited: {proc.stderr.read().decode()[-500:]}")

@@ -53,6 +53,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         bad = 0
         asked_meta = 0.0
         kinds: dict[str, str] = {}
+        meta_payload, sources = None, set()  # the run's metadata, and the sessions that sent it
         for sample in node.samples(stop, done=lambda: run is not None and run.received_all):
             if sample is None:
                 if run is None and time.monotonic() - asked_meta > 1.0:  # missed the sample? ask
@@ -70,6 +71,9 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                     bad += 1
                 continue
             if kind == "meta":
+                if meta_payload in (None, payload):  # a session that sent the run's metadata published the run
+                    meta_payload = payload
+                    sources.add(sample.source)
                 if run is None:
                     try:
                         run = ProcessorSession(item[2].body, options, score=not args.no_score)
@@ -77,15 +81,15 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                         raise BttsimError(f"cannot process rig {rig}: {exc}") from None
                     run.rejected += bad
                     node.ready()
-                    for e in early:
-                        publish(run.add(*e))
+                    for e, source in early:
+                        publish(_from_the_run(run, e, source, sources))
                     early.clear()
             elif run is not None:
-                publish(run.add(*item))
+                publish(_from_the_run(run, item, sample.source, sources))
                 if run.received_all:
                     node.done()
             elif len(early) < MAX_EARLY:
-                early.append(item)
+                early.append((item, sample.source))
                 if time.monotonic() - asked_meta > 1.0:  # joined late: ask the queryable
                     asked_meta = time.monotonic()
                     node.query(keys.meta_key(rig))
@@ -99,6 +103,15 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             print(summary_table(summary), flush=True)
         node.status("done", _final_stats(summary, args.summary))
     return summary
+
+
+def _from_the_run(run: ProcessorSession, item: tuple, source: str | None, sources: set) -> list:
+    """Add a decoded message to the run, unless it is acquisition data of a Zenoh session that
+    did not publish the run (its samples' timestamps name the session): refused, counted."""
+    if item[0] in ("opr", "toa", "truth") and source not in sources:
+        run.reject(BttsimError(f"{item[1]}: not from the session that published the run"))
+        return []
+    return run.add(*item)
 
 
 def _final_stats(summary: dict | None, path: str | None) -> dict:

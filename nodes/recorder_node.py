@@ -1,24 +1,40 @@
-"""Recorder node: writes every ``bttsim/<rig>/**`` sample to an MCAP file, as received.
+"""Recorder node: writes every valid ``bttsim/<rig>/**`` message to an MCAP file.
 
 Inputs: every key of the rig (run metadata, OPR, TOA batches, truth, fits, travelling waves,
 resonance reports); the run metadata sample is also written as the ``bttsim.run`` metadata
 record. Output: ``OUT.mcap`` with zstd chunks, one channel per key, the protobuf schemas
-embedded, log time = simulated time (from the sample attachment; payloads are not decoded).
+embedded, log time = simulated time (from the sample attachment), payloads as received.
+
+Only valid messages go into a key's channel: each one is decoded and checked against the run
+as the processor checks it (:class:`~bttsim_stream.bus.admission.RecordGate`: run id,
+sequence number and time against the header, probe, blade count, revolution, the publishing
+session); the rest are refused, counted per key and reason, and the first ones kept on
+``rejected/<key>`` channels that no reader of the data reads. A second, different payload for
+a number already written is a conflict (the first one stays), counted.
+
 Completeness: the run metadata fixes the count of the metadata, OPR, TOA and truth keys
 (``n_revolutions`` each, numbered from 0); the recording is complete when every one of them
-is whole to its last number and nothing is missing on the other keys (result keys: fits,
+is whole to its last number, nothing is missing on the other keys (result keys: fits,
 travelling waves, resonance reports -- checked before their first and between their numbers
-received; their count is not known). A run with no metadata received is incomplete. A key of
-no run (another rig, a probe the run does not have) cannot make it incomplete: it is listed
-in ``foreign_keys``. The statistics -- ``complete``, ``missing`` and ``missing_by_key`` (head,
-gaps, tail per key), ``foreign_keys``, sequence gaps, duplicates, rejected -- are logged, printed
-as one JSON line on stdout, written as the ``bttsim.recorder`` metadata record and sent as the ``stats`` of the node's
-final status (``bttsim/<rig>/status/recorder``, state ``done``; also to ``--status-file``).
-Status keys themselves are not recorded. Liveliness: ``bttsim/<rig>/alive/recorder``.
+received; their count is not known) and nothing conflicted. A number that fills a gap late (a
+publisher's cache replayed after the recorder stalled) closes it. A run with no metadata
+received is incomplete. Keys of no run (another rig, a probe the run does not have) are
+refused and listed in ``foreign_keys``. The statistics -- ``complete``, ``missing`` and
+``missing_by_key`` (head, gaps, tail per key), ``foreign_keys``, sequence gaps, duplicates,
+``rejected`` (``rejected_by_key``, ``rejected_reasons``), ``conflicts`` -- are logged, printed
+as one JSON line on stdout, written as the ``bttsim.recorder`` metadata record and sent as
+the ``stats`` of the node's final status (``bttsim/<rig>/status/recorder``, state ``done``;
+also to ``--status-file``). Status keys themselves are not recorded. Liveliness:
+``bttsim/<rig>/alive/recorder``.
 
 Stops when the liveliness tokens of the nodes named by ``--until`` (default: the simulator,
-``alive/sim``) have gone, after ``--duration`` seconds, or on SIGINT / SIGTERM; the file is
-finalised in every case. After SIGKILL the file reads back up to its last complete chunk.
+``alive/sim``) have gone -- at once if the whole acquisition stream came in, else after
+``--drain-timeout`` seconds of silence (they may come back: a router restart) -- after
+``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every case. After
+SIGKILL the file reads back up to its last complete chunk. A recorder that misses numbers (a
+stall, a lost link) asks the publishers' caches for them again -- the simulator's keep its
+last 1024 messages a key -- and counts the rest as missing. Exit status 3 when the recording
+is not complete.
 """
 
 from __future__ import annotations
@@ -29,23 +45,32 @@ import logging
 import sys
 import time
 
-from bttsim_stream.bus import codec, keys
-from bttsim_stream.bus.recording import MAX_SEQ, McapRecorder
+from bttsim_stream.bus import keys
+from bttsim_stream.bus.admission import RecordGate
+from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.bus.stream import SequenceTracker, StreamEnd, acquisition_counts
+from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
+#: How long the recorder waits, in silence, for the rest of a run whose nodes have gone.
+DRAIN_TIMEOUT_S = 30.0
+#: After a gap opened, the publishers' caches are asked again at most this often (s) ...
+CATCH_UP_EVERY_S = 1.0
+#: ... and their answers awaited this long (s).
+CATCH_UP_TIMEOUT_S = 2.0
+#: Counts of refused messages at which the recorder logs one more line.
+_LOG_AT = frozenset(10 ** k for k in range(1, 13))
+#: Exit status of a recording that is not complete (as ``bttsim run``'s).
+EXIT_INCOMPLETE = 3
 
 
 def main(conf, args: argparse.Namespace) -> dict:
-    """Record until stopped; returns (and prints as JSON) the gap statistics."""
+    """Record until stopped; returns (and prints as JSON) the statistics."""
     rig = args.rig if args.rig == "*" else keys.validate_rig(args.rig)
     until = tuple(n for n in args.until.split(",") if n)
     stop = StopFlag(args.duration)
-    stats = SequenceTracker()
-    rejected = 0
-    meta_done: set[str] = set()
+    gate = RecordGate(None if rig == "*" else rig)
     ends: dict[str, StreamEnd] = {}  # per rig: has the whole acquisition stream come in?
     with McapRecorder(args.out) as rec, \
             node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue,
@@ -54,37 +79,19 @@ def main(conf, args: argparse.Namespace) -> dict:
         if until:
             node.watch_nodes(until)
         node.announce()
-        for sample in node.samples(stop):
-            if sample is None:
-                continue
-            key, att = sample.key, sample.att
-            if keys.is_status_key(key):  # the nodes' own state: not part of the run's record
-                continue
-            seq, t_ns = att if att is not None else (None, time.time_ns())
-            if (seq is not None and seq >= MAX_SEQ) or t_ns < 0:  # untrusted: MCAP cannot hold it
-                rejected += 1
-                if rejected <= 3:
-                    log.warning("rejected a sample on %s (sequence %s, time %s ns)", key, seq, t_ns)
-                continue
-            if not stats.accept(key, seq):
-                continue
-            payload = sample.payload
-            if key.endswith("/meta") and key not in meta_done:
-                info = codec.decode_run_metadata(payload, key).body
-                rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
-                meta_done.add(key)
-                ends[info.rig] = StreamEnd(info)
-                stats.expect(acquisition_counts(info))
-                node.ready()
-            rec.write(key, payload, t_ns, seq=seq or 0)
-            key_rig = key.split("/", 2)[1]
-            end = ends.get(key_rig)
-            if end is not None and not end.done:
-                end.note(key, seq)
-                if end.done:
-                    node.done(key_rig)
-        summary = dict(stats.summary(), rejected=rejected + stats.implausible,
-                       **_completeness(stats, ends, None if rig == "*" else rig))
+        act = _Actions(rec, node, gate, ends)
+        whole = lambda: bool(ends) and all(e.done for e in ends.values())  # noqa: E731
+        for sample in node.samples(stop, done=whole, patience_s=args.drain_timeout):
+            act.take(sample)
+        if gate.missing() and not stop.signal:  # a last look in the publishers' caches
+            act.catch_up(force=True)
+            drained = StopFlag(install=False)
+            drained.set()
+            for sample in node.samples(drained):
+                act.take(sample)
+        for verdict in gate.finish():
+            act(verdict)
+        summary = dict(gate.summary(), **_completeness(gate, ends, None if rig == "*" else rig))
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
         node.status("done", summary)
     if summary["complete"]:
@@ -92,20 +99,70 @@ def main(conf, args: argparse.Namespace) -> dict:
     else:
         log.warning("recorded %d messages on %d keys to %s; INCOMPLETE: %s", summary["messages"], summary["keys"],
                     args.out, summary["incomplete"])
+    if summary["rejected"]:
+        log.warning("refused %d message(s) (%s); %d kept on rejected/ channels", summary["rejected"],
+                    ", ".join(f"{n} {why}" for why, n in summary["rejected_reasons"].items()), summary["rejected_kept"])
     print(json.dumps(summary), flush=True)
     return summary
 
 
-def _completeness(stats: SequenceTracker, ends: dict[str, StreamEnd], rig: str | None) -> dict:
+class _Actions:
+    """Carry out the gate's verdicts: write, keep a refused copy, note the stream's end."""
+
+    def __init__(self, rec: McapRecorder, node, gate: RecordGate, ends: dict) -> None:
+        self.rec, self.node, self.gate, self.ends = rec, node, gate, ends
+        self._jumps = 0
+        self._asked = 0.0
+        self.recovered = 0
+
+    def take(self, sample) -> None:
+        """Judge a received sample and act on the verdicts; after a gap opened, ask the
+        publishers' caches for what was missed (at most every :data:`CATCH_UP_EVERY_S`)."""
+        if sample is not None and not keys.is_status_key(sample.key):  # status: not part of the run's record
+            for verdict in self.gate.admit(sample.key, sample.payload, sample.att, sample.source):
+                self(verdict)
+        if self.gate.jumps > self._jumps:
+            self.catch_up()
+
+    def catch_up(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._asked < CATCH_UP_EVERY_S:
+            return
+        self._jumps, self._asked = self.gate.jumps, now
+        n = self.node.catch_up(CATCH_UP_TIMEOUT_S)
+        log.info("a gap opened: asked the publishers' caches, %d message(s) came back", n)
+
+    def __call__(self, v) -> None:
+        if v.action == "write":
+            if v.meta is not None:
+                info = v.meta
+                self.rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
+                self.ends[info.rig] = StreamEnd(info)
+                self.node.ready()
+            self.rec.write(v.key, v.payload, v.log_time_ns, seq=v.seq)
+            key_rig = v.key.split("/", 2)[1]
+            end = self.ends.get(key_rig)
+            if end is not None and not end.done:
+                end.note(v.key, v.seq)
+                if end.done:
+                    if self.gate.missing():  # the last numbers are in, not all before: ask before saying so
+                        self.catch_up(force=True)
+                    self.node.done(key_rig)
+        elif v.action == "reject":
+            n = self.gate.rejected
+            if n <= 3 or n in _LOG_AT:  # a flood is logged a few times, counted whole
+                log.warning("refused %d message(s); latest on %s (sequence %d): %s", n, v.key[:200], v.seq, v.reason)
+            if v.keep:
+                self.rec.write_rejected(v.key, v.payload, v.log_time_ns, seq=v.seq)
+
+
+def _completeness(gate: RecordGate, ends: dict[str, StreamEnd], rig: str | None) -> dict:
     """The statistics' completeness keys: ``complete``, ``missing``, ``missing_by_key``
-    (``{key: {"head", "gaps", "tail"}}``), ``run_metadata`` (the rigs whose metadata came)
-    and ``incomplete`` (one line saying why, "" if complete)."""
-    expected: dict[str, int] = {}
-    for end in ends.values():
-        expected.update(end.counts)
-    missing, foreign = {}, {}
-    for key, m in stats.missing(expected).items():
-        (missing if _of_the_run(key, expected, ends) else foreign)[key] = m
+    (``{key: {"head", "gaps", "tail"}}``), ``run_metadata`` (the rigs whose metadata came),
+    ``foreign_keys`` (keys refused as of no run) and ``incomplete`` (one line saying why, ""
+    if complete). Conflicts (a second, different payload for a number) make it incomplete: the
+    file may hold a forged message in place of the real one."""
+    missing = gate.missing()
     why = []
     if not ends or (rig is not None and rig not in ends):
         why.append(f"no run metadata received{f' for {rig}' if rig else ''}")
@@ -113,9 +170,13 @@ def _completeness(stats: SequenceTracker, ends: dict[str, StreamEnd], rig: str |
         total = sum(m.total for m in missing.values())
         why.append(f"{total} messages missing (" + ", ".join(
             f"{k.split('/', 2)[-1]} {m.total}" for k, m in missing.items()) + ")")
+    if gate.conflicts:
+        why.append(f"{gate.conflicts} conflicting message(s) (" + ", ".join(
+            f"{k.split('/', 2)[-1]} {n}" for k, n in gate.conflicts_by_key.items()) + ")")
+    foreign = sorted(k for k in gate.rejected_by_key if not _of_the_run(k, gate.expected(), ends))
     return {"complete": not why, "missing": sum(m.total for m in missing.values()),
             "missing_by_key": {k: m.to_dict() for k, m in missing.items()}, "run_metadata": sorted(ends),
-            "foreign_keys": sorted(foreign), "incomplete": "; ".join(why)}
+            "foreign_keys": foreign[:100], "incomplete": "; ".join(why)}
 
 
 def _of_the_run(key: str, expected: dict[str, int], ends: dict[str, StreamEnd]) -> bool:
@@ -137,12 +198,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the recording ('sim'; '' = only a signal "
                         "or --duration)")
+    p.add_argument("--drain-timeout", type=float, default=DRAIN_TIMEOUT_S, metavar="S",
+                   help="when the nodes it follows are gone before the whole run came in (a router restart, a "
+                        f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
     p.add_argument("--queue", type=int, default=1 << 20, metavar="N",
                    help="samples buffered before the network is slowed down (1048576)")
     add_status_argument(p)
 
 
-PROGRAM = NodeProgram("recorder", __doc__, add_arguments, main)
+def _main(conf, args: argparse.Namespace) -> int:
+    """:func:`main` as a program: exit status 3 when the recording is not complete."""
+    return 0 if main(conf, args)["complete"] else EXIT_INCOMPLETE
+
+
+PROGRAM = NodeProgram("recorder", __doc__, add_arguments, _main)
 
 
 def run(argv=None) -> int:

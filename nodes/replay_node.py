@@ -52,7 +52,8 @@ def main(conf, args: argparse.Namespace) -> dict:
             node.declare(node.session.liveliness().declare_token(keys.alive_key(r, "sim")))
         for m in metas:
             node.declare(node.session.declare_queryable(
-                m.key, lambda q, p=m.payload, s=m.seq: q.reply(q.key_expr, p, attachment=pack_attachment(s, 0))))
+                m.key, lambda q, p=m.payload, s=m.seq: q.reply(q.key_expr, p, attachment=pack_attachment(s, 0),
+                                                               timestamp=node.session.new_timestamp())))
         for k in dict.fromkeys(m.key for m in data):  # metadata first, then data, as live
             node.publisher(k)
         data_keys = list(dict.fromkeys(m.key for m in data))

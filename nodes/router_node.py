@@ -17,7 +17,7 @@ import sys
 
 from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
-from bttsim_stream.bus.session import StopFlag, config_from_args, open_session
+from bttsim_stream.bus.session import StopFlag, config_from_args, opened
 from bttsim_stream.bus.security import tls_from_args
 from bttsim_stream.runtime import NodeProgram, run_node
 
@@ -32,7 +32,7 @@ def main(conf, args: argparse.Namespace) -> None:
     listen = args.listen or [default]
     conf = config_from_args(args, mode="router", listen=listen)
     stop = StopFlag(args.duration)
-    with open_session(conf) as session:
+    with opened(conf) as session:
         token = session.liveliness().declare_token(keys.alive_key(rig, "router"))
         log.info("routing on %s", ", ".join(listen))
         print("router ready", flush=True)

@@ -36,6 +36,9 @@ log = logging.getLogger("bttsim.sim")
 #: How long the simulator waits, after the metadata, for the nodes it waited for to confirm it
 #: (``bttsim/<rig>/ready/<node>``; the project's nodes do; a foreign subscriber may not).
 READY_TIMEOUT_S = 5.0
+#: Messages each acquisition key keeps for late joiners and for consumers catching up after a
+#: stall or a lost link (a recorder asks for them again): about 40 s of a 1500 rpm run.
+CACHE_SAMPLES = 1024
 #: With ``--lossy``, the longest wait for the consumers' ``done`` tokens after the run (s).
 LOSSY_DRAIN_S = 5.0
 
@@ -53,7 +56,8 @@ def main(conf, args: argparse.Namespace) -> dict:
     with node_session(conf, stream.rig, "sim", linger_s=0.0, status_file=args.status_file) as node:
         node.announce()
         node.declare(node.session.declare_queryable(
-            meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0))))
+            meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0),
+                                        timestamp=node.session.new_timestamp())))  # stamped: it names this session
         if args.wait_for:
             # the others: not this node, nor a router (which routes, and consumes nothing)
             seen = wait_for_liveliness(node.session, keys.alive_all_key(stream.rig), args.wait_for,
@@ -84,7 +88,8 @@ def main(conf, args: argparse.Namespace) -> dict:
             if rate and stop.wait(max(0.0, t_wall0 + float(batch.opr_s[-1]) / rate - time.monotonic())):
                 break
             for m in msgs:
-                node.publisher(m.key, lossy=args.lossy).put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+                node.publisher(m.key, cache_samples=CACHE_SAMPLES, lossy=args.lossy).put(
+                    m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
             sent += len(msgs)
             progress.update(f"revolution {int(batch.revolution[-1]) + 1}/{stream.info.n_revolutions}")
         progress.close()

@@ -1087,3 +1087,56 @@ def test_issue_model_without_blade_alone_frequencies(workdir):
     _save(path, arrays)
     o = run_case("empty blade_alone_freq_hz", ["model", "show", path, "--png", workdir / "x.png"])
     assert o.problem is None and o.status == 2 and "blade_alone_freq_hz" in o.err, o.err
+
+
+# --------------------------------------------------------------------------------------
+# The recorder's gate: every bus message untrusted
+# --------------------------------------------------------------------------------------
+
+N_GATE = 3000
+
+
+def test_fuzz_recorder_gate(processed_mcap):
+    """Mutated payloads (mutate_bytes), wrong keys, numbers and times, other sessions: the
+    recorder's gate never raises, never writes a message that does not decode or that is not
+    its run's, and keeps writing the real stream whole (``missing`` stays empty)."""
+    from bttsim_stream.bus.admission import RecordGate
+
+    rng = random.Random(SEED + 9)
+    real = read_recording(processed_mcap).messages
+    meta = next(m for m in real if m.key.endswith("/meta"))
+    run_id = codec.decode_run_metadata(meta.payload, meta.key).body.run_id
+    gate = RecordGate("rig1")
+    written = {}
+    keyset = sorted({m.key for m in real}) + ["bttsim/rig1/toa/99", "bttsim/rig2/opr", "bttsim/rig1/status/sim",
+                                             "bttsim/rig1", "other/key", "bttsim/rig1/toa/x"]
+    forged = []
+    for _ in range(N_GATE):
+        m = real[rng.randrange(len(real))]
+        payload, _ = mutate_bytes(rng, m.payload) if rng.random() < 0.8 else (m.payload, "as is")
+        key = m.key if rng.random() < 0.7 else rng.choice(keyset)
+        seq = rng.choice([m.seq, m.seq + 1, rng.randrange(-5, 1 << 20), 2**64 - 1, 0])
+        t = rng.choice([m.log_time_ns, 0, -1, 2**63 - 1, rng.randrange(1 << 40)])
+        att = None if rng.random() < 0.05 else (seq, t)
+        forged.append((key, payload, att, rng.choice(["sim", "forger", None])))
+    stream = [(m.key, m.payload, (m.seq, m.log_time_ns), "sim") for m in real]
+    mixed = []
+    for item in stream:  # the real stream in order, forgeries interleaved
+        mixed.append(item)
+        while forged and rng.random() < 0.6:
+            mixed.append(forged.pop())
+    mixed += forged
+    for key, payload, att, source in mixed:
+        for v in gate.admit(key, payload, att, source):
+            assert v.action in ("write", "duplicate", "reject"), v
+            if v.action == "write":
+                d = codec.decode_message(v.key, v.payload)
+                assert d.header.run_id == run_id and d.header.seq == v.seq, v.key
+                assert written.setdefault((v.key, v.seq), v.payload) == v.payload
+    gate.finish()
+    real_set = {(m.key, m.seq): m.payload for m in real}
+    assert all(real_set.get(k) == p or k[0].rsplit("/", 1)[-1] not in ("opr", "truth", "meta") for k, p in
+               written.items())
+    assert gate.missing() == {} or all("/toa/" not in k and not k.endswith(("/opr", "/truth"))
+                                       for k in gate.missing()), gate.missing()
+    assert gate.rejected > N_GATE // 2, gate.summary()

@@ -209,7 +209,7 @@ def test_nodes_stop_cleanly_on_sigterm_and_sigint(tmp_path):
         assert len(oprs) >= 20
         t0 = time.monotonic()
         assert _stop(sim, signal.SIGTERM) == 0
-        assert _stop(rec, signal.SIGINT) == 0
+        assert _stop(rec, signal.SIGINT) == 3  # finalised; the run was cut short: not complete, and it says so
         assert time.monotonic() - t0 < 10
     finally:
         _stop(sim), _stop(rec)

@@ -348,3 +348,99 @@ def test_the_bulk_writer_uses_mcap_internals_of_the_tested_release(messages, tmp
         assert rec._append_records(msgs[-50:]), (
             f"mcap {version('mcap')}: the Writer's private chunk builder/statistics moved; the recorder "
             "falls back to add_message (correct, slower): update _append_records or the mcap bound")
+
+
+# -- what the recorder writes: RecordGate ---------------------------------------------------
+
+@pytest.fixture(scope="module")
+def run_messages():
+    """A short run's metadata and acquisition messages (5 probes, truth)."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.scenario import scenario_from_dict
+
+    scn = scenario_from_dict({"speed": {"start_rpm": 2400.0, "end_rpm": 2500.0, "duration_s": 0.5}})
+    acq = AcquisitionStream(scn, include_truth=True, n_revolutions=12)
+    return acq.meta, [m for _, ms in acq.batches() for m in ms]
+
+
+def _admit(gate, m, source="sim", seq=None, t=None):
+    return gate.admit(m.key, m.payload, (m.seq if seq is None else seq, m.log_time_ns if t is None else t), source)
+
+
+def test_the_gate_writes_a_clean_run_whole_and_in_order(run_messages):
+    from bttsim_stream.bus.admission import RecordGate
+
+    meta, msgs = run_messages
+    gate = RecordGate("rig1")
+    assert [v.action for m in msgs[:5] for v in _admit(gate, m)] == []  # before the metadata: they wait
+    out = _admit(gate, meta)
+    assert out[0].action == "write" and out[0].meta is not None and [v.action for v in out[1:]] == ["write"] * 5
+    for m in msgs[5:]:
+        assert [v.action for v in _admit(gate, m)] == ["write"]
+    assert gate.missing() == {} and gate.rejected == 0 and gate.conflicts == 0
+    assert gate.summary()["messages"] == len(msgs) + 1
+
+
+def test_the_gate_refuses_forgeries_and_counts_them(run_messages):
+    from bttsim_stream.bus import codec
+    from bttsim_stream.bus.admission import KEEP_REJECTED, RecordGate
+
+    meta, msgs = run_messages
+    gate = RecordGate("rig1")
+    _admit(gate, meta)
+    toa0 = [m for m in msgs if m.key == "bttsim/rig1/toa/0"]
+    first = toa0[0]
+    cases = {  # (key, payload, att, source) -> the reason counted
+        "not from the session that published the run": (first.key, first.payload, (0, first.log_time_ns), "forger"),
+        "does not decode": (first.key, b"\x08\x96\x01garbage", (1, 0), "sim"),
+        "header and attachment numbers differ": (first.key, toa0[5].payload, (1, toa0[5].log_time_ns), "sim"),
+        "header and attachment times differ": (first.key, first.payload, (0, 12345), "sim"),
+        "a probe the run does not have": ("bttsim/rig1/toa/7", codec.encode_toa_batch(
+            codec.Header(meta_run_id(meta), 0, 0, 0.0), 7, [0.0] * 29), (0, 0), "sim"),
+        "another rig": ("bttsim/rig2/opr", first.payload, (0, 0), "sim"),
+        "no sequence-number attachment": (first.key, first.payload, None, "sim"),
+    }
+    for reason, (key, payload, att, source) in cases.items():
+        (v,) = gate.admit(key, payload, att, source)
+        assert v.action == "reject" and v.reason == reason, (reason, v)
+    # the real messages are all still written
+    for m in msgs:
+        assert [v.action for v in _admit(gate, m)] == ["write"], m.key
+    # a second, different, well-formed payload for a written number: a conflict, the first stays
+    forged = codec.encode_toa_batch(codec.Header(meta_run_id(meta), 3, 3, codec.decode_message(
+        first.key, toa0[3].payload).header.t_s), 0, [1.0] * 29)
+    (v,) = gate.admit(first.key, forged, (3, toa0[3].log_time_ns), "sim")
+    assert v.action == "reject" and gate.conflicts_by_key == {first.key: 1}
+    assert [v.action for v in _admit(gate, toa0[3])] == ["duplicate"]
+    # a flood: counted whole, kept bounded
+    kept = sum(v.keep for i in range(KEEP_REJECTED + 500) for v in gate.admit("bttsim/rig1/fit", b"zz", (i, 0), "x"))
+    assert kept == KEEP_REJECTED and gate.rejected_by_key["bttsim/rig1/fit"] == KEEP_REJECTED + 500
+    assert gate.missing() == {}
+
+
+def meta_run_id(meta) -> str:
+    from bttsim_stream.bus import codec
+
+    return codec.decode_run_metadata(meta.payload, meta.key).body.run_id
+
+
+def test_the_gate_counts_head_gaps_and_tail_and_a_late_number_closes_its_gap(run_messages):
+    from bttsim_stream.bus.admission import RecordGate
+
+    meta, msgs = run_messages
+    gate = RecordGate("rig1")
+    _admit(gate, meta)
+    opr = [m for m in msgs if m.key == "bttsim/rig1/opr"]
+    n = len(opr)
+    for m in msgs:
+        if not (m.key == "bttsim/rig1/opr" and m.seq in (0, 4, 5, n - 1)):
+            _admit(gate, m)
+    assert gate.missing()["bttsim/rig1/opr"].to_dict() == {"head": 1, "gaps": 2, "tail": 1}
+    assert gate.jumps == 2  # the first number came after 0, then 3 -> 6
+    for m in opr:  # a publisher's cache, replayed: the missing ones are written, the rest duplicates
+        _admit(gate, m)
+    assert gate.missing() == {} and gate.duplicates == n - 4
+    # a key whose metadata never came: refused at the end, not written
+    other = RecordGate("rig1")
+    _admit(other, opr[0])
+    assert [(v.action, v.reason) for v in other.finish()] == [("reject", "no run metadata received for its rig")]

@@ -153,10 +153,11 @@ def test_forgers_are_refused_and_a_secured_run_is_bit_identical_to_a_clean_one(s
     assert result(out) == clean
 
 
-def test_without_security_the_same_forger_changes_the_recording(scenario, clean, tmp_path):
+def test_without_security_the_same_forger_reaches_the_run_and_the_recorder_refuses_it(scenario, clean, tmp_path):
     """The control experiment: the forger of the test above, against the same layout without
-    security, gets its messages recorded (only its batches of a probe that does not exist:
-    what the rest would do to an unsecured run is the forgery tests' business)."""
+    security, gets its messages to the recorder (only its batches of a probe that does not
+    exist: the rest is the forgery tests' business), which refuses them: counted, kept on
+    ``rejected/`` channels, the data channels the clean run's."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = start_router(endpoint)
     forger = start_forger(scenario, endpoint, "--only", "toa/7", "--once")
@@ -172,8 +173,9 @@ def test_without_security_the_same_forger_changes_the_recording(scenario, clean,
     _, messages = result(out)
     assert res.returncode == 0, res.stdout + res.stderr
     assert stats["put"] == stats["matched"] == 100, stats
-    forged = set(messages) - set(clean[1])
-    assert {m[0] for m in forged} == {"bttsim/rig1/toa/7"}, len(forged)
+    assert messages == clean[1]
+    refused = [m for m in read_recording(out / "run.mcap", "rejected/**").messages]
+    assert {m.key for m in refused} == {"rejected/bttsim/rig1/toa/7"} and len(refused) == 100
 
 
 def test_a_node_refused_by_an_mtls_peer_fails_instead_of_recording_nothing(scenario, certs, foreign_certs, tmp_path):

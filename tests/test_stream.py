@@ -326,30 +326,3 @@ def test_processor_session_refuses_messages_of_another_run_before_they_take_a_nu
     assert got["rejected"] == 2 and got["duplicates"] == 0 and got["complete"]
     assert got["blades"] == clean["blades"] and got["resonances"] == clean["resonances"]
 
-
-def test_a_key_of_no_run_cannot_make_the_recording_incomplete():
-    """A forger's ``toa/7`` of a 5-probe run, with its first numbers missed, is foreign; a gap on
-    the run's own key is missing."""
-    import importlib
-
-    from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
-
-    recorder = importlib.import_module("bttsim_stream.nodes.recorder_node")
-
-    class Meta:
-        rig, n_revolutions, n_probes, has_truth = "rig1", 4, 5, False
-
-    ends = {"rig1": StreamEnd(Meta())}
-    stats = SequenceTracker()
-    stats.expect(ends["rig1"].counts)
-    for key in ends["rig1"].counts:
-        for seq in range(4 if key.endswith("/meta") is False else 1):
-            stats.accept(key, seq)
-    for seq in range(3, 100):  # the forger's first three were missed
-        stats.accept("bttsim/rig1/toa/7", seq)
-    out = recorder._completeness(stats, ends, "rig1")
-    assert out["complete"] and out["missing"] == 0 and out["foreign_keys"] == ["bttsim/rig1/toa/7"], out
-    for seq in (0, 2):  # fit: one number skipped
-        stats.accept("bttsim/rig1/fit", seq)
-    out = recorder._completeness(stats, ends, "rig1")
-    assert not out["complete"] and out["missing_by_key"] == {"bttsim/rig1/fit": {"head": 0, "gaps": 1, "tail": 0}}

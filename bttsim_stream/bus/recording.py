@@ -56,6 +56,8 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 RUN_METADATA_NAME = "bttsim.run"
 #: MCAP message sequence numbers are unsigned 32-bit.
 MAX_SEQ = 1 << 32
+#: Channels of messages a recorder refused (``rejected/<key>``): never read as data.
+REJECTED_PREFIX = "rejected/"
 #: Target uncompressed chunk size, bytes: a killed recorder loses at most about this much.
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 _ENCODING = "protobuf"
@@ -257,6 +259,20 @@ class McapRecorder:
         self._guard(self._writer.add_message, channel_id=channel_id, log_time=log_time,
                     data=bytes(payload), publish_time=publish, sequence=int(seq))
         self.n_messages += 1
+
+    def write_rejected(self, key: str, payload: bytes, log_time_ns: int, *, seq: int = 0) -> None:
+        """Keep a refused message on the channel ``rejected/<key>`` (no schema: the payload
+        may not decode). Readers of the data never read these channels unless asked for them
+        by name (:func:`read_messages`)."""
+        self._check_open()
+        topic = REJECTED_PREFIX + key
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self._channels[topic] = self._guard(
+                self._writer.register_channel, topic=topic, message_encoding="application/octet-stream", schema_id=0)
+        t = min(max(int(log_time_ns), 0), (1 << 63) - 1)
+        self._guard(self._writer.add_message, channel_id=channel_id, log_time=t, data=bytes(payload),
+                    publish_time=t, sequence=int(seq) if 0 <= int(seq) < MAX_SEQ else 0)
 
     def write_message(self, message: Message) -> None:
         """Append one :class:`~bttsim_stream.bus.stream.Message` (its key, payload, log time and
@@ -473,9 +489,13 @@ def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[Message]:
             if rec.schema_id != 0 and rec.schema_id not in schema_names:
                 raise scan.corrupt(f"channel {rec.topic!r} refers to unknown schema "
                                    f"{rec.schema_id}")
-            wanted = exprs is None or any(_keys.key_matches(e, rec.topic) for e in exprs)
+            if exprs is None:  # every channel of data: refused messages are not data
+                wanted = not rec.topic.startswith(REJECTED_PREFIX)
+            else:
+                wanted = any(_keys.key_matches(e, rec.topic) for e in exprs)
             channels[rec.id] = (rec.topic, wanted)
-            schemas_out.setdefault(rec.topic, schema_names.get(rec.schema_id, ""))
+            if not rec.topic.startswith(REJECTED_PREFIX):
+                schemas_out.setdefault(rec.topic, schema_names.get(rec.schema_id, ""))
 
 
 def read_messages(path, keys=None) -> Iterator[Message]:

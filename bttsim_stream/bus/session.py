@@ -14,6 +14,7 @@ payloads.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import random
@@ -35,7 +36,7 @@ from .security import TlsFiles, add_security_args, apply_security, tls_from_args
 
 __all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
            "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers", "wait_for_done",
-           "open_session", "free_port", "declare_publisher", "declare_subscriber"]
+           "open_session", "opened", "close_session", "free_port", "declare_publisher", "declare_subscriber"]
 
 log = logging.getLogger("bttsim.session")
 _ATT = struct.Struct("<Qq")
@@ -178,6 +179,27 @@ def open_session(conf: "zenoh.Config") -> "zenoh.Session":
         raise BttsimError(f"cannot open the zenoh session: {text}") from None
 
 
+@contextlib.contextmanager
+def opened(conf: "zenoh.Config"):
+    """``with opened(conf) as session``: :func:`open_session`, closed on the way out; a close
+    that fails (zenoh: "close operation timed out", after a peer vanished or a link stalled
+    past the lease) is one logged line, never an exception: what the node did stands."""
+    session = open_session(conf)
+    try:
+        yield session
+    finally:
+        close_session(session)
+
+
+def close_session(session) -> None:
+    """Close ``session``; a failure is logged in one line."""
+    try:
+        session.close()
+    except Exception as exc:  # zenoh.ZError (a timeout), or a session already torn down
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        log.warning("zenoh session close: %s", text.split(" at /")[0])
+
+
 def _json_loads(text) -> list:
     import json
 
@@ -260,17 +282,23 @@ class Received:
     payload : bytes
     att : tuple of (int, int) or None
         ``(seq, log_time_ns)`` from the attachment (None if missing or malformed).
+    source : str or None
+        The id of the Zenoh session that published it (from its timestamp: sessions stamp
+        what they publish), None if it has no timestamp.
     """
 
     key: str
     payload: bytes
     att: tuple[int, int] | None
+    source: str | None = None
 
     @classmethod
     def of(cls, sample) -> "Received":
         """Copy ``sample`` while Zenoh still owns it (inside its callback: a sample kept past
         the callback that delivered it on Zenoh's own thread can see its buffer reused)."""
-        return cls(str(sample.key_expr), sample.payload.to_bytes(), unpack_attachment(sample.attachment))
+        ts = sample.timestamp
+        return cls(str(sample.key_expr), sample.payload.to_bytes(), unpack_attachment(sample.attachment),
+                   None if ts is None else str(ts.get_id()))
 
 
 class StopFlag:

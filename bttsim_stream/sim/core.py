@@ -300,10 +300,13 @@ class RunUpSimulator:
         self.basis = modes.basis
         v = self.basis.nodes[:, p, :]  # (r, 3)
         self._v_eqv = v[:, 1] + v[:, 2] / np.tan(self.stagger)  # (r,): d_eqv at P_nom (Eq. 3-4)
-        self.sources = excitation_sources(scn, m, self.speed, modes, self._v_eqv)
-        #: the scenario's non-synchronous vibration (:class:`~bttsim_stream.sim.nsv.NsvSetup`) or None
-        self.nsv = next((s.nsv for s in self.sources if isinstance(s, NonSynchronous)), None)
-        check_tip_amplitude(scn, m, self.sources)  # refuses non-synchronous options with speed-dependent modes
+        # a force near the float limit overflows the forcing to inf and the bound with it, which
+        # is refused below in one line: the overflow warnings would only repeat it
+        with np.errstate(over="ignore", invalid="ignore"):
+            self.sources = excitation_sources(scn, m, self.speed, modes, self._v_eqv)
+            #: the scenario's non-synchronous vibration (:class:`~bttsim_stream.sim.nsv.NsvSetup`) or None
+            self.nsv = next((s.nsv for s in self.sources if isinstance(s, NonSynchronous)), None)
+            check_tip_amplitude(scn, m, self.sources)  # refuses non-synchronous options with speed-dependent modes
         forced = self._lay_out_carriers()
         initial = scn.speed.initial if initial is None else initial
         self.integrator = modes.integrator(forced, scn.excitation, self.speed, initial)
