@@ -114,10 +114,15 @@ def test_a_node_stalled_10_s_costs_nothing(tmp_path, clean_run, node):
         text = (out / log).read_text()
         counts = json.loads([ln for ln in text.splitlines() if ln.startswith("{")][-1])
         assert counts["gaps"] == 0, (log, counts)
-        # Seen once in a viewer stalled 10 s (a run of the suite under load): one TruthBatch
-        # that did not decode (root cause open; the recorder's copy was whole). Never silent:
-        # each rejection is logged and counted. The recorder does not decode: it rejects none.
-        assert counts["rejected"] == (text.count("skipped a message") if log == "viewer.log" else 0), (log, counts)
+        # Seen in a viewer stalled 10 s under a loaded machine: TruthBatch payloads that did not
+        # decode (root cause open; the recorder's copies were whole, and the viewer had no gap).
+        # Never silent: counted in the viewer's statistics and its closing line, the first three
+        # logged one by one. The recorder refuses none of a clean run's messages.
+        logged = text.count("skipped a message")
+        assert (logged, counts["rejected"] > 3) == (min(counts["rejected"], 3), counts["rejected"] > 3) \
+            if log == "viewer.log" else counts["rejected"] == 0, (log, counts)
+        if counts["rejected"]:
+            assert f"{counts['rejected']} rejected" in text, (log, counts)
     run = read_recording(out / "run.mcap")
     assert not run.truncated and sum(m.key.endswith("/opr") for m in run.messages) == s["revolutions_expected"]
 
