@@ -174,6 +174,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     # 2. zeroing reference, Eq. 1 again
     disp, reference, ref_info = _zeroing(first, opr, toa, geometry, survey, options, t_exp is not None, revolution0,
                                          notes)
+    del first  # the first pass's displacements (unless they are disp): not needed any more
     # 3. data preparation, and the fits of the report
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes)
     d = prepared.d_m if prepared is not None else disp.d_m
@@ -223,12 +224,12 @@ def _exact_times(truth, options: ProcessOptions) -> np.ndarray | None:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Survey:
-    """What the first pass found: the speeds, the segments, the crossings (the NSV's leaks
-    dropped) and the non-synchronous vibration, and the orders to report."""
+    """What the first pass found: the speeds, the first-pass amplitudes (``amp0``, their
+    fits' ``amp_pkpk_m``), the segments, the crossings (the NSV's leaks dropped) and the
+    non-synchronous vibration, and the orders to report."""
 
     omega: np.ndarray
-    d0: np.ndarray
-    fit0: SineFit
+    amp0: np.ndarray
     segments: RunSegments
     crossings: list
     nsv_scan: NsvScan | None
@@ -262,7 +263,7 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
         eos = (_best_dwell_eo(fit0, eos_asked, segments) or eos_asked[0],)
     if scan:
         joint = fits_jointly(eos, geometry)
-    return _Survey(omega=omega, d0=d0, fit0=fit0, segments=segments, crossings=crossings, nsv_scan=nsv_scan,
+    return _Survey(omega=omega, amp0=fit0.amp_pkpk_m, segments=segments, crossings=crossings, nsv_scan=nsv_scan,
                    nsv=nsv, eos=eos, joint=joint)
 
 
@@ -334,7 +335,7 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
     dwell_mask = survey.segments.dwell_mask(n_rev)
     skirts = predicted_contamination(omega, crossings) > SKIRT_LEVEL
     hw = _half_widths(omega, crossings, options.prep_options)
-    region = _region(survey.fit0.amp_pkpk_m, crossings, n_rev)
+    region = _region(survey.amp0, crossings, n_rev)
     prep_opts = options.prep_options
     bridge = _baseline_bridges(omega, ~(dwell_mask | skirts | region.mask.any(axis=1)))
     if prep_opts.remove_offset and crossings and not bridge:
