@@ -377,8 +377,12 @@ def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
     extrapolates without the bias of a symmetric average).
     """
     d = np.asarray(d_m, dtype=float)
-    n = d.shape[0]
-    flat = d.reshape(n, -1)
+    return _smooth(d, *_smoother(d.shape[0], half_width, weights))
+
+
+def _smoother(n: int, half_width, weights) -> tuple:
+    """The kernel weights ``K`` and equivalent kernel ``L`` of :func:`smooth_revolutions`
+    over ``n`` revolutions, with the offsets ``j`` and the largest half-width ``H``."""
     h = np.broadcast_to(np.asarray(half_width, dtype=float), (n,))
     if np.any(~np.isfinite(h)) or np.any(h < 1):
         raise ValueError("half_width must be finite and >= 1")
@@ -390,6 +394,13 @@ def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
     u = np.abs(j)[None, :] / (h[:, None] + 1.0)
     K = np.where(u < 1.0, (1.0 - u ** 3) ** 3, 0.0) * np.where(inside, w_rev[np.clip(idx, 0, n - 1)], 0.0)
     L = _local_quadratic_weights(K, j)
+    return K, L, j, H
+
+
+def _smooth(d: np.ndarray, K: np.ndarray, L: np.ndarray, j: np.ndarray, H: int) -> np.ndarray:
+    """:func:`smooth_revolutions` of ``d`` with the kernel of :func:`_smoother`."""
+    n = d.shape[0]
+    flat = d.reshape(n, -1)
     nan = np.isnan(flat)
     xz = np.where(nan, 0.0, flat)
     pad = np.zeros((n + 2 * H, flat.shape[1]))
@@ -488,6 +499,19 @@ def smoothing_gain(half_width: np.ndarray, weights: np.ndarray | None, rows) -> 
     return out
 
 
+#: Samples (revolutions x blades x probes) of the blocks in which :func:`prepare` removes
+#: the offsets and smooths: every column is processed on its own, so blocks of blades give
+#: the same numbers, with temporaries bounded by the block (a few dozen arrays of it).
+PREP_BLOCK = 1 << 19
+
+
+def _blade_blocks(shape: tuple) -> list:
+    """Slices of blades, each of at most :data:`PREP_BLOCK` samples (at least one blade)."""
+    n_rev, nb, npr = shape
+    step = max(1, PREP_BLOCK // max(n_rev * npr, 1))
+    return [slice(b, min(b + step, nb)) for b in range(0, nb, step)]
+
+
 def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
             options: PrepOptions = PrepOptions(), *, region: ResonanceRegion | None = None,
             half_width: np.ndarray | None = None,
@@ -535,7 +559,11 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     if options.smooth and n_rev >= 3 and half_width is not None:
         half = np.clip(np.asarray(half_width, dtype=float), max(options.min_half_width, 1.0), options.max_half_width)
         w = 1.0 / (om * om) if options.noise_weighting else None
-        out = smooth_revolutions(out, half, w)
+        kernel = _smoother(d.shape[0], half, w)
+        smoothed = np.empty_like(d)
+        for sl in _blade_blocks(d.shape):  # each column is smoothed on its own: blocks of blades
+            smoothed[:, sl] = _smooth(out[:, sl], *kernel)
+        out = smoothed
     elif options.smooth and n_rev >= 3:
         sig = region.significant
         if options.smooth_half_width is not None:
