@@ -97,8 +97,9 @@ def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: in
     fit = _fit(d, angles, eos, joint, omega, window, None)
     if radius is None or not spans:
         return fit
-    arrays = {k: getattr(fit, k).copy() for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
-                                                    "residual_rms_m", "n_samples")}
+    # written in place: the fit's arrays are this function's own (no second copy of the run's fits)
+    arrays = {k: getattr(fit, k) for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
+                                           "residual_rms_m", "n_samples")}
     h = window // 2
     n = d.shape[0]
     for a, b in spans:
@@ -106,7 +107,7 @@ def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: in
         f = _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], window, radius)
         for k, arr in arrays.items():
             arr[a:b] = getattr(f, k)[a - lo:b - lo]
-    return replace(fit, **arrays)
+    return fit
 
 
 def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
@@ -192,10 +193,15 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     eo = survey.eos[0]
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
                             displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_spectra(d, eo),
-                            fit_tw=fit_spectra(fit.phasor[..., 0], eo, geometry.blade_angles_rad),
+                            fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad),
                             resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev),
                             report=report, segments=survey.segments, crossings=tuple(survey.crossings),
                             reference=reference, joint=bool(survey.joint), nsv_scan=survey.nsv_scan, nsv=survey.nsv)
+
+
+def _first_phasor(fit: SineFit) -> np.ndarray:
+    """``fit.phasor[..., 0]`` without the other orders' (the same numbers)."""
+    return fit.coeffs[..., 1] + 1j * fit.coeffs[..., 2]
 
 
 def _orders_asked(info, geometry: Geometry, options: ProcessOptions, notes: list) -> tuple[tuple, dict, bool]:
@@ -347,23 +353,29 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
-                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", np.ndarray]:
+                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", np.ndarray | None]:
     """Eq. 16 fits of the prepared displacements ``d`` (at the sampling angles inside the
     crossings and dwells), the unsmoothed fits where those need them, and the offset-removed,
-    unsmoothed displacements."""
+    unsmoothed displacements (for the CFF method; None for the others)."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = _merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
                          + [(dw.start, dw.stop) for dw in survey.segments.dwells])
     fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
-    d_flat = disp.d_m - (prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
+    offset = prepared.offset_m if prepared is not None else 0.0
+
+    def flat(a: int, b: int) -> np.ndarray:  # offset removed, unsmoothed: revolutions [a, b)
+        return disp.d_m[a:b] - (offset[a:b] if prepared is not None else offset)
+
+    # the whole run's only for the CFF method (a whole-run array less otherwise)
+    d_flat = flat(0, d.shape[0]) if options.method == "cff" else None
     if (prepared is None or not options.prep_options.smooth) and options.window == 1:
         return fit, _Raw(fit.amp_pkpk_m, fit.phasor), d_flat
     # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
     amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
     ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
     for a, b in spans:
-        f_r = _fit(d_flat[a:b], angles, eos, joint, omega[a:b], 1, radius)
+        f_r = _fit(flat(a, b), angles, eos, joint, omega[a:b], 1, radius)
         amp_r[a:b], ph_r[a:b] = f_r.amp_pkpk_m, f_r.phasor
     return fit, _Raw(amp_r, ph_r), d_flat
 
@@ -531,7 +543,7 @@ class _Context:
     cns: dict
     fit: SineFit
     raw: _Raw
-    d_flat: np.ndarray
+    d_flat: np.ndarray | None  # offset removed, unsmoothed (the CFF method only)
     omega: np.ndarray
     opr: np.ndarray
     toa: np.ndarray

@@ -188,6 +188,13 @@ def fit_spectra(phasor: np.ndarray, engine_order: int, blade_angles_rad=None) ->
     """
     p = np.asarray(phasor)
     nb = p.shape[-1]
+    if p.ndim == 2 and p.shape[0] > SPECTRA_CHUNK:  # per revolution: in blocks, bounded temporaries
+        n_nd = nb // 2 + 1
+        fwd, bwd = np.empty((p.shape[0], n_nd)), np.empty((p.shape[0], n_nd))
+        for a in range(0, p.shape[0], SPECTRA_CHUNK):
+            s = fit_spectra(p[a:a + SPECTRA_CHUNK], engine_order, blade_angles_rad)
+            fwd[a:a + SPECTRA_CHUNK], bwd[a:a + SPECTRA_CHUNK] = s.forward_m, s.backward_m
+        return TravellingWaveSpectra(forward_m=fwd, backward_m=bwd, n_blades=nb)
     th = TWO_PI * np.arange(nb) / nb if blade_angles_rad is None else np.asarray(blade_angles_rad, float)
     ok = np.isfinite(p)
     n_ok = ok.sum(axis=-1, keepdims=True)
