@@ -353,29 +353,23 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
-                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", np.ndarray | None]:
+                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", "_Flat"]:
     """Eq. 16 fits of the prepared displacements ``d`` (at the sampling angles inside the
     crossings and dwells), the unsmoothed fits where those need them, and the offset-removed,
-    unsmoothed displacements (for the CFF method; None for the others)."""
+    unsmoothed displacements (:class:`_Flat`: computed for the revolutions asked for)."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = _merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
                          + [(dw.start, dw.stop) for dw in survey.segments.dwells])
     fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
-    offset = prepared.offset_m if prepared is not None else 0.0
-
-    def flat(a: int, b: int) -> np.ndarray:  # offset removed, unsmoothed: revolutions [a, b)
-        return disp.d_m[a:b] - (offset[a:b] if prepared is not None else offset)
-
-    # the whole run's only for the CFF method (a whole-run array less otherwise)
-    d_flat = flat(0, d.shape[0]) if options.method == "cff" else None
+    d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
     if (prepared is None or not options.prep_options.smooth) and options.window == 1:
         return fit, _Raw(fit.amp_pkpk_m, fit.phasor), d_flat
     # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
     amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
     ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
     for a, b in spans:
-        f_r = _fit(flat(a, b), angles, eos, joint, omega[a:b], 1, radius)
+        f_r = _fit(d_flat[a:b], angles, eos, joint, omega[a:b], 1, radius)
         amp_r[a:b], ph_r[a:b] = f_r.amp_pkpk_m, f_r.phasor
     return fit, _Raw(amp_r, ph_r), d_flat
 
@@ -528,6 +522,24 @@ def _region(amp0: np.ndarray, crossings, n_rev: int) -> ResonanceRegion:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class _Flat:
+    """The offset-removed, unsmoothed displacements ``d_m - offset_m``, computed for the
+    revolutions asked for (``flat[rows]``: the same numbers as the whole array's rows) instead
+    of held for the whole run."""
+
+    d_m: np.ndarray
+    offset_m: np.ndarray | float
+
+    @property
+    def shape(self) -> tuple:
+        return self.d_m.shape
+
+    def __getitem__(self, rows) -> np.ndarray:
+        off = self.offset_m[rows] if isinstance(self.offset_m, np.ndarray) else self.offset_m
+        return self.d_m[rows] - off
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class _Raw:
     """Unsmoothed (offset-removed) fits: amplitude and complex response."""
 
@@ -543,7 +555,7 @@ class _Context:
     cns: dict
     fit: SineFit
     raw: _Raw
-    d_flat: np.ndarray | None  # offset removed, unsmoothed (the CFF method only)
+    d_flat: "_Flat"
     omega: np.ndarray
     opr: np.ndarray
     toa: np.ndarray
