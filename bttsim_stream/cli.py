@@ -259,7 +259,9 @@ def _cmd_process(args: argparse.Namespace) -> None:
     # the phases on a terminal only: on a pipe, stderr stays the errors and warnings
     progress = Progress(sys.stderr.isatty())
     progress.phase(f"reading {args.mcap} ...")
-    run = load_run(args.mcap, truth_fields=PROCESS_TRUTH_FIELDS)
+    # the exact expected times (a whole-run array as large as the TOAs) only when asked for
+    kept = PROCESS_TRUTH_FIELDS if args.exact_expected else tuple(f for f in PROCESS_TRUTH_FIELDS if f != "t_exp_s")
+    run = load_run(args.mcap, truth_fields=kept)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")

@@ -121,15 +121,20 @@ class RunTables:
 
     Attributes
     ----------
-    tables : dict of str -> dict of str -> ndarray
-        Table name -> column name -> 1-D array (int64, float64 or str), all columns of a
-        table the same length.
+    tables : dict of str -> callable
+        Table name -> a function of no argument that builds the table, a dict column name ->
+        1-D array (int64, float64 or str), all columns the same length. Built when asked
+        for: a writer holds one table at a time (:meth:`table` builds one).
     meta : dict
         JSON-serialisable: ``run`` (metadata), ``summary`` (processing report), ``processing``.
     """
 
     tables: dict
     meta: dict
+
+    def table(self, name: str) -> dict:
+        """Table ``name`` (built now)."""
+        return self.tables[name]()
 
 
 def _long(shape: tuple, names: tuple, first: np.ndarray) -> dict:
@@ -233,15 +238,58 @@ def run_tables(run, result=None) -> RunTables:
             result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth, revolution0=r0)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             raise BttsimError(f"the processing of the recording failed ({exc})") from None
-    t: dict[str, dict] = {}
-    t["opr"] = {"revolution": rev.copy(), "opr_s": _f(run.opr_s)}
-    t["toa"] = dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev), toa_s=_f(run.toa_s))
+    t: dict = {}  # name -> builder: the tables are built one at a time, when written
+    t["opr"] = lambda: {"revolution": rev.copy(), "opr_s": _f(run.opr_s)}
+    t["toa"] = lambda: dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev), toa_s=_f(run.toa_s))
     if run.extra_edges["toa_s"].size:  # double pulses (the probe signal chain)
-        t["extra_edge"] = {k: np.array(v) for k, v in run.extra_edges.items()}
+        t["extra_edge"] = lambda: {k: np.array(v) for k, v in run.extra_edges.items()}
     disp = result.displacements
-    t["displacement"] = dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
-                             d_m=_f(disp.d_m), t_exp_s=_f(disp.t_exp_s))
-    fit = result.fit
+    t["displacement"] = lambda: dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
+                                     d_m=_f(disp.d_m), t_exp_s=_f(disp.t_exp_s))
+    t["fit"] = lambda: _fit_table(result.fit, disp, rev)
+    ftw = result.fit_tw
+    t["tw"] = lambda: dict(_long(ftw.forward_m.shape, ("revolution", "nd"), rev), forward_m=_f(ftw.forward_m),
+                           backward_m=_f(ftw.backward_m))
+    ptw = result.probe_tw
+    t["tw_probe"] = lambda: dict(_long(ptw.forward_m.shape, ("revolution", "probe", "nd"), rev),
+                                 forward_m=_f(ptw.forward_m), backward_m=_f(ptw.backward_m))
+    t["resonance"] = lambda: _resonance_table(result.report, r0)
+    if run.truth is not None:
+        tr = run.truth
+        t["truth"] = lambda: dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
+                                  truth_toa_s=_f(tr.toa_s), t_exp_s=_f(tr.t_exp_s), d_eqv_m=_f(tr.d_eqv_m),
+                                  d_tang_m=_f(tr.d_tang_m), d_z_m=_f(tr.d_z_m), d_eq1_m=_f(tr.d_eq1_m))
+        t["truth_revolution"] = lambda: dict(
+            _long((n_rev, n_b), ("revolution", "blade"), rev),
+            opr_s=_f(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=_f(np.repeat(tr.omega_mean, n_b)),
+            d_eqv_pkpk_m=_f(tr.d_eqv_pkpk_m))
+        if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
+            t["truth_eo"] = lambda: _truth_eo_table(tr, rev)
+        if tr.nsv_kind is not None and tr.nsv_kind.size:
+            shp = tr.nsv_kind.shape
+            t["truth_nsv"] = lambda: dict(
+                _long(shp, ("revolution", "component"), rev), nsv_kind=np.asarray(tr.nsv_kind, str).ravel(),
+                nsv_freq_hz=_f(tr.nsv_freq_hz), nsv_nd=np.asarray(tr.nsv_nd, np.int64).ravel(),
+                nsv_amp_pkpk_m=_f(tr.nsv_amp_pkpk_m), nsv_rms_m=_f(tr.nsv_rms_m),
+                band_lo_hz=_f(tr.nsv_band_hz[..., 0]), band_hi_hz=_f(tr.nsv_band_hz[..., 1]))
+    info = {f.name: getattr(run.meta, f.name) for f in fields(run.meta)}
+    meta = {"run": _jsonable(info), "summary": _jsonable(result.summary),
+            "processing": {"by": "bttsim process (default options)", "options": _jsonable(asdict(result.options)),
+                           "engine_orders": list(result.engine_orders),
+                           "displacement_method": disp.method}}
+    return RunTables(tables=t, meta=meta)
+
+
+def _truth_eo_table(tr, rev: np.ndarray) -> dict:
+    """The ``truth_eo`` table: each engine order's own response, per revolution and blade."""
+    cols = _long(tr.eo_pkpk_m.shape, ("revolution", "blade", "eo"), rev)
+    cols["eo"] = np.asarray(tr.eo_engine_order[0], np.int64)[cols["eo"]]
+    return dict(cols, eo_pkpk_m=_f(tr.eo_pkpk_m))
+
+
+def _fit_table(fit, disp, rev: np.ndarray) -> dict:
+    """The ``fit`` table: one row per revolution, blade and engine order."""
+    n_rev, n_b = fit.amp_pkpk_m.shape[:2]
     n_eo = len(fit.engine_orders)
     fit_cols = _long((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev)
     fit_cols["engine_order"] = np.asarray(fit.engine_orders, dtype=np.int64)[fit_cols["engine_order"]]
@@ -255,40 +303,7 @@ def run_tables(run, result=None) -> RunTables:
                                               (n_rev, n_b, n_eo)).ravel().copy(),
                     omega_rad_s=_f(np.broadcast_to(np.asarray(omega, float)[:, None, None], (n_rev, n_b, n_eo))),
                     freq_hz=_f(np.broadcast_to(freq[:, None, :], (n_rev, n_b, n_eo))))
-    t["fit"] = fit_cols
-    ftw = result.fit_tw
-    t["tw"] = dict(_long(ftw.forward_m.shape, ("revolution", "nd"), rev), forward_m=_f(ftw.forward_m),
-                   backward_m=_f(ftw.backward_m))
-    ptw = result.probe_tw
-    t["tw_probe"] = dict(_long(ptw.forward_m.shape, ("revolution", "probe", "nd"), rev),
-                         forward_m=_f(ptw.forward_m), backward_m=_f(ptw.backward_m))
-    t["resonance"] = _resonance_table(result.report, r0)
-    if run.truth is not None:
-        tr = run.truth
-        t["truth"] = dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
-                          truth_toa_s=_f(tr.toa_s), t_exp_s=_f(tr.t_exp_s), d_eqv_m=_f(tr.d_eqv_m),
-                          d_tang_m=_f(tr.d_tang_m), d_z_m=_f(tr.d_z_m), d_eq1_m=_f(tr.d_eq1_m))
-        t["truth_revolution"] = dict(
-            _long((n_rev, n_b), ("revolution", "blade"), rev),
-            opr_s=_f(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=_f(np.repeat(tr.omega_mean, n_b)),
-            d_eqv_pkpk_m=_f(tr.d_eqv_pkpk_m))
-        if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
-            cols = _long(tr.eo_pkpk_m.shape, ("revolution", "blade", "eo"), rev)
-            cols["eo"] = np.asarray(tr.eo_engine_order[0], np.int64)[cols["eo"]]
-            t["truth_eo"] = dict(cols, eo_pkpk_m=_f(tr.eo_pkpk_m))
-        if tr.nsv_kind is not None and tr.nsv_kind.size:
-            shp = tr.nsv_kind.shape
-            t["truth_nsv"] = dict(
-                _long(shp, ("revolution", "component"), rev), nsv_kind=np.asarray(tr.nsv_kind, str).ravel(),
-                nsv_freq_hz=_f(tr.nsv_freq_hz), nsv_nd=np.asarray(tr.nsv_nd, np.int64).ravel(),
-                nsv_amp_pkpk_m=_f(tr.nsv_amp_pkpk_m), nsv_rms_m=_f(tr.nsv_rms_m),
-                band_lo_hz=_f(tr.nsv_band_hz[..., 0]), band_hi_hz=_f(tr.nsv_band_hz[..., 1]))
-    info = {f.name: getattr(run.meta, f.name) for f in fields(run.meta)}
-    meta = {"run": _jsonable(info), "summary": _jsonable(result.summary),
-            "processing": {"by": "bttsim process (default options)", "options": _jsonable(asdict(result.options)),
-                           "engine_orders": list(result.engine_orders),
-                           "displacement_method": disp.method}}
-    return RunTables(tables=t, meta=meta)
+    return fit_cols
 
 
 def _write_csv(path: Path, cols: dict) -> None:
@@ -367,7 +382,8 @@ def export_run(path, out_dir, fmt: str = "csv") -> dict:
         raise BttsimError(f"{out}: not a folder")
     counts, described = {}, {}
     try:
-        for name, cols in rt.tables.items():
+        for name in rt.tables:  # one table at a time: built, written, dropped
+            cols = rt.table(name)
             file = out / f"{name}.{fmt}"
             if fmt == "csv":
                 _write_csv(file, cols)
@@ -377,6 +393,7 @@ def export_run(path, out_dir, fmt: str = "csv") -> dict:
             counts[name] = n
             described[name] = {"file": file.name, "rows": n,
                                "columns": {k: _column_meta(k, np.asarray(v)) for k, v in cols.items()}}
+            del cols
         doc = dict(rt.meta, format=fmt, source=str(path), software_version=__version__, tables=described)
         (out / "run.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     except OSError as exc:

@@ -1,9 +1,9 @@
 """Recordings as arrays, and the processor's messages for a recording that has none.
 
 :func:`load_run` reads an MCAP run back into ``(revolution, blade, probe)`` arrays (used by
-``bttsim process`` and ``bttsim view``): revolutions are regrouped by the bus's
-:class:`~bttsim_stream.bus.stream.RevolutionAssembler`, and only complete revolutions (OPR
-and every probe's batch) are kept; truth comes back as a
+``bttsim process`` and ``bttsim view``): revolutions are regrouped as the bus's
+:class:`~bttsim_stream.bus.stream.RevolutionAssembler` does at the end of a stream, straight
+into preallocated arrays, and only complete revolutions (OPR and every probe's batch) are kept; truth comes back as a
 :class:`~bttsim_stream.sim.core.Truth` when recorded.
 
 :func:`processing_messages` feeds a recording to the processor node's own
@@ -14,13 +14,14 @@ shows what a live run would have shown.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from .bus import codec, keys
 from .bus.recording import McapRecorder, RecordingScan
-from .bus.stream import Completeness, Message, RevolutionAssembler, SequenceTracker
+from .bus.stream import Completeness, Message, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
 from .process.displacement import DoublePulses, assign_extra_edges
@@ -200,6 +201,90 @@ class _TruthTable:
         return Truth(**out)
 
 
+class _Acquisition:
+    """A recording's OPR pulses and TOA batches regrouped into revolutions, in preallocated
+    arrays: the complete revolutions that ``RevolutionAssembler(n_blades, n_probes)``'s
+    ``pop(final=True)`` gives (the same checks; the first of duplicates stays), with no Python
+    object per revolution. Memory: one ``(n_rev, n_blades, n_probes)`` array, the OPR times
+    and a dict of revolution numbers."""
+
+    def __init__(self, n_blades: int, n_probes: int, capacity: int) -> None:
+        self.nb, self.npr = int(n_blades), int(n_probes)
+        cap = max(int(capacity), 16)
+        self.index: dict[int, int] = {}
+        self.numbers = np.empty(cap, np.int64)
+        self.opr = np.full(cap, np.nan)
+        self.has_opr = np.zeros(cap, bool)
+        self.toa = np.full((cap, self.nb, self.npr), np.nan)
+        self.seen = np.zeros((cap, self.npr), bool)
+        self.n = 0
+        self.ignored = 0
+        self.duplicates = 0
+
+    def _row(self, revolution: int) -> int:
+        i = self.index.get(revolution)
+        if i is None:
+            if self.n == self.numbers.size:  # more revolutions than the metadata said: grow
+                for name, fill in (("numbers", 0), ("opr", np.nan), ("has_opr", False), ("toa", np.nan),
+                                   ("seen", False)):
+                    a = getattr(self, name)
+                    grown = np.full((2 * a.shape[0],) + a.shape[1:], fill, dtype=a.dtype)
+                    grown[: a.shape[0]] = a
+                    setattr(self, name, grown)
+            i = self.index[revolution] = self.n
+            self.numbers[i] = revolution
+            self.n += 1
+        return i
+
+    def add(self, kind: str, d) -> None:
+        """A decoded ``opr`` or ``toa`` message (others are ignored)."""
+        if kind == "opr":
+            rev, opr = int(d.header.revolution), d.body.opr_s
+            if rev < 0 or not np.isfinite(opr):
+                self.ignored += 1
+                return
+            i = self._row(rev)
+            if self.has_opr[i]:
+                self.duplicates += 1
+                return
+            self.opr[i], self.has_opr[i] = float(opr), True
+        elif kind == "toa":
+            rev, probe = int(d.header.revolution), int(d.body.probe)
+            toa = np.asarray(d.body.toa_s, dtype=float)
+            if rev < 0 or not 0 <= probe < self.npr or toa.shape != (self.nb,):
+                self.ignored += 1
+                return
+            i = self._row(rev)
+            if self.seen[i, probe]:
+                self.duplicates += 1
+                return
+            self.toa[i, :, probe] = toa
+            self.seen[i, probe] = True
+
+    def complete(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Revolution numbers, OPR times and TOAs of the complete revolutions, in order (the
+        tables are handed over: call once)."""
+        n = self.n
+        rows = np.flatnonzero(self.has_opr[:n] & self.seen[:n].all(axis=1))
+        rows = rows[np.argsort(self.numbers[rows], kind="stable")]
+        if rows.size == n and np.array_equal(rows, np.arange(n)):  # as usual: in order, whole
+            toa, self.toa = self.toa, None
+            toa.resize((n, self.nb, self.npr), refcheck=False)  # in place: no second copy
+            return self.numbers[:n].copy(), self.opr[:n].copy(), toa
+        return self.numbers[rows], self.opr[rows], self.toa[rows]
+
+
+def _capacity(path, meta) -> int:
+    """Revolutions to preallocate for: the metadata's count, but no more than the file can
+    hold (an untrusted count must not allocate beyond it: each revolution takes at least an
+    OPR message and one per probe, some tens of bytes each)."""
+    try:
+        size = Path(path).stat().st_size
+    except (OSError, TypeError, ValueError):
+        size = 0
+    return min(int(meta.n_revolutions or 0) + 1, size // (24 * (1 + int(meta.n_probes))) + 16)
+
+
 def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False,
              truth_fields=None) -> RecordedRun:
     """Read and decode a recording; a corrupt, truncated, foreign or impossible file is a
@@ -241,7 +326,7 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         nonlocal truth
         if kind == "truth":
             if truth is None:
-                truth = _TruthTable(kept_truth, (meta.n_revolutions or 0) + 1, (meta.n_blades, meta.n_probes))
+                truth = _TruthTable(kept_truth, _capacity(path, meta), (meta.n_blades, meta.n_probes))
             truth.add(d.header.revolution, d.body)
             return
         asm.add(kind, d)
@@ -263,7 +348,7 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
                 seqs.accept(m.key, m.seq)
             if kind == "meta" and meta is None:
                 meta = codec.decode_run_metadata(m.payload, m.key).body
-                asm = RevolutionAssembler(meta.n_blades, meta.n_probes)
+                asm = _Acquisition(meta.n_blades, meta.n_probes, _capacity(path, meta))
                 for item in early:
                     take(*item)
                 early = []
@@ -281,25 +366,20 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         raise BttsimError(f"{path}: {error}") from None
     if meta is None:
         raise BttsimError(f"{path}: no run metadata ({keys.PREFIX}/<rig>/meta) in the recording")
-    revs = [r for r in asm.pop(final=True) if r.complete]
-    if len(revs) < 3:
-        why = (f" ({asm.ignored} OPR/TOA message(s) ignored: a blade count other than the metadata's "
+    ignored = asm.ignored
+    numbers, opr_s, toa_s = asm.complete()
+    asm = None  # its tables are handed over
+    if numbers.size < 3:
+        why = (f" ({ignored} OPR/TOA message(s) ignored: a blade count other than the metadata's "
                f"{meta.n_blades}, a probe index beyond {meta.n_probes - 1}, a revolution out of range or a "
-               f"non-finite OPR time)" if asm.ignored else "")
+               f"non-finite OPR time)" if ignored else "")
         raise BttsimError(f"{path}: fewer than 3 complete revolutions recorded{why}")
-    numbers = np.array([r.revolution for r in revs], dtype=np.int64)
     if meta.n_revolutions and numbers[-1] >= meta.n_revolutions:
         raise BttsimError(f"{path}: revolution {int(numbers[-1])} recorded, but the run metadata says the run has "
                           f"{meta.n_revolutions} revolution(s)")
     if np.any(np.diff(numbers) != 1):
         missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
         raise BttsimError(f"{path}: {missing} revolution(s) missing in the recording")
-    opr_s = np.array([r.opr_s for r in revs])
-    toa_s = np.empty((len(revs), meta.n_blades, meta.n_probes))
-    for i, r in enumerate(revs):  # no second copy of the run beside the revolutions
-        toa_s[i] = r.toa_s
-        revs[i] = None
-    del revs
     _check_times(path, numbers, opr_s, toa_s)
     tr = None if truth is None else truth.rows(numbers.tolist(), all_truth)
     doubles = DoublePulses()

@@ -428,18 +428,37 @@ class Displacements:
     d_m : ndarray, shape (n_rev, n_blades, n_probes)
     omega_rad_s : ndarray, shape (n_rev,)
         Mean speed of each revolution (from the OPR times), rad/s.
-    t_exp_s : ndarray, shape (n_rev, n_blades, n_probes)
+    exact_t_exp_s : ndarray, shape (n_rev, n_blades, n_probes), or None
+        The exact expected times given (None: from the OPR model).
     arrival_angles_rad : ndarray, shape (n_blades, n_probes), or None
         The ``psi`` used (None with exact expected times).
     method : str
         ``"exact"``, ``"calibrated"`` or ``"nominal"``.
+    phase : RotorPhase or None
+        The rotor angle model (OPR-based expected times).
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes), or None
+        The TOAs the displacements come from (OPR-based expected times).
+
+    Notes
+    -----
+    :attr:`t_exp_s` (a whole-run array) is computed when asked for, not kept: the same
+    numbers as the displacements used (:func:`expected_times`).
     """
 
     d_m: np.ndarray
     omega_rad_s: np.ndarray
-    t_exp_s: np.ndarray
+    exact_t_exp_s: np.ndarray | None
     arrival_angles_rad: np.ndarray | None
     method: str
+    phase: RotorPhase | None = None
+    toa_s: np.ndarray | None = None
+
+    @property
+    def t_exp_s(self) -> np.ndarray:
+        """Expected arrival times, shape (n_rev, n_blades, n_probes), s."""
+        if self.exact_t_exp_s is not None:
+            return self.exact_t_exp_s
+        return expected_times(self.phase, self.arrival_angles_rad, self.toa_s)
 
 
 def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geometry, *,
@@ -488,8 +507,15 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
         psi = np.where(np.isfinite(psi), psi, nominal)
     else:
         psi, method = geometry.nominal_arrival_angles(), "nominal"
-    d, tau_exp = displacements_from_phase(phase, toa, psi, geometry.tip_radius_m)
-    return Displacements(d, phase.omega_mean_rad_s, opr[:, None, None] + tau_exp, psi, method)
+    d = np.empty(toa.shape)
+    for a in range(0, opr.size, DISPLACEMENT_CHUNK):  # in blocks: bounded temporaries (Eq. 1 is per revolution)
+        b = min(a + DISPLACEMENT_CHUNK, opr.size)
+        d[a:b] = displacements_from_phase(phase.rows(slice(a, b)), toa[a:b], psi, geometry.tip_radius_m)[0]
+    return Displacements(d, phase.omega_mean_rad_s, None, psi, method, phase=phase, toa_s=toa)
+
+
+#: Revolutions of Eq. 1 computed at once by :func:`compute_displacements`.
+DISPLACEMENT_CHUNK = 4096
 
 
 def displacements_from_phase(phase: RotorPhase, toa_s: np.ndarray, arrival_angles_rad: np.ndarray,

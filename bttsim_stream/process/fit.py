@@ -173,6 +173,8 @@ def fit_revolutions(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
     n_rev, nb, npr = d.shape
     if B.shape[0] != npr:
         raise ValueError(f"{B.shape[0]} probe angles for {npr} probes")
+    if window == 1 and n_rev > FIT_CHUNK:  # one revolution per fit: in blocks, bounded temporaries
+        return _fit_blocks(d, probe_angles_rad, eos, omega_rad_s, tip_radius_m)
     if tip_radius_m is not None:
         return _fit_sampled(d, np.atleast_1d(np.asarray(probe_angles_rad, float)), eos, float(tip_radius_m),
                             omega_rad_s, window, float(np.linalg.cond(B)))
@@ -225,6 +227,34 @@ def fit_revolutions(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
     c11, c22, c12 = (ginv[..., k, :] * s2[..., None] for k in range(3))
     return _sine_fit(eos, window, coeffs, (c11, c22, c12), residual_rms, n_tot, omega_rad_s,
                      float(np.linalg.cond(B)))
+
+
+#: Revolutions fitted at once by :func:`fit_revolutions` with one revolution per fit: every
+#: fit is its own revolution's, so blocks give the same numbers, and the temporaries (a few
+#: dozen arrays of the block's size) stay bounded however long the run.
+FIT_CHUNK = 2048
+
+
+def _fit_blocks(d: np.ndarray, probe_angles_rad, eos: tuple, omega_rad_s, tip_radius_m) -> SineFit:
+    """:func:`fit_revolutions` with ``window = 1``, :data:`FIT_CHUNK` revolutions at a time
+    into preallocated outputs (the same numbers: no fit spans two revolutions)."""
+    n_rev, nb = d.shape[:2]
+    n_eo = len(eos)
+    coeffs = np.empty((n_rev, nb, 1 + 2 * n_eo))
+    amp, phase, std = (np.empty((n_rev, nb, n_eo)) for _ in range(3))
+    res = np.empty((n_rev, nb))
+    n_samples = np.empty((n_rev, nb), np.int64)
+    cn = None
+    for a in range(0, n_rev, FIT_CHUNK):
+        b = min(a + FIT_CHUNK, n_rev)
+        f = fit_revolutions(d[a:b], probe_angles_rad, eos, window=1, tip_radius_m=tip_radius_m)
+        coeffs[a:b], amp[a:b], phase[a:b], std[a:b] = f.coeffs, f.amp_pkpk_m, f.phase_rad, f.amp_std_m
+        res[a:b], n_samples[a:b], cn = f.residual_rms_m, f.n_samples, f.cn
+    omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
+    freq = None if omega is None else omega[:, None] * np.asarray(eos, float)[None, :] / TWO_PI
+    return SineFit(engine_orders=eos, window=1, coeffs=coeffs, amp_pkpk_m=amp, phase_rad=phase, amp_std_m=std,
+                   dc_m=coeffs[..., 0], residual_rms_m=res, n_samples=n_samples, omega_rad_s=omega, freq_hz=freq,
+                   cn=cn)
 
 
 def _sine_fit(eos: tuple, window: int, coeffs: np.ndarray, cov: tuple, residual_rms: np.ndarray,

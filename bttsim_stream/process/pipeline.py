@@ -102,8 +102,9 @@ def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: in
     fit = _fit(d, angles, eos, joint, omega, window, None)
     if radius is None or not spans:
         return fit
-    arrays = {k: getattr(fit, k).copy() for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
-                                                    "residual_rms_m", "n_samples")}
+    # written in place: the fit's arrays are this function's own (no second copy of the run's fits)
+    arrays = {k: getattr(fit, k) for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
+                                           "residual_rms_m", "n_samples")}
     h = window // 2
     n = d.shape[0]
     for a, b in spans:
@@ -111,7 +112,7 @@ def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: in
         f = _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], window, radius)
         for k, arr in arrays.items():
             arr[a:b] = getattr(f, k)[a - lo:b - lo]
-    return replace(fit, **arrays)
+    return fit
 
 
 def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
@@ -179,6 +180,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     # 2. zeroing reference, Eq. 1 again
     disp, reference, ref_info = _zeroing(first, opr, toa, geometry, survey, options, t_exp is not None, revolution0,
                                          notes)
+    del first  # the first pass's displacements (unless they are disp): not needed any more
     # 3. data preparation, and the fits of the report
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes)
     d = prepared.d_m if prepared is not None else disp.d_m
@@ -196,10 +198,15 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     eo = survey.eos[0]
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
                             displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_spectra(d, eo),
-                            fit_tw=fit_spectra(fit.phasor[..., 0], eo, geometry.blade_angles_rad),
+                            fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad),
                             resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev),
                             report=report, segments=survey.segments, crossings=tuple(survey.crossings),
                             reference=reference, joint=bool(survey.joint), nsv_scan=survey.nsv_scan, nsv=survey.nsv)
+
+
+def _first_phasor(fit: SineFit) -> np.ndarray:
+    """``fit.phasor[..., 0]`` without the other orders' (the same numbers)."""
+    return fit.coeffs[..., 1] + 1j * fit.coeffs[..., 2]
 
 
 def _orders_asked(info, geometry: Geometry, options: ProcessOptions, notes: list) -> tuple[tuple, dict, bool]:
@@ -228,12 +235,12 @@ def _exact_times(truth, options: ProcessOptions) -> np.ndarray | None:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Survey:
-    """What the first pass found: the speeds, the segments, the crossings (the NSV's leaks
-    dropped) and the non-synchronous vibration, and the orders to report."""
+    """What the first pass found: the speeds, the first-pass amplitudes (``amp0``, their
+    fits' ``amp_pkpk_m``), the segments, the crossings (the NSV's leaks dropped) and the
+    non-synchronous vibration, and the orders to report."""
 
     omega: np.ndarray
-    d0: np.ndarray
-    fit0: SineFit
+    amp0: np.ndarray
     segments: RunSegments
     crossings: list
     nsv_scan: NsvScan | None
@@ -267,7 +274,7 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
         eos = (_best_dwell_eo(fit0, eos_asked, segments) or eos_asked[0],)
     if scan:
         joint = fits_jointly(eos, geometry)
-    return _Survey(omega=omega, d0=d0, fit0=fit0, segments=segments, crossings=crossings, nsv_scan=nsv_scan,
+    return _Survey(omega=omega, amp0=fit0.amp_pkpk_m, segments=segments, crossings=crossings, nsv_scan=nsv_scan,
                    nsv=nsv, eos=eos, joint=joint)
 
 
@@ -339,7 +346,7 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
     dwell_mask = survey.segments.dwell_mask(n_rev)
     skirts = predicted_contamination(omega, crossings) > SKIRT_LEVEL
     hw = _half_widths(omega, crossings, options.prep_options)
-    region = _region(survey.fit0.amp_pkpk_m, crossings, n_rev)
+    region = _region(survey.amp0, crossings, n_rev)
     prep_opts = options.prep_options
     bridge = _baseline_bridges(omega, ~(dwell_mask | skirts | region.mask.any(axis=1)))
     if prep_opts.remove_offset and crossings and not bridge:
@@ -351,16 +358,16 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
-                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", np.ndarray]:
+                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", "_Flat"]:
     """Eq. 16 fits of the prepared displacements ``d`` (at the sampling angles inside the
     crossings and dwells), the unsmoothed fits where those need them, and the offset-removed,
-    unsmoothed displacements."""
+    unsmoothed displacements (:class:`_Flat`: computed for the revolutions asked for)."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = _merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
                          + [(dw.start, dw.stop) for dw in survey.segments.dwells])
     fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
-    d_flat = disp.d_m - (prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
+    d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
     if (prepared is None or not options.prep_options.smooth) and options.window == 1:
         return fit, _Raw(fit.amp_pkpk_m, fit.phasor), d_flat
     # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
@@ -520,6 +527,24 @@ def _region(amp0: np.ndarray, crossings, n_rev: int) -> ResonanceRegion:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class _Flat:
+    """The offset-removed, unsmoothed displacements ``d_m - offset_m``, computed for the
+    revolutions asked for (``flat[rows]``: the same numbers as the whole array's rows) instead
+    of held for the whole run."""
+
+    d_m: np.ndarray
+    offset_m: np.ndarray | float
+
+    @property
+    def shape(self) -> tuple:
+        return self.d_m.shape
+
+    def __getitem__(self, rows) -> np.ndarray:
+        off = self.offset_m[rows] if isinstance(self.offset_m, np.ndarray) else self.offset_m
+        return self.d_m[rows] - off
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class _Raw:
     """Unsmoothed (offset-removed) fits: amplitude and complex response."""
 
@@ -535,7 +560,7 @@ class _Context:
     cns: dict
     fit: SineFit
     raw: _Raw
-    d_flat: np.ndarray
+    d_flat: "_Flat"
     omega: np.ndarray
     opr: np.ndarray
     toa: np.ndarray

@@ -275,15 +275,19 @@ def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray 
     ok = np.isfinite(y)
     w0 = ok.astype(float)
     if exclude is not None:
-        w0 = w0 * np.repeat(~np.asarray(exclude, bool), npr, axis=1)
+        w0 *= np.repeat(~np.asarray(exclude, bool), npr, axis=1)
     if noise_weighting:
-        w0 = w0 / (om * om / np.mean(om * om))[:, None]
+        w0 /= (om * om / np.mean(om * om))[:, None]
     yz = np.where(ok, y, 0.0)
+    del ok
     p = V.shape[1]
     enough = np.sum(w0 > 0, axis=0) >= 3 * p
     w = w0.copy()
     VV = (V[:, :, None] * V[:, None, :]).reshape(n_rev, p * p)
     n_it = 1 + (int(iterations) if robust else 0)
+    # the sums over revolutions (matrix products) on whole arrays, the rest column by column
+    # in blocks (every column has its own baseline): the same numbers, bounded temporaries
+    blocks = _column_blocks(n_rev, y.shape[1])
     for it in range(n_it):
         G = (w.T @ VV).reshape(-1, p, p)
         G[~enough] = np.eye(p)
@@ -291,21 +295,30 @@ def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray 
         coef = np.linalg.solve(G, rhs[..., None])[..., 0].T
         if it == n_it - 1:
             break
-        r = yz - V @ coef
-        s = 1.4826 * _masked_median(np.abs(r), w0 > 0)
-        s = np.where(np.isfinite(s) & (s > 0), s, np.inf)
-        u = r / (4.685 * s)
-        w = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        fitted = V @ coef
+        for c in blocks:
+            r = yz[:, c] - fitted[:, c]
+            sc = 1.4826 * _masked_median(np.abs(r), w0[:, c] > 0)
+            sc = np.where(np.isfinite(sc) & (sc > 0), sc, np.inf)
+            u = r / (4.685 * sc)
+            w[:, c] = w0[:, c] * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        del fitted
+    del w
     # no extrapolation: outside the speeds of its reference revolutions (e.g. a crossing
     # near the start of a run), a column's baseline keeps its value at the nearest end
     used = w0 > 0
     big = np.where(used, x[:, None], -np.inf).max(axis=0)
     small = np.where(used, x[:, None], np.inf).min(axis=0)
+    del used
     if np.any(enough & ((x.min() < small) | (x.max() > big))):
-        xc = np.clip(x[:, None], np.where(enough, small, -np.inf), np.where(enough, big, np.inf))  # (n_rev, ncol)
-        offset = np.zeros_like(xc)
-        for k in range(p - 1, -1, -1):  # Horner, column by column
-            offset = offset * xc + coef[k][None, :]
+        lo, hi = np.where(enough, small, -np.inf), np.where(enough, big, np.inf)
+        offset = np.empty(y.shape)
+        for c in blocks:
+            xc = np.clip(x[:, None], lo[c], hi[c])  # (n_rev, block)
+            off = np.zeros_like(xc)
+            for k in range(p - 1, -1, -1):  # Horner, column by column
+                off = off * xc + coef[k][None, c]
+            offset[:, c] = off
     else:
         offset = V @ coef
     # columns without enough reference revolutions: weighted mean, or nothing at all
@@ -315,6 +328,12 @@ def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray 
     offset[:, ~enough] = mean[~enough]
     offset = offset.reshape(n_rev, nb, npr)
     return d - offset, offset
+
+
+def _column_blocks(n_rev: int, n_col: int) -> list:
+    """Slices of columns, each of at most :data:`PREP_BLOCK` samples (at least one column)."""
+    step = max(1, PREP_BLOCK // max(n_rev, 1))
+    return [slice(c, min(c + step, n_col)) for c in range(0, n_col, step)]
 
 
 def speed_adaptive_half_width(omega_rad_s: np.ndarray, half_width_at_res: float, omega_res: float, *,
@@ -377,8 +396,12 @@ def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
     extrapolates without the bias of a symmetric average).
     """
     d = np.asarray(d_m, dtype=float)
-    n = d.shape[0]
-    flat = d.reshape(n, -1)
+    return _smooth(d, *_smoother(d.shape[0], half_width, weights))
+
+
+def _smoother(n: int, half_width, weights) -> tuple:
+    """The kernel weights ``K`` and equivalent kernel ``L`` of :func:`smooth_revolutions`
+    over ``n`` revolutions, with the offsets ``j`` and the largest half-width ``H``."""
     h = np.broadcast_to(np.asarray(half_width, dtype=float), (n,))
     if np.any(~np.isfinite(h)) or np.any(h < 1):
         raise ValueError("half_width must be finite and >= 1")
@@ -390,6 +413,13 @@ def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
     u = np.abs(j)[None, :] / (h[:, None] + 1.0)
     K = np.where(u < 1.0, (1.0 - u ** 3) ** 3, 0.0) * np.where(inside, w_rev[np.clip(idx, 0, n - 1)], 0.0)
     L = _local_quadratic_weights(K, j)
+    return K, L, j, H
+
+
+def _smooth(d: np.ndarray, K: np.ndarray, L: np.ndarray, j: np.ndarray, H: int) -> np.ndarray:
+    """:func:`smooth_revolutions` of ``d`` with the kernel of :func:`_smoother`."""
+    n = d.shape[0]
+    flat = d.reshape(n, -1)
     nan = np.isnan(flat)
     xz = np.where(nan, 0.0, flat)
     pad = np.zeros((n + 2 * H, flat.shape[1]))
@@ -488,6 +518,19 @@ def smoothing_gain(half_width: np.ndarray, weights: np.ndarray | None, rows) -> 
     return out
 
 
+#: Samples (revolutions x blades x probes) of the blocks in which :func:`prepare` removes
+#: the offsets and smooths: every column is processed on its own, so blocks of blades give
+#: the same numbers, with temporaries bounded by the block (a few dozen arrays of it).
+PREP_BLOCK = 1 << 19
+
+
+def _blade_blocks(shape: tuple) -> list:
+    """Slices of blades, each of at most :data:`PREP_BLOCK` samples (at least one blade)."""
+    n_rev, nb, npr = shape
+    step = max(1, PREP_BLOCK // max(n_rev * npr, 1))
+    return [slice(b, min(b + step, nb)) for b in range(0, nb, step)]
+
+
 def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
             options: PrepOptions = PrepOptions(), *, region: ResonanceRegion | None = None,
             half_width: np.ndarray | None = None,
@@ -535,7 +578,11 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     if options.smooth and n_rev >= 3 and half_width is not None:
         half = np.clip(np.asarray(half_width, dtype=float), max(options.min_half_width, 1.0), options.max_half_width)
         w = 1.0 / (om * om) if options.noise_weighting else None
-        out = smooth_revolutions(out, half, w)
+        kernel = _smoother(d.shape[0], half, w)
+        smoothed = np.empty_like(d)
+        for sl in _blade_blocks(d.shape):  # each column is smoothed on its own: blocks of blades
+            smoothed[:, sl] = _smooth(out[:, sl], *kernel)
+        out = smoothed
     elif options.smooth and n_rev >= 3:
         sig = region.significant
         if options.smooth_half_width is not None:

@@ -252,6 +252,8 @@ class StreamingProcessor:
         if not self._finished:
             self.last_outputs = self.flush()
             self._finished = True
+            # the live displacements are done with: freed before the report's whole-run arrays
+            self._d = self._omega = None
         if self._opr.n < 3:
             raise ValueError("at least three revolutions are needed for a resonance report")
         opts = self.options
@@ -269,6 +271,8 @@ class StreamingProcessor:
 
         A block in which the calibration of the arrival angles switched on is skipped (its
         displacements change their zeroing mid-block)."""
+        if self._d is None:  # after finish: the live displacements are gone
+            return []
         opts = self.options.nsv
         L = int(opts.block)
         out = []

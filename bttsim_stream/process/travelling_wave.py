@@ -124,6 +124,10 @@ def _split(Z: np.ndarray, n_blades: int, shift: int = 0) -> tuple[np.ndarray, np
     return fwd, bwd
 
 
+#: Revolutions transformed at once by :func:`probe_spectra`.
+SPECTRA_CHUNK = 2048
+
+
 def probe_spectra(d_m: np.ndarray, engine_order: int) -> TravellingWaveSpectra:
     """Per revolution and probe: spatial DFT of the displacements across the blades.
 
@@ -141,6 +145,13 @@ def probe_spectra(d_m: np.ndarray, engine_order: int) -> TravellingWaveSpectra:
     """
     d = np.asarray(d_m, dtype=float)
     nb = d.shape[-2]
+    if d.ndim == 3 and d.shape[0] > SPECTRA_CHUNK:  # per revolution: in blocks, bounded temporaries
+        n_nd = nb // 2 + 1
+        fwd, bwd = np.empty((d.shape[0], d.shape[2], n_nd)), np.empty((d.shape[0], d.shape[2], n_nd))
+        for a in range(0, d.shape[0], SPECTRA_CHUNK):
+            s = probe_spectra(d[a:a + SPECTRA_CHUNK], engine_order)
+            fwd[a:a + SPECTRA_CHUNK], bwd[a:a + SPECTRA_CHUNK] = s.forward_m, s.backward_m
+        return TravellingWaveSpectra(forward_m=fwd, backward_m=bwd, n_blades=nb)
     with np.errstate(all="ignore"):
         ok = np.isfinite(d)
         cnt = ok.sum(axis=-2, keepdims=True)
@@ -177,6 +188,13 @@ def fit_spectra(phasor: np.ndarray, engine_order: int, blade_angles_rad=None) ->
     """
     p = np.asarray(phasor)
     nb = p.shape[-1]
+    if p.ndim == 2 and p.shape[0] > SPECTRA_CHUNK:  # per revolution: in blocks, bounded temporaries
+        n_nd = nb // 2 + 1
+        fwd, bwd = np.empty((p.shape[0], n_nd)), np.empty((p.shape[0], n_nd))
+        for a in range(0, p.shape[0], SPECTRA_CHUNK):
+            s = fit_spectra(p[a:a + SPECTRA_CHUNK], engine_order, blade_angles_rad)
+            fwd[a:a + SPECTRA_CHUNK], bwd[a:a + SPECTRA_CHUNK] = s.forward_m, s.backward_m
+        return TravellingWaveSpectra(forward_m=fwd, backward_m=bwd, n_blades=nb)
     th = TWO_PI * np.arange(nb) / nb if blade_angles_rad is None else np.asarray(blade_angles_rad, float)
     ok = np.isfinite(p)
     n_ok = ok.sum(axis=-1, keepdims=True)

@@ -1,0 +1,105 @@
+"""Bounded memory: the whole-run steps done in blocks give the numbers of the whole arrays,
+and a recording's revolutions are regrouped into arrays as the bus's assembler does."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bttsim_stream.bus.stream import RevolutionAssembler
+from bttsim_stream.offline import _Acquisition
+from bttsim_stream.process import displacement, fit, prep, travelling_wave
+from bttsim_stream.process.displacement import Geometry, compute_displacements, expected_times
+
+PROBES = np.deg2rad([5.0, 15.15, 23.82, 220.0, 301.5])
+NB = 13
+
+
+def _run(n_rev: int, seed: int = 1):
+    """A run-up's OPR times and TOAs with vibration, a few missing pulses."""
+    rng = np.random.default_rng(seed)
+    omega = np.linspace(150.0, 300.0, n_rev)
+    opr = np.concatenate([[0.0], np.cumsum(2 * np.pi / omega[:-1])])
+    geo = Geometry(n_blades=NB, probe_angles_rad=PROBES, tip_radius_m=0.2)
+    psi = geo.nominal_arrival_angles()
+    toa = opr[:, None, None] + psi[None] / omega[:, None, None]
+    toa += 1e-6 * np.sin(np.arange(n_rev) / 40.0)[:, None, None] * rng.uniform(0.5, 1.5, (1, NB, PROBES.size))
+    toa += rng.normal(0.0, 2e-8, toa.shape)
+    toa[rng.random(toa.shape) < 0.002] = np.nan
+    return opr, toa, geo, omega
+
+
+def _same(a, b) -> bool:
+    return a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+
+
+def test_blocks_give_the_whole_arrays_numbers(monkeypatch):
+    opr, toa, geo, omega = _run(700)
+    whole = compute_displacements(opr, toa, geo, calibration=64)
+    d = whole.d_m
+    fits = [fit.fit_revolutions(d, PROBES, eos, omega_rad_s=omega, tip_radius_m=r)
+            for eos in ((3,), (3, 5)) for r in (None, 0.2)]
+    probe_tw, fit_tw = travelling_wave.probe_spectra(d, 3), travelling_wave.fit_spectra(fits[0].phasor[..., 0], 3)
+    half = np.clip(3.0 + 6.0 * np.arange(700) / 700, 1, 40)
+    prepared = prep.prepare(d, omega, PROBES, (3,), region=prep.locate_resonance(d, PROBES, (3,)), half_width=half)
+    # the same with blocks of a few dozen revolutions (and columns)
+    for mod, name in ((fit, "FIT_CHUNK"), (displacement, "DISPLACEMENT_CHUNK"), (travelling_wave, "SPECTRA_CHUNK")):
+        monkeypatch.setattr(mod, name, 64)
+    monkeypatch.setattr(prep, "PREP_BLOCK", 700 * 7)
+    blocked = compute_displacements(opr, toa, geo, calibration=64)
+    assert _same(blocked.d_m, d)
+    assert _same(blocked.t_exp_s, whole.phase.opr_s[:, None, None] + displacement.displacements_from_phase(
+        whole.phase, toa, whole.arrival_angles_rad, 0.2)[1])
+    assert _same(blocked.t_exp_s, expected_times(whole.phase, whole.arrival_angles_rad, toa))
+    k = 0
+    for eos in ((3,), (3, 5)):
+        for r in (None, 0.2):
+            f = fit.fit_revolutions(d, PROBES, eos, omega_rad_s=omega, tip_radius_m=r)
+            for name in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m", "residual_rms_m", "n_samples",
+                         "freq_hz"):
+                assert _same(getattr(f, name), getattr(fits[k], name)), (eos, r, name)
+            k += 1
+    tw = travelling_wave.probe_spectra(d, 3), travelling_wave.fit_spectra(fits[0].phasor[..., 0], 3)
+    for a, b in zip(tw, (probe_tw, fit_tw)):
+        assert _same(a.forward_m, b.forward_m) and _same(a.backward_m, b.backward_m)
+    p2 = prep.prepare(d, omega, PROBES, (3,), region=prep.locate_resonance(d, PROBES, (3,)), half_width=half)
+    assert _same(p2.d_m, prepared.d_m) and _same(p2.offset_m, prepared.offset_m)
+    assert not np.allclose(np.nan_to_num(p2.offset_m), 0.0)  # a baseline was removed, smoothing done
+
+
+def _msg(kind, rev, value, probe=0):
+    header = SimpleNamespace(revolution=rev)
+    body = SimpleNamespace(opr_s=value) if kind == "opr" else SimpleNamespace(probe=probe, toa_s=value)
+    return kind, SimpleNamespace(header=header, body=body)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_recording_regrouped_as_the_assembler_does(seed):
+    """Shuffled fragments with duplicates, lost batches, OPR-less revolutions and bad ones:
+    the complete revolutions of ``RevolutionAssembler.pop(final=True)``, in order."""
+    rng = np.random.default_rng(seed)
+    nb, npr, n = 4, 3, 60
+    msgs = []
+    for r in range(n):
+        if rng.random() > 0.05:
+            msgs.append(_msg("opr", r, 0.01 * r + rng.normal(0, 1e-4)))
+        for p in range(npr):
+            if rng.random() > 0.03:
+                msgs.append(_msg("toa", r, rng.normal(size=nb), p))
+    msgs += [msgs[i] for i in rng.integers(0, len(msgs), 25)]  # repeats: the first one stays
+    msgs += [_msg("toa", 3, rng.normal(size=nb), 1), _msg("opr", 5, 99.0)]  # later duplicates, other values
+    msgs += [_msg("toa", 7, rng.normal(size=nb + 1), 0), _msg("toa", 8, rng.normal(size=nb), npr),
+             _msg("opr", -1, 0.0), _msg("opr", 9, np.inf)]  # refused
+    order = rng.permutation(len(msgs) - 6)  # the duplicates and refused ones last
+    msgs = [msgs[i] for i in order] + msgs[-6:]
+    asm, acq = RevolutionAssembler(nb, npr), _Acquisition(nb, npr, 16)  # a small capacity: it grows
+    for kind, d in msgs:
+        asm.add(kind, d)
+        acq.add(kind, d)
+    want = [r for r in asm.pop(final=True) if r.complete]
+    numbers, opr, toa = acq.complete()
+    assert numbers.tolist() == [r.revolution for r in want]
+    assert _same(opr, np.array([r.opr_s for r in want]))
+    assert _same(toa, np.stack([r.toa_s for r in want]))
+    assert acq.ignored == asm.ignored == 4
+    assert acq.duplicates == asm.duplicates
