@@ -122,6 +122,19 @@ def test_deterministic_and_resume(tiny, cluster, tmp_path):
     resumed = run_campaign(spec, tmp_path / "again", scheduler=cluster.scheduler_address, resume=True)
     assert (resumed.executed, resumed.skipped) == (1, 3)
     assert _values(tmp_path / "again" / "results.parquet") == first
+    summary = json.loads((tmp_path / "again" / "campaign.json").read_text())
+    assert [c["executed"] for c in summary["calls"]] == [4, 1] and summary["executed"] == 5
+    assert summary["wall_s"] == pytest.approx(again.wall_s + resumed.wall_s, rel=1e-12)
+    assert summary["compute_s"] == pytest.approx(again.compute_s + resumed.compute_s, rel=1e-12)
+    # resuming a finished campaign runs nothing and keeps the timings of the calls that did
+    idle = run_campaign(spec, tmp_path / "again", scheduler=cluster.scheduler_address, resume=True)
+    assert (idle.executed, idle.skipped, idle.compute_s) == (0, 4, 0.0)
+    after = json.loads((tmp_path / "again" / "campaign.json").read_text())
+    assert after["calls"][:2] == summary["calls"] and after["calls"][2]["executed"] == 0
+    for k in ("executed", "wall_s", "compute_s", "runs_per_s", "workers", "runs", "rows"):
+        assert after[k] == summary[k], k
+    assert summary["runs_per_s"] > 0 and summary["workers"] == 2
+    assert _values(tmp_path / "again" / "results.parquet") == first
     with pytest.raises(Exception, match="already holds a campaign"):
         run_campaign(spec, tmp_path / "again", scheduler=cluster.scheduler_address)
 
@@ -159,24 +172,123 @@ def test_worker_killed_mid_campaign(tmp_path):
     assert len({(r["run_id"], r["blade"]) for r in rows}) == len(rows)
 
 
+#: User processors that fail, each in its own way, and one that leaves blades out (written
+#: into the test's folder, which the workers put on their path).
+BAD_PROCESSORS = """
+import numpy as np
+import pyarrow as pa
+
+def raises(tables, run):
+    raise ZeroDivisionError("no\\nthis spans\\n   three lines")
+
+def exits(tables, run):
+    raise SystemExit(3)
+
+def array(tables, run):
+    return np.zeros(run["n_blades"])  # not a table
+
+def no_amp(tables, run):
+    return {"blade": np.arange(run["n_blades"])}
+
+def typo(tables, run):
+    return {"blade": [0], "amp_pk_m": [1e-3]}
+
+def bad_blade(tables, run):
+    return {"blade": [0, run["n_blades"]], "amp_pkpk_m": [1e-3, 1e-3]}
+
+def twice(tables, run):
+    return {"blade": [3, 3], "amp_pkpk_m": [1e-3, 2e-3]}
+
+def ragged(tables, run):
+    return {"blade": [0, 1, 2], "amp_pkpk_m": [1e-3, 2e-3]}
+
+def text(tables, run):
+    return {"blade": [0], "amp_pkpk_m": ["big"]}
+
+def inverted(tables, run):
+    return {"blade": [0], "amp_pkpk_m": [1e-3], "amp_ci95_lo_m": [2e-3], "amp_ci95_hi_m": [1e-3]}
+
+def two_blades(tables, run):
+    # a pyarrow Table, two blades only, the engine order the metadata announces
+    toa = tables["toa"].to_pydict()
+    assert set(toa) == {"revolution", "blade", "probe", "toa_s"} and set(tables) == {"opr", "toa"}
+    assert not any(k.startswith("truth") for k in run)
+    return pa.table({"blade": [5, 0], "amp_pkpk_m": [2e-3, 1e-3]})
+"""
+BAD = {"raises": "ZeroDivisionError: no this spans three lines", "exits": "SystemExit: 3",
+       "array": "returned ndarray, not a table", "no_amp": "no column amp_pkpk_m", "typo": "unknown column(s) amp_pk_m",
+       "bad_blade": "blade 29, not in 0..28", "twice": "two rows for one blade", "ragged": "column amp_pkpk_m of shape",
+       "text": "column amp_pkpk_m of shape (1,) and dtype <U3", "inverted": "amp_ci95_lo_m above amp_ci95_hi_m"}
+
+
+def test_user_processor_tables_are_the_export(tmp_path, capsys):
+    """A user's processor gets the opr and toa tables that `bttsim export --format parquet`
+    writes of the same run (columns, dtypes, values) and run.json's run object; in memory."""
+    from bttsim_stream.campaign import user_tables
+    from bttsim_stream.campaign.run import _simulate
+    from bttsim_stream.scenario import scenario_from_dict
+    import tomllib
+
+    (tmp_path / "spec.toml").write_text(SPEC.replace("seeds = 2", "seeds = 1").replace("[0.0, 1e-6]", "[1e-6]"))
+    run = expand(load_spec(tmp_path / "spec.toml"))[0]
+    opr_s, toa_s, revolution, info, truth, path = _simulate(run, scenario_from_dict(tomllib.loads(run.scenario_toml)))
+    assert path is None and truth is not None  # in memory
+    tables, meta = user_tables(revolution, opr_s, toa_s, info)
+    (tmp_path / "s.toml").write_text(run.scenario_toml)
+    assert main(["simulate", str(tmp_path / "s.toml"), "--out", str(tmp_path / "r.mcap"), "-q"]) == 0
+    assert main(["export", str(tmp_path / "r.mcap"), "--format", "parquet", "--out", str(tmp_path / "x")]) == 0
+    capsys.readouterr()
+    assert set(tables) == {"opr", "toa"}
+    for name in ("opr", "toa"):
+        exported = pq.read_table(tmp_path / "x" / f"{name}.parquet")
+        assert tables[name].schema.equals(exported.schema), name
+        assert tables[name].equals(exported), name
+    assert tables["toa"].num_rows == toa_s.size and np.isnan(tables["toa"].column("toa_s").to_numpy()).sum() == \
+        np.isnan(toa_s).sum()
+    assert meta == json.loads((tmp_path / "x" / "run.json").read_text())["run"]
+
+
 def test_user_processor_and_failures(cluster, tmp_path, monkeypatch):
-    """A user's module:function is scored against truth; a missing one is an error row."""
-    monkeypatch.syspath_prepend(str(EXAMPLES))
+    """The example processor (tables in, per-blade table out) is scored against the truth,
+    with the coverage of its intervals; a processor that raises, exits or returns a malformed
+    table is one error row with its reason on one line, and the campaign goes on."""
+    (tmp_path / "userproc_bad.py").write_text(BAD_PROCESSORS)
+    for p in (EXAMPLES, tmp_path):
+        monkeypatch.syspath_prepend(str(p))
     client = distributed.Client(cluster.scheduler_address)
-    client.run(lambda p=str(EXAMPLES): __import__("sys").path.insert(0, p))  # the workers import it too
+    client.run(lambda ps=[str(EXAMPLES), str(tmp_path)]: __import__("sys").path.__setitem__(slice(0, 0), ps))
     client.close()
+    procs = ["peak", "campaign_processor:peak_fit", "nosuch:fn", "userproc_bad:two_blades"] + \
+        [f"userproc_bad:{k}" for k in BAD]
     (tmp_path / "spec.toml").write_text(SPEC.replace("seeds = 2", "seeds = 1")
-                                        .replace('["peak", "sdof"]', '["campaign_processor:peak_fit", "nosuch:fn"]')
+                                        .replace('["peak", "sdof"]', json.dumps(procs))
                                         .replace("[0.0, 1e-6]", "[1e-6]"))
     res = run_campaign(load_spec(tmp_path / "spec.toml"), tmp_path / "out", scheduler=cluster.scheduler_address)
     rows = pq.read_table(tmp_path / "out" / "results.parquet").to_pylist()
-    user = [r for r in rows if r["method"] == "campaign_processor:peak_fit"]
-    assert len(user) == N_BLADES and all(r["status"] == "ok" for r in user)
-    assert np.median([r["E_A_pct"] for r in user]) < 25
-    bad = [r for r in rows if r["method"] == "nosuch:fn"]
-    assert len(bad) == 1 and bad[0]["status"] == "error" and "nosuch" in bad[0]["error"]
-    assert res.failed == 1
-    assert "nosuch:fn | error | 1 |" in (tmp_path / "out" / "report.md").read_text()
+    by = {m: sorted((r for r in rows if r["method"] == m), key=lambda r: r["blade"]) for m in procs}
+    user, peak = by["campaign_processor:peak_fit"], by["peak"]
+    assert len(user) == N_BLADES and all(r["status"] == "ok" and r["eo"] == 8 for r in user)
+    # scored against the truth: the same per-blade truth as the built-in method's, E_A by Eq. 18
+    np.testing.assert_allclose([r["truth_amp_pkpk_m"] for r in user], [r["truth_amp_pkpk_m"] for r in peak],
+                               rtol=1e-12)
+    e_a = [100 * abs(r["amp_pkpk_m"] - r["truth_amp_pkpk_m"]) / r["truth_amp_pkpk_m"] for r in user]
+    assert np.all(np.isfinite(e_a)) and np.allclose([r["E_A_pct"] for r in user], e_a, rtol=1e-12)
+    assert np.median(e_a) < 20 and np.all(np.isfinite([r["E_f_pct"] for r in user]))
+    assert all(0 <= r["amp_ci95_lo_m"] < r["amp_pkpk_m"] < r["amp_ci95_hi_m"] for r in user)
+    covered = np.mean([r["amp_ci95_lo_m"] <= r["truth_amp_pkpk_m"] <= r["amp_ci95_hi_m"] for r in user])
+    report = (tmp_path / "out" / "report.md").read_text()
+    line = next(x for x in report.splitlines() if x.startswith("| campaign_processor:peak_fit | 1 | 29 | 0 |"))
+    assert f"| {100 * covered:.1f} % of 29" in line  # the coverage of its intervals
+    two = by["userproc_bad:two_blades"]  # blades left out are NaN rows
+    assert len(two) == N_BLADES and [b["blade"] for b in two if np.isfinite(b["amp_pkpk_m"])] == [0, 5]
+    assert two[5]["E_A_pct"] == pytest.approx(100 * abs(2e-3 - two[5]["truth_amp_pkpk_m"]) / two[5]["truth_amp_pkpk_m"])
+    assert np.isnan(two[5]["amp_ci95_lo_m"]) and np.isnan(two[1]["E_A_pct"])
+    for name, needle in [("nosuch:fn", "nosuch")] + [(f"userproc_bad:{k}", v) for k, v in BAD.items()]:
+        bad = by[name]
+        assert len(bad) == 1 and bad[0]["status"] == "error", name
+        assert needle in bad[0]["error"] and "\n" not in bad[0]["error"], (name, bad[0]["error"])
+    assert res.failed == 1 and res.executed == 1
+    assert "nosuch:fn | error | 1 |" in report
 
 
 @pytest.mark.parametrize("text, needle", [

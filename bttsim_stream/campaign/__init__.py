@@ -7,8 +7,8 @@ Dask and pyarrow come with the ``campaign`` extra; nothing here is imported by t
 """
 
 from .driver import CampaignOutcome, connect, run_campaign
-from .run import RunData, execute_run
+from .run import USER_COLUMNS, execute_run, user_tables
 from .spec import CampaignSpec, RunSpec, SpecError, expand, load_spec, spec_from_dict
 
-__all__ = ["CampaignOutcome", "CampaignSpec", "RunData", "RunSpec", "SpecError", "connect", "execute_run",
-           "expand", "load_spec", "run_campaign", "spec_from_dict"]
+__all__ = ["CampaignOutcome", "CampaignSpec", "RunSpec", "SpecError", "USER_COLUMNS", "connect", "execute_run",
+           "expand", "load_spec", "run_campaign", "spec_from_dict", "user_tables"]

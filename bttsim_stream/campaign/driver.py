@@ -177,6 +177,35 @@ def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
             for p in run.processors]
 
 
+def _write_summary(path: Path, outcome: CampaignOutcome, *, resume: bool, scheduler: str | None,
+                   interrupted: bool) -> None:
+    """``campaign.json``: this call's numbers in ``calls`` (after those of the earlier calls
+    when resuming), and the campaign's totals over every call: ``executed``, ``wall_s`` and
+    ``compute_s`` summed, ``runs_per_s`` of the sums, ``workers`` the most any call had."""
+    call = {"executed": outcome.executed, "skipped": outcome.skipped, "wall_s": outcome.wall_s,
+            "compute_s": outcome.compute_s, "workers": outcome.workers, "scheduler": scheduler or "LocalCluster",
+            "interrupted": interrupted}
+    keys = tuple(call)
+    calls = []
+    if resume and path.is_file():
+        try:
+            prev = json.loads(path.read_text())
+            # a campaign.json without calls (an older version's) was one call
+            calls = [{k: c.get(k) for k in keys} for c in prev.get("calls", [prev]) if isinstance(c, dict)
+                     and all(isinstance(c.get(k), (int, float)) and math.isfinite(c[k]) for k in keys[:5])]
+        except (OSError, ValueError, AttributeError):
+            calls = []  # unreadable: the numbers start again from this call
+    calls.append(call)
+    total = {k: sum(float(c[k]) for c in calls) for k in ("wall_s", "compute_s")}
+    executed = sum(int(c["executed"]) for c in calls)
+    path.write_text(json.dumps({
+        "runs": outcome.runs, "executed": executed, "failed": outcome.failed, "rows": outcome.rows, **total,
+        "runs_per_s": executed / total["compute_s"] if total["compute_s"] > 0 else None,
+        "workers": max(int(c["workers"]) for c in calls), "scheduler": call["scheduler"],
+        "interrupted": interrupted, "calls": calls, "python": sys.version.split()[0],
+        "software_version": __version__}, indent=2, allow_nan=False) + "\n")
+
+
 def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n_workers: int | None = None,
                  resume: bool = False, progress=None, timeout_s: float = 10.0,
                  dashboard: str | None = None, security=None) -> CampaignOutcome:
@@ -281,12 +310,7 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
                               failed=len({r["run_id"] for r in rows if r["status"] in ("error", "lost")}),
                               rows=len(rows), wall_s=wall, compute_s=compute, workers=n_workers_seen,
                               results=results, report=report)
-    (out / "campaign.json").write_text(json.dumps({
-        "runs": outcome.runs, "executed": outcome.executed, "skipped": outcome.skipped, "failed": outcome.failed,
-        "rows": outcome.rows, "wall_s": wall, "compute_s": compute, "runs_per_s": outcome.runs_per_s,
-        "workers": n_workers_seen,
-        "scheduler": scheduler or "LocalCluster", "interrupted": interrupted, "python": sys.version.split()[0],
-        "software_version": __version__}, indent=2) + "\n")
+    _write_summary(out / "campaign.json", outcome, resume=resume, scheduler=scheduler, interrupted=interrupted)
     if interrupted:
         raise KeyboardInterrupt
     return outcome

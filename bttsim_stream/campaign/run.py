@@ -6,21 +6,28 @@ finds no resonance gives one row with ``status`` and ``error`` saying why). It n
 for a problem of the run itself, so one bad run is rows with their reason, never a failed
 campaign; a worker that dies is Dask's business (the task is retried elsewhere).
 
-A user's processor is ``module:function`` called as ``function(run)`` with a :class:`RunData`
-(the acquisition arrays and metadata; never the truth). It returns the per-blade peak-to-peak
-amplitudes, m: an array of shape (n_blades,), or a mapping with ``amp_pkpk_m`` and optionally
-``amp_ci95_lo_m``, ``amp_ci95_hi_m``, ``amp_std_m``, ``freq_hz`` (each (n_blades,)) and
-``eo``. It is scored against the truth's per-blade peak of the run (``truth_peaks``).
+A user's processor is ``module:function`` called as ``function(tables, run)``: the run's
+acquisition as the tidy tables of ``bttsim export`` (``schemas/export.md``), built in memory
+by :func:`user_tables`: ``tables`` maps ``"opr"`` and ``"toa"`` to pyarrow Tables with the
+columns and dtypes of the exported Parquet files, ``run`` is ``run.json``'s ``run`` object
+(the run metadata); never the truth. It returns its per-blade estimates as a table (a pyarrow
+Table, a pandas or polars DataFrame, or a dict of columns): ``blade`` and ``amp_pkpk_m``, and
+optionally ``eo``, ``amp_std_m``, ``amp_ci95_lo_m``, ``amp_ci95_hi_m``, ``freq_hz``
+(:data:`USER_COLUMNS`), scored against the truth's per-blade peak of the run at that engine
+order (``truth_peaks``). A processor that raises, or returns anything else, is one ``error``
+row with the reason on one line.
 """
 
 from __future__ import annotations
 
+import copy
 import importlib
 import math
 import os
 import tempfile
 import time
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import fields
 
 import numpy as np
 
@@ -29,7 +36,7 @@ from ..process.resonance import truth_peaks
 from ..scenario import Scenario
 from .spec import Processor, RunSpec
 
-__all__ = ["RunData", "execute_run", "warm_up", "ROW_COLUMNS", "Z95"]
+__all__ = ["execute_run", "user_tables", "warm_up", "ROW_COLUMNS", "USER_COLUMNS", "Z95"]
 
 #: Two-sided 95 % normal quantile: ``amp_ci95 = amp +- Z95 * amp_std_m`` when a method gives
 #: a standard uncertainty but no interval.
@@ -43,41 +50,10 @@ ROW_COLUMNS = ("run_id", "index", "replicate", "seed", "worker", "method", "stat
 TIMING_COLUMNS = ("worker", "simulate_s", "process_s")
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class RunData:
-    """What a user's processor gets: the acquisition of one run (no truth).
-
-    Attributes
-    ----------
-    run_id : str
-    opr_s : ndarray, shape (n_rev,)
-        OPR pulse times, s.
-    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
-        TOAs, s (NaN: missing).
-    revolution : ndarray of int64, shape (n_rev,)
-    probe_angles_rad : ndarray, shape (n_probes,)
-    n_blades : int
-    tip_radius_m : float
-    engine_orders : tuple of int
-        The excitation's engine orders (what the run metadata announces).
-    info : RunInfo
-        The whole run metadata (``bttsim_stream.sim.core.RunInfo``).
-    scenario : Scenario
-    mcap_path : str or None
-        The run's recording when the campaign has ``mcap = true`` (deleted after the run).
-    """
-
-    run_id: str
-    opr_s: np.ndarray
-    toa_s: np.ndarray
-    revolution: np.ndarray
-    probe_angles_rad: np.ndarray
-    n_blades: int
-    tip_radius_m: float
-    engine_orders: tuple
-    info: object
-    scenario: Scenario
-    mcap_path: str | None = None
+#: The columns a user's processor may return, with the one-letter kind each must have
+#: (``i`` an integer, ``f`` a float); ``blade`` and ``amp_pkpk_m`` are required.
+USER_COLUMNS = {"blade": "i", "eo": "i", "amp_pkpk_m": "f", "amp_std_m": "f", "amp_ci95_lo_m": "f",
+                "amp_ci95_hi_m": "f", "freq_hz": "f"}
 
 
 def warm_up() -> int:
@@ -155,20 +131,17 @@ def execute_run(run: RunSpec) -> list[dict]:
             t_sim = time.perf_counter() - t0
             return [_failed(base, p.name, "error", f"simulation: {_one_line(exc)}", t_sim, 0.0) for p in run.processors]
         t_sim = time.perf_counter() - t0
+        tables = None  # the user processors' input, built for the first one
         try:
             for p in run.processors:
                 t1 = time.perf_counter()
                 try:
                     if p.method == "user":
-                        data = RunData(run_id=run.run_id, opr_s=opr_s, toa_s=toa_s, revolution=revolution,
-                                       probe_angles_rad=np.asarray(info.probe_angles_rad, float),
-                                       n_blades=int(info.n_blades), tip_radius_m=float(info.tip_radius_m),
-                                       engine_orders=tuple(int(e.engine_order) for e in scn.excitation),
-                                       info=info, scenario=scn, mcap_path=path)
-                        new = _score_user(base, p, data, truth)
+                        tables = tables or user_tables(revolution, opr_s, toa_s, info)
+                        new = _score_user(base, p, *tables, truth)
                     else:
                         new = _score_builtin(base, p, opr_s, toa_s, revolution, info, truth)
-                except Exception as exc:  # noqa: BLE001
+                except (Exception, SystemExit) as exc:  # noqa: BLE001 -- a user's code may even exit
                     new = [_failed(base, p.name, "error", _one_line(exc), t_sim, 0.0)]
                 dt = time.perf_counter() - t1
                 for r in new:
@@ -233,37 +206,123 @@ def load_processor(target: str):
     return getattr(importlib.import_module(mod), fn)
 
 
-def _score_user(base: dict, p: Processor, data: RunData, truth) -> list[dict]:
-    """Rows of a user's processor, scored against the truth's per-blade peak."""
-    out = load_processor(p.target)(data)
-    if not isinstance(out, dict):
-        out = {"amp_pkpk_m": out}
-    nb = data.n_blades
+def user_tables(revolution, opr_s, toa_s, info) -> tuple[dict, dict]:
+    """What a user's processor gets: the acquisition tables of ``bttsim export``, in memory.
 
-    def arr(key):
-        if key not in out or out[key] is None:
-            return np.full(nb, np.nan)
-        a = np.asarray(out[key], dtype=float).reshape(-1)
-        if a.shape != (nb,):
-            raise ValueError(f"{p.target} returned {key} of shape {a.shape}, expected ({nb},)")
-        return a
+    Parameters
+    ----------
+    revolution : ndarray of int, shape (n_rev,)
+    opr_s : ndarray, shape (n_rev,)
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+    info : RunInfo
+        The run metadata.
 
-    amp, std, f = arr("amp_pkpk_m"), arr("amp_std_m"), arr("freq_hz")
-    lo, hi = arr("amp_ci95_lo_m"), arr("amp_ci95_hi_m")
-    no_ci = np.isnan(lo) & np.isnan(hi)
-    lo, hi = np.where(no_ci, amp - Z95 * std, lo), np.where(no_ci, amp + Z95 * std, hi)
-    eo = int(out.get("eo", data.engine_orders[0] if data.engine_orders else 0))
-    tp = truth_peaks(truth, eo) if truth is not None else None
-    t_amp = tp.amp_pkpk_m if tp is not None else np.full(nb, np.nan)
-    t_f = tp.freq_hz if tp is not None else np.full(nb, np.nan)
-    with np.errstate(all="ignore"):
-        e_a = 100.0 * np.abs(amp - t_amp) / t_amp
-        e_f = 100.0 * np.abs(f - t_f) / t_f
+    Returns
+    -------
+    tables : dict of str -> pyarrow.Table
+        ``"opr"`` (``revolution`` int64, ``opr_s`` float64) and ``"toa"`` (``revolution,
+        blade, probe`` int64, ``toa_s`` float64, NaN: missing), row for row and type for type
+        the ``opr.parquet`` and ``toa.parquet`` that ``bttsim export`` writes of this run.
+    run : dict
+        ``run.json``'s ``run`` object: the metadata as JSON values (lists; None for NaN).
+    """
+    import pyarrow as pa
+
+    from ..export import _f, _jsonable, _long
+
+    rev = np.asarray(revolution, dtype=np.int64)
+    cols = {"opr": {"revolution": rev.copy(), "opr_s": _f(opr_s)},
+            "toa": dict(_long(np.shape(toa_s), ("revolution", "blade", "probe"), rev), toa_s=_f(toa_s))}
+    tables = {name: pa.table({k: pa.array(v) for k, v in c.items()}) for name, c in cols.items()}
+    return tables, _jsonable({f.name: getattr(info, f.name) for f in fields(info)})
+
+
+def _user_columns(out, target: str, n_blades: int) -> dict:
+    """The columns of what a user's processor returned, checked: name -> 1-D ndarray (a
+    scalar is repeated over the rows); ValueError naming the first problem."""
+    if hasattr(out, "column_names") and hasattr(out, "column"):  # a pyarrow Table
+        cols = {str(c): out.column(c).to_numpy(zero_copy_only=False) for c in out.column_names}
+    elif isinstance(out, Mapping):
+        cols = {str(k): v for k, v in out.items()}
+    elif hasattr(out, "columns") and hasattr(out, "__getitem__"):  # a pandas / polars DataFrame
+        cols = {str(c): out[c] for c in out.columns}
+    else:
+        raise ValueError(f"{target} returned {type(out).__name__}, not a table of per-blade estimates "
+                         "(a pyarrow Table, a DataFrame or a dict of columns)")
+    unknown = sorted(set(cols) - set(USER_COLUMNS))
+    missing = [c for c in ("blade", "amp_pkpk_m") if c not in cols]
+    if unknown or missing:
+        what = f"unknown column(s) {', '.join(unknown)}" if unknown else f"no column {', '.join(missing)}"
+        raise ValueError(f"{target} returned {what}; the columns are {', '.join(USER_COLUMNS)}")
+    n = np.size(cols["blade"])
+    out_cols = {}
+    for k, v in cols.items():
+        a = np.asarray(v)
+        if a.ndim > 1 or (a.ndim == 1 and a.size != n) or a.dtype.kind not in "iuf":
+            raise ValueError(f"{target} returned column {k} of shape {a.shape} and dtype {a.dtype}, "
+                             f"expected {n} numbers (one per row of its blade column)")
+        a = np.broadcast_to(a.astype(float), (n,))
+        if np.isinf(a).any():
+            raise ValueError(f"{target} returned an infinite {k}")
+        if USER_COLUMNS[k] == "i" and not np.all(a == np.round(a)):
+            raise ValueError(f"{target} returned a {k} that is not an integer: {a[a != np.round(a)][0]!r}")
+        if k in ("amp_pkpk_m", "amp_std_m") and (a < 0).any():
+            raise ValueError(f"{target} returned a negative {k}: {a[a < 0][0]!r}")
+        out_cols[k] = a
+    blade = out_cols["blade"]
+    if ((blade < 0) | (blade >= n_blades)).any():
+        raise ValueError(f"{target} returned blade {int(blade[(blade < 0) | (blade >= n_blades)][0])}, "
+                         f"not in 0..{n_blades - 1}")
+    return out_cols
+
+
+def _score_user(base: dict, p: Processor, tables: dict, run: dict, truth) -> list[dict]:
+    """Rows of a user's processor: one per engine order it returned (``crossing`` by ascending
+    EO) and blade (a blade it left out: NaN), scored against the truth's per-blade peak."""
+    nb = int(run["n_blades"])
+    fn = load_processor(p.target)
+    cols = _user_columns(fn(tables, copy.deepcopy(run)), p.target, nb)  # its own copy: it may change it
+    if "eo" not in cols:
+        if not run.get("engine_orders"):
+            raise ValueError(f"{p.target} returned no eo column and the run announces no engine order")
+        cols["eo"] = np.full(cols["blade"].size, float(run["engine_orders"][0]))
+    if (cols["eo"] <= 0).any():
+        raise ValueError(f"{p.target} returned eo {int(cols['eo'].min())}, not a positive engine order")
+    eo_all, blade_all = cols["eo"].astype(np.int64), cols["blade"].astype(np.int64)
+    if len(set(zip(eo_all.tolist(), blade_all.tolist()))) < eo_all.size:
+        raise ValueError(f"{p.target} returned two rows for one blade and engine order")
+    eos = sorted(set(eo_all.tolist()))
+    if not eos:  # no rows: every blade unestimated at the run's first engine order
+        if not run.get("engine_orders"):
+            raise ValueError(f"{p.target} returned no rows and the run announces no engine order")
+        eos = [int(run["engine_orders"][0])]
     rows = []
-    for b in range(nb):
-        rows.append(dict(base, method=p.name, status="ok", error="", crossing=0, eo=eo, nd=0, rpm=math.nan,
-                         cn=math.nan, blade=b, amp_pkpk_m=float(amp[b]), amp_std_m=float(std[b]),
-                         amp_ci95_lo_m=float(lo[b]), amp_ci95_hi_m=float(hi[b]), freq_hz=float(f[b]),
-                         truth_amp_pkpk_m=float(t_amp[b]), truth_freq_hz=float(t_f[b]), E_A_pct=float(e_a[b]),
-                         E_f_pct=float(e_f[b])))
+    for crossing, eo in enumerate(eos):
+        sel = eo_all == eo
+
+        def arr(key):
+            a = np.full(nb, np.nan)
+            if key in cols:
+                a[blade_all[sel]] = cols[key][sel]
+            return a
+
+        amp, std, f = arr("amp_pkpk_m"), arr("amp_std_m"), arr("freq_hz")
+        lo, hi = arr("amp_ci95_lo_m"), arr("amp_ci95_hi_m")
+        if (lo > hi).any():
+            raise ValueError(f"{p.target} returned amp_ci95_lo_m above amp_ci95_hi_m "
+                             f"(blade {int(np.argmax(lo > hi))}, eo {eo})")
+        no_ci = np.isnan(lo) & np.isnan(hi)
+        lo, hi = np.where(no_ci, amp - Z95 * std, lo), np.where(no_ci, amp + Z95 * std, hi)
+        tp = truth_peaks(truth, eo) if truth is not None else None
+        t_amp = tp.amp_pkpk_m if tp is not None else np.full(nb, np.nan)
+        t_f = tp.freq_hz if tp is not None else np.full(nb, np.nan)
+        with np.errstate(all="ignore"):
+            e_a = 100.0 * np.abs(amp - t_amp) / t_amp
+            e_f = 100.0 * np.abs(f - t_f) / t_f
+        for b in range(nb):
+            rows.append(dict(base, method=p.name, status="ok", error="", crossing=crossing, eo=eo, nd=0,
+                             rpm=math.nan, cn=math.nan, blade=b, amp_pkpk_m=float(amp[b]), amp_std_m=float(std[b]),
+                             amp_ci95_lo_m=float(lo[b]), amp_ci95_hi_m=float(hi[b]), freq_hz=float(f[b]),
+                             truth_amp_pkpk_m=float(t_amp[b]), truth_freq_hz=float(t_f[b]),
+                             E_A_pct=float(e_a[b]), E_f_pct=float(e_f[b])))
     return rows
