@@ -137,7 +137,7 @@ class RunTables:
         return self.tables[name]()
 
 
-def _long(shape: tuple, names: tuple, first: np.ndarray) -> dict:
+def long_cols(shape: tuple, names: tuple, first: np.ndarray) -> dict:
     """Index columns of a C-order flattening of an array of ``shape``; axis 0 numbered by ``first``."""
     idx = np.indices(shape).reshape(len(shape), -1)
     cols = {names[0]: np.asarray(first, dtype=np.int64)[idx[0]]}
@@ -146,7 +146,8 @@ def _long(shape: tuple, names: tuple, first: np.ndarray) -> dict:
     return cols
 
 
-def _f(a) -> np.ndarray:
+def f64(a) -> np.ndarray:
+    """A contiguous float64 column of ``a`` (flattened in C order)."""
     return np.ascontiguousarray(np.asarray(a, dtype=np.float64).ravel())
 
 
@@ -199,13 +200,14 @@ def _resonance_table(report, revolution0: int) -> dict:
     return out
 
 
-def _jsonable(x):
+def jsonable(x):
+    """``x`` with numpy arrays and scalars turned into JSON's lists and numbers."""
     if isinstance(x, np.ndarray):
-        return [_jsonable(v) for v in x.tolist()] if x.ndim else _jsonable(x.item())
+        return [jsonable(v) for v in x.tolist()] if x.ndim else jsonable(x.item())
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
+        return {k: jsonable(v) for k, v in x.items()}
     if isinstance(x, (np.integer,)):
         return int(x)
     if isinstance(x, (float, np.floating)):
@@ -239,42 +241,42 @@ def run_tables(run, result=None) -> RunTables:
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             raise BttsimError(f"the processing of the recording failed ({exc})") from None
     t: dict = {}  # name -> builder: the tables are built one at a time, when written
-    t["opr"] = lambda: {"revolution": rev.copy(), "opr_s": _f(run.opr_s)}
-    t["toa"] = lambda: dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev), toa_s=_f(run.toa_s))
+    t["opr"] = lambda: {"revolution": rev.copy(), "opr_s": f64(run.opr_s)}
+    t["toa"] = lambda: dict(long_cols((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev), toa_s=f64(run.toa_s))
     if run.extra_edges["toa_s"].size:  # double pulses (the probe signal chain)
         t["extra_edge"] = lambda: {k: np.array(v) for k, v in run.extra_edges.items()}
     disp = result.displacements
-    t["displacement"] = lambda: dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
-                                     d_m=_f(disp.d_m), t_exp_s=_f(disp.t_exp_s))
+    t["displacement"] = lambda: dict(long_cols((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
+                                     d_m=f64(disp.d_m), t_exp_s=f64(disp.t_exp_s))
     t["fit"] = lambda: _fit_table(result.fit, disp, rev)
     ftw = result.fit_tw
-    t["tw"] = lambda: dict(_long(ftw.forward_m.shape, ("revolution", "nd"), rev), forward_m=_f(ftw.forward_m),
-                           backward_m=_f(ftw.backward_m))
+    t["tw"] = lambda: dict(long_cols(ftw.forward_m.shape, ("revolution", "nd"), rev), forward_m=f64(ftw.forward_m),
+                           backward_m=f64(ftw.backward_m))
     ptw = result.probe_tw
-    t["tw_probe"] = lambda: dict(_long(ptw.forward_m.shape, ("revolution", "probe", "nd"), rev),
-                                 forward_m=_f(ptw.forward_m), backward_m=_f(ptw.backward_m))
+    t["tw_probe"] = lambda: dict(long_cols(ptw.forward_m.shape, ("revolution", "probe", "nd"), rev),
+                                 forward_m=f64(ptw.forward_m), backward_m=f64(ptw.backward_m))
     t["resonance"] = lambda: _resonance_table(result.report, r0)
     if run.truth is not None:
         tr = run.truth
-        t["truth"] = lambda: dict(_long((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
-                                  truth_toa_s=_f(tr.toa_s), t_exp_s=_f(tr.t_exp_s), d_eqv_m=_f(tr.d_eqv_m),
-                                  d_tang_m=_f(tr.d_tang_m), d_z_m=_f(tr.d_z_m), d_eq1_m=_f(tr.d_eq1_m))
+        t["truth"] = lambda: dict(long_cols((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
+                                  truth_toa_s=f64(tr.toa_s), t_exp_s=f64(tr.t_exp_s), d_eqv_m=f64(tr.d_eqv_m),
+                                  d_tang_m=f64(tr.d_tang_m), d_z_m=f64(tr.d_z_m), d_eq1_m=f64(tr.d_eq1_m))
         t["truth_revolution"] = lambda: dict(
-            _long((n_rev, n_b), ("revolution", "blade"), rev),
-            opr_s=_f(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=_f(np.repeat(tr.omega_mean, n_b)),
-            d_eqv_pkpk_m=_f(tr.d_eqv_pkpk_m))
+            long_cols((n_rev, n_b), ("revolution", "blade"), rev),
+            opr_s=f64(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=f64(np.repeat(tr.omega_mean, n_b)),
+            d_eqv_pkpk_m=f64(tr.d_eqv_pkpk_m))
         if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
             t["truth_eo"] = lambda: _truth_eo_table(tr, rev)
         if tr.nsv_kind is not None and tr.nsv_kind.size:
             shp = tr.nsv_kind.shape
             t["truth_nsv"] = lambda: dict(
-                _long(shp, ("revolution", "component"), rev), nsv_kind=np.asarray(tr.nsv_kind, str).ravel(),
-                nsv_freq_hz=_f(tr.nsv_freq_hz), nsv_nd=np.asarray(tr.nsv_nd, np.int64).ravel(),
-                nsv_amp_pkpk_m=_f(tr.nsv_amp_pkpk_m), nsv_rms_m=_f(tr.nsv_rms_m),
-                band_lo_hz=_f(tr.nsv_band_hz[..., 0]), band_hi_hz=_f(tr.nsv_band_hz[..., 1]))
+                long_cols(shp, ("revolution", "component"), rev), nsv_kind=np.asarray(tr.nsv_kind, str).ravel(),
+                nsv_freq_hz=f64(tr.nsv_freq_hz), nsv_nd=np.asarray(tr.nsv_nd, np.int64).ravel(),
+                nsv_amp_pkpk_m=f64(tr.nsv_amp_pkpk_m), nsv_rms_m=f64(tr.nsv_rms_m),
+                band_lo_hz=f64(tr.nsv_band_hz[..., 0]), band_hi_hz=f64(tr.nsv_band_hz[..., 1]))
     info = {f.name: getattr(run.meta, f.name) for f in fields(run.meta)}
-    meta = {"run": _jsonable(info), "summary": _jsonable(result.summary),
-            "processing": {"by": "bttsim process (default options)", "options": _jsonable(asdict(result.options)),
+    meta = {"run": jsonable(info), "summary": jsonable(result.summary),
+            "processing": {"by": "bttsim process (default options)", "options": jsonable(asdict(result.options)),
                            "engine_orders": list(result.engine_orders),
                            "displacement_method": disp.method}}
     return RunTables(tables=t, meta=meta)
@@ -282,27 +284,27 @@ def run_tables(run, result=None) -> RunTables:
 
 def _truth_eo_table(tr, rev: np.ndarray) -> dict:
     """The ``truth_eo`` table: each engine order's own response, per revolution and blade."""
-    cols = _long(tr.eo_pkpk_m.shape, ("revolution", "blade", "eo"), rev)
+    cols = long_cols(tr.eo_pkpk_m.shape, ("revolution", "blade", "eo"), rev)
     cols["eo"] = np.asarray(tr.eo_engine_order[0], np.int64)[cols["eo"]]
-    return dict(cols, eo_pkpk_m=_f(tr.eo_pkpk_m))
+    return dict(cols, eo_pkpk_m=f64(tr.eo_pkpk_m))
 
 
 def _fit_table(fit, disp, rev: np.ndarray) -> dict:
     """The ``fit`` table: one row per revolution, blade and engine order."""
     n_rev, n_b = fit.amp_pkpk_m.shape[:2]
     n_eo = len(fit.engine_orders)
-    fit_cols = _long((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev)
+    fit_cols = long_cols((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev)
     fit_cols["engine_order"] = np.asarray(fit.engine_orders, dtype=np.int64)[fit_cols["engine_order"]]
-    per_rev_blade = lambda a: _f(np.broadcast_to(np.asarray(a, float)[..., None], (n_rev, n_b, n_eo)))  # noqa: E731
+    per_rev_blade = lambda a: f64(np.broadcast_to(np.asarray(a, float)[..., None], (n_rev, n_b, n_eo)))  # noqa: E731
     omega = fit.omega_rad_s if fit.omega_rad_s is not None else disp.omega_rad_s
     freq = (np.asarray(fit.freq_hz, float) if fit.freq_hz is not None
             else np.outer(omega, fit.engine_orders) / (2 * np.pi))
-    fit_cols.update(amp_pkpk_m=_f(fit.amp_pkpk_m), phase_rad=_f(fit.phase_rad), amp_std_m=_f(fit.amp_std_m),
+    fit_cols.update(amp_pkpk_m=f64(fit.amp_pkpk_m), phase_rad=f64(fit.phase_rad), amp_std_m=f64(fit.amp_std_m),
                     dc_m=per_rev_blade(fit.dc_m), residual_rms_m=per_rev_blade(fit.residual_rms_m),
                     n_samples=np.broadcast_to(np.asarray(fit.n_samples, np.int64)[..., None],
                                               (n_rev, n_b, n_eo)).ravel().copy(),
-                    omega_rad_s=_f(np.broadcast_to(np.asarray(omega, float)[:, None, None], (n_rev, n_b, n_eo))),
-                    freq_hz=_f(np.broadcast_to(freq[:, None, :], (n_rev, n_b, n_eo))))
+                    omega_rad_s=f64(np.broadcast_to(np.asarray(omega, float)[:, None, None], (n_rev, n_b, n_eo))),
+                    freq_hz=f64(np.broadcast_to(freq[:, None, :], (n_rev, n_b, n_eo))))
     return fit_cols
 
 

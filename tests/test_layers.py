@@ -168,3 +168,35 @@ def test_every_command_line_option_has_help_and_nodes_show_the_same_flags_everyw
         own = [(tuple(a.option_strings), a.help) for a in node_parser(prog)._actions
                if not isinstance(a, argparse._HelpAction)]
         assert node_flags[prog.name] == own, prog.name
+
+
+#: The house's limits: a module a reader can hold, a function that fits a screen or two.
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 1000, 120
+
+
+def test_no_module_over_1000_lines_and_no_function_over_120():
+    big = []
+    for path in PKG.rglob("*.py"):
+        if "_gen" in path.parts:
+            continue
+        text = path.read_text()
+        if text.count("\n") > MAX_MODULE_LINES:
+            big.append(f"{path.relative_to(REPO)}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    big.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name}: {n} lines")
+    assert not big, "\n".join(big)
+
+
+def test_no_private_name_is_imported_from_another_module(graph):
+    """A name another module needs is public where it is defined (no ``_name`` imports)."""
+    bad = []
+    mods, _ = graph
+    for path in mods.values():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("bttsim_stream")):
+                bad += [f"{path.relative_to(REPO)}:{node.lineno} imports {a.name}" for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not bad, "\n".join(bad)

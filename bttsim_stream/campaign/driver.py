@@ -169,11 +169,11 @@ def _dashboard(client, scheduler: str | None, asked: str | None) -> str | None:
 def _lost_rows(run: RunSpec, exc: BaseException) -> list[dict]:
     """Rows of a run whose task failed on the cluster after Dask's retries (a worker died
     each time, or the task could not be unpickled): ``status = "lost"``, rerun by ``resume``."""
-    from .run import _axis_value, _failed, _one_line
+    from .run import axis_value, failed_row, one_line
 
     base = {"run_id": run.run_id, "index": run.index, "replicate": run.replicate, "seed": run.seed, "worker": "",
-            **{k: _axis_value(v) for k, v in run.point.items()}}
-    return [_failed(base, p.name, "lost", f"the cluster gave up on the task: {_one_line(exc)}", math.nan, math.nan)
+            **{k: axis_value(v) for k, v in run.point.items()}}
+    return [failed_row(base, p.name, "lost", f"the cluster gave up on the task: {one_line(exc)}", math.nan, math.nan)
             for p in run.processors]
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .._plotting import pyplot
-from .run import _axis_value
+from .run import axis_value
 from .spec import CampaignSpec
 
 __all__ = ["write_figures", "axis_key"]
@@ -26,7 +26,7 @@ __all__ = ["write_figures", "axis_key"]
 
 def axis_key(v) -> str:
     """The text that identifies an axis value, the same for the spec's value and its cell."""
-    v = _axis_value(v)
+    v = axis_value(v)
     return format(v, ".6g") if isinstance(v, float) else str(v)
 
 

@@ -82,7 +82,7 @@ def _scratch() -> str | None:
         return None
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500]
 
 
@@ -119,7 +119,7 @@ def execute_run(run: RunSpec) -> list[dict]:
     import tomllib
 
     base = {"run_id": run.run_id, "index": run.index, "replicate": run.replicate, "seed": run.seed,
-            "worker": _worker_name(), **{k: _axis_value(v) for k, v in run.point.items()}}
+            "worker": _worker_name(), **{k: axis_value(v) for k, v in run.point.items()}}
     rows: list[dict] = []
     with threadpool_limits(1):
         t0 = time.perf_counter()
@@ -129,7 +129,8 @@ def execute_run(run: RunSpec) -> list[dict]:
             opr_s, toa_s, revolution, info, truth, path = _simulate(run, scn)
         except Exception as exc:  # noqa: BLE001 -- the run's failure is a result row, not a crash
             t_sim = time.perf_counter() - t0
-            return [_failed(base, p.name, "error", f"simulation: {_one_line(exc)}", t_sim, 0.0) for p in run.processors]
+            why = f"simulation: {one_line(exc)}"
+            return [failed_row(base, p.name, "error", why, t_sim, 0.0) for p in run.processors]
         t_sim = time.perf_counter() - t0
         tables = None  # the user processors' input, built for the first one
         try:
@@ -142,7 +143,7 @@ def execute_run(run: RunSpec) -> list[dict]:
                     else:
                         new = _score_builtin(base, p, opr_s, toa_s, revolution, info, truth)
                 except (Exception, SystemExit) as exc:  # noqa: BLE001 -- a user's code may even exit
-                    new = [_failed(base, p.name, "error", _one_line(exc), t_sim, 0.0)]
+                    new = [failed_row(base, p.name, "error", one_line(exc), t_sim, 0.0)]
                 dt = time.perf_counter() - t1
                 for r in new:
                     r["simulate_s"], r["process_s"] = t_sim, dt
@@ -156,14 +157,14 @@ def execute_run(run: RunSpec) -> list[dict]:
     return rows
 
 
-def _axis_value(v):
+def axis_value(v):
     """An axis value as one Parquet cell: a list (probe layout, factors) as its comma-joined text."""
     if isinstance(v, list):
         return ",".join(repr(x) if isinstance(x, float) else str(x) for x in v)
     return v
 
 
-def _failed(base: dict, method: str, status: str, error: str, t_sim: float, t_proc: float) -> dict:
+def failed_row(base: dict, method: str, status: str, error: str, t_sim: float, t_proc: float) -> dict:
     nan = math.nan
     return dict(base, method=method, status=status, error=error, crossing=-1, eo=-1, nd=0, rpm=nan, cn=nan,
                 blade=-1, amp_pkpk_m=nan, amp_std_m=nan, amp_ci95_lo_m=nan, amp_ci95_hi_m=nan, freq_hz=nan,
@@ -171,7 +172,7 @@ def _failed(base: dict, method: str, status: str, error: str, t_sim: float, t_pr
                 process_s=t_proc)
 
 
-def _f(row: dict, key: str) -> float:
+def f64(row: dict, key: str) -> float:
     v = row.get(key)
     return math.nan if v is None else float(v)
 
@@ -185,18 +186,18 @@ def _score_builtin(base: dict, p: Processor, opr_s, toa_s, revolution, info, tru
     crossings = [e for e in summary.get("resonances", []) if e.get("kind", "crossing") != "dwell"]
     if not crossings:
         notes = "; ".join(summary.get("notes", [])) or f"status {summary.get('status')!r}"
-        return [_failed(base, p.name, "none", f"no resonance found: {notes}"[:500], 0.0, 0.0)]
+        return [failed_row(base, p.name, "none", f"no resonance found: {notes}"[:500], 0.0, 0.0)]
     rows = []
     for i, e in enumerate(crossings):
         for b in e["blades"]:
-            amp, std = _f(b, "amp_pkpk_m"), _f(b, "amp_std_m")
+            amp, std = f64(b, "amp_pkpk_m"), f64(b, "amp_std_m")
             lo, hi = (b["amp_ci95_m"] if "amp_ci95_m" in b else (amp - Z95 * std, amp + Z95 * std))
             rows.append(dict(base, method=p.name, status="ok", error="", crossing=i, eo=int(e["eo"]),
-                             nd=int(e["nd"]), rpm=_f(e, "rpm"), cn=_f(e, "cn"), blade=int(b["blade"]),
+                             nd=int(e["nd"]), rpm=f64(e, "rpm"), cn=f64(e, "cn"), blade=int(b["blade"]),
                              amp_pkpk_m=amp, amp_std_m=std, amp_ci95_lo_m=float(lo), amp_ci95_hi_m=float(hi),
-                             freq_hz=_f(b, "freq_hz"), truth_amp_pkpk_m=_f(b, "truth_amp_pkpk_m"),
-                             truth_freq_hz=_f(b, "truth_freq_hz"), E_A_pct=_f(b, "E_A_pct"),
-                             E_f_pct=_f(b, "E_f_pct")))
+                             freq_hz=f64(b, "freq_hz"), truth_amp_pkpk_m=f64(b, "truth_amp_pkpk_m"),
+                             truth_freq_hz=f64(b, "truth_freq_hz"), E_A_pct=f64(b, "E_A_pct"),
+                             E_f_pct=f64(b, "E_f_pct")))
     return rows
 
 
@@ -228,13 +229,13 @@ def user_tables(revolution, opr_s, toa_s, info) -> tuple[dict, dict]:
     """
     import pyarrow as pa
 
-    from ..export import _f, _jsonable, _long
+    from ..export import f64, jsonable, long_cols
 
     rev = np.asarray(revolution, dtype=np.int64)
-    cols = {"opr": {"revolution": rev.copy(), "opr_s": _f(opr_s)},
-            "toa": dict(_long(np.shape(toa_s), ("revolution", "blade", "probe"), rev), toa_s=_f(toa_s))}
+    cols = {"opr": {"revolution": rev.copy(), "opr_s": f64(opr_s)},
+            "toa": dict(long_cols(np.shape(toa_s), ("revolution", "blade", "probe"), rev), toa_s=f64(toa_s))}
     tables = {name: pa.table({k: pa.array(v) for k, v in c.items()}) for name, c in cols.items()}
-    return tables, _jsonable({f.name: getattr(info, f.name) for f in fields(info)})
+    return tables, jsonable({f.name: getattr(info, f.name) for f in fields(info)})
 
 
 def _user_columns(out, target: str, n_blades: int) -> dict:
