@@ -31,6 +31,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _proc import children, memory_mb, node_name  # noqa: E402
+
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -48,33 +51,10 @@ def scenario_toml(duration_s: float) -> str:
     return f"[speed]\nstart_rpm = 1000.0\nsegments = [\n  {rows},\n]\n"
 
 
-def _children(pid: int) -> list[int]:
-    try:
-        return [int(c) for t in os.listdir(f"/proc/{pid}/task")
-                for c in Path(f"/proc/{pid}/task/{t}/children").read_text().split()]
-    except OSError:
-        return []
 
 
-def _node_name(pid: int) -> str | None:
-    try:
-        argv = [a.decode(errors="replace") for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
-    except OSError:
-        return None
-    if "bttsim_stream.nodes" in argv:
-        i = argv.index("bttsim_stream.nodes")
-        return argv[i + 1] if i + 1 < len(argv) else None
-    return None
 
 
-def _rss_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
 
 
 def run(duration_s: float, every_s: float, work: Path) -> dict:
@@ -89,12 +69,12 @@ def run(duration_s: float, every_s: float, work: Path) -> dict:
     names: dict[int, str] = {}
     while p.poll() is None:
         now = round(time.monotonic() - t0, 2)
-        for pid in _children(p.pid):
-            name = names.get(pid) or _node_name(pid)
+        for pid in children(p.pid):
+            name = names.get(pid) or node_name(pid)
             if name is None:
                 continue
             names[pid] = name
-            mb = _rss_mb(pid)
+            mb = memory_mb(pid)
             if mb is not None and name in series:
                 series[name].append((now, round(mb, 1)))
         time.sleep(every_s)

@@ -31,6 +31,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _proc import children, memory_mb, node_name  # noqa: E402
+
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -47,40 +50,10 @@ def _peak_mb(cmd: list, cwd: Path) -> float:
     return usage.ru_maxrss / 1024.0
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as f:
-                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            if ppid == pid:
-                out.append(int(d))
-    return out
 
 
-def _node_name(pid: int) -> str | None:
-    try:
-        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-    except OSError:
-        return None
-    argv = [a.decode(errors="replace") for a in argv]
-    if "bttsim_stream.nodes" in argv:
-        i = argv.index("bttsim_stream.nodes")
-        return argv[i + 1] if i + 1 < len(argv) else None
-    return None
 
 
-def _hwm_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
 
 
 def _run_nodes_mb(scenario: Path, out: Path) -> dict:
@@ -90,20 +63,20 @@ def _run_nodes_mb(scenario: Path, out: Path) -> dict:
     peaks: dict[str, float] = {}
     names: dict[int, str] = {}
     while p.poll() is None:
-        todo = _children(p.pid)
+        todo = children(p.pid)
         seen = set()
         while todo:  # the whole process tree below the run
             pid = todo.pop()
             if pid in seen:
                 continue
             seen.add(pid)
-            todo += _children(pid)
+            todo += children(pid)
             if pid not in names:
-                name = _node_name(pid)
+                name = node_name(pid)
                 if name is None:
                     continue
                 names[pid] = name
-            mb = _hwm_mb(pid)
+            mb = memory_mb(pid, "VmHWM")
             if mb is not None:
                 peaks[names[pid]] = max(peaks.get(names[pid], 0.0), mb)
         time.sleep(0.1)
