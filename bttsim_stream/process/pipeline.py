@@ -731,18 +731,19 @@ FAST_SWEEP_REVOLUTIONS = 60
 
 
 def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr):
-    """``(bound, error, swept)``: what the zeroing left in the crossing's responses when its reference
-    was not quiet (or the sweep is fast), per blade. ``error`` (complex, ``a1 + i a2``, m): the responses' constant
+    """``(bound, error, swept)``: what the zeroing left in the crossing's responses, per blade,
+    for every crossing (a quiet reference too: the prepared baseline can leave a constant of about
+    a percent of the peak, whose projection on each blade's response at the peak moves its
+    amplitude by up to that much). ``error`` (complex, ``a1 + i a2``, m): the responses' constant
     measured by the swept SDOF fit (whose constant takes it, :func:`~.methods.sdof_method`),
     plus the correction added; ``bound`` (pk-pk, m): the fit's misfit beyond the noise (a
     misfit of that size may sit in the constant, :func:`_model_misfit`) or, where the fit failed (NaN ``error``),
     the reference's estimated response (``contamination``) or twice the correction; ``swept``:
     the SDOF fit's swept peak (pk-pk, m), a second estimate free of the zeroing and of the sweep
-    rate. ``None`` each: a quiet reference, or the SDOF method itself."""
+    rate. ``None`` each: the SDOF method itself (its constant is in its own model)."""
     ref = ctx.reference
     cont = float(ref.contamination) if ref is not None and ref.start is not None else 0.0
-    fast = c.half_power_width < FAST_SWEEP_REVOLUTIONS
-    if pk.method == "sdof" or (corr is None and not cont > ctx.options.detect.contamination_limit and not fast):
+    if pk.method == "sdof":
         return None, None, None
     sd = _sdof(ctx, c, i, pk.freq_hz)[0]
     off = sd.offset_m
