@@ -222,5 +222,31 @@ def test_paper_default_run_covers_with_narrow_intervals():
                                             truth=run.truth).summary, truths)
         assert len(rows) == 29
         for key in ("amp_covered", "freq_covered", "phase_covered"):
-            assert np.mean([r[key] for r in rows]) >= 0.8, (method, key)
+            assert np.mean([r[key] for r in rows]) >= (0.95 if key == "amp_covered" else 0.8), (method, key)
         assert np.median([r["half_width_pct"] for r in rows]) <= 1.0, method
+
+
+@pytest.mark.slow
+def test_a_quiet_reference_still_gets_the_zeroing_term(monkeypatch):
+    """A slow run-up with a quiet reference (no correction, no note): the prepared baseline can
+    still leave a constant in the responses, so the swept SDOF fit's constant is measured on
+    every blade and enters the amplitude interval, which then holds the exact truth."""
+    from bench.bench_intervals import CLASSES, _merge, _Truths, score_summary, simulate
+    from bttsim_stream.process import ProcessOptions, pipeline, process_arrays
+
+    seen = []
+    real = pipeline.crossing_intervals
+
+    def spy(*args, **kw):
+        seen.append(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(pipeline, "crossing_intervals", spy)
+    cfg = _merge(CLASSES["paper_rate"], {"speed": {"start_rpm": 1600.0, "end_rpm": 3600.0, "duration_s": 66.0}})
+    run, actual = simulate(cfg)
+    s = process_arrays(run.opr_s, run.toa_s, run.info, ProcessOptions(), truth=run.truth).summary
+    assert len(seen) == 1 and not s["resonances"][0]["notes"]
+    e = np.asarray(seen[0]["zeroing_error"])
+    assert e.shape == (29,) and np.all(np.isfinite(e)) and np.all(np.abs(e) > 0.0)
+    rows = score_summary(s, _Truths(cfg, run, actual))
+    assert np.mean([r["amp_covered"] for r in rows]) >= 0.95
