@@ -740,11 +740,15 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     misfit of that size may sit in the constant, :func:`_model_misfit`) or, where the fit failed (NaN ``error``),
     the reference's estimated response (``contamination``) or twice the correction; ``swept``:
     the SDOF fit's swept peak (pk-pk, m), a second estimate free of the zeroing and of the sweep
-    rate. ``None`` each: the SDOF method itself (its constant is in its own model)."""
+    rate. ``None`` each: the SDOF method itself (its constant is in its own model). With a quiet
+    reference, no correction and a slow sweep the misfit bound is left out (``bound`` 0): no
+    reference response can sit in the constant; the constant and the swept peak still count."""
     ref = ctx.reference
     cont = float(ref.contamination) if ref is not None and ref.start is not None else 0.0
     if pk.method == "sdof":
         return None, None, None
+    quiet = corr is None and not cont > ctx.options.detect.contamination_limit and \
+        not c.half_power_width < FAST_SWEEP_REVOLUTIONS
     sd = _sdof(ctx, c, i, pk.freq_hz)[0]
     off = sd.offset_m
     add = np.zeros(off.size, complex) if corr is None else corr
@@ -752,6 +756,8 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     with _quiet():
         bound = np.maximum(2.0 * np.abs(add), cont * np.asarray(pk.amp_pkpk_m, float))
         misfit = _model_misfit(sd.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i])
+    if quiet:
+        misfit = np.zeros_like(misfit)
     return np.where(np.isfinite(err), misfit, bound), err, sd.amp_pkpk_m
 
 
