@@ -30,10 +30,8 @@ the random terms)::
     between the method's amplitude and a second estimate: the vertex of a least-squares
     parabola through the unsmoothed per-revolution amplitudes around the peak (zeroing
     correction included; its own flattening, which goes as the half-width^4, extrapolated
-    from two half-widths), and, when the sweep is fast (the half-power band crossed in fewer
-    than ``FAST_SWEEP_REVOLUTIONS`` of :mod:`.pipeline`) or the reference not quiet, the swept
-    SDOF fit's peak (:func:`~.methods.sdof_method`: the sweep is in its model, the zeroing
-    in its constant). The largest spread counts. ``peak`` is not corrected (the paper's
+    from two half-widths), and the swept SDOF fit's peak (:func:`~.methods.sdof_method`: the
+    sweep is in its model, the zeroing in its constant). The largest spread counts. ``peak`` is not corrected (the paper's
     definition): its interval is widened, and the crossing's note says so.
 ``D_sampling`` (c, e)
     Revolution quantisation of the amplitude: ``2 |P''| (1/8 + v/2)`` (:func:`_sampling`),
@@ -43,11 +41,13 @@ the random terms)::
     Several engine orders fitted jointly: the spread between the joint and a single-order
     amplitude at the peak (``orders_m``).
 ``b_zero`` (d)
-    Data preparation / zeroing, when the reference window was not quiet (or the sweep fast): the swept SDOF fit's
+    Data preparation / zeroing, on every crossing (a quiet reference too: the prepared
+    baseline can leave a constant of about a percent of the peak): the swept SDOF fit's
     constant ``c`` measures what the zeroing (and its correction) left in the responses, a
     complex error ``e`` per blade. The sequences with ``e`` taken out give a second peak; the
     interval spans both peaks (so it is asymmetric), and the frequency and phase intervals
-    both plateaus; plus the fit's misfit beyond the noise. Where the SDOF fit fails:
+    both plateaus; plus, when the reference window was not quiet (or the sweep fast), the
+    fit's misfit beyond the noise. Where the SDOF fit fails:
     ``max(2 |correction|, contamination A)``.
 
 Frequency (c): the truth's resonant frequency is ``EO Omega / 2 pi`` of one revolution. With
