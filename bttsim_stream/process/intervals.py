@@ -31,8 +31,9 @@ the random terms)::
     parabola through the unsmoothed per-revolution amplitudes around the peak (zeroing
     correction included; its own flattening, which goes as the half-width^4, extrapolated
     from two half-widths), and the swept SDOF fit's peak (:func:`~.methods.sdof_method`: the
-    sweep is in its model, the zeroing in its constant). The largest spread counts. ``peak`` is not corrected (the paper's
-    definition): its interval is widened, and the crossing's note says so.
+    sweep is in its model, the zeroing in its constant). The largest spread counts. ``peak``
+    is not corrected (the paper's definition): its interval is widened, and the crossing's
+    note says so.
 ``D_sampling`` (c, e)
     Revolution quantisation of the amplitude: ``2 |P''| (1/8 + v/2)`` (:func:`_sampling`),
     ``P''`` the curvature of the complex response at the peak, ``v`` the variance of the
