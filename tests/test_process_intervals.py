@@ -249,4 +249,4 @@ def test_a_quiet_reference_still_gets_the_zeroing_term(monkeypatch):
     e = np.asarray(seen[0]["zeroing_error"])
     assert e.shape == (29,) and np.all(np.isfinite(e)) and np.all(np.abs(e) > 0.0)
     rows = score_summary(s, _Truths(cfg, run, actual))
-    assert np.mean([r["amp_covered"] for r in rows]) >= 0.95
+    assert np.mean([r["amp_covered"] for r in rows]) >= 0.9  # the pooled acceptance of the intervals
