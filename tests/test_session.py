@@ -50,6 +50,14 @@ def test_what_the_file_sets_wins_and_command_line_endpoints_are_added(tmp_path):
                 "listen/endpoints") == ["tcp/127.0.0.1:7004"]  # bttsim run gives each node its own
 
 
+def test_payloads_never_pass_through_shared_memory(tmp_path):
+    """Not even when a file asks for it (see the stalled-receiver test below for why)."""
+    shm = tmp_path / "shm.json5"
+    shm.write_text('{ transport: { shared_memory: { enabled: true } } }')
+    for conf in (make_config(), make_config(config_file=str(shm))):
+        assert _get(conf, "transport/shared_memory/enabled") is False
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(config_file="/nonexistent.json5"), "no such Zenoh configuration file"),
     (dict(connect=["localhost"]), "bad zenoh endpoint"),
