@@ -95,7 +95,7 @@ def forged_next(key: str, payload: bytes, seq: int, t_ns: int) -> list[tuple[byt
 
 def run_next(session, args, stop) -> dict:
     """``--next KEY``: forge the next number of each real message on KEY, as soon as it is seen."""
-    pub = session.declare_publisher(args.next, congestion_control=zenoh.CongestionControl.DROP)
+    pub = session.declare_publisher(args.next, congestion_control=zenoh.CongestionControl.BLOCK)  # all counted
     out = queue.Queue()
 
     def on_sample(sample) -> None:
@@ -166,7 +166,10 @@ def main(args) -> None:
         print("forger connected", flush=True)
         rig = forged[0][0].split("/")[1]
         token = session.liveliness().declare_token(f"bttsim/{rig}/alive/sim") if args.pose_as_sim else None
-        pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.DROP)
+        # the counted garbage must all reach the recorder: a queue full of real 7 kB truth
+        # batches on the router's link to it would drop DROP messages by the hundred
+        congestion = zenoh.CongestionControl.BLOCK if args.garbage else zenoh.CongestionControl.DROP
+        pubs = {k: session.declare_publisher(k, congestion_control=congestion)
                 for k in dict.fromkeys(k for k, _, _ in forged)}
         while not stop:
             for key, payload, seq in forged:

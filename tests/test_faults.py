@@ -113,16 +113,10 @@ def test_a_node_stalled_10_s_costs_nothing(tmp_path, clean_run, node):
     for log in ("recorder.log", "viewer.log"):  # each consumer's own count of what it lost
         text = (out / log).read_text()
         counts = json.loads([ln for ln in text.splitlines() if ln.startswith("{")][-1])
-        assert counts["gaps"] == 0, (log, counts)
-        # Seen in a viewer stalled 10 s under a loaded machine: TruthBatch payloads that did not
-        # decode (root cause open; the recorder's copies were whole, and the viewer had no gap).
-        # Never silent: counted in the viewer's statistics and its closing line, the first three
-        # logged one by one. The recorder refuses none of a clean run's messages.
-        logged = text.count("skipped a message")
-        expected_logged = min(counts["rejected"], 3) if log == "viewer.log" else 0
-        assert logged == expected_logged and (log == "viewer.log" or counts["rejected"] == 0), (log, counts)
-        if counts["rejected"]:
-            assert f"{counts['rejected']} rejected" in text, (log, counts)
+        # nothing lost and nothing unreadable: a consumer stopped with samples waiting in its
+        # FIFO reads them intact afterwards (no payload lent from a pool it cannot hold on to)
+        assert (counts["gaps"], counts["rejected"]) == (0, 0), (log, counts)
+        assert "skipped a message" not in text, (log, counts)
     run = read_recording(out / "run.mcap")
     assert not run.truncated and sum(m.key.endswith("/opr") for m in run.messages) == s["revolutions_expected"]
 

@@ -1,11 +1,20 @@
 """Zenoh session configuration: loopback defaults, and a -c file merged with them."""
 
+import hashlib
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 
-from bttsim_stream.bus.session import make_config
+from bttsim_stream.bus.session import StopFlag, declare_publisher, free_port, make_config, opened, \
+    wait_for_subscribers
 from bttsim_stream.errors import BttsimError
+
+import _procs
 
 
 def _get(conf, key):
@@ -39,6 +48,14 @@ def test_what_the_file_sets_wins_and_command_line_endpoints_are_added(tmp_path):
     assert _get(conf, "connect/endpoints") == ["tcp/127.0.0.1:7003"]
     assert _get(make_config(config_file=str(full), listen=["tcp/127.0.0.1:7004"]),
                 "listen/endpoints") == ["tcp/127.0.0.1:7004"]  # bttsim run gives each node its own
+
+
+def test_payloads_never_pass_through_shared_memory(tmp_path):
+    """Not even when a file asks for it (see the stalled-receiver test below for why)."""
+    shm = tmp_path / "shm.json5"
+    shm.write_text('{ transport: { shared_memory: { enabled: true } } }')
+    for conf in (make_config(), make_config(config_file=str(shm))):
+        assert _get(conf, "transport/shared_memory/enabled") is False
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -122,3 +139,87 @@ def test_stop_flag_wakes_every_waiting_thread_and_keeps_its_deadline():
     t0 = time.monotonic()
     assert timed.wait(60.0) is True
     assert 0.15 < time.monotonic() - t0 < 5
+
+
+# --------------------------------------------------------------------------------------
+# A receiver stalled with samples waiting in its FIFO reads them intact afterwards
+# --------------------------------------------------------------------------------------
+
+_PAYLOAD = 16384  # above Zenoh's 3 kB threshold for passing payloads through shared memory
+_HELD_THEN_STALLED, _AFTER = 350, 1200  # the second: more than Zenoh's 16 MB pool holds
+
+_STALLED_RECEIVER = """
+import hashlib, json, sys
+import zenoh
+from bttsim_stream.bus.session import StopFlag, make_config
+from bttsim_stream.runtime import node_session
+
+total = int(sys.argv[2])
+held = [0]
+def count(_sample):
+    held[0] += 1
+    print("held", held[0], flush=True)
+with node_session(make_config(listen=[sys.argv[1]]), "rig1", "viewer") as ctx:
+    ctx.subscribe("stall/**")  # the nodes' receive path: a FIFO inside Zenoh, drained in batches
+    ctx.declare(ctx.session.declare_subscriber("stall/**", zenoh.handlers.Callback(count, indirect=False)))
+    print("ready", flush=True)
+    sys.stdin.readline()  # drain only when told (the samples wait in the FIFO meanwhile)
+    bad, n = [], 0
+    for r in ctx.samples(StopFlag(install=False)):
+        if r is None:
+            continue
+        body = r.payload[32:]
+        if hashlib.sha256(body).digest() != r.payload[:32] or int.from_bytes(body[:8], "little") != n:
+            bad.append(n)
+        n += 1
+        if n == total:
+            break
+    print(json.dumps({"n": n, "bad": bad}), flush=True)
+"""
+
+
+def _numbered(i: int) -> bytes:
+    body = i.to_bytes(8, "little") * (_PAYLOAD // 8 - 4)
+    return hashlib.sha256(body).digest() + body
+
+
+@pytest.mark.integration
+def test_a_receiver_stalled_with_samples_in_its_fifo_reads_them_intact():
+    """A node stopped (SIGSTOP) for a second while large samples wait in its FIFO reads every
+    one intact afterwards, even though the publisher sent enough meanwhile to fill a Zenoh
+    shared-memory pool twice over (a pool lends its buffers to the receiver only while the
+    receiver keeps confirming it holds them: a stopped one would read them overwritten)."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    total = 50 + _HELD_THEN_STALLED + _AFTER
+    proc = subprocess.Popen([sys.executable, "-c", _STALLED_RECEIVER, ep, str(total)], cwd=_procs.REPO,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = _procs.LineWatch(proc.stdout)
+    try:
+        lines.wait_for(lambda ln: ln.strip() == "ready", timeout=60)
+        with opened(make_config(connect=[ep])) as session:
+            assert wait_for_subscribers(session, ["stall/x"], 30.0, StopFlag(install=False))
+            pub = declare_publisher(session, "stall/x", cache_samples=1)
+            sent = 0
+            for stage in (50, _HELD_THEN_STALLED):  # the first 50: Zenoh sets up its pool meanwhile
+                for _ in range(stage):
+                    pub.put(_numbered(sent))
+                    sent += 1
+                lines.wait_for(lambda ln, k=sent: ln.strip() == f"held {k}", timeout=60)
+            os.kill(proc.pid, signal.SIGSTOP)
+            try:
+                time.sleep(1.0)  # the fault itself (Zenoh's watchdogs: 50 ms confirm, 100 ms check)
+            finally:
+                os.kill(proc.pid, signal.SIGCONT)
+            for _ in range(_AFTER):
+                pub.put(_numbered(sent))
+                sent += 1
+            lines.wait_for(lambda ln: ln.strip() == f"held {total}", timeout=60)
+            proc.stdin.write("drain\n")
+            proc.stdin.flush()
+            result = json.loads(lines.wait_for(lambda ln: ln.startswith("{"), timeout=60))
+            pub.undeclare()
+        rc = proc.wait(timeout=60)  # it ends by itself once it has read them all
+    finally:
+        _procs.stop(proc)
+    assert result["n"] == total and result["bad"] == [], (result["bad"][:10], len(result["bad"]))
+    assert rc == 0, proc.stderr.read()

@@ -69,6 +69,14 @@ CONNECT_TIMEOUT_S = 30.0
 _PATIENCE = {
     "transport/link/tx/queue/congestion_control/block/wait_before_close": "60000000",  # us
     "transport/link/tx/lease": "30000",  # ms
+    # Zenoh (1.5 and later) passes a payload of 3 kB or more between two sessions of one host
+    # through a shared-memory pool of the publishing process, and takes a buffer back for
+    # reuse once the receiving process has not confirmed holding it for about 100 ms (a
+    # thread of that process confirms every 50 ms). A receiver that does not run for that
+    # long (stopped, or starved on a loaded machine) while its FIFO holds such samples then
+    # reads them overwritten by later messages: valid samples that no longer parse. Every
+    # payload is copied over the link instead.
+    "transport/shared_memory/enabled": "false",
 }
 
 
@@ -84,7 +92,8 @@ def make_config(mode: str = "peer", connect=(), listen=(), config_file: str | No
     where ``listen`` says (not on every interface, zenoh's own default), multicast scouting
     stays off unless the file or ``multicast_scouting`` turns it on, and ``-e``/``-l`` given
     on the command line are added. Links are patient (:data:`_PATIENCE`): a slow consumer
-    slows the publisher down (lossless) instead of being cut off after 5 s.
+    slows the publisher down (lossless) instead of being cut off after 5 s; and payloads are
+    copied, never lent from a shared-memory pool that a stalled receiver loses.
 
     ``connect_timeout_s``: opening the session waits until every ``connect`` endpoint is
     reached, and fails after that long (None: zenoh's default, retry in the background
