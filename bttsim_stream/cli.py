@@ -182,13 +182,15 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
 
 
     scn = _scenario(args.scenario)
-    if not args.force:  # a run that cannot fit is refused before it starts
+    model = None
+    if not args.force:  # a run that cannot fit is refused before it starts (the model built once)
+        model = load_scenario_model(scn)
         with np.errstate(over="ignore", invalid="ignore"):
-            need = estimate_output_bytes(scn, include_truth=not args.no_truth)
+            need = estimate_output_bytes(scn, model=model, include_truth=not args.no_truth)
         check_free_space(args.out, need, what="bttsim simulate")
     t0 = time.perf_counter()
     progress = Progress(not args.quiet)
-    out = simulate_to_mcap(scn, args.out, include_truth=not args.no_truth,
+    out = simulate_to_mcap(scn, args.out, model=model, include_truth=not args.no_truth,
                            progress=lambda n, total: progress.update(f"revolution {n}/{total}"))
     progress.close()
     print(f"wrote {args.out}: {out['messages']} messages, {out['revolutions']} revolutions, "

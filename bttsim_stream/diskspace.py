@@ -29,12 +29,12 @@ RUN_FACTOR = 2.0
 _OVERHEAD = 1 << 20
 
 
-def estimate_output_bytes(scn, *, include_truth: bool = True, run: bool = False) -> int:
+def estimate_output_bytes(scn, *, model=None, include_truth: bool = True, run: bool = False) -> int:
     """Estimated bytes written by ``simulate`` (``run`` False: the MCAP file) or by ``run``
-    (the output folder) for scenario ``scn``."""
+    (the output folder) for scenario ``scn`` (``model``: its modal model, when already built)."""
     from .acquisition import AcquisitionStream  # the simulator: only when asked
 
-    acq = AcquisitionStream(scn, include_truth=include_truth, chunk_revolutions=SAMPLE_REVOLUTIONS)
+    acq = AcquisitionStream(scn, model, include_truth=include_truth, chunk_revolutions=SAMPLE_REVOLUTIONS)
     n_rev = int(acq.info.n_revolutions)
     payload, revs = [], 0
     for batch, msgs in acq.batches():
