@@ -166,9 +166,9 @@ def main(args) -> None:
         print("forger connected", flush=True)
         rig = forged[0][0].split("/")[1]
         token = session.liveliness().declare_token(f"bttsim/{rig}/alive/sim") if args.pose_as_sim else None
-        # the counted garbage must all reach the recorder: a queue full of real 7 kB truth
-        # batches on the router's link to it would drop DROP messages by the hundred
-        congestion = zenoh.CongestionControl.BLOCK if args.garbage else zenoh.CongestionControl.DROP
+        # the counted garbage (and each message of --once) must all reach the recorder: a queue
+        # full of real 7 kB truth batches on the router's link to it would drop DROP messages
+        congestion = zenoh.CongestionControl.BLOCK if args.garbage or args.once else zenoh.CongestionControl.DROP
         pubs = {k: session.declare_publisher(k, congestion_control=congestion)
                 for k in dict.fromkeys(k for k, _, _ in forged)}
         while not stop:
