@@ -175,7 +175,12 @@ def test_without_security_the_same_forger_reaches_the_run_and_the_recorder_refus
     assert stats["put"] == stats["matched"] == 100, stats
     assert messages == clean[1]
     refused = [m for m in read_recording(out / "run.mcap", "rejected/**").messages]
-    assert {m.key for m in refused} == {"rejected/bttsim/rig1/toa/7"} and len(refused) == 100
+    # every forgery the recorder received is refused, counted and kept apart; the forger puts
+    # its first message once any subscriber matches, which may be before the recorder's (the
+    # processor's or the viewer's): a few may never reach the recorder at all
+    counted = json.loads((out / "summary.json").read_text())["recording"]["rejected"]
+    assert {m.key for m in refused} == {"rejected/bttsim/rig1/toa/7"}
+    assert len(refused) == counted and 90 <= counted <= 100, (len(refused), counted)
 
 
 def test_a_node_refused_by_an_mtls_peer_fails_instead_of_recording_nothing(scenario, certs, foreign_certs, tmp_path):
