@@ -271,7 +271,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
     progress.close()
     try:
         result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
-                                revolution0=int(run.revolution[0]))
+                                revolution0=int(run.revolution[0]), spectra=False)  # the report only
     except ValueError as exc:  # an impossible layout (LayoutError), inconsistent arrays
         raise BttsimError(f"{args.mcap}: {exc}") from None
     except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway

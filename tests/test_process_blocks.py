@@ -103,3 +103,22 @@ def test_recording_regrouped_as_the_assembler_does(seed):
     assert _same(toa, np.stack([r.toa_s for r in want]))
     assert acq.ignored == asm.ignored == 4
     assert acq.duplicates == asm.duplicates
+
+
+def test_report_only_is_the_same_report():
+    """``spectra=False`` (``bttsim process``, the processor's final report) leaves out the
+    run's spectra and nothing else: the same report, number for number, and the input intact."""
+    import json
+
+    from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
+
+    opr, toa, geo, omega = _run(900, seed=3)
+    kept = toa.copy()
+    opts = ProcessOptions(engine_orders=(3,))
+    full = process_arrays(opr, toa, geo, opts)
+    only = process_arrays(opr, toa, geo, opts, spectra=False)
+    assert only.probe_tw is None and only.fit_tw is None
+    assert full.probe_tw.forward_m.shape == (900, PROBES.size, NB // 2 + 1)
+    assert json.dumps(only.summary, sort_keys=True) == json.dumps(full.summary, sort_keys=True)
+    assert _same(only.prepared.d_m, full.prepared.d_m) and _same(only.fit.coeffs, full.fit.coeffs)
+    assert _same(toa, kept)

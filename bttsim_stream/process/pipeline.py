@@ -23,7 +23,8 @@ import numpy as np
 
 from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
                      predicted_contamination, predicted_response, resolve_engine_orders, speed_segments)
-from .displacement import TWO_PI, Displacements, Geometry, compute_displacements, rotor_phase_from_opr
+from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, Displacements, Geometry, compute_displacements,
+                           rotor_phase_from_opr)
 from .fit import SineFit, fit_revolutions
 from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
@@ -125,7 +126,7 @@ def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
 
 
 def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessOptions = ProcessOptions(),
-                   truth=None, *, revolution0: int = 0) -> ProcessingResult:
+                   truth=None, *, revolution0: int = 0, spectra: bool = True) -> ProcessingResult:
     """Process a whole run: find every resonance crossing and dwell, and report them.
 
     Parameters
@@ -143,6 +144,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     revolution0 : int
         Number of the first revolution (for the report's revolution numbers and a tracker's
         truth).
+    spectra : bool
+        Compute the per-revolution travelling-wave spectra (``probe_tw``, ``fit_tw``: two
+        run-sized arrays that the report does not use; False: None, for the callers that
+        need the report only).
 
     Returns
     -------
@@ -187,7 +192,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options)
     # 4. per crossing and per dwell
     ctx = _Context(geometry=geometry, eos=survey.eos, joint=survey.joint, cns=cns, fit=fit, raw=raw, d_flat=d_flat,
-                   omega=survey.omega, opr=opr, toa=toa,
+                   omega=survey.omega, opr=opr, t_sample=_sample_times(toa) if survey.crossings else None,
                    half_width=(prepared.half_width if prepared is not None else None),
                    gain_weights=1.0 / (survey.omega * survey.omega) if options.prep_options.noise_weighting else None,
                    truth=rows_truth, revolution0=revolution0, options=options, reference=reference,
@@ -197,11 +202,23 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     # 5. travelling waves and the resonance revolutions of the first order
     eo = survey.eos[0]
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
-                            displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_spectra(d, eo),
-                            fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad),
+                            displacements=disp, prepared=prepared, fit=fit,
+                            probe_tw=probe_spectra(d, eo) if spectra else None,
+                            fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad) if spectra else None,
                             resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev),
                             report=report, segments=survey.segments, crossings=tuple(survey.crossings),
                             reference=reference, joint=bool(survey.joint), nsv_scan=survey.nsv_scan, nsv=survey.nsv)
+
+
+def _sample_times(toa: np.ndarray) -> np.ndarray:
+    """Each blade's mean arrival time over the probes per revolution, shape (n_rev, n_blades)
+    (NaN: no arrival), for the swept SDOF fits; in blocks of revolutions (a row's mean is its
+    own: the same numbers as on the whole array, without its run-sized temporaries)."""
+    out = np.empty(toa.shape[:2])
+    with np.errstate(all="ignore"), _quiet():
+        for a in range(0, toa.shape[0], DISPLACEMENT_CHUNK):
+            out[a:a + DISPLACEMENT_CHUNK] = np.nanmean(toa[a:a + DISPLACEMENT_CHUNK], axis=2)
+    return out
 
 
 def _first_phasor(fit: SineFit) -> np.ndarray:
@@ -563,7 +580,7 @@ class _Context:
     d_flat: "_Flat"
     omega: np.ndarray
     opr: np.ndarray
-    toa: np.ndarray
+    t_sample: np.ndarray | None
     half_width: np.ndarray | None
     gain_weights: np.ndarray | None
     truth: object
@@ -798,9 +815,7 @@ def _model_misfit(misfit_m, amp_raw: np.ndarray) -> np.ndarray:
 
 def _sdof(ctx: _Context, c: Crossing, i: int, fn0_hz: np.ndarray):
     """The swept SDOF fit of one crossing (:func:`~.methods.sdof_method`) and its sweep rate."""
-    with np.errstate(all="ignore"), _quiet():
-        t_sample = np.nanmean(ctx.toa, axis=2)
-    return sdof_method(ctx.raw.phasor[..., i], t_sample, ctx.opr, rotor_phase_from_opr(ctx.opr), c.eo,
+    return sdof_method(ctx.raw.phasor[..., i], ctx.t_sample, ctx.opr, rotor_phase_from_opr(ctx.opr), c.eo,
                        c.lo, c.hi, fn0_hz=fn0_hz, zeta0=c.damping_estimate(ctx.omega))
 
 

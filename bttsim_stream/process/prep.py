@@ -579,8 +579,10 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
         half = np.clip(np.asarray(half_width, dtype=float), max(options.min_half_width, 1.0), options.max_half_width)
         w = 1.0 / (om * om) if options.noise_weighting else None
         kernel = _smoother(d.shape[0], half, w)
-        smoothed = np.empty_like(d)
-        for sl in _blade_blocks(d.shape):  # each column is smoothed on its own: blocks of blades
+        # each column is smoothed on its own: blocks of blades, written back in place when the
+        # offset-removed array is this function's own (a block reads only its own columns)
+        smoothed = out if out is not d else np.empty_like(d)
+        for sl in _blade_blocks(d.shape):
             smoothed[:, sl] = _smooth(out[:, sl], *kernel)
         out = smoothed
     elif options.smooth and n_rev >= 3:

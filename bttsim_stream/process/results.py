@@ -139,10 +139,11 @@ class ProcessingResult:
     prepared : PreparedData or None
     fit : SineFit
         Fits of the prepared displacements (raw when ``prep`` is off).
-    probe_tw : TravellingWaveSpectra
-        Per revolution and probe, shape (n_rev, n_probes, n_nd), first EO.
-    fit_tw : TravellingWaveSpectra
-        Per revolution from the fits, shape (n_rev, n_nd), first EO.
+    probe_tw : TravellingWaveSpectra or None
+        Per revolution and probe, shape (n_rev, n_probes, n_nd), first EO (None when the
+        report alone was asked for: ``process_arrays(..., spectra=False)``).
+    fit_tw : TravellingWaveSpectra or None
+        Per revolution from the fits, shape (n_rev, n_nd), first EO (None likewise).
     resonance_revolutions : ndarray of bool, shape (n_rev,)
         The half-power regions of the first EO's crossings (or, without any, where the
         blade-mean amplitude exceeds half its peak).
@@ -165,8 +166,8 @@ class ProcessingResult:
     displacements: Displacements
     prepared: PreparedData | None
     fit: SineFit
-    probe_tw: TravellingWaveSpectra
-    fit_tw: TravellingWaveSpectra
+    probe_tw: TravellingWaveSpectra | None
+    fit_tw: TravellingWaveSpectra | None
     resonance_revolutions: np.ndarray
     report: ResonanceReport
     segments: RunSegments | None = None

@@ -245,8 +245,9 @@ class StreamingProcessor:
         Returns
         -------
         dict
-            The brief's summary JSON dict; the full :class:`ProcessingResult` is kept in
-            :attr:`result`. Outputs still pending when :meth:`flush` was not called are kept
+            The brief's summary JSON dict; the :class:`ProcessingResult` is kept in
+            :attr:`result` (without the whole run's spectra, ``probe_tw`` and ``fit_tw``:
+            they went out with the live outputs). Outputs still pending when :meth:`flush` was not called are kept
             in :attr:`last_outputs`.
         """
         if not self._finished:
@@ -259,8 +260,9 @@ class StreamingProcessor:
         opts = self.options
         if opts.engine_orders is None and opts.eo_range is None:
             opts = replace(opts, engine_orders=engine_orders_of(self.info, opts))
+        # the report only: the per-revolution spectra went out live, revolution by revolution
         self.result = process_arrays(self._opr.array, self._toa.array, self.info, opts,
-                                     truth=truth_peaks, revolution0=self._first_rev or 0)
+                                     truth=truth_peaks, revolution0=self._first_rev or 0, spectra=False)
         return self.result.summary
 
     def nsv_ready(self) -> list[NsvDetection]:
