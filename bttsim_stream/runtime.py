@@ -170,7 +170,7 @@ def add_web_arguments(p: argparse.ArgumentParser) -> None:
 #: Samples taken from one subscription's FIFO at a time; how long an idle node sleeps between
 #: two looks at the FIFOs (s): the longest a sample waits when nothing else is coming.
 _BATCH = 4096
-_IDLE_POLL_S = 0.002
+_IDLE_POLL_S = 0.01
 #: Samples waiting in the inbox that wake its sleeping consumer before its sleep ends.
 WAKE_AT = 64
 
