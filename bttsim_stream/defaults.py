@@ -22,6 +22,9 @@ DEFAULT_RIG = "rig1"
 MAX_BLADES = 200
 #: Most probes of a run.
 MAX_PROBES = 64
+#: Most speeds of a speed-dependent (centrifugal) modal model and of the run metadata's
+#: Campbell families.
+MAX_SPEEDS = 64
 #: Highest engine order.
 MAX_ENGINE_ORDER = 1000
 #: Fastest rotor speed of a scenario, rpm.

@@ -28,7 +28,7 @@ from .process.displacement import DoublePulses, assign_extra_edges
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
 from .processor import ProcessorSession
-from .sim.core import RunInfo, Truth
+from .sim.records import RunInfo, Truth
 
 __all__ = ["RecordedRun", "PROCESS_TRUTH_FIELDS", "load_run", "messages_of", "completeness", "result_warnings",
            "processing_messages", "with_processing", "add_processing_arguments", "processing_options",

@@ -25,7 +25,7 @@ from .process.displacement import DoublePulses
 from .process.options import ProcessOptions
 from .process.streaming import StreamingProcessor
 from .process.resonance import TruthPeakTracker
-from .sim.core import RunInfo
+from .sim.records import RunInfo
 from .summary import build_summary
 
 __all__ = ["ProcessorSession"]

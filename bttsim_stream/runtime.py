@@ -170,14 +170,18 @@ def add_web_arguments(p: argparse.ArgumentParser) -> None:
 #: Samples taken from one subscription's FIFO at a time; how long an idle node sleeps between
 #: two looks at the FIFOs (s): the longest a sample waits when nothing else is coming.
 _BATCH = 4096
-_IDLE_POLL_S = 0.002
+_IDLE_POLL_S = 0.01
+#: Samples waiting in the inbox that wake its sleeping consumer before its sleep ends.
+WAKE_AT = 64
 
 
 class Inbox:
     """A bounded FIFO from Zenoh's receiving threads to the node's main thread.
 
-    Cheaper per sample than :class:`queue.Queue`: :meth:`put` wakes the consumer only when it
-    sleeps on an empty inbox, and :meth:`take` hands out everything waiting at once (one lock
+    Cheaper per sample than :class:`queue.Queue`: :meth:`put` wakes a sleeping consumer only
+    once :data:`WAKE_AT` samples wait (else its sleep, at most :data:`_IDLE_POLL_S`, ends on its
+    own: a sample waits at most that long, and a busy stream wakes it once per batch rather
+    than once per sample), and :meth:`take` hands out everything waiting at once (one lock
     round per batch, not per sample). A full inbox blocks :meth:`put` (back-pressure).
     """
 
@@ -197,14 +201,14 @@ class Inbox:
                 self._nonfull.wait()
                 self._full -= 1
             self._items.append(item)
-            if self._sleeping:
+            if self._sleeping and len(self._items) >= WAKE_AT:
                 self._nonempty.notify()
 
     def qsize(self) -> int:
         return len(self._items)
 
     def wait(self, timeout: float) -> None:
-        """Sleep up to ``timeout`` s, or until something is put."""
+        """Sleep up to ``timeout`` s, or until :data:`WAKE_AT` samples wait."""
         with self._lock:
             if not self._items:
                 self._sleeping = True
@@ -212,8 +216,8 @@ class Inbox:
                 self._sleeping = False
 
     def take(self, timeout: float) -> list:
-        """Everything waiting, in order; waits up to ``timeout`` s for the first (``[]``:
-        nothing came)."""
+        """Everything waiting, in order; if nothing waits, sleeps up to ``timeout`` s (or until
+        :data:`WAKE_AT` samples wait) first (``[]``: nothing came)."""
         with self._lock:
             if not self._items and timeout > 0:
                 self._sleeping = True

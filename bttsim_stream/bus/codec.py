@@ -44,10 +44,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM
+from ..defaults import MAX_BLADES, MAX_ENGINE_ORDER, MAX_PROBES, MAX_REVOLUTIONS, MAX_RPM, MAX_SPEEDS
 from ..errors import BttsimError
-from ..model.modal_model import MAX_SPEEDS
-from ..sim.core import RunInfo, Truth
+from ..sim.records import RunInfo, Truth
 from ..sim.signal import EDGES, TRIGGER_KINDS, RawSignals
 from . import keys as _keys
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb

@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..sim.core import RevolutionBatch, RunInfo
+from ..sim.records import RevolutionBatch, RunInfo
 from . import codec, keys
 
 __all__ = ["Message", "Sequencer", "SequenceTracker", "KeyMissing", "acquisition_counts", "MessageStream",

@@ -27,7 +27,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .. import __version__
-from ..defaults import MAX_BLADES
+from ..defaults import MAX_BLADES, MAX_SPEEDS
 from ..errors import ModelFileError, ScenarioError
 from ..scenario import Scenario
 from .bladed_disk import (
@@ -85,7 +85,6 @@ _OPTIONAL = {
 #: (row 0 equal to it), in the same mode order (modes tracked across speeds), each mode
 #: mass-normalised and sign/phase-aligned with its zero-speed shape.
 SPEED_ARRAYS = ("speed_rad_s", "freq_hz_at_speed", "tip_shapes_at_speed", "force_shapes_at_speed")
-MAX_SPEEDS = 64
 _MAX_FILE_BYTES = 2 * 1024**3
 
 

@@ -28,25 +28,56 @@ frequencies), amplitudes peak-to-peak, blades and probes numbered from 0, NaN fo
 missing arrival. Nothing here imports the transport, codec or viewer layers.
 """
 
-from .displacement import (Displacements, DoublePulses, Geometry, assign_extra_edges, RotorPhase, btt_displacement,
-                           calibrate_arrival_angles, compute_displacements, expected_times, identify_blades,
-                           mean_speed_from_opr, rotor_phase_from_opr)
-from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
-                     predicted_response, speed_segments)
-from .fit import SineFit, design_matrix, fit_revolutions, sine_at_probes
-from .methods import METHODS, cff_method, peak_method, sdof_method
-from .options import ProcessOptions, engine_orders_of
-from .pipeline import process_arrays
-from .results import ProcessingResult, RevolutionFit, RevolutionOutput
-from .streaming import StreamingProcessor
-from .prep import (PreparedData, PrepOptions, ResonanceRegion, locate_resonance, prepare, remove_offset,
-                   smooth_revolutions, speed_adaptive_half_width)
-from .probes import LayoutCandidate, LayoutError, check_layout, condition_number, layout_report, rank_layouts
-from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
-                        TruthRows, find_peaks, resonance_errors, resonance_report, summary_table, truth_peaks,
-                        window_truth)
-from .travelling_wave import TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra, signed_nd
-from .nsv import NsvDetection, NsvOptions, NsvScan, detect_nsv, scan_blocks
+import importlib
+from typing import TYPE_CHECKING
+
+#: Each public name -> the module that defines it. The submodules load on first use (PEP 562):
+#: the codec needs the result dataclasses, not the pipeline, the detector or scipy.
+_SOURCES = {
+    **dict.fromkeys(('Displacements', 'DoublePulses', 'Geometry', 'assign_extra_edges', 'RotorPhase',
+                     'btt_displacement', 'calibrate_arrival_angles', 'compute_displacements',
+                     'expected_times', 'identify_blades', 'mean_speed_from_opr', 'rotor_phase_from_opr',),
+                    'displacement'),
+    **dict.fromkeys(('Crossing', 'DetectOptions', 'Reference', 'RunSegments', 'choose_reference',
+                     'detect_crossings', 'predicted_response', 'speed_segments',), 'detect'),
+    **dict.fromkeys(('SineFit', 'design_matrix', 'fit_revolutions', 'sine_at_probes',), 'fit'),
+    **dict.fromkeys(('METHODS', 'cff_method', 'peak_method', 'sdof_method',), 'methods'),
+    **dict.fromkeys(('ProcessOptions', 'engine_orders_of',), 'options'),
+    **dict.fromkeys(('process_arrays',), 'pipeline'),
+    **dict.fromkeys(('ProcessingResult', 'RevolutionFit', 'RevolutionOutput',), 'results'),
+    **dict.fromkeys(('StreamingProcessor',), 'streaming'),
+    **dict.fromkeys(('PreparedData', 'PrepOptions', 'ResonanceRegion', 'locate_resonance', 'prepare',
+                     'remove_offset', 'smooth_revolutions', 'speed_adaptive_half_width',), 'prep'),
+    **dict.fromkeys(('LayoutCandidate', 'LayoutError', 'check_layout', 'condition_number', 'layout_report',
+                     'rank_layouts',), 'probes'),
+    **dict.fromkeys(('Detection', 'ResonanceEntry', 'ResonancePeaks', 'ResonanceReport', 'TruthPeaks',
+                     'TruthPeakTracker', 'TruthRows', 'find_peaks', 'resonance_errors', 'resonance_report',
+                     'summary_table', 'truth_peaks', 'window_truth',), 'resonance'),
+    **dict.fromkeys(('TravellingWaveSpectra', 'fit_spectra', 'identify_nd', 'probe_spectra', 'signed_nd',),
+                    'travelling_wave'),
+    **dict.fromkeys(('NsvDetection', 'NsvOptions', 'NsvScan', 'detect_nsv', 'scan_blocks',), 'nsv'),
+}
+
+if TYPE_CHECKING:  # for readers and type checkers: the eager form
+    from .displacement import (Displacements, DoublePulses, Geometry, assign_extra_edges, RotorPhase, btt_displacement,
+                               calibrate_arrival_angles, compute_displacements, expected_times, identify_blades,
+                               mean_speed_from_opr, rotor_phase_from_opr)
+    from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
+                         predicted_response, speed_segments)
+    from .fit import SineFit, design_matrix, fit_revolutions, sine_at_probes
+    from .methods import METHODS, cff_method, peak_method, sdof_method
+    from .options import ProcessOptions, engine_orders_of
+    from .pipeline import process_arrays
+    from .results import ProcessingResult, RevolutionFit, RevolutionOutput
+    from .streaming import StreamingProcessor
+    from .prep import (PreparedData, PrepOptions, ResonanceRegion, locate_resonance, prepare, remove_offset,
+                       smooth_revolutions, speed_adaptive_half_width)
+    from .probes import LayoutCandidate, LayoutError, check_layout, condition_number, layout_report, rank_layouts
+    from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
+                            TruthRows, find_peaks, resonance_errors, resonance_report, summary_table, truth_peaks,
+                            window_truth)
+    from .travelling_wave import TravellingWaveSpectra, fit_spectra, identify_nd, probe_spectra, signed_nd
+    from .nsv import NsvDetection, NsvOptions, NsvScan, detect_nsv, scan_blocks
 
 __all__ = [
     "Geometry", "RotorPhase", "Displacements", "mean_speed_from_opr", "rotor_phase_from_opr",
@@ -66,3 +97,17 @@ __all__ = [
     "engine_orders_of",
     "NsvOptions", "NsvScan", "NsvDetection", "detect_nsv", "scan_blocks",
 ]
+
+
+def __getattr__(name: str):
+    """A public name, imported from its module on first use (then cached here)."""
+    mod = _SOURCES.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

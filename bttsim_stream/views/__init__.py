@@ -4,7 +4,7 @@ This package is the only part of the library that imports :mod:`rerun` (and it n
 imports zenoh). It turns decoded bus messages (:mod:`bttsim_stream.bus.codec`) into Rerun
 entities in bulk (``send_columns``), either for a whole recording at once
 (:func:`log_recording`) or message by message from a live bus (:class:`LiveViews`, flushed
-every ``flush_period_s``).
+every ``flush_period_s`` while the bus is quiet, every ``busy_flush_period_s`` while busy).
 
 Modules: one per view -- :mod:`.travelling_wave`, :mod:`.fits` (amplitude, phase,
 frequency, speed), :mod:`.displacement` (raw Eq. 1 against d_eqv), :mod:`.rotor`,

@@ -35,6 +35,8 @@ __all__ = ["Incoming", "MessageDecoder", "LiveViews"]
 
 log = logging.getLogger("bttsim.views")
 _MAX_EARLY = 1 << 16  # messages held while waiting for the run metadata
+#: The flush period while messages keep coming, in flush periods of a quiet bus.
+BUSY_FLUSH_FACTOR = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,8 +109,10 @@ class LiveViews:
     """Turn bus messages into Rerun views, batched into ``send_columns`` calls.
 
     Feed messages in bus order with :meth:`feed` (key and payload) or :meth:`feed_decoded`;
-    the views are flushed every ``flush_period_s`` (checked on each feed and on
-    :meth:`poll`) when ``live``, and on :meth:`close`.
+    when ``live`` the views are flushed every ``flush_period_s`` while the bus is quiet
+    (:meth:`poll` between messages) and every ``busy_flush_period_s`` while messages keep
+    coming (checked on each feed: a viewer catching up with a fast run sends fewer, larger
+    ``send_columns`` batches, the same rows); and on :meth:`close`.
 
     Parameters
     ----------
@@ -124,6 +128,8 @@ class LiveViews:
     exaggeration : float
         Tip deflection gain of the rotor view.
     flush_period_s, tw_window, tw_period_s : float, int, float
+    busy_flush_period_s : float, optional
+        The flush period while messages keep coming (default ``5 * flush_period_s``).
     send_blueprint : bool
         Send :func:`~bttsim_stream.views.build_blueprint` when the run metadata arrives,
         and again if fits of an engine order it lacks arrive (not needed when the sinks
@@ -156,11 +162,13 @@ class LiveViews:
                  exaggeration: float = DEFAULT_EXAGGERATION, flush_period_s: float = 0.2, tw_window: int = 256,
                  tw_period_s: float = 1.0, send_blueprint: bool = True,
                  engine_orders: Sequence[int] | None = None, decoder: MessageDecoder | None = None,
-                 signal_probe: int = 0) -> None:
+                 signal_probe: int = 0, busy_flush_period_s: float | None = None) -> None:
         self.rec = recording
         self.out = ViewOutput(recording, live)
         self.live = bool(live)
         self.flush_period_s = float(flush_period_s)
+        self.busy_flush_period_s = BUSY_FLUSH_FACTOR * self.flush_period_s if busy_flush_period_s is None \
+            else float(busy_flush_period_s)
         self._options = {"blades": blades, "exaggeration": float(exaggeration), "tw_window": int(tw_window),
                          "tw_period_s": float(tw_period_s)}
         self._send_blueprint = bool(send_blueprint)
@@ -206,7 +214,7 @@ class LiveViews:
                 self._ignored += 1
         else:
             self._route(msg)
-        self.poll()
+        self.poll(busy=True)
 
     def _on_meta(self, meta) -> None:
         if self.meta is not None:
@@ -277,9 +285,11 @@ class LiveViews:
             v.signal.add(d)
 
     # -- output --------------------------------------------------------------------------
-    def poll(self) -> bool:
-        """Flush if ``flush_period_s`` has passed since the last flush (live only)."""
-        if self.live and time.monotonic() - self._last_flush >= self.flush_period_s:
+    def poll(self, *, busy: bool = False) -> bool:
+        """Flush if ``flush_period_s`` (``busy``: ``busy_flush_period_s``, more messages are
+        coming) has passed since the last flush (live only)."""
+        period = self.busy_flush_period_s if busy else self.flush_period_s
+        if self.live and time.monotonic() - self._last_flush >= period:
             self.flush()
             return True
         return False
