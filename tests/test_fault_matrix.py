@@ -230,6 +230,38 @@ def test_a_router_killed_and_restarted_mid_run(namespaces, clean, tmp_path):  # 
             assert sum(got.values()) == _absent(run, key, _expected(run, key)), (key, got)
 
 
+@pytest.mark.slow
+def test_a_run_through_a_router_killed_and_restarted_mid_run(namespaces, clean, tmp_path):  # noqa: F811
+    """``bttsim run -m client -e tcp/ROUTER``: every node of the run (and the run's own session)
+    in one namespace, a client of a ``bttsim router`` in another, the only way between them.
+    The router is killed (SIGKILL) once the recorder has written data, and started again on the
+    same addresses: the run either records the whole clean run and exits 0, or exits non-zero
+    and counts per key what it misses; no traceback in any log."""
+    ns = namespaces
+    scn = tmp_path / "scn.toml"
+    scn.write_text(SCENARIO)
+    out = tmp_path / "out"
+    router = _router(ns)
+    procs = [router]
+    try:
+        proc = subprocess.Popen(["ip", "netns", "exec", ns["proc"], sys.executable, "-m", "bttsim_stream.cli", "run",
+                                 str(scn), "--out", str(out), "--quiet", "--realtime", "-m", "client",
+                                 "-e", f"tcp/{ROUTER_ADDR['proc']}:7447"], cwd=REPO, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        try:
+            _wait_mid_run(proc, out)
+            router.kill()  # the fault
+            router.wait()
+            procs.append(_router(ns))
+        finally:
+            rc, text = _finish(proc)
+    finally:
+        for p in reversed(procs):
+            stop(p)
+    way = check_honest(rc, text, out, clean)
+    print(f"router restart under bttsim run: exit {rc}, {way}; recording: {_recording_line(out)}")
+
+
 def _expected(run, key: str) -> int | None:
     """The run's message count of an acquisition key (from the OPR count the metadata fixes)."""
     from bttsim_stream.bus import codec
