@@ -133,7 +133,8 @@ def test_a_stopped_node(tmp_path, clean, node, seconds):
             os.kill(pid, signal.SIGCONT)
     finally:
         rc, text = _finish(proc)
-    check_honest(rc, text, out, clean)
+    way = check_honest(rc, text, out, clean)
+    print(f"SIGSTOP {node} {seconds:g} s: exit {rc}, {way}; recording: {_recording_line(out)}")
 
 
 @pytest.mark.parametrize("node", [pytest.param(n, marks=() if n == "recorder" else pytest.mark.slow) for n in NODES])
@@ -147,7 +148,8 @@ def test_a_killed_node(tmp_path, clean, node):
     finally:
         rc, text = _finish(proc)
     assert rc != 0 and f"the {node} node failed (killed by SIGKILL" in text, text
-    check_honest(rc, text, out, clean, logs=[n for n in NODES if n != node])
+    way = check_honest(rc, text, out, clean, logs=[n for n in NODES if n != node])
+    print(f"SIGKILL {node}: exit {rc}, {way}; recording: {_recording_line(out)}")
 
 
 # -- the three-namespace layout --------------------------------------------------------------
