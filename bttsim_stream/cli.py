@@ -341,8 +341,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         problems.append(f"the recording is incomplete: {recording.get('incomplete') or 'see recorder.log'}")
     if res.get("write_error"):
         problems.append(res["write_error"])
-    if res["viewer"].get("gaps"):
-        problems.append(f"the views miss {res['viewer']['gaps']} messages{_by_key(res['viewer'].get('gaps_by_key'))}")
+    viewer = res["viewer"]
+    if viewer.get("missing") or viewer.get("gaps"):
+        by_key = {k: sum(m.values()) for k, m in viewer["missing_by_key"].items()} if "missing_by_key" in viewer \
+            else viewer.get("gaps_by_key")
+        problems.append(f"the views miss {viewer.get('missing') or viewer['gaps']} messages{_by_key(by_key)}")
+    elif viewer and viewer.get("complete") is False:
+        problems.append(f"the views are incomplete: {viewer.get('incomplete') or 'see viewer.log'}")
     if problems:
         print(f"bttsim: warning: {'; '.join(problems)}", file=sys.stderr)
         return EXIT_INCOMPLETE

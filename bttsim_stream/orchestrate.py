@@ -77,9 +77,9 @@ RECORDER_KILL_S = 10.0
 #: since the first OPR seen (the start-up is no rate).
 ESTIMATE_AFTER_S = 1.0
 ESTIMATE_AFTER_REVS = 5
-#: The recorder's exit status for a recording it finished, incomplete (its statistics say what
-#: is missing): not a failure of the node.
-RECORDER_INCOMPLETE = 3
+#: A consumer node's exit status (recorder, processor, viewer) when what it received or wrote
+#: is incomplete (its final statistics say what is missing): not a failure of the node.
+NODE_INCOMPLETE = 3
 #: How long, after a node ended normally, its final status may still be on its way on the bus
 #: before its status file is read instead (s).
 FINAL_STATUS_WAIT_S = 2.0
@@ -358,9 +358,11 @@ class Run:
         if not self.serving:
             self._wait("viewer", grace)
         self.recorder = self._final_stats("recorder")
-        self.failed = {n: p.returncode for n, p in self.procs.items() if p.returncode not in (0, None)
-                       and not (n == "recorder" and p.returncode == RECORDER_INCOMPLETE and self.recorder)}
         self.viewer = self._final_stats("viewer")  # its own counts: what the views lost
+        stats = {"recorder": self.recorder, "viewer": self.viewer, "processor": self._final_stats("processor")}
+        # an incomplete node that said what it misses has not failed: the run reports what is missing
+        self.failed = {n: p.returncode for n, p in self.procs.items() if p.returncode not in (0, None)
+                       and not (p.returncode == NODE_INCOMPLETE and stats.get(n))}
         self.summary, self.result_complete = self._summary()
         self.finished = True
         self.progress.close()
@@ -455,7 +457,7 @@ class Run:
         p = self.procs.get(name)
         if p is None or self.board is None:
             return {}
-        ended_well = p.returncode in (0, None) or (name == "recorder" and p.returncode == RECORDER_INCOMPLETE)
+        ended_well = p.returncode in (0, None, NODE_INCOMPLETE)
         status = self.board.final(name, wait_s=FINAL_STATUS_WAIT_S if ended_well else 0.0)
         return dict(status.stats) if status is not None else {}
 

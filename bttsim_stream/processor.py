@@ -19,7 +19,9 @@ import logging
 import numpy as np
 
 from .bus.codec import Decoded
-from .bus.stream import Completeness, Message, MessageStream, RevolutionAssembler, SequenceTracker, StreamEnd
+from .bus import keys
+from .bus.stream import Completeness, KeyMissing, Message, MessageStream, RevolutionAssembler, SequenceTracker, \
+    StreamEnd, acquisition_counts
 from .errors import BttsimError
 from .process.displacement import DoublePulses
 from .process.options import ProcessOptions
@@ -63,6 +65,7 @@ class ProcessorSession:
         self.tracker = TruthPeakTracker(self.proc.engine_orders[0])
         self.asm = RevolutionAssembler(meta.n_blades, meta.n_probes, n_revolutions=meta.n_revolutions)
         self.seqs = SequenceTracker()
+        self.seqs.expect(self.expected())  # a number at or beyond a key's count is not believed
         self.out = MessageStream(meta.run_id, meta.rig)
         self.rejected = 0
         self.missing_toas = 0
@@ -73,6 +76,20 @@ class ProcessorSession:
     def received_all(self) -> bool:
         """Has the whole acquisition stream come in (:class:`StreamEnd`)?"""
         return self.end.done
+
+    def expected(self) -> dict[str, int]:
+        """``{key: n}``: the acquisition keys the processor reads and their message counts (the
+        run metadata's; truth only when scoring)."""
+        counts = acquisition_counts(self.meta)
+        counts.pop(keys.meta_key(self.meta.rig), None)
+        if not self.score:
+            counts.pop(keys.truth_key(self.meta.rig), None)
+        return counts
+
+    def missing(self) -> dict[str, KeyMissing]:
+        """Per acquisition key that misses anything: the numbers not received (head, gaps and
+        tail against the run's count)."""
+        return self.seqs.missing(self.expected())
 
     def reject(self, exc: Exception) -> None:
         """Count a refused message (logged: the first three, then every 1000th)."""

@@ -40,7 +40,14 @@ from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
-           "Progress", "parse_rate", "RATE_HELP", "plain_text", "add_status_argument", "add_web_arguments"]
+           "Progress", "parse_rate", "RATE_HELP", "plain_text", "add_status_argument", "add_web_arguments",
+           "add_drain_argument", "DRAIN_TIMEOUT_S", "EXIT_INCOMPLETE"]
+
+#: How long a consumer waits, in silence, for the rest of a run whose nodes have gone (s).
+DRAIN_TIMEOUT_S = 30.0
+#: Exit status of a consumer node (processor, recorder, viewer) whose received or written
+#: stream is not complete (as ``bttsim run``'s).
+EXIT_INCOMPLETE = 3
 
 #: Help text of every ``--rate`` option.
 RATE_HELP = "pacing: 'max' (default: as fast as possible), 'realtime', or a speed-up factor"
@@ -155,6 +162,13 @@ def add_status_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--status-file", metavar="FILE.json",
                    help="also write the node's status (state, final statistics: the JSON of its "
                         "bttsim/<rig>/status/<node> messages) to FILE.json, replaced atomically")
+
+
+def add_drain_argument(p: argparse.ArgumentParser) -> None:
+    """``--drain-timeout``: how long a consumer waits for the rest of a run whose nodes have gone."""
+    p.add_argument("--drain-timeout", type=float, default=DRAIN_TIMEOUT_S, metavar="S",
+                   help="when the nodes it follows are gone before the whole run came in (a router restart, a "
+                        f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
 
 
 def add_web_arguments(p: argparse.ArgumentParser) -> None:

@@ -8,14 +8,18 @@ engine order, Eq. 16-17) and ``bttsim/<rig>/tw/<probe>`` (``TravellingWave``); p
 block of revolutions ``bttsim/<rig>/nsv`` (``NonSynchronous``: non-synchronous vibration); at
 the end ``bttsim/<rig>/resonance`` (``ResonanceReport``) and, with ``--summary``, the summary JSON.
 Liveliness: ``bttsim/<rig>/alive/processor``; status ``bttsim/<rig>/status/processor`` (``done``
-with the report's completeness counts). Ends when the simulator's token goes (after the
-final report), on ``--duration``, SIGINT or SIGTERM.
+with the report's completeness counts and the acquisition numbers not received, per key).
+Ends when the simulator's token goes (at once if the whole acquisition stream came in, else
+after ``--drain-timeout`` seconds of silence: it may come back, a router restart), on
+``--duration``, SIGINT or SIGTERM. Exit status 3 when the result does not rest on the whole
+run (no report, revolutions missing or lost; the log says what is missing per key).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -23,11 +27,15 @@ from pathlib import Path
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, pack_attachment
+from bttsim_stream.bus.stream import missing_line
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import add_processing_arguments, processing_options
 from bttsim_stream.process.resonance import summary_table
 from bttsim_stream.processor import ProcessorSession
-from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, node_session, \
+    run_node
+
+log = logging.getLogger("bttsim.processor")
 
 
 
@@ -54,7 +62,8 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         asked_meta = 0.0
         kinds: dict[str, str] = {}
         meta_payload, sources = None, set()  # the run's metadata, and the sessions that sent it
-        for sample in node.samples(stop, done=lambda: run is not None and run.received_all):
+        for sample in node.samples(stop, done=lambda: run is not None and run.received_all,
+                                   patience_s=args.drain_timeout):
             if sample is None:
                 if run is None and time.monotonic() - asked_meta > 1.0:  # missed the sample? ask
                     asked_meta = time.monotonic()
@@ -95,14 +104,28 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                     node.query(keys.meta_key(rig))
             else:
                 bad += 1
+        missing = {} if run is None else run.missing()
         if run is not None:
             msgs, summary = run.finish()
             publish(msgs)
             if args.summary:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
             print(summary_table(summary), flush=True)
-        node.status("done", _final_stats(summary, args.summary))
+        node.status("done", _final_stats(summary, args.summary, missing))
+    _log_verdict(summary, missing)
     return summary
+
+
+def _log_verdict(summary: dict | None, missing: dict) -> None:
+    """Say whether the result rests on the whole run, and what is missing per key."""
+    if summary is None:
+        log.warning("INCOMPLETE: no run metadata received, no report")
+    elif summary.get("complete"):
+        log.info("complete: %d of %d revolutions processed", summary["revolutions_processed"],
+                 summary["revolutions_expected"])
+    else:
+        log.warning("INCOMPLETE: %d of %d revolutions processed; %s", summary["revolutions_processed"],
+                    summary["revolutions_expected"], missing_line(missing) or "nothing missing on the bus")
 
 
 def _from_the_run(run: ProcessorSession, item: tuple, source: str | None, sources: set) -> list:
@@ -114,12 +137,15 @@ def _from_the_run(run: ProcessorSession, item: tuple, source: str | None, source
     return run.add(*item)
 
 
-def _final_stats(summary: dict | None, path: str | None) -> dict:
+def _final_stats(summary: dict | None, path: str | None, missing: dict) -> dict:
     """The processor's final status statistics: whether it made a report, where it wrote the
-    summary, and the summary's completeness keys."""
+    summary, the summary's completeness keys, and the acquisition numbers it did not receive
+    (``missing``, ``missing_by_key``: head, gaps and tail per key)."""
+    lost = {"missing": sum(m.total for m in missing.values()),
+            "missing_by_key": {k: m.to_dict() for k, m in missing.items()}}
     if summary is None:
-        return {"report": False, "summary": ""}
-    return {"report": True, "summary": path or "",
+        return {"report": False, "summary": "", "complete": False, **lost}
+    return {"report": True, "summary": path or "", **lost,
             **{k: summary.get(k) for k in ("status", "complete", "revolutions_expected", "revolutions_processed",
                                            "lost", "duplicates", "rejected")}}
 
@@ -144,10 +170,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-score", action="store_true", help="do not read truth (no E_A / E_f)")
     add_processing_arguments(p)  # --method, --eo, --eo-range, --no-prep, --window
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_drain_argument(p)
     add_status_argument(p)
 
 
-PROGRAM = NodeProgram("processor", __doc__, add_arguments, main)
+def _main(conf, args: argparse.Namespace) -> int:
+    """:func:`main` as a program: exit status 3 when the result does not rest on the whole run
+    (no report, revolutions missing or lost)."""
+    summary = main(conf, args)
+    return 0 if summary is not None and summary.get("complete") else EXIT_INCOMPLETE
+
+
+PROGRAM = NodeProgram("processor", __doc__, add_arguments, _main)
 
 
 def run(argv=None) -> int:

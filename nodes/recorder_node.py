@@ -50,19 +50,16 @@ from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, node_session, \
+    run_node
 
 log = logging.getLogger("bttsim.recorder")
-#: How long the recorder waits, in silence, for the rest of a run whose nodes have gone.
-DRAIN_TIMEOUT_S = 30.0
 #: After a gap opened, the publishers' caches are asked again at most this often (s) ...
 CATCH_UP_EVERY_S = 1.0
 #: ... and their answers awaited this long (s).
 CATCH_UP_TIMEOUT_S = 2.0
 #: Counts of refused messages at which the recorder logs one more line.
 _LOG_AT = frozenset(10 ** k for k in range(1, 13))
-#: Exit status of a recording that is not complete (as ``bttsim run``'s).
-EXIT_INCOMPLETE = 3
 
 
 def main(conf, args: argparse.Namespace) -> dict:
@@ -91,7 +88,7 @@ def main(conf, args: argparse.Namespace) -> dict:
                 act.take(sample)
         for verdict in gate.finish():
             act(verdict)
-        summary = dict(gate.summary(), **_completeness(gate, ends, None if rig == "*" else rig))
+        summary = dict(gate.summary(), **gate.completeness(None if rig == "*" else rig))
         rec.write_metadata("bttsim.recorder", {k: json.dumps(v) for k, v in summary.items()})
         node.status("done", summary)
     if summary["complete"]:
@@ -156,41 +153,6 @@ class _Actions:
                 self.rec.write_rejected(v.key, v.payload, v.log_time_ns, seq=v.seq)
 
 
-def _completeness(gate: RecordGate, ends: dict[str, StreamEnd], rig: str | None) -> dict:
-    """The statistics' completeness keys: ``complete``, ``missing``, ``missing_by_key``
-    (``{key: {"head", "gaps", "tail"}}``), ``run_metadata`` (the rigs whose metadata came),
-    ``foreign_keys`` (keys refused as of no run) and ``incomplete`` (one line saying why, ""
-    if complete). Conflicts (a second, different payload for a number) make it incomplete: the
-    file may hold a forged message in place of the real one."""
-    missing = gate.missing()
-    why = []
-    if not ends or (rig is not None and rig not in ends):
-        why.append(f"no run metadata received{f' for {rig}' if rig else ''}")
-    if missing:
-        total = sum(m.total for m in missing.values())
-        why.append(f"{total} messages missing (" + ", ".join(
-            f"{k.split('/', 2)[-1]} {m.total}" for k, m in missing.items()) + ")")
-    if gate.conflicts:
-        why.append(f"{gate.conflicts} conflicting message(s) (" + ", ".join(
-            f"{k.split('/', 2)[-1]} {n}" for k, n in gate.conflicts_by_key.items()) + ")")
-    foreign = sorted(k for k in gate.rejected_by_key if not _of_the_run(k, gate.expected(), ends))
-    return {"complete": not why, "missing": sum(m.total for m in missing.values()),
-            "missing_by_key": {k: m.to_dict() for k, m in missing.items()}, "run_metadata": sorted(ends),
-            "foreign_keys": foreign[:100], "incomplete": "; ".join(why)}
-
-
-def _of_the_run(key: str, expected: dict[str, int], ends: dict[str, StreamEnd]) -> bool:
-    """Does ``key`` belong to a run whose metadata came (its rig; a probe's key only for a probe
-    the run has)? A key of no run (a forger's ``toa/7`` of a 5-probe run) cannot make the
-    recording incomplete: its numbers are counted under ``foreign_keys``, not as missing."""
-    parts = key.split("/")
-    if len(parts) < 3 or parts[1] not in ends:
-        return False
-    if len(parts) == 4 and parts[2] in ("toa", "tw", "signal"):
-        return f"{parts[0]}/{parts[1]}/toa/{parts[3]}" in expected
-    return True
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="FILE.mcap", help="output MCAP file")
     p.add_argument("--rig", default="*", help="rig to record (default: every rig)")
@@ -198,9 +160,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the recording ('sim'; '' = only a signal "
                         "or --duration)")
-    p.add_argument("--drain-timeout", type=float, default=DRAIN_TIMEOUT_S, metavar="S",
-                   help="when the nodes it follows are gone before the whole run came in (a router restart, a "
-                        f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
+    add_drain_argument(p)
     p.add_argument("--queue", type=int, default=1 << 20, metavar="N",
                    help="samples buffered before the network is slowed down (1048576)")
     add_status_argument(p)

@@ -8,9 +8,16 @@ blade fits, travelling waves, resonance reports, raw probe signals when publishe
 ``bttsim/<rig>/status/viewer`` (the web viewer's URL from ``starting`` on; ``done`` with its
 counts of what it showed and lost; ``serving``), also to ``--status-file``.
 
+Every sample is admitted as the recorder admits what it writes
+(:class:`~bttsim_stream.bus.admission.RecordGate`: decoded, checked against the run and the
+session that published it, duplicates and conflicts told apart); what is refused is counted
+per key and reason, never shown. Completeness is the recorder's too: per key, the numbers not
+received (head, gaps, tail against the run's counts); exit status 3 when anything is missing.
+
 Stops when the nodes named by ``--until`` (default: the simulator) have gone and the bus is
-drained (with ``--web`` it then finalises the .rrd, says so in its status, ``serving``, and
-keeps serving), after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
+drained -- if the acquisition stream is not whole, after ``--drain-timeout`` seconds of
+silence (with ``--web`` it then finalises the .rrd, says so in its status, ``serving``, and
+keeps serving) -- after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
 the .rrd is finalised in every case. The web viewer (page and data server) listens on
 ``--bind`` (127.0.0.1) only.
 """
@@ -25,14 +32,17 @@ import sys
 from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.bus.stream import SequenceTracker, StreamEnd
-from bttsim_stream.runtime import NodeProgram, add_status_argument, add_web_arguments, node_session, run_node
+from bttsim_stream.bus.admission import RecordGate
+from bttsim_stream.bus.stream import StreamEnd
+from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, \
+    add_web_arguments, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
 
 
-def main(conf, args: argparse.Namespace) -> None:
-    """Show the rig's bus until stopped (options: see :func:`add_arguments`)."""
+def main(conf, args: argparse.Namespace) -> dict:
+    """Show the rig's bus until stopped (options: see :func:`add_arguments`); returns the
+    counts of what was shown, refused and missed."""
     from bttsim_stream import views  # rerun takes 0.5 s to import: not for every ``bttsim --help``
 
     rig = keys.validate_rig(args.rig)
@@ -42,7 +52,7 @@ def main(conf, args: argparse.Namespace) -> None:
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
-    seqs = SequenceTracker()  # what was lost on the way, per key (duplicates are not shown twice)
+    gate = RecordGate(rig)  # what is shown is admitted as the recorder admits what it writes
     try:
         with node_session(conf, rig, "viewer", status_file=args.status_file) as node:
             node.url = sinks.web_url or ""
@@ -50,9 +60,9 @@ def main(conf, args: argparse.Namespace) -> None:
             node.subscribe(keys.all_key(rig), history=True)
             node.watch_nodes(tuple(n for n in args.until.split(",") if n) or ("sim",))
             node.announce()
-            _show(node, live, seqs, stop)
+            _show(node, live, gate, stop, args.drain_timeout)
             live.close()
-            counts = _report(live.stats, seqs)
+            counts = _report(live.stats, gate, rig)
             node.status("done", counts)
             if args.web and not stop:
                 views.finish_files(rec)  # the .rrd is complete while we serve
@@ -64,31 +74,47 @@ def main(conf, args: argparse.Namespace) -> None:
         rec.flush()
         rec.disconnect()
         sinks.close()
+    return counts
 
 
-def _show(node, live, seqs: SequenceTracker, stop: StopFlag) -> None:
-    """Feed the rig's samples (status keys aside) to the views until the watched nodes end."""
-    end = None  # has the whole acquisition stream come in?
-    for sample in node.samples(stop, poll_s=0.02):
+def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float) -> None:
+    """Feed the rig's admitted samples (status keys aside) to the views until the watched
+    nodes end (and, if the acquisition stream is not whole, ``drain_s`` of silence after)."""
+    from bttsim_stream.views.live import Incoming
+
+    ends: list = []  # has the whole acquisition stream come in?
+    for sample in node.samples(stop, poll_s=0.02, done=lambda: bool(ends) and ends[0].done, patience_s=drain_s):
         if sample is None:
             live.poll()
-        elif not keys.is_status_key(sample.key) and seqs.accept(sample.key, sample.att[0] if sample.att else None):
-            live.feed(sample.key, sample.payload)
-            if live.meta is not None:
+            continue
+        if keys.is_status_key(sample.key):
+            continue
+        for v in gate.admit(sample.key, sample.payload, sample.att, sample.source):
+            if v.action != "write":  # a duplicate, a refusal: counted by the gate
+                continue
+            parts = v.key.split("/")
+            live.feed_decoded(Incoming(parts[2], parts[1], v.decoded))
+            if v.meta is not None:
                 node.ready()
-                end = end or StreamEnd(live.meta)
-                end.note(sample.key, sample.att[0] if sample.att else None)
-                if end.done:
+                ends.append(StreamEnd(v.meta))
+            elif ends and not ends[0].done:
+                ends[0].note(v.key, v.seq)
+                if ends[0].done:
                     node.done()
 
 
-def _report(st: dict, seqs: SequenceTracker) -> dict:
-    """Log what was shown and lost; the counts (also printed as one JSON line on stdout)."""
-    counts = dict(seqs.summary(), rejected=st["bad"] + st["ignored"] + seqs.implausible)
-    log.log(logging.WARNING if counts["gaps"] else logging.INFO,
-            "showed %d messages (%d revolutions, %d fits, %d travelling waves); %d sequence gaps, "
-            "%d duplicates, %d rejected", st["messages"], st["revolutions"], st["fits"], st["tw"],
-            counts["gaps"], counts["duplicates_skipped"], counts["rejected"])
+def _report(st: dict, gate: RecordGate, rig: str) -> dict:
+    """Log what was shown, refused and missed; the counts (also printed as one JSON line on
+    stdout): the gate's (:meth:`RecordGate.summary`, :meth:`RecordGate.completeness`)."""
+    gate.finish()  # samples still waiting for a metadata that never came: refused, counted
+    counts = dict(gate.summary(), **gate.completeness(rig), shown=st["messages"], ignored=st["ignored"])
+    log.log(logging.INFO if counts["complete"] else logging.WARNING,
+            "showed %d messages (%d revolutions, %d fits, %d travelling waves); %d duplicates, %d refused; %s",
+            st["messages"], st["revolutions"], st["fits"], st["tw"], counts["duplicates_skipped"], counts["rejected"],
+            "complete" if counts["complete"] else f"INCOMPLETE: {counts['incomplete']}")
+    if counts["rejected"]:
+        log.warning("refused %d message(s) (%s)", counts["rejected"],
+                    ", ".join(f"{n} {why}" for why, n in counts["rejected_reasons"].items()))
     print(json.dumps(counts), flush=True)
     return counts
 
@@ -103,10 +129,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_drain_argument(p)
     add_status_argument(p)
 
 
-PROGRAM = NodeProgram("viewer", __doc__, add_arguments, main)
+def _main(conf, args: argparse.Namespace) -> int:
+    """:func:`main` as a program: exit status 3 when the views miss anything of the run."""
+    return 0 if main(conf, args)["complete"] else EXIT_INCOMPLETE
+
+
+PROGRAM = NodeProgram("viewer", __doc__, add_arguments, _main)
 
 
 def run(argv=None) -> int:

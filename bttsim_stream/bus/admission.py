@@ -39,7 +39,7 @@ from ..errors import BttsimError
 from . import codec
 from . import keys as _keys
 from .recording import REJECTED_PREFIX
-from .stream import KeyMissing, acquisition_counts
+from .stream import KeyMissing, acquisition_counts, missing_line
 
 __all__ = ["RecordGate", "Verdict", "REJECTED_PREFIX", "WINDOW", "KEEP_REJECTED", "KEEP_REJECTED_BYTES",
            "MAX_EARLY"]
@@ -81,6 +81,9 @@ class Verdict:
         For a run's first metadata: the decoded run metadata.
     keep : bool
         For a refused message: whether to keep a copy on its ``rejected/`` channel.
+    decoded : Decoded or None
+        For a message to write: the decoded message (a viewer shows it without decoding it
+        again).
     """
 
     action: str
@@ -91,6 +94,7 @@ class Verdict:
     reason: str = ""
     meta: object = None
     keep: bool = False
+    decoded: object = None
 
 
 class _KeyState:
@@ -234,7 +238,7 @@ class RecordGate:
         problem = self._problem(key, info, decoded, seq, t_ns, run, source)
         if problem:
             return self._reject(key, payload, att, problem)
-        return self._number(key, payload, att, seq, t_ns, source)
+        return self._number(key, payload, att, seq, t_ns, source, decoded)
 
     def _problem(self, key: str, info, decoded, seq: int, t_ns: int, run: _Run, source) -> str:
         """Why a decoded message does not fit its run ("" if it does)."""
@@ -269,8 +273,8 @@ class RecordGate:
         run = self.runs.get(rig)
         if run is None:
             self.runs[rig] = _Run(decoded.body, digest, source)
-            v = self._number(key, payload, att, 0, int(att[1]), source)
-            return Verdict(v.action, key, payload, 0, v.log_time_ns, meta=decoded.body)
+            v = self._number(key, payload, att, 0, int(att[1]), source, decoded)
+            return Verdict(v.action, key, payload, 0, v.log_time_ns, meta=decoded.body, decoded=decoded)
         if digest != run.digest:
             self.conflicts_by_key[key] = self.conflicts_by_key.get(key, 0) + 1
             return self._reject(key, payload, att, "a second, different run metadata")
@@ -278,7 +282,7 @@ class RecordGate:
         self.duplicates += 1
         return Verdict("duplicate", key, payload, 0)
 
-    def _number(self, key: str, payload: bytes, att, seq: int, t_ns: int, source) -> Verdict:
+    def _number(self, key: str, payload: bytes, att, seq: int, t_ns: int, source, decoded=None) -> Verdict:
         st = self._keys.get(key)
         if st is None:
             st = self._keys[key] = _KeyState()
@@ -302,7 +306,7 @@ class RecordGate:
             self.jumps += 1  # numbers skipped (for now): a publisher's cache may still hold them
         st.add(seq, digest, t_ns)
         self._last_log_ns = max(self._last_log_ns, t_ns)
-        return Verdict("write", key, payload, seq, t_ns)
+        return Verdict("write", key, payload, seq, t_ns, decoded=decoded)
 
     def _reject(self, key: str, payload: bytes, att, reason: str) -> Verdict:
         self.rejected_by_key[key] = self.rejected_by_key.get(key, 0) + 1
@@ -351,6 +355,39 @@ class RecordGate:
             if m.total:
                 out[key] = m
         return out
+
+    def completeness(self, rig: str | None = None) -> dict:
+        """The completeness keys of a receiver's statistics: ``complete``, ``missing``,
+        ``missing_by_key`` (``{key: {"head", "gaps", "tail"}}``), ``run_metadata`` (the rigs
+        whose metadata came), ``foreign_keys`` (keys refused as of no run) and ``incomplete``
+        (one line saying why, "" if complete). ``rig``: the rig whose metadata must have come
+        (None: any one). Conflicts (a second, different payload for a number) make it
+        incomplete: a forged message may have come first, in place of the real one."""
+        missing = self.missing()
+        why = []
+        if not self.runs or (rig is not None and rig not in self.runs):
+            why.append(f"no run metadata received{f' for {rig}' if rig else ''}")
+        if missing:
+            why.append(missing_line(missing))
+        if self.conflicts:
+            why.append(f"{self.conflicts} conflicting message(s) (" + ", ".join(
+                f"{k.split('/', 2)[-1]} {n}" for k, n in self.conflicts_by_key.items()) + ")")
+        expected = self.expected()
+        foreign = sorted(k for k in self.rejected_by_key if not self._of_a_run(k, expected))
+        return {"complete": not why, "missing": sum(m.total for m in missing.values()),
+                "missing_by_key": {k: m.to_dict() for k, m in missing.items()}, "run_metadata": sorted(self.runs),
+                "foreign_keys": foreign[:100], "incomplete": "; ".join(why)}
+
+    def _of_a_run(self, key: str, expected: dict[str, int]) -> bool:
+        """Does ``key`` belong to a run whose metadata came (its rig; a probe's key only for a
+        probe the run has)? A key of no run (a forger's ``toa/7`` of a 5-probe run) cannot make
+        a recording incomplete: its numbers are counted under ``foreign_keys``, not as missing."""
+        parts = key.split("/")
+        if len(parts) < 3 or parts[1] not in self.runs:
+            return False
+        if len(parts) == 4 and parts[2] in _PROBE_KINDS:
+            return f"{parts[0]}/{parts[1]}/toa/{parts[3]}" in expected
+        return True
 
     def summary(self) -> dict:
         """Counts for the recorder's statistics (``messages``, ``keys``, ``gaps``,

@@ -24,8 +24,8 @@ import numpy as np
 from ..sim.records import RevolutionBatch, RunInfo
 from . import codec, keys
 
-__all__ = ["Message", "Sequencer", "SequenceTracker", "KeyMissing", "acquisition_counts", "MessageStream",
-           "Revolution", "RevolutionAssembler", "StreamEnd", "Completeness"]
+__all__ = ["Message", "Sequencer", "SequenceTracker", "KeyMissing", "missing_line", "acquisition_counts",
+           "MessageStream", "Revolution", "RevolutionAssembler", "StreamEnd", "Completeness"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,6 +196,16 @@ class KeyMissing:
 
     def to_dict(self) -> dict:
         return {"head": self.head, "gaps": self.gaps, "tail": self.tail}
+
+
+def missing_line(missing: dict) -> str:
+    """``"12 messages missing (opr 2, toa/0 10)"``: a ``{key: KeyMissing}`` in one line, the rig
+    prefix left out ("" when nothing is missing)."""
+    if not missing:
+        return ""
+    total = sum(m.total for m in missing.values())
+    by_key = ", ".join(f"{k.split('/', 2)[-1]} {m.total}" for k, m in missing.items())
+    return f"{total} messages missing ({by_key})"
 
 
 def acquisition_counts(meta) -> dict[str, int]:
