@@ -657,8 +657,9 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         method = pk.method
     else:
         fitted = opts.method == "peak" and opts.peak_method == "fit"
-        raw = ctx.raw.amp_pkpk_m[..., i] if corr is None else 2.0 * np.abs(ctx.raw.phasor[..., i] + corr[None, :])
-        pk = peak_method(amp, ph, freq, c.lo, c.hi, amp_raw_m=raw,
+        raw_p = ctx.raw.phasor[..., i] if corr is None else ctx.raw.phasor[..., i] + corr[None, :]
+        raw = ctx.raw.amp_pkpk_m[..., i] if corr is None else 2.0 * np.abs(raw_p)
+        pk = peak_method(amp, ph, freq, c.lo, c.hi, amp_raw_m=raw, phasor_raw=raw_p,
                          half_power_width=c.half_power_width if fitted else None)
         if not fitted and ctx.half_width is not None and np.isfinite(ctx.half_width).any():  # the smoother's gain
             rev = pk.revolution
