@@ -25,7 +25,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_contamination, predicted_response, resolve_engine_orders, speed_segments)
 from .displacement import TWO_PI, Displacements, Geometry, compute_displacements, rotor_phase_from_opr
 from .fit import SineFit, fit_revolutions
-from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
+from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain, no_crossing_note
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
@@ -386,6 +386,8 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     steady = [e for dw in survey.segments.dwells for e in _dwell_entries(ctx, dw)]
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
+        skirt = no_crossing_note(ctx.fit.amp_pkpk_m, ctx.omega, ctx.eos, ctx.options.detect.ratio_threshold)
+        notes += [skirt] if skirt and survey.segments.sweeps else []
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
     if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo) is None for eo in eos):
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
