@@ -387,7 +387,8 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
         skirt = no_crossing_note(ctx.fit.amp_pkpk_m, ctx.omega, ctx.eos, ctx.options.detect.ratio_threshold)
-        notes += [skirt] if skirt and survey.segments.sweeps else []
+        # only where a mode family's frequency lies in the swept range (a resonance is expected)
+        notes += [skirt] if skirt and survey.segments.sweeps and "no mode family" not in notes[-1] else []
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
     if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo) is None for eo in eos):
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
