@@ -21,7 +21,7 @@ amplitude (pk-pk, m), frequency (Hz, Eq. 17), phase (rad) and their standard unc
     half-power width either side of the vertex (:func:`resonance_fit`: ``C h(f_r) + c``,
     the SDOF frequency response and the zeroing's constant; its uncertainty from the fit's
     Jacobian): it uses the whole resonance and the phase, takes about half the bias a static
-    probe position error gives the top's magnitudes, and reaches about 1.5 times the Cramér-Rao
+    probe position error gives the top's magnitudes, and reaches 1.4-1.8 times the Cramér-Rao
     bound where the parabola's vertex was 2.3-3.3 times; the frequency, revolution and phase
     stay the vertex's (the swept peak's: the quasi-steady fit's would carry the sweep's
     delay). ``peak_method="max"`` is the paper's literal definition, the largest
