@@ -3,8 +3,8 @@
 
 Usage::
 
-    python bench/bench_crb.py                    # 4 seeds of each case
-    python bench/bench_crb.py --seeds 6
+    python bench/bench_crb.py                    # seeds 1000-1003 of each case
+    python bench/bench_crb.py --seeds 16 --seed0 20 --cases jitter_1us,jitter_1us_probe_0.1deg
 
 Cases: the default rotor's EO 8 crossing at the paper's sweep rate (2000 -> 3200 rpm in 52 s)
 with 1 us TOA jitter alone, and with 0.1 deg probe position errors added; a faster sweep
@@ -53,11 +53,11 @@ def _rms(x) -> float:
     return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
 
 
-def run_case(speed: dict, acq: dict, seeds: int, model) -> dict:
+def run_case(speed: dict, acq: dict, seeds, model) -> dict:
     errs = {m: {"amp": [], "freq": [], "crb_amp": [], "crb_freq": []} for m in METHODS}
     scenario_crb = None
-    for seed in range(seeds):
-        scn = scenario_from_dict({"speed": speed, "acquisition": acq, "run": {"seed": 1000 + seed}})
+    for seed in seeds:
+        scn = scenario_from_dict({"speed": speed, "acquisition": acq, "run": {"seed": int(seed)}})
         if scenario_crb is None:
             b = scenario_bounds(scn, model=model)[0]
             scenario_crb = {"amp_m": _rms(b.crb_amp_m), "freq_hz": _rms(b.crb_freq_hz)}
@@ -84,13 +84,18 @@ def run_case(speed: dict, acq: dict, seeds: int, model) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--seeds", type=int, default=4, help="seeds per case")
+    ap.add_argument("--seed0", type=int, default=1000, help="first seed")
+    ap.add_argument("--cases", help="comma-separated case names (default: all)")
     args = ap.parse_args()
     model = build_model()
     t0 = time.process_time()
-    out = {"seeds": args.seeds, "cases": {}}
+    seeds = list(range(args.seed0, args.seed0 + args.seeds))
+    out = {"seeds": seeds, "cases": {}}
     for name, (speed, acq) in CASES.items():
-        out["cases"][name] = {"speed": speed, **run_case(speed, acq, args.seeds, model)}
+        if args.cases and name not in args.cases.split(","):
+            continue
+        out["cases"][name] = {"speed": speed, **run_case(speed, acq, seeds, model)}
     out["cpu_s"] = round(time.process_time() - t0, 1)
     print(json.dumps(out, indent=2))
 

@@ -64,6 +64,11 @@ CLASSES = {
     "two_eo": {"speed": {"start_rpm": 2300.0, "end_rpm": 3200.0, "duration_s": 30.0},
                "excitation": [{"engine_order": 7, "nodal_diameter": 7}, {"engine_order": 8, "nodal_diameter": 1}],
                "model": {"stiffness_std": 0.002}},
+    # slow run-ups with a quiet reference outside the resonance (the paper's sweep rate, 30 rpm/s)
+    "slow_quiet_ref": {"speed": {"start_rpm": 1600.0, "end_rpm": 3600.0, "duration_s": 66.0},
+                       "model": {"stiffness_std": 0.002}},
+    "slow_quiet_ref_jitter_probe": {"speed": {"start_rpm": 1600.0, "end_rpm": 3600.0, "duration_s": 66.0},
+                                    "acquisition": {"trigger_jitter_s": 2e-7, "probe_angle_error_deg": 0.05}},
 }
 #: Classes no constant was ever chosen on: the check of the general case.
 HELD_OUT = {

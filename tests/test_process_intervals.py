@@ -250,3 +250,19 @@ def test_a_quiet_reference_still_gets_the_zeroing_term(monkeypatch):
     assert e.shape == (29,) and np.all(np.isfinite(e)) and np.all(np.abs(e) > 0.0)
     rows = score_summary(s, _Truths(cfg, run, actual))
     assert np.mean([r["amp_covered"] for r in rows]) >= 0.9  # the pooled acceptance of the intervals
+
+
+def test_no_crossing_note_names_a_strongly_changing_response():
+    """A run inside a resonance's skirt (amplitude rising 4x to the run's end) gets the note with
+    the range and the speed of the largest; a flat response (within the ratio) gets none."""
+    from bttsim_stream.process.intervals import no_crossing_note
+
+    n, nb = 200, 29
+    omega = np.linspace(2540.0, 2620.0, n) * 2 * np.pi / 60
+    rising = np.linspace(0.13e-3, 0.54e-3, n)[:, None, None] * np.ones((1, nb, 1))
+    note = no_crossing_note(rising, omega, (8,), 2.0)
+    assert note is not None and "EO 8" in note and "largest at 2620 rpm" in note
+    lo, hi = np.percentile(np.linspace(0.13e-3, 0.54e-3, n), [5, 95])
+    assert f"({hi / lo:.1f} x)" in note
+    flat = 1e-4 * (1.0 + 0.3 * np.sin(np.linspace(0, 6, n)))[:, None, None] * np.ones((1, nb, 1))
+    assert no_crossing_note(flat, omega, (8,), 2.0) is None

@@ -541,7 +541,7 @@ def choose_reference(omega_rad_s: np.ndarray, segments: RunSegments, crossings: 
     mean_om = np.convolve(om, np.ones(L) / L, mode="valid")
     if not crossings:
         s = int(starts[np.argmin(mean_om[starts])])
-        return Reference(s, s + L, 0.0, "the slowest window (no crossing detected)")
+        return Reference(s, s + L, math.nan, "the slowest window (no crossing detected: its contamination unknown)")
     rho = predicted_contamination(om, crossings)
     rho_win = sliding_window_view(rho, L).max(axis=1)
     quiet = starts[rho_win[starts] <= options.contamination_limit]

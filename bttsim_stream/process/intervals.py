@@ -73,7 +73,7 @@ import numpy as np
 from .fit import design_matrix
 
 __all__ = ["Z95", "MODEL_ERROR", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms",
-           "crossing_intervals", "dwell_intervals", "layout_gain", "crossing_notes"]
+           "crossing_intervals", "dwell_intervals", "layout_gain", "crossing_notes", "no_crossing_note"]
 
 #: Two-sided 95 % normal quantile.
 Z95 = 1.959963984540054
@@ -412,3 +412,44 @@ def crossing_notes(*, eo: int, method: str, cn: float, terms: IntervalTerms, amp
         notes.append(f"a crossing of EO {', '.join(map(str, sorted(set(other_crossings))))} overlaps this one's "
                      f"revolutions: the responses add up in these amplitudes")
     return tuple(notes)
+
+
+def no_crossing_note(amp_pkpk_m: np.ndarray, omega_rad_s: np.ndarray, engine_orders, ratio: float) -> str | None:
+    """A note for a run where no crossing was found but the response changes a lot: the run may
+    lie inside a resonance (no quiet reference, a resonance broader than the run, a peak at
+    its end), so its amplitudes are not a resonance's, and neither is any zeroing quiet.
+
+    Parameters
+    ----------
+    amp_pkpk_m : ndarray, shape (n_rev, n_blades, n_eo)
+        Per-revolution amplitudes of the fitted orders (the prepared fits).
+    omega_rad_s : ndarray, shape (n_rev,)
+    engine_orders : tuple of int
+    ratio : float
+        The detection's prominence ratio: a blade-median amplitude whose 95th percentile over
+        the run is at least ``ratio`` times its 5th is named.
+
+    Returns
+    -------
+    str or None
+    """
+    a = np.asarray(amp_pkpk_m, dtype=float)
+    parts = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for i, eo in enumerate(engine_orders):
+            med = np.nanmedian(a[:, :, i], axis=1)
+            ok = np.isfinite(med)
+            if ok.sum() < 8:
+                continue
+            lo, hi = np.percentile(med[ok], [5.0, 95.0])
+            if lo > 0 and hi >= ratio * lo:
+                k = int(np.flatnonzero(ok)[np.argmax(med[ok])])
+                parts.append(f"EO {eo} {1e3 * lo:.3g}-{1e3 * hi:.3g} mm ({hi / lo:.1f} x), largest at "
+                             f"{float(omega_rad_s[k]) * 60.0 / (2.0 * math.pi):.0f} rpm")
+    if not parts:
+        return None
+    return ("the response changes strongly over the run though no crossing was found (blade-median amplitude, "
+            "5th-95th percentile: " + "; ".join(parts) + "): the run may lie inside a resonance (too short for a "
+            "quiet reference, or a resonance broader than the run); no resonance amplitude is reported and the "
+            "zeroing reference is not quiet")

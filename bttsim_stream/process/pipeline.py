@@ -26,7 +26,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
 from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, Displacements, Geometry, compute_displacements,
                            rotor_phase_from_opr)
 from .fit import SineFit, fit_revolutions
-from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain
+from .intervals import crossing_intervals, crossing_notes, dwell_intervals, layout_gain, no_crossing_note
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
@@ -403,6 +403,9 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     steady = [e for dw in survey.segments.dwells for e in _dwell_entries(ctx, dw)]
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
+        skirt = no_crossing_note(ctx.fit.amp_pkpk_m, ctx.omega, ctx.eos, ctx.options.detect.ratio_threshold)
+        # only where a mode family's frequency lies in the swept range (a resonance is expected)
+        notes += [skirt] if skirt and survey.segments.sweeps and "no mode family" not in notes[-1] else []
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
     if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo) is None for eo in eos):
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
@@ -674,8 +677,9 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         method = pk.method
     else:
         fitted = opts.method == "peak" and opts.peak_method == "fit"
-        raw = ctx.raw.amp_pkpk_m[..., i] if corr is None else 2.0 * np.abs(ctx.raw.phasor[..., i] + corr[None, :])
-        pk = peak_method(amp, ph, freq, c.lo, c.hi, amp_raw_m=raw,
+        raw_p = ctx.raw.phasor[..., i] if corr is None else ctx.raw.phasor[..., i] + corr[None, :]
+        raw = ctx.raw.amp_pkpk_m[..., i] if corr is None else 2.0 * np.abs(raw_p)
+        pk = peak_method(amp, ph, freq, c.lo, c.hi, amp_raw_m=raw, phasor_raw=raw_p,
                          half_power_width=c.half_power_width if fitted else None)
         if not fitted and ctx.half_width is not None and np.isfinite(ctx.half_width).any():  # the smoother's gain
             rev = pk.revolution
