@@ -45,8 +45,10 @@ import numpy as np
 
 from . import __version__
 from .errors import BttsimError
+from .sim.core import Truth
 
-__all__ = ["FORMATS", "COLUMNS", "RunTables", "run_tables", "export_run", "read_tables"]
+__all__ = ["FORMATS", "COLUMNS", "BLOCK_ROWS", "TOA_TRUTH_FIELDS", "Unstreamable", "RunTables",
+           "run_tables", "export_run", "read_tables"]
 
 FORMATS = ("csv", "parquet")
 _NAN = re.compile(r"(?<![^,\n])nan(?![^,\n])")  # a whole CSV field "nan"
@@ -122,9 +124,11 @@ class RunTables:
     Attributes
     ----------
     tables : dict of str -> callable
-        Table name -> a function of no argument that builds the table, a dict column name ->
-        1-D array (int64, float64 or str), all columns the same length. Built when asked
-        for: a writer holds one table at a time (:meth:`table` builds one).
+        Table name -> a function of no argument that gives the table as an iterator of row
+        blocks (at least one), each a dict column name -> 1-D array (int64, float64 or str),
+        all columns of a block the same length; the table is the blocks one after the
+        other. Built when asked for, a block at a time: a writer holds one block
+        (:meth:`table` builds a whole table).
     meta : dict
         JSON-serialisable: ``run`` (metadata), ``summary`` (processing report), ``processing``.
     """
@@ -132,9 +136,34 @@ class RunTables:
     tables: dict
     meta: dict
 
-    def table(self, name: str) -> dict:
-        """Table ``name`` (built now)."""
+    def blocks(self, name: str):
+        """Table ``name`` as an iterator of row blocks (built as iterated)."""
         return self.tables[name]()
+
+    def table(self, name: str) -> dict:
+        """Table ``name`` (built now, whole)."""
+        blocks = list(self.blocks(name))
+        return {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
+
+
+#: Rows of a block of a table (about; whole revolutions).
+BLOCK_ROWS = 100_000
+#: The truth fields with one value per TOA: the ``truth`` table, read from the recording as
+#: it is written (not held for the whole run).
+TOA_TRUTH_FIELDS = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
+
+
+class Unstreamable(Exception):
+    """The recording's truth is not one message per revolution in order: the ``truth`` table
+    is made from the whole run's arrays instead."""
+
+
+def _blocks(n_rev: int, per_rev: int, make):
+    """``make(a, b)`` (the rows of revolutions ``a .. b-1``) over blocks of about
+    :data:`BLOCK_ROWS` rows; one (empty) block for no revolution."""
+    step = max(1, BLOCK_ROWS // max(int(per_rev), 1))
+    for a in range(0, max(int(n_rev), 1), step):
+        yield make(a, min(a + step, int(n_rev)))
 
 
 def long_cols(shape: tuple, names: tuple, first: np.ndarray) -> dict:
@@ -240,40 +269,43 @@ def run_tables(run, result=None) -> RunTables:
             result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth, revolution0=r0)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             raise BttsimError(f"the processing of the recording failed ({exc})") from None
-    t: dict = {}  # name -> builder: the tables are built one at a time, when written
-    t["opr"] = lambda: {"revolution": rev.copy(), "opr_s": f64(run.opr_s)}
-    t["toa"] = lambda: dict(long_cols((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev), toa_s=f64(run.toa_s))
+    t: dict = {}  # name -> block iterator: the tables are built a block at a time, when written
+    one = lambda cols: lambda: iter([cols()])  # noqa: E731  (a table of one block)
+    toa_idx = lambda a, b: long_cols((b - a, n_b, n_p), ("revolution", "blade", "probe"), rev[a:b])  # noqa: E731
+    t["opr"] = one(lambda: {"revolution": rev.copy(), "opr_s": f64(run.opr_s)})
+    t["toa"] = lambda: _blocks(n_rev, n_b * n_p, lambda a, b: dict(toa_idx(a, b), toa_s=f64(run.toa_s[a:b])))
     if run.extra_edges["toa_s"].size:  # double pulses (the probe signal chain)
-        t["extra_edge"] = lambda: {k: np.array(v) for k, v in run.extra_edges.items()}
+        t["extra_edge"] = one(lambda: {k: np.array(v) for k, v in run.extra_edges.items()})
     disp = result.displacements
-    t["displacement"] = lambda: dict(long_cols((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
-                                     d_m=f64(disp.d_m), t_exp_s=f64(disp.t_exp_s))
-    t["fit"] = lambda: _fit_table(result.fit, disp, rev)
+    t["displacement"] = lambda: _blocks(n_rev, n_b * n_p, lambda a, b: dict(
+        toa_idx(a, b), d_m=f64(disp.d_m[a:b]), t_exp_s=f64(disp.t_exp_s[a:b])))
+    fit = result.fit
+    t["fit"] = lambda: _blocks(n_rev, n_b * len(fit.engine_orders), lambda a, b: _fit_table(fit, disp, rev, a, b))
     ftw = result.fit_tw
-    t["tw"] = lambda: dict(long_cols(ftw.forward_m.shape, ("revolution", "nd"), rev), forward_m=f64(ftw.forward_m),
-                           backward_m=f64(ftw.backward_m))
+    t["tw"] = lambda: _blocks(n_rev, ftw.forward_m.shape[1], lambda a, b: dict(
+        long_cols((b - a,) + ftw.forward_m.shape[1:], ("revolution", "nd"), rev[a:b]),
+        forward_m=f64(ftw.forward_m[a:b]), backward_m=f64(ftw.backward_m[a:b])))
     ptw = result.probe_tw
-    t["tw_probe"] = lambda: dict(long_cols(ptw.forward_m.shape, ("revolution", "probe", "nd"), rev),
-                                 forward_m=f64(ptw.forward_m), backward_m=f64(ptw.backward_m))
-    t["resonance"] = lambda: _resonance_table(result.report, r0)
+    t["tw_probe"] = lambda: _blocks(n_rev, int(np.prod(ptw.forward_m.shape[1:])), lambda a, b: dict(
+        long_cols((b - a,) + ptw.forward_m.shape[1:], ("revolution", "probe", "nd"), rev[a:b]),
+        forward_m=f64(ptw.forward_m[a:b]), backward_m=f64(ptw.backward_m[a:b])))
+    t["resonance"] = one(lambda: _resonance_table(result.report, r0))
     if run.truth is not None:
         tr = run.truth
-        t["truth"] = lambda: dict(long_cols((n_rev, n_b, n_p), ("revolution", "blade", "probe"), rev),
-                                  truth_toa_s=f64(tr.toa_s), t_exp_s=f64(tr.t_exp_s), d_eqv_m=f64(tr.d_eqv_m),
-                                  d_tang_m=f64(tr.d_tang_m), d_z_m=f64(tr.d_z_m), d_eq1_m=f64(tr.d_eq1_m))
-        t["truth_revolution"] = lambda: dict(
-            long_cols((n_rev, n_b), ("revolution", "blade"), rev),
-            opr_s=f64(np.repeat(tr.opr_s, n_b)), omega_mean_rad_s=f64(np.repeat(tr.omega_mean, n_b)),
-            d_eqv_pkpk_m=f64(tr.d_eqv_pkpk_m))
+        if tr.toa_s is None:  # the per-TOA truth not kept: read from the recording
+            t["truth"] = lambda: _truth_stream(run.path, rev, n_b, n_p)
+        else:
+            t["truth"] = lambda: _blocks(n_rev, n_b * n_p, lambda a, b: _truth_table(tr, toa_idx(a, b), a, b))
+        t["truth_revolution"] = lambda: _blocks(n_rev, n_b, lambda a, b: dict(
+            long_cols((b - a, n_b), ("revolution", "blade"), rev[a:b]),
+            opr_s=f64(np.repeat(tr.opr_s[a:b], n_b)), omega_mean_rad_s=f64(np.repeat(tr.omega_mean[a:b], n_b)),
+            d_eqv_pkpk_m=f64(tr.d_eqv_pkpk_m[a:b])))
         if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
-            t["truth_eo"] = lambda: _truth_eo_table(tr, rev)
+            t["truth_eo"] = lambda: _blocks(n_rev, int(np.prod(tr.eo_pkpk_m.shape[1:])),
+                                            lambda a, b: _truth_eo_table(tr, rev, a, b))
         if tr.nsv_kind is not None and tr.nsv_kind.size:
-            shp = tr.nsv_kind.shape
-            t["truth_nsv"] = lambda: dict(
-                long_cols(shp, ("revolution", "component"), rev), nsv_kind=np.asarray(tr.nsv_kind, str).ravel(),
-                nsv_freq_hz=f64(tr.nsv_freq_hz), nsv_nd=np.asarray(tr.nsv_nd, np.int64).ravel(),
-                nsv_amp_pkpk_m=f64(tr.nsv_amp_pkpk_m), nsv_rms_m=f64(tr.nsv_rms_m),
-                band_lo_hz=f64(tr.nsv_band_hz[..., 0]), band_hi_hz=f64(tr.nsv_band_hz[..., 1]))
+            t["truth_nsv"] = lambda: _blocks(n_rev, int(np.prod(tr.nsv_kind.shape[1:])),
+                                             lambda a, b: _truth_nsv_table(tr, rev, a, b))
     info = {f.name: getattr(run.meta, f.name) for f in fields(run.meta)}
     meta = {"run": jsonable(info), "summary": jsonable(result.summary),
             "processing": {"by": "bttsim process (default options)", "options": jsonable(asdict(result.options)),
@@ -282,50 +314,139 @@ def run_tables(run, result=None) -> RunTables:
     return RunTables(tables=t, meta=meta)
 
 
-def _truth_eo_table(tr, rev: np.ndarray) -> dict:
-    """The ``truth_eo`` table: each engine order's own response, per revolution and blade."""
-    cols = long_cols(tr.eo_pkpk_m.shape, ("revolution", "blade", "eo"), rev)
+def _truth_table(tr, idx: dict, a: int, b: int) -> dict:
+    """Rows of revolutions ``a .. b-1`` of the ``truth`` table from the run's truth arrays."""
+    return dict(idx, truth_toa_s=f64(tr.toa_s[a:b]), t_exp_s=f64(tr.t_exp_s[a:b]), d_eqv_m=f64(tr.d_eqv_m[a:b]),
+                d_tang_m=f64(tr.d_tang_m[a:b]), d_z_m=f64(tr.d_z_m[a:b]), d_eq1_m=f64(tr.d_eq1_m[a:b]))
+
+
+def _truth_stream(path, rev: np.ndarray, n_b: int, n_p: int):
+    """The ``truth`` table read from the recording's truth messages as it is written, in
+    blocks: one message per revolution of ``rev``, in order.
+
+    Raises
+    ------
+    Unstreamable
+        A revolution's truth repeated, out of order, missing or of another shape (the
+        table is then made from the whole run's arrays, whose rules say which holds).
+    """
+    from .bus import codec, keys
+    from .bus.recording import RecordingScan
+    from .sim.core import Truth
+
+    r0, r1 = int(rev[0]), int(rev[-1])
+    step = max(1, BLOCK_ROWS // (n_b * n_p))
+    names = ("revolution", "blade", "probe")
+    rows: list = []
+    expect = r0
+
+    def block():
+        a = expect - len(rows) - r0
+        tr = Truth(*[np.concatenate([getattr(d, f) for d in rows]) if f in TOA_TRUTH_FIELDS else None
+                     for f in ("opr_s",) + TOA_TRUTH_FIELDS + ("d_eqv_pkpk_m", "omega_mean")])
+        return _truth_table(tr, long_cols((len(rows), n_b, n_p), names, rev[a:a + len(rows)]), 0, len(rows))
+
+    for m in RecordingScan(path):
+        if "/truth" not in m.key or keys.parse_key(m.key).kind != "truth":
+            continue
+        d = codec.decode_truth(m.payload, m.key)
+        r = int(d.header.revolution)
+        if r < r0 or r > r1:
+            continue
+        if r != expect or any(getattr(d.body, f).shape != (1, n_b, n_p) for f in TOA_TRUTH_FIELDS):
+            raise Unstreamable(f"truth of revolution {r}")
+        rows.append(d.body)
+        expect += 1
+        if len(rows) == step:
+            yield block()
+            rows = []
+    if expect != r1 + 1:
+        raise Unstreamable("truth missing")
+    if rows or r1 < r0:
+        yield block()
+
+
+def _truth_eo_table(tr, rev: np.ndarray, a: int, b: int) -> dict:
+    """The ``truth_eo`` table (revolutions ``a .. b-1``): each engine order's own response, per
+    revolution and blade."""
+    cols = long_cols((b - a,) + tr.eo_pkpk_m.shape[1:], ("revolution", "blade", "eo"), rev[a:b])
     cols["eo"] = np.asarray(tr.eo_engine_order[0], np.int64)[cols["eo"]]
-    return dict(cols, eo_pkpk_m=f64(tr.eo_pkpk_m))
+    return dict(cols, eo_pkpk_m=f64(tr.eo_pkpk_m[a:b]))
 
 
-def _fit_table(fit, disp, rev: np.ndarray) -> dict:
-    """The ``fit`` table: one row per revolution, blade and engine order."""
-    n_rev, n_b = fit.amp_pkpk_m.shape[:2]
+def _truth_nsv_table(tr, rev: np.ndarray, a: int, b: int) -> dict:
+    """The ``truth_nsv`` table (revolutions ``a .. b-1``): each non-synchronous component."""
+    return dict(long_cols((b - a,) + tr.nsv_kind.shape[1:], ("revolution", "component"), rev[a:b]),
+                nsv_kind=np.asarray(tr.nsv_kind[a:b], str).ravel(), nsv_freq_hz=f64(tr.nsv_freq_hz[a:b]),
+                nsv_nd=np.asarray(tr.nsv_nd[a:b], np.int64).ravel(), nsv_amp_pkpk_m=f64(tr.nsv_amp_pkpk_m[a:b]),
+                nsv_rms_m=f64(tr.nsv_rms_m[a:b]), band_lo_hz=f64(tr.nsv_band_hz[a:b, ..., 0]),
+                band_hi_hz=f64(tr.nsv_band_hz[a:b, ..., 1]))
+
+
+def _fit_table(fit, disp, rev: np.ndarray, a: int, b: int) -> dict:
+    """The ``fit`` table (revolutions ``a .. b-1``): one row per revolution, blade and engine order."""
+    n_b = fit.amp_pkpk_m.shape[1]
+    n_rev = b - a
     n_eo = len(fit.engine_orders)
-    fit_cols = long_cols((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev)
+    fit_cols = long_cols((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev[a:b])
     fit_cols["engine_order"] = np.asarray(fit.engine_orders, dtype=np.int64)[fit_cols["engine_order"]]
-    per_rev_blade = lambda a: f64(np.broadcast_to(np.asarray(a, float)[..., None], (n_rev, n_b, n_eo)))  # noqa: E731
-    omega = fit.omega_rad_s if fit.omega_rad_s is not None else disp.omega_rad_s
-    freq = (np.asarray(fit.freq_hz, float) if fit.freq_hz is not None
+    per_rev_blade = lambda x: f64(np.broadcast_to(np.asarray(x, float)[a:b, :, None], (n_rev, n_b, n_eo)))  # noqa: E731
+    omega = np.asarray(fit.omega_rad_s if fit.omega_rad_s is not None else disp.omega_rad_s, float)[a:b]
+    freq = (np.asarray(fit.freq_hz, float)[a:b] if fit.freq_hz is not None
             else np.outer(omega, fit.engine_orders) / (2 * np.pi))
-    fit_cols.update(amp_pkpk_m=f64(fit.amp_pkpk_m), phase_rad=f64(fit.phase_rad), amp_std_m=f64(fit.amp_std_m),
-                    dc_m=per_rev_blade(fit.dc_m), residual_rms_m=per_rev_blade(fit.residual_rms_m),
-                    n_samples=np.broadcast_to(np.asarray(fit.n_samples, np.int64)[..., None],
+    fit_cols.update(amp_pkpk_m=f64(fit.amp_pkpk_m[a:b]), phase_rad=f64(fit.phase_rad[a:b]),
+                    amp_std_m=f64(fit.amp_std_m[a:b]), dc_m=per_rev_blade(fit.dc_m),
+                    residual_rms_m=per_rev_blade(fit.residual_rms_m),
+                    n_samples=np.broadcast_to(np.asarray(fit.n_samples, np.int64)[a:b, :, None],
                                               (n_rev, n_b, n_eo)).ravel().copy(),
-                    omega_rad_s=f64(np.broadcast_to(np.asarray(omega, float)[:, None, None], (n_rev, n_b, n_eo))),
+                    omega_rad_s=f64(np.broadcast_to(omega[:, None, None], (n_rev, n_b, n_eo))),
                     freq_hz=f64(np.broadcast_to(freq[:, None, :], (n_rev, n_b, n_eo))))
     return fit_cols
 
 
-def _write_csv(path: Path, cols: dict) -> None:
-    """One table as CSV: ints as integers, floats with 17 significant digits (``repr`` exact),
-    ``NaN`` for missing values; rows formatted in C by one ``%`` format per row."""
-    names = list(cols)
-    arrays = [np.asarray(cols[k]) for k in names]
-    fmt = ",".join("%d" if a.dtype.kind in "iub" else "%.17g" if a.dtype.kind == "f" else "%s" for a in arrays)
-    n = arrays[0].shape[0] if arrays else 0
-    int_first = bool(arrays) and arrays[0].dtype.kind in "iu"
-    step = 100_000
+def _write_csv(path: Path, blocks) -> tuple[int, dict]:
+    """One table as CSV, a block at a time: ints as integers, floats with 17 significant
+    digits (``repr`` exact), ``NaN`` for missing values; rows formatted in C by one ``%``
+    format per row. Returns the row count and the first block (its columns' dtypes)."""
+    n, first = 0, None
     with open(path, "w", newline="") as fh:
-        fh.write(",".join(names) + "\n")
-        for lo in range(0, n, step):
-            rows = zip(*(a[lo:lo + step].tolist() for a in arrays))
-            text = "\n".join(fmt % r for r in rows)
-            # a whole field "nan" -> "NaN"; with an integer first column (every table here) it
-            # always follows a comma, which str.replace finds 3x faster than the regex
-            text = text.replace(",nan", ",NaN") if int_first else _NAN.sub("NaN", text)
-            fh.write(text + "\n")
+        for cols in blocks:
+            names = list(cols)
+            arrays = [np.asarray(cols[k]) for k in names]
+            if first is None:
+                first = cols
+                fh.write(",".join(names) + "\n")
+            fmt = ",".join("%d" if a.dtype.kind in "iub" else "%.17g" if a.dtype.kind == "f" else "%s" for a in arrays)
+            rows_in = arrays[0].shape[0] if arrays else 0
+            int_first = bool(arrays) and arrays[0].dtype.kind in "iu"
+            for lo in range(0, rows_in, BLOCK_ROWS):
+                rows = zip(*(a[lo:lo + BLOCK_ROWS].tolist() for a in arrays))
+                text = "\n".join(fmt % r for r in rows)
+                # a whole field "nan" -> "NaN"; with an integer first column (every table here) it
+                # always follows a comma, which str.replace finds 3x faster than the regex
+                text = text.replace(",nan", ",NaN") if int_first else _NAN.sub("NaN", text)
+                fh.write(text + "\n")
+            n += rows_in
+    return n, first
+
+
+def _write_parquet(path: Path, blocks, pa, pq) -> tuple[int, dict]:
+    """One table as Parquet, a row group per block (the schema of the first)."""
+    n, first, writer = 0, None, None
+    try:
+        for cols in blocks:
+            table = pa.table({k: pa.array(v) for k, v in cols.items()})
+            if writer is None:
+                first = cols
+                writer = pq.ParquetWriter(path, table.schema)
+            else:
+                table = table.cast(writer.schema)
+            writer.write_table(table)
+            n += table.num_rows
+    finally:
+        if writer is not None:
+            writer.close()
+    return n, first
 
 
 def _pyarrow():
@@ -371,11 +492,20 @@ def export_run(path, out_dir, fmt: str = "csv") -> dict:
     if fmt not in FORMATS:
         raise BttsimError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if fmt == "parquet":
-        pa, pq = _pyarrow()  # before the (long) read: a missing extra fails at once
+        _pyarrow()  # before the (long) read: a missing extra fails at once
     if not Path(path).is_file():
         raise BttsimError(f"{path}: no such file")
-    rt = run_tables(load_run(path))
     out = Path(out_dir)
+    kept = tuple(f.name for f in fields(Truth) if f.name not in TOA_TRUTH_FIELDS)
+    try:  # the per-TOA truth read from the file as its table is written
+        return _export(load_run(path, truth_fields=kept), path, out, fmt)
+    except Unstreamable:  # an odd truth stream: the whole run's arrays say what it holds
+        return _export(load_run(path), path, out, fmt)
+
+
+def _export(run, path, out: Path, fmt: str) -> dict:
+    """Write the tables and ``run.json`` of a loaded run (see :func:`export_run`)."""
+    rt = run_tables(run)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -384,14 +514,12 @@ def export_run(path, out_dir, fmt: str = "csv") -> dict:
         raise BttsimError(f"{out}: not a folder")
     counts, described = {}, {}
     try:
-        for name in rt.tables:  # one table at a time: built, written, dropped
-            cols = rt.table(name)
+        for name in rt.tables:  # one table at a time, a block at a time: built, written, dropped
             file = out / f"{name}.{fmt}"
             if fmt == "csv":
-                _write_csv(file, cols)
+                n, cols = _write_csv(file, rt.blocks(name))
             else:
-                pq.write_table(pa.table({k: pa.array(v) for k, v in cols.items()}), file)
-            n = int(len(next(iter(cols.values()))))
+                n, cols = _write_parquet(file, rt.blocks(name), *_pyarrow())
             counts[name] = n
             described[name] = {"file": file.name, "rows": n,
                                "columns": {k: _column_meta(k, np.asarray(v)) for k, v in cols.items()}}

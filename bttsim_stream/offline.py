@@ -500,18 +500,25 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
 
 def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:
     """``path`` if the recording holds the processor's messages, else a copy at ``out_path``
-    with them added (:func:`processing_messages`)."""
-    run = load_run(path, allow_truncated=allow_truncated)
-    if any(keys.parse_key(m.key).kind == "fit" for m in messages_of(run)):
+    with them added, each message of the processor node's own
+    :class:`~bttsim_stream.processor.ProcessorSession` (the messages of
+    :func:`processing_messages`) right after the one that made it, as a live run records them.
+
+    Read and written as a stream: memory does not grow with the recording (beyond the
+    processor session's own state)."""
+    meta = load_run(path, allow_truncated=allow_truncated, truth_fields=()).meta  # checked as a run
+    if any(keys.parse_key(m.key).kind == "fit" for m in RecordingScan(path)):
         return str(path)
-    msgs, _ = processing_messages(run)
+    session = ProcessorSession(meta, ProcessOptions())
     with McapRecorder(out_path) as rec:
         batch: list[Message] = []
-        for m in messages_of(run):  # in batches: the file byte for byte as one call, without the whole run held
+        for m in RecordingScan(path):
             batch.append(m)
-            if len(batch) == 4096:
+            kind = keys.parse_key(m.key).kind
+            if kind in ("opr", "toa", "truth"):
+                batch += session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+            if len(batch) >= 4096:
                 rec.write_all(batch)
                 batch = []
-        rec.write_all(batch)
-        rec.write_all(msgs)
+        rec.write_all(batch + session.finish()[0])
     return str(out_path)

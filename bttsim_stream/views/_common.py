@@ -131,6 +131,8 @@ _TURBO = np.array([[0.13572138, 4.61539260, -42.66032258, 132.13108234, -152.942
                    [0.09140261, 2.19418839, 4.84296658, -14.18503333, 4.27729857, 2.82956604],
                    [0.10667330, 12.64194608, -60.58204836, 110.36276771, -89.90310912, 27.34824973]])
 
+_TURBO_BLOCK = 1 << 16
+
 
 def turbo(x) -> np.ndarray:
     """The turbo colour map at ``x`` in [0, 1] (clipped; NaN as 0), uint8 ``x.shape + (3,)``.
@@ -142,8 +144,12 @@ def turbo(x) -> np.ndarray:
     drawn with it agree exactly.
     """
     x = np.clip(np.nan_to_num(np.asarray(x, float)), 0.0, 1.0)
-    powers = x[..., None] ** np.arange(6.0)
-    return np.round(255.0 * np.clip(powers @ _TURBO.T, 0.0, 1.0)).astype(np.uint8)
+    flat = x.reshape(-1)
+    out = np.empty((flat.size, 3), np.uint8)
+    for lo in range(0, flat.size, _TURBO_BLOCK):  # in blocks: a whole-run map needs no (n, 6) temporaries
+        powers = flat[lo:lo + _TURBO_BLOCK, None] ** np.arange(6.0)
+        out[lo:lo + _TURBO_BLOCK] = np.round(255.0 * np.clip(powers @ _TURBO.T, 0.0, 1.0))
+    return out.reshape(x.shape + (3,))
 
 
 def selection_colors(n: int, light: bool = False) -> np.ndarray:

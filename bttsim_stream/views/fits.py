@@ -17,6 +17,8 @@ The truth's d_eqv envelope per blade (``TruthBatch.d_eqv_pkpk_m``) is also a ser
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 import rerun as rr
 
@@ -25,7 +27,11 @@ from ._common import GREY, LIGHT_GREY, MM, RevIndex, ViewOutput, palette, rpm
 from ._plot2d import PlotFrame, ui
 from .revolutions import ShownRevolutions
 
-__all__ = ["FitsView", "SpeedView", "speed_axis_range"]
+__all__ = ["TRUTH_HISTORY", "FitsView", "SpeedView", "speed_axis_range"]
+
+#: Revolutions of the truth's envelope kept for a plot of an engine order whose first fit
+#: comes later (drawn behind its fits from then on): memory bounded whatever the run's length.
+TRUTH_HISTORY = 8192
 
 
 def speed_axis_range(speed_range_rpm) -> tuple[float, float] | None:
@@ -39,7 +45,11 @@ def speed_axis_range(speed_range_rpm) -> tuple[float, float] | None:
 
 
 class _EoPlot:
-    """One engine order's amplitude-against-speed plot."""
+    """One engine order's amplitude-against-speed plot.
+
+    Live, the frame widens as points come; for a whole recording (logged in batches) it is
+    drawn once, by :meth:`settle`, for all the points: the truth's first, then the fits'.
+    """
 
     def __init__(self, out: ViewOutput, engine_order: int, x_range, n_blades: int) -> None:
         eo = int(engine_order)
@@ -50,6 +60,24 @@ class _EoPlot:
         out.style(f"{self.frame.data_path}/fit", rr.Points2D.from_fields(radii=ui(1.5), draw_order=10.0))
         out.style(f"{self.frame.data_path}/d_eqv", rr.Points2D.from_fields(radii=ui(1.0), colors=[LIGHT_GREY],
                                                                            draw_order=5.0))
+        self._extent: dict[str, tuple[float, float, float]] = {}  # what -> (x lo, x hi, y top), not yet drawn
+
+    def _include(self, what: str, x: np.ndarray, top: float) -> None:
+        if self.out.live:
+            self.frame.include(x, [top])
+            return
+        lo, hi = float(x.min()), float(x.max())
+        if what in self._extent:
+            lo0, hi0, top0 = self._extent[what]
+            lo, hi, top = min(lo, lo0), max(hi, hi0), max(top, top0)
+        self._extent[what] = (lo, hi, top)
+
+    def settle(self) -> None:
+        """Draw the frame for the points logged so far (a whole recording; live: drawn already)."""
+        for what in ("d_eqv", "fit"):
+            if what in self._extent:
+                lo, hi, top = self._extent.pop(what)
+                self.frame.include([lo, hi], [top])
 
     def points(self, what: str, index: RevIndex, speed_rpm: np.ndarray, amp_mm: np.ndarray, colors=None) -> None:
         """Points ``(speed, amplitude)`` of each blade, one row per revolution (NaN left out)."""
@@ -57,7 +85,7 @@ class _EoPlot:
         ok = np.isfinite(amp_mm) & np.isfinite(x)
         if not ok.any():
             return
-        self.frame.include(x[ok], [max(float(np.max(amp_mm[ok])), 1e-3)])
+        self._include(what, x[ok], max(float(np.max(amp_mm[ok])), 1e-3))
         columns = {"positions": np.stack([x[ok], amp_mm[ok]], axis=-1)}
         if colors is not None:
             columns["colors"] = np.broadcast_to(colors[None], amp_mm.shape + (3,))[ok]
@@ -87,7 +115,9 @@ class FitsView:
         self._plots: dict[int, _EoPlot] = {}
         self._fits: list = []
         self._truth: list = []
-        self._truth_seen: list[tuple[RevIndex, np.ndarray, np.ndarray]] = []  # (index, rpm, pk-pk mm)
+        # (index, rpm, pk-pk mm) of the last TRUTH_HISTORY revolutions (at least), oldest first
+        self._truth_seen: deque[tuple[RevIndex, np.ndarray, np.ndarray]] = deque()
+        self._truth_kept = 0
         self.count = {"fits": 0, "truth": 0}
 
     def add(self, decoded) -> None:
@@ -121,6 +151,9 @@ class FitsView:
             by_eo.setdefault(int(d.body.engine_order), []).append(d)
         for eo, rows in by_eo.items():
             self._flush_eo(eo, rows)
+        if final:
+            for plot in self._plots.values():
+                plot.settle()
 
     def _flush_truth(self, rows: list) -> None:
         self.count["truth"] += len(rows)
@@ -132,6 +165,9 @@ class FitsView:
                                                        colors=[GREY] * nb, widths=[1.0] * nb))
         self.out.scalars(paths.TRUTH_AMP, index, amp)
         self._truth_seen.append((index, speed, amp))
+        self._truth_kept += len(index)
+        while self._truth_kept - len(self._truth_seen[0][0]) >= TRUTH_HISTORY:  # the oldest are not needed
+            self._truth_kept -= len(self._truth_seen.popleft()[0])
         for plot in self._plots.values():
             plot.points("d_eqv", index, speed, amp)
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import rerun as rr
 
 from ..bus import keys
-from ..bus.recording import read_recording
+from ..bus.recording import RecordingScan
 from ..defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from ..errors import BttsimError
 from ..process.options import ProcessOptions, engine_orders_of
@@ -20,9 +20,71 @@ from .rotor import DEFAULT_EXAGGERATION
 from .signal import signal_stride
 from .sinks import ViewSinks, finish_files, open_recording
 
-__all__ = ["ViewSession", "log_recording"]
+__all__ = ["FLUSH_EVERY", "ViewSession", "log_recording"]
 
 log = logging.getLogger("bttsim.views")
+
+#: Messages read between two flushes of the views to the stream (memory: this many decoded
+#: messages and their Rerun columns, whatever the recording's length).
+FLUSH_EVERY = 4096
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Survey:
+    """What a first pass over a recording says (before any output is opened)."""
+
+    meta: object
+    engine_orders: list
+    max_probe: int
+    has_signal: bool
+    stride: int
+    signal_key: str | None
+
+
+def _decoded(messages, decoder: MessageDecoder, stride: int, signal_key: str | None):
+    """The decoded messages that the views show (raw signals: one probe, every stride-th
+    revolution; a signal key's sequence number is its revolution count)."""
+    for m in messages:
+        if "/signal/" in m.key and (m.key != signal_key or m.seq % stride):
+            continue
+        if (msg := decoder.decode(m.key, m.payload)) is not None:
+            yield msg
+
+
+def _survey(recording_path, signal_probe: int) -> _Survey:
+    """First pass over a recording, as a stream: the run metadata, the fitted engine orders
+    (in order of appearance), and every message decoded once, so that one that does not
+    decode is refused before anything is written.
+
+    Raises
+    ------
+    BttsimError
+        Unreadable recording, or a message in it that does not decode.
+    """
+    meta = None
+    decoder = MessageDecoder()
+    for m in RecordingScan(recording_path):  # the metadata comes first: the scan stops there
+        if m.key.endswith("/meta") and (d := decoder.decode(m.key, m.payload)) is not None:
+            meta = d.decoded.body
+            break
+    stride = signal_stride(meta.n_revolutions) if meta is not None else 1
+    signal_key = keys.signal_key(meta.rig, signal_probe) if meta is not None else None
+    decoder = MessageDecoder(log_bad=False)  # a bad message is refused below, in one line
+    eos: dict[int, None] = {}
+    max_probe, has_signal = 0, False
+    scan = RecordingScan(recording_path)
+    for m in scan:
+        has_signal = has_signal or "/signal/" in m.key
+        for msg in _decoded((m,), decoder, stride, signal_key):
+            if msg.kind == "fit":
+                eos.setdefault(int(msg.decoded.body.engine_order), None)
+            elif msg.kind in ("toa", "tw"):
+                max_probe = max(max_probe, int(msg.decoded.body.probe))
+    if decoder.bad:  # a file is not a live bus: a message that does not decode makes it corrupt
+        more = f" ({decoder.bad - 1} more refused)" if decoder.bad > 1 else ""
+        raise BttsimError(f"{scan.path}: {decoder.first_bad}{more}")
+    return _Survey(meta=meta, engine_orders=list(eos), max_probe=max_probe, has_signal=has_signal, stride=stride,
+                   signal_key=signal_key)
 
 
 @dataclass(eq=False)
@@ -91,43 +153,26 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
         of range: nothing is written), or no output requested.
     """
     t_start = time.perf_counter()
-    recording = read_recording(recording_path)
-    decoder = MessageDecoder()
-    meta = next((d.decoded.body for m in recording.messages if m.key.endswith("/meta")
-                 and (d := decoder.decode(m.key, m.payload)) is not None), None)
-    decoder = MessageDecoder(log_bad=False)  # a bad message is refused below, in one line
-    # raw signals: decode only the windows the signal view shows (one probe, every stride-th
-    # revolution; a signal key's sequence number is its revolution count)
-    stride = signal_stride(meta.n_revolutions) if meta is not None else 1
-    signal_key = keys.signal_key(meta.rig, signal_probe) if meta is not None else None
-    has_signal = False
-    messages = []
-    for m in recording.messages:
-        if "/signal/" in m.key:
-            has_signal = True
-            if m.key != signal_key or m.seq % stride:
-                continue
-        if (msg := decoder.decode(m.key, m.payload)) is not None:
-            messages.append(msg)
-    if decoder.bad:  # a file is not a live bus: a message that does not decode makes it corrupt
-        more = f" ({decoder.bad - 1} more refused)" if decoder.bad > 1 else ""
-        raise BttsimError(f"{recording_path}: {decoder.first_bad}{more}")
-    fitted = [msg.decoded.body.engine_order for msg in messages if msg.kind == "fit"]
-    eos = list(dict.fromkeys(fitted)) or (list(engine_orders_of(meta, ProcessOptions())) if meta else [8])
-    n_probes = meta.n_probes if meta is not None else 1 + max(
-        (msg.decoded.body.probe for msg in messages if msg.kind in ("toa", "tw")), default=0)
+    survey = _survey(recording_path, signal_probe)
+    meta, decoder = survey.meta, MessageDecoder(log_bad=False)
+    eos = survey.engine_orders or (list(engine_orders_of(meta, ProcessOptions())) if meta else [8])
+    n_probes = meta.n_probes if meta is not None else 1 + survey.max_probe
     blueprint = build_blueprint(n_probes, n_blades=meta.n_blades if meta else None, engine_orders=eos, live=False,
-                                signal_probe=signal_probe if has_signal else None)
+                                signal_probe=signal_probe if survey.has_signal else None)
     rec, sinks = open_recording(rrd_path=rrd_path, grpc_url=grpc_url, serve_web=serve_web, web_port=web_port,
                                 grpc_port=grpc_port, bind=bind, blueprint=blueprint,
                                 recording_id=meta.run_id if meta is not None else None)
     views = LiveViews(rec, live=False, blades=blades, exaggeration=exaggeration, send_blueprint=False,
                       engine_orders=eos, decoder=decoder, signal_probe=signal_probe)
-    for msg in messages:
+    scan = RecordingScan(recording_path)
+    for i, msg in enumerate(_decoded(scan, decoder, survey.stride, survey.signal_key)):
         views.feed_decoded(msg)
+        if i % FLUSH_EVERY == FLUSH_EVERY - 1:  # bounded: what is read is logged and dropped
+            views.flush()
+            rec.flush()
     views.close()
     session = ViewSession(recording=rec, sinks=sinks, stats=views.stats, elapsed_s=time.perf_counter() - t_start)
-    if recording.truncated:
+    if scan.truncated:
         session.stats["truncated"] = True
     if serve_web:
         finish_files(rec)  # the .rrd is complete while the page is served

@@ -29,13 +29,16 @@ from . import paths
 from ._common import DARK, MM, RevIndex, ViewOutput, nice_step, nice_ticks, turbo
 from ._plot2d import CHAR_W, LINE_H, PLOT_HEIGHT, PlotFrame, ui
 
-__all__ = ["GAMMA", "TravellingWaveView", "colour_ticks", "nd_ticks"]
+__all__ = ["GAMMA", "MAX_SPAN", "TravellingWaveView", "colour_ticks", "nd_ticks"]
 
 #: Colour of a magnitude: ``turbo((magnitude / top) ** GAMMA)`` (below 1: weak waves show).
 GAMMA = 0.5
 #: The colour bar: x from :data:`_BAR_X` to ``_BAR_X + _BAR_W`` (box units), full plot height.
 _BAR_X, _BAR_W = 1.03, 0.04
 _BAR_LEVELS = 256
+#: Most revolutions a whole recording's map spans (about 7 hours at 10,000 rpm): a message
+#: of a revolution further from the first one's is not drawn.
+MAX_SPAN = 1 << 22
 
 
 def nd_ticks(n_nd: int) -> np.ndarray:
@@ -107,6 +110,75 @@ class _WaveMap:
                                                             show_labels=True), revolution)
 
 
+class _Spectra:
+    """One probe's signed spectra (mm) by revolution, dense: a float32 matrix, rows the
+    signed NDs, one column per revolution from ``first`` (zeros where no message came),
+    grown by doubling. Memory: ``n_rows * 4`` bytes a revolution (live: of the window).
+
+    Parameters
+    ----------
+    n_rows : int
+        Rows of every spectrum stored (a message of another size is not stored).
+    """
+
+    def __init__(self, n_rows: int) -> None:
+        self.n_rows = int(n_rows)
+        self.first = 0  # revolution of column 0
+        self._mat = np.zeros((self.n_rows, 0), np.float32)
+        self._seen = np.zeros(0, bool)
+        self.lo = self.hi = None  # smallest and largest revolution stored
+
+    def put(self, revolution: np.ndarray, spec: np.ndarray) -> None:
+        """Store spectra ``spec`` (k, n_rows) of revolutions ``revolution`` (k,) (the later of
+        two of one revolution wins, as the messages came)."""
+        rev = np.asarray(revolution, np.int64)
+        last = rev.size - 1 - np.unique(rev[::-1], return_index=True)[1]  # latest of each revolution
+        rev, spec = rev[last], spec[last]
+        lo, hi = int(rev.min()), int(rev.max())
+        if self.lo is None:
+            self.first = lo
+        self._span(min(lo, self.first), hi)
+        col = rev - self.first
+        self._mat[:, col] = spec.T
+        self._seen[col] = True
+        self.lo = lo if self.lo is None else min(self.lo, lo)
+        self.hi = hi if self.hi is None else max(self.hi, hi)
+
+    def _span(self, first: int, last: int) -> None:
+        """Make room for columns of revolutions ``first .. last``."""
+        shift = self.first - first
+        need = last - first + 1
+        if shift == 0 and need <= self._seen.size:
+            return
+        cap = max(need, 2 * self._seen.size if shift == 0 else need, 64)
+        mat = np.zeros((self.n_rows, cap), np.float32)
+        seen = np.zeros(cap, bool)
+        n = self._seen.size
+        mat[:, shift:shift + n] = self._mat
+        seen[shift:shift + n] = self._seen
+        self._mat, self._seen, self.first = mat, seen, first
+
+    def forget_before(self, revolution: int) -> None:
+        """Drop the revolutions before ``revolution`` (a live window that moved on)."""
+        cut = int(revolution) - self.first
+        if self.lo is None or cut <= 0:
+            return
+        keep = np.flatnonzero(self._seen[cut:])
+        self._mat = np.ascontiguousarray(self._mat[:, cut:])
+        self._seen = self._seen[cut:].copy()
+        self.first = int(revolution)
+        self.lo = None if keep.size == 0 else self.first + int(keep[0])
+        self.hi = None if keep.size == 0 else self.hi
+
+    def matrix(self, first: int, last: int) -> np.ndarray:
+        """Columns of revolutions ``first .. last`` (zeros where none; NaN as 0), float32."""
+        mat = np.zeros((self.n_rows, last - first + 1), np.float32)
+        a, b = max(first, self.first), min(last, self.first + self._seen.size - 1)
+        if a <= b:
+            mat[:, a - first:b - first + 1] = self._mat[:, a - self.first:b - self.first + 1]
+        return np.nan_to_num(mat, copy=False)
+
+
 def _by_size(rows: list) -> list[list]:
     """Messages grouped by their number of nodal diameters (all of one run's share it)."""
     n = rows[0].body.forward_m.size
@@ -135,7 +207,7 @@ class TravellingWaveView:
         self.window = int(window)
         self.period_s = float(period_s)
         self._new: list = []
-        self._spectra: dict[int, dict[int, np.ndarray]] = {}  # probe -> revolution -> signed spectrum (mm)
+        self._spectra: dict[int, _Spectra] = {}  # probe -> its signed spectra (mm)
         self._max_mm = 0.0
         self._last_log = -math.inf
         self._nd_until = -1  # last revolution whose ND is logged
@@ -153,8 +225,7 @@ class TravellingWaveView:
             self.count += len(rows)
             nd_rows = {}  # one ND per revolution (every probe's message carries it)
             for group in _by_size(rows):
-                for d, spec in zip(group, self._signed_mm(group)):
-                    self._spectra.setdefault(d.body.probe, {})[d.header.revolution] = spec
+                self._store(group, self._signed_mm(group))
             for d in rows:
                 if d.header.revolution > self._nd_until:
                     nd_rows.setdefault(d.header.revolution, d)
@@ -182,25 +253,38 @@ class TravellingWaveView:
         self._max_mm = max(self._max_mm, float(np.nanmax(spec, initial=0.0)))
         return spec
 
+    def _store(self, group: list, spec: np.ndarray) -> None:
+        """Spectra of messages of one size, by probe (a probe keeps the size of its first)."""
+        probe = np.array([d.body.probe for d in group])
+        rev = np.array([d.header.revolution for d in group], np.int64)
+        for p in np.unique(probe).tolist():
+            store = self._spectra.setdefault(p, _Spectra(spec.shape[1]))
+            mine = probe == p
+            top = int(rev[mine].max()) if store.hi is None else max(store.hi, int(rev[mine].max()))
+            if self.out.live:  # what is older than the window is never shown
+                mine &= rev > top - self.window
+                store.forget_before(top - self.window + 1)
+            else:  # a revolution number far from the others (forged) would take a matrix of its span
+                ref = int(rev[mine][0]) if store.hi is None else store.first
+                mine &= np.abs(rev - ref) < MAX_SPAN
+            if store.n_rows == spec.shape[1] and mine.any():
+                store.put(rev[mine], spec[mine])
+
     def _trim(self) -> None:
         """Forget revolutions that left the live window (amortised: at twice its size)."""
         for spectra in self._spectra.values():
-            if len(spectra) > 2 * self.window:
-                last = max(spectra)
-                for r in [r for r in spectra if r <= last - self.window]:
-                    del spectra[r]
+            if spectra.hi is not None and spectra.hi - spectra.first + 1 > 2 * self.window:
+                spectra.forget_before(spectra.hi - self.window + 1)
 
     def _log_matrices(self) -> None:
         self._last_log = time.monotonic()
         for probe, spectra in sorted(self._spectra.items()):
-            last = max(spectra)
-            first = last - self.window + 1 if self.out.live else min(spectra)
-            n_rows = next(iter(spectra.values())).size
-            mat = np.zeros((n_rows, last - first + 1), np.float32)
-            for r, spec in spectra.items():
-                if r >= first and spec.size == n_rows:
-                    mat[:, r - first] = spec
-            mat = np.nan_to_num(mat)
+            if spectra.hi is None:
+                continue
+            last = spectra.hi
+            first = last - self.window + 1 if self.out.live else spectra.lo
+            n_rows = spectra.n_rows
+            mat = spectra.matrix(first, last)
             tensor = rr.Tensor(mat, dim_names=["nodal_diameter", "revolution"], value_range=(0.0, self._max_mm or 1.0))
             self.out.latest(paths.tw_path(probe), tensor, last)
             wave_map = self._maps.get(probe)
