@@ -50,7 +50,7 @@ from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import NodeProgram, add_status_argument, node_session, run_node
+from bttsim_stream.runtime import FIFO_SIZE, NodeProgram, add_status_argument, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
 #: How long the recorder waits, in silence, for the rest of a run whose nodes have gone.
@@ -61,6 +61,9 @@ CATCH_UP_EVERY_S = 1.0
 CATCH_UP_TIMEOUT_S = 2.0
 #: Counts of refused messages at which the recorder logs one more line.
 _LOG_AT = frozenset(10 ** k for k in range(1, 13))
+#: Samples the inbox holds: late-joiner history and the caches' answers to a catch-up (at most
+#: their size, 1024 a key, for each key), never the live stream (its FIFO holds ``--queue``).
+INBOX_SIZE = 1 << 20
 #: Exit status of a recording that is not complete (as ``bttsim run``'s).
 EXIT_INCOMPLETE = 3
 
@@ -73,7 +76,8 @@ def main(conf, args: argparse.Namespace) -> dict:
     gate = RecordGate(None if rig == "*" else rig)
     ends: dict[str, StreamEnd] = {}  # per rig: has the whole acquisition stream come in?
     with McapRecorder(args.out) as rec, \
-            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue,
+            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=INBOX_SIZE,
+                         fifo_size=args.queue,
                          status_file=args.status_file) as node:
         node.subscribe(keys.all_key(rig), history=True)
         if until:
@@ -201,8 +205,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drain-timeout", type=float, default=DRAIN_TIMEOUT_S, metavar="S",
                    help="when the nodes it follows are gone before the whole run came in (a router restart, a "
                         f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
-    p.add_argument("--queue", type=int, default=1 << 20, metavar="N",
-                   help="samples buffered before the network is slowed down (1048576)")
+    p.add_argument("--queue", type=int, default=FIFO_SIZE, metavar="N",
+                   help=f"live samples buffered before the network is slowed down ({FIFO_SIZE})")
     add_status_argument(p)
 
 
