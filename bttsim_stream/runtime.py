@@ -187,6 +187,9 @@ _BATCH = 4096
 _IDLE_POLL_S = 0.01
 #: Samples waiting in the inbox that wake its sleeping consumer before its sleep ends.
 WAKE_AT = 64
+#: Live samples a subscription's FIFO holds before Zenoh's delivery blocks (back-pressure):
+#: about 40 MB of 10 kB TOA batches, whatever the run's length.
+FIFO_SIZE = 1 << 12
 
 
 class Inbox:
@@ -248,16 +251,20 @@ class NodeContext:
     """A node's presence on the bus (see :func:`node_session`).
 
     Samples of every subscription go into one bounded inbox, in arrival order; a full inbox
-    blocks Zenoh's delivery (back-pressure) rather than growing without bound.
+    blocks Zenoh's delivery (back-pressure) rather than growing without bound. A
+    subscription's live FIFO holds at most ``fifo_size`` samples (default
+    :data:`FIFO_SIZE`): a node slower than its publishers slows them down instead of holding
+    the rest of the run in memory.
     """
 
     def __init__(self, session, rig: str, name: str, *, inbox_size: int = 1 << 16,
-                 status_file: str | None = None) -> None:
+                 fifo_size: int | None = None, status_file: str | None = None) -> None:
         self.session = session
         self.rig = rig
         self.name = name
         self._inbox = Inbox(inbox_size)
-        self._inbox_size = int(inbox_size)
+        self._inbox_max = max(1, int(inbox_size))
+        self._fifo_size = max(1, int(FIFO_SIZE if fifo_size is None else fifo_size))
         self._live: list = []  # subscribers whose samples wait in Zenoh's FIFOs
         self._subs: list = []
         self._history: list[str] = []  # key expressions subscribed with history
@@ -284,7 +291,7 @@ class NodeContext:
         arrival order."""
         put = self._inbox.put
         sub = declare_subscriber(self.session, key_expr, lambda s: put(Received.of(s)), history=history,
-                                 channel=self._inbox_size if fifo else None)
+                                 channel=self._fifo_size if fifo else None)
         self._subs.append(sub)
         if fifo:
             self._live.append(sub)
@@ -295,19 +302,39 @@ class NodeContext:
         """Ask the publishers' caches (zenoh-ext advanced publishers) again for what they hold on
         the keys subscribed with ``history``; the replies join the inbox (a receiver tells them
         from samples already in by their numbers). Returns how many came; a query that fails
-        (no route now) is 0."""
+        (no route now) is 0. While it waits, the live FIFOs are moved into the inbox: a full
+        FIFO blocks Zenoh's receiving thread, and the replies come through that thread."""
         n = 0
         for expr in self._history:
+            replies = zenoh.handlers.FifoChannel(1 << 16)
             try:
-                for reply in self.session.get(f"{expr}/@adv/**", consolidation=zenoh.ConsolidationMode.NONE,
-                                              accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout_s):
-                    sample = reply.ok
-                    if sample is not None and keys.key_matches(expr, str(sample.key_expr)):
-                        self._inbox.put(Received.of(sample))
-                        n += 1
+                pending = self.session.get(f"{expr}/@adv/**", replies, consolidation=zenoh.ConsolidationMode.NONE,
+                                           accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout_s)
             except zenoh.ZError:
-                pass
+                continue
+            while True:
+                try:
+                    reply = pending.try_recv()
+                except zenoh.ZError:  # empty and closed: every reply is in
+                    break
+                if reply is None:
+                    self._relieve()
+                    time.sleep(_IDLE_POLL_S)
+                    continue
+                sample = reply.ok
+                if sample is not None and keys.key_matches(expr, str(sample.key_expr)):
+                    self._inbox.put(Received.of(sample))
+                    n += 1
         return n
+
+    def _relieve(self) -> None:
+        """Move what waits in the live FIFOs into the inbox (in each one's order)."""
+        for sub in self._live:
+            while self._inbox.qsize() < self._inbox_max:
+                s = sub.try_recv()
+                if s is None:
+                    break
+                self._inbox.put(Received.of(s))
 
     def publisher(self, key: str, *, cache_samples: int = 64, lossy: bool = False):
         """The publisher of ``key`` (declared on first use)."""
@@ -453,13 +480,13 @@ class NodeContext:
 
 
 @contextlib.contextmanager
-def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, linger_s: float = 0.2,
-                 status_file: str | None = None):
+def node_session(conf, rig: str, name: str, *, inbox_size: int = 1 << 16, fifo_size: int | None = None,
+                 linger_s: float = 0.2, status_file: str | None = None):
     """Open a session and a :class:`NodeContext` for node ``name`` on ``rig``; on exit,
     wait ``linger_s`` if anything was published, undeclare everything and close.
     ``status_file``: where the node's status is also written (``--status-file``)."""
     with opened(conf) as session:
-        ctx = NodeContext(session, rig, name, inbox_size=inbox_size, status_file=status_file)
+        ctx = NodeContext(session, rig, name, inbox_size=inbox_size, fifo_size=fifo_size, status_file=status_file)
         try:
             yield ctx
         finally:

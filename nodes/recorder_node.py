@@ -50,8 +50,8 @@ from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, node_session, \
-    run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_status_argument, \
+    node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
 #: After a gap opened, the publishers' caches are asked again at most this often (s) ...
@@ -60,6 +60,9 @@ CATCH_UP_EVERY_S = 1.0
 CATCH_UP_TIMEOUT_S = 2.0
 #: Counts of refused messages at which the recorder logs one more line.
 _LOG_AT = frozenset(10 ** k for k in range(1, 13))
+#: Samples the inbox holds: late-joiner history and the caches' answers to a catch-up (at most
+#: their size, 1024 a key, for each key), never the live stream (its FIFO holds ``--queue``).
+INBOX_SIZE = 1 << 20
 
 
 def main(conf, args: argparse.Namespace) -> dict:
@@ -70,7 +73,8 @@ def main(conf, args: argparse.Namespace) -> dict:
     gate = RecordGate(None if rig == "*" else rig)
     ends: dict[str, StreamEnd] = {}  # per rig: has the whole acquisition stream come in?
     with McapRecorder(args.out) as rec, \
-            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=args.queue,
+            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=INBOX_SIZE,
+                         fifo_size=args.queue,
                          status_file=args.status_file) as node:
         node.subscribe(keys.all_key(rig), history=True)
         if until:
@@ -161,8 +165,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma-separated nodes whose end ends the recording ('sim'; '' = only a signal "
                         "or --duration)")
     add_drain_argument(p)
-    p.add_argument("--queue", type=int, default=1 << 20, metavar="N",
-                   help="samples buffered before the network is slowed down (1048576)")
+    p.add_argument("--queue", type=int, default=FIFO_SIZE, metavar="N",
+                   help=f"live samples buffered before the network is slowed down ({FIFO_SIZE})")
     add_status_argument(p)
 
 
