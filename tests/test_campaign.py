@@ -556,8 +556,10 @@ def test_ctrl_c_keeps_every_finished_run(tmp_path):
     (tmp_path / "spec.toml").write_text(SPEC.replace("seeds = 2", "seeds = 3").replace('["peak", "sdof"]', '["peak"]'))
     cmd = [sys.executable, "-m", "bttsim_stream.cli", "campaign", tmp_path / "spec.toml", "--out", tmp_path / "out",
            "--workers", "1", "-q"]
+    # SIGINT as a terminal's foreground job has it: a CI shell's background job inherits it ignored
     p = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+                         start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 300
         while not list((tmp_path / "out" / "runs").glob("*.parquet")) and p.poll() is None:

@@ -694,3 +694,15 @@ def test_truth_arrays_read_from_the_bytes_equal_the_parsed_fields():
                      for p in (want["d_z_m"][:half], want["d_z_m"][half:]))
     assert codec_base.packed_doubles(rest.SerializeToString() + split, codec._TRUTH_NUMBERS) is None
     check(rest.SerializeToString() + split)
+
+
+def test_another_message_types_payload_on_a_key_is_refused():
+    """Protobuf parses a TOA batch or a truth payload as an Opr (the header is the same field,
+    the rest unknown fields): the codec refuses a payload with fields its type lacks, so a
+    message sent on the wrong key cannot pass for that key's own."""
+    msgs = MessageStream("run-a", "rig1").acquisition(make_batch(seed=1, ticks=False))
+    opr = next(m for m in msgs if m.key.endswith("/opr"))
+    assert codec.decode_opr(opr.payload, opr.key).header.run_id == "run-a"
+    for m in (m for m in msgs if not m.key.endswith("/opr")):
+        with pytest.raises(BttsimError, match=r"corrupt Opr \(fields that are not in its schema\)$"):
+            codec.decode_opr(m.payload, "bttsim/rig1/opr")

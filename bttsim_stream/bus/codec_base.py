@@ -111,6 +111,10 @@ def parse_payload(cls, payload, where: str | None):
     except (DecodeError, ValueError, RuntimeError) as exc:
         text = " ".join(str(exc).split()) or type(exc).__name__
         raise BttsimError(f"{where}: corrupt {name} ({text})") from None
+    size = msg.ByteSize()
+    msg.DiscardUnknownFields()
+    if msg.ByteSize() != size:  # another message type's payload on this key parses, with fields it lacks
+        raise BttsimError(f"{where}: corrupt {name} (fields that are not in its schema)")
     if not msg.HasField("header"):
         raise BttsimError(f"{where}: corrupt {name} (no header)")
     if not -1 <= msg.header.revolution <= MAX_REVOLUTIONS:
