@@ -39,12 +39,13 @@ class LineWatch:
         self._thread.start()
 
     def _read(self, stream) -> None:
-        for line in stream:
-            if isinstance(line, bytes):
-                line = line.decode(errors="replace")
-            with self._cond:
-                self.lines.append(line)
-                self._cond.notify_all()
+        with stream:  # closed at the end of the stream: no pipe left for the garbage collector
+            for line in stream:
+                if isinstance(line, bytes):
+                    line = line.decode(errors="replace")
+                with self._cond:
+                    self.lines.append(line)
+                    self._cond.notify_all()
         with self._cond:
             self.lines.append(None)  # end of stream
             self._cond.notify_all()
