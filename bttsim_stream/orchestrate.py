@@ -83,6 +83,10 @@ NODE_INCOMPLETE = 3
 #: How long, after a node ended normally, its final status may still be on its way on the bus
 #: before its status file is read instead (s).
 FINAL_STATUS_WAIT_S = 2.0
+#: After the simulator failed (it may never have published), seconds the consumers have, all
+#: together, to notice and end on their own before they get SIGTERM; then as long again each
+#: to finalise their files.
+FAILED_SIM_GRACE_S = 15.0
 
 _no_report_summary = no_report_summary  # the name this module gave it before summary.py
 
@@ -345,7 +349,10 @@ class Run:
         # a simulator that failed (it may never have published) leaves the others nothing to
         # wait for: they get a short grace to notice, then SIGTERM (they finalise their files)
         sim = self.procs.get("sim")
-        grace = 120 if sim is not None and sim.returncode == 0 else 15
+        sim_ok = sim is not None and sim.returncode == 0
+        grace = 120 if sim_ok else FAILED_SIM_GRACE_S
+        if not sim_ok:  # one deadline for all: each had the same time to notice, none waits on another
+            self._stop_consumers_after(FAILED_SIM_GRACE_S)
         self.progress.phase("making the report ...")
         self._wait("processor", grace)
         self.progress.phase("finishing the recording ...")
@@ -438,6 +445,23 @@ class Run:
         except subprocess.TimeoutExpired:
             _signal(p, signal.SIGKILL)
             p.wait()
+
+    def _stop_consumers_after(self, timeout_s: float) -> None:
+        """Wait up to ``timeout_s`` for the consumers (all at once) to end on their own, then
+        SIGTERM those still running (they hand out what they received and finalise their files);
+        a viewer that may serve the web viewer is left to :meth:`_wait_serving`."""
+        names = [n for n in ("processor", "recorder", "viewer") if n in self.procs
+                 and not (n == "viewer" and self.plan.web)]
+        end = time.monotonic() + timeout_s
+        while self.stop_at is None and time.monotonic() < end:
+            running = [self.procs[n] for n in names if self.procs[n].poll() is None]
+            if not running:
+                return
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                running[0].wait(timeout=min(0.1, max(0.0, end - time.monotonic())))
+        if self.stop_at is None:  # after a signal, _wait's own sequence stops them
+            for n in names:
+                _signal(self.procs[n], signal.SIGTERM)
 
     def _wait_serving(self, timeout_s: float) -> bool:
         """Wait until the viewer's status says it only serves (True), or it has ended, or a

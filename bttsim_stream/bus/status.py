@@ -219,22 +219,22 @@ class StatusBoard:
             return self._latest.get(node)
 
     def final(self, node: str, wait_s: float = 0.0) -> NodeStatus | None:
-        """The status with ``node``'s final statistics: from the bus (waiting up to ``wait_s``
-        for it), else from its status file; None if neither has it (the node died first)."""
+        """The status with ``node``'s final statistics: from the bus, else from its status file
+        (the node writes it before it publishes), else from the bus after up to ``wait_s``; None
+        if none has it (the node died first)."""
         deadline = time.monotonic() + wait_s
+        path = self.files.get(node)
         while True:
             status = self.get(node)
             if status is not None and status.final:
                 return status
+            status = read_status_file(path, node) if path is not None else None
+            if status is not None and status.final:
+                self.offer(status)
+                return status
             if time.monotonic() >= deadline:
-                break
+                return None
             time.sleep(0.05)
-        path = self.files.get(node)
-        status = read_status_file(path, node) if path is not None else None
-        if status is not None and status.final:
-            self.offer(status)
-            return status
-        return None
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
