@@ -36,7 +36,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
-from .runtime import Progress, add_node_parser, add_web_arguments, run_parsed
+from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, run_parsed
 from .sim.bounds import check_tip_amplitude
 from .sim.core import load_scenario_model
 from .summary import build_summary, describe_exit
@@ -322,7 +322,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                   bind=args.bind, realtime=args.realtime, connect=args.connect, config=args.config,
                   quiet=args.quiet, mode=args.mode, on_serving=on_serving, tls_dir=args.tls_dir,
                   access_control=not args.no_access_control, connect_timeout_s=args.connect_timeout,
-                  force=args.force)
+                  force=args.force, drain_timeout_s=args.drain_timeout)
     if served:
         res = served[0]  # the run's result: the Ctrl-C after it only ended the serving
     else:
@@ -480,6 +480,7 @@ def _add_run_parser(sub) -> None:
                    help="session mode of every node (peer; client: through a Zenoh router given with -e)")
     p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="S",
                    help=f"a node that cannot reach its endpoints after S seconds fails ({CONNECT_TIMEOUT_S:g})")
+    add_drain_argument(p)  # the recorder's, the processor's and the viewer's
     p.add_argument("--tls-dir", metavar="DIR",
                    help="mutual TLS and access control for every node, certificates from DIR (bttsim certs DIR)")
     p.add_argument("--no-access-control", action="store_true", help="with --tls-dir, authenticate only")

@@ -58,7 +58,7 @@ from .children import die_with_parent
 from .diskspace import check_free_space, estimate_output_bytes
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError
-from .runtime import Progress
+from .runtime import DRAIN_TIMEOUT_S, Progress
 from .scenario import Scenario, dumps_toml, load_scenario
 from .summary import describe_exit, no_report_summary, recording_block, with_recording
 
@@ -129,7 +129,8 @@ def plan_run(scenario_path: str | None, out_dir: str, *, web: bool = False, web_
              grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
              connect: list[str] | None = None, config: str | None = None, mode: str = "peer",
              tls_dir: str | None = None, access_control: bool = True,
-             connect_timeout_s: float = CONNECT_TIMEOUT_S, force: bool = False) -> RunPlan:
+             connect_timeout_s: float = CONNECT_TIMEOUT_S, force: bool = False,
+             drain_timeout_s: float = DRAIN_TIMEOUT_S) -> RunPlan:
     """Check the inputs and prepare the output folder (``scenario.toml`` written, old outputs
     removed); bad input is a :class:`BttsimError` before any node starts."""
     if mode == "client" and not connect:
@@ -155,7 +156,7 @@ def plan_run(scenario_path: str | None, out_dir: str, *, web: bool = False, web_
                        connect_timeout_s=None if embedded else connect_timeout_s)  # a router must answer
     node_args = _node_args(scn.run.rig, files, out / "scenario.toml", realtime,
                            ["--web", "--web-port", str(web_port), "--grpc-port", str(grpc_port), "--bind", bind]
-                           if web else [])
+                           if web else [], drain_timeout_s)
     status_dir = Path(tempfile.mkdtemp(prefix="bttsim-run-status-"))
     status_files = {n: status_dir / f"{n}.json" for n in NODES}
     commands = {}
@@ -192,12 +193,14 @@ def _prepare_folder(out: Path, scn: Scenario) -> tuple[Path, dict]:
     return out, files
 
 
-def _node_args(rig: str, files: dict, scn_file: Path, realtime: bool, web_flags: list[str]) -> dict:
+def _node_args(rig: str, files: dict, scn_file: Path, realtime: bool, web_flags: list[str],
+               drain_timeout_s: float = DRAIN_TIMEOUT_S) -> dict:
     """Each node's own arguments (session and status flags aside)."""
+    drain = ["--drain-timeout", f"{drain_timeout_s:g}"]
     return {
-        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor"],
-        "processor": ["processor", "--rig", rig, "--summary", files["summary"]],
-        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor", *web_flags],
+        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor", *drain],
+        "processor": ["processor", "--rig", rig, "--summary", files["summary"], *drain],
+        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor", *drain, *web_flags],
         "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
     }
 
@@ -218,7 +221,8 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
             grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, realtime: bool = False,
             connect: list[str] | None = None, config: str | None = None, quiet: bool = False,
             mode: str = "peer", on_serving=None, tls_dir: str | None = None, access_control: bool = True,
-            connect_timeout_s: float = CONNECT_TIMEOUT_S, force: bool = False) -> dict:
+            connect_timeout_s: float = CONNECT_TIMEOUT_S, force: bool = False,
+            drain_timeout_s: float = DRAIN_TIMEOUT_S) -> dict:
     """Run the main job; returns the result (:meth:`Run.result`; its summary is also written to
     ``OUT/summary.json``).
 
@@ -227,11 +231,13 @@ def run_all(scenario_path: str | None, out_dir: str, *, web: bool = False, web_p
     is served until a signal (Ctrl-C, SIGTERM, SIGHUP) stops it. ``tls_dir``: mutual TLS (and,
     with ``access_control``, the access-control policy) with the certificates of that folder;
     ``connect_timeout_s``: how long every node tries to reach its endpoints before it gives up
-    with an error.
+    with an error; ``drain_timeout_s``: how long a consumer waits in silence for the rest of a
+    run whose publishers are gone before all of it came (``--drain-timeout``).
     """
     plan = plan_run(scenario_path, out_dir, web=web, web_port=web_port, grpc_port=grpc_port, bind=bind,
                     realtime=realtime, connect=connect, config=config, mode=mode, tls_dir=tls_dir,
-                    access_control=access_control, connect_timeout_s=connect_timeout_s, force=force)
+                    access_control=access_control, connect_timeout_s=connect_timeout_s, force=force,
+                    drain_timeout_s=drain_timeout_s)
     run = Run(plan, Progress(not quiet, period_s=5.0))
     with run.handling_signals():
         try:

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import contextlib
 import logging
 import os
@@ -164,9 +165,20 @@ def add_status_argument(p: argparse.ArgumentParser) -> None:
                         "bttsim/<rig>/status/<node> messages) to FILE.json, replaced atomically")
 
 
+def _seconds(text: str) -> float:
+    """A duration argument: a finite number of seconds, 0 or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a duration in seconds (a finite number >= 0)")
+    return value
+
+
 def add_drain_argument(p: argparse.ArgumentParser) -> None:
     """``--drain-timeout``: how long a consumer waits for the rest of a run whose nodes have gone."""
-    p.add_argument("--drain-timeout", type=float, default=DRAIN_TIMEOUT_S, metavar="S",
+    p.add_argument("--drain-timeout", type=_seconds, default=DRAIN_TIMEOUT_S, metavar="S",
                    help="when the nodes it follows are gone before the whole run came in (a router restart, a "
                         f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
 

@@ -166,7 +166,8 @@ def test_a_recorder_cut_off_past_the_lease_makes_the_run_say_what_it_misses(tmp_
     missing per key -- exactly what run.mcap lacks -- although the processor's result is whole."""
     conf = tmp_path / "lease.json5"
     conf.write_text(SHORT_LEASE)
-    proc, out = _start(tmp_path, "cut", "-c", str(conf))
+    # the recorder, resumed after the simulator ended, waits --drain-timeout of silence for the rest
+    proc, out = _start(tmp_path, "cut", "-c", str(conf), "--drain-timeout", "5")
     try:
         _wait_mid_run(proc, out)
         pid = _node_pid(out, "recorder")

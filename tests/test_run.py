@@ -341,3 +341,25 @@ def test_signal_chain_example_reports_its_missing_pulses_and_keeps_the_amplitude
     assert 1e-6 < np.median(np.abs(err)) < 50e-6 and np.max(np.abs(err)) < 200e-6
     assert summary["mean_E_A_pct"] < 3.0
     assert _node_pids(out) == []
+
+
+def test_drain_timeout_reaches_every_consumer_and_a_bad_one_is_refused(tmp_path):
+    """``bttsim run --drain-timeout S`` is the recorder's, the processor's and the viewer's
+    own flag (not the simulator's); a negative or infinite one is a one-line error, exit 2."""
+    from bttsim_stream.orchestrate import plan_run
+
+    plan = plan_run(None, str(tmp_path / "out"), drain_timeout_s=4.5)
+    try:
+        for node in ("recorder", "processor", "viewer"):
+            cmd = plan.commands[node]
+            assert cmd[cmd.index("--drain-timeout") + 1] == "4.5", cmd
+        assert "--drain-timeout" not in plan.commands["sim"]
+    finally:
+        import shutil
+        shutil.rmtree(plan.status_dir, ignore_errors=True)
+    for bad in ("-1", "inf", "nan", "soon"):
+        res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "run", "--out", tmp_path / "o2",
+                              "--drain-timeout", bad], cwd=REPO, capture_output=True, text=True, timeout=60)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and "--drain-timeout" in lines[0], res.stderr
+        assert not (tmp_path / "o2").exists()
