@@ -506,11 +506,12 @@ def _decode_eo(where: str, m, nb: int) -> dict:
     if k > MAX_ENGINE_ORDER:
         raise corrupt_error(where, m, f"{k} eo_engine_order entries, more than {MAX_ENGINE_ORDER}")
     check_len(where, m, "eo_pkpk_m", nb * k, f"({nb}, {k})")
-    orders = as_array(m.eo_engine_order, np.int64)
-    if k and not (np.all((orders >= 1) & (orders <= MAX_ENGINE_ORDER)) and np.all(np.diff(orders) > 0)):
+    listed = list(m.eo_engine_order)  # a few values: Python compares them faster than numpy
+    if k and not (1 <= listed[0] and listed[-1] <= MAX_ENGINE_ORDER and all(map(int.__lt__, listed, listed[1:]))):
         raise corrupt_error(where, m, f"eo_engine_order must ascend strictly within [1, {MAX_ENGINE_ORDER}]")
+    orders = np.array(listed, np.int64)
     amp = as_array(m.eo_pkpk_m).reshape(1, nb, k)
-    if not np.all(np.isfinite(amp) & (amp >= 0)):
+    if amp.size and not (amp.min() >= 0 and amp.max() < math.inf):  # a NaN fails the first test
         raise corrupt_error(where, m, "eo_pkpk_m values must be finite and >= 0")
     return {"eo_engine_order": orders.reshape(1, k), "eo_pkpk_m": amp}
 

@@ -83,12 +83,19 @@ def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
     return serialize(m)
 
 
-def _check_magnitudes(where: str, msg, field: str) -> np.ndarray:
-    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative. Returns them."""
-    v = as_array(getattr(msg, field))
-    if v.size and (np.fmin.reduce(v) < 0 or np.fmax.reduce(v) == np.inf):  # fmin/fmax skip NaN
-        raise corrupt_error(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
-    return v
+def _bad_magnitude(v: np.ndarray) -> bool:
+    """Is a value negative or infinite (NaN, not measured, is neither)?"""
+    return bool(v.size) and (np.fmin.reduce(v) < 0 or np.fmax.reduce(v) == np.inf)  # fmin/fmax skip NaN
+
+
+def _check_magnitudes(where: str, msg, *fields: str) -> list[np.ndarray]:
+    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative. Returns them, one
+    array a field (checked together: two reductions in all, not two a field)."""
+    arrays = [as_array(getattr(msg, field)) for field in fields]
+    if _bad_magnitude(np.concatenate(arrays)):
+        bad = next(f for f, v in zip(fields, arrays) if _bad_magnitude(v))
+        raise corrupt_error(where, msg, f"{bad} must be >= 0 and finite (NaN: missing)")
+    return arrays
 
 
 def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
@@ -105,7 +112,7 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
         raise corrupt_error(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
     check_len(where, m, "forward_m", n, f"({n},)")
     check_len(where, m, "backward_m", n, f"({n},)")
-    forward, backward = _check_magnitudes(where, m, "forward_m"), _check_magnitudes(where, m, "backward_m")
+    forward, backward = _check_magnitudes(where, m, "forward_m", "backward_m")
     if abs(m.dominant_nd) >= max(n, 1):
         raise corrupt_error(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
     check_probe_key(where, m, key, "tw")
