@@ -546,15 +546,22 @@ class _SweptForcing:
         zeta = key[1]
         wd = wn * math.sqrt(max(1.0 - zeta * zeta, 1e-12))
         lam = (-zeta * wn + 1j * wd, -zeta * wn - 1j * wd)
-        ys = []
-        for lm in lam:
+        # the same operations as y_1 - y_2 of whole arrays, into two scratch arrays and q
+        q = np.empty(w.size + 1, complex)
+        x, den = np.empty(w.size, complex), np.empty(w.size, complex)
+        for i, lm in enumerate(lam):
             a = np.exp(lm * h)
-            x = self.e_phi * (self.e_wh - a) / (self.jw - lm)
+            np.multiply(self.e_phi, np.subtract(self.e_wh, a, out=x), out=x)
+            np.divide(x, np.subtract(self.jw, lm, out=den), out=x)
             y0 = self.e_phi0 / (1j * w[0] - lm)
             y, _ = lfilter([1.0], [1.0, -a], x, zi=np.array([a * y0]))
-            ys.append(np.concatenate([[y0], y]))
-        q = (ys[0] - ys[1]) / (lam[0] - lam[1])
-        z = self._z[key] = q * self.e_mphi
+            if i == 0:
+                q[0], q[1:] = y0, y
+            else:
+                q[0] = q[0] - y0
+                np.subtract(q[1:], y, out=q[1:])
+        np.divide(q, lam[0] - lam[1], out=q)
+        z = self._z[key] = np.multiply(q, self.e_mphi, out=q)
         return z
 
     def solve(self, q, ts: np.ndarray, yn: np.ndarray):
