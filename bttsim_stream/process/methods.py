@@ -512,25 +512,73 @@ def sdof_envelope(fn_hz: float, zeta: float, grid_s: np.ndarray, phi_rad: np.nda
     -------
     ndarray of complex, shape (m,)
     """
-    from scipy.signal import lfilter
+    return _SweptForcing(grid_s, phi_rad).envelope(fn_hz, zeta)
 
-    h = float(grid_s[1] - grid_s[0])
-    wn = TWO_PI * float(fn_hz)
-    zeta = float(zeta)
-    wd = wn * math.sqrt(max(1.0 - zeta * zeta, 1e-12))
-    lam = (-zeta * wn + 1j * wd, -zeta * wn - 1j * wd)
-    w = np.diff(phi_rad) / h
-    e_phi = np.exp(1j * phi_rad[:-1])
-    e_wh = np.exp(1j * w * h)
-    ys = []
-    for lm in lam:
-        a = np.exp(lm * h)
-        x = e_phi * (e_wh - a) / (1j * w - lm)
-        y0 = np.exp(1j * phi_rad[0]) / (1j * w[0] - lm)
-        y, _ = lfilter([1.0], [1.0, -a], x, zi=np.array([a * y0]))
-        ys.append(np.concatenate([[y0], y]))
-    q = (ys[0] - ys[1]) / (lam[0] - lam[1])
-    return q * np.exp(-1j * phi_rad)
+
+class _SweptForcing:
+    """The forcing's terms of :func:`sdof_envelope` on one grid (they do not depend on ``f_n``,
+    ``zeta``: computed once per crossing, not once per trial of the fit), and each blade's
+    envelopes and linear solves by ``(f_n, zeta)``: the fit's last trial, its swept peak and its
+    finite differences reuse them instead of integrating the same model again."""
+
+    def __init__(self, grid_s: np.ndarray, phi_rad: np.ndarray):
+        self.grid, self.phi = grid_s, phi_rad
+        self.h = h = float(grid_s[1] - grid_s[0])
+        self.w = w = np.diff(phi_rad) / h
+        self.e_phi = np.exp(1j * phi_rad[:-1])
+        self.e_wh = np.exp(1j * w * h)
+        self.jw = 1j * w
+        self.e_phi0 = np.exp(1j * phi_rad[0])
+        self.e_mphi = np.exp(-1j * phi_rad)
+        self._z: dict = {}
+        self._solved: dict = {}
+
+    def envelope(self, fn_hz: float, zeta: float) -> np.ndarray:
+        """:func:`sdof_envelope` of ``(fn_hz, zeta)`` on this grid (remembered until :meth:`clear`)."""
+        from scipy.signal import lfilter
+
+        key = (float(fn_hz), float(zeta))
+        z = self._z.get(key)
+        if z is not None:
+            return z
+        h, w = self.h, self.w
+        wn = TWO_PI * key[0]
+        zeta = key[1]
+        wd = wn * math.sqrt(max(1.0 - zeta * zeta, 1e-12))
+        lam = (-zeta * wn + 1j * wd, -zeta * wn - 1j * wd)
+        # the same operations as y_1 - y_2 of whole arrays, into two scratch arrays and q
+        q = np.empty(w.size + 1, complex)
+        x, den = np.empty(w.size, complex), np.empty(w.size, complex)
+        for i, lm in enumerate(lam):
+            a = np.exp(lm * h)
+            np.multiply(self.e_phi, np.subtract(self.e_wh, a, out=x), out=x)
+            np.divide(x, np.subtract(self.jw, lm, out=den), out=x)
+            y0 = self.e_phi0 / (1j * w[0] - lm)
+            y, _ = lfilter([1.0], [1.0, -a], x, zi=np.array([a * y0]))
+            if i == 0:
+                q[0], q[1:] = y0, y
+            else:
+                q[0] = q[0] - y0
+                np.subtract(q[1:], y, out=q[1:])
+        np.divide(q, lam[0] - lam[1], out=q)
+        z = self._z[key] = np.multiply(q, self.e_mphi, out=q)
+        return z
+
+    def solve(self, q, ts: np.ndarray, yn: np.ndarray):
+        """``(A, c, A c - yn)``: the linear part ``yn = C z(ts) + c`` of the SDOF fit at ``q = (f_n, zeta)``."""
+        key = (float(q[0]), float(q[1]))
+        got = self._solved.get(key)
+        if got is None:
+            z = _interp_c(ts, self.grid, self.envelope(q[0], q[1]))
+            A = np.stack([z, np.ones_like(z)], axis=1)
+            c, *_ = np.linalg.lstsq(A, yn, rcond=None)
+            got = self._solved[key] = (A, c, A @ c - yn)
+        return got
+
+    def clear(self) -> None:
+        """Forget the remembered envelopes and solves (the next blade's data differ)."""
+        self._z.clear()
+        self._solved.clear()
 
 
 def _interp_c(x, xp, fp):
@@ -582,6 +630,8 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     out["offset"] = np.full(nb, np.nan + 0j)
     etas = []
     sel = slice(lo, hi + 1)
+    forcing = _SweptForcing(grid, phi)
+    w_rate = np.gradient(w_exc, h)
     for b in range(nb):
         y = phasor[sel, b]
         ts = t_sample_s[sel, b]
@@ -593,12 +643,10 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
         if not scale > 0:
             continue
         yn = y / scale
+        forcing.clear()
 
         def solve(q, ts=ts, yn=yn):
-            z = _interp_c(ts, grid, sdof_envelope(q[0], q[1], grid, phi))
-            A = np.stack([z, np.ones_like(z)], axis=1)
-            c, *_ = np.linalg.lstsq(A, yn, rcond=None)
-            return A, c, A @ c - yn
+            return forcing.solve(q, ts, yn)
 
         def resid(q):
             r = solve(q)[2]
@@ -619,7 +667,7 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
             cov = s2 * np.linalg.inv(res.jac.T @ res.jac)
         except np.linalg.LinAlgError:
             cov = np.full((2, 2), np.nan)
-        z_grid = sdof_envelope(fn, zeta, grid, phi)
+        z_grid = forcing.envelope(fn, zeta)
         k = int(np.argmax(np.abs(z_grid)))
         C = c[0] * scale
         wn = TWO_PI * fn
@@ -632,7 +680,7 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
 
         def swept(q):
             _, cq, _ = solve(q)
-            return 2.0 * abs(cq[0]) * scale * float(np.abs(sdof_envelope(q[0], q[1], grid, phi)).max())
+            return 2.0 * abs(cq[0]) * scale * float(np.abs(forcing.envelope(q[0], q[1])).max())
 
         amp = 2.0 * abs(C * z_grid[k])
         grad = np.array([(swept([fn + dq, zeta]) - amp) / dq for dq in (1e-4 * fn,)]
@@ -650,7 +698,7 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
         out["amp_std"][b] = math.sqrt(max(var_c, 0.0) + max(var_q, 0.0)) if math.isfinite(var_q) else math.nan
         out["freq_std"][b] = math.sqrt(max(cov[0, 0], 0.0)) if np.all(np.isfinite(cov)) else math.nan
         out["zeta_std"][b] = math.sqrt(max(cov[1, 1], 0.0)) if np.all(np.isfinite(cov)) else math.nan
-        etas.append(abs(float(np.gradient(w_exc, h)[k])) / (wn * wn))
+        etas.append(abs(float(w_rate[k])) / (wn * wn))
     peaks = ResonancePeaks(revolution=out["rev"], amp_pkpk_m=out["amp"], freq_hz=out["freq"],
                            damping_ratio=out["zeta"], method="sdof", phase_rad=out["phase"],
                            amp_std_m=out["amp_std"], freq_std_hz=out["freq_std"],
