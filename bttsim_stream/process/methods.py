@@ -562,6 +562,7 @@ class _SweptForcing:
                 np.subtract(q[1:], y, out=q[1:])
         np.divide(q, lam[0] - lam[1], out=q)
         z = self._z[key] = np.multiply(q, self.e_mphi, out=q)
+        _forget_oldest(self._z)
         return z
 
     def solve(self, q, ts: np.ndarray, yn: np.ndarray):
@@ -573,12 +574,24 @@ class _SweptForcing:
             A = np.stack([z, np.ones_like(z)], axis=1)
             c, *_ = np.linalg.lstsq(A, yn, rcond=None)
             got = self._solved[key] = (A, c, A @ c - yn)
+            _forget_oldest(self._solved)
         return got
 
     def clear(self) -> None:
         """Forget the remembered envelopes and solves (the next blade's data differ)."""
         self._z.clear()
         self._solved.clear()
+
+
+#: Envelopes and solves :class:`_SweptForcing` remembers, the newest (a fit's last trials and
+#: their finite differences: each one grid long, so the memory does not grow with the fit).
+SWEPT_MEMORY = 3
+
+
+def _forget_oldest(memory: dict) -> None:
+    """Drop the oldest entries of ``memory`` beyond :data:`SWEPT_MEMORY`."""
+    while len(memory) > SWEPT_MEMORY:
+        del memory[next(iter(memory))]
 
 
 def _interp_c(x, xp, fp):
