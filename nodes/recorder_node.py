@@ -84,7 +84,13 @@ def main(conf, args: argparse.Namespace) -> dict:
             node.watch_nodes(until)
         node.announce()
         act = _Actions(rec, node, gate, ends)
-        whole = lambda: bool(ends) and all(e.done for e in ends.values())  # noqa: E731
+        # the whole run: every rig's acquisition and, when the processor is followed, its report
+        # (its last output: a link that lags may deliver it after the processor's token has gone)
+        report = "processor" in until
+
+        def whole() -> bool:
+            return bool(ends) and all(e.done and (not report or r in act.reported) for r, e in ends.items())
+
         for sample in node.samples(stop, done=whole, patience_s=args.drain_timeout):
             act.take(sample)
         if gate.missing() and not stop.signal:  # a last look in the publishers' caches
@@ -120,6 +126,7 @@ class _Actions:
         self._asked = 0.0
         self.recovered = 0
         self._pending: list = []  # verdicts to write, in order (see WRITE_BATCH)
+        self.reported: set = set()  # the rigs whose resonance report was written
 
     def take(self, sample) -> None:
         """Judge a received sample and act on the verdicts; after a gap opened, ask the
@@ -159,6 +166,8 @@ class _Actions:
             if len(self._pending) >= WRITE_BATCH:
                 self.write_pending()
             key_rig = v.key.split("/", 2)[1]
+            if v.key == keys.resonance_key(key_rig):
+                self.reported.add(key_rig)
             end = self.ends.get(key_rig)
             if end is not None and not end.done:
                 end.note(v.key, v.seq)
