@@ -389,9 +389,12 @@ class NodeContext:
             logging.getLogger(f"bttsim.{self.name}").warning("status %s not sent: %s", state, exc)
             return
         with contextlib.suppress(zenoh.ZError):
-            # an attachment like every sample of the bus (its number, wall-clock time)
-            self.publisher(keys.status_key(self.rig, self.name), cache_samples=len(STATUS_STATES)).put(
-                payload, attachment=pack_attachment(status.seq, time.time_ns()))
+            # an attachment like every sample of the bus (its number, wall-clock time); dropped,
+            # never waited for, under congestion: a node blocked in its status put does not drain
+            # its own subscriptions, and two consumers blocked so (each subscribed to the other's
+            # status) wait for each other for ever. The file and the cache keep the status.
+            self.publisher(keys.status_key(self.rig, self.name), cache_samples=len(STATUS_STATES),
+                           lossy=True).put(payload, attachment=pack_attachment(status.seq, time.time_ns()))
 
     def ready(self) -> None:
         """Declare (once) the token ``bttsim/<rig>/ready/<name>``: this node has received the run
