@@ -87,6 +87,10 @@ FINAL_STATUS_WAIT_S = 2.0
 #: together, to notice and end on their own before they get SIGTERM; then as long again each
 #: to finalise their files.
 FAILED_SIM_GRACE_S = 15.0
+#: After the processor failed in a run whose simulator ended well (the simulator waited for the
+#: recorder's and viewer's whole acquisition), seconds the recorder and viewer have, together,
+#: for what the processor sent before it died (at most in flight): its report never comes.
+FAILED_PROCESSOR_GRACE_S = 5.0
 
 _no_report_summary = no_report_summary  # the name this module gave it before summary.py
 
@@ -361,6 +365,9 @@ class Run:
             self._stop_consumers_after(FAILED_SIM_GRACE_S)
         self.progress.phase("making the report ...")
         self._wait("processor", grace)
+        processor = self.procs.get("processor")
+        if sim_ok and processor is not None and processor.returncode not in (0, None, NODE_INCOMPLETE):
+            self._stop_consumers_after(FAILED_PROCESSOR_GRACE_S)  # not 30 s of silence for its report
         self.progress.phase("finishing the recording ...")
         self._wait("recorder", grace)
         self.progress.phase("finishing the views ...")

@@ -21,6 +21,7 @@ import argparse
 import json
 import logging
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from bttsim_stream.bus.session import StopFlag, pack_attachment
 from bttsim_stream.bus.stream import missing_line
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import add_processing_arguments, processing_options
+from bttsim_stream.process.pipeline import load_report_modules
 from bttsim_stream.process.resonance import summary_table
 from bttsim_stream.processor import ProcessorSession
 from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, node_session, \
@@ -51,6 +53,8 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             node.subscribe(k, fifo=False)  # in arrival order across the keys: revolutions complete as they come
         node.watch_nodes(("sim",))
         node.announce()
+        # the report's imports while the run goes, not after its end, when the report is awaited
+        threading.Thread(target=load_report_modules, name="report-modules", daemon=True).start()
 
         def publish(messages) -> None:
             for m in messages:
