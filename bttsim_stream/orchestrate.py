@@ -90,7 +90,7 @@ FAILED_SIM_GRACE_S = 15.0
 #: After the processor failed in a run whose simulator ended well (the simulator waited for the
 #: recorder's and viewer's whole acquisition), seconds the recorder and viewer have, together,
 #: for what the processor sent before it died (at most in flight): its report never comes.
-FAILED_PROCESSOR_GRACE_S = 5.0
+FAILED_PROCESSOR_GRACE_S = 2.0
 
 _no_report_summary = no_report_summary  # the name this module gave it before summary.py
 
