@@ -706,3 +706,33 @@ def test_another_message_types_payload_on_a_key_is_refused():
     for m in (m for m in msgs if not m.key.endswith("/opr")):
         with pytest.raises(BttsimError, match=r"corrupt Opr \(fields that are not in its schema\)$"):
             codec.decode_opr(m.payload, "bttsim/rig1/opr")
+
+
+def test_truth_without_its_per_probe_fields_is_the_same_truth_and_checked_the_same():
+    """``decode_truth(..., fields=...)`` builds only the per-probe fields asked for (the others
+    None); every other field is the full decode's, and a payload the full decode refuses is
+    refused with the same message."""
+    rng = np.random.default_rng(5)
+    payload = _truth_message(rng).SerializeToString(deterministic=True)
+    full = codec.decode_truth(payload, "bttsim/rig1/truth")
+    for fields in ((), ("t_exp_s",), ("toa_s", "d_z_m")):
+        part = codec.decode_truth(payload, "bttsim/rig1/truth", fields=fields)
+        assert part.header == full.header
+        for name in TRUTH_2D:
+            got = getattr(part.body, name)
+            if name in fields:
+                np.testing.assert_array_equal(got, getattr(full.body, name))
+            else:
+                assert got is None
+        for name in ("opr_s", "omega_mean", "d_eqv_pkpk_m", "eo_engine_order", "eo_pkpk_m", "nsv_kind",
+                     "nsv_freq_hz", "nsv_nd", "nsv_amp_pkpk_m", "nsv_rms_m", "nsv_band_hz"):
+            a, b = getattr(part.body, name), getattr(full.body, name)
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert a.dtype == b.dtype and a.shape == b.shape
+                np.testing.assert_array_equal(a, b)
+    m = MessageStream("r", "rig1").acquisition(make_batch())[NP + 1]
+    bad = m.payload + _field(5, 0, _varint(4))  # n_probes = 4: the per-probe lengths do not fit
+    for fields in (None, ()):
+        with pytest.raises(BttsimError, match=r"toa_s has 145 values, expected 116 for shape \(29, 4\)"):
+            codec.decode_truth(bad, m.key, fields=fields)

@@ -498,7 +498,7 @@ class RevolutionAssembler:
         self.max_ahead = int(max_ahead)
         self.reorder = max(1, int(reorder))
         self.max_ahead = max(self.max_ahead, self.reorder + 1)
-        self._newest = np.full(self.n_probes + 1, -1, dtype=np.int64)  # per source; [-1]: OPR
+        self._newest = [-1] * (self.n_probes + 1)  # per source; [-1]: OPR (a list: a few sources)
         self.duplicates = 0
         self._opr: dict[int, float] = {}
         self._toa: dict[int, np.ndarray] = {}
@@ -560,8 +560,8 @@ class RevolutionAssembler:
         # equivalently: every source not yet beyond it has delivered its part (the sources
         # behind are few, often the ones still sending it: the first such one decides)
         seen = self._seen.get(revolution, ())
-        for src in np.flatnonzero(self._newest <= revolution).tolist():
-            if not (revolution in self._opr if src == self.n_probes else src in seen):
+        for src, newest in enumerate(self._newest):
+            if newest <= revolution and not (revolution in self._opr if src == self.n_probes else src in seen):
                 return False
         return True
 
