@@ -736,3 +736,30 @@ def test_truth_without_its_per_probe_fields_is_the_same_truth_and_checked_the_sa
     for fields in (None, ()):
         with pytest.raises(BttsimError, match=r"toa_s has 145 values, expected 116 for shape \(29, 4\)"):
             codec.decode_truth(bad, m.key, fields=fields)
+
+
+def test_probe_waves_at_once_are_the_bytes_of_one_at_a_time():
+    """``encode_probe_waves`` writes the wire format itself: every byte equals protobuf's
+    (``encode_probe_wave``) over run ids, sequence numbers, revolutions (-1, large), header
+    times (0, -0, NaN, inf), NaN and zero magnitudes, probe 0 (left out) and negative NDs."""
+    rng = np.random.default_rng(21)
+    n = 0
+    for _ in range(400):
+        npr, nnd = int(rng.integers(1, 9)), int(rng.integers(1, 20))
+        f = rng.random((npr, nnd)) * 10.0 ** float(rng.integers(-9, 3))
+        b = rng.random((npr, nnd))
+        f[rng.random(f.shape) < 0.1] = np.nan
+        b[rng.random(b.shape) < 0.1] = rng.choice([0.0, -0.0])
+        run_id = str(rng.choice(["", "r", "run-2026-12-03T17:00:00-abcdef", "x" * 200, "é-ü"]))
+        seq = [int(rng.choice([0, 1, 127, 128, 2 ** 32 + 5, 2 ** 63 + 7])) for _ in range(npr)]
+        rev = int(rng.choice([-1, 0, 1, 300, 2 ** 40]))
+        t = float(rng.choice([0.0, -0.0, 1.5, 1e-300, np.nan, np.inf, rng.random() * 100]))
+        nd = int(rng.integers(-nnd + 1, nnd))
+        got = codec.encode_probe_waves(run_id, seq, rev, t, f, b, nd)
+        assert len(got) == npr
+        for p in range(npr):
+            assert got[p] == codec.encode_probe_wave(codec.Header(run_id, seq[p], rev, t), ProbeWave(p, f[p], b[p], nd))
+            n += 1
+    assert n > 1000
+    with pytest.raises(ValueError, match="at least one nodal diameter"):
+        codec.encode_probe_waves("r", [0], 0, 0.0, np.zeros((1, 0)), np.zeros((1, 0)), 0)

@@ -5,6 +5,7 @@ numpy, vectorised over the messages of a batch (the same bytes as the one-messag
 from __future__ import annotations
 
 import functools
+import struct
 
 import numpy as np
 from google.protobuf import descriptor_pb2
@@ -12,8 +13,9 @@ from google.protobuf import descriptor_pb2
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 from .codec_base import MAX_NS
 
-__all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "assemble", "field_tag",
-           "header_parts", "le_doubles", "packed_field", "packed_varints", "scalar_field", "varint_bytes"]
+__all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "encode_probe_waves", "assemble",
+           "field_tag", "header_bytes", "header_parts", "le_doubles", "packed_field", "packed_varints", "scalar_field",
+           "varint_bytes"]
 
 # --------------------------------------------------------------------------------------
 # Acquisition stream, many messages at once (the same bytes as the encoders above)
@@ -263,3 +265,61 @@ def varint_bytes(value: int) -> bytes:
         out.append(b | (0x80 if value else 0))
         if not value:
             return bytes(out)
+
+
+_MASK64 = (1 << 64) - 1
+_F8 = struct.Struct("<d")
+_ZERO8 = bytes(8)
+
+
+def _varint_field(tag: int, value: int) -> bytes:
+    """An integer field (``int32``/``int64``: a negative one as its 64-bit two's complement, ten
+    bytes; as protobuf), left out at 0."""
+    return varint_bytes(tag) + varint_bytes(int(value) & _MASK64) if value else b""
+
+
+def header_bytes(run_id: str, seq: int, revolution: int, t_s: float) -> bytes:
+    """The ``header`` field (field 1) of one message, as protobuf writes it (the header is set,
+    so present even when every field is at its default; those are left out)."""
+    rid = run_id.encode()
+    t = _F8.pack(float(t_s))
+    body = b"".join((
+        varint_bytes(field_tag(_pb.Header, "run_id")) + varint_bytes(len(rid)) + rid if rid else b"",
+        _varint_field(field_tag(_pb.Header, "seq"), seq),
+        _varint_field(field_tag(_pb.Header, "revolution"), revolution),
+        varint_bytes(field_tag(_pb.Header, "t_s")) + t if t != _ZERO8 else b""))
+    return b"\x0a" + varint_bytes(len(body)) + body
+
+
+def encode_probe_waves(run_id: str, seq, revolution: int, t_s: float, forward_m: np.ndarray,
+                       backward_m: np.ndarray, nd: int) -> list[bytes]:
+    """:func:`~.codec.encode_probe_wave` of every probe of one revolution at once (the same
+    bytes): probe ``p``'s ``TravellingWave`` numbered ``seq[p]``, its spectrum row ``p``.
+
+    Parameters
+    ----------
+    run_id : str
+    seq : sequence of int, length n_probes
+    revolution : int
+    t_s : float
+        Header time.
+    forward_m, backward_m : ndarray, shape (n_probes, n_nd)
+    nd : int
+        The revolution's dominant nodal diameter (every probe's message carries it).
+    """
+    fwd = np.ascontiguousarray(forward_m, dtype="<f8")
+    bwd = np.ascontiguousarray(backward_m, dtype="<f8")
+    if fwd.ndim != 2 or bwd.shape != fwd.shape:
+        raise ValueError(f"forward_m and backward_m: expected one shape (n_probes, n_nd), got {fwd.shape}, {bwd.shape}")
+    n_probes, n_nd = fwd.shape
+    if n_nd == 0:
+        raise ValueError("forward_m: at least one nodal diameter is needed")
+    w = 8 * n_nd
+    packed = varint_bytes(w)
+    tag_p, tag_f, tag_b = (varint_bytes(field_tag(_pb.TravellingWave, f)) for f in ("probe", "forward_m", "backward_m"))
+    mid = _varint_field(field_tag(_pb.TravellingWave, "n_nd"), n_nd)
+    tail = _varint_field(field_tag(_pb.TravellingWave, "dominant_nd"), nd)
+    fb, bb = fwd.tobytes(), bwd.tobytes()
+    return [b"".join((header_bytes(run_id, seq[p], revolution, t_s), tag_p + varint_bytes(p) if p else b"", mid,
+                      tag_f, packed, fb[p * w:(p + 1) * w], tag_b, packed, bb[p * w:(p + 1) * w], tail))
+            for p in range(n_probes)]

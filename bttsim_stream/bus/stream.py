@@ -388,10 +388,17 @@ class MessageStream:
         engine order, then one ``TravellingWave`` per probe; header time: the OPR."""
         rev, t = int(output.revolution), float(output.opr_s)
         out = [self._message(self._k_fit, rev, t, codec.encode_fit, fit) for fit in output.fits()]
-        for wave in output.probe_waves():
-            while len(self._k_tw) <= wave.probe:
-                self._k_tw.append(keys.tw_key(self.rig, len(self._k_tw)))
-            out.append(self._message(self._k_tw[wave.probe], rev, t, codec.encode_probe_wave, wave))
+        # the probes' waves (output.probe_waves()) written at once: the same bytes
+        tw = output.probe_tw
+        n_probes = tw.forward_m.shape[0]
+        while len(self._k_tw) < n_probes:
+            self._k_tw.append(keys.tw_key(self.rig, len(self._k_tw)))
+        k_tw = self._k_tw[:n_probes]
+        seqs = [self.sequencer.next(k) for k in k_tw]
+        payloads = codec.encode_probe_waves(self.run_id, seqs, rev, t, tw.forward_m, tw.backward_m,
+                                            int(output.fit_tw.dominant_nd))
+        log_ns = codec.log_time_ns(t)
+        out += [Message(k, payload, log_ns, seq) for k, payload, seq in zip(k_tw, payloads, seqs)]
         return out
 
     def nsv(self, detection, *, t_s: float = 0.0) -> Message:
