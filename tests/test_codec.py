@@ -763,3 +763,33 @@ def test_probe_waves_at_once_are_the_bytes_of_one_at_a_time():
     assert n > 1000
     with pytest.raises(ValueError, match="at least one nodal diameter"):
         codec.encode_probe_waves("r", [0], 0, 0.0, np.zeros((1, 0)), np.zeros((1, 0)), 0)
+
+
+def test_fits_at_once_are_the_bytes_of_one_at_a_time():
+    """``encode_fits`` writes the wire format itself: every byte equals protobuf's
+    (``encode_fit`` of each order's ``RevolutionFit``), with zero, -0 and NaN values, several
+    engine orders and no blade at all."""
+    rng = np.random.default_rng(22)
+    n = 0
+    for _ in range(300):
+        nb, n_eo = int(rng.integers(0, 40)), int(rng.integers(1, 4))
+        eos = sorted(rng.choice(np.arange(1, 30), n_eo, replace=False).tolist())
+        arrays = [rng.normal(size=(nb, n_eo)) for _ in range(3)] + [rng.normal(size=nb) for _ in range(2)]
+        for a in arrays:
+            a[rng.random(a.shape) < 0.1] = rng.choice([np.nan, 0.0, -0.0])
+        omega, cn = (float(rng.choice([0.0, -0.0, 250.0 * rng.random()])) for _ in range(2))
+        freq = rng.choice([0.0, np.nan, 300.0], n_eo)
+        seq = [int(rng.choice([0, 5, 2 ** 40])) for _ in range(n_eo)]
+        rev, t = int(rng.choice([-1, 0, 7])), float(rng.choice([0.0, 2.5]))
+        amp, phase, std, dc, res = arrays
+        got = codec.encode_fits("run", seq, rev, t, eos, omega, freq, cn, amp, phase, std, dc, res)
+        for k, eo in enumerate(eos):
+            fit = RevolutionFit(engine_order=eo, omega_rad_s=omega, freq_hz=float(freq[k]), cn=cn,
+                                amp_pkpk_m=amp[:, k], phase_rad=phase[:, k], dc_m=dc, residual_rms_m=res,
+                                amp_std_m=std[:, k])
+            assert got[k] == codec.encode_fit(codec.Header("run", seq[k], rev, t), fit)
+            n += 1
+    assert n > 300
+    with pytest.raises(ValueError, match="fit arrays"):
+        codec.encode_fits("r", [0], 0, 0.0, (8,), 1.0, [1.0], 1.0, np.zeros((3, 1)), np.zeros((3, 1)),
+                          np.zeros((3, 1)), np.zeros(2), np.zeros(3))

@@ -53,8 +53,9 @@ from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 from .codec_base import (MAX_PAYLOAD_BYTES, PROTO_FILE, Decoded, Header, as_array, check_len, check_probe_key,
                          corrupt_error, fill_header, header_of, packed_doubles, parse_payload, serialize, as_vector,
                          file_descriptor_set, log_time_ns, schema_name_for)
-from .codec_bulk import (assemble, encode_opr_batch, encode_probe_waves, encode_toa_batches, field_tag, header_parts,
-                         is_repeated, le_doubles, log_times_ns, packed_field, packed_varints, scalar_field)
+from .codec_bulk import (assemble, encode_fits, encode_opr_batch, encode_probe_waves, encode_toa_batches, field_tag,
+                         header_parts, is_repeated, le_doubles, log_times_ns, packed_field, packed_varints,
+                         scalar_field)
 from .codec_results import (decode_fit, decode_nsv, decode_probe_wave, decode_resonance_report, encode_fit,
                             encode_nsv, encode_probe_wave, encode_resonance_report)
 
@@ -85,6 +86,7 @@ __all__ = [
     "decode_signal_batch",
     "log_times_ns",
     "encode_fit",
+    "encode_fits",
     "decode_fit",
     "encode_probe_wave",
     "encode_probe_waves",

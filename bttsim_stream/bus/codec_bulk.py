@@ -13,7 +13,8 @@ from google.protobuf import descriptor_pb2
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 from .codec_base import MAX_NS
 
-__all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "encode_probe_waves", "assemble",
+__all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "encode_fits", "encode_probe_waves",
+           "assemble",
            "field_tag", "header_bytes", "header_parts", "le_doubles", "packed_field", "packed_varints", "scalar_field",
            "varint_bytes"]
 
@@ -323,3 +324,54 @@ def encode_probe_waves(run_id: str, seq, revolution: int, t_s: float, forward_m:
     return [b"".join((header_bytes(run_id, seq[p], revolution, t_s), tag_p + varint_bytes(p) if p else b"", mid,
                       tag_f, packed, fb[p * w:(p + 1) * w], tag_b, packed, bb[p * w:(p + 1) * w], tail))
             for p in range(n_probes)]
+
+
+def _double_field(tag: int, value: float) -> bytes:
+    """A proto3 double field, left out when its bits are zero (as protobuf)."""
+    v = _F8.pack(float(value))
+    return varint_bytes(tag) + v if v != _ZERO8 else b""
+
+
+def _packed_doubles(tag: int, values: np.ndarray) -> bytes:
+    """A packed repeated double field of a 1-D array, left out when empty."""
+    data = np.ascontiguousarray(values, dtype="<f8").tobytes()
+    return varint_bytes(tag) + varint_bytes(len(data)) + data if data else b""
+
+
+def encode_fits(run_id: str, seq, revolution: int, t_s: float, engine_orders, omega_rad_s: float, freq_hz,
+                cn: float, amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, amp_std_m: np.ndarray, dc_m: np.ndarray,
+                residual_rms_m: np.ndarray) -> list[bytes]:
+    """:func:`~.codec.encode_fit` of every engine order of one revolution at once (the same
+    bytes): order ``k``'s ``BladeFits`` numbered ``seq[k]`` (Eq. 16-17).
+
+    Parameters
+    ----------
+    run_id : str
+    seq : sequence of int, length n_eo
+    revolution : int
+    t_s : float
+        Header time.
+    engine_orders : sequence of int, length n_eo
+    omega_rad_s : float
+    freq_hz : array_like, shape (n_eo,)
+    cn : float
+    amp_pkpk_m, phase_rad, amp_std_m : ndarray, shape (n_blades, n_eo)
+    dc_m, residual_rms_m : ndarray, shape (n_blades,)
+    """
+    amp, phase, std = (np.asarray(a, dtype=float) for a in (amp_pkpk_m, phase_rad, amp_std_m))
+    dc, res = np.asarray(dc_m, dtype=float), np.asarray(residual_rms_m, dtype=float)
+    n_eo = len(engine_orders)
+    if amp.ndim != 2 or amp.shape[1] != n_eo or phase.shape != amp.shape or std.shape != amp.shape \
+            or dc.shape != amp.shape[:1] or res.shape != amp.shape[:1]:
+        raise ValueError(f"fit arrays: expected shapes (n_blades, {n_eo}) and (n_blades,), got {amp.shape}, "
+                         f"{phase.shape}, {std.shape}, {dc.shape}, {res.shape}")
+    tag = functools.partial(field_tag, _pb.BladeFits)
+    common = (_double_field(tag("omega_mean_rad_s"), omega_rad_s),)
+    rest = (_packed_doubles(tag("dc_m"), dc), _packed_doubles(tag("residual_m"), res))
+    head = _varint_field(tag("n_blades"), amp.shape[0])
+    return [b"".join((header_bytes(run_id, seq[k], revolution, t_s), head,
+                      _varint_field(tag("engine_order"), int(engine_orders[k])), *common,
+                      _double_field(tag("freq_hz"), freq_hz[k]), _double_field(tag("cn"), cn),
+                      _packed_doubles(tag("amp_pkpk_m"), amp[:, k]), _packed_doubles(tag("phase_rad"), phase[:, k]),
+                      *rest, _packed_doubles(tag("amp_std_m"), std[:, k])))
+            for k in range(n_eo)]

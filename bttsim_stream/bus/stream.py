@@ -387,8 +387,15 @@ class MessageStream:
         (:class:`~bttsim_stream.process.results.RevolutionOutput`): one ``BladeFits`` per
         engine order, then one ``TravellingWave`` per probe; header time: the OPR."""
         rev, t = int(output.revolution), float(output.opr_s)
-        out = [self._message(self._k_fit, rev, t, codec.encode_fit, fit) for fit in output.fits()]
-        # the probes' waves (output.probe_waves()) written at once: the same bytes
+        log_ns = codec.log_time_ns(t)
+        # the fits (output.fits()) and the probes' waves (output.probe_waves()) written at
+        # once, each kind: the same bytes
+        eos = output.engine_orders
+        seqs = [self.sequencer.next(self._k_fit) for _ in eos]
+        payloads = codec.encode_fits(self.run_id, seqs, rev, t, eos, output.omega_rad_s, output.freq_hz, output.cn,
+                                     output.amp_pkpk_m, output.phase_rad, output.amp_std_m, output.dc_m,
+                                     output.residual_rms_m)
+        out = [Message(self._k_fit, payload, log_ns, seq) for payload, seq in zip(payloads, seqs)]
         tw = output.probe_tw
         n_probes = tw.forward_m.shape[0]
         while len(self._k_tw) < n_probes:
@@ -397,7 +404,6 @@ class MessageStream:
         seqs = [self.sequencer.next(k) for k in k_tw]
         payloads = codec.encode_probe_waves(self.run_id, seqs, rev, t, tw.forward_m, tw.backward_m,
                                             int(output.fit_tw.dominant_nd))
-        log_ns = codec.log_time_ns(t)
         out += [Message(k, payload, log_ns, seq) for k, payload, seq in zip(k_tw, payloads, seqs)]
         return out
 
