@@ -346,11 +346,8 @@ def encode_fits(run_id: str, seq, revolution: int, t_s: float, engine_orders, om
 
     Parameters
     ----------
-    run_id : str
-    seq : sequence of int, length n_eo
-    revolution : int
-    t_s : float
-        Header time.
+    run_id, seq, revolution, t_s
+        The headers, as :func:`encode_probe_waves` (``seq``: one number per engine order).
     engine_orders : sequence of int, length n_eo
     omega_rad_s : float
     freq_hz : array_like, shape (n_eo,)
