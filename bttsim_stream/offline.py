@@ -314,6 +314,7 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     all_truth = tuple(f.name for f in fields(Truth))
     kept_truth = all_truth if truth_fields is None else tuple(n for n in all_truth if n in set(truth_fields))
     messages: list | None = [] if keep_messages else None
+    truth_2d = {*kept_truth, "toa_s"}  # the per-probe truth fields decoded (toa_s: the table checks its shape)
     n_messages = 0
     error: BttsimError | None = None  # a decoding error, raised after the truncation check
     meta = None
@@ -353,7 +354,8 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
                     take(*item)
                 early = []
             elif kind in ("opr", "toa", "truth"):
-                d = codec.decode_truth(m.payload, m.key) if kind == "truth" else codec.decode_message(m.key, m.payload)
+                d = codec.decode_truth(m.payload, m.key, fields=truth_2d) if kind == "truth" else \
+                    codec.decode_message(m.key, m.payload)
                 if meta is None:
                     early.append((kind, d))
                 else:
@@ -493,7 +495,7 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
     for m in messages_of(run):
         kind = keys.parse_key(m.key).kind
         if kind in ("opr", "toa", "truth"):
-            msgs += session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+            msgs += session.add(kind, m.key, session.decode(kind, m.key, m.payload), m.seq)
     tail, summary = session.finish()
     return msgs + tail, summary
 
@@ -516,7 +518,7 @@ def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:
             batch.append(m)
             kind = keys.parse_key(m.key).kind
             if kind in ("opr", "toa", "truth"):
-                batch += session.add(kind, m.key, codec.decode_message(m.key, m.payload), m.seq)
+                batch += session.add(kind, m.key, session.decode(kind, m.key, m.payload), m.seq)
             if len(batch) >= 4096:
                 rec.write_all(batch)
                 batch = []

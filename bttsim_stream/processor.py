@@ -18,8 +18,8 @@ import logging
 
 import numpy as np
 
+from .bus import codec, keys
 from .bus.codec import Decoded
-from .bus import keys
 from .bus.stream import Completeness, KeyMissing, Message, MessageStream, RevolutionAssembler, SequenceTracker, \
     StreamEnd, acquisition_counts
 from .errors import BttsimError
@@ -96,6 +96,20 @@ class ProcessorSession:
         self.rejected += 1
         if self.rejected <= 3 or self.rejected % 1000 == 0:
             log.warning("rejected %d message(s); latest: %s", self.rejected, exc)
+
+    @staticmethod
+    def decode(kind: str, key: str, payload: bytes) -> Decoded:
+        """Decode a message of ``key`` (of kind ``kind``) for :meth:`add`: a truth message
+        without its per-probe fields, which the scoring does not use (checked all the same).
+
+        Raises
+        ------
+        BttsimError
+            A payload its decoder refuses.
+        """
+        if kind == "truth":
+            return codec.decode_truth(payload, key, fields=())
+        return codec.decode_message(key, payload)
 
     def add(self, kind: str, key: str, decoded: Decoded, seq: int | None = None) -> list[Message]:
         """Add a decoded ``opr``, ``toa`` or ``truth`` message (``seq``: its sequence number, if

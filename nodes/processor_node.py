@@ -25,7 +25,7 @@ import threading
 import time
 from pathlib import Path
 
-from bttsim_stream.bus import codec, keys
+from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, pack_attachment
 from bttsim_stream.bus.stream import missing_line
@@ -76,7 +76,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             key, payload, att = sample.key, sample.payload, sample.att
             try:  # every sample is untrusted: a bad one is counted and skipped
                 kind = kinds.get(key) or _kind(kinds, key)
-                item = (kind, key, codec.decode_message(key, payload), att[0] if att else None)
+                item = (kind, key, ProcessorSession.decode(kind, key, payload), att[0] if att else None)
             except BttsimError as exc:
                 if run is not None:
                     run.reject(exc)

@@ -706,3 +706,90 @@ def test_another_message_types_payload_on_a_key_is_refused():
     for m in (m for m in msgs if not m.key.endswith("/opr")):
         with pytest.raises(BttsimError, match=r"corrupt Opr \(fields that are not in its schema\)$"):
             codec.decode_opr(m.payload, "bttsim/rig1/opr")
+
+
+def test_truth_without_its_per_probe_fields_is_the_same_truth_and_checked_the_same():
+    """``decode_truth(..., fields=...)`` builds only the per-probe fields asked for (the others
+    None); every other field is the full decode's, and a payload the full decode refuses is
+    refused with the same message."""
+    rng = np.random.default_rng(5)
+    payload = _truth_message(rng).SerializeToString(deterministic=True)
+    full = codec.decode_truth(payload, "bttsim/rig1/truth")
+    for fields in ((), ("t_exp_s",), ("toa_s", "d_z_m")):
+        part = codec.decode_truth(payload, "bttsim/rig1/truth", fields=fields)
+        assert part.header == full.header
+        for name in TRUTH_2D:
+            got = getattr(part.body, name)
+            if name in fields:
+                np.testing.assert_array_equal(got, getattr(full.body, name))
+            else:
+                assert got is None
+        for name in ("opr_s", "omega_mean", "d_eqv_pkpk_m", "eo_engine_order", "eo_pkpk_m", "nsv_kind",
+                     "nsv_freq_hz", "nsv_nd", "nsv_amp_pkpk_m", "nsv_rms_m", "nsv_band_hz"):
+            a, b = getattr(part.body, name), getattr(full.body, name)
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert a.dtype == b.dtype and a.shape == b.shape
+                np.testing.assert_array_equal(a, b)
+    m = MessageStream("r", "rig1").acquisition(make_batch())[NP + 1]
+    bad = m.payload + _field(5, 0, _varint(4))  # n_probes = 4: the per-probe lengths do not fit
+    for fields in (None, ()):
+        with pytest.raises(BttsimError, match=r"toa_s has 145 values, expected 116 for shape \(29, 4\)"):
+            codec.decode_truth(bad, m.key, fields=fields)
+
+
+def test_probe_waves_at_once_are_the_bytes_of_one_at_a_time():
+    """``encode_probe_waves`` writes the wire format itself: every byte equals protobuf's
+    (``encode_probe_wave``) over run ids, sequence numbers, revolutions (-1, large), header
+    times (0, -0, NaN, inf), NaN and zero magnitudes, probe 0 (left out) and negative NDs."""
+    rng = np.random.default_rng(21)
+    n = 0
+    for _ in range(400):
+        npr, nnd = int(rng.integers(1, 9)), int(rng.integers(1, 20))
+        f = rng.random((npr, nnd)) * 10.0 ** float(rng.integers(-9, 3))
+        b = rng.random((npr, nnd))
+        f[rng.random(f.shape) < 0.1] = np.nan
+        b[rng.random(b.shape) < 0.1] = rng.choice([0.0, -0.0])
+        run_id = str(rng.choice(["", "r", "run-2026-12-03T17:00:00-abcdef", "x" * 200, "é-ü"]))
+        seq = [int(rng.choice([0, 1, 127, 128, 2 ** 32 + 5, 2 ** 63 + 7])) for _ in range(npr)]
+        rev = int(rng.choice([-1, 0, 1, 300, 2 ** 40]))
+        t = float(rng.choice([0.0, -0.0, 1.5, 1e-300, np.nan, np.inf, rng.random() * 100]))
+        nd = int(rng.integers(-nnd + 1, nnd))
+        got = codec.encode_probe_waves(run_id, seq, rev, t, f, b, nd)
+        assert len(got) == npr
+        for p in range(npr):
+            assert got[p] == codec.encode_probe_wave(codec.Header(run_id, seq[p], rev, t), ProbeWave(p, f[p], b[p], nd))
+            n += 1
+    assert n > 1000
+    with pytest.raises(ValueError, match="at least one nodal diameter"):
+        codec.encode_probe_waves("r", [0], 0, 0.0, np.zeros((1, 0)), np.zeros((1, 0)), 0)
+
+
+def test_fits_at_once_are_the_bytes_of_one_at_a_time():
+    """``encode_fits`` writes the wire format itself: every byte equals protobuf's
+    (``encode_fit`` of each order's ``RevolutionFit``), with zero, -0 and NaN values, several
+    engine orders and no blade at all."""
+    rng = np.random.default_rng(22)
+    n = 0
+    for _ in range(300):
+        nb, n_eo = int(rng.integers(0, 40)), int(rng.integers(1, 4))
+        eos = sorted(rng.choice(np.arange(1, 30), n_eo, replace=False).tolist())
+        arrays = [rng.normal(size=(nb, n_eo)) for _ in range(3)] + [rng.normal(size=nb) for _ in range(2)]
+        for a in arrays:
+            a[rng.random(a.shape) < 0.1] = rng.choice([np.nan, 0.0, -0.0])
+        omega, cn = (float(rng.choice([0.0, -0.0, 250.0 * rng.random()])) for _ in range(2))
+        freq = rng.choice([0.0, np.nan, 300.0], n_eo)
+        seq = [int(rng.choice([0, 5, 2 ** 40])) for _ in range(n_eo)]
+        rev, t = int(rng.choice([-1, 0, 7])), float(rng.choice([0.0, 2.5]))
+        amp, phase, std, dc, res = arrays
+        got = codec.encode_fits("run", seq, rev, t, eos, omega, freq, cn, amp, phase, std, dc, res)
+        for k, eo in enumerate(eos):
+            fit = RevolutionFit(engine_order=eo, omega_rad_s=omega, freq_hz=float(freq[k]), cn=cn,
+                                amp_pkpk_m=amp[:, k], phase_rad=phase[:, k], dc_m=dc, residual_rms_m=res,
+                                amp_std_m=std[:, k])
+            assert got[k] == codec.encode_fit(codec.Header("run", seq[k], rev, t), fit)
+            n += 1
+    assert n > 300
+    with pytest.raises(ValueError, match="fit arrays"):
+        codec.encode_fits("r", [0], 0, 0.0, (8,), 1.0, [1.0], 1.0, np.zeros((3, 1)), np.zeros((3, 1)),
+                          np.zeros((3, 1)), np.zeros(2), np.zeros(3))

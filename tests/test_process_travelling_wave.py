@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from bttsim_stream.process import (ProcessOptions, fit_revolutions, fit_spectra, identify_nd, probe_spectra,
-                                   process_arrays, signed_nd)
+from bttsim_stream.process import (ProcessOptions, TravellingWaveSpectra, fit_revolutions, fit_spectra, identify_nd,
+                                   probe_spectra, process_arrays, signed_nd)
 from bttsim_stream.paper.validate_processing import simulate
 
 PROBES = np.deg2rad([5.0, 15.15, 23.82, 220.0, 301.5])
@@ -77,3 +77,26 @@ def test_backward_excitation_is_identified_backward():
     run = simulate(dict(WINDOW, excitation=[{"engine_order": 8, "nodal_diameter": 28}]))
     res = process_arrays(run.opr_s, run.toa_s, run.info, ProcessOptions(calibration=None, prep=False))
     assert res.summary["nd"] == -1
+
+
+def test_dominant_nd_of_one_spectrum_equals_the_whole_array_rule():
+    """One revolution's spectrum (1-D) takes a shortcut when every value is finite: the same
+    signed ND as row by row of a 2-D array, with ties (forward wins, the first ND wins), NaN
+    and infinities."""
+    rng = np.random.default_rng(11)
+    rows = rng.random((400, 2, 15)).round(1)  # rounding: many ties
+    rows[::7, 0, 3] = np.nan
+    rows[::11, 1, :] = np.nan
+    rows[::13, 1, 4] = np.inf
+    rows[::17, 0, 2] = np.inf
+    rows[::19] = rows[::19, ::-1]  # a backward copy of the forward: ties across the directions
+    both = TravellingWaveSpectra(rows[:, 0], rows[:, 1], 29)
+    whole = both.dominant_nd
+    # reference: the rule spelled out (NaN the smallest, forward first on a tie)
+    for k, (f, b) in enumerate(rows):
+        f2, b2 = np.where(np.isnan(f), -np.inf, f), np.where(np.isnan(b), -np.inf, b)
+        i_f, i_b = int(np.argmax(f2)), int(np.argmax(b2))
+        want = -i_b if b2[i_b] > f2[i_f] else i_f
+        one = TravellingWaveSpectra(f, b, 29).dominant_nd
+        assert int(one) == want == int(whole[k])
+        assert one.shape == () and one.dtype == whole.dtype

@@ -53,8 +53,9 @@ from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 from .codec_base import (MAX_PAYLOAD_BYTES, PROTO_FILE, Decoded, Header, as_array, check_len, check_probe_key,
                          corrupt_error, fill_header, header_of, packed_doubles, parse_payload, serialize, as_vector,
                          file_descriptor_set, log_time_ns, schema_name_for)
-from .codec_bulk import (assemble, encode_opr_batch, encode_toa_batches, field_tag, header_parts, is_repeated,
-                         le_doubles, log_times_ns, packed_field, packed_varints, scalar_field)
+from .codec_bulk import (assemble, encode_fits, encode_opr_batch, encode_probe_waves, encode_toa_batches, field_tag,
+                         header_parts, is_repeated, le_doubles, log_times_ns, packed_field, packed_varints,
+                         scalar_field)
 from .codec_results import (decode_fit, decode_nsv, decode_probe_wave, decode_resonance_report, encode_fit,
                             encode_nsv, encode_probe_wave, encode_resonance_report)
 
@@ -85,8 +86,10 @@ __all__ = [
     "decode_signal_batch",
     "log_times_ns",
     "encode_fit",
+    "encode_fits",
     "decode_fit",
     "encode_probe_wave",
+    "encode_probe_waves",
     "decode_probe_wave",
     "encode_resonance_report",
     "decode_resonance_report",
@@ -559,9 +562,14 @@ def _decode_nsv(where: str, m, nb: int) -> dict:
             "nsv_band_hz": vals[3:5].T.reshape(1, k, 2).copy()}
 
 
-def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
+def decode_truth(payload: bytes, key: str | None = None, *, fields=None) -> Decoded:
     """Decode a :class:`bttsim.v1.TruthBatch` payload into ``(Header, Truth)`` with one
     revolution (arrays of shape (1, n_blades, n_probes), (1, n_blades) and (1,)).
+
+    ``fields``: the per-probe fields (``toa_s``, ``t_exp_s``, ``d_eqv_m``, ``d_tang_m``,
+    ``d_z_m``, ``d_eq1_m``) to build (default all; the others are None, e.g. for a consumer
+    that scores against the peak-to-peak envelope only). The checks are the same whatever it
+    keeps: a payload is refused, or not, for the same reasons.
 
     Raises
     ------
@@ -578,11 +586,16 @@ def decode_truth(payload: bytes, key: str | None = None) -> Decoded:
     if not (math.isfinite(m.opr_s) and math.isfinite(m.omega_mean_rad_s) and m.omega_mean_rad_s > 0):
         raise corrupt_error(where, m,
                             f"opr_s = {m.opr_s!r}, omega_mean_rad_s = {m.omega_mean_rad_s!r} (finite, speed > 0)")
-    raw = packed_doubles(bytes(payload), _TRUTH_NUMBERS)  # the lengths are checked above
+    kept = _TRUTH_2D if fields is None else tuple(n for n in _TRUTH_2D if n in fields)
+    numbers = _TRUTH_NUMBERS if fields is None else frozenset(
+        (_TRUTH_NUMBER_PKPK, *(k for n, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D) if n in kept)))
+    # the lengths are checked above; without a per-probe field the envelope alone is read
+    # through protobuf's container (one field: walking the payload would cost more)
+    raw = packed_doubles(bytes(payload), numbers) if kept else None
     if raw is None:
         raw = {}
-    arrays = {name: (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr)
-              for name, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D)}
+    arrays = {name: (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr) if name in kept
+              else None for name, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D)}
     k = _TRUTH_NUMBER_PKPK
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
                   d_eqv_pkpk_m=(raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb), **arrays,

@@ -5,6 +5,7 @@ numpy, vectorised over the messages of a batch (the same bytes as the one-messag
 from __future__ import annotations
 
 import functools
+import struct
 
 import numpy as np
 from google.protobuf import descriptor_pb2
@@ -12,8 +13,10 @@ from google.protobuf import descriptor_pb2
 from ._gen.bttsim.v1 import bttsim_pb2 as _pb
 from .codec_base import MAX_NS
 
-__all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "assemble", "field_tag",
-           "header_parts", "le_doubles", "packed_field", "packed_varints", "scalar_field", "varint_bytes"]
+__all__ = ["is_repeated", "log_times_ns", "encode_opr_batch", "encode_toa_batches", "encode_fits", "encode_probe_waves",
+           "assemble",
+           "field_tag", "header_bytes", "header_parts", "le_doubles", "packed_field", "packed_varints", "scalar_field",
+           "varint_bytes"]
 
 # --------------------------------------------------------------------------------------
 # Acquisition stream, many messages at once (the same bytes as the encoders above)
@@ -263,3 +266,109 @@ def varint_bytes(value: int) -> bytes:
         out.append(b | (0x80 if value else 0))
         if not value:
             return bytes(out)
+
+
+_MASK64 = (1 << 64) - 1
+_F8 = struct.Struct("<d")
+_ZERO8 = bytes(8)
+
+
+def _varint_field(tag: int, value: int) -> bytes:
+    """An integer field (``int32``/``int64``: a negative one as its 64-bit two's complement, ten
+    bytes; as protobuf), left out at 0."""
+    return varint_bytes(tag) + varint_bytes(int(value) & _MASK64) if value else b""
+
+
+def header_bytes(run_id: str, seq: int, revolution: int, t_s: float) -> bytes:
+    """The ``header`` field (field 1) of one message, as protobuf writes it (the header is set,
+    so present even when every field is at its default; those are left out)."""
+    rid = run_id.encode()
+    t = _F8.pack(float(t_s))
+    body = b"".join((
+        varint_bytes(field_tag(_pb.Header, "run_id")) + varint_bytes(len(rid)) + rid if rid else b"",
+        _varint_field(field_tag(_pb.Header, "seq"), seq),
+        _varint_field(field_tag(_pb.Header, "revolution"), revolution),
+        varint_bytes(field_tag(_pb.Header, "t_s")) + t if t != _ZERO8 else b""))
+    return b"\x0a" + varint_bytes(len(body)) + body
+
+
+def encode_probe_waves(run_id: str, seq, revolution: int, t_s: float, forward_m: np.ndarray,
+                       backward_m: np.ndarray, nd: int) -> list[bytes]:
+    """:func:`~.codec.encode_probe_wave` of every probe of one revolution at once (the same
+    bytes): probe ``p``'s ``TravellingWave`` numbered ``seq[p]``, its spectrum row ``p``.
+
+    Parameters
+    ----------
+    run_id : str
+    seq : sequence of int, length n_probes
+    revolution : int
+    t_s : float
+        Header time.
+    forward_m, backward_m : ndarray, shape (n_probes, n_nd)
+    nd : int
+        The revolution's dominant nodal diameter (every probe's message carries it).
+    """
+    fwd = np.ascontiguousarray(forward_m, dtype="<f8")
+    bwd = np.ascontiguousarray(backward_m, dtype="<f8")
+    if fwd.ndim != 2 or bwd.shape != fwd.shape:
+        raise ValueError(f"forward_m and backward_m: expected one shape (n_probes, n_nd), got {fwd.shape}, {bwd.shape}")
+    n_probes, n_nd = fwd.shape
+    if n_nd == 0:
+        raise ValueError("forward_m: at least one nodal diameter is needed")
+    w = 8 * n_nd
+    packed = varint_bytes(w)
+    tag_p, tag_f, tag_b = (varint_bytes(field_tag(_pb.TravellingWave, f)) for f in ("probe", "forward_m", "backward_m"))
+    mid = _varint_field(field_tag(_pb.TravellingWave, "n_nd"), n_nd)
+    tail = _varint_field(field_tag(_pb.TravellingWave, "dominant_nd"), nd)
+    fb, bb = fwd.tobytes(), bwd.tobytes()
+    return [b"".join((header_bytes(run_id, seq[p], revolution, t_s), tag_p + varint_bytes(p) if p else b"", mid,
+                      tag_f, packed, fb[p * w:(p + 1) * w], tag_b, packed, bb[p * w:(p + 1) * w], tail))
+            for p in range(n_probes)]
+
+
+def _double_field(tag: int, value: float) -> bytes:
+    """A proto3 double field, left out when its bits are zero (as protobuf)."""
+    v = _F8.pack(float(value))
+    return varint_bytes(tag) + v if v != _ZERO8 else b""
+
+
+def _packed_doubles(tag: int, values: np.ndarray) -> bytes:
+    """A packed repeated double field of a 1-D array, left out when empty."""
+    data = np.ascontiguousarray(values, dtype="<f8").tobytes()
+    return varint_bytes(tag) + varint_bytes(len(data)) + data if data else b""
+
+
+def encode_fits(run_id: str, seq, revolution: int, t_s: float, engine_orders, omega_rad_s: float, freq_hz,
+                cn: float, amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, amp_std_m: np.ndarray, dc_m: np.ndarray,
+                residual_rms_m: np.ndarray) -> list[bytes]:
+    """:func:`~.codec.encode_fit` of every engine order of one revolution at once (the same
+    bytes): order ``k``'s ``BladeFits`` numbered ``seq[k]`` (Eq. 16-17).
+
+    Parameters
+    ----------
+    run_id, seq, revolution, t_s
+        The headers, as :func:`encode_probe_waves` (``seq``: one number per engine order).
+    engine_orders : sequence of int, length n_eo
+    omega_rad_s : float
+    freq_hz : array_like, shape (n_eo,)
+    cn : float
+    amp_pkpk_m, phase_rad, amp_std_m : ndarray, shape (n_blades, n_eo)
+    dc_m, residual_rms_m : ndarray, shape (n_blades,)
+    """
+    amp, phase, std = (np.asarray(a, dtype=float) for a in (amp_pkpk_m, phase_rad, amp_std_m))
+    dc, res = np.asarray(dc_m, dtype=float), np.asarray(residual_rms_m, dtype=float)
+    n_eo = len(engine_orders)
+    if amp.ndim != 2 or amp.shape[1] != n_eo or phase.shape != amp.shape or std.shape != amp.shape \
+            or dc.shape != amp.shape[:1] or res.shape != amp.shape[:1]:
+        raise ValueError(f"fit arrays: expected shapes (n_blades, {n_eo}) and (n_blades,), got {amp.shape}, "
+                         f"{phase.shape}, {std.shape}, {dc.shape}, {res.shape}")
+    tag = functools.partial(field_tag, _pb.BladeFits)
+    common = (_double_field(tag("omega_mean_rad_s"), omega_rad_s),)
+    rest = (_packed_doubles(tag("dc_m"), dc), _packed_doubles(tag("residual_m"), res))
+    head = _varint_field(tag("n_blades"), amp.shape[0])
+    return [b"".join((header_bytes(run_id, seq[k], revolution, t_s), head,
+                      _varint_field(tag("engine_order"), int(engine_orders[k])), *common,
+                      _double_field(tag("freq_hz"), freq_hz[k]), _double_field(tag("cn"), cn),
+                      _packed_doubles(tag("amp_pkpk_m"), amp[:, k]), _packed_doubles(tag("phase_rad"), phase[:, k]),
+                      *rest, _packed_doubles(tag("amp_std_m"), std[:, k])))
+            for k in range(n_eo)]

@@ -387,11 +387,24 @@ class MessageStream:
         (:class:`~bttsim_stream.process.results.RevolutionOutput`): one ``BladeFits`` per
         engine order, then one ``TravellingWave`` per probe; header time: the OPR."""
         rev, t = int(output.revolution), float(output.opr_s)
-        out = [self._message(self._k_fit, rev, t, codec.encode_fit, fit) for fit in output.fits()]
-        for wave in output.probe_waves():
-            while len(self._k_tw) <= wave.probe:
-                self._k_tw.append(keys.tw_key(self.rig, len(self._k_tw)))
-            out.append(self._message(self._k_tw[wave.probe], rev, t, codec.encode_probe_wave, wave))
+        log_ns = codec.log_time_ns(t)
+        # the fits (output.fits()) and the probes' waves (output.probe_waves()) written at
+        # once, each kind: the same bytes
+        eos = output.engine_orders
+        seqs = [self.sequencer.next(self._k_fit) for _ in eos]
+        payloads = codec.encode_fits(self.run_id, seqs, rev, t, eos, output.omega_rad_s, output.freq_hz, output.cn,
+                                     output.amp_pkpk_m, output.phase_rad, output.amp_std_m, output.dc_m,
+                                     output.residual_rms_m)
+        out = [Message(self._k_fit, payload, log_ns, seq) for payload, seq in zip(payloads, seqs)]
+        tw = output.probe_tw
+        n_probes = tw.forward_m.shape[0]
+        while len(self._k_tw) < n_probes:
+            self._k_tw.append(keys.tw_key(self.rig, len(self._k_tw)))
+        k_tw = self._k_tw[:n_probes]
+        seqs = [self.sequencer.next(k) for k in k_tw]
+        payloads = codec.encode_probe_waves(self.run_id, seqs, rev, t, tw.forward_m, tw.backward_m,
+                                            int(output.fit_tw.dominant_nd))
+        out += [Message(k, payload, log_ns, seq) for k, payload, seq in zip(k_tw, payloads, seqs)]
         return out
 
     def nsv(self, detection, *, t_s: float = 0.0) -> Message:
@@ -498,7 +511,7 @@ class RevolutionAssembler:
         self.max_ahead = int(max_ahead)
         self.reorder = max(1, int(reorder))
         self.max_ahead = max(self.max_ahead, self.reorder + 1)
-        self._newest = np.full(self.n_probes + 1, -1, dtype=np.int64)  # per source; [-1]: OPR
+        self._newest = [-1] * (self.n_probes + 1)  # per source; [-1]: OPR (a list: a few sources)
         self.duplicates = 0
         self._opr: dict[int, float] = {}
         self._toa: dict[int, np.ndarray] = {}
@@ -560,8 +573,8 @@ class RevolutionAssembler:
         # equivalently: every source not yet beyond it has delivered its part (the sources
         # behind are few, often the ones still sending it: the first such one decides)
         seen = self._seen.get(revolution, ())
-        for src in np.flatnonzero(self._newest <= revolution).tolist():
-            if not (revolution in self._opr if src == self.n_probes else src in seen):
+        for src, newest in enumerate(self._newest):
+            if newest <= revolution and not (revolution in self._opr if src == self.n_probes else src in seen):
                 return False
         return True
 

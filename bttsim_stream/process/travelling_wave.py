@@ -39,6 +39,7 @@ pk-pk amplitude ``2A`` on every blade gives ``2A`` at its ND). Arrays are
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,6 +71,12 @@ class TravellingWaveSpectra:
     @property
     def dominant_nd(self) -> np.ndarray:
         """Signed ND of the largest component (forward wins ties), shape (...)."""
+        f, b = self.forward_m, self.backward_m
+        if f.ndim == 1 and math.isfinite(np.add.reduce(f) + np.add.reduce(b)):
+            # one spectrum (a revolution's), every value finite (a finite sum): what nan_to_num
+            # would leave as it is, without its cost
+            i_f, i_b = int(np.argmax(f)), int(np.argmax(b))
+            return np.asarray(-i_b if b[i_b] > f[i_f] else i_f)
         f = np.nan_to_num(self.forward_m, nan=-np.inf)
         b = np.nan_to_num(self.backward_m, nan=-np.inf)
         i_f, i_b = np.argmax(f, axis=-1), np.argmax(b, axis=-1)
