@@ -22,8 +22,8 @@ from .codec_base import (Decoded, Header, as_array, check_len, check_probe_key, 
                          fill_header, header_of, parse_payload, serialize, as_vector)
 
 
-__all__ = ["encode_fit", "decode_fit", "encode_probe_wave", "decode_probe_wave", "encode_resonance_report",
-           "decode_resonance_report", "encode_nsv", "decode_nsv"]
+__all__ = ["encode_fit", "check_fit", "decode_fit", "encode_probe_wave", "check_probe_wave", "decode_probe_wave",
+           "encode_resonance_report", "decode_resonance_report", "encode_nsv", "decode_nsv"]
 
 _FIT_ARRAYS = (("amp_pkpk_m", "amp_pkpk_m"), ("phase_rad", "phase_rad"), ("dc_m", "dc_m"),
                ("residual_m", "residual_rms_m"), ("amp_std_m", "amp_std_m"))  # (proto, dataclass)
@@ -50,6 +50,16 @@ def encode_fit(header: Header, fit: RevolutionFit) -> bytes:
     return serialize(m)
 
 
+def check_fit(payload: bytes, key: str | None = None):
+    """Every check of :func:`decode_fit` (the same :class:`~bttsim_stream.errors.BttsimError`
+    for the same payloads), without building the fit: returns the parsed ``BladeFits``."""
+    m, where = parse_payload(_pb.BladeFits, payload, key)
+    nb = int(m.n_blades)
+    for proto_name, _ in _FIT_ARRAYS:
+        check_len(where, m, proto_name, nb, f"({nb},)")
+    return m
+
+
 def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
     """Decode a :class:`bttsim.v1.BladeFits` payload into ``(Header, RevolutionFit)``.
 
@@ -58,10 +68,7 @@ def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
-    m, where = parse_payload(_pb.BladeFits, payload, key)
-    nb = int(m.n_blades)
-    for proto_name, _ in _FIT_ARRAYS:
-        check_len(where, m, proto_name, nb, f"({nb},)")
+    m = check_fit(payload, key)
     fit = RevolutionFit(engine_order=int(m.engine_order), omega_rad_s=m.omega_mean_rad_s, freq_hz=m.freq_hz,
                         cn=m.cn, **{name: as_array(getattr(m, proto_name)) for proto_name, name in _FIT_ARRAYS})
     return Decoded(header_of(m.header), fit)
@@ -98,14 +105,11 @@ def _check_magnitudes(where: str, msg, *fields: str) -> list[np.ndarray]:
     return arrays
 
 
-def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
-    """Decode a :class:`bttsim.v1.TravellingWave` payload into ``(Header, ProbeWave)``.
-
-    Raises
-    ------
-    BttsimError
-        Unparsable or oversized payload, missing header, or inconsistent array lengths.
-    """
+def check_probe_wave(payload: bytes, key: str | None = None) -> tuple:
+    """Every check of :func:`decode_probe_wave` (the same
+    :class:`~bttsim_stream.errors.BttsimError` for the same payloads), without building the
+    wave: returns the parsed ``TravellingWave`` and its forward and backward magnitudes
+    (arrays, shape (n_nd,), m)."""
     m, where = parse_payload(_pb.TravellingWave, payload, key)
     n = int(m.n_nd)
     if n > MAX_BLADES // 2 + 1:
@@ -116,6 +120,18 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     if abs(m.dominant_nd) >= max(n, 1):
         raise corrupt_error(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
     check_probe_key(where, m, key, "tw")
+    return m, forward, backward
+
+
+def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
+    """Decode a :class:`bttsim.v1.TravellingWave` payload into ``(Header, ProbeWave)``.
+
+    Raises
+    ------
+    BttsimError
+        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+    """
+    m, forward, backward = check_probe_wave(payload, key)
     return Decoded(header_of(m.header), ProbeWave(probe=int(m.probe), forward_m=forward, backward_m=backward,
                                                 nd=int(m.dominant_nd)))
 
