@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 
 from ..errors import BttsimError
 from . import codec
@@ -111,8 +110,8 @@ class _KeyState:
         self.first = -1
         self.last = -1
         self.last_t = -1
-        self.win_seq = np.full(WINDOW, -1, dtype=np.int64)
-        self.win_hash = np.zeros(WINDOW, dtype=np.int64)
+        self.win_seq = [-1] * WINDOW  # lists: read and written an element at a time, from Python
+        self.win_hash = [0] * WINDOW
         self.source: str | None = None
 
     def has(self, seq: int) -> bool:
@@ -135,7 +134,7 @@ class _KeyState:
         """Is ``digest`` the written payload's (None: no longer known)?"""
         if self.win_seq[seq % WINDOW] != seq:
             return None
-        return bool(self.win_hash[seq % WINDOW] == digest)
+        return self.win_hash[seq % WINDOW] == digest
 
 
 class _Run:
@@ -247,7 +246,7 @@ class RecordGate:
         problem = self._problem(key, info, checked, seq, t_ns, run, source)
         if problem:
             return self._reject(key, payload, att, problem)
-        return self._number(key, payload, att, seq, t_ns, source, checked.decoded)
+        return self._number(key, payload, att, seq, t_ns, source, checked.decoded, info.kind)
 
     def _problem(self, key: str, info, checked, seq: int, t_ns: int, run: _Run, source) -> str:
         """Why a checked message (:class:`~bttsim_stream.bus.codec.Checked`) does not fit its
@@ -281,7 +280,7 @@ class RecordGate:
         run = self.runs.get(rig)
         if run is None:
             self.runs[rig] = _Run(decoded.body, digest, source)
-            v = self._number(key, payload, att, 0, int(att[1]), source, decoded)
+            v = self._number(key, payload, att, 0, int(att[1]), source, decoded, "meta")
             return Verdict(v.action, key, payload, 0, v.log_time_ns, meta=decoded.body, decoded=decoded)
         if digest != run.digest:
             self.conflicts_by_key[key] = self.conflicts_by_key.get(key, 0) + 1
@@ -290,11 +289,10 @@ class RecordGate:
         self.duplicates += 1
         return Verdict("duplicate", key, payload, 0)
 
-    def _number(self, key: str, payload: bytes, att, seq: int, t_ns: int, source, decoded=None) -> Verdict:
+    def _number(self, key: str, payload: bytes, att, seq: int, t_ns: int, source, decoded, kind: str) -> Verdict:
         st = self._keys.get(key)
         if st is None:
             st = self._keys[key] = _KeyState()
-        kind = key.split("/")[2]
         if kind in _RESULTS:
             if st.source is None and st.count == 0:
                 st.source = source

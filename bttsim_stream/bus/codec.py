@@ -839,7 +839,7 @@ _CHECKERS = {
     "bttsim.v1.ToaBatch": _checked_toa,
     "bttsim.v1.TruthBatch": _checked_truth,
     "bttsim.v1.BladeFits": lambda payload, key: Checked(header_of(check_fit(payload, key).header)),
-    "bttsim.v1.TravellingWave": lambda payload, key: Checked(header_of(check_probe_wave(payload, key)[0].header)),
+    "bttsim.v1.TravellingWave": lambda payload, key: Checked(header_of(check_probe_wave(payload, key).header)),
 }
 
 
