@@ -129,7 +129,8 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     Raises
     ------
     BttsimError
-        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+        Unparsable or oversized payload, missing header, inconsistent array lengths, a
+        magnitude below 0 or infinite, a dominant ND beyond ``n_nd`` or another probe's key.
     """
     m = check_probe_wave(payload, key)
     return Decoded(header_of(m.header), ProbeWave(probe=int(m.probe), forward_m=as_array(m.forward_m),
