@@ -52,7 +52,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
-    gate = RecordGate(rig)  # what is shown is admitted as the recorder admits what it writes
+    gate = RecordGate(rig, decode=True)  # what is shown is admitted as the recorder admits what it writes
     try:
         with node_session(conf, rig, "viewer", status_file=args.status_file) as node:
             node.url = sinks.web_url or ""

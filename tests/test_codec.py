@@ -274,6 +274,32 @@ def test_probe_wave_round_trip():
         codec.decode_probe_wave(codec.encode_probe_wave(_header(), wave), "bttsim/rig1/tw/1")
 
 
+_EDGE_VALUES = (0.0, -0.0, 1.5, 1e308, 5e-324, -5e-324, -1.0, math.nan, math.inf, -math.inf)
+
+
+@pytest.mark.parametrize("where", ["forward_m", "backward_m"])
+def test_probe_wave_magnitudes_are_refused_as_numpy_would_judge_them(where):
+    """A magnitude is >= 0 or NaN: each value at the edges, in one field or the other, among
+    others, refused exactly when numpy's NaN-skipping min is negative or its max infinite (the
+    rule the decoder applies without making an array)."""
+    for value in _EDGE_VALUES:
+        for others in ([], [0.3, math.nan], [2.0, 0.0, 7.0]):
+            values = np.array(others[:1] + [value] + others[1:])
+            rest = np.full(values.size, 0.25)
+            fwd, bwd = (values, rest) if where == "forward_m" else (rest, values)
+            payload = codec.encode_probe_wave(_header(), ProbeWave(probe=0, forward_m=fwd, backward_m=bwd, nd=0))
+            with np.errstate(invalid="ignore"):
+                bad = bool(np.fmin.reduce(values) < 0 or np.fmax.reduce(values) == np.inf)
+            for decode in (codec.decode_message, codec.check_message):
+                if bad:
+                    with pytest.raises(BttsimError, match=f"{where} must be >= 0"):
+                        decode("bttsim/rig1/tw/0", payload)
+                else:
+                    decode("bttsim/rig1/tw/0", payload)
+            if not bad:
+                np.testing.assert_array_equal(codec.decode_probe_wave(payload).body.forward_m, fwd)
+
+
 def _report(truth: bool) -> ResonanceReport:
     nb = 3
     peaks = ResonancePeaks(revolution=np.array([10.0, 11.0, 12.0]), amp_pkpk_m=2.3e-3 + 1e-5 * np.arange(nb),

@@ -43,6 +43,7 @@ from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus._gen.bttsim.v1 import bttsim_pb2 as pb
 from bttsim_stream.bus.recording import McapRecorder, read_recording
 from bttsim_stream.bus.stream import Message
+from bttsim_stream.errors import BttsimError
 from bttsim_stream.model import build_model, save_model
 from bttsim_stream.scenario import Scenario, scenario_from_dict, scenario_to_dict
 
@@ -1136,8 +1137,11 @@ def test_fuzz_recorder_gate(processed_mcap):
         while forged and rng.random() < 0.6:
             mixed.append(forged.pop())
     mixed += forged
+    whole = RecordGate("rig1", decode=True)  # a viewer's gate: decodes every message whole
     for key, payload, att, source in mixed:
-        for v in gate.admit(key, payload, att, source):
+        verdicts = gate.admit(key, payload, att, source)
+        assert [_verdict(v) for v in verdicts] == [_verdict(v) for v in whole.admit(key, payload, att, source)]
+        for v in verdicts:
             assert v.action in ("write", "duplicate", "reject"), v
             if v.action == "write":
                 d = codec.decode_message(v.key, v.payload)
@@ -1150,3 +1154,48 @@ def test_fuzz_recorder_gate(processed_mcap):
     assert gate.missing() == {} or all("/toa/" not in k and not k.endswith(("/opr", "/truth"))
                                        for k in gate.missing()), gate.missing()
     assert gate.rejected > N_GATE // 2, gate.summary()
+
+
+def _verdict(v) -> tuple:
+    return v.action, v.key, v.payload, v.seq, v.log_time_ns, v.reason, v.keep
+
+
+N_CHECK = 4000
+
+
+def test_fuzz_check_refuses_exactly_what_decode_refuses(processed_mcap):
+    """``check_message`` (the recorder's check, bodies not built) against ``decode_message`` on
+    hostile payloads of every message type: the same payloads refused, and for the others the
+    same header, blade count and OPR time."""
+    rng = random.Random(SEED + 10)
+    real = read_recording(processed_mcap).messages
+    kinds = sorted({keys.parse_key(m.key).kind for m in real})
+    refused = 0
+    for i in range(N_CHECK):
+        m = real[rng.randrange(len(real))] if i % 2 else rng.choice(
+            [x for x in real if keys.parse_key(x.key).kind == kinds[i // 2 % len(kinds)]])
+        kind = keys.parse_key(m.key).kind
+        if rng.random() < 0.5 or kind not in _PB:
+            payload, _ = mutate_bytes(rng, m.payload)
+        else:
+            p = _PB[kind]()
+            p.ParseFromString(m.payload)
+            mutate_proto(rng, p)
+            payload = p.SerializeToString()
+        key = m.key if rng.random() < 0.9 else rng.choice(real).key
+        try:
+            whole = codec.Checked.of(codec.decode_message(key, payload))
+        except BttsimError:
+            whole = None
+        try:
+            checked = codec.check_message(key, payload)
+        except BttsimError:
+            checked = None
+        assert (whole is None) == (checked is None), (key, payload[:80])
+        if whole is None:
+            refused += 1
+            continue
+        assert checked.header == whole.header or checked.header.t_s != checked.header.t_s
+        assert (checked.n_blades, checked.opr_s) == (whole.n_blades, whole.opr_s) or \
+            (checked.opr_s != checked.opr_s and whole.opr_s != whole.opr_s)
+    assert N_CHECK // 10 < refused < N_CHECK - N_CHECK // 10  # both sides of the line were tried

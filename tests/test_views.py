@@ -214,6 +214,29 @@ def test_views_eq1_is_the_simulators_exact_eq1_one_revolution_late(short_run):
 
 
 @pytest.mark.unit
+@pytest.mark.parametrize("sensing", [True, False], ids=["nominal", "calibrated"])
+def test_views_phases_of_many_revolutions_at_once_are_those_of_one_at_a_time(short_run, sensing):
+    """Revolutions shown in one batch (one rotor-phase call for all their OPR windows) are bit
+    for bit those shown one at a time (a call per revolution), over lost OPR pulses too."""
+    stream = decoded(short_run[1])
+    info = stream[0][1].body if sensing else dataclasses.replace(stream[0][1].body, sensing_angles_rad=None)
+    acq = [(k, m) for k, m in stream if k in ("opr", "toa") and not (k == "opr" and m.header.seq % 11 == 4)]
+    one, batch = RevolutionDisplacements(info), RevolutionDisplacements(info)
+    rows = []
+    for kind, msg in acq:
+        one.add(kind, msg)
+        batch.add(kind, msg)
+        rows.append(one.pop())
+    rows.append(one.pop(final=True))
+    rows = [r for r in rows if r is not None]
+    whole = batch.pop(final=True)
+    assert whole.revolution.size > N_REV // 2 and one.skipped == batch.skipped
+    for name in ("revolution", "opr_s", "omega_rad_s", "d_m"):
+        got = np.concatenate([getattr(r, name) for r in rows])
+        assert got.tobytes() == getattr(whole, name).tobytes(), name
+
+
+@pytest.mark.unit
 def test_views_eq1_without_sensing_angles_is_calibrated_on_the_first_revolutions(short_run):
     stream = decoded(short_run[1])
     info = dataclasses.replace(stream[0][1].body, sensing_angles_rad=None)

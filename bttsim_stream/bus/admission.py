@@ -31,9 +31,9 @@ closes); head, gaps and tail are counted against the run's known counts.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-import numpy as np
 
 from ..errors import BttsimError
 from . import codec
@@ -82,8 +82,9 @@ class Verdict:
     keep : bool
         For a refused message: whether to keep a copy on its ``rejected/`` channel.
     decoded : Decoded or None
-        For a message to write: the decoded message (a viewer shows it without decoding it
-        again).
+        For a message to write: the decoded message when the gate decodes (``decode=True``:
+        a viewer shows it without decoding it again; else only for the types
+        :func:`~bttsim_stream.bus.codec.check_message` decodes whole, None for the others).
     """
 
     action: str
@@ -109,8 +110,8 @@ class _KeyState:
         self.first = -1
         self.last = -1
         self.last_t = -1
-        self.win_seq = np.full(WINDOW, -1, dtype=np.int64)
-        self.win_hash = np.zeros(WINDOW, dtype=np.int64)
+        self.win_seq = [-1] * WINDOW  # lists: read and written an element at a time, from Python
+        self.win_hash = [0] * WINDOW
         self.source: str | None = None
 
     def has(self, seq: int) -> bool:
@@ -133,7 +134,7 @@ class _KeyState:
         """Is ``digest`` the written payload's (None: no longer known)?"""
         if self.win_seq[seq % WINDOW] != seq:
             return None
-        return bool(self.win_hash[seq % WINDOW] == digest)
+        return self.win_hash[seq % WINDOW] == digest
 
 
 class _Run:
@@ -153,6 +154,11 @@ class RecordGate:
     ----------
     rig : str or None
         The rig recorded (None: any); another rig's messages are refused.
+    decode : bool
+        True: every message written is decoded whole, and its verdict carries it (a viewer
+        shows it). False (a recorder, which writes payloads as they came): checked by
+        :func:`~bttsim_stream.bus.codec.check_message` -- every check of the decoder, the
+        same messages refused, without building the bodies it does not need.
 
     Attributes
     ----------
@@ -167,8 +173,9 @@ class RecordGate:
         Refused messages kept on ``rejected/`` channels.
     """
 
-    def __init__(self, rig: str | None = None) -> None:
+    def __init__(self, rig: str | None = None, *, decode: bool = False) -> None:
         self.rig = rig
+        self.decode = bool(decode)
         self.runs: dict[str, _Run] = {}
         self._keys: dict[str, _KeyState] = {}
         self._early: list = []
@@ -221,28 +228,30 @@ class RecordGate:
         if info.message_type is None:
             return self._reject(key, payload, att, "not a data key")
         try:
-            decoded = codec.decode_message(key, payload)
+            checked = codec.Checked.of(codec.decode_message(key, payload)) if self.decode or info.kind == "meta" \
+                else codec.check_message(key, payload)
         except BttsimError:
             return self._reject(key, payload, att, "does not decode")
         seq, t_ns = int(att[0]), int(att[1])
-        h = decoded.header
+        h = checked.header
         if h.seq != seq:
             return self._reject(key, payload, att, "header and attachment numbers differ")
         if codec.log_time_ns(h.t_s) != t_ns:
             return self._reject(key, payload, att, "header and attachment times differ")
         if info.kind == "meta":
-            return self._meta(key, payload, att, decoded, source)
+            return self._meta(key, payload, att, checked.decoded, source)
         run = self.runs.get(info.rig)
         if run is None:
             return Verdict("wait", key)
-        problem = self._problem(key, info, decoded, seq, t_ns, run, source)
+        problem = self._problem(key, info, checked, seq, t_ns, run, source)
         if problem:
             return self._reject(key, payload, att, problem)
-        return self._number(key, payload, att, seq, t_ns, source, decoded)
+        return self._number(key, payload, att, seq, t_ns, source, checked.decoded, info.kind)
 
-    def _problem(self, key: str, info, decoded, seq: int, t_ns: int, run: _Run, source) -> str:
-        """Why a decoded message does not fit its run ("" if it does)."""
-        meta, h, body = run.info, decoded.header, decoded.body
+    def _problem(self, key: str, info, checked, seq: int, t_ns: int, run: _Run, source) -> str:
+        """Why a checked message (:class:`~bttsim_stream.bus.codec.Checked`) does not fit its
+        run ("" if it does)."""
+        meta, h = run.info, checked.header
         if h.run_id != meta.run_id:
             return "another run"
         if info.kind in _PROBE_KINDS and not info.probe < meta.n_probes:
@@ -257,11 +266,9 @@ class RecordGate:
                 return "time goes back"
         elif not -1 <= h.revolution < meta.n_revolutions:
             return "a revolution number outside the run"
-        if info.kind == "toa" and body.toa_s.size != meta.n_blades:
+        if info.kind in ("toa", "truth") and checked.n_blades != meta.n_blades:
             return "a blade count other than the run's"
-        if info.kind == "truth" and np.shape(body.d_eqv_pkpk_m) != (1, meta.n_blades):
-            return "a blade count other than the run's"
-        if info.kind == "opr" and not np.isfinite(body.opr_s):
+        if info.kind == "opr" and not math.isfinite(checked.opr_s):
             return "an OPR time that is not finite"
         return ""
 
@@ -273,7 +280,7 @@ class RecordGate:
         run = self.runs.get(rig)
         if run is None:
             self.runs[rig] = _Run(decoded.body, digest, source)
-            v = self._number(key, payload, att, 0, int(att[1]), source, decoded)
+            v = self._number(key, payload, att, 0, int(att[1]), source, decoded, "meta")
             return Verdict(v.action, key, payload, 0, v.log_time_ns, meta=decoded.body, decoded=decoded)
         if digest != run.digest:
             self.conflicts_by_key[key] = self.conflicts_by_key.get(key, 0) + 1
@@ -282,11 +289,10 @@ class RecordGate:
         self.duplicates += 1
         return Verdict("duplicate", key, payload, 0)
 
-    def _number(self, key: str, payload: bytes, att, seq: int, t_ns: int, source, decoded=None) -> Verdict:
+    def _number(self, key: str, payload: bytes, att, seq: int, t_ns: int, source, decoded, kind: str) -> Verdict:
         st = self._keys.get(key)
         if st is None:
             st = self._keys[key] = _KeyState()
-        kind = key.split("/")[2]
         if kind in _RESULTS:
             if st.source is None and st.count == 0:
                 st.source = source

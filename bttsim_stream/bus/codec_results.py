@@ -22,8 +22,8 @@ from .codec_base import (Decoded, Header, as_array, check_len, check_probe_key, 
                          fill_header, header_of, parse_payload, serialize, as_vector)
 
 
-__all__ = ["encode_fit", "decode_fit", "encode_probe_wave", "decode_probe_wave", "encode_resonance_report",
-           "decode_resonance_report", "encode_nsv", "decode_nsv"]
+__all__ = ["encode_fit", "check_fit", "decode_fit", "encode_probe_wave", "check_probe_wave", "decode_probe_wave",
+           "encode_resonance_report", "decode_resonance_report", "encode_nsv", "decode_nsv"]
 
 _FIT_ARRAYS = (("amp_pkpk_m", "amp_pkpk_m"), ("phase_rad", "phase_rad"), ("dc_m", "dc_m"),
                ("residual_m", "residual_rms_m"), ("amp_std_m", "amp_std_m"))  # (proto, dataclass)
@@ -50,6 +50,16 @@ def encode_fit(header: Header, fit: RevolutionFit) -> bytes:
     return serialize(m)
 
 
+def check_fit(payload: bytes, key: str | None = None):
+    """Every check of :func:`decode_fit` (the same :class:`~bttsim_stream.errors.BttsimError`
+    for the same payloads), without building the fit: returns the parsed ``BladeFits``."""
+    m, where = parse_payload(_pb.BladeFits, payload, key)
+    nb = int(m.n_blades)
+    for proto_name, _ in _FIT_ARRAYS:
+        check_len(where, m, proto_name, nb, f"({nb},)")
+    return m
+
+
 def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
     """Decode a :class:`bttsim.v1.BladeFits` payload into ``(Header, RevolutionFit)``.
 
@@ -58,10 +68,7 @@ def decode_fit(payload: bytes, key: str | None = None) -> Decoded:
     BttsimError
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
-    m, where = parse_payload(_pb.BladeFits, payload, key)
-    nb = int(m.n_blades)
-    for proto_name, _ in _FIT_ARRAYS:
-        check_len(where, m, proto_name, nb, f"({nb},)")
+    m = check_fit(payload, key)
     fit = RevolutionFit(engine_order=int(m.engine_order), omega_rad_s=m.omega_mean_rad_s, freq_hz=m.freq_hz,
                         cn=m.cn, **{name: as_array(getattr(m, proto_name)) for proto_name, name in _FIT_ARRAYS})
     return Decoded(header_of(m.header), fit)
@@ -83,19 +90,37 @@ def encode_probe_wave(header: Header, wave: ProbeWave) -> bytes:
     return serialize(m)
 
 
-def _bad_magnitude(v: np.ndarray) -> bool:
-    """Is a value negative or infinite (NaN, not measured, is neither)?"""
-    return bool(v.size) and (np.fmin.reduce(v) < 0 or np.fmax.reduce(v) == np.inf)  # fmin/fmax skip NaN
+_NEGATIVE = (0.0).__gt__
 
 
-def _check_magnitudes(where: str, msg, *fields: str) -> list[np.ndarray]:
-    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative. Returns them, one
-    array a field (checked together: two reductions in all, not two a field)."""
-    arrays = [as_array(getattr(msg, field)) for field in fields]
-    if _bad_magnitude(np.concatenate(arrays)):
-        bad = next(f for f, v in zip(fields, arrays) if _bad_magnitude(v))
-        raise corrupt_error(where, msg, f"{bad} must be >= 0 and finite (NaN: missing)")
-    return arrays
+def _bad_magnitude(values) -> bool:
+    """Is one of a repeated field's values negative or infinite (NaN, not measured, is
+    neither)? Iterated in C over the field, no array made."""
+    return any(map(_NEGATIVE, values)) or math.inf in values
+
+
+def _check_magnitudes(where: str, msg, *fields: str) -> None:
+    """Magnitudes: >= 0 or NaN (not measured); never infinite or negative."""
+    for field in fields:
+        if _bad_magnitude(getattr(msg, field)):
+            raise corrupt_error(where, msg, f"{field} must be >= 0 and finite (NaN: missing)")
+
+
+def check_probe_wave(payload: bytes, key: str | None = None):
+    """Every check of :func:`decode_probe_wave` (the same
+    :class:`~bttsim_stream.errors.BttsimError` for the same payloads), without building the
+    wave: returns the parsed ``TravellingWave``."""
+    m, where = parse_payload(_pb.TravellingWave, payload, key)
+    n = int(m.n_nd)
+    if n > MAX_BLADES // 2 + 1:
+        raise corrupt_error(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
+    check_len(where, m, "forward_m", n, f"({n},)")
+    check_len(where, m, "backward_m", n, f"({n},)")
+    _check_magnitudes(where, m, "forward_m", "backward_m")
+    if abs(m.dominant_nd) >= max(n, 1):
+        raise corrupt_error(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
+    check_probe_key(where, m, key, "tw")
+    return m
 
 
 def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
@@ -104,19 +129,12 @@ def decode_probe_wave(payload: bytes, key: str | None = None) -> Decoded:
     Raises
     ------
     BttsimError
-        Unparsable or oversized payload, missing header, or inconsistent array lengths.
+        Unparsable or oversized payload, missing header, inconsistent array lengths, a
+        magnitude below 0 or infinite, a dominant ND beyond ``n_nd`` or another probe's key.
     """
-    m, where = parse_payload(_pb.TravellingWave, payload, key)
-    n = int(m.n_nd)
-    if n > MAX_BLADES // 2 + 1:
-        raise corrupt_error(where, m, f"n_nd = {n} (at most {MAX_BLADES // 2 + 1}, for {MAX_BLADES} blades)")
-    check_len(where, m, "forward_m", n, f"({n},)")
-    check_len(where, m, "backward_m", n, f"({n},)")
-    forward, backward = _check_magnitudes(where, m, "forward_m", "backward_m")
-    if abs(m.dominant_nd) >= max(n, 1):
-        raise corrupt_error(where, m, f"dominant_nd = {m.dominant_nd} with n_nd = {n}")
-    check_probe_key(where, m, key, "tw")
-    return Decoded(header_of(m.header), ProbeWave(probe=int(m.probe), forward_m=forward, backward_m=backward,
+    m = check_probe_wave(payload, key)
+    return Decoded(header_of(m.header), ProbeWave(probe=int(m.probe), forward_m=as_array(m.forward_m),
+                                                backward_m=as_array(m.backward_m),
                                                 nd=int(m.dominant_nd)))
 
 

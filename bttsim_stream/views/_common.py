@@ -83,6 +83,7 @@ class ViewOutput:
         self.rec = rec
         self.live = bool(live)
         self._styled: set[str] = set()
+        self._index: tuple | None = None  # (RevIndex, its time columns): views log one index to many entities
 
     def style(self, path: str, archetype) -> None:
         """Log a static style (series names, colours...) once per entity."""
@@ -116,7 +117,9 @@ class ViewOutput:
         """``send_columns`` of component columns whose instances split into rows of
         ``per_row`` (an int, or one length per row)."""
         lengths = np.full(len(index), per_row) if np.ndim(per_row) == 0 else np.asarray(per_row)
-        self.rec.send_columns(path, indexes=index.columns(), columns=columns.partition(lengths))
+        if self._index is None or self._index[0] is not index:
+            self._index = (index, index.columns())
+        self.rec.send_columns(path, indexes=self._index[1], columns=columns.partition(lengths))
 
 
 def palette(n: int) -> np.ndarray:

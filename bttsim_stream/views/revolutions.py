@@ -70,6 +70,33 @@ def _stack(phases: list[RotorPhase]) -> RotorPhase:
                         for f in ("opr_s", "omega0_rad_s", "alpha_rad_s2", "omega_mean_rad_s")))
 
 
+def _phases(ready: list) -> RotorPhase:
+    """The rotor phases of ``(revolution, phase)`` pairs, in order, as one :class:`RotorPhase`;
+    a phase given as the pulse times ``(prev, t0, next)`` is the middle row of
+    :func:`~bttsim_stream.process.displacement.rotor_phase_from_opr` of those three.
+
+    All such windows go through one call: laid end to end, row ``3 i + 1`` of the long
+    sequence depends on the pulses ``3 i .. 3 i + 2`` alone, by the same element-wise
+    operations, so it is the window's middle row bit for bit (the rows between two windows
+    are not used: their errors are ignored).
+    """
+    windows = [p for _, p in ready if isinstance(p, tuple)]
+    if not windows:
+        return _stack([p for _, p in ready])
+    with np.errstate(all="ignore"):
+        batch = rotor_phase_from_opr(np.array(windows, dtype=float).ravel()).rows(slice(1, None, 3))
+    if len(windows) == len(ready):
+        return batch
+    rows, i = [], 0
+    for _, p in ready:
+        if isinstance(p, tuple):
+            rows.append(batch.rows(slice(i, i + 1)))
+            i += 1
+        else:
+            rows.append(p)
+    return _stack(rows)
+
+
 class RevolutionDisplacements:
     """Speed and Eq. 1 displacement of each revolution of a stream, in revolution order.
 
@@ -131,7 +158,9 @@ class RevolutionDisplacements:
 
     def _phase(self, k: int, final: bool):
         """The rotor phase of revolution ``k`` (one row), None to wait for more, False if it
-        cannot have one (no neighbouring OPR pulse)."""
+        cannot have one (no neighbouring OPR pulse); with both neighbouring pulses, their
+        times and its own ``(prev, t0, next)`` (the row is computed with the others',
+        :func:`_phases`)."""
         prev, nxt = self._opr(k - 1), self._opr(k + 1)
         if final:
             prev, nxt = (math.nan if v is None else v for v in (prev, nxt))
@@ -139,7 +168,7 @@ class RevolutionDisplacements:
             return None
         t0 = self._opr(k)
         if not math.isnan(prev) and not math.isnan(nxt):
-            return rotor_phase_from_opr(np.array([prev, t0, nxt])).rows(slice(1, 2))
+            return prev, t0, nxt
         if not math.isnan(nxt):  # no predecessor: the acceleration of the next revolution
             nxt2 = self._opr(k + 2)
             if nxt2 is None and not final:
@@ -175,7 +204,7 @@ class RevolutionDisplacements:
             self._calibrate(ready[: self._n_cal])
         if not ready:
             return None
-        phase = _stack([p for _, p in ready])
+        phase = _phases(ready)
         toa = np.stack([r.toa_s for r, _ in ready])
         d, _ = displacements_from_phase(phase, toa, self._psi, self.geometry.tip_radius_m)
         return ShownRevolutions(revolution=np.array([r.revolution for r, _ in ready], dtype=np.int64),
@@ -184,7 +213,7 @@ class RevolutionDisplacements:
     def _calibrate(self, rows: list[tuple[Revolution, RotorPhase]]) -> None:
         """Arrival angles from the first revolutions; nominal (``2 pi b / n_blades``) where no
         arrival was seen."""
-        psi = calibrate_arrival_angles(_stack([p for _, p in rows]), np.stack([r.toa_s for r, _ in rows]),
+        psi = calibrate_arrival_angles(_phases(rows), np.stack([r.toa_s for r, _ in rows]),
                                        len(rows))
         self._psi = np.where(np.isfinite(psi), psi, self.geometry.nominal_arrival_angles())
 
