@@ -15,7 +15,8 @@ per key and reason, never shown. Completeness is the recorder's too: per key, th
 received (head, gaps, tail against the run's counts); exit status 3 when anything is missing.
 
 Stops when the nodes named by ``--until`` (default: the simulator) have gone and the bus is
-drained -- if the acquisition stream is not whole, after ``--drain-timeout`` seconds of
+drained -- if the run is not whole (its acquisition stream and, when ``--until`` names the
+processor, the processor's resonance report), after ``--drain-timeout`` seconds of
 silence (with ``--web`` it then finalises the .rrd, says so in its status, ``serving``, and
 keeps serving) -- after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
 the .rrd is finalised in every case. The web viewer (page and data server) listens on
@@ -58,9 +59,10 @@ def main(conf, args: argparse.Namespace) -> dict:
             node.url = sinks.web_url or ""
             # subscriber before the token: a simulator waiting for our token finds our subscription
             node.subscribe(keys.all_key(rig), history=True)
-            node.watch_nodes(tuple(n for n in args.until.split(",") if n) or ("sim",))
+            until = tuple(n for n in args.until.split(",") if n) or ("sim",)
+            node.watch_nodes(until)
             node.announce()
-            _show(node, live, gate, stop, args.drain_timeout)
+            _show(node, live, gate, stop, args.drain_timeout, report="processor" in until)
             live.close()
             counts = _report(live.stats, gate, rig)
             node.status("done", counts)
@@ -77,13 +79,22 @@ def main(conf, args: argparse.Namespace) -> dict:
     return counts
 
 
-def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float) -> None:
+def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float, *, report: bool = False) -> None:
     """Feed the rig's admitted samples (status keys aside) to the views until the watched
-    nodes end (and, if the acquisition stream is not whole, ``drain_s`` of silence after)."""
+    nodes end (and, if the run is not whole, ``drain_s`` of silence after). The run is whole
+    once its acquisition stream came in and, with ``report`` (the processor is followed), the
+    processor's resonance report: its last output, which a link that lags may deliver after
+    the processor's token has gone."""
     from bttsim_stream.views.live import Incoming
 
     ends: list = []  # has the whole acquisition stream come in?
-    for sample in node.samples(stop, poll_s=0.02, done=lambda: bool(ends) and ends[0].done, patience_s=drain_s):
+    reported: list = []  # the report, once shown
+    resonance_key = keys.resonance_key(gate.rig)
+
+    def whole() -> bool:
+        return bool(ends) and ends[0].done and (bool(reported) or not report)
+
+    for sample in node.samples(stop, poll_s=0.02, done=whole, patience_s=drain_s):
         if sample is None:
             live.poll()
             continue
@@ -94,6 +105,8 @@ def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float) -> None:
                 continue
             parts = v.key.split("/")
             live.feed_decoded(Incoming(parts[2], parts[1], v.decoded))
+            if v.key == resonance_key:
+                reported.append(True)
             if v.meta is not None:
                 node.ready()
                 ends.append(StreamEnd(v.meta))
