@@ -284,7 +284,7 @@ class NodeContext:
         self._others: list = []
         self.watch: NodeWatch | None = None
         self._ready = False
-        self._done: set[str] = set()  # rigs whose whole stream this node has confirmed
+        self._confirmed: set[str] = set()  # the confirmation tokens declared (done, awaiting, reported)
         self.status_file = status_file
         #: The web viewer's address, sent with every status ("" when none).
         self.url = ""
@@ -408,10 +408,15 @@ class NodeContext:
         """Declare (once per rig) the token ``bttsim/<rig>/done/<name>``: this node has the
         whole acquisition stream (:class:`~bttsim_stream.bus.stream.StreamEnd`); the
         simulator waits for it before it closes its session."""
-        rig = rig or self.rig
-        if rig not in self._done:
-            self._done.add(rig)
-            self.declare(self.session.liveliness().declare_token(keys.done_key(rig, self.name)))
+        self.confirm(keys.done_key, rig)
+
+    def confirm(self, token_key, rig: str | None = None) -> None:
+        """Declare (once per rig) the liveliness token ``token_key(rig, name)``
+        (:func:`~bttsim_stream.bus.keys.done_key`, ``awaiting_key``, ``reported_key``)."""
+        key = token_key(rig or self.rig, self.name)
+        if key not in self._confirmed:
+            self._confirmed.add(key)
+            self.declare(self.session.liveliness().declare_token(key))
 
     def watch_nodes(self, names, grace_s: float = 5.0) -> NodeWatch:
         """Follow the named nodes' liveliness: :meth:`samples` ends once they are gone."""

@@ -11,7 +11,10 @@ Liveliness: ``bttsim/<rig>/alive/processor``; status ``bttsim/<rig>/status/proce
 with the report's completeness counts and the acquisition numbers not received, per key).
 Ends when the simulator's token goes (at once if the whole acquisition stream came in, else
 after ``--drain-timeout`` seconds of silence: it may come back, a router restart), on
-``--duration``, SIGINT or SIGTERM. Exit status 3 when the result does not rest on the whole
+``--duration``, SIGINT or SIGTERM. After its report it stays until every node that awaits
+it (token ``bttsim/<rig>/awaiting/<node>``: a recorder or viewer that follows the processor)
+has it (``bttsim/<rig>/reported/<node>``), at most ``--drain-timeout`` seconds: closing the
+session drops what is still queued. Exit status 3 when the result does not rest on the whole
 run (no report, revolutions missing or lost; the log says what is missing per key).
 """
 
@@ -27,7 +30,7 @@ from pathlib import Path
 
 from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
-from bttsim_stream.bus.session import StopFlag, pack_attachment
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done
 from bttsim_stream.bus.stream import missing_line
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.offline import add_processing_arguments, processing_options
@@ -115,6 +118,12 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             if args.summary:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
             print(summary_table(summary), flush=True)
+            if not stop:  # the report may still be queued, and closing the session drops it
+                waiting = wait_for_done(node.session, rig, args.drain_timeout, stop, asked="awaiting",
+                                        given="reported")
+                if waiting:
+                    log.warning("leaving before %s confirmed the report (%g s)", ", ".join(sorted(waiting)),
+                                args.drain_timeout)
         node.status("done", _final_stats(summary, args.summary, missing))
     _log_verdict(summary, missing)
     return summary

@@ -16,7 +16,8 @@ Completeness: the run metadata fixes the count of the metadata, OPR, TOA and tru
 (``n_revolutions`` each, numbered from 0); the recording is complete when every one of them
 is whole to its last number, nothing is missing on the other keys (result keys: fits,
 travelling waves, resonance reports -- checked before their first and between their numbers
-received; their count is not known) and nothing conflicted. A number that fills a gap late (a
+received; their count is not known; when ``--until`` names the processor, its resonance
+report must have come: one message, numbered 0) and nothing conflicted. A number that fills a gap late (a
 publisher's cache replayed after the recorder stalled) closes it. A run with no metadata
 received is incomplete. Keys of no run (another rig, a probe the run does not have) are
 refused and listed in ``foreign_keys``. The statistics -- ``complete``, ``missing`` and
@@ -27,8 +28,10 @@ the ``stats`` of the node's final status (``bttsim/<rig>/status/recorder``, stat
 also to ``--status-file``). Status keys themselves are not recorded. Liveliness:
 ``bttsim/<rig>/alive/recorder``.
 
-Stops when the liveliness tokens of the nodes named by ``--until`` (default: the simulator,
-``alive/sim``) have gone -- at once if the whole acquisition stream came in, else after
+Following the processor, the recorder declares ``bttsim/<rig>/awaiting/recorder`` with the run
+metadata and ``bttsim/<rig>/reported/recorder`` once it has the report: the processor stays
+until then. Stops when the liveliness tokens of the nodes named by ``--until`` (default: the
+simulator, ``alive/sim``) have gone -- at once if the whole acquisition stream came in, else after
 ``--drain-timeout`` seconds of silence (they may come back: a router restart) -- after
 ``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every case. After
 SIGKILL the file reads back up to its last complete chunk. A recorder that misses numbers (a
@@ -73,8 +76,11 @@ def main(conf, args: argparse.Namespace) -> dict:
     rig = args.rig if args.rig == "*" else keys.validate_rig(args.rig)
     until = tuple(n for n in args.until.split(",") if n)
     stop = StopFlag(args.duration)
-    gate = RecordGate(None if rig == "*" else rig)
-    ends: dict[str, StreamEnd] = {}  # per rig: has the whole acquisition stream come in?
+    # the whole run: every rig's acquisition and, when the processor is followed, its report
+    # (its last output: a link that lags may deliver it after the processor's token has gone)
+    report = "processor" in until
+    gate = RecordGate(None if rig == "*" else rig, report=report)
+    ends: dict[str, StreamEnd] = {}  # per rig: has the whole run (acquisition, report) come in?
     with McapRecorder(args.out) as rec, \
             node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=INBOX_SIZE,
                          fifo_size=args.queue,
@@ -84,12 +90,9 @@ def main(conf, args: argparse.Namespace) -> dict:
             node.watch_nodes(until)
         node.announce()
         act = _Actions(rec, node, gate, ends)
-        # the whole run: every rig's acquisition and, when the processor is followed, its report
-        # (its last output: a link that lags may deliver it after the processor's token has gone)
-        report = "processor" in until
 
         def whole() -> bool:
-            return bool(ends) and all(e.done and (not report or r in act.reported) for r, e in ends.items())
+            return bool(ends) and all(e.whole for e in ends.values())
 
         for sample in node.samples(stop, done=whole, patience_s=args.drain_timeout):
             act.take(sample)
@@ -126,7 +129,6 @@ class _Actions:
         self._asked = 0.0
         self.recovered = 0
         self._pending: list = []  # verdicts to write, in order (see WRITE_BATCH)
-        self.reported: set = set()  # the rigs whose resonance report was written
 
     def take(self, sample) -> None:
         """Judge a received sample and act on the verdicts; after a gap opened, ask the
@@ -160,21 +162,24 @@ class _Actions:
                 info = v.meta
                 self.write_pending()  # the file keeps the order of the verdicts
                 self.rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)
-                self.ends[info.rig] = StreamEnd(info)
+                self.ends[info.rig] = StreamEnd(info, report=self.gate.report)
                 self.node.ready()
+                if self.gate.report:  # the processor stays until we have its report
+                    self.node.confirm(keys.awaiting_key, info.rig)
             self._pending.append(v)
             if len(self._pending) >= WRITE_BATCH:
                 self.write_pending()
             key_rig = v.key.split("/", 2)[1]
-            if v.key == keys.resonance_key(key_rig):
-                self.reported.add(key_rig)
             end = self.ends.get(key_rig)
-            if end is not None and not end.done:
+            if end is not None and not end.whole:
+                done, reported = end.done, end.reported
                 end.note(v.key, v.seq)
-                if end.done:
+                if end.done and not done:
                     if self.gate.missing():  # the last numbers are in, not all before: ask before saying so
                         self.catch_up(force=True)
                     self.node.done(key_rig)
+                if end.reported and not reported:  # the processor may leave now
+                    self.node.confirm(keys.reported_key, key_rig)
         elif v.action == "reject":
             n = self.gate.rejected
             if n <= 3 or n in _LOG_AT:  # a flood is logged a few times, counted whole

@@ -53,16 +53,18 @@ def main(conf, args: argparse.Namespace) -> dict:
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
-    gate = RecordGate(rig, decode=True)  # what is shown is admitted as the recorder admits what it writes
+    until = tuple(n for n in args.until.split(",") if n) or ("sim",)
+    # what is shown is admitted as the recorder admits what it writes (following the processor:
+    # its report expected too)
+    gate = RecordGate(rig, decode=True, report="processor" in until)
     try:
         with node_session(conf, rig, "viewer", status_file=args.status_file) as node:
             node.url = sinks.web_url or ""
             # subscriber before the token: a simulator waiting for our token finds our subscription
             node.subscribe(keys.all_key(rig), history=True)
-            until = tuple(n for n in args.until.split(",") if n) or ("sim",)
             node.watch_nodes(until)
             node.announce()
-            _show(node, live, gate, stop, args.drain_timeout, report="processor" in until)
+            _show(node, live, gate, stop, args.drain_timeout)
             live.close()
             counts = _report(live.stats, gate, rig)
             node.status("done", counts)
@@ -79,20 +81,19 @@ def main(conf, args: argparse.Namespace) -> dict:
     return counts
 
 
-def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float, *, report: bool = False) -> None:
+def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float) -> None:
     """Feed the rig's admitted samples (status keys aside) to the views until the watched
     nodes end (and, if the run is not whole, ``drain_s`` of silence after). The run is whole
-    once its acquisition stream came in and, with ``report`` (the processor is followed), the
-    processor's resonance report: its last output, which a link that lags may deliver after
-    the processor's token has gone."""
+    once its acquisition stream came in and, when the gate expects it (the processor is
+    followed), the processor's resonance report: its last output, which a link that lags may
+    deliver after the processor's token has gone (the processor waits for our ``reported``
+    token, up to its ``--drain-timeout``)."""
     from bttsim_stream.views.live import Incoming
 
-    ends: list = []  # has the whole acquisition stream come in?
-    reported: list = []  # the report, once shown
-    resonance_key = keys.resonance_key(gate.rig)
+    ends: list = []  # has the whole run (acquisition, report) come in?
 
     def whole() -> bool:
-        return bool(ends) and ends[0].done and (bool(reported) or not report)
+        return bool(ends) and ends[0].whole
 
     for sample in node.samples(stop, poll_s=0.02, done=whole, patience_s=drain_s):
         if sample is None:
@@ -105,15 +106,19 @@ def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float, *, repor
                 continue
             parts = v.key.split("/")
             live.feed_decoded(Incoming(parts[2], parts[1], v.decoded))
-            if v.key == resonance_key:
-                reported.append(True)
             if v.meta is not None:
                 node.ready()
-                ends.append(StreamEnd(v.meta))
-            elif ends and not ends[0].done:
-                ends[0].note(v.key, v.seq)
-                if ends[0].done:
+                if gate.report:  # the processor stays until we have its report
+                    node.confirm(keys.awaiting_key)
+                ends.append(StreamEnd(v.meta, report=gate.report))
+            elif ends and not ends[0].whole:
+                end = ends[0]
+                done, reported = end.done, end.reported
+                end.note(v.key, v.seq)
+                if end.done and not done:
                     node.done()
+                if end.reported and not reported:  # the processor may leave now
+                    node.confirm(keys.reported_key)
 
 
 def _report(st: dict, gate: RecordGate, rig: str) -> dict:

@@ -336,6 +336,55 @@ def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(sc
     assert "ignored 1" in err, err
 
 
+@pytest.mark.parametrize("confirm", [True, False], ids=["confirmed", "never-confirmed"])
+def test_processor_stays_until_the_nodes_awaiting_its_report_have_it(scenario, confirm):
+    """Closing a session drops what is still queued (on a slow or lossy link: the last fits
+    and the report). After its report the processor stays while a node that declared an
+    ``awaiting`` token has no ``reported`` token, and leaves once it has one; a node that
+    never confirms is waited for ``--drain-timeout`` seconds, and the processor says so."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
+    from bttsim_stream.scenario import load_scenario
+
+    acq = AcquisitionStream(load_scenario(scenario), include_truth=False)
+    msgs = [acq.meta] + [m for _, ms in acq.batches() for m in ms]
+    port, drain_s = free_port(), 5.0
+    proc = _start("bttsim_stream.nodes.processor_node", "--rig", "rig1", "--no-score", "--drain-timeout", drain_s,
+                  "-l", f"tcp/127.0.0.1:{port}")
+    try:
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            reports: queue.Queue = queue.Queue()
+            sub = session.declare_subscriber("bttsim/rig1/resonance", lambda s: reports.put(time.monotonic()))
+            token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
+            awaiting = session.liveliness().declare_token("bttsim/rig1/awaiting/probe")
+            assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
+            pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                    for k in {m.key for m in msgs}}
+            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
+            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            for m in msgs:
+                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+            assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
+            token.undeclare()
+            t_report = reports.get(timeout=120)
+            assert proc.poll() is None  # the report is in, not confirmed: the processor stays
+            if confirm:
+                reported = session.liveliness().declare_token("bttsim/rig1/reported/probe")
+            out, err = proc.communicate(timeout=120)
+            t_end = time.monotonic()
+            if confirm:
+                reported.undeclare()
+            awaiting.undeclare()
+            sub.undeclare()
+    finally:
+        _stop(proc)
+    assert proc.returncode == 0, err
+    assert ("leaving before probe confirmed the report (5 s)" in err) is not confirm, err
+    if not confirm:
+        assert t_end - t_report >= drain_s - 1.0, (t_end - t_report, err)
+
+
 def test_processor_node_publishes_non_synchronous_vibration(tmp_path):
     """A flutter recording (analytic response, tests/_nsv_truth.py) published to the processor
     node: NonSynchronous messages arrive on ``bttsim/rig1/nsv`` during the run (one per detected

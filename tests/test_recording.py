@@ -424,6 +424,34 @@ def meta_run_id(meta) -> str:
     return codec.decode_run_metadata(meta.payload, meta.key).body.run_id
 
 
+def test_a_gate_that_follows_the_processor_needs_its_report(run_messages):
+    """Following the processor, a run whose acquisition is whole but whose resonance report
+    never came is incomplete, and says so; the report (number 0) makes it complete. Not
+    following it, the report is not asked for."""
+    from bttsim_stream.bus.admission import RecordGate
+    from bttsim_stream.process.resonance import ResonancePeaks, resonance_report
+
+    meta, msgs = run_messages
+    nb = codec.decode_run_metadata(meta.payload, meta.key).body.n_blades
+    peaks = ResonancePeaks(revolution=np.arange(nb, dtype=float), amp_pkpk_m=np.full(nb, 1e-3),
+                           freq_hz=np.full(nb, 300.0), damping_ratio=np.full(nb, np.nan), method="max")
+    report = codec.encode_resonance_report(codec.Header(meta_run_id(meta), 0, 11, msgs[-1].log_time_ns * 1e-9),
+                                           resonance_report(peaks, nd=1, eo=8, cn=1.4))
+    gates = {follows: RecordGate("rig1", report=follows) for follows in (False, True)}
+    for gate in gates.values():
+        for m in [meta, *msgs]:
+            _admit(gate, m)
+    assert gates[False].completeness("rig1")["complete"] is True
+    c = gates[True].completeness("rig1")
+    assert c["complete"] is False and c["missing"] == 1
+    assert c["missing_by_key"] == {"bttsim/rig1/resonance": {"head": 1, "gaps": 0, "tail": 0}}
+    assert "no resonance report from the processor (rig1)" in c["incomplete"]
+    (v,) = gates[True].admit("bttsim/rig1/resonance", report, (0, msgs[-1].log_time_ns), "processor")
+    assert v.action == "write", v
+    c = gates[True].completeness("rig1")
+    assert c["complete"] is True and c["missing"] == 0 and c["incomplete"] == ""
+
+
 def test_the_gate_counts_head_gaps_and_tail_and_a_late_number_closes_its_gap(run_messages):
     from bttsim_stream.bus.admission import RecordGate
 

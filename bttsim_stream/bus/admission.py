@@ -159,6 +159,10 @@ class RecordGate:
         shows it). False (a recorder, which writes payloads as they came): checked by
         :func:`~bttsim_stream.bus.codec.check_message` -- every check of the decoder, the
         same messages refused, without building the bodies it does not need.
+    report : bool
+        True (a receiver that follows the processor): each run's resonance report is
+        expected too, one message numbered 0 on ``bttsim/<rig>/resonance``; a run without it
+        is incomplete (the processor's last output never came).
 
     Attributes
     ----------
@@ -173,9 +177,10 @@ class RecordGate:
         Refused messages kept on ``rejected/`` channels.
     """
 
-    def __init__(self, rig: str | None = None, *, decode: bool = False) -> None:
+    def __init__(self, rig: str | None = None, *, decode: bool = False, report: bool = False) -> None:
         self.rig = rig
         self.decode = bool(decode)
+        self.report = bool(report)
         self.runs: dict[str, _Run] = {}
         self._keys: dict[str, _KeyState] = {}
         self._early: list = []
@@ -337,10 +342,13 @@ class RecordGate:
         return sum(self.conflicts_by_key.values())
 
     def expected(self) -> dict[str, int]:
-        """``{key: n}`` of every key whose count a run's metadata fixes."""
+        """``{key: n}`` of every key whose count a run's metadata fixes (and, with ``report``,
+        the resonance report's: at least one)."""
         out: dict[str, int] = {}
-        for run in self.runs.values():
+        for rig, run in self.runs.items():
             out.update(run.counts)
+            if self.report:
+                out[_keys.resonance_key(rig)] = 1
         return out
 
     def missing(self) -> dict[str, KeyMissing]:
@@ -375,6 +383,10 @@ class RecordGate:
             why.append(f"no run metadata received{f' for {rig}' if rig else ''}")
         if missing:
             why.append(missing_line(missing))
+        unreported = sorted(k.split("/")[1] for k in missing
+                            if k.endswith("/resonance") and not getattr(self._keys.get(k), "count", 0))
+        if unreported:
+            why.append(f"no resonance report from the processor ({', '.join(unreported)})")
         if self.conflicts:
             why.append(f"{self.conflicts} conflicting message(s) (" + ", ".join(
                 f"{k.split('/', 2)[-1]} {n}" for k, n in self.conflicts_by_key.items()) + ")")

@@ -16,6 +16,10 @@ key                                message                       notes
 ``bttsim/<rig>/resonance``         ``bttsim.v1.ResonanceReport`` per report
 ``bttsim/<rig>/nsv``               ``bttsim.v1.NonSynchronous``  per detected block (NSV)
 ``bttsim/<rig>/alive/<node>``      (none)                        liveliness token of a node
+``bttsim/<rig>/ready/<node>``      (none)                        token: has the run metadata
+``bttsim/<rig>/done/<node>``       (none)                        token: has the acquisition
+``bttsim/<rig>/awaiting/<node>``   (none)                        token: follows the processor
+``bttsim/<rig>/reported/<node>``   (none)                        token: has the report
 ``bttsim/<rig>/status/<node>``     JSON ``bttsim.status.v1``     a node's state and statistics
 =================================  ============================  ===============================
 
@@ -48,6 +52,10 @@ __all__ = [
     "nsv_key",
     "alive_key",
     "alive_all_key",
+    "ready_key",
+    "done_key",
+    "awaiting_key",
+    "reported_key",
     "status_key",
     "status_all_key",
     "is_status_key",
@@ -164,21 +172,37 @@ def alive_key(rig: str, node: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/alive/{node}"
 
 
+def _token_key(rig: str, kind: str, node: str) -> str:
+    if not _NAME_RE.fullmatch(str(node)):
+        raise BttsimError(f"invalid node name {node!r} (expected [A-Za-z0-9_-]+)")
+    return f"{PREFIX}/{validate_rig(rig)}/{kind}/{node}"
+
+
 def ready_key(rig: str, node: str) -> str:
     """Liveliness token of a node that has the run's metadata (``bttsim/<rig>/ready/<node>``):
     its subscriptions demonstrably reach the publisher, so the simulator may start."""
-    if not _NAME_RE.fullmatch(str(node)):
-        raise BttsimError(f"invalid node name {node!r} (expected [A-Za-z0-9_-]+)")
-    return f"{PREFIX}/{validate_rig(rig)}/ready/{node}"
+    return _token_key(rig, "ready", node)
 
 
 def done_key(rig: str, node: str) -> str:
     """Liveliness token of a node that has received the whole acquisition stream of the run
     (``bttsim/<rig>/done/<node>``): the simulator waits for it before it leaves, since what it
     published is still on its way until then."""
-    if not _NAME_RE.fullmatch(str(node)):
-        raise BttsimError(f"invalid node name {node!r} (expected [A-Za-z0-9_-]+)")
-    return f"{PREFIX}/{validate_rig(rig)}/done/{node}"
+    return _token_key(rig, "done", node)
+
+
+def awaiting_key(rig: str, node: str) -> str:
+    """Liveliness token of a node that follows the processor (``bttsim/<rig>/awaiting/<node>``,
+    declared with the run's metadata): it counts the run whole only with the processor's
+    resonance report, and the processor waits for its :func:`reported_key` before it leaves."""
+    return _token_key(rig, "awaiting", node)
+
+
+def reported_key(rig: str, node: str) -> str:
+    """Liveliness token of a node that has received the processor's resonance report
+    (``bttsim/<rig>/reported/<node>``): the processor's last output is in, so it may close
+    its session (which drops what is still queued)."""
+    return _token_key(rig, "reported", node)
 
 
 def status_key(rig: str, node: str) -> str:

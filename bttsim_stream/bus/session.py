@@ -434,17 +434,20 @@ def wait_for_liveliness(session, key_expr: str, count: int, timeout_s: float, st
     return seen
 
 
-def wait_for_done(session, rig: str, timeout_s: float, stop: StopFlag) -> set[str]:
-    """Wait until every node that confirmed the run (``ready``) has confirmed the whole stream
-    (``done``), or time runs out; returns the nodes still missing. A node that dies drops its
-    tokens and is no longer waited for."""
+def wait_for_done(session, rig: str, timeout_s: float, stop: StopFlag, *, asked: str = "ready",
+                  given: str = "done") -> set[str]:
+    """Wait until every node that declared an ``asked`` token on the rig (``ready``: it
+    confirmed the run) has declared its ``given`` token too (``done``: the whole stream), or
+    time runs out; returns the nodes still missing. A node that dies drops its tokens and is
+    no longer waited for. The processor waits so for its report: ``awaiting`` and
+    ``reported``."""
     def names(what: str) -> set[str]:
         return {str(r.ok.key_expr).rsplit("/", 1)[-1]
                 for r in session.liveliness().get(f"{keys.PREFIX}/{rig}/{what}/*", timeout=1.0) if r.ok is not None}
 
     deadline = time.monotonic() + timeout_s
     while True:
-        waiting = names("ready") - names("done")
+        waiting = names(asked) - names(given)
         if not waiting or stop or time.monotonic() >= deadline:
             return waiting
         stop.wait(0.05)

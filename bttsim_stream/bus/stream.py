@@ -442,7 +442,7 @@ class Revolution:
 
 
 class StreamEnd:
-    """Has a consumer received the whole acquisition stream of a run?
+    """Has a consumer received the whole acquisition stream of a run (and the processor's report)?
 
     The simulator numbers each acquisition key 0, 1, ... one message per revolution
     (:class:`Sequencer`): the stream is whole once the OPR key, every probe's TOA key and
@@ -452,21 +452,34 @@ class StreamEnd:
     Parameters
     ----------
     meta : RunInfo
+    report : bool
+        The consumer follows the processor: the run is :attr:`whole` only once the
+        processor's resonance report (its last output) came in too.
     """
 
-    def __init__(self, meta) -> None:
+    def __init__(self, meta, report: bool = False) -> None:
         self.counts = acquisition_counts(meta)
         self._last = int(meta.n_revolutions) - 1
         self._waiting = set(self.counts) - {keys.meta_key(meta.rig)}
+        self._report_key = keys.resonance_key(meta.rig)
+        self.reported = not report
 
     def note(self, key: str, seq: int | None) -> None:
         """A message of ``key`` numbered ``seq`` came in."""
         if seq == self._last:
             self._waiting.discard(key)
+        if key == self._report_key:
+            self.reported = True
 
     @property
     def done(self) -> bool:
+        """The whole acquisition stream came in."""
         return not self._waiting
+
+    @property
+    def whole(self) -> bool:
+        """The whole acquisition stream came in, and the report if it is awaited."""
+        return self.reported and not self._waiting
 
 
 class RevolutionAssembler:
