@@ -40,6 +40,7 @@ from .runtime import Progress, add_drain_argument, add_node_parser, add_web_argu
 from .sim.bounds import check_tip_amplitude
 from .sim.core import load_scenario_model
 from .summary import build_summary, describe_exit
+from .threads import single_threaded_blas
 
 # Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
 # paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
@@ -734,6 +735,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    single_threaded_blas()
     parser = build_parser()
     args = parser.parse_args(argv)
     return exit_status(args.func, args)

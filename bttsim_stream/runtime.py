@@ -39,6 +39,7 @@ from .bus.status import STATES as STATUS_STATES
 from .bus.status import NodeStatus, encode_status, write_status_file
 from .defaults import DEFAULT_BIND, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from .errors import BttsimError, exit_status
+from .threads import single_threaded_blas
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
            "Progress", "parse_rate", "RATE_HELP", "plain_text", "add_status_argument", "add_web_arguments",
@@ -139,6 +140,7 @@ def run_parsed(args: argparse.Namespace):
 def run_node(program: NodeProgram, argv=None) -> int:
     """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into one
     line ``bttsim: error: ...`` with exit status 2."""
+    single_threaded_blas()
     return exit_status(run_parsed, node_parser(program).parse_args(argv))
 
 

@@ -11,6 +11,12 @@
 
 import pytest
 
+from bttsim_stream.threads import single_threaded_blas
+
+# one BLAS thread, as in every bttsim process: the in-process references sum in the same order
+# as the nodes and commands they are compared with, whatever OMP_NUM_THREADS the shell has
+single_threaded_blas()
+
 TIERS = ("unit", "slow", "integration", "browser")
 
 
