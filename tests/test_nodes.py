@@ -59,6 +59,27 @@ def direct(scenario, tmp_path):
     return out
 
 
+def _wait_matched(pubs: dict) -> None:
+    """Until every publisher matches a subscriber (a publisher drops samples until then)."""
+    deadline = time.monotonic() + 120
+    while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+def _publish_to_processor(session, msgs: list) -> None:
+    """As the simulator does: once the processor node is alive, publish ``msgs`` (blocking
+    congestion control) and wait until the processor has the whole stream (its ``done`` token)."""
+    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
+
+    assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
+    pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in {m.key for m in msgs}}
+    _wait_matched(pubs)
+    for m in msgs:
+        pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+    assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
+
+
 def test_sim_node_and_recorder_give_the_simulate_bytes_with_no_gaps(scenario, direct, tmp_path):
     port = free_port()
     rec_out = tmp_path / "live.mcap"
@@ -265,9 +286,7 @@ def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")  # the recorder stops when it goes
             assert wait_for_subscribers(session, ["bttsim/rig1/opr"], 120, StopFlag(install=False))
             pubs = {m.key: session.declare_publisher(m.key) for m in msgs}
-            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
-            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
-                time.sleep(0.02)
+            _wait_matched(pubs)
             pubs[msgs[1].key].put(msgs[1].payload, attachment=pack_attachment(1 << 62, 10))  # forged
             for m in msgs:
                 pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
@@ -311,9 +330,7 @@ def test_processor_counts_and_skips_forged_samples_and_gives_the_clean_result(sc
             assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
             pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
                     for k in {m.key for m in msgs} | {k for k, _, _ in bad}}
-            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
-            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
-                time.sleep(0.02)
+            _wait_matched(pubs)
             for i, m in enumerate(msgs):
                 pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
                 if i == 40:  # in the middle of the run, after revolution 0 is in
@@ -343,7 +360,6 @@ def test_processor_stays_until_the_nodes_awaiting_its_report_have_it(scenario, c
     ``awaiting`` token has no ``reported`` token, and leaves once it has one; a node that
     never confirms is waited for ``--drain-timeout`` seconds, and the processor says so."""
     from bttsim_stream.acquisition import AcquisitionStream
-    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
     from bttsim_stream.scenario import load_scenario
 
     acq = AcquisitionStream(load_scenario(scenario), include_truth=False)
@@ -357,15 +373,7 @@ def test_processor_stays_until_the_nodes_awaiting_its_report_have_it(scenario, c
             sub = session.declare_subscriber("bttsim/rig1/resonance", lambda s: reports.put(time.monotonic()))
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
             awaiting = session.liveliness().declare_token("bttsim/rig1/awaiting/probe")
-            assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
-            pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
-                    for k in {m.key for m in msgs}}
-            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
-            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
-                time.sleep(0.02)
-            for m in msgs:
-                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
-            assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
+            _publish_to_processor(session, msgs)
             token.undeclare()
             t_report = reports.get(timeout=120)
             assert proc.poll() is None  # the report is in, not confirmed: the processor stays
@@ -391,7 +399,6 @@ def test_processor_node_publishes_non_synchronous_vibration(tmp_path):
     block from the second on) with the flutter's ND, and the node's summary reports the NSV and
     no resonance, as ``bttsim process`` does."""
     from _nsv_truth import logistic, synthesize, write_recording
-    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
     from bttsim_stream.offline import load_run, processing_messages
 
     run = synthesize(n_rev=256, rpm0=2500.0, rpm1=2540.0, freq_hz=344.0, nd=5,
@@ -409,15 +416,7 @@ def test_processor_node_publishes_non_synchronous_vibration(tmp_path):
             sub = declare_subscriber(session, "bttsim/rig1/nsv", lambda s: got.put(s.payload.to_bytes()),
                                      history=False)
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
-            assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
-            pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
-                    for k in {m.key for m in msgs}}
-            deadline = time.monotonic() + 120  # a publisher drops samples until it matches a subscriber
-            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
-                time.sleep(0.02)
-            for m in msgs:
-                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
-            assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
+            _publish_to_processor(session, msgs)
             token.undeclare()
             out, err = proc.communicate(timeout=120)
             sub.undeclare()
