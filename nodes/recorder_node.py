@@ -175,7 +175,9 @@ class _Actions:
                 done, reported = end.done, end.reported
                 end.note(v.key, v.seq)
                 if end.done and not done:
-                    if self.gate.missing():  # the last numbers are in, not all before: ask before saying so
+                    # the last numbers are in, not all before: ask before saying so (the report
+                    # comes after the acquisition: not yet in is not missed)
+                    if self.gate.missing(report=False):
                         self.catch_up(force=True)
                     self.node.done(key_rig)
                 if end.reported and not reported:  # the processor may leave now

@@ -442,6 +442,7 @@ def test_a_gate_that_follows_the_processor_needs_its_report(run_messages):
         for m in [meta, *msgs]:
             _admit(gate, m)
     assert gates[False].completeness("rig1")["complete"] is True
+    assert gates[True].missing(report=False) == {}  # before it came, the report is no gap
     c = gates[True].completeness("rig1")
     assert c["complete"] is False and c["missing"] == 1
     assert c["missing_by_key"] == {"bttsim/rig1/resonance": {"head": 1, "gaps": 0, "tail": 0}}

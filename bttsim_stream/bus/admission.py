@@ -341,21 +341,23 @@ class RecordGate:
     def conflicts(self) -> int:
         return sum(self.conflicts_by_key.values())
 
-    def expected(self) -> dict[str, int]:
-        """``{key: n}`` of every key whose count a run's metadata fixes (and, with ``report``,
-        the resonance report's: at least one)."""
+    def expected(self, report: bool = True) -> dict[str, int]:
+        """``{key: n}`` of every key whose count a run's metadata fixes (and, with ``report``
+        and the gate's :attr:`report`, the resonance report's: at least one)."""
         out: dict[str, int] = {}
         for rig, run in self.runs.items():
             out.update(run.counts)
-            if self.report:
+            if self.report and report:
                 out[_keys.resonance_key(rig)] = 1
         return out
 
-    def missing(self) -> dict[str, KeyMissing]:
+    def missing(self, report: bool = True) -> dict[str, KeyMissing]:
         """Per key of a run that misses anything: numbers missing before the first one
         written (head), between (gaps) and after the last one, up to the key's known count
-        (tail; a key with nothing written misses its whole count as head)."""
-        expected = self.expected()
+        (tail; a key with nothing written misses its whole count as head). ``report`` False:
+        the processor's report is not counted before it came (it comes last, after the
+        acquisition: while the run goes, its absence is no gap)."""
+        expected = self.expected(report)
         out: dict[str, KeyMissing] = {}
         for key in sorted(set(self._keys) | set(expected)):
             if key.split("/")[1] not in self.runs:
