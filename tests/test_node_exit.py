@@ -142,8 +142,10 @@ def test_a_simulator_killed_mid_run_makes_every_consumer_exit_3_and_count_per_ke
         by_key = stats["missing_by_key"]
         assert stats["complete"] is False and stats["missing"] == sum(sum(m.values()) for m in by_key.values())
         for key in ACQUISITION:  # a reliable link cut: what is missing is each key's tail
+            # (a consumer may be a revolution or two behind the watcher that saw SEEN_BEFORE_KILL
+            # pulses on a loaded machine: it has a part of the run, not necessarily as much)
             m = by_key[key]
-            assert m["head"] == m["gaps"] == 0 and 0 < m["tail"] <= n - SEEN_BEFORE_KILL, (name, key, m)
+            assert m["head"] == m["gaps"] == 0 and 0 < m["tail"] < n, (name, key, m)
         # its log names the keys and their counts
         assert f"opr {by_key[f'bttsim/{RIG}/opr']['tail']}" in res[name][2], (name, res[name][2])
     summary = json.loads(f["summary"].read_text())

@@ -140,3 +140,35 @@ def test_one_summary_builder_keeps_the_key_order_and_the_recording_verdict():
     bad = with_recording(s, {})  # the recorder gave no statistics: the run is not known complete
     assert bad["complete"] is False and bad["recording"] == recording_block({})
     assert "no completeness statistics" in bad["recording"]["incomplete"]
+
+
+def test_a_status_put_never_waits_on_the_nodes_own_full_subscription():
+    """A recorder or viewer subscribes to every key of its rig through a bounded FIFO, which
+    only its main thread drains. With the FIFO full (a publisher flooding the rig), its own
+    status put must return: delivered to its own subscription it would wait for ever on the
+    thread that is putting (seen with a replay at full rate and a slow recorder)."""
+    import threading
+
+    from bttsim_stream.runtime import node_session
+
+    port = free_port()
+    with node_session(make_config(listen=[f"tcp/127.0.0.1:{port}"]), "rig1", "recorder", fifo_size=4,
+                      linger_s=0.0) as node, zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as other:
+        node.subscribe(keys.all_key("rig1"))  # never drained below: the FIFO fills
+        pub = other.declare_publisher("bttsim/rig1/opr", congestion_control=zenoh.CongestionControl.DROP)
+        deadline = time.monotonic() + 60
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.02)
+        for _ in range(64):
+            pub.put(b"x")
+        sent = threading.Event()
+
+        def report() -> None:
+            for state in ("ready", "done"):
+                node.status(state)
+            sent.set()
+
+        threading.Thread(target=report, daemon=True).start()
+        assert sent.wait(30), "the status put waited on the node's own full subscription"
+        while node._live[0].try_recv() is not None:  # let Zenoh's receiving thread go before closing
+            pass

@@ -368,13 +368,18 @@ class StopFlag:
 
 def declare_publisher(session, key: str, *, cache_samples: int = 64, lossy: bool = False):
     """A reliable publisher that keeps its last ``cache_samples`` samples for late joiners
-    (zenoh-ext advanced publisher) and blocks under congestion (``lossy``: drops instead)."""
+    (zenoh-ext advanced publisher) and blocks under congestion (``lossy``: drops instead).
+
+    Its samples go to the other sessions only: a node never takes its own samples, and a
+    sample delivered to its own session's full FIFO subscription would wait, whatever the
+    congestion control, for the very thread that drains that FIFO (a recorder or viewer,
+    which subscribe to every key of their rig, blocked so for ever in their status put)."""
     return zx.declare_advanced_publisher(
         session, key, cache=zx.CacheConfig(max_samples=int(cache_samples), replies_config=None),
         publisher_detection=True, sample_miss_detection=None,
         congestion_control=zenoh.CongestionControl.DROP if lossy else zenoh.CongestionControl.BLOCK,
         reliability=zenoh.Reliability.RELIABLE, encoding=None, priority=None, express=None,
-        allowed_destination=None)
+        allowed_destination=zenoh.Locality.REMOTE)
 
 
 #: How long a subscriber's one-time history query waits for the publishers' caches (s).
