@@ -199,6 +199,10 @@ def add_web_arguments(p: argparse.ArgumentParser) -> None:
 #: two looks at the FIFOs (s): the longest a sample waits when nothing else is coming.
 _BATCH = 4096
 _IDLE_POLL_S = 0.01
+#: A node whose samples wait for their run's metadata asks the metadata queryable at most
+#: this often (s), and for at most :data:`_META_ASK_RIGS` rigs at a time.
+META_ASK_EVERY_S = 1.0
+_META_ASK_RIGS = 8
 #: Samples waiting in the inbox that wake its sleeping consumer before its sleep ends.
 WAKE_AT = 64
 #: Live samples a subscription's FIFO holds before Zenoh's delivery blocks (back-pressure):
@@ -287,6 +291,7 @@ class NodeContext:
         self.watch: NodeWatch | None = None
         self._ready = False
         self._confirmed: set[str] = set()  # the confirmation tokens declared (done, awaiting, reported)
+        self._asked_meta = -META_ASK_EVERY_S  # when the metadata queryables were last asked
         self.status_file = status_file
         #: The web viewer's address, sent with every status ("" when none).
         self.url = ""
@@ -370,6 +375,19 @@ class NodeContext:
                 self._inbox.put(Received.of(reply.ok))
                 n += 1
         return n
+
+    def ask_metadata(self, rigs) -> None:
+        """Samples of ``rigs`` came before their run's metadata (the node joined late, or the
+        metadata sample went by before its subscription reached the publisher): ask the rigs'
+        ``bttsim/<rig>/meta`` queryables, at most every :data:`META_ASK_EVERY_S`; the replies
+        join the inbox like samples."""
+        now = time.monotonic()
+        if not rigs or now - self._asked_meta < META_ASK_EVERY_S:
+            return
+        self._asked_meta = now
+        for rig in sorted(rigs)[:_META_ASK_RIGS]:
+            with contextlib.suppress(BttsimError, zenoh.ZError):  # a rig name no run can have: nothing to ask
+                self.query(keys.meta_key(rig))
 
     def announce(self) -> None:
         """Declare the liveliness token ``bttsim/<rig>/alive/<name>`` (after the subscriptions:

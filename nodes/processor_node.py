@@ -25,7 +25,6 @@ import json
 import logging
 import sys
 import threading
-import time
 from pathlib import Path
 
 from bttsim_stream.bus import keys
@@ -66,15 +65,13 @@ def main(conf, args: argparse.Namespace) -> dict | None:
         run = None
         early: list = []  # data that came before the metadata (callbacks of different keys race)
         bad = 0
-        asked_meta = 0.0
         kinds: dict[str, str] = {}
         meta_payload, sources = None, set()  # the run's metadata, and the sessions that sent it
         for sample in node.samples(stop, done=lambda: run is not None and run.received_all,
                                    patience_s=args.drain_timeout):
             if sample is None:
-                if run is None and time.monotonic() - asked_meta > 1.0:  # missed the sample? ask
-                    asked_meta = time.monotonic()
-                    node.query(keys.meta_key(rig))
+                if run is None:  # missed the sample? ask
+                    node.ask_metadata({rig})
                 continue
             key, payload, att = sample.key, sample.payload, sample.att
             try:  # every sample is untrusted: a bad one is counted and skipped
@@ -106,9 +103,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                     node.done()
             elif len(early) < MAX_EARLY:
                 early.append((item, sample.source))
-                if time.monotonic() - asked_meta > 1.0:  # joined late: ask the queryable
-                    asked_meta = time.monotonic()
-                    node.query(keys.meta_key(rig))
+                node.ask_metadata({rig})  # joined late: ask the queryable
             else:
                 bad += 1
         missing = {} if run is None else run.missing()

@@ -20,7 +20,9 @@ received; their count is not known; when ``--until`` names the processor, its re
 report must have come: one message, numbered 0) and nothing conflicted. A number that fills a gap late (a
 publisher's cache replayed after the recorder stalled) closes it. A run with no metadata
 received is incomplete. Keys of no run (another rig, a probe the run does not have) are
-refused and listed in ``foreign_keys``. The statistics -- ``complete``, ``missing`` and
+refused and listed in ``foreign_keys``. Data of a run whose metadata has not come waits
+(bounded) while the recorder asks the run's ``bttsim/<rig>/meta`` queryable (at most once a
+second). The statistics -- ``complete``, ``missing`` and
 ``missing_by_key`` (head, gaps, tail per key), ``foreign_keys``, sequence gaps, duplicates,
 ``rejected`` (``rejected_by_key``, ``rejected_reasons``), ``conflicts`` -- are logged, printed
 as one JSON line on stdout, written as the ``bttsim.recorder`` metadata record and sent as
@@ -140,6 +142,8 @@ class _Actions:
                 self(verdict)
         if self.gate.jumps > self._jumps:
             self.catch_up()
+        if self.gate.waiting_rigs:  # data before its metadata: joined late, ask the queryable
+            self.node.ask_metadata(self.gate.waiting_rigs)
 
     def catch_up(self, force: bool = False) -> None:
         now = time.monotonic()

@@ -96,6 +96,8 @@ def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float) -> None:
         return bool(ends) and ends[0].whole
 
     for sample in node.samples(stop, poll_s=0.02, done=whole, patience_s=drain_s):
+        if gate.waiting_rigs:  # data before its metadata: joined late, ask the queryable
+            node.ask_metadata(gate.waiting_rigs)
         if sample is None:
             live.poll()
             continue

@@ -270,6 +270,52 @@ def test_readme_subscriber_listens_to_a_replay():
     assert len(rows) == 25 and {int(r[1]) for r in rows} == {0, 1, 2, 3, 4}
 
 
+@pytest.mark.parametrize("node", ["recorder", "viewer"])
+def test_a_late_recorder_or_viewer_asks_the_metadata_queryable(tmp_path, node):
+    """A node whose data came before its run's metadata (it joined late: the metadata sample
+    went by before its subscription reached the publisher) asks the ``meta`` queryable, as
+    the processor does, and then takes the run whole; here the metadata is never published
+    as a sample at all, only answered."""
+    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness, wait_for_subscribers
+    from bttsim_stream.bus.stream import MessageStream
+    from _io_helpers import NR, make_batch, make_info
+
+    port = free_port()
+    out = tmp_path / "late.mcap"
+    args = ["--out", out] if node == "recorder" else ["--rrd", tmp_path / "late.rrd"]
+    proc = _start(f"bttsim_stream.nodes.{node}_node", "--rig", "rig1", *args, "-l", f"tcp/127.0.0.1:{port}")
+    stream = MessageStream("run-a", "rig1")
+    meta, *data = [stream.run_metadata(make_info(n_revolutions=NR))] + stream.acquisition(make_batch())
+    asked: list = []
+
+    try:
+        with zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            def answer(query) -> None:  # as the simulator answers: stamped, it names the publishing session
+                asked.append(time.monotonic())
+                query.reply(meta.key, meta.payload, attachment=pack_attachment(meta.seq, meta.log_time_ns),
+                            timestamp=session.new_timestamp())
+
+            queryable = session.declare_queryable(meta.key, answer)
+            token = session.liveliness().declare_token("bttsim/rig1/alive/sim")  # the node stops when it goes
+            assert wait_for_subscribers(session, ["bttsim/rig1/opr"], 120, StopFlag(install=False))
+            pubs = {m.key: session.declare_publisher(m.key) for m in data}
+            _wait_matched(pubs)
+            for m in data:
+                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+            assert wait_for_liveliness(session, f"bttsim/rig1/done/{node}", 1, 120, StopFlag(install=False))
+            token.undeclare()
+            out_text, err = proc.communicate(timeout=120)
+            queryable.undeclare()
+    finally:
+        _stop(proc)
+    assert proc.returncode == 0, err
+    assert asked, "the metadata queryable was never asked"
+    stats = json.loads(out_text.strip().splitlines()[-1])
+    assert stats["complete"] is True and stats["rejected"] == 0 and stats["messages"] == len(data) + 1, stats
+    if node == "recorder":
+        assert read_recording(out).messages == [meta, *data]
+
+
 def test_recorder_refuses_a_sample_mcap_cannot_hold_and_keeps_the_file_readable(tmp_path):
     """A forged attachment (sequence 2^62) used to crash the recorder and leave no readable file."""
     from bttsim_stream.bus.session import pack_attachment, wait_for_liveliness, wait_for_subscribers, StopFlag

@@ -216,6 +216,11 @@ class RecordGate:
                 out += self.admit(*item)
         return out
 
+    @property
+    def waiting_rigs(self) -> set[str]:
+        """The rigs whose samples wait for their run's metadata (a receiver asks for it)."""
+        return self._early_rigs - set(self.runs) if self._early else set()
+
     def finish(self) -> list:
         """Verdicts of the samples still waiting for a metadata that never came (refused)."""
         waiting, self._early, self._early_bytes = self._early, [], 0
