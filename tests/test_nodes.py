@@ -66,18 +66,18 @@ def _wait_matched(pubs: dict) -> None:
         time.sleep(0.02)
 
 
-def _publish_to_processor(session, msgs: list) -> None:
-    """As the simulator does: once the processor node is alive, publish ``msgs`` (blocking
-    congestion control) and wait until the processor has the whole stream (its ``done`` token)."""
+def _publish_run(session, msgs: list, node: str = "processor") -> None:
+    """As the simulator does: once ``node`` is alive, publish ``msgs`` (blocking congestion
+    control) and wait until the node has the whole stream (its ``done`` token)."""
     from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness
 
-    assert wait_for_liveliness(session, "bttsim/rig1/alive/processor", 1, 120, StopFlag(install=False))
+    assert wait_for_liveliness(session, f"bttsim/rig1/alive/{node}", 1, 120, StopFlag(install=False))
     pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
             for k in {m.key for m in msgs}}
     _wait_matched(pubs)
     for m in msgs:
         pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
-    assert wait_for_liveliness(session, "bttsim/rig1/done/processor", 1, 120, StopFlag(install=False))
+    assert wait_for_liveliness(session, f"bttsim/rig1/done/{node}", 1, 120, StopFlag(install=False))
 
 
 def test_sim_node_and_recorder_give_the_simulate_bytes_with_no_gaps(scenario, direct, tmp_path):
@@ -276,7 +276,7 @@ def test_a_late_recorder_or_viewer_asks_the_metadata_queryable(tmp_path, node):
     went by before its subscription reached the publisher) asks the ``meta`` queryable, as
     the processor does, and then takes the run whole; here the metadata is never published
     as a sample at all, only answered."""
-    from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_liveliness, wait_for_subscribers
+    from bttsim_stream.bus.session import pack_attachment
     from bttsim_stream.bus.stream import MessageStream
     from _io_helpers import NR, make_batch, make_info
 
@@ -297,12 +297,7 @@ def test_a_late_recorder_or_viewer_asks_the_metadata_queryable(tmp_path, node):
 
             queryable = session.declare_queryable(meta.key, answer)
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")  # the node stops when it goes
-            assert wait_for_subscribers(session, ["bttsim/rig1/opr"], 120, StopFlag(install=False))
-            pubs = {m.key: session.declare_publisher(m.key) for m in data}
-            _wait_matched(pubs)
-            for m in data:
-                pubs[m.key].put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
-            assert wait_for_liveliness(session, f"bttsim/rig1/done/{node}", 1, 120, StopFlag(install=False))
+            _publish_run(session, data, node)
             token.undeclare()
             out_text, err = proc.communicate(timeout=120)
             queryable.undeclare()
@@ -419,7 +414,7 @@ def test_processor_stays_until_the_nodes_awaiting_its_report_have_it(scenario, c
             sub = session.declare_subscriber("bttsim/rig1/resonance", lambda s: reports.put(time.monotonic()))
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
             awaiting = session.liveliness().declare_token("bttsim/rig1/awaiting/probe")
-            _publish_to_processor(session, msgs)
+            _publish_run(session, msgs)
             token.undeclare()
             t_report = reports.get(timeout=120)
             assert proc.poll() is None  # the report is in, not confirmed: the processor stays
@@ -462,7 +457,7 @@ def test_processor_node_publishes_non_synchronous_vibration(tmp_path):
             sub = declare_subscriber(session, "bttsim/rig1/nsv", lambda s: got.put(s.payload.to_bytes()),
                                      history=False)
             token = session.liveliness().declare_token("bttsim/rig1/alive/sim")
-            _publish_to_processor(session, msgs)
+            _publish_run(session, msgs)
             token.undeclare()
             out, err = proc.communicate(timeout=120)
             sub.undeclare()
