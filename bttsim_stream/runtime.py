@@ -43,7 +43,7 @@ from .threads import single_threaded_blas
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
            "Progress", "parse_rate", "RATE_HELP", "plain_text", "add_status_argument", "add_web_arguments",
-           "add_drain_argument", "DRAIN_TIMEOUT_S", "EXIT_INCOMPLETE"]
+           "add_drain_argument", "add_wait_arguments", "DRAIN_TIMEOUT_S", "EXIT_INCOMPLETE"]
 
 #: How long a consumer waits, in silence, for the rest of a run whose nodes have gone (s).
 DRAIN_TIMEOUT_S = 30.0
@@ -183,6 +183,15 @@ def add_drain_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drain-timeout", type=_seconds, default=DRAIN_TIMEOUT_S, metavar="S",
                    help="when the nodes it follows are gone before the whole run came in (a router restart, a "
                         f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
+
+
+def add_wait_arguments(p: argparse.ArgumentParser) -> None:
+    """``--wait-for N`` and ``--wait-timeout S``: a publisher (simulator, replay) starts the run
+    once N consumers have it (:func:`~bttsim_stream.bus.session.wait_for_consumers`)."""
+    p.add_argument("--wait-for", type=int, default=0, metavar="N",
+                   help="wait for N other nodes' liveliness tokens on the rig before publishing")
+    p.add_argument("--wait-timeout", type=float, default=30.0, metavar="S",
+                   help="give up waiting for --wait-for nodes after S seconds (30)")
 
 
 def add_web_arguments(p: argparse.ArgumentParser) -> None:

@@ -4,9 +4,17 @@ Every recorded message goes back on its key with the same payload bytes and the 
 attachment (sequence number, log time); the recorded run metadata answers the
 ``bttsim/<rig>/meta`` queryable and an ``alive/sim`` liveliness token is held while
 replaying, as the simulator node does. Pacing: the original (``--rate realtime``), a
-speed-up factor, or as fast as possible (``--rate max``, the default). Before publishing it
-waits (``--wait``, default 5 s) for a subscriber on its keys: give the subscriber a listen
-endpoint (``-l``) and the replay a connect endpoint (``-e``), or the other way round.
+speed-up factor, or as fast as possible (``--rate max``, the default).
+
+Before publishing it waits for its consumers. With ``--wait-for N`` it does as the simulator
+node, on each rig of the recording in turn: it waits for N other nodes' liveliness tokens
+(``bttsim/<rig>/alive/*``; nodes are counted by name) and for a subscriber on every OPR and
+TOA key (an error after ``--wait-timeout`` seconds), publishes the rig's metadata, and waits
+for N ``bttsim/<rig>/ready/*`` tokens before the first revolution: every consumer gets the
+whole run. Without it, it waits (``--wait``, default 5 s) for a subscriber on its keys, then
+0.5 s for the others: a consumer that comes later gets only what the publishers' caches still
+hold (the last messages of each key). Give the consumers a listen endpoint (``-l``) and the
+replay a connect endpoint (``-e``), or the other way round.
 """
 
 from __future__ import annotations
@@ -18,10 +26,12 @@ import time
 
 from bttsim_stream.bus import codec, keys
 from bttsim_stream.bus.recording import read_recording
-from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_subscribers
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done, \
+    wait_for_subscribers
 from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_status_argument, node_session, parse_rate, run_node
+from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_status_argument, add_wait_arguments, node_session, \
+    parse_rate, run_node
 
 log = logging.getLogger("bttsim.replay")
 
@@ -57,7 +67,21 @@ def main(conf, args: argparse.Namespace) -> dict:
         for k in dict.fromkeys(m.key for m in data):  # metadata first, then data, as live
             node.publisher(k)
         data_keys = list(dict.fromkeys(m.key for m in data))
-        if args.wait > 0:
+
+        def put(*messages) -> None:
+            nonlocal sent
+            for m in messages:
+                node.publisher(m.key).put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
+                sent += 1
+
+        if args.wait_for:
+            for r in rigs:  # the rig's consumers, then its metadata, then their confirmation
+                own = [m for m in metas if keys.parse_key(m.key).rig == r]
+                acquisition = [k for k in data_keys if keys.parse_key(k).rig == r and
+                               keys.parse_key(k).kind in ("opr", "toa")]
+                wait_for_consumers(node.session, r, args.wait_for, args.wait_timeout, stop, data_keys=acquisition,
+                                   publish_metadata=lambda own=own: put(*own))
+        elif args.wait > 0:
             # a first subscriber, then a moment for the others of the same node to match too
             if not wait_for_subscribers(node.session, data_keys, args.wait, stop, every=False):
                 log.warning("no subscriber after %.1f s; replaying anyway", args.wait)
@@ -67,10 +91,11 @@ def main(conf, args: argparse.Namespace) -> dict:
         for m in data:
             if stop:
                 break
+            if args.wait_for and m.key.endswith("/meta"):  # already out, ahead of the rest
+                continue
             if rate and stop.wait(max(0.0, t0_wall + (m.log_time_ns - t0_log) * 1e-9 / rate - time.monotonic())):
                 break
-            node.publisher(m.key).put(m.payload, attachment=pack_attachment(m.seq, m.log_time_ns))
-            sent += 1
+            put(m)
         if not stop and whole:  # what went out may still be on its way: stay until it is in
             for r in rigs:
                 waiting = wait_for_done(node.session, r, args.drain_timeout, stop)
@@ -85,7 +110,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("mcap", help="recording to replay (MCAP)")
     p.add_argument("--rate", default="max", help=RATE_HELP)
     p.add_argument("--wait", type=float, default=5.0, metavar="S",
-                   help="seconds to wait for a subscriber before replaying (5)")
+                   help="without --wait-for: seconds to wait for a subscriber before replaying (5)")
+    add_wait_arguments(p)
     p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
                    help="after a whole run, wait up to S seconds for the nodes that took it to confirm it (120)")
     p.add_argument("--allow-truncated", action="store_true", help="replay a file without its footer")

@@ -25,17 +25,12 @@ import time
 
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
-from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done, wait_for_liveliness, \
-    wait_for_subscribers
-from bttsim_stream.errors import BttsimError
-from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_status_argument, \
+from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done
+from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_status_argument, add_wait_arguments, \
     node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
 
 log = logging.getLogger("bttsim.sim")
-#: How long the simulator waits, after the metadata, for the nodes it waited for to confirm it
-#: (``bttsim/<rig>/ready/<node>``; the project's nodes do; a foreign subscriber may not).
-READY_TIMEOUT_S = 5.0
 #: Messages each acquisition key keeps for late joiners and for consumers catching up after a
 #: stall or a lost link (a recorder asks for them again): about 40 s of a 1500 rpm run.
 CACHE_SAMPLES = 1024
@@ -58,29 +53,16 @@ def main(conf, args: argparse.Namespace) -> dict:
         node.declare(node.session.declare_queryable(
             meta.key, lambda q: q.reply(q.key_expr, meta.payload, attachment=pack_attachment(meta.seq, 0),
                                         timestamp=node.session.new_timestamp())))  # stamped: it names this session
-        if args.wait_for:
-            # the others: not this node, nor a router (which routes, and consumes nothing)
-            seen = wait_for_liveliness(node.session, keys.alive_all_key(stream.rig), args.wait_for,
-                                       args.wait_timeout, stop, exclude=("sim", "router"))
-            log.info("%d other node(s) alive on %s", seen, stream.rig)
-            if seen < args.wait_for and not stop:
-                raise BttsimError(f"found {seen} of the {args.wait_for} node(s) to wait for on {stream.rig} after "
-                                  f"{args.wait_timeout:g} s: check the endpoints (behind a Zenoh router, use "
-                                  "client mode: -m client)")
-            # their subscriptions reach the publishers a moment later (through a router, later
-            # than their tokens): nothing goes out before every data key has a subscriber
-            data_keys = [keys.opr_key(stream.rig)] + [keys.toa_key(stream.rig, j) for j in range(stream.info.n_probes)]
-            if not wait_for_subscribers(node.session, data_keys, args.wait_timeout, stop):
-                raise BttsimError(f"no subscriber on {stream.rig}'s OPR and TOA keys after {args.wait_timeout:g} s")
-        # the metadata also goes out once as a sample (cached for late joiners), so that a
-        # recorder stores it in stream order; the queryable answers on demand
-        node.publisher(meta.key, lossy=args.lossy).put(meta.payload, attachment=pack_attachment(meta.seq, 0))
+        data_keys = [keys.opr_key(stream.rig)] + [keys.toa_key(stream.rig, j) for j in range(stream.info.n_probes)]
+
+        def publish_metadata() -> None:
+            # also once as a sample (cached for late joiners), so that a recorder stores it in
+            # stream order; the queryable answers on demand
+            node.publisher(meta.key, lossy=args.lossy).put(meta.payload, attachment=pack_attachment(meta.seq, 0))
+
+        wait_for_consumers(node.session, stream.rig, args.wait_for, args.wait_timeout, stop, data_keys=data_keys,
+                           publish_metadata=publish_metadata)
         sent += 1
-        if args.wait_for:  # and for them to have it: then their subscriptions reach us
-            ready = wait_for_liveliness(node.session, f"{keys.PREFIX}/{stream.rig}/ready/*", args.wait_for,
-                                        min(args.wait_timeout, READY_TIMEOUT_S), stop)
-            if ready < args.wait_for and not stop:
-                log.warning("%d of %d node(s) confirmed the run metadata; publishing anyway", ready, args.wait_for)
         t_wall0 = time.monotonic()
         for batch, msgs in stream.batches():
             if stop:
@@ -113,10 +95,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", default="max", help=RATE_HELP)
     p.add_argument("--lossy", action="store_true", help="drop samples under congestion instead of blocking")
     p.add_argument("--no-truth", action="store_true", help="do not publish truth (a blind acquisition)")
-    p.add_argument("--wait-for", type=int, default=0, metavar="N",
-                   help="wait for N other nodes' liveliness tokens on the rig before publishing")
-    p.add_argument("--wait-timeout", type=float, default=30.0, metavar="S",
-                   help="give up waiting for --wait-for nodes after S seconds (30)")
+    add_wait_arguments(p)
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--revolutions", type=int, metavar="N", help="stop after N revolutions")
     p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",

@@ -121,6 +121,59 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     assert _messages(_record_a_replay(direct, tmp_path / "replayed.mcap")) == _messages(direct)
 
 
+def _wait_status(path: Path, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
+    """Until the node ``proc`` has written its status file ``path`` (it is on the bus)."""
+    deadline = time.monotonic() + timeout_s
+    while not path.exists():
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline, f"{path} never written"
+        time.sleep(0.02)
+
+
+def _counts(path, keys=None) -> dict:
+    """Messages per channel of a recording (only ``keys``, if given)."""
+    counts: dict = {}
+    for m in read_recording(path).messages:
+        if keys is None or m.key in keys:
+            counts[m.key] = counts.get(m.key, 0) + 1
+    return counts
+
+
+def test_replay_waits_for_every_consumer_and_each_gets_the_whole_run(direct, tmp_path):
+    """``bttsim replay --wait-for 2`` with two consumers, a processor and a recorder, the recorder
+    started only once the processor is on the bus: the replay starts once both have the run
+    metadata, the processor's result rests on every revolution and the recording holds every
+    message of the original (85 revolutions: more than the publishers' caches keep, so a
+    consumer that came in late could not make up for the head of the run)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", "2", "--wait-timeout", "120", "-l", endpoint)
+    rep_err = LineWatch(rep.stderr)
+    nodes = {"processor": ["--summary", tmp_path / "summary.json"], "recorder": ["--out", tmp_path / "replayed.mcap"]}
+    procs = {}
+    try:
+        rep_err.wait_for(lambda line: "waiting for 2 node(s) on rig1" in line)
+        for name, args in nodes.items():  # one after the other: the second comes once the first is on the bus
+            status = tmp_path / f"{name}-status.json"
+            procs[name] = _start(f"bttsim_stream.nodes.{name}_node", "--rig", "rig1", *args, "-e", endpoint,
+                                 "--status-file", status)
+            _wait_status(status, procs[name])
+        assert rep.wait(timeout=180) == 0, rep_err.text()
+        for name, proc in procs.items():
+            _, err = proc.communicate(timeout=120)  # a consumer stops when the replay is gone
+            assert proc.returncode == 0, (name, err)
+    finally:
+        for proc in [*procs.values(), rep]:
+            _stop(proc)
+    original = read_recording(direct).messages
+    assert f"replayed {len(original)} of {len(original)} " in rep.stdout.read()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["complete"] and summary["revolutions_processed"] == summary["revolutions_expected"] == 85
+    assert summary["lost"] == 0
+    acquisition = {m.key for m in original}  # the recording also holds the processor's results
+    assert _counts(tmp_path / "replayed.mcap", acquisition) == _counts(direct)
+    assert [m for m in _messages(tmp_path / "replayed.mcap") if m[0] in acquisition] == _messages(direct)
+
+
 def test_raw_signal_channels_are_recorded_and_replayed_bit_identically(tmp_path):
     """With [acquisition.signal] publish, the signal/<probe> channels go into the MCAP like
     every other channel, and a recorder fed by the replay writes the same messages."""

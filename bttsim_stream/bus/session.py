@@ -36,7 +36,8 @@ from .security import TlsFiles, add_security_args, apply_security, tls_from_args
 
 __all__ = ["NodeWatch", "add_session_args", "config_from_args", "make_config", "pack_attachment",
            "unpack_attachment", "Received", "StopFlag", "wait_for_liveliness", "wait_for_subscribers", "wait_for_done",
-           "open_session", "opened", "close_session", "free_port", "declare_publisher", "declare_subscriber"]
+           "wait_for_consumers", "READY_TIMEOUT_S", "open_session", "opened", "close_session", "free_port",
+           "declare_publisher", "declare_subscriber"]
 
 log = logging.getLogger("bttsim.session")
 _ATT = struct.Struct("<Qq")
@@ -473,6 +474,54 @@ def wait_for_subscribers(session, key_exprs, timeout_s: float, stop: StopFlag, *
     finally:
         for p in probes:
             p.undeclare()
+
+
+#: How long a publisher waiting for its consumers (:func:`wait_for_consumers`) waits, after the
+#: run metadata, for them to confirm it (``bttsim/<rig>/ready/<node>``; the project's nodes do;
+#: a foreign subscriber may not) (s).
+READY_TIMEOUT_S = 5.0
+
+
+def wait_for_consumers(session, rig: str, count: int, timeout_s: float, stop: StopFlag, *, data_keys,
+                       publish_metadata) -> None:
+    """Publish a run's metadata once ``count`` consumers are there to hear it, and return once
+    they have it: the start of a run for a simulator or a replay given ``--wait-for N``.
+
+    1. Wait for ``count`` liveliness tokens of other nodes on the rig
+       (``bttsim/<rig>/alive/*``; the publisher's own ``sim`` and a router, which consumes
+       nothing, aside).
+    2. Wait for a subscriber on every key of ``data_keys`` (the OPR and TOA keys): their
+       subscriptions reach the publishers a moment after their tokens (through a router,
+       later still).
+    3. ``publish_metadata()``.
+    4. Wait up to :data:`READY_TIMEOUT_S` (at most ``timeout_s``) for ``count`` ``ready``
+       tokens (``bttsim/<rig>/ready/*``): each consumer has the metadata, so its
+       subscriptions reach the publisher; a warning if they do not all come.
+
+    With ``count`` 0, only ``publish_metadata()``. After the run, :func:`wait_for_done` waits
+    for the same consumers to have the whole stream.
+
+    Raises
+    ------
+    BttsimError
+        Fewer than ``count`` nodes (unless ``stop`` is set), or a key of ``data_keys`` with no
+        subscriber, after ``timeout_s`` seconds.
+    """
+    if count > 0:
+        log.info("waiting for %d node(s) on %s (up to %g s)", count, rig, timeout_s)
+        seen = wait_for_liveliness(session, keys.alive_all_key(rig), count, timeout_s, stop, exclude=("sim", "router"))
+        log.info("%d other node(s) alive on %s", seen, rig)
+        if seen < count and not stop:
+            raise BttsimError(f"found {seen} of the {count} node(s) to wait for on {rig} after {timeout_s:g} s: "
+                              "check the endpoints (behind a Zenoh router, use client mode: -m client)")
+        if not wait_for_subscribers(session, data_keys, timeout_s, stop):
+            raise BttsimError(f"no subscriber on {rig}'s OPR and TOA keys after {timeout_s:g} s")
+    publish_metadata()
+    if count > 0:
+        ready = wait_for_liveliness(session, f"{keys.PREFIX}/{rig}/ready/*", count, min(timeout_s, READY_TIMEOUT_S),
+                                    stop)
+        if ready < count and not stop:
+            log.warning("%d of %d node(s) confirmed the run metadata of %s; publishing anyway", ready, count, rig)
 
 
 class NodeWatch:
