@@ -37,7 +37,8 @@ log = logging.getLogger("bttsim.replay")
 
 
 def main(conf, args: argparse.Namespace) -> dict:
-    """Replay the recording; returns ``{"messages": sent, "of": total}``."""
+    """Replay the recording; returns ``{"messages": sent, "of": total, "stopped_by_signal": signal or None}``
+    (also the ``done`` status)."""
     rate = parse_rate(args.rate)
     rec = read_recording(args.mcap)
     if rec.truncated and not args.allow_truncated:
@@ -58,6 +59,7 @@ def main(conf, args: argparse.Namespace) -> dict:
             end.note(m.key, m.seq)
         whole &= end.done
     with node_session(conf, rigs[0], "sim", status_file=args.status_file) as node:
+        node.status("starting")
         for r in rigs:
             node.declare(node.session.liveliness().declare_token(keys.alive_key(r, "sim")))
         for m in metas:
@@ -102,8 +104,10 @@ def main(conf, args: argparse.Namespace) -> dict:
                 if waiting:
                     log.warning("leaving before %s confirmed the whole stream of %s (%g s)",
                                 ", ".join(sorted(waiting)), r, args.drain_timeout)
+        result = {"messages": sent, "of": len(data), "stopped_by_signal": stop.signal}
+        node.status("done", result)
     print(f"replayed {sent} of {len(data)} messages from {args.mcap}", flush=True)
-    return {"messages": sent, "of": len(data)}
+    return result
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

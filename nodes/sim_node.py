@@ -58,11 +58,12 @@ def main(conf, args: argparse.Namespace) -> dict:
         def publish_metadata() -> None:
             # also once as a sample (cached for late joiners), so that a recorder stores it in
             # stream order; the queryable answers on demand
+            nonlocal sent
             node.publisher(meta.key, lossy=args.lossy).put(meta.payload, attachment=pack_attachment(meta.seq, 0))
+            sent += 1
 
         wait_for_consumers(node.session, stream.rig, args.wait_for, args.wait_timeout, stop, data_keys=data_keys,
                            publish_metadata=publish_metadata)
-        sent += 1
         t_wall0 = time.monotonic()
         for batch, msgs in stream.batches():
             if stop:

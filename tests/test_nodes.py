@@ -103,8 +103,8 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     got = []
     conf = make_config(listen=[f"tcp/127.0.0.1:{port}"])
     with zenoh.open(conf) as session:
-        sub = session.declare_subscriber("bttsim/**", lambda s: got.append(
-            (str(s.key_expr), s.payload.to_bytes(), unpack_attachment(s.attachment))))
+        sub = session.declare_subscriber("bttsim/**", lambda s: "/status/" in str(s.key_expr) or got.append(
+            (str(s.key_expr), s.payload.to_bytes(), unpack_attachment(s.attachment))))  # not the replay's own status
         rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct, "--rate", "max",
                               "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True,
                              timeout=120)
@@ -172,6 +172,27 @@ def test_replay_waits_for_every_consumer_and_each_gets_the_whole_run(direct, tmp
     acquisition = {m.key for m in original}  # the recording also holds the processor's results
     assert _counts(tmp_path / "replayed.mcap", acquisition) == _counts(direct)
     assert [m for m in _messages(tmp_path / "replayed.mcap") if m[0] in acquisition] == _messages(direct)
+
+
+@pytest.mark.parametrize("program", ["replay", "sim-node"])
+def test_a_signal_while_waiting_for_consumers_is_a_clean_stop(program, direct, tmp_path):
+    """SIGINT to a replay or a simulator still waiting for its ``--wait-for`` consumers (none
+    comes): it stops at once with status 0, publishes nothing, and says so in its status."""
+    status = tmp_path / "status.json"
+    what = [direct] if program == "replay" else []
+    proc = _start("bttsim_stream.cli", program, *what, "--wait-for", "1", "--wait-timeout", "120",
+                  "-l", f"tcp/127.0.0.1:{free_port()}", "--status-file", status)
+    err = LineWatch(proc.stderr)
+    try:
+        err.wait_for(lambda line: "waiting for 1 node(s) on rig1" in line)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0, err.text()
+    finally:
+        _stop(proc)
+    assert "error" not in err.text()
+    done = json.loads(status.read_text())
+    assert done["state"] == "done" and done["stats"]["messages"] == 0, done
+    assert done["stats"]["stopped_by_signal"] == signal.SIGINT
 
 
 def test_raw_signal_channels_are_recorded_and_replayed_bit_identically(tmp_path):

@@ -498,7 +498,8 @@ def wait_for_consumers(session, rig: str, count: int, timeout_s: float, stop: St
        tokens (``bttsim/<rig>/ready/*``): each consumer has the metadata, so its
        subscriptions reach the publisher; a warning if they do not all come.
 
-    With ``count`` 0, only ``publish_metadata()``. After the run, :func:`wait_for_done` waits
+    With ``count`` 0, only ``publish_metadata()``; once ``stop`` is set, nothing more (a
+    signal while waiting is a clean stop, not an error). After the run, :func:`wait_for_done` waits
     for the same consumers to have the whole stream.
 
     Raises
@@ -514,8 +515,10 @@ def wait_for_consumers(session, rig: str, count: int, timeout_s: float, stop: St
         if seen < count and not stop:
             raise BttsimError(f"found {seen} of the {count} node(s) to wait for on {rig} after {timeout_s:g} s: "
                               "check the endpoints (behind a Zenoh router, use client mode: -m client)")
-        if not wait_for_subscribers(session, data_keys, timeout_s, stop):
+        if not wait_for_subscribers(session, data_keys, timeout_s, stop) and not stop:
             raise BttsimError(f"no subscriber on {rig}'s OPR and TOA keys after {timeout_s:g} s")
+    if stop:  # stopped while waiting (a signal, --duration): a clean stop, nothing published
+        return
     publish_metadata()
     if count > 0:
         ready = wait_for_liveliness(session, f"{keys.PREFIX}/{rig}/ready/*", count, min(timeout_s, READY_TIMEOUT_S),
