@@ -8,8 +8,10 @@ Usage::
 For the default 130 s run-up and a longer one (same speeds, 1000 -> 4000 rpm), measures the
 peak resident set size (MB) of
 
-* ``bttsim simulate``, ``bttsim process``, ``bttsim export`` (CSV) and ``bttsim view``
-  (``--rrd``) of the simulated recording (exact: ``os.wait4``'s ``ru_maxrss``);
+* ``bttsim simulate``, ``bttsim process``, ``bttsim export`` (CSV), ``bttsim view``
+  (``--rrd``) and ``bttsim replay`` (``--rate max`` to a loopback listen endpoint that nobody
+  connects to: what reading and publishing the file costs) of the simulated recording (exact:
+  ``os.wait4``'s ``ru_maxrss``);
 * every node of ``bttsim run`` -- processor, recorder, viewer, simulator (``VmHWM`` of each
   node process, read from ``/proc`` every 0.1 s while it runs: a peak in its last 0.1 s can
   be missed);
@@ -33,6 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _proc import children, memory_mb, node_name  # noqa: E402
+from bttsim_stream.testing import free_port  # noqa: E402
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -48,12 +51,6 @@ def _peak_mb(cmd: list, cwd: Path) -> float:
     if p.returncode not in (0, 3):
         raise RuntimeError(f"{' '.join(map(str, cmd))}: exit {p.returncode}")
     return usage.ru_maxrss / 1024.0
-
-
-
-
-
-
 
 
 def _run_nodes_mb(scenario: Path, out: Path) -> dict:
@@ -83,7 +80,7 @@ def _run_nodes_mb(scenario: Path, out: Path) -> dict:
     return dict(sorted(peaks.items()))
 
 
-COMMANDS = ("simulate", "process", "export", "view", "run")
+COMMANDS = ("simulate", "process", "export", "view", "replay", "run")
 
 
 def measure(duration_s: float | None, work: Path, only: tuple) -> dict:
@@ -96,7 +93,8 @@ def measure(duration_s: float | None, work: Path, only: tuple) -> dict:
     res = {"simulate": _peak_mb([*BTTSIM, "simulate", str(scenario), "--out", str(mcap), "-q"], work)}
     cmds = {"process": ["process", str(mcap), "--summary", str(work / f"{tag}.json")],
             "export": ["export", str(mcap), "--format", "csv", "--out", str(work / f"{tag}.export")],
-            "view": ["view", str(mcap), "--rrd", str(work / f"{tag}.rrd")]}
+            "view": ["view", str(mcap), "--rrd", str(work / f"{tag}.rrd")],
+            "replay": ["replay", str(mcap), "--wait", "0", "-l", f"tcp/127.0.0.1:{free_port()}"]}
     for name, argv in cmds.items():
         if name in only:
             res[name] = _peak_mb([*BTTSIM, *argv], work)

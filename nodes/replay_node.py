@@ -4,7 +4,9 @@ Every recorded message goes back on its key with the same payload bytes and the 
 attachment (sequence number, log time); the recorded run metadata answers the
 ``bttsim/<rig>/meta`` queryable and an ``alive/sim`` liveliness token is held while
 replaying, as the simulator node does. Pacing: the original (``--rate realtime``), a
-speed-up factor, or as fast as possible (``--rate max``, the default).
+speed-up factor, or as fast as possible (``--rate max``, the default). The file is read as a
+stream, twice (what it holds, then each message as it goes out): memory does not grow with
+the recording.
 
 Before publishing it waits for its consumers. With ``--wait-for N`` it does as the simulator
 node, on each rig of the recording in turn: it waits for N other nodes' liveliness tokens
@@ -25,7 +27,7 @@ import sys
 import time
 
 from bttsim_stream.bus import codec, keys
-from bttsim_stream.bus.recording import read_recording
+from bttsim_stream.bus.recording import RecordingScan
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done, \
     wait_for_subscribers
 from bttsim_stream.bus.stream import StreamEnd
@@ -40,24 +42,17 @@ def main(conf, args: argparse.Namespace) -> dict:
     """Replay the recording; returns ``{"messages": sent, "of": total, "stopped_by_signal": signal or None}``
     (also the ``done`` status)."""
     rate = parse_rate(args.rate)
-    rec = read_recording(args.mcap)
-    if rec.truncated and not args.allow_truncated:
-        raise BttsimError(f"{args.mcap}: truncated MCAP (no footer; {len(rec.messages)} messages readable); "
+    head = _Survey(args.mcap)  # the first pass: what the file holds, no message kept but the metadata
+    if head.truncated and not args.allow_truncated:
+        raise BttsimError(f"{args.mcap}: truncated MCAP (no footer; {head.count} messages readable); "
                           "use --allow-truncated to replay what is there")
-    data = rec.messages
-    if not any(not m.key.endswith("/meta") for m in data):
+    if not head.data:
         raise BttsimError(f"{args.mcap}: no messages to replay")
-    metas = [m for m in data if m.key.endswith("/meta")]
-    rigs = sorted({keys.parse_key(m.key).rig for m in data})
+    metas, rigs = head.metas, head.rigs
     stop = StopFlag(args.duration)
     sent = 0
     # a consumer confirms (done token) only a whole stream: wait for that only if it is whole
-    whole = bool(metas)
-    for meta in metas:
-        end = StreamEnd(codec.decode_run_metadata(meta.payload, meta.key).body)
-        for m in data:
-            end.note(m.key, m.seq)
-        whole &= end.done
+    ends = [StreamEnd(codec.decode_run_metadata(meta.payload, meta.key).body) for meta in metas]
     with node_session(conf, rigs[0], "sim", status_file=args.status_file) as node:
         node.status("starting")
         for r in rigs:
@@ -66,9 +61,9 @@ def main(conf, args: argparse.Namespace) -> dict:
             node.declare(node.session.declare_queryable(
                 m.key, lambda q, p=m.payload, s=m.seq: q.reply(q.key_expr, p, attachment=pack_attachment(s, 0),
                                                                timestamp=node.session.new_timestamp())))
-        for k in dict.fromkeys(m.key for m in data):  # metadata first, then data, as live
+        for k in head.keys:  # metadata first, then data, as live
             node.publisher(k)
-        data_keys = list(dict.fromkeys(m.key for m in data))
+        data_keys = head.keys
 
         def put(*messages) -> None:
             nonlocal sent
@@ -88,26 +83,55 @@ def main(conf, args: argparse.Namespace) -> dict:
             if not wait_for_subscribers(node.session, data_keys, args.wait, stop, every=False):
                 log.warning("no subscriber after %.1f s; replaying anyway", args.wait)
             wait_for_subscribers(node.session, data_keys, 0.5, stop)
-        t0_log = min(m.log_time_ns for m in data)
+        t0_log = head.t0_log_ns
         t0_wall = time.monotonic()
-        for m in data:
+        for m in RecordingScan(args.mcap):  # the second pass, as a stream
             if stop:
                 break
+            for end in ends:
+                end.note(m.key, m.seq)
             if args.wait_for and m.key.endswith("/meta"):  # already out, ahead of the rest
                 continue
             if rate and stop.wait(max(0.0, t0_wall + (m.log_time_ns - t0_log) * 1e-9 / rate - time.monotonic())):
                 break
             put(m)
+        whole = bool(ends) and all(end.done for end in ends)
         if not stop and whole:  # what went out may still be on its way: stay until it is in
             for r in rigs:
                 waiting = wait_for_done(node.session, r, args.drain_timeout, stop)
                 if waiting:
                     log.warning("leaving before %s confirmed the whole stream of %s (%g s)",
                                 ", ".join(sorted(waiting)), r, args.drain_timeout)
-        result = {"messages": sent, "of": len(data), "stopped_by_signal": stop.signal}
+        result = {"messages": sent, "of": head.count, "stopped_by_signal": stop.signal}
         node.status("done", result)
-    print(f"replayed {sent} of {len(data)} messages from {args.mcap}", flush=True)
+    print(f"replayed {sent} of {head.count} messages from {args.mcap}", flush=True)
     return result
+
+
+class _Survey:
+    """A first pass over the recording (:class:`~bttsim_stream.bus.recording.RecordingScan`):
+    its run metadata messages (kept), its keys in the order of their first message, its rigs,
+    how many messages (and whether any is not metadata), the earliest log time and whether the
+    file was cut. Memory does not grow with the file: the replay reads it a second time to
+    publish it."""
+
+    def __init__(self, path) -> None:
+        scan = RecordingScan(path)
+        first: dict[str, None] = {}
+        self.metas: list = []
+        self.count, self.data, self.t0_log_ns = 0, False, None
+        for m in scan:
+            self.count += 1
+            first.setdefault(m.key)
+            if m.key.endswith("/meta"):
+                self.metas.append(m)
+            else:
+                self.data = True
+            if self.t0_log_ns is None or m.log_time_ns < self.t0_log_ns:
+                self.t0_log_ns = m.log_time_ns
+        self.keys = list(first)
+        self.rigs = sorted({keys.parse_key(k).rig for k in self.keys})
+        self.truncated = scan.truncated
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

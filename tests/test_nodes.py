@@ -15,7 +15,7 @@ import zenoh.ext as zx
 
 from _procs import LineWatch, start as _start, stop as _stop
 from bttsim_stream.bus import codec
-from bttsim_stream.bus.recording import read_recording
+from bttsim_stream.bus.recording import McapRecorder, read_recording
 from bttsim_stream.testing import free_port, virtual_acquisition
 from bttsim_stream.bus.session import declare_subscriber, make_config, unpack_attachment
 
@@ -97,28 +97,67 @@ def test_sim_node_and_recorder_give_the_simulate_bytes_with_no_gaps(scenario, di
     assert _messages(rec_out) == _messages(direct)
 
 
-def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct, tmp_path):
-    # a plain subscriber listening first, in this process
+def _replay_into_a_subscriber(path, count: int, *options) -> tuple[list, subprocess.CompletedProcess]:
+    """``bttsim replay PATH --rate max OPTIONS`` into a plain subscriber of this process,
+    listening first: what it received, ``(key, payload, seq, log time)`` sorted (the replay's
+    own status left out), once the replay has ended and ``count`` messages came in (the last
+    samples may still be in flight: at most 30 s more), and the replay's result."""
     port = free_port()
     got = []
     conf = make_config(listen=[f"tcp/127.0.0.1:{port}"])
     with zenoh.open(conf) as session:
         sub = session.declare_subscriber("bttsim/**", lambda s: "/status/" in str(s.key_expr) or got.append(
-            (str(s.key_expr), s.payload.to_bytes(), unpack_attachment(s.attachment))))  # not the replay's own status
-        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", direct, "--rate", "max",
-                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True,
+            (str(s.key_expr), s.payload.to_bytes(), *unpack_attachment(s.attachment))))
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", path, "--rate", "max",
+                              "-e", f"tcp/127.0.0.1:{port}", *options], cwd=REPO, capture_output=True, text=True,
                              timeout=120)
-        assert rep.returncode == 0, rep.stderr
-        file_msgs = read_recording(direct).messages
-        deadline = time.monotonic() + 30  # the last samples may still be in flight
-        while len(got) < len(file_msgs) and time.monotonic() < deadline:
+        deadline = time.monotonic() + 30
+        while rep.returncode == 0 and len(got) < count and time.monotonic() < deadline:
             time.sleep(0.05)
         sub.undeclare()
-    assert len(got) == len(file_msgs)
-    assert sorted((k, p, a[0], a[1]) for k, p, a in got) == \
-        sorted((m.key, m.payload, m.seq, m.log_time_ns) for m in file_msgs)
+    return sorted(got), rep
+
+
+def _sorted(messages) -> list:
+    return sorted((m.key, m.payload, m.seq, m.log_time_ns) for m in messages)
+
+
+def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct, tmp_path):
+    file_msgs = read_recording(direct).messages
+    got, rep = _replay_into_a_subscriber(direct, len(file_msgs))
+    assert rep.returncode == 0, rep.stderr
+    assert got == _sorted(file_msgs)
     # and a recorder fed by the replay writes the same messages as the file
     assert _messages(_record_a_replay(direct, tmp_path / "replayed.mcap")) == _messages(direct)
+
+
+def test_replay_of_a_cut_recording_says_so_or_replays_what_is_there(direct, tmp_path):
+    """The replay reads the file as a stream, twice (what it holds, then to publish it): a file
+    cut short (no footer) is one error line that counts the readable messages, exit 2; with
+    ``--allow-truncated`` exactly those go out; a file of metadata alone is an error."""
+    msgs = read_recording(direct).messages
+    whole = tmp_path / "small-chunks.mcap"
+    with McapRecorder(whole, chunk_size=16 * 1024) as rec:
+        rec.write_all(msgs)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[:int(0.6 * whole.stat().st_size)])
+    readable = read_recording(cut)
+    assert readable.truncated and 0 < len(readable.messages) < len(msgs)
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", cut, "--wait", "0"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.splitlines() == [
+        f"bttsim: error: {cut}: truncated MCAP (no footer; {len(readable.messages)} messages readable); "
+        "use --allow-truncated to replay what is there"], res.stderr
+    got, rep = _replay_into_a_subscriber(cut, len(readable.messages), "--allow-truncated")
+    assert rep.returncode == 0, rep.stderr
+    assert f"replayed {len(readable.messages)} of {len(readable.messages)} " in rep.stdout
+    assert got == _sorted(readable.messages)
+    meta_only = tmp_path / "meta-only.mcap"
+    with McapRecorder(meta_only) as rec:
+        rec.write_all([m for m in msgs if m.key.endswith("/meta")])
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", meta_only, "--wait", "0"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.splitlines() == [f"bttsim: error: {meta_only}: no messages to replay"]
 
 
 def _wait_status(path: Path, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
