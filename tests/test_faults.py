@@ -194,7 +194,9 @@ def test_a_recorder_cut_off_past_the_lease_makes_the_run_say_what_it_misses(tmp_
     run = read_recording(out / "run.mcap")
     rig = "rig1"
     acquisition = [f"bttsim/{rig}/opr", f"bttsim/{rig}/truth"] + [f"bttsim/{rig}/toa/{j}" for j in range(5)]
-    assert _absent(run, acquisition[0], n) > 0  # the fault did cut the stream
+    # the fault did cut the stream: on a loaded machine the cut may spare the OPR key (its small
+    # messages were all in the socket buffers) and fall on other keys
+    assert sum(_absent(run, key, n) for key in acquisition) + _absent(run, f"bttsim/{rig}/resonance", 1) > 0
     for key in acquisition:  # every acquisition key checked to its last number
         got = rec["missing_by_key"].get(key, {"head": 0, "gaps": 0, "tail": 0})
         assert sum(got.values()) == _absent(run, key, n), (key, got)
