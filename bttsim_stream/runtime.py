@@ -43,7 +43,7 @@ from .threads import single_threaded_blas
 
 __all__ = ["Parser", "NodeProgram", "node_parser", "add_node_parser", "run_node", "NodeContext", "node_session",
            "Progress", "parse_rate", "RATE_HELP", "plain_text", "add_status_argument", "add_web_arguments",
-           "add_drain_argument", "add_wait_arguments", "DRAIN_TIMEOUT_S", "EXIT_INCOMPLETE"]
+           "add_drain_argument", "add_wait_arguments", "add_name_argument", "DRAIN_TIMEOUT_S", "EXIT_INCOMPLETE"]
 
 #: How long a consumer waits, in silence, for the rest of a run whose nodes have gone (s).
 DRAIN_TIMEOUT_S = 30.0
@@ -183,6 +183,23 @@ def add_drain_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drain-timeout", type=_seconds, default=DRAIN_TIMEOUT_S, metavar="S",
                    help="when the nodes it follows are gone before the whole run came in (a router restart, a "
                         f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
+
+
+def _node_name(text: str) -> str:
+    try:
+        return keys.validate_node(text)
+    except BttsimError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_name_argument(p: argparse.ArgumentParser, default: str) -> None:
+    """``--name``: the node's name on the bus (its ``alive``, ``ready``, ``done``, ``awaiting``,
+    ``reported`` and ``status`` keys), ``default`` unless given: two consumers of one rig under
+    one name count once for a publisher's ``--wait-for`` and the first one done would let it go."""
+    p.add_argument("--name", type=_node_name, default=default, metavar="NAME",
+                   help=f"the node's name on the bus, in its bttsim/<rig>/alive|ready|done|status/NAME keys "
+                        f"({default}); give a second {default} of one rig another name, so that a simulator's or "
+                        "a replay's --wait-for counts it and waits for its whole run")
 
 
 def add_wait_arguments(p: argparse.ArgumentParser) -> None:

@@ -55,8 +55,8 @@ from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_status_argument, \
-    node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_name_argument, \
+    add_status_argument, node_session, run_node
 
 log = logging.getLogger("bttsim.recorder")
 #: After a gap opened, the publishers' caches are asked again at most this often (s) ...
@@ -84,7 +84,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     gate = RecordGate(None if rig == "*" else rig, report=report)
     ends: dict[str, StreamEnd] = {}  # per rig: has the whole run (acquisition, report) come in?
     with McapRecorder(args.out) as rec, \
-            node_session(conf, rig if rig != "*" else "any", "recorder", inbox_size=INBOX_SIZE,
+            node_session(conf, rig if rig != "*" else "any", args.name, inbox_size=INBOX_SIZE,
                          fifo_size=args.queue,
                          status_file=args.status_file) as node:
         node.subscribe(keys.all_key(rig), history=True)
@@ -205,6 +205,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_drain_argument(p)
     p.add_argument("--queue", type=int, default=FIFO_SIZE, metavar="N",
                    help=f"live samples buffered before the network is slowed down ({FIFO_SIZE})")
+    add_name_argument(p, "recorder")
     add_status_argument(p)
 
 

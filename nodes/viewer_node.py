@@ -35,8 +35,8 @@ from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, \
-    add_web_arguments, node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_name_argument, \
+    add_status_argument, add_web_arguments, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
 
@@ -58,7 +58,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     # its report expected too)
     gate = RecordGate(rig, decode=True, report="processor" in until)
     try:
-        with node_session(conf, rig, "viewer", status_file=args.status_file) as node:
+        with node_session(conf, rig, args.name, status_file=args.status_file) as node:
             node.url = sinks.web_url or ""
             # subscriber before the token: a simulator waiting for our token finds our subscription
             node.subscribe(keys.all_key(rig), history=True)
@@ -150,6 +150,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     add_drain_argument(p)
+    add_name_argument(p, "viewer")
     add_status_argument(p)
 
 

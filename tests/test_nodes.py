@@ -213,6 +213,41 @@ def test_replay_waits_for_every_consumer_and_each_gets_the_whole_run(direct, tmp
     assert [m for m in _messages(tmp_path / "replayed.mcap") if m[0] in acquisition] == _messages(direct)
 
 
+def test_two_recorders_of_one_rig_under_their_own_names_each_get_the_whole_run(direct, tmp_path):
+    """Two recorders of one rig, the second with ``--name recorder-2``: the replay's
+    ``--wait-for 2`` counts both (under one name they count once: its liveliness key is one)
+    and waits for each one's ``done``; both recordings hold the whole acquisition."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", "2", "--wait-timeout", "120", "-l", endpoint)
+    rep_err = LineWatch(rep.stderr)
+    procs = {}
+    try:
+        rep_err.wait_for(lambda line: "waiting for 2 node(s) on rig1" in line)
+        for name in ("recorder", "recorder-2"):
+            status = tmp_path / f"{name}-status.json"
+            procs[name] = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--name", name, "--out",
+                                 tmp_path / f"{name}.mcap", "-e", endpoint, "--status-file", status)
+            _wait_status(status, procs[name])
+            assert json.loads(status.read_text())["node"] == name
+        assert rep.wait(timeout=180) == 0, rep_err.text()
+        for name, proc in procs.items():
+            _, err = proc.communicate(timeout=120)
+            assert proc.returncode == 0, (name, err)
+    finally:
+        for proc in [*procs.values(), rep]:
+            _stop(proc)
+    assert "2 other node(s) alive on rig1" in rep_err.text()
+    for name in procs:
+        assert _messages(tmp_path / f"{name}.mcap") == _messages(direct), name
+
+
+def test_a_node_name_that_cannot_be_a_key_is_a_one_line_error(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.nodes.recorder_node", "--name", "rec/2", "--out",
+                          tmp_path / "r.mcap"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "invalid node name 'rec/2'" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "r.mcap").exists()
+
+
 @pytest.mark.parametrize("program", ["replay", "sim-node"])
 def test_a_signal_while_waiting_for_consumers_is_a_clean_stop(program, direct, tmp_path):
     """SIGINT to a replay or a simulator still waiting for its ``--wait-for`` consumers (none

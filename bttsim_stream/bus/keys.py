@@ -65,6 +65,7 @@ __all__ = [
     "message_type_for_key",
     "key_matches",
     "validate_rig",
+    "validate_node",
 ]
 
 PREFIX = "bttsim"
@@ -165,17 +166,21 @@ def nsv_key(rig: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/nsv"
 
 
-def alive_key(rig: str, node: str) -> str:
-    """``bttsim/<rig>/alive/<node>``: liveliness token of a node (no message)."""
+def validate_node(node: str) -> str:
+    """Return ``node`` if it is a valid node name (``[A-Za-z0-9_-]+``), else raise
+    :class:`BttsimError`."""
     if not isinstance(node, str) or not _NAME_RE.fullmatch(node):
         raise BttsimError(f"invalid node name {node!r}: use letters, digits, '_' and '-'")
-    return f"{PREFIX}/{validate_rig(rig)}/alive/{node}"
+    return node
+
+
+def alive_key(rig: str, node: str) -> str:
+    """``bttsim/<rig>/alive/<node>``: liveliness token of a node (no message)."""
+    return f"{PREFIX}/{validate_rig(rig)}/alive/{validate_node(node)}"
 
 
 def _token_key(rig: str, kind: str, node: str) -> str:
-    if not _NAME_RE.fullmatch(str(node)):
-        raise BttsimError(f"invalid node name {node!r} (expected [A-Za-z0-9_-]+)")
-    return f"{PREFIX}/{validate_rig(rig)}/{kind}/{node}"
+    return f"{PREFIX}/{validate_rig(rig)}/{kind}/{validate_node(node)}"
 
 
 def ready_key(rig: str, node: str) -> str:
@@ -208,9 +213,7 @@ def reported_key(rig: str, node: str) -> str:
 def status_key(rig: str, node: str) -> str:
     """``bttsim/<rig>/status/<node>``: a node's state and final statistics (JSON,
     :mod:`bttsim_stream.bus.status`); never recorded."""
-    if not isinstance(node, str) or not _NAME_RE.fullmatch(node):
-        raise BttsimError(f"invalid node name {node!r}: use letters, digits, '_' and '-'")
-    return f"{PREFIX}/{validate_rig(rig)}/status/{node}"
+    return f"{PREFIX}/{validate_rig(rig)}/status/{validate_node(node)}"
 
 
 def status_all_key(rig: str) -> str:
