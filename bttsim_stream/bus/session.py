@@ -514,7 +514,8 @@ def wait_for_consumers(session, rig: str, count: int, timeout_s: float, stop: St
         log.info("%d other node(s) alive on %s", seen, rig)
         if seen < count and not stop:
             raise BttsimError(f"found {seen} of the {count} node(s) to wait for on {rig} after {timeout_s:g} s: "
-                              "check the endpoints (behind a Zenoh router, use client mode: -m client)")
+                              "check the endpoints (behind a Zenoh router, use client mode: -m client); nodes "
+                              "count by name (a second recorder or viewer of the rig: --name)")
         if not wait_for_subscribers(session, data_keys, timeout_s, stop) and not stop:
             raise BttsimError(f"no subscriber on {rig}'s OPR and TOA keys after {timeout_s:g} s")
     if stop:  # stopped while waiting (a signal, --duration): a clean stop, nothing published
