@@ -185,11 +185,19 @@ def add_drain_argument(p: argparse.ArgumentParser) -> None:
                         f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
 
 
+#: Names a consumer node cannot take: the publishers (which ``--wait-for`` does not count, and
+#: whose status key they would share) and the processor (whose report its followers await).
+RESERVED_NAMES = ("sim", "router", "processor")
+
+
 def _node_name(text: str) -> str:
     try:
-        return keys.validate_node(text)
+        name = keys.validate_node(text)
     except BttsimError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+    if name in RESERVED_NAMES:
+        raise argparse.ArgumentTypeError(f"{name!r} is another node's name ({', '.join(RESERVED_NAMES)} are taken)")
+    return name
 
 
 def add_name_argument(p: argparse.ArgumentParser, default: str) -> None:

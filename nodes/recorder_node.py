@@ -28,7 +28,9 @@ second). The statistics -- ``complete``, ``missing`` and
 as one JSON line on stdout, written as the ``bttsim.recorder`` metadata record and sent as
 the ``stats`` of the node's final status (``bttsim/<rig>/status/recorder``, state ``done``;
 also to ``--status-file``). Status keys themselves are not recorded. Liveliness:
-``bttsim/<rig>/alive/recorder``.
+``bttsim/<rig>/alive/recorder``. ``recorder`` in these keys (and in those below) is the
+node's name, ``--name``: a second recorder of one rig takes another, so that a simulator's
+``--wait-for`` counts it.
 
 Following the processor, the recorder declares ``bttsim/<rig>/awaiting/recorder`` with the run
 metadata and ``bttsim/<rig>/reported/recorder`` once it has the report: the processor stays

@@ -22,6 +22,7 @@ replay a connect endpoint (``-e``), or the other way round.
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import sys
 import time
@@ -53,6 +54,10 @@ def main(conf, args: argparse.Namespace) -> dict:
     sent = 0
     # a consumer confirms (done token) only a whole stream: wait for that only if it is whole
     ends = [StreamEnd(codec.decode_run_metadata(meta.payload, meta.key).body) for meta in metas]
+    bare = sorted(set(rigs) - {keys.parse_key(m.key).rig for m in metas})
+    if args.wait_for and bare:
+        raise BttsimError(f"{args.mcap}: no run metadata for {', '.join(bare)}: its consumers would refuse its data "
+                          "and never confirm it (--wait-for); replay it without --wait-for")
     with node_session(conf, rigs[0], "sim", status_file=args.status_file) as node:
         node.status("starting")
         for r in rigs:
@@ -74,8 +79,8 @@ def main(conf, args: argparse.Namespace) -> dict:
         if args.wait_for:
             for r in rigs:  # the rig's consumers, then its metadata, then their confirmation
                 own = [m for m in metas if keys.parse_key(m.key).rig == r]
-                acquisition = [k for k in data_keys if keys.parse_key(k).rig == r and
-                               keys.parse_key(k).kind in ("opr", "toa")]
+                parsed = [(k, keys.parse_key(k)) for k in data_keys]
+                acquisition = [k for k, pk in parsed if pk.rig == r and pk.kind in ("opr", "toa")]
                 wait_for_consumers(node.session, r, args.wait_for, args.wait_timeout, stop, data_keys=acquisition,
                                    publish_metadata=lambda own=own: put(*own))
         elif args.wait > 0:
@@ -85,9 +90,14 @@ def main(conf, args: argparse.Namespace) -> dict:
             wait_for_subscribers(node.session, data_keys, 0.5, stop)
         t0_log = head.t0_log_ns
         t0_wall = time.monotonic()
-        for m in RecordingScan(args.mcap):  # the second pass, as a stream
+        known, read = set(head.keys), 0
+        for m in itertools.islice(RecordingScan(args.mcap), head.count):  # the second pass, as a stream
             if stop:
                 break
+            read += 1
+            if m.key not in known:
+                raise BttsimError(f"{args.mcap}: the file changed while it was replayed (a message of {m.key} "
+                                  "the first reading did not hold)")
             for end in ends:
                 end.note(m.key, m.seq)
             if args.wait_for and m.key.endswith("/meta"):  # already out, ahead of the rest
@@ -95,6 +105,9 @@ def main(conf, args: argparse.Namespace) -> dict:
             if rate and stop.wait(max(0.0, t0_wall + (m.log_time_ns - t0_log) * 1e-9 / rate - time.monotonic())):
                 break
             put(m)
+        if not stop and read < head.count:
+            raise BttsimError(f"{args.mcap}: the file changed while it was replayed: {read} of its "
+                              f"{head.count} messages read the second time")
         whole = bool(ends) and all(end.done for end in ends)
         if not stop and whole:  # what went out may still be on its way: stay until it is in
             for r in rigs:

@@ -6,7 +6,9 @@ blade fits, travelling waves, resonance reports, raw probe signals when publishe
 (``--rrd OUT.rrd``, ``--rerun-url URL``, ``--web``); its liveliness token
 ``bttsim/<rig>/alive/viewer`` (a simulator started with ``--wait-for`` counts it); its status
 ``bttsim/<rig>/status/viewer`` (the web viewer's URL from ``starting`` on; ``done`` with its
-counts of what it showed and lost; ``serving``), also to ``--status-file``.
+counts of what it showed and lost; ``serving``), also to ``--status-file``. ``viewer`` in
+these keys (and in its ``ready``, ``done``, ``awaiting`` and ``reported`` tokens) is the
+node's name, ``--name``: a second viewer of one rig takes another.
 
 Every sample is admitted as the recorder admits what it writes
 (:class:`~bttsim_stream.bus.admission.RecordGate`: decoded, checked against the run and the

@@ -166,7 +166,7 @@ def _absent(run, key: str, n: int | None) -> int:
 
 def test_a_recorder_cut_off_past_the_lease_makes_the_run_say_what_it_misses(tmp_path):
     """The recorder stopped past the lease loses its link; the simulator goes on without it
-    and ends. Resumed, the recorder has the run's head only: the run exits 3 and reports the
+    and ends. Resumed, the recorder lacks part of the run: the run exits 3 and reports the
     missing per key -- exactly what run.mcap lacks -- although the processor's result is whole."""
     conf = tmp_path / "lease.json5"
     conf.write_text(SHORT_LEASE)
@@ -194,9 +194,8 @@ def test_a_recorder_cut_off_past_the_lease_makes_the_run_say_what_it_misses(tmp_
     run = read_recording(out / "run.mcap")
     rig = "rig1"
     acquisition = [f"bttsim/{rig}/opr", f"bttsim/{rig}/truth"] + [f"bttsim/{rig}/toa/{j}" for j in range(5)]
-    # the fault did cut the stream: on a loaded machine the cut may spare the OPR key (its small
-    # messages were all in the socket buffers) and fall on other keys
-    assert sum(_absent(run, key, n) for key in acquisition) + _absent(run, f"bttsim/{rig}/resonance", 1) > 0
+    # what the fault cut (missing > 0, above) is checked key by key: on a loaded machine the cut
+    # may spare the OPR key (its small messages all in the socket buffers) and fall on others
     for key in acquisition:  # every acquisition key checked to its last number
         got = rec["missing_by_key"].get(key, {"head": 0, "gaps": 0, "tail": 0})
         assert sum(got.values()) == _absent(run, key, n), (key, got)

@@ -131,10 +131,19 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     assert _messages(_record_a_replay(direct, tmp_path / "replayed.mcap")) == _messages(direct)
 
 
-def test_replay_of_a_cut_recording_says_so_or_replays_what_is_there(direct, tmp_path):
+def _replay_error(path, *options) -> list:
+    """The stderr lines of ``bttsim replay PATH --wait 0 OPTIONS``, which must fail with status 2."""
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", path, "--wait", "0", *options],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    return res.stderr.splitlines()
+
+
+def test_replay_of_a_cut_or_incomplete_recording_says_so_or_replays_what_is_there(direct, tmp_path):
     """The replay reads the file as a stream, twice (what it holds, then to publish it): a file
     cut short (no footer) is one error line that counts the readable messages, exit 2; with
-    ``--allow-truncated`` exactly those go out; a file of metadata alone is an error."""
+    ``--allow-truncated`` exactly those go out; a file of metadata alone is an error, and so is
+    ``--wait-for`` on a rig without metadata (its consumers would refuse its data)."""
     msgs = read_recording(direct).messages
     whole = tmp_path / "small-chunks.mcap"
     with McapRecorder(whole, chunk_size=16 * 1024) as rec:
@@ -143,21 +152,20 @@ def test_replay_of_a_cut_recording_says_so_or_replays_what_is_there(direct, tmp_
     cut.write_bytes(whole.read_bytes()[:int(0.6 * whole.stat().st_size)])
     readable = read_recording(cut)
     assert readable.truncated and 0 < len(readable.messages) < len(msgs)
-    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", cut, "--wait", "0"], cwd=REPO,
-                         capture_output=True, text=True, timeout=120)
-    assert res.returncode == 2 and res.stderr.splitlines() == [
-        f"bttsim: error: {cut}: truncated MCAP (no footer; {len(readable.messages)} messages readable); "
-        "use --allow-truncated to replay what is there"], res.stderr
+    assert _replay_error(cut) == [f"bttsim: error: {cut}: truncated MCAP (no footer; {len(readable.messages)} "
+                                  "messages readable); use --allow-truncated to replay what is there"]
     got, rep = _replay_into_a_subscriber(cut, len(readable.messages), "--allow-truncated")
     assert rep.returncode == 0, rep.stderr
     assert f"replayed {len(readable.messages)} of {len(readable.messages)} " in rep.stdout
     assert got == _sorted(readable.messages)
-    meta_only = tmp_path / "meta-only.mcap"
-    with McapRecorder(meta_only) as rec:
-        rec.write_all([m for m in msgs if m.key.endswith("/meta")])
-    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", meta_only, "--wait", "0"], cwd=REPO,
-                         capture_output=True, text=True, timeout=120)
-    assert res.returncode == 2 and res.stderr.splitlines() == [f"bttsim: error: {meta_only}: no messages to replay"]
+    meta_only, no_meta = tmp_path / "meta-only.mcap", tmp_path / "no-meta.mcap"
+    with McapRecorder(meta_only) as a, McapRecorder(no_meta) as b:
+        a.write_all([m for m in msgs if m.key.endswith("/meta")])
+        b.write_all([m for m in msgs if not m.key.endswith("/meta")])
+    assert _replay_error(meta_only) == [f"bttsim: error: {meta_only}: no messages to replay"]
+    assert _replay_error(no_meta, "--wait-for", "1") == [
+        f"bttsim: error: {no_meta}: no run metadata for rig1: its consumers would refuse its data and never "
+        "confirm it (--wait-for); replay it without --wait-for"]
 
 
 def _wait_status(path: Path, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
@@ -178,24 +186,23 @@ def _counts(path, keys=None) -> dict:
     return counts
 
 
-def test_replay_waits_for_every_consumer_and_each_gets_the_whole_run(direct, tmp_path):
-    """``bttsim replay --wait-for 2`` with two consumers, a processor and a recorder, the recorder
-    started only once the processor is on the bus: the replay starts once both have the run
-    metadata, the processor's result rests on every revolution and the recording holds every
-    message of the original (85 revolutions: more than the publishers' caches keep, so a
-    consumer that came in late could not make up for the head of the run)."""
+def _replay_to_consumers(direct, tmp_path, nodes: dict) -> str:
+    """``bttsim replay DIRECT --wait-for len(nodes)`` listening on loopback, and the consumer
+    nodes ``{name: (module, args)}`` connected to it one after the other (each once the one
+    before is on the bus, its status file written); every one must end with status 0. Returns
+    the replay's stderr."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", "2", "--wait-timeout", "120", "-l", endpoint)
+    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", str(len(nodes)), "--wait-timeout", "120",
+                 "-l", endpoint)
     rep_err = LineWatch(rep.stderr)
-    nodes = {"processor": ["--summary", tmp_path / "summary.json"], "recorder": ["--out", tmp_path / "replayed.mcap"]}
     procs = {}
     try:
-        rep_err.wait_for(lambda line: "waiting for 2 node(s) on rig1" in line)
-        for name, args in nodes.items():  # one after the other: the second comes once the first is on the bus
+        rep_err.wait_for(lambda line: f"waiting for {len(nodes)} node(s) on rig1" in line)
+        for name, (module, args) in nodes.items():
             status = tmp_path / f"{name}-status.json"
-            procs[name] = _start(f"bttsim_stream.nodes.{name}_node", "--rig", "rig1", *args, "-e", endpoint,
-                                 "--status-file", status)
+            procs[name] = _start(module, "--rig", "rig1", *args, "-e", endpoint, "--status-file", status)
             _wait_status(status, procs[name])
+            assert json.loads(status.read_text())["node"] == name
         assert rep.wait(timeout=180) == 0, rep_err.text()
         for name, proc in procs.items():
             _, err = proc.communicate(timeout=120)  # a consumer stops when the replay is gone
@@ -205,10 +212,22 @@ def test_replay_waits_for_every_consumer_and_each_gets_the_whole_run(direct, tmp
             _stop(proc)
     original = read_recording(direct).messages
     assert f"replayed {len(original)} of {len(original)} " in rep.stdout.read()
+    return rep_err.text()
+
+
+def test_replay_waits_for_every_consumer_and_each_gets_the_whole_run(direct, tmp_path):
+    """``bttsim replay --wait-for 2`` with two consumers, a processor and a recorder, the recorder
+    started only once the processor is on the bus: the replay starts once both have the run
+    metadata, the processor's result rests on every revolution and the recording holds every
+    message of the original (85 revolutions: more than the publishers' caches keep, so a
+    consumer that came in late could not make up for the head of the run)."""
+    _replay_to_consumers(direct, tmp_path, {
+        "processor": ("bttsim_stream.nodes.processor_node", ["--summary", tmp_path / "summary.json"]),
+        "recorder": ("bttsim_stream.nodes.recorder_node", ["--out", tmp_path / "replayed.mcap"])})
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["complete"] and summary["revolutions_processed"] == summary["revolutions_expected"] == 85
     assert summary["lost"] == 0
-    acquisition = {m.key for m in original}  # the recording also holds the processor's results
+    acquisition = {m.key for m in read_recording(direct).messages}  # the recording also holds the results
     assert _counts(tmp_path / "replayed.mcap", acquisition) == _counts(direct)
     assert [m for m in _messages(tmp_path / "replayed.mcap") if m[0] in acquisition] == _messages(direct)
 
@@ -217,35 +236,22 @@ def test_two_recorders_of_one_rig_under_their_own_names_each_get_the_whole_run(d
     """Two recorders of one rig, the second with ``--name recorder-2``: the replay's
     ``--wait-for 2`` counts both (under one name they count once: its liveliness key is one)
     and waits for each one's ``done``; both recordings hold the whole acquisition."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", "2", "--wait-timeout", "120", "-l", endpoint)
-    rep_err = LineWatch(rep.stderr)
-    procs = {}
-    try:
-        rep_err.wait_for(lambda line: "waiting for 2 node(s) on rig1" in line)
-        for name in ("recorder", "recorder-2"):
-            status = tmp_path / f"{name}-status.json"
-            procs[name] = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--name", name, "--out",
-                                 tmp_path / f"{name}.mcap", "-e", endpoint, "--status-file", status)
-            _wait_status(status, procs[name])
-            assert json.loads(status.read_text())["node"] == name
-        assert rep.wait(timeout=180) == 0, rep_err.text()
-        for name, proc in procs.items():
-            _, err = proc.communicate(timeout=120)
-            assert proc.returncode == 0, (name, err)
-    finally:
-        for proc in [*procs.values(), rep]:
-            _stop(proc)
-    assert "2 other node(s) alive on rig1" in rep_err.text()
-    for name in procs:
+    names = ("recorder", "recorder-2")
+    err = _replay_to_consumers(direct, tmp_path, {
+        name: ("bttsim_stream.nodes.recorder_node", ["--name", name, "--out", tmp_path / f"{name}.mcap"])
+        for name in names})
+    assert "2 other node(s) alive on rig1" in err
+    for name in names:
         assert _messages(tmp_path / f"{name}.mcap") == _messages(direct), name
 
 
-def test_a_node_name_that_cannot_be_a_key_is_a_one_line_error(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "bttsim_stream.nodes.recorder_node", "--name", "rec/2", "--out",
+@pytest.mark.parametrize("name, why", [("rec/2", "invalid node name 'rec/2'"),
+                                       ("processor", "'processor' is another node's name")])
+def test_a_node_name_that_cannot_be_a_key_or_is_taken_is_a_one_line_error(name, why, tmp_path):
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.nodes.recorder_node", "--name", name, "--out",
                           tmp_path / "r.mcap"], cwd=REPO, capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2 and "invalid node name 'rec/2'" in res.stderr and "Traceback" not in res.stderr
-    assert not (tmp_path / "r.mcap").exists()
+    assert res.returncode == 2 and why in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert len(res.stderr.splitlines()) <= 2 and not (tmp_path / "r.mcap").exists()
 
 
 @pytest.mark.parametrize("program", ["replay", "sim-node"])

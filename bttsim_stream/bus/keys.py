@@ -66,6 +66,7 @@ __all__ = [
     "key_matches",
     "validate_rig",
     "validate_node",
+    "ready_all_key",
 ]
 
 PREFIX = "bttsim"
@@ -181,6 +182,11 @@ def alive_key(rig: str, node: str) -> str:
 
 def _token_key(rig: str, kind: str, node: str) -> str:
     return f"{PREFIX}/{validate_rig(rig)}/{kind}/{validate_node(node)}"
+
+
+def ready_all_key(rig: str) -> str:
+    """``bttsim/<rig>/ready/*``: every node's :func:`ready_key` token."""
+    return f"{PREFIX}/{validate_rig(rig)}/ready/*"
 
 
 def ready_key(rig: str, node: str) -> str:

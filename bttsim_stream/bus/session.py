@@ -522,7 +522,7 @@ def wait_for_consumers(session, rig: str, count: int, timeout_s: float, stop: St
         return
     publish_metadata()
     if count > 0:
-        ready = wait_for_liveliness(session, f"{keys.PREFIX}/{rig}/ready/*", count, min(timeout_s, READY_TIMEOUT_S),
+        ready = wait_for_liveliness(session, keys.ready_all_key(rig), count, min(timeout_s, READY_TIMEOUT_S),
                                     stop)
         if ready < count and not stop:
             log.warning("%d of %d node(s) confirmed the run metadata of %s; publishing anyway", ready, count, rig)
