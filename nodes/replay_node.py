@@ -14,7 +14,7 @@ node, on each rig of the recording in turn: it waits for N other nodes' liveline
 TOA key (an error after ``--wait-timeout`` seconds), publishes the rig's metadata, and waits
 for N ``bttsim/<rig>/ready/*`` tokens before the first revolution: every consumer gets the
 whole run. Without it, it waits (``--wait``, default 5 s) for a subscriber on its keys, then
-0.5 s for the others: a consumer that comes later gets only what the publishers' caches still
+up to 0.5 s for one on every key: a consumer that comes later gets only what the publishers' caches still
 hold (the last messages of each key). Give the consumers a listen endpoint (``-l``) and the
 replay a connect endpoint (``-e``), or the other way round.
 """
@@ -77,9 +77,9 @@ def main(conf, args: argparse.Namespace) -> dict:
                 sent += 1
 
         if args.wait_for:
+            parsed = [(k, keys.parse_key(k)) for k in data_keys]
             for r in rigs:  # the rig's consumers, then its metadata, then their confirmation
                 own = [m for m in metas if keys.parse_key(m.key).rig == r]
-                parsed = [(k, keys.parse_key(k)) for k in data_keys]
                 acquisition = [k for k, pk in parsed if pk.rig == r and pk.kind in ("opr", "toa")]
                 wait_for_consumers(node.session, r, args.wait_for, args.wait_timeout, stop, data_keys=acquisition,
                                    publish_metadata=lambda own=own: put(*own))
