@@ -36,7 +36,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
-from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, run_parsed
+from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, positive_seconds, run_parsed
 from .sim.bounds import check_tip_amplitude
 from .sim.core import load_scenario_model
 from .summary import build_summary, describe_exit
@@ -479,7 +479,7 @@ def _add_run_parser(sub) -> None:
     p.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration for every node")
     p.add_argument("-m", "--mode", choices=("peer", "client"), default="peer",
                    help="session mode of every node (peer; client: through a Zenoh router given with -e)")
-    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="S",
+    p.add_argument("--connect-timeout", type=positive_seconds, default=CONNECT_TIMEOUT_S, metavar="S",
                    help=f"a node that cannot reach its endpoints after S seconds fails ({CONNECT_TIMEOUT_S:g})")
     add_drain_argument(p)  # the recorder's, the processor's and the viewer's
     p.add_argument("--tls-dir", metavar="DIR",

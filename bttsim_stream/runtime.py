@@ -178,6 +178,38 @@ def _seconds(text: str) -> float:
     return value
 
 
+def positive_seconds(text: str) -> float:
+    """A duration argument that must pass: a finite number of seconds above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a duration in seconds (a finite number > 0)")
+    return value
+
+
+def count(text: str, least: int = 0) -> int:
+    """A count argument: a whole number, ``least`` or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < least:
+        raise argparse.ArgumentTypeError(f"{text!r} is below {least}")
+    return value
+
+
+def positive_count(text: str) -> int:
+    """A count argument of 1 or more."""
+    return count(text, 1)
+
+
+def add_duration_argument(p: argparse.ArgumentParser) -> None:
+    """``--duration``: a node stops after that many seconds (a finite number above 0)."""
+    p.add_argument("--duration", type=positive_seconds, metavar="S", help="stop after S seconds")
+
+
 def add_drain_argument(p: argparse.ArgumentParser) -> None:
     """``--drain-timeout``: how long a consumer waits for the rest of a run whose nodes have gone."""
     p.add_argument("--drain-timeout", type=_seconds, default=DRAIN_TIMEOUT_S, metavar="S",
@@ -213,9 +245,9 @@ def add_name_argument(p: argparse.ArgumentParser, default: str) -> None:
 def add_wait_arguments(p: argparse.ArgumentParser) -> None:
     """``--wait-for N`` and ``--wait-timeout S``: a publisher (simulator, replay) starts the run
     once N consumers have it (:func:`~bttsim_stream.bus.session.wait_for_consumers`)."""
-    p.add_argument("--wait-for", type=int, default=0, metavar="N",
+    p.add_argument("--wait-for", type=count, default=0, metavar="N",
                    help="wait for N other nodes' liveliness tokens on the rig before publishing")
-    p.add_argument("--wait-timeout", type=float, default=30.0, metavar="S",
+    p.add_argument("--wait-timeout", type=_seconds, default=30.0, metavar="S",
                    help="give up waiting for --wait-for nodes after S seconds (30)")
 
 

@@ -36,8 +36,8 @@ from bttsim_stream.offline import add_processing_arguments, processing_options
 from bttsim_stream.process.pipeline import load_report_modules
 from bttsim_stream.process.resonance import summary_table
 from bttsim_stream.processor import ProcessorSession
-from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_status_argument, node_session, \
-    run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_duration_argument, \
+    add_status_argument, node_session, run_node
 
 log = logging.getLogger("bttsim.processor")
 
@@ -177,7 +177,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--summary", metavar="FILE.json", help="write the summary JSON here at the end")
     p.add_argument("--no-score", action="store_true", help="do not read truth (no E_A / E_f)")
     add_processing_arguments(p)  # --method, --eo, --eo-range, --no-prep, --window
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_duration_argument(p)
     add_drain_argument(p)
     add_status_argument(p)
 

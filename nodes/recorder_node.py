@@ -57,8 +57,8 @@ from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_name_argument, \
-    add_status_argument, node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_duration_argument, \
+    add_name_argument, add_status_argument, node_session, positive_count, run_node
 
 log = logging.getLogger("bttsim.recorder")
 #: After a gap opened, the publishers' caches are asked again at most this often (s) ...
@@ -200,12 +200,12 @@ class _Actions:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="FILE.mcap", help="output MCAP file")
     p.add_argument("--rig", default="*", help="rig to record (default: every rig)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_duration_argument(p)
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the recording ('sim'; '' = only a signal "
                         "or --duration)")
     add_drain_argument(p)
-    p.add_argument("--queue", type=int, default=FIFO_SIZE, metavar="N",
+    p.add_argument("--queue", type=positive_count, default=FIFO_SIZE, metavar="N",
                    help=f"live samples buffered before the network is slowed down ({FIFO_SIZE})")
     add_name_argument(p, "recorder")
     add_status_argument(p)

@@ -33,8 +33,8 @@ from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consum
     wait_for_subscribers
 from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_status_argument, add_wait_arguments, node_session, \
-    parse_rate, run_node
+from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_duration_argument, add_status_argument, \
+    add_wait_arguments, node_session, parse_rate, run_node
 
 log = logging.getLogger("bttsim.replay")
 
@@ -156,7 +156,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
                    help="after a whole run, wait up to S seconds for the nodes that took it to confirm it (120)")
     p.add_argument("--allow-truncated", action="store_true", help="replay a file without its footer")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_duration_argument(p)
     add_status_argument(p)
 
 

@@ -19,7 +19,7 @@ from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, config_from_args, opened
 from bttsim_stream.bus.security import tls_from_args
-from bttsim_stream.runtime import NodeProgram, run_node
+from bttsim_stream.runtime import NodeProgram, add_duration_argument, run_node
 
 log = logging.getLogger("bttsim.router")
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -43,7 +43,7 @@ def main(conf, args: argparse.Namespace) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", default=DEFAULT_RIG, help=f"rig whose liveliness the router announces ({DEFAULT_RIG})")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_duration_argument(p)
 
 
 PROGRAM = NodeProgram("router", __doc__, add_arguments, main)

@@ -26,8 +26,8 @@ import time
 from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done
-from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_status_argument, add_wait_arguments, \
-    node_session, parse_rate, run_node
+from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_duration_argument, add_status_argument, \
+    add_wait_arguments, node_session, parse_rate, run_node
 from bttsim_stream.scenario import Scenario, load_scenario
 
 log = logging.getLogger("bttsim.sim")
@@ -97,7 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lossy", action="store_true", help="drop samples under congestion instead of blocking")
     p.add_argument("--no-truth", action="store_true", help="do not publish truth (a blind acquisition)")
     add_wait_arguments(p)
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_duration_argument(p)
     p.add_argument("--revolutions", type=int, metavar="N", help="stop after N revolutions")
     p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
                    help="after the run, wait up to S seconds for the --wait-for nodes to confirm the whole stream "

@@ -37,8 +37,8 @@ from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag
 from bttsim_stream.bus.admission import RecordGate
 from bttsim_stream.bus.stream import StreamEnd
-from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_name_argument, \
-    add_status_argument, add_web_arguments, node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_duration_argument, \
+    add_name_argument, add_status_argument, add_web_arguments, node_session, run_node
 
 log = logging.getLogger("bttsim.viewer")
 
@@ -150,7 +150,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_web_arguments(p)
     p.add_argument("--until", default="sim", metavar="NODES",
                    help="comma-separated nodes whose end ends the views ('sim'; bttsim run: 'sim,processor')")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_duration_argument(p)
     add_drain_argument(p)
     add_name_argument(p, "viewer")
     add_status_argument(p)

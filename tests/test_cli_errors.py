@@ -114,3 +114,29 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     p.stdout.close()  # before the command writes (its imports take far longer than this)
     err = p.stderr.read().decode()
     assert p.wait(timeout=120) == 141 and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["replay", "x.mcap", "--wait-for", "-1"], "argument --wait-for: '-1' is below 0"),
+    (["replay", "x.mcap", "--wait-for", "two"], "argument --wait-for: 'two' is not a whole number"),
+    (["replay", "x.mcap", "--wait-timeout", "-1"], "argument --wait-timeout: '-1' is not a duration"),
+    (["replay", "x.mcap", "--wait-timeout", "nan"], "argument --wait-timeout: 'nan' is not a duration"),
+    (["replay", "x.mcap", "--duration", "0"], "argument --duration: '0' is not a duration"),
+    (["node", "sim", "--wait-for", "-2"], "argument --wait-for: '-2' is below 0"),
+    (["node", "processor", "--duration", "-1"], "argument --duration: '-1' is not a duration"),
+    (["node", "recorder", "--out", "r.mcap", "--queue", "0"], "argument --queue: '0' is below 1"),
+    (["node", "viewer", "--rrd", "v.rrd", "--duration", "nan"], "argument --duration: 'nan' is not a duration"),
+    (["node", "router", "--duration", "inf"], "argument --duration: 'inf' is not a duration"),
+    (["run", "--out", "o", "--connect-timeout", "-1"], "argument --connect-timeout: '-1' is not a duration"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_node_options_refuse_impossible_numbers_before_starting(capsys, tmp_path, monkeypatch, argv, words):
+    """A negative count of consumers, a queue of none, a duration that is not a finite positive
+    time: one line and status 2 before any session is opened or any file written (before, a
+    replay with ``--wait-for -1`` published to nobody and a recorder with ``--queue 0`` ran)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:  # argparse's own exit, status 2
+        cli.main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bttsim: error:") and err.count("\n") == 1 and words in err, err
+    assert not any(tmp_path.iterdir())
