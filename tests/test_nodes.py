@@ -168,6 +168,40 @@ def test_replay_of_a_cut_or_incomplete_recording_says_so_or_replays_what_is_ther
         "confirm it (--wait-for); replay it without --wait-for"]
 
 
+@pytest.mark.parametrize("change", ["a key more", "messages fewer"])
+def test_a_recording_changed_between_the_replays_two_readings_is_a_one_line_error(change, direct, tmp_path,
+                                                                                 monkeypatch, capsys):
+    """The replay reads the file twice (what it holds, then each message to publish): a file
+    rewritten in between, with a key the first reading did not see or fewer messages, ends in
+    one line naming the change, status 2 (in this process: the second reading is made to see
+    the rewritten file)."""
+    from bttsim_stream import cli
+    from bttsim_stream.bus.recording import RecordingScan
+    import bttsim_stream.nodes.replay_node as replay_node
+
+    msgs = read_recording(direct).messages
+    changed = tmp_path / "changed.mcap"
+    with McapRecorder(changed) as rec:
+        if change == "a key more":
+            extra = next(m for m in msgs if m.key == "bttsim/rig1/toa/0")
+            rec.write_all([*msgs[:-1], type(extra)("bttsim/rig1/toa/99", extra.payload, extra.log_time_ns, extra.seq)])
+        else:
+            rec.write_all(msgs[:len(msgs) // 2])
+    readings = []  # the first (the survey) reads the original, the second the rewritten file
+
+    def scan(path):
+        readings.append(path)
+        return RecordingScan(path if len(readings) == 1 else changed)
+
+    monkeypatch.setattr(replay_node, "RecordingScan", scan)
+    assert cli.main(["replay", str(direct), "--wait", "0", "-l", f"tcp/127.0.0.1:{free_port()}"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(readings) == 2 and len(err) == 1, err
+    want = "a message of bttsim/rig1/toa/99 the first reading did not hold" if change == "a key more" else \
+        f"{len(msgs) // 2} of its {len(msgs)} messages read the second time"
+    assert err[0].startswith(f"bttsim: error: {direct}: the file changed while it was replayed") and want in err[0]
+
+
 def _wait_status(path: Path, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
     """Until the node ``proc`` has written its status file ``path`` (it is on the bus)."""
     deadline = time.monotonic() + timeout_s
@@ -186,27 +220,32 @@ def _counts(path, keys=None) -> dict:
     return counts
 
 
-def _replay_to_consumers(direct, tmp_path, nodes: dict) -> str:
-    """``bttsim replay DIRECT --wait-for len(nodes)`` listening on loopback, and the consumer
-    nodes ``{name: (module, args)}`` connected to it one after the other (each once the one
-    before is on the bus, its status file written); every one must end with status 0. Returns
-    the replay's stderr."""
+def _replay_to_consumers(direct, tmp_path, nodes: dict, per_rig: int | None = None) -> str:
+    """``bttsim replay DIRECT --wait-for N`` listening on loopback (N = ``per_rig``, else every
+    node), and the consumer nodes ``{label: (module, args)}`` connected to it one after the
+    other, each once the one before is on the bus (its status file written) and once the
+    replay waits on its rig (``--rig`` in its args, else rig1); every one must end with status
+    0. Returns the replay's stderr."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", str(len(nodes)), "--wait-timeout", "120",
+    n = per_rig or len(nodes)
+    rep = _start("bttsim_stream.cli", "replay", direct, "--wait-for", str(n), "--wait-timeout", "120",
                  "-l", endpoint)
     rep_err = LineWatch(rep.stderr)
     procs = {}
     try:
-        rep_err.wait_for(lambda line: f"waiting for {len(nodes)} node(s) on rig1" in line)
-        for name, (module, args) in nodes.items():
-            status = tmp_path / f"{name}-status.json"
-            procs[name] = _start(module, "--rig", "rig1", *args, "-e", endpoint, "--status-file", status)
-            _wait_status(status, procs[name])
+        for label, (module, args) in nodes.items():
+            rig = args[args.index("--rig") + 1] if "--rig" in args else "rig1"
+            rep_err.wait_for(lambda line, rig=rig: f"waiting for {n} node(s) on {rig}" in line)
+            status = tmp_path / f"{label}-status.json"
+            procs[label] = _start(module, *([] if "--rig" in args else ["--rig", "rig1"]), *args, "-e", endpoint,
+                                  "--status-file", status)
+            _wait_status(status, procs[label])
+            name = args[args.index("--name") + 1] if "--name" in args else label.split("@")[0]
             assert json.loads(status.read_text())["node"] == name
         assert rep.wait(timeout=180) == 0, rep_err.text()
-        for name, proc in procs.items():
+        for label, proc in procs.items():
             _, err = proc.communicate(timeout=120)  # a consumer stops when the replay is gone
-            assert proc.returncode == 0, (name, err)
+            assert proc.returncode == 0, (label, err)
     finally:
         for proc in [*procs.values(), rep]:
             _stop(proc)
@@ -243,6 +282,31 @@ def test_two_recorders_of_one_rig_under_their_own_names_each_get_the_whole_run(d
     assert "2 other node(s) alive on rig1" in err
     for name in names:
         assert _messages(tmp_path / f"{name}.mcap") == _messages(direct), name
+
+
+def test_a_replay_of_two_rigs_waits_on_each_and_each_rig_gets_its_whole_run(scenario, direct, tmp_path):
+    """One recording of two rigs (rig1 and a second run on rig2, as a recorder of every rig
+    writes them) replayed with ``--wait-for 1``: the replay waits for a consumer on rig1, then
+    on rig2, and each rig's processor gets every revolution of its own run."""
+    toml = tmp_path / "rig2.toml"
+    toml.write_text(scenario.read_text() + '[run]\nrig = "rig2"\n')
+    other = tmp_path / "rig2.mcap"
+    res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "simulate", toml, "--out", other, "-q"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    both = tmp_path / "two-rigs.mcap"
+    with McapRecorder(both) as rec:
+        rec.write_all(sorted([*read_recording(direct).messages, *read_recording(other).messages],
+                             key=lambda m: m.log_time_ns))
+    err = _replay_to_consumers(both, tmp_path, {
+        f"processor@{rig}": ("bttsim_stream.nodes.processor_node",
+                             ["--rig", rig, "--summary", tmp_path / f"{rig}.json"]) for rig in ("rig1", "rig2")},
+                               per_rig=1)
+    assert err.index("waiting for 1 node(s) on rig1") < err.index("waiting for 1 node(s) on rig2")
+    for rig in ("rig1", "rig2"):
+        summary = json.loads((tmp_path / f"{rig}.json").read_text())
+        assert summary["complete"] and summary["lost"] == 0, (rig, summary)
+        assert summary["revolutions_processed"] == summary["revolutions_expected"] == 85, (rig, summary)
 
 
 @pytest.mark.parametrize("name, why", [("rec/2", "invalid node name 'rec/2'"),
