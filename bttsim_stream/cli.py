@@ -36,7 +36,8 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
-from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, positive_seconds, run_parsed
+from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, check_paths, positive_count, \
+    positive_seconds, run_parsed
 from .sim.bounds import check_tip_amplitude
 from .sim.core import load_scenario_model
 from .summary import build_summary, describe_exit
@@ -678,15 +679,32 @@ def _add_campaign_parser(sub) -> None:
     p.add_argument("--out", required=True, help="output folder: results.parquet, report.md, runs/")
     p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://HOST:PORT); default: an "
                                                          "embedded LocalCluster on loopback")
-    p.add_argument("--workers", type=int, metavar="N", help="workers of the embedded cluster (default: one per core)")
+    p.add_argument("--workers", type=positive_count, metavar="N",
+                   help="workers of the embedded cluster (default: one per core)")
     p.add_argument("--tls-dir", metavar="DIR", help="TLS to a tls:// scheduler with the certificates of bttsim certs: "
                                                    "DIR/ca.pem, DIR/campaign.pem, DIR/campaign-key.pem")
     p.add_argument("--resume", action="store_true", help="keep the runs already in --out, run the rest")
-    p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S", help="scheduler connect timeout (10)")
-    p.add_argument("--dashboard", metavar="HOST:PORT", help="serve the embedded cluster's Dask dashboard there "
-                                                             "(needs bokeh; e.g. 127.0.0.1:8787)")
+    p.add_argument("--connect-timeout", type=positive_seconds, default=10.0, metavar="S",
+                   help="scheduler connect timeout (10)")
+    p.add_argument("--dashboard", type=_dashboard_address, metavar="HOST:PORT",
+                   help="serve the embedded cluster's Dask dashboard there (needs bokeh; e.g. 127.0.0.1:8787)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_campaign)
+
+
+def _dashboard_address(text: str) -> str:
+    """``--dashboard IP:PORT``: an IP address (as ``--bind``) and a port in [0, 65535]."""
+    from .bus.ports import parse_bind
+
+    host, sep, port = text.rpartition(":")
+    try:
+        parse_bind(host)
+        ok = bool(sep) and 0 <= int(port) <= 65535
+    except (BttsimError, ValueError):
+        ok = False
+    if not ok:
+        raise argparse.ArgumentTypeError(f"{text!r} is not IP:PORT (e.g. 127.0.0.1:8787)")
+    return text
 
 
 def _add_probe_layout_parsers(sub) -> None:
@@ -738,7 +756,7 @@ def main(argv: list[str] | None = None) -> int:
     single_threaded_blas()
     parser = build_parser()
     args = parser.parse_args(argv)
-    return exit_status(args.func, args)
+    return exit_status(lambda: (check_paths(args), args.func(args))[1])
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -30,12 +30,17 @@ def exit_status(fn, *args) -> int:
     """Run ``fn(*args)`` for a program: its return value if that is an int (an exit status),
     else 0; a
     :class:`BttsimError`, or a file-system error of the environment (a full disk, no
-    permission), becomes one line ``bttsim: error: ...`` on stderr and status 2;
+    permission), or running out of memory, becomes one line ``bttsim: error: ...`` on stderr and status 2;
     Ctrl-C status 130, a closed output pipe 141 (no traceback)."""
     try:
         status = fn(*args)
     except BttsimError as exc:
         print(f"bttsim: error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:  # an input asking for more than the machine has (a run of 1e9 s)
+        text = " ".join(str(exc).split())[:200]
+        print(f"bttsim: error: out of memory{': ' + text if text else ''}: the input asks for more than this "
+              "machine has", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -164,12 +164,22 @@ class SignalOptions:
             raise BttsimError(f"--edge must be rising or falling, got {kw['edge']!r}")
         if not (kw["sample_rate_hz"] and math.isfinite(kw["sample_rate_hz"]) and kw["sample_rate_hz"] > 0):
             raise BttsimError(f"--sample-rate must be a rate in Hz > 0, got {kw['sample_rate_hz']!r}")
+        if self.sample_rate_hz is not None:  # the flag: the scenario field's own bounds
+            import dataclasses
+
+            from .fieldspec import field_spec
+            from .scenario_sections import Signal
+
+            field_spec({f.name: f for f in dataclasses.fields(Signal)}["sample_rate_hz"]).validate(
+                "ingest", "--sample-rate", self.sample_rate_hz, None)
         if not 0.0 < kw["fraction"] < 1.0:
             raise BttsimError(f"--fraction must be in (0, 1), got {kw['fraction']!r}")
         if not (math.isfinite(kw["clock_hz"]) and kw["clock_hz"] >= 0):
             raise BttsimError(f"--clock-hz must be >= 0, got {kw['clock_hz']!r}")
         if not 0.0 < self.holdoff < 1.0:
             raise BttsimError(f"--holdoff must be in (0, 1) blade passing periods, got {self.holdoff!r}")
+        if not (math.isfinite(self.start_s) and abs(self.start_s) <= MAX_START_S):
+            raise BttsimError(f"--signal-start-s must be a time in s within +-{MAX_START_S:g}, got {self.start_s!r}")
         return replace(self, **kw)
 
     def trigger_of(self, j: int) -> Trigger:
@@ -411,6 +421,11 @@ def parse_probe(text: str) -> tuple[float, str]:
     return deg, path
 
 
+#: The latest time a signal file may start at, s, either side of 0 (a Unix time in seconds is
+#: well inside; beyond, a start on the counter grid ``k / f_s`` is no 64-bit integer).
+MAX_START_S = 4e9
+
+
 def parse_signal(text: str) -> tuple[float, str, str, float | None]:
     """``"23.82=probe2.npy"`` -> ``(23.82, "probe2.npy", "signal", None)``;
     ``"23.82=probe2.npy@0.0125"`` -> ``(23.82, "probe2.npy", "signal", 0.0125)``: the time of
@@ -428,8 +443,9 @@ def parse_signal(text: str) -> tuple[float, str, str, float | None]:
         start = float(tail)
     except ValueError:
         start = math.nan
-    if not math.isfinite(start):
-        raise BttsimError(f"--signal {text!r}: the start time after '@' must be a time in s, got {tail!r}")
+    if not (math.isfinite(start) and abs(start) <= MAX_START_S):
+        raise BttsimError(f"--signal {text!r}: the start time after '@' must be a time in s within "
+                          f"+-{MAX_START_S:g}, got {tail!r}")
     return deg, head, "signal", start
 
 

@@ -137,11 +137,39 @@ def run_parsed(args: argparse.Namespace):
     return args.node_program.main(config_from_args(args), args)
 
 
+#: Options naming a file or folder a command writes, and those naming what it reads.
+_OUTPUTS = ("out", "dir", "summary", "rrd", "status_file")
+_INPUTS = ("mcap", "scenario", "opr", "results", "options", "deck", "model", "from_export")
+
+
+def check_paths(args: argparse.Namespace) -> None:
+    """An empty output path (it would write into the working folder under no name), or an
+    output that is one of the command's inputs (it would be overwritten before it is read),
+    is one line before anything runs."""
+    inputs: dict[str, str] = {}
+    for name in _INPUTS:
+        value = getattr(args, name, None)
+        for v in (value if isinstance(value, list) else [value]):
+            if isinstance(v, (str, os.PathLike)) and str(v):
+                inputs[os.path.realpath(v)] = str(v)
+    for name in _OUTPUTS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        flag = "--" + name.replace("_", "-") if name != "dir" else "DIR"
+        if not str(value).strip():
+            raise BttsimError(f"{flag}: an empty path")
+        same = inputs.get(os.path.realpath(value))
+        if same is not None:
+            raise BttsimError(f"{flag} {value}: that is the input {same}; it would be overwritten")
+
+
 def run_node(program: NodeProgram, argv=None) -> int:
     """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into one
     line ``bttsim: error: ...`` with exit status 2."""
     single_threaded_blas()
-    return exit_status(run_parsed, node_parser(program).parse_args(argv))
+    args = node_parser(program).parse_args(argv)
+    return exit_status(lambda: (check_paths(args), run_parsed(args))[1])
 
 
 def parse_rate(text: str) -> float | None:
@@ -167,7 +195,7 @@ def add_status_argument(p: argparse.ArgumentParser) -> None:
                         "bttsim/<rig>/status/<node> messages) to FILE.json, replaced atomically")
 
 
-def _seconds(text: str) -> float:
+def seconds(text: str) -> float:
     """A duration argument: a finite number of seconds, 0 or more."""
     try:
         value = float(text)
@@ -212,7 +240,7 @@ def add_duration_argument(p: argparse.ArgumentParser) -> None:
 
 def add_drain_argument(p: argparse.ArgumentParser) -> None:
     """``--drain-timeout``: how long a consumer waits for the rest of a run whose nodes have gone."""
-    p.add_argument("--drain-timeout", type=_seconds, default=DRAIN_TIMEOUT_S, metavar="S",
+    p.add_argument("--drain-timeout", type=seconds, default=DRAIN_TIMEOUT_S, metavar="S",
                    help="when the nodes it follows are gone before the whole run came in (a router restart, a "
                         f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
 
@@ -247,7 +275,7 @@ def add_wait_arguments(p: argparse.ArgumentParser) -> None:
     once N consumers have it (:func:`~bttsim_stream.bus.session.wait_for_consumers`)."""
     p.add_argument("--wait-for", type=count, default=0, metavar="N",
                    help="wait for N other nodes' liveliness tokens on the rig before publishing")
-    p.add_argument("--wait-timeout", type=_seconds, default=30.0, metavar="S",
+    p.add_argument("--wait-timeout", type=seconds, default=30.0, metavar="S",
                    help="give up waiting for --wait-for nodes after S seconds (30)")
 
 

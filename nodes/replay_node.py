@@ -34,7 +34,7 @@ from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consum
 from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_duration_argument, add_status_argument, \
-    add_wait_arguments, node_session, parse_rate, run_node
+    add_wait_arguments, node_session, parse_rate, run_node, seconds
 
 log = logging.getLogger("bttsim.replay")
 
@@ -150,10 +150,10 @@ class _Survey:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("mcap", help="recording to replay (MCAP)")
     p.add_argument("--rate", default="max", help=RATE_HELP)
-    p.add_argument("--wait", type=float, default=5.0, metavar="S",
+    p.add_argument("--wait", type=seconds, default=5.0, metavar="S",
                    help="without --wait-for: seconds to wait for a subscriber before replaying (5)")
     add_wait_arguments(p)
-    p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
+    p.add_argument("--drain-timeout", type=seconds, default=120.0, metavar="S",
                    help="after a whole run, wait up to S seconds for the nodes that took it to confirm it (120)")
     p.add_argument("--allow-truncated", action="store_true", help="replay a file without its footer")
     add_duration_argument(p)

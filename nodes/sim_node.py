@@ -27,7 +27,7 @@ from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_duration_argument, add_status_argument, \
-    add_wait_arguments, node_session, parse_rate, run_node
+    add_wait_arguments, node_session, parse_rate, positive_count, run_node, seconds
 from bttsim_stream.scenario import Scenario, load_scenario
 
 log = logging.getLogger("bttsim.sim")
@@ -98,11 +98,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-truth", action="store_true", help="do not publish truth (a blind acquisition)")
     add_wait_arguments(p)
     add_duration_argument(p)
-    p.add_argument("--revolutions", type=int, metavar="N", help="stop after N revolutions")
-    p.add_argument("--drain-timeout", type=float, default=120.0, metavar="S",
+    p.add_argument("--revolutions", type=positive_count, metavar="N", help="stop after N revolutions")
+    p.add_argument("--drain-timeout", type=seconds, default=120.0, metavar="S",
                    help="after the run, wait up to S seconds for the --wait-for nodes to confirm the whole stream "
                         "(120; with --lossy at most 5)")
-    p.add_argument("--linger", type=float, default=0.0, metavar="S",
+    p.add_argument("--linger", type=seconds, default=0.0, metavar="S",
                    help="keep serving the metadata and the late-joiner cache S seconds after the run")
     p.add_argument("--progress", action="store_true", help="show a progress line on stderr")
     add_status_argument(p)

@@ -1,11 +1,15 @@
 """Issue 12: impossible input to ``bttsim cn``, ``probes``, ``process`` and ``scenario --check``
 ends in one line and exit status 2 (never a traceback, never ``inf`` with status 0)."""
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from bttsim_stream import cli
 from bttsim_stream.scenario import default_toml
 
+REPO = Path(__file__).resolve().parents[1]
 SINGULAR = "[probes]\nangles_deg = [0.0, 45.0, 90.0, 135.0]\n"
 
 
@@ -17,8 +21,8 @@ def _error(capsys, *argv) -> str:
 
 
 @pytest.mark.parametrize("argv,words", [
-    (["cn", "--eo", "0"], "engine order must be >= 1"),
-    (["cn", "--eo", "-8"], "engine order must be >= 1"),
+    (["cn", "--eo", "0"], "engine order must be in [1, 1000]"),
+    (["cn", "--eo", "-8"], "engine order must be in [1, 1000]"),
     (["cn", "--eo", "8.5"], "whole numbers"),
     (["cn", "--probes", "5,15"], "cannot separate the 3 unknowns"),
     (["cn", "--eo", "8,9", "--probes", "5,15,25,35"], "cannot separate the 5 unknowns"),
@@ -29,8 +33,12 @@ def _error(capsys, *argv) -> str:
     (["cn", "--probes", "0,45,90,135"], "singular"),
     (["probes", "--n", "2"], "at least 3 probes"),
     (["probes", "--n", "20"], "only 11 candidate angles"),
-    (["probes", "--eo", "0"], "engine order must be >= 1"),
+    (["probes", "--eo", "0"], "engine order must be in [1, 1000]"),
     (["probes", "--top", "0"], "--top must be >= 1"),
+    (["cn", "--eo", "100000"], "engine order must be in [1, 1000], got 100000"),
+    (["cn", "--eo", "8,8"], "engine order 8 given twice"),
+    (["probes", "--candidates", ",".join(str(5 * i) for i in range(64)), "--n", "10"],
+     "151,473,214,816 layouts of 10 probes among 64 candidate angles: more than the 1,000,000"),
     (["probes", "--candidates", "0,45,90,135", "--n", "4"], "every layout"),
     (["probes", "--candidates", "10,20,400", "--n", "3"], "[0, 360)"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
@@ -81,10 +89,14 @@ def test_process_error_paths(capsys, singular_mcap, tmp_path):
     err = _error(capsys, "process", str(singular_mcap))
     assert "cannot separate EO 8" in err and "add or move probes" in err
     sample = "recordings/resonance_window.mcap"
-    assert "engine order must be >= 1" in _error(capsys, "process", sample, "--eo", "0")
+    assert "engine order must be in [1, 1000]" in _error(capsys, "process", sample, "--eo", "0")
     assert "--eo-range" in _error(capsys, "process", sample, "--eo-range", "9-3")
     assert "--eo-range" in _error(capsys, "process", sample, "--eo-range", "nine")
     assert "window" in _error(capsys, "process", sample, "--window", "0")
+    assert "a sine-fit window of 100000 revolutions is longer than the run's" in _error(
+        capsys, "process", sample, "--window", "100000")
+    assert "engine order 8 given twice" in _error(capsys, "process", sample, "--eo", "8,8")
+    assert "engine order must be in [1, 1000], got 5000" in _error(capsys, "process", sample, "--eo", "5000")
     assert "cannot write" in _error(capsys, "process", sample, "--summary", str(tmp_path / "no" / "dir.json"))
     _error(capsys, "process", str(tmp_path / "missing.mcap"))
 
@@ -128,6 +140,12 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     (["node", "viewer", "--rrd", "v.rrd", "--duration", "nan"], "argument --duration: 'nan' is not a duration"),
     (["node", "router", "--duration", "inf"], "argument --duration: 'inf' is not a duration"),
     (["run", "--out", "o", "--connect-timeout", "-1"], "argument --connect-timeout: '-1' is not a duration"),
+    (["replay", "x.mcap", "--wait", "nan"], "argument --wait: 'nan' is not a duration"),
+    (["node", "sim", "--linger", "nan"], "argument --linger: 'nan' is not a duration"),
+    (["node", "sim", "--revolutions", "0"], "argument --revolutions: '0' is below 1"),
+    (["campaign", "c.toml", "--out", "o", "--workers", "0"], "argument --workers: '0' is below 1"),
+    (["campaign", "c.toml", "--out", "o", "--connect-timeout", "nan"], "argument --connect-timeout: 'nan'"),
+    (["campaign", "c.toml", "--out", "o", "--dashboard", "bogus"], "argument --dashboard: 'bogus' is not IP:PORT"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_node_options_refuse_impossible_numbers_before_starting(capsys, tmp_path, monkeypatch, argv, words):
     """A negative count of consumers, a queue of none, a duration that is not a finite positive
@@ -140,3 +158,54 @@ def test_node_options_refuse_impossible_numbers_before_starting(capsys, tmp_path
     err = capsys.readouterr().err
     assert err.startswith("bttsim: error:") and err.count("\n") == 1 and words in err, err
     assert not any(tmp_path.iterdir())
+
+
+def test_outputs_that_are_empty_or_the_input_and_files_that_cannot_be_written(capsys, tmp_path, monkeypatch):
+    """An empty output path (it would write into the working folder), an output that is the
+    command's own input (overwritten before it is read), an ``.rrd`` that is a folder or
+    cannot be created, a non-.npz model: one line, status 2, and the input left as it was."""
+    monkeypatch.chdir(tmp_path)
+    scn = tmp_path / "s.toml"
+    scn.write_text(SINGULAR)
+    before = scn.read_bytes()
+    sample = str(REPO / "recordings" / "resonance_window.mcap")
+    assert "--out: an empty path" in _error(capsys, "export", sample, "--out", "")
+    assert "DIR: an empty path" in _error(capsys, "certs", "")
+    assert "--out: an empty path" in _error(capsys, "model", "build", "--out", "")
+    assert f"--out {scn}: that is the input {scn}; it would be overwritten" in _error(
+        capsys, "simulate", str(scn), "--out", str(scn))
+    assert scn.read_bytes() == before
+    (tmp_path / "folder").mkdir()
+    assert "folder: is a folder" in _error(capsys, "view", sample, "--rrd", str(tmp_path / "folder"))
+    assert "No such file or directory" in _error(capsys, "view", sample, "--rrd", "/proc/no/views.rrd")
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    assert "not an .npz archive" in _error(capsys, "model", "show", str(tmp_path / "one.npy"))
+    assert "not an .npz archive" in _error(capsys, "model", "show", str(scn))
+    assert not any(p.name not in ("s.toml", "folder", "one.npy") for p in tmp_path.iterdir())
+
+
+def test_numbers_beyond_what_the_code_can_hold_are_refused(capsys, tmp_path, monkeypatch):
+    """Values that overflowed into a traceback: a certificate valid 10^9 days, a signal file
+    starting at -1e300 s or sampled at 1e20 Hz (the scenario field's own bounds), and a run
+    that asks for more memory than there is."""
+    from bttsim_stream.errors import exit_status
+
+    monkeypatch.chdir(tmp_path)
+    assert "--days must be in [1, 36500], got 1000000000" in _error(capsys, "certs", "c", "--days", "1000000000")
+    np.savetxt(tmp_path / "opr.csv", np.arange(1, 40) * 0.02)
+    np.save(tmp_path / "sig.npy", np.zeros(1000))
+    ingest = ["ingest", "--out", "x.mcap", "--opr", "opr.csv", "--blades", "3", "--tip-radius-m", "0.2"]
+    assert "the start time after '@' must be a time in s within +-4e+09, got '-1e300'" in _error(
+        capsys, *ingest, "--signal", "5=sig.npy@-1e300", "--sample-rate", "1e6")
+    assert "--signal-start-s must be a time in s within +-4e+09, got nan" in _error(
+        capsys, *ingest, "--signal", "5=sig.npy", "--sample-rate", "1e6", "--signal-start-s", "nan")
+    assert "--sample-rate must be in [100000, 1e+09], got 1e+20" in _error(
+        capsys, *ingest, "--signal", "5=sig.npy", "--sample-rate", "1e20")
+    assert not (tmp_path / "x.mcap").exists() and not (tmp_path / "c").exists()
+
+    def too_big():
+        np.empty((1 << 40, 1 << 18))  # 2^61 bytes: no machine has them
+
+    assert exit_status(too_big) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bttsim: error: out of memory: ") and err.count("\n") == 1, err

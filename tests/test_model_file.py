@@ -109,7 +109,7 @@ def test_truncated_corrupt_pickled_and_missing(model_file, tmp_path):
         arrays = {k: z[k] for k in z.files}
     arrays["meta"] = np.array([{"evil": 1}], dtype=object)
     np.savez(pickled, **arrays)
-    cases = {trunc: "corrupt", text: "corrupt", flipped: "corrupt", pickled: "pickled",
+    cases = {trunc: "corrupt", text: "not an .npz archive", flipped: "corrupt", pickled: "pickled",
              tmp_path / "nope.npz": "no such file", tmp_path: "not a file"}
     for path, word in cases.items():
         with pytest.raises(ModelFileError) as exc:

@@ -25,6 +25,8 @@ __all__ = ["IDENTITIES", "generate_certificates"]
 #: session, which follows the progress).
 IDENTITIES = ("sim", "processor", "recorder", "viewer", "router", "run")
 _LOCAL = ("localhost", "127.0.0.1", "::1")
+#: The longest validity ``bttsim certs --days`` gives (100 years; X.509 dates end in 9999).
+MAX_DAYS = 36_500
 
 
 def _x509():
@@ -75,8 +77,8 @@ def generate_certificates(folder, names=IDENTITIES, *, hosts=(), days: int = 365
     bad = [n for n in names if not re.fullmatch(r"[A-Za-z0-9_-]+", str(n)) or n == "ca"]
     if bad or not names:
         raise BttsimError(f"bad certificate name(s) {bad or names!r}: use letters, digits, '_' and '-' (not 'ca')")
-    if not days > 0:
-        raise BttsimError(f"--days must be positive, got {days}")
+    if not 0 < days <= MAX_DAYS:
+        raise BttsimError(f"--days must be in [1, {MAX_DAYS}], got {days}")
     if (folder / "ca.pem").exists() and not overwrite:
         raise BttsimError(f"{folder / 'ca.pem'} exists: choose another folder (or --force to replace every file)")
     try:

@@ -492,6 +492,8 @@ def load_sector(path) -> CyclicSector:
         raise ModelFileError(f"{where}: no such file") from None
     except (ValueError, OSError, EOFError) as exc:
         raise ModelFileError(f"{where}: not a readable .npz sector file ({exc})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):  # one .npy array
+        raise ModelFileError(f"{where}: not an .npz sector file (a single array)")
     with z:
         try:
             missing = [k for k in ("meta",) + _ARRAYS if k not in z.files]

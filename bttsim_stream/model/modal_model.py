@@ -546,10 +546,11 @@ def load_model(path) -> ModalModel:
     if path.stat().st_size > _MAX_FILE_BYTES:
         raise ModelFileError(f"{path}: larger than {_MAX_FILE_BYTES} bytes, refusing to load")
     arrays: dict = {}
+    with open(path, "rb") as f:
+        if f.read(4) != b"PK\x03\x04":  # numpy would call any other file pickled
+            raise ModelFileError(f"{path}: not an .npz archive (a model file is numpy's .npz, a zip)")
     try:
         with np.load(path, allow_pickle=False) as z:
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise ModelFileError(f"{path}: not an .npz archive")
             unpacked = sum(info.file_size for info in z.zip.infolist())
             if unpacked > _MAX_FILE_BYTES:  # a compressed archive may unpack to far more than its size
                 raise ModelFileError(f"{path}: unpacks to {unpacked} bytes, more than {_MAX_FILE_BYTES}, "

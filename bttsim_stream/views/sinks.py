@@ -103,17 +103,23 @@ def open_recording(*, rrd_path=None, grpc_url: str | None = None, serve_web: boo
     sinks: list = []
     server_url = web_url = web_server = None
     if rrd_path:
+        if Path(rrd_path).is_dir():
+            raise BttsimError(f"{rrd_path}: is a folder (give the .rrd file's path)")
         Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
-        sinks.append(rr.FileSink(str(rrd_path)))
+        open(rrd_path, "wb").close()  # a file that cannot be written is an error before anything is logged
+        sinks.append(_sink(rr.FileSink, str(rrd_path)))
     if grpc_url:
-        sinks.append(rr.GrpcSink(grpc_url))
+        sinks.append(_sink(rr.GrpcSink, grpc_url))
     if serve_web:
         # Rerun joins "ip:port" as given: an IPv6 address needs its brackets
         server = rr.GrpcServerSink(f"[{bind}]" if ":" in bind else bind, int(grpc_port),
                                    server_memory_limit=server_memory_limit)
         server_url = f"rerun+http://{url_host(bind)}:{int(grpc_port)}/proxy"
         sinks.append(server)
-    rec.set_sinks(*sinks, default_blueprint=blueprint)
+    try:
+        rec.set_sinks(*sinks, default_blueprint=blueprint)
+    except RuntimeError as exc:  # the file sink opens its file here
+        raise BttsimError(f"{rrd_path or grpc_url}: {' '.join(str(exc).split())[:200]}") from None
     if serve_web:
         try:
             web_server = WebViewerServer(bind, int(web_port))
@@ -123,6 +129,15 @@ def open_recording(*, rrd_path=None, grpc_url: str | None = None, serve_web: boo
         web_url = f"{web_server.url}?url={urllib.parse.quote(server_url, safe='')}"
     return rec, ViewSinks(rrd_path=str(rrd_path) if rrd_path else None, grpc_url=grpc_url,
                           server_url=server_url, web_url=web_url, web_server=web_server)
+
+
+def _sink(kind, where: str):
+    """A Rerun sink of ``kind`` to ``where``; what Rerun refuses (a URL that is not one) is
+    one line."""
+    try:
+        return kind(where)
+    except (RuntimeError, ValueError) as exc:
+        raise BttsimError(f"{where}: {' '.join(str(exc).split())[:200]}") from None
 
 
 def finish_files(rec: rr.RecordingStream) -> None:
