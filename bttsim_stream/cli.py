@@ -255,8 +255,8 @@ def _cmd_ingest(args: argparse.Namespace) -> None:
           f"median {res.median_rpm:.1f} rpm, run {res.run_id}, {dt:.1f} s ({res.toas / max(dt, 1e-9):.3g} TOA/s)")
 
 
-def _cmd_node(args: argparse.Namespace) -> None:
-    run_parsed(args)
+def _cmd_node(args: argparse.Namespace):
+    return run_parsed(args)  # the node's exit status (3: its result is not whole)
 
 
 def _cmd_process(args: argparse.Namespace) -> None:

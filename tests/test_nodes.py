@@ -690,3 +690,14 @@ def test_processor_node_publishes_non_synchronous_vibration(tmp_path):
     assert all(d.nd == 5 and abs(d.freq_hz - 344.0) < 1.0 for d in live)
     summary = json.loads(summary_path.read_text())
     assert summary["status"] == "none" and summary["non_synchronous"][0]["nd"] == 5
+
+
+@pytest.mark.parametrize("command", [["node", "recorder", "--out", "r.mcap"], ["record", "--out", "r.mcap"],
+                                     ["node", "processor"]])
+def test_bttsim_node_exits_3_when_its_result_is_not_whole(command, tmp_path, monkeypatch):
+    """``bttsim node NAME`` (and ``bttsim record``) exit as the node's own script does: 3 when
+    nothing of a run came in before ``--duration`` (it used to drop the node's status: 0)."""
+    from bttsim_stream import cli
+
+    monkeypatch.chdir(tmp_path)
+    assert cli.main([*command, "-l", f"tcp/127.0.0.1:{free_port()}", "--duration", "0.5"]) == 3
