@@ -87,3 +87,16 @@ def test_make_config_refuses(certs, kwargs, words):
 def test_missing_certificate_file_is_one_line(tmp_path):
     with pytest.raises(BttsimError, match="no such CA certificate file"):
         TlsFiles(tmp_path / "ca.pem", tmp_path / "x.pem", tmp_path / "x-key.pem")
+
+
+def test_a_file_that_is_no_pem_is_refused_as_a_certificate(certs, tmp_path):
+    """A text file given as the CA, certificate or key is one line, before any session (the
+    node used to start with it, TLS never tried)."""
+    text = tmp_path / "notes.txt"
+    text.write_text("hello\n")
+    for files, what in [((text, certs / "sim.pem", certs / "sim-key.pem"), "not a PEM CA certificate"),
+                        ((certs / "ca.pem", text, certs / "sim-key.pem"), "not a PEM certificate"),
+                        ((certs / "ca.pem", certs / "sim.pem", text), "not a PEM private key")]:
+        with pytest.raises(BttsimError, match=what):
+            TlsFiles(*files)
+    TlsFiles(certs / "ca.pem", certs / "sim.pem", certs / "sim-key.pem")  # the real ones load

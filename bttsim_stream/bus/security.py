@@ -78,6 +78,9 @@ class TlsFiles:
         for what, p in (("CA certificate", self.ca), ("certificate", self.cert), ("private key", self.key)):
             if not Path(p).is_file():
                 raise BttsimError(f"{p}: no such {what} file (make them with: bttsim certs DIR)")
+            with open(p, "rb") as f:
+                if b"-----BEGIN " not in f.read(1 << 16):
+                    raise BttsimError(f"{p}: not a PEM {what} (make them with: bttsim certs DIR)")
 
 
 def add_security_args(parser: argparse.ArgumentParser) -> None:
