@@ -82,8 +82,9 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
 def _cmd_crb(args: argparse.Namespace) -> None:
     from .crb_report import bounds_table, scenario_bounds
 
-    if args.toa_sigma_s is not None and not (np.isfinite(args.toa_sigma_s) and args.toa_sigma_s >= 0):
-        raise BttsimError(f"--toa-sigma-s must be a finite number >= 0, got {args.toa_sigma_s!r}")
+    sigma = args.toa_sigma_s
+    if sigma is not None and not (sigma == 0 or 1e-15 <= sigma <= 1e-3):  # NaN fails both
+        raise BttsimError(f"--toa-sigma-s must be 0 or a time in s in [1e-15, 1e-3], got {sigma!r}")
     scn = scenario.load_scenario(args.scenario)
     try:
         bounds = scenario_bounds(scn, args.toa_sigma_s)

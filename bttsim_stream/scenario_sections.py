@@ -421,7 +421,7 @@ class Toa:
     """``[toa]``: how times of arrival (TOAs) are computed (paper Sec. 2.2)."""
 
     method: str = spec("HP", kind="str", choices=TOA_METHODS, doc="TOA method (paper Sec. 2.2): {range}")
-    grid_step_s: float = spec(1.2e-5, kind="float", unit="s", lo=0, lo_open=True, doc=(
+    grid_step_s: float = spec(1.2e-5, kind="float", unit="s", lo=1e-9, hi=1e-4, doc=(
         "integrator time grid step for the AD/PAD interpolation, {unit}; {range}"),
         note="1.2e-5 s gives PAD the paper's ~10 % noise-to-signal ratio at resonance")
     axial_interpolation: bool = spec(True, kind="bool", doc=(

@@ -109,7 +109,8 @@ def test_crb_command_prints_the_table_and_refuses_bad_input(tmp_path):
     assert 2560 < float(lines[1].split()[1]) < 2600
     bad = tmp_path / "bad.toml"
     bad.write_text("[probes]\nangles_deg = [5.0, 5.0]\n")
-    for args in ([str(bad)], [str(scn), "--toa-sigma-s", "nan"], [str(tmp_path / "none.toml")]):
+    for args in ([str(bad)], [str(scn), "--toa-sigma-s", "nan"], [str(scn), "--toa-sigma-s", "1e300"],
+                 [str(scn), "--toa-sigma-s", "1e-300"], [str(tmp_path / "none.toml")]):
         r = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "crb", *args], capture_output=True, text=True,
                            timeout=120)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
