@@ -496,11 +496,11 @@ def _geometry(probes_deg: list, n_blades, tip_radius_m, scenario_path, engine_or
 
 def _read_opr(opr_path, column, encoder_pulses, encoder_index, notes: list):
     """The OPR pulse times, s, and the encoder decoding (or None); a note when an encoder."""
+    if encoder_pulses is not None and not 1 <= encoder_pulses <= 100_000:
+        raise BttsimError(f"--encoder-pulses must be in [1, 100000], got {encoder_pulses}")
     opr = read_times(opr_path, column, what="encoder times" if encoder_pulses else "OPR times", strict=True)
     encoder = None
     if encoder_pulses:
-        if not 1 <= encoder_pulses <= 100_000:
-            raise BttsimError(f"--encoder-pulses must be in [1, 100000], got {encoder_pulses}")
         try:
             encoder = encoder_revolutions(opr, encoder_pulses, encoder_index)
         except ValueError as exc:

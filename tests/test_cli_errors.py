@@ -201,6 +201,8 @@ def test_numbers_beyond_what_the_code_can_hold_are_refused(capsys, tmp_path, mon
         capsys, *ingest, "--signal", "5=sig.npy", "--sample-rate", "1e6", "--signal-start-s", "nan")
     assert "--sample-rate must be in [100000, 1e+09], got 1e+20" in _error(
         capsys, *ingest, "--signal", "5=sig.npy", "--sample-rate", "1e20")
+    assert "--encoder-pulses must be in [1, 100000], got 0" in _error(
+        capsys, *ingest, "--probe", "5=opr.csv", "--encoder-pulses", "0")  # 0 was taken as no encoder
     assert not (tmp_path / "x.mcap").exists() and not (tmp_path / "c").exists()
 
     def too_big():
