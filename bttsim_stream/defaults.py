@@ -29,6 +29,8 @@ MAX_SPEEDS = 64
 MAX_ENGINE_ORDER = 1000
 #: Fastest rotor speed of a scenario, rpm.
 MAX_RPM = 1.0e6
+#: Highest natural frequency a model file may hold, Hz (blade modes are below tens of kHz).
+MAX_MODE_FREQ_HZ = 1.0e6
 #: Most revolutions of one run (about 4 h at 4000 rpm; the default run has 5,400).
 MAX_REVOLUTIONS = 1_000_000
 #: Largest tip amplitude as a fraction of the tip radius: zero to peak, the upper bound of any

@@ -80,7 +80,8 @@ BAD = {
     "n-blades-mismatch": (lambda f: {"meta": _meta_with(f, n_blades=30)}, "meta.n_blades = 30"),
     "nominal-out-of-range": (lambda f: {"meta": _meta_with(f, nominal_node=9)}, "meta.nominal_node"),
     "unknown-array": (lambda f: {"surprise": np.zeros(3)}, "unknown array(s) surprise"),
-    "negative-frequency": (lambda f: {"freq_hz": -np.ones(145)}, "freq_hz must be > 0"),
+    "negative-frequency": (lambda f: {"freq_hz": -np.ones(145)}, "freq_hz must be in .0, 1e.06. Hz"),
+    "absurd-frequency": (lambda f: {"freq_hz": np.full(145, 1e300)}, "freq_hz must be in .0, 1e.06. Hz"),
 }
 
 

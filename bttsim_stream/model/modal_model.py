@@ -27,7 +27,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .. import __version__
-from ..defaults import MAX_BLADES, MAX_SPEEDS
+from ..defaults import MAX_BLADES, MAX_MODE_FREQ_HZ, MAX_SPEEDS
 from ..errors import ModelFileError, ScenarioError
 from ..scenario import Scenario
 from .bladed_disk import (
@@ -678,11 +678,10 @@ def _validate(a: dict, where: str) -> dict:
                                      or np.any(a["campbell_freq_hz"] <= 0)):
         raise ModelFileError(f"{where}: campbell_freq_hz must have shape (n_families <= 64, {n_blades // 2 + 1}), "
                              "frequencies > 0")
-    if np.any(a["freq_hz"] <= 0):
-        raise ModelFileError(f"{where}: freq_hz must be > 0")
+    for k in ("freq_hz", "freq_hz_at_speed"):
+        if k in a and not np.all((a[k] > 0) & (a[k] <= MAX_MODE_FREQ_HZ)):
+            raise ModelFileError(f"{where}: {k} must be in (0, {MAX_MODE_FREQ_HZ:g}] Hz")
     if "speed_rad_s" in a:
-        if np.any(a["freq_hz_at_speed"] <= 0):
-            raise ModelFileError(f"{where}: freq_hz_at_speed must be > 0")
         for k in ("freq_hz", "tip_shapes", "force_shapes", "force_shapes_trailing_edge", "campbell_freq_hz"):
             if k + "_at_speed" in a and not np.array_equal(a[k + "_at_speed"][0], a[k]):
                 raise ModelFileError(f"{where}: row 0 of {k}_at_speed (speed 0) differs from {k}")
