@@ -162,6 +162,11 @@ def check_paths(args: argparse.Namespace) -> None:
         same = inputs.get(os.path.realpath(value))
         if same is not None:
             raise BttsimError(f"{flag} {value}: that is the input {same}; it would be overwritten")
+        if name in ("summary", "status_file"):  # written at the end (or replaced, atomically): its folder must be there
+            folder = os.path.dirname(os.path.abspath(value))
+            if not os.path.isdir(folder) or os.path.isdir(value):
+                raise BttsimError(f"{flag}: cannot write {value}: " + ("it is a folder" if os.path.isdir(value) else
+                                                                       f"no folder {folder}"))
 
 
 def run_node(program: NodeProgram, argv=None) -> int:

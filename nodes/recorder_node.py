@@ -78,7 +78,7 @@ WRITE_BATCH = 256
 def main(conf, args: argparse.Namespace) -> dict:
     """Record until stopped; returns (and prints as JSON) the statistics."""
     rig = args.rig if args.rig == "*" else keys.validate_rig(args.rig)
-    until = tuple(n for n in args.until.split(",") if n)
+    until = tuple(keys.validate_node(n) for n in args.until.split(",") if n)
     stop = StopFlag(args.duration)
     # the whole run: every rig's acquisition and, when the processor is followed, its report
     # (its last output: a link that lags may deliver it after the processor's token has gone)

@@ -55,7 +55,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
-    until = tuple(n for n in args.until.split(",") if n) or ("sim",)
+    until = tuple(keys.validate_node(n) for n in args.until.split(",") if n) or ("sim",)
     # what is shown is admitted as the recorder admits what it writes (following the processor:
     # its report expected too)
     gate = RecordGate(rig, decode=True, report="processor" in until)

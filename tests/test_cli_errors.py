@@ -181,6 +181,11 @@ def test_outputs_that_are_empty_or_the_input_and_files_that_cannot_be_written(ca
     np.save(tmp_path / "one.npy", np.zeros(3))
     assert "not an .npz archive" in _error(capsys, "model", "show", str(tmp_path / "one.npy"))
     assert "not an .npz archive" in _error(capsys, "model", "show", str(scn))
+    assert "--status-file: cannot write no/s.json: no folder" in _error(
+        capsys, "replay", sample, "--status-file", "no/s.json")
+    assert "--status-file: cannot write folder: it is a folder" in _error(
+        capsys, "replay", sample, "--status-file", "folder")
+    assert "invalid node name 'a/b'" in _error(capsys, "record", "--out", "r.mcap", "--until", "a/b")
     assert not any(p.name not in ("s.toml", "folder", "one.npy") for p in tmp_path.iterdir())
 
 
