@@ -270,6 +270,9 @@ def _cmd_process(args: argparse.Namespace) -> None:
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")
+    if opts.window > run.revolution.size:
+        raise BttsimError(f"{args.mcap}: a sine-fit window of {opts.window} revolutions is longer than the run's "
+                          f"{run.revolution.size}")
     progress.phase(f"processing {run.revolution.size} revolutions ...")
     progress.close()
     try:
@@ -668,7 +671,7 @@ def _add_study_parser(sub) -> None:
     p = sub.add_parser("study", help="reproduce one of the paper's studies (NAME.md, NAME.json, PNGs) into --out")
     p.add_argument("name", choices=("table2", "table3", "nd", "figures", "probe_count", "bench", "all"),
                    help="the study to run (all: every one)")
-    p.add_argument("--out", required=True, type=Path, metavar="DIR",
+    p.add_argument("--out", required=True, metavar="DIR",
                    help="output folder (the repository's copy: docs/results); figures need the plot extra")
     p.set_defaults(func=_cmd_study)
 
@@ -694,17 +697,15 @@ def _add_campaign_parser(sub) -> None:
 
 
 def _dashboard_address(text: str) -> str:
-    """``--dashboard IP:PORT``: an IP address (as ``--bind``) and a port in [0, 65535]."""
-    from .bus.ports import parse_bind
+    """``--dashboard HOST:PORT`` (as Dask takes it: a host name or address, or none for every
+    interface) with a port in [0, 65535]."""
+    import re
 
     host, sep, port = text.rpartition(":")
-    try:
-        parse_bind(host)
-        ok = bool(sep) and 0 <= int(port) <= 65535
-    except (BttsimError, ValueError):
-        ok = False
+    ok = bool(sep) and port.isdigit() and int(port) <= 65535 and re.fullmatch(r"[A-Za-z0-9.\-]*|\[[0-9A-Fa-f:.]+\]",
+                                                                              host) is not None
     if not ok:
-        raise argparse.ArgumentTypeError(f"{text!r} is not IP:PORT (e.g. 127.0.0.1:8787)")
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST:PORT (e.g. 127.0.0.1:8787)")
     return text
 
 

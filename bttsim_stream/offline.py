@@ -77,6 +77,9 @@ def parse_engine_orders(text: str) -> tuple:
         vals = [int(x) for x in str(text).split(",") if x.strip()]
     except ValueError:
         raise BttsimError(f"--eo must be comma-separated whole numbers, got {text!r}") from None
+    twice = sorted({v for v in vals if vals.count(v) > 1})
+    if twice:  # a fit of one order twice is singular
+        raise BttsimError(f"--eo: engine order {twice[0]} given twice")
     return check_engine_orders(vals)
 
 

@@ -139,7 +139,7 @@ def run_parsed(args: argparse.Namespace):
 
 #: Options naming a file or folder a command writes, and those naming what it reads.
 _OUTPUTS = ("out", "dir", "summary", "rrd", "status_file")
-_INPUTS = ("mcap", "scenario", "opr", "results", "options", "deck", "model", "from_export")
+_INPUTS = ("mcap", "scenario", "opr", "results", "options", "deck", "model", "from_export", "spec")
 
 
 def check_paths(args: argparse.Namespace) -> None:

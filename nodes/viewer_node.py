@@ -49,13 +49,13 @@ def main(conf, args: argparse.Namespace) -> dict:
     from bttsim_stream import views  # rerun takes 0.5 s to import: not for every ``bttsim --help``
 
     rig = keys.validate_rig(args.rig)
+    until = tuple(keys.validate_node(n) for n in args.until.split(",") if n) or ("sim",)
     stop = StopFlag(args.duration)
     rec, sinks = views.open_recording(rrd_path=args.rrd, grpc_url=args.rerun_url, serve_web=args.web,
                                       web_port=args.web_port, grpc_port=args.grpc_port, bind=args.bind)
     if sinks.web_url:
         print(f"web viewer: {sinks.web_url}", flush=True)
     live = views.LiveViews(rec, live=True)
-    until = tuple(keys.validate_node(n) for n in args.until.split(",") if n) or ("sim",)
     # what is shown is admitted as the recorder admits what it writes (following the processor:
     # its report expected too)
     gate = RecordGate(rig, decode=True, report="processor" in until)

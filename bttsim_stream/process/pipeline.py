@@ -171,8 +171,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     LayoutError
         The probes cannot separate an engine order (a ``ValueError``).
     ValueError
-        Fewer than three revolutions, a fit window longer than the run, inconsistent shapes,
-        exact times without the truth.
+        Fewer than three revolutions, inconsistent shapes, exact times without the truth.
 
     Notes
     -----
@@ -189,8 +188,6 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     n_rev = opr.size
     if n_rev < 3:
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
-    if options.window > n_rev:
-        raise ValueError(f"a sine-fit window of {options.window} revolutions is longer than the run's {n_rev}")
     notes: list[str] = []
     eos_asked, cns, joint = _orders_asked(info, geometry, options, notes)
     rows_truth = _truth_rows(truth, n_rev, revolution0)

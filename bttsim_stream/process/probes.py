@@ -78,13 +78,13 @@ def condition_number(engine_orders, probe_angles_deg) -> float:
 
 
 def check_engine_orders(engine_orders) -> tuple:
-    """The engine orders as a tuple of int, each >= 1.
+    """The engine orders as a tuple of int, each in [1, ``MAX_ENGINE_ORDER``].
 
     Raises
     ------
     LayoutError
         An engine order below 1 (EO 0 is a static deflection, not a vibration; a negative EO
-        is the same sine pattern as its opposite), or none at all.
+        is the same sine pattern as its opposite) or above 1000, or none at all.
     """
     eos = np.atleast_1d(np.asarray(engine_orders))
     if eos.size == 0:
@@ -95,8 +95,6 @@ def check_engine_orders(engine_orders) -> tuple:
             raise LayoutError(f"engine orders are whole numbers, got {e:g}")
         if not 1 <= int(e) <= MAX_ENGINE_ORDER:
             raise LayoutError(f"engine order must be in [1, {MAX_ENGINE_ORDER}], got {int(e)}")
-        if int(e) in out:
-            raise LayoutError(f"engine order {int(e)} given twice")
         out.append(int(e))
     return tuple(out)
 
