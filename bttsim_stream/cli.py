@@ -36,7 +36,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
-from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, check_paths, positive_count, \
+from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, checked, positive_count, \
     positive_seconds, run_parsed
 from .sim.bounds import check_tip_amplitude
 from .sim.core import load_scenario_model
@@ -758,7 +758,7 @@ def main(argv: list[str] | None = None) -> int:
     single_threaded_blas()
     parser = build_parser()
     args = parser.parse_args(argv)
-    return exit_status(lambda: (check_paths(args), args.func(args))[1])
+    return exit_status(checked, args.func, args)
 
 
 if __name__ == "__main__":  # pragma: no cover

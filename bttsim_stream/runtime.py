@@ -169,12 +169,17 @@ def check_paths(args: argparse.Namespace) -> None:
                                                                        f"no folder {folder}"))
 
 
+def checked(fn, args: argparse.Namespace):
+    """``fn(args)`` once :func:`check_paths` passed (for :func:`~bttsim_stream.errors.exit_status`)."""
+    check_paths(args)
+    return fn(args)
+
+
 def run_node(program: NodeProgram, argv=None) -> int:
     """Run a node program: parse flags, log to stderr, and turn a :class:`BttsimError` into one
     line ``bttsim: error: ...`` with exit status 2."""
     single_threaded_blas()
-    args = node_parser(program).parse_args(argv)
-    return exit_status(lambda: (check_paths(args), run_parsed(args))[1])
+    return exit_status(checked, run_parsed, node_parser(program).parse_args(argv))
 
 
 def parse_rate(text: str) -> float | None:
@@ -200,26 +205,21 @@ def add_status_argument(p: argparse.ArgumentParser) -> None:
                         "bttsim/<rig>/status/<node> messages) to FILE.json, replaced atomically")
 
 
-def seconds(text: str) -> float:
-    """A duration argument: a finite number of seconds, 0 or more."""
+def seconds(text: str, zero: bool = True) -> float:
+    """A duration argument: a finite number of seconds, 0 or more (``zero=False``: above 0)."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a duration in seconds (a finite number >= 0)")
+    if not (math.isfinite(value) and (value >= 0 if zero else value > 0)):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a duration in seconds (a finite number "
+                                         f"{'>=' if zero else '>'} 0)")
     return value
 
 
 def positive_seconds(text: str) -> float:
     """A duration argument that must pass: a finite number of seconds above 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a duration in seconds (a finite number > 0)")
-    return value
+    return seconds(text, zero=False)
 
 
 def count(text: str, least: int = 0) -> int:
