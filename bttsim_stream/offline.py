@@ -24,7 +24,7 @@ from .bus.recording import McapRecorder, RecordingScan
 from .bus.stream import Completeness, Message, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
-from .process.displacement import DoublePulses, assign_extra_edges
+from .process.displacement import DoublePulses, assign_extra_edges, outside_revolution
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
 from .processor import ProcessorSession
@@ -328,6 +328,9 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
 
     def take(kind: str, d) -> None:
         nonlocal truth
+        if d.header.run_id != meta.run_id:  # another run's message (the live receivers refuse it too)
+            asm.ignored += 1
+            return
         if kind == "truth":
             if truth is None:
                 truth = _TruthTable(kept_truth, _capacity(path, meta), (meta.n_blades, meta.n_probes))
@@ -376,8 +379,8 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     asm = None  # its tables are handed over
     if numbers.size < 3:
         why = (f" ({ignored} OPR/TOA message(s) ignored: a blade count other than the metadata's "
-               f"{meta.n_blades}, a probe index beyond {meta.n_probes - 1}, a revolution out of range or a "
-               f"non-finite OPR time)" if ignored else "")
+               f"{meta.n_blades}, a probe index beyond {meta.n_probes - 1}, a revolution out of range, a "
+               f"non-finite OPR time or another run's id)" if ignored else "")
         raise BttsimError(f"{path}: fewer than 3 complete revolutions recorded{why}")
     if meta.n_revolutions and numbers[-1] >= meta.n_revolutions:
         raise BttsimError(f"{path}: revolution {int(numbers[-1])} recorded, but the run metadata says the run has "
@@ -433,9 +436,7 @@ def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndar
     first, count = None, 0
     for lo in range(0, toa_s.shape[0], _CHECK_BLOCK):  # in blocks: no run-sized temporaries
         hi = lo + _CHECK_BLOCK
-        rel = toa_s[lo:hi] - opr_s[lo:hi, None, None]
-        with np.errstate(invalid="ignore"):
-            wrong = ~np.isnan(toa_s[lo:hi]) & ~((rel >= -period[lo:hi]) & (rel <= 2.0 * period[lo:hi]))
+        wrong = outside_revolution(toa_s[lo:hi], opr_s[lo:hi, None, None], period[lo:hi])
         if wrong.any():
             count += int(wrong.sum())
             if first is None:

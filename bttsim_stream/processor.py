@@ -49,7 +49,10 @@ class ProcessorSession:
     Attributes
     ----------
     rejected : int
-        Messages refused (malformed, not fitting the run, implausible sequence numbers).
+        Messages refused (malformed, not fitting the run, implausible sequence numbers). A TOA
+        batch holding a TOA not within a revolution of its OPR pulse is refused when the next
+        pulse comes (:attr:`StreamingProcessor.refused_batches`), after it took its number: the
+        completeness counts it as rejected and lost.
     missing_toas : int
         TOAs received as NaN (no pulse triggered: the signal chain's missing pulses); they
         stay NaN through the processing, which fits the probes present.
@@ -179,11 +182,12 @@ class ProcessorSession:
 
     def completeness(self) -> Completeness:
         """What the result rests on so far."""
+        refused = self.proc.refused_batches  # numbered, then dropped: their numbers are missing too
         return Completeness(revolutions_expected=self.meta.n_revolutions,
                             revolutions_processed=self.asm.given_complete,
-                            lost=self.seqs.lost + self.seqs.missed_at_start,
+                            lost=self.seqs.lost + self.seqs.missed_at_start + refused,
                             duplicates=self.seqs.duplicates + self.asm.duplicates,
-                            rejected=self.rejected + self.seqs.implausible)
+                            rejected=self.rejected + self.seqs.implausible + refused)
 
     def finish(self) -> tuple[list[Message], dict]:
         """The rest of the stream, the last outputs and the resonance report message, and the
@@ -205,6 +209,9 @@ class ProcessorSession:
         summary = build_summary(result, self.completeness(), missing_toas=self.missing_toas,
                                 doubles=self.doubles.to_summary())
         msgs.append(self.out.resonance(self.proc.result.report))
+        if self.proc.refused_batches:
+            log.warning("%d TOA batch(es) refused: a TOA not within a revolution of its OPR pulse",
+                        self.proc.refused_batches)
         a = self.asm
         log.info("revolutions: %d given out, %d dropped; fragments ignored %d, duplicates %d; "
                  "messages rejected %d", a.given, a.dropped, a.ignored, a.duplicates, self.rejected)

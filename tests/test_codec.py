@@ -236,6 +236,8 @@ def test_run_metadata_refuses_a_wrong_family_table():
     (dict(engine_orders=(2**31,)), "engine order"),
     (dict(nodal_diameters=(NB,)), "nodal diameter"),
     (dict(n_revolutions=2**62), "n_revolutions"),
+    (dict(n_revolutions=0), "n_revolutions = 0"),
+    (dict(speed_range_rpm=(3000.0, 1000.0)), "the lowest above the highest"),
     (dict(n_blades=1000, sensing_angles_rad=None), "n_blades = 1000"),
     (dict(speed_range_rpm=(math.nan, 1.0)), "speed_min_rpm"),
     (dict(family_freq_hz=-np.ones((2, NB // 2 + 1))), "family_freq_hz"),
@@ -245,6 +247,22 @@ def test_run_metadata_refuses_an_impossible_run(changes, words):
     with pytest.raises(BttsimError, match="corrupt RunMetadata") as info:
         codec.decode_run_metadata(payload, "bttsim/rig1/meta")
     assert words in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("t_s", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("key", ["bttsim/rig1/meta", "bttsim/rig1/opr", "bttsim/rig1/fit"])
+def test_a_header_time_that_is_not_finite_is_refused(key, t_s):
+    """Every message's header time is a time: NaN or infinite is corrupt, on every key."""
+    good = {"bttsim/rig1/meta": lambda h: codec.encode_run_metadata(h, make_info()),
+            "bttsim/rig1/opr": lambda h: codec.encode_opr(h, codec.OprPulse(opr_s=1.0)),
+            "bttsim/rig1/fit": lambda h: codec.encode_fit(h, RevolutionFit(
+                engine_order=8, omega_rad_s=270.0, freq_hz=8 * 270.0 / (2 * math.pi), cn=1.4,
+                **{n: np.zeros(NB) for n in ("amp_pkpk_m", "phase_rad", "dc_m", "residual_rms_m", "amp_std_m")}))}
+    codec.decode_message(key, good[key](_header(0, 0, 1.0)))
+    with pytest.raises(BttsimError, match="header time .* is not finite"):
+        codec.decode_message(key, good[key](_header(0, 0, t_s)))
+    with pytest.raises(BttsimError, match="header time .* is not finite"):
+        codec.check_message(key, good[key](_header(0, 0, t_s)))
 
 
 def test_fit_round_trip():

@@ -242,3 +242,22 @@ def test_import_at_speeds_cli_and_errors(speed_sectors, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("bttsim: error:") and expect in err[0], err
         assert not (tmp_path / "bad.npz").exists()
+
+
+@pytest.mark.parametrize("scale,words", [(1e3, "this looks like mm"), (1e-3, "outside [0.005, 10] m")])
+def test_a_sector_in_other_units_than_metres_is_refused(tmp_path, capsys, scale, words):
+    """A neutral .npz sector is SI; its tip coordinates in mm (or km) put the tip radius
+    outside 5 mm..10 m, the bound the .frd reader holds its units to: one line, exit 2."""
+    from bttsim_stream.cli import main
+
+    s = builtin_sector()
+    save_sector(s, tmp_path / "si.npz")
+    assert main(["model", "import", str(tmp_path / "si.npz"), "--out", str(tmp_path / "ok.npz")]) == 0
+    for name in ("tip_xyz", "force_xyz"):
+        object.__setattr__(s, name, getattr(s, name) * scale)  # as a file would hold them (unchecked here)
+    save_sector(s, tmp_path / "scaled.npz")
+    capsys.readouterr()
+    assert main(["model", "import", str(tmp_path / "scaled.npz"), "--out", str(tmp_path / "m.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "tip radius" in err[0] and words in err[0], err
+    assert not (tmp_path / "m.npz").exists()

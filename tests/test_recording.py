@@ -229,6 +229,32 @@ def test_damaged_chunk_is_corrupt(chunked, tmp_path):
     assert _error(excinfo).startswith(f"{bad}: corrupt MCAP (chunk at byte ")
 
 
+def test_a_damaged_summary_is_corrupt(chunked, tmp_path):
+    """The summary section (the index third-party readers use) is held to the footer's CRC:
+    one flipped bit in its statistics, which mcap's own reader takes as a message count, is
+    a one-line error, though every message would still read."""
+    from mcap.reader import make_reader
+
+    path, _ = chunked
+    data = bytearray(path.read_bytes())
+    with open(path, "rb") as f:
+        stats_at = make_reader(f).get_summary().statistics
+    footer = len(data) - len(mcap_io.MCAP_MAGIC) - (1 + 8 + 8 + 8 + 4)
+    summary_start = int.from_bytes(data[footer + 9:footer + 17], "little")
+    pos = summary_start
+    while data[pos] != 0x0B:  # the Statistics record
+        pos += 9 + int.from_bytes(data[pos + 1:pos + 9], "little")
+    data[pos + 9] ^= 0x01  # its message_count's lowest bit
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with open(bad, "rb") as f:  # mcap's reader takes the damaged index as it is
+        assert make_reader(f).get_summary().statistics.message_count == stats_at.message_count ^ 1
+    with pytest.raises(BttsimError) as excinfo:
+        read_recording(bad)
+    assert _error(excinfo).startswith(f"{bad}: corrupt MCAP (summary CRC ")
+    assert len(read_recording(path).messages) == stats_at.message_count
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(BttsimError, match="cannot read"):
         read_recording(tmp_path / "nope.mcap")

@@ -326,3 +326,42 @@ def test_processor_session_refuses_messages_of_another_run_before_they_take_a_nu
     assert got["rejected"] == 2 and got["duplicates"] == 0 and got["complete"]
     assert got["blades"] == clean["blades"] and got["resonances"] == clean["resonances"]
 
+
+
+@pytest.mark.parametrize("where", ["first", "middle", "last"])
+def test_processor_session_refuses_a_toa_outside_its_revolution_as_a_recording_would_be(where):
+    """The rule by which ``bttsim process`` refuses a recording (a TOA neither NaN nor within
+    ``[opr - T, opr + 2 T]`` of its OPR pulse, ``T`` the revolution's period) holds live too:
+    the forged batch is dropped before the final report, counted as rejected and lost, and the
+    result is not called complete. Just inside the bounds nothing is refused."""
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.processor import ProcessorSession
+    from bttsim_stream.scenario import Scenario, Speed
+
+    acq = AcquisitionStream(Scenario(speed=Speed(start_rpm=2400.0, end_rpm=2800.0, duration_s=6.0)))
+    msgs = [m for _, ms in acq.batches() for m in ms]
+    meta = codec.decode_message(acq.meta.key, acq.meta.payload).body
+    opr = np.array([codec.decode_opr(m.payload).body.opr_s for m in msgs if m.key.endswith("/opr")])
+    n = opr.size
+    rev = {"first": 0, "middle": n // 2, "last": n - 1}[where]
+    period = opr[rev + 1] - opr[rev] if rev + 1 < n else opr[rev] - opr[rev - 1]
+
+    def run(toa_value):
+        s = ProcessorSession(meta)
+        for m in msgs:
+            d = codec.decode_message(m.key, m.payload)
+            if m.key.endswith("/toa/2") and m.seq == rev:
+                toa = d.body.toa_s.copy()
+                toa[5] = toa_value
+                d = codec.decode_message(m.key, codec.encode_toa_batch(d.header, 2, toa.tolist()))
+            s.add(m.key.split("/")[2], m.key, d, m.seq)
+        return s.finish()[1]
+
+    for inside in (opr[rev] - 0.999 * period, opr[rev] + 1.999 * period):
+        got = run(inside)
+        assert got["complete"] and got["rejected"] == 0 and got["lost"] == 0
+    for outside in (opr[rev] - 1.001 * period, opr[rev] + 2.001 * period, 1e300, -1e300):
+        with np.errstate(all="raise"):  # the forged value never reaches the arithmetic
+            got = run(outside)
+        assert not got["complete"] and got["rejected"] == 1 and got["lost"] == 1
+        assert got["revolutions_processed"] == n

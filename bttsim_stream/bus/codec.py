@@ -299,8 +299,10 @@ def _run_metadata_problem(m) -> str | None:
             return f"{name} = {v!r} must be finite" + ("" if name == "probe_axial_m" else " and >= 0")
     if not m.speed_min_rpm <= MAX_RPM or not m.speed_max_rpm <= MAX_RPM:
         return f"speed range {m.speed_min_rpm!r}..{m.speed_max_rpm!r} rpm is above {MAX_RPM:g} rpm"
-    if m.n_revolutions > MAX_REVOLUTIONS:
-        return f"n_revolutions = {m.n_revolutions} is above the {MAX_REVOLUTIONS} of one run"
+    if not 1 <= m.n_revolutions <= MAX_REVOLUTIONS:
+        return f"n_revolutions = {m.n_revolutions} out of [1, {MAX_REVOLUTIONS}]"
+    if m.speed_min_rpm > m.speed_max_rpm:
+        return f"speed range {m.speed_min_rpm!r}..{m.speed_max_rpm!r} rpm: the lowest above the highest"
     if not len(m.engine_orders):
         return "no engine order"
     for eo, nd in zip(m.engine_orders, m.nodal_diameters):

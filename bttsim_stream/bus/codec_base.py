@@ -117,6 +117,8 @@ def parse_payload(cls, payload, where: str | None):
         raise BttsimError(f"{where}: corrupt {name} (fields that are not in its schema)")
     if not msg.HasField("header"):
         raise BttsimError(f"{where}: corrupt {name} (no header)")
+    if not math.isfinite(msg.header.t_s):
+        raise BttsimError(f"{where}: corrupt {name} (header time {msg.header.t_s!r} is not finite)")
     if not -1 <= msg.header.revolution <= MAX_REVOLUTIONS:
         raise BttsimError(f"{where}: corrupt {name} (header revolution {msg.header.revolution} "
                           f"out of [-1, {MAX_REVOLUTIONS}])")

@@ -19,12 +19,13 @@ from __future__ import annotations
 import io
 import logging
 import os
+import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 from mcap.exceptions import EndOfFile
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Header, Metadata, Schema
+from mcap.records import Channel, Chunk, Footer, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.records import MessageIndex as McapMessageIndex
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -469,7 +470,34 @@ def _records(scan: _Scan, decode_chunks: bool = True) -> Iterator:
             else:
                 if isinstance(rec, Metadata):
                     scan.metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Footer):
+                    _check_summary_crc(scan, f, rec, start)
                 yield rec
+
+
+#: Bytes of a footer record that its summary CRC covers: opcode, length, summary_start and
+#: summary_offset_start.
+_FOOTER_CRC_BYTES = 1 + 8 + 8 + 8
+
+
+def _check_summary_crc(scan: _Scan, f, footer: Footer, footer_start: int) -> None:
+    """The footer's ``summary_crc`` (when not 0) against the bytes it covers: the summary
+    section and the footer up to ``summary_offset_start`` (the MCAP specification). The index
+    other readers rely on is held to it, though this reader does not use it."""
+    if not footer.summary_crc or not footer.summary_start:
+        return
+    start, stop = footer.summary_start, footer_start + _FOOTER_CRC_BYTES
+    if not len(MCAP_MAGIC) <= start <= footer_start:
+        raise scan.corrupt(f"footer summary_start {start} outside the file's records")
+    crc, pos = 0, start
+    while pos < stop:
+        block = os.pread(f.fileno(), min(1 << 20, stop - pos), pos)
+        if not block:
+            raise scan.corrupt("footer beyond the end of the file")
+        crc = zlib.crc32(block, crc)
+        pos += len(block)
+    if crc != footer.summary_crc:
+        raise scan.corrupt(f"summary CRC {crc:#010x} does not match the footer's {footer.summary_crc:#010x}")
 
 
 def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[Message]:

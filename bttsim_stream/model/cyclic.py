@@ -49,9 +49,12 @@ from .bladed_disk import rotation_z
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
 from .modal_model import MAX_SPEEDS, ModalModel, model_from_cartesian, to_polar
 
-__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "CyclicSector", "expand_sector", "expand_sectors_at_speeds",
-           "save_sector",
-           "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
+__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "TIP_RADIUS_RANGE_M", "CyclicSector", "expand_sector",
+           "expand_sectors_at_speeds", "save_sector", "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
+
+#: Mean radius of a sector's tip nodes, m: a rotor between 5 mm and 10 m (coordinates in
+#: another unit land outside).
+TIP_RADIUS_RANGE_M = (0.005, 10.0)
 
 SECTOR_SCHEMA = "bttsim.cyclic_sector"
 SECTOR_SCHEMA_VERSION = 1
@@ -127,6 +130,12 @@ class CyclicSector:
             problems.append(f"normalisation must be one of {NORMALISATIONS}, got {self.normalisation!r}")
         if not problems and not 0 <= int(self.nominal_node) < t.shape[0]:
             problems.append(f"nominal_node must be in 0..{t.shape[0] - 1}, got {self.nominal_node}")
+        if not problems:
+            r_tip = float(np.mean(np.hypot(t[:, 0], t[:, 1])))
+            lo, hi = TIP_RADIUS_RANGE_M
+            if not lo <= r_tip <= hi:
+                problems.append(f"the tip radius is {r_tip:.4g} m, outside [{lo:g}, {hi:g}] m: tip_xyz must be in "
+                                f"metres" + (" (this looks like mm)" if r_tip > hi else ""))
         if problems:
             raise ModelFileError("; ".join(problems))
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelFileError
-from .cyclic import CyclicSector, expand_sector, load_sector
+from .cyclic import TIP_RADIUS_RANGE_M, CyclicSector, expand_sector, load_sector
 from .frd import read_frd
 
 __all__ = ["ImportOptions", "ImportResult", "Deck", "load_import_options", "check_options", "import_model",
@@ -396,7 +396,7 @@ def sector_from_frd(path, options: ImportOptions = ImportOptions(), *, step: int
         xyz[rows] = exact
     # unit sanity: a rotor tip radius between 5 mm and 10 m
     r_tip = float(np.mean(np.hypot(*xyz[tip.rows, :2].T))) * scale
-    if not 0.005 <= r_tip <= 10.0:
+    if not TIP_RADIUS_RANGE_M[0] <= r_tip <= TIP_RADIUS_RANGE_M[1]:
         hint = " (the deck looks like mm: units = \"mm-t-s\")" if options.units == "SI" and r_tip > 10 else ""
         raise ModelFileError(f"{where}: the tip radius would be {r_tip:.4g} m with units = {options.units!r}{hint}")
     # a mode is mass-normalised in the deck's units; in SI: x m = x * L, M kg = M * m_unit

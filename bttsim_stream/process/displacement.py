@@ -56,6 +56,7 @@ __all__ = [
     "compute_displacements",
     "displacements_from_phase",
     "revolution_displacements",
+    "outside_revolution",
     "identify_blades",
 ]
 
@@ -589,6 +590,19 @@ def revolution_displacements(opr_s: np.ndarray, row: int, toa_s: np.ndarray, arr
     d -= tau
     np.multiply(om * float(tip_radius_m), d, out=out)  # btt_displacement
     return om
+
+
+def outside_revolution(toa_s: np.ndarray, opr_s: np.ndarray, period_s: np.ndarray) -> np.ndarray:
+    """Which TOAs are impossible for Eq. 1: neither NaN (missing) nor within a revolution of
+    their OPR pulse, ``opr - T <= toa <= opr + 2 T`` (``T`` the revolution's period, from its
+    OPR pulse to the next; the last revolution's, the one before). Recordings holding one are
+    refused; the live processor drops them. Shapes broadcast (``opr_s`` and ``period_s``
+    against the revolution axis of ``toa_s``); a period that is not positive makes every TOA of
+    its revolution impossible."""
+    toa = np.asarray(toa_s, dtype=float)
+    rel = toa - opr_s
+    with np.errstate(invalid="ignore"):
+        return ~np.isnan(toa) & ~((rel >= -period_s) & (rel <= 2.0 * period_s))
 
 
 def assign_extra_edges(toa_s: np.ndarray, edge_s: np.ndarray, *, tolerance: float = 0.5) -> np.ndarray:

@@ -23,7 +23,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from .displacement import TWO_PI, Geometry, calibrate_arrival_angles, revolution_displacements, rotor_phase_from_opr
+from .displacement import TWO_PI, Geometry, calibrate_arrival_angles, outside_revolution, revolution_displacements, \
+    rotor_phase_from_opr
 from .fit import design_matrix, fit_revolutions
 from .nsv import NsvDetection, detections, scan_blocks, screen_block
 from .options import LIVE_CALIBRATION, ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
@@ -154,6 +155,8 @@ class StreamingProcessor:
         self._nsv_run = 0  # consecutive detected blocks so far
         self._nsv_last = None  # the last block's scan
         self._finished = False
+        #: Probe batches dropped: a TOA not within a revolution of its OPR pulse.
+        self.refused_batches = 0
         self.result: ProcessingResult | None = None
         self.last_outputs: list[RevolutionOutput] = []
 
@@ -312,6 +315,7 @@ class StreamingProcessor:
         acceleration; the last one, at the end, an extrapolated speed), so that the streamed
         displacements are the offline ones."""
         opr = self._opr.array
+        self._refuse_outside(k, opr)
         if self._cal_window is not None and not self._calibrated and k + 1 >= self._cal_window[1]:
             # the same arrival angles as offline: the window's phase model from its OPRs
             stop = self._cal_window[1]
@@ -327,6 +331,20 @@ class StreamingProcessor:
         self._row_sum.append(_add_all(d))
         self._omega.append(om)
         self._was_calibrated.append(self._calibrated or self._cal_window is None)
+
+    def _refuse_outside(self, k: int, opr: np.ndarray) -> None:
+        """Drop the probe batches of revolution ``k`` holding a TOA that is not within a
+        revolution of its OPR pulse (:func:`~.displacement.outside_revolution`, the rule by
+        which a recording holding one is refused): the batch's TOAs become missing (NaN) in
+        the history, before Eq. 1, the calibration or the final report use them, and are
+        counted in :attr:`refused_batches`. Revolution ``k``'s period needs OPR ``k + 1``
+        (the last revolution takes the period before it)."""
+        period = opr[k + 1] - opr[k] if k + 1 < opr.size else opr[k] - opr[k - 1]
+        row = self._toa.row(k)
+        bad = outside_revolution(row, opr[k], period).any(axis=0)
+        if bad.any():
+            row[:, bad] = np.nan
+            self.refused_batches += int(np.count_nonzero(bad))
 
     def _solver(self, present: tuple):
         """Pseudo-inverse and covariance terms of ``B`` restricted to the present probes
