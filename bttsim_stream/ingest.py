@@ -255,12 +255,51 @@ def _check_out(out) -> None:
         raise BttsimError(f"{out}: cannot write (folder {out.parent} not writable)")
 
 
+class _Rows:
+    """``toa_rows(a, b)`` as an array of shape ``(n_rev, ...)`` sliced by revolutions."""
+
+    def __init__(self, toa_rows, n_rev: int) -> None:
+        self._rows, self.shape = toa_rows, (int(n_rev),)
+
+    def __getitem__(self, s: slice) -> np.ndarray:
+        return self._rows(s.start, min(s.stop, self.shape[0]))
+
+
+def _checked_info(info: RunInfo, where) -> RunInfo:
+    """``info`` as the recording's readers will decode it: its metadata message encoded and
+    decoded (every check of :func:`~.bus.codec.decode_run_metadata`), so that nothing is
+    written that ``process``, ``export`` or ``view`` would refuse."""
+    from .bus import codec, keys
+
+    try:
+        rig = keys.validate_rig(info.rig)
+        payload = codec.encode_run_metadata(codec.Header(info.run_id, 0, -1, 0.0), info)
+        return replace(codec.decode_run_metadata(payload, keys.meta_key(rig)).body, run_id=info.run_id)
+    except (BttsimError, ValueError, TypeError, OverflowError) as exc:
+        raise BttsimError(f"{where}: impossible run metadata: {' '.join(str(exc).split())}") from None
+
+
+def _check_run(where, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_rows, shape: tuple) -> None:
+    """What a recording's readers check (:func:`~.offline.load_run`), before it is written:
+    its metadata, its revolutions within the run's count, OPR times increasing, each TOA NaN
+    or within a revolution of its OPR pulse."""
+    from .offline import check_times
+
+    _checked_info(info, where)
+    if revolution.size and int(revolution[-1]) >= info.n_revolutions:
+        raise BttsimError(f"{where}: revolution {int(revolution[-1])} in the data, but the run has "
+                          f"{info.n_revolutions} revolution(s) (n_revolutions)")
+    check_times(where, revolution, opr_s, _Rows(toa_rows, shape[0]))
+
+
 def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_rows, shape: tuple,
-           extra_passage: np.ndarray, extra_toa_s: np.ndarray, record: dict) -> None:
-    """The recording, written to ``out`` through a temporary file (``out`` untouched on error).
+           extra_passage: np.ndarray, extra_toa_s: np.ndarray, record: dict, where) -> None:
+    """The recording, written to ``out`` through a temporary file (``out`` untouched on error),
+    once :func:`_check_run` (naming ``where``, the input) finds nothing its readers refuse.
 
     ``toa_rows(a, b)`` gives the TOAs of revolutions ``a:b``, ``shape`` those of the run
     ``(revolution, blade, probe)``; ``extra_passage`` indexes it flattened."""
+    _check_run(where, info, revolution, opr_s, toa_rows, shape)
     out = Path(out)
     stream = MessageStream(info.run_id, info.rig)
     nr, nb, npr = shape
@@ -294,23 +333,66 @@ def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_ro
 _ARRAY_FIELDS = {"probe_angles_rad", "sensing_angles_rad", "family_freq_hz", "family_speed_rad_s",
                  "family_freq_hz_at_speed"}
 _TUPLE_FIELDS = {"engine_orders", "nodal_diameters", "speed_range_rpm"}
+_INT_FIELDS = {"n_blades", "n_probes", "n_revolutions", "seed"}
+_STR_FIELDS = {"rig", "toa_method", "scenario_toml", "software_version", "run_id"}
+
+
+def _export_doc(meta_file: Path) -> dict:
+    """An export's ``run.json``: an object with a ``run`` object and ``tables`` naming their
+    files (one-line errors otherwise)."""
+    try:
+        doc = json.loads(meta_file.read_text())
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise BttsimError(f"{meta_file}: not an export's run.json ({type(exc).__name__})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("run"), dict):
+        raise BttsimError(f"{meta_file}: not an export's run.json (no \"run\" object)")
+    tables = doc.get("tables", {})
+    if not isinstance(tables, dict) or not all(isinstance(t, dict) and isinstance(t.get("file"), str) and t["file"]
+                                               for t in tables.values()):
+        raise BttsimError(f"{meta_file}: not an export's run.json (\"tables\" must map each table to "
+                          "{\"file\": NAME, ...})")
+    return doc
+
+
+def _numbers(values, folder, table: str, column: str, *, integer: bool = True, nan: bool = False) -> np.ndarray:
+    """A table column as int64 (integer values only) or float64 (finite; NaN too with ``nan``)."""
+    try:
+        x = np.asarray(values, dtype=float)
+    except (ValueError, TypeError) as exc:
+        raise BttsimError(f"{folder}: {table} table: column {column} is not numbers "
+                          f"({' '.join(str(exc).split())[:80]})") from None
+    bad = ~np.isfinite(x) & ~(nan & np.isnan(x)) if x.ndim == 1 else np.ones(1, bool)
+    if integer and x.ndim == 1:
+        with np.errstate(invalid="ignore"):
+            bad |= (x != np.round(x)) | (np.abs(x) > 2.0 ** 53)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0]) if x.ndim == 1 else 0
+        what = "integers" if integer else "finite numbers" + (" or NaN" if nan else "")
+        raise BttsimError(f"{folder}: {table} table: column {column} must hold {what}, one a row"
+                          + (f" (row {i}: {float(x[i])!r})" if x.ndim == 1 else ""))
+    return x.astype(np.int64) if integer else x
 
 
 def _run_info(doc: dict, where: str) -> RunInfo:
     kw = {}
     names = {f.name for f in fields(RunInfo)}
-    for k, v in doc.items():
-        if k not in names:
-            continue
-        if k in _ARRAY_FIELDS:
-            v = None if v is None else np.asarray(v, dtype=float)
-        elif k in _TUPLE_FIELDS:
-            v = tuple(v)
-        kw[k] = v
     try:
+        for k, v in doc.items():
+            if k not in names:
+                continue
+            if k in _INT_FIELDS and (not isinstance(v, int) or isinstance(v, bool)):
+                raise ValueError(f"{k} must be an integer, got {v!r}"[:120])
+            if k in _STR_FIELDS and not isinstance(v, str):
+                raise ValueError(f"{k} must be a string, got {v!r}"[:120])
+            if k in _ARRAY_FIELDS:
+                v = None if v is None else np.asarray(v, dtype=float)
+            elif k in _TUPLE_FIELDS:
+                v = tuple(v)
+            kw[k] = v
         return RunInfo(**kw)
-    except TypeError as exc:
-        raise BttsimError(f"{where}: run metadata incomplete ({exc})") from None
+    except (TypeError, ValueError) as exc:
+        raise BttsimError(f"{where}: run metadata incomplete or malformed ({' '.join(str(exc).split())[:120]})") \
+            from None
 
 
 def _table(folder: Path, doc: dict, name: str, columns: tuple) -> dict | None:
@@ -329,7 +411,7 @@ def _table(folder: Path, doc: dict, name: str, columns: tuple) -> dict | None:
             tab = pq.read_table(file, columns=list(columns))
         except Exception as exc:
             raise BttsimError(f"{file}: not a readable Parquet table "
-                              f"({type(exc).__name__}: {str(exc)[:120]})") from None
+                              f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
         return {k: tab.column(k).to_numpy(zero_copy_only=False) for k in columns}
     return read_columns(file, columns)
 
@@ -352,41 +434,43 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
     meta_file = folder / "run.json"
     if not meta_file.is_file():
         raise BttsimError(f"{folder}: no run.json (not a `bttsim export` folder)")
-    try:
-        doc = json.loads(meta_file.read_text())
-        run = doc["run"]
-    except (ValueError, KeyError, UnicodeDecodeError) as exc:
-        raise BttsimError(f"{meta_file}: not an export's run.json ({type(exc).__name__})") from None
-    info = _run_info(run, str(meta_file))
+    doc = _export_doc(meta_file)
+    run = doc["run"]
+    info = _checked_info(_run_info(run, str(meta_file)), meta_file)
     opr = _table(folder, doc, "opr", ("revolution", "opr_s"))
     toa = _table(folder, doc, "toa", ("revolution", "blade", "probe", "toa_s"))
     if opr is None or toa is None:
         raise BttsimError(f"{meta_file}: the export lists no {'opr' if opr is None else 'toa'} table")
-    rev = np.asarray(opr["revolution"], dtype=np.int64)
+    rev = _numbers(opr["revolution"], folder, "opr", "revolution")
     if rev.size < 3:
         raise BttsimError(f"{folder}: {rev.size} OPR pulse(s): at least 3 revolutions needed")
     if np.any(np.diff(rev) != 1):
         raise BttsimError(f"{folder}: opr table: revolutions must be consecutive")
-    opr_s = np.asarray(opr["opr_s"], dtype=float)
+    opr_s = _numbers(opr["opr_s"], folder, "opr", "opr_s", integer=False)
     nr, nb, npr = rev.size, info.n_blades, info.n_probes
-    r = np.asarray(toa["revolution"], dtype=np.int64) - rev[0]
-    b = np.asarray(toa["blade"], dtype=np.int64)
-    j = np.asarray(toa["probe"], dtype=np.int64)
+    r = _numbers(toa["revolution"], folder, "toa", "revolution") - rev[0]
+    b = _numbers(toa["blade"], folder, "toa", "blade")
+    j = _numbers(toa["probe"], folder, "toa", "probe")
     ok = (r >= 0) & (r < nr) & (b >= 0) & (b < nb) & (j >= 0) & (j < npr)
     if not ok.all():
         raise BttsimError(f"{folder}: toa table: {int((~ok).sum())} row(s) outside revolutions "
                           f"{rev[0]}..{rev[-1]}, blades 0..{nb - 1}, probes 0..{npr - 1}")
+    cell = (r * nb + b) * npr + j
+    if np.unique(cell).size != cell.size:
+        raise BttsimError(f"{folder}: toa table: {cell.size - np.unique(cell).size} row(s) repeat a (revolution, "
+                          "blade, probe) already given")
     toa_s = np.full((nr, nb, npr), np.nan)
-    toa_s[r, b, j] = np.asarray(toa["toa_s"], dtype=float)
+    toa_s[r, b, j] = _numbers(toa["toa_s"], folder, "toa", "toa_s", integer=False, nan=True)
     ex_pass, ex_t = np.zeros(0, np.int64), np.zeros(0)
     edges = _table(folder, doc, "extra_edge", ("revolution", "probe", "blade", "toa_s"))
     if edges is not None and np.size(edges["toa_s"]):
-        er = np.asarray(edges["revolution"], np.int64) - rev[0]
-        ej = np.asarray(edges["probe"], np.int64)
-        eb = np.clip(np.asarray(edges["blade"], np.int64), 0, nb - 1)  # -1 (no window): its batch is what counts
+        er = _numbers(edges["revolution"], folder, "extra_edge", "revolution") - rev[0]
+        ej = _numbers(edges["probe"], folder, "extra_edge", "probe")
+        # -1 (no window): its batch is what counts
+        eb = np.clip(_numbers(edges["blade"], folder, "extra_edge", "blade"), 0, nb - 1)
         keep = (er >= 0) & (er < nr) & (ej >= 0) & (ej < npr)
         ex_pass = ((er * nb + eb) * npr + ej)[keep]
-        ex_t = np.asarray(edges["toa_s"], float)[keep]
+        ex_t = _numbers(edges["toa_s"], folder, "extra_edge", "toa_s", integer=False)[keep]
     source = {"kind": "export", "path": str(folder), "format": doc.get("format"),
               "run_id": run.get("run_id"), "software_version": doc.get("software_version")}
     run_id = _run_id("export", opr_s.tobytes(), toa_s.tobytes(), ex_t.tobytes(), json.dumps(run, sort_keys=True))
@@ -397,7 +481,7 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
                        median_rpm=float(60.0 / np.median(np.diff(opr_s))))
     record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
               "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
-    _write(out, info, rev, opr_s, lambda a, b: toa_s[a:b], toa_s.shape, ex_pass, ex_t, record)
+    _write(out, info, rev, opr_s, lambda a, b: toa_s[a:b], toa_s.shape, ex_pass, ex_t, record, folder)
     return res
 
 
@@ -825,7 +909,8 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
                   "scenario": None if scenario_path is None else str(scenario_path), "first_opr_pulse": lo}
         record = {"run_id": run_id, "rig": info.rig, "scenario_toml": info.scenario_toml,
                   "software_version": __version__, "source": json.dumps(source), "ingest": json.dumps(res.counts())}
-        _write(out, info, np.arange(nr, dtype=np.int64), opr_k, toa_rows, (nr, nb, npr), ex_pass, ex_t, record)
+        _write(out, info, np.arange(nr, dtype=np.int64), opr_k, toa_rows, (nr, nb, npr), ex_pass, ex_t, record,
+               opr_path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return res

@@ -32,7 +32,7 @@ from .sim.records import RunInfo, Truth
 
 __all__ = ["RecordedRun", "PROCESS_TRUTH_FIELDS", "load_run", "messages_of", "completeness", "result_warnings",
            "processing_messages", "with_processing", "add_processing_arguments", "processing_options",
-           "parse_engine_orders"]
+           "parse_engine_orders", "check_times"]
 
 
 def add_processing_arguments(p: argparse.ArgumentParser) -> None:
@@ -388,7 +388,7 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     if np.any(np.diff(numbers) != 1):
         missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
         raise BttsimError(f"{path}: {missing} revolution(s) missing in the recording")
-    _check_times(path, numbers, opr_s, toa_s)
+    check_times(path, numbers, opr_s, toa_s)
     tr = None if truth is None else truth.rows(numbers.tolist(), all_truth)
     doubles = DoublePulses()
     rows = []
@@ -422,30 +422,40 @@ def _edge_rows(rows: list) -> dict:
 _CHECK_BLOCK = 4096  # revolutions per block of the time checks
 
 
-def _check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s: np.ndarray) -> None:
-    """OPR times strictly increasing; TOAs NaN or finite within a revolution of their OPR."""
+def check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s) -> None:
+    """OPR times strictly increasing; TOAs NaN or finite within a revolution of their OPR
+    (:func:`~.process.displacement.outside_revolution`). ``toa_s``: shape (n_rev, n_blades,
+    n_probes), or anything whose ``shape[0]`` is that and whose slices of revolutions are
+    such arrays (a recording's tables read in blocks).
+
+    Raises
+    ------
+    BttsimError
+        Naming ``path``, the first offending revolution and the count.
+    """
     period = np.diff(opr_s)
     bad = np.flatnonzero(~(period > 0))
     if bad.size:
         i = int(bad[0])
         raise BttsimError(f"{path}: OPR times must increase: revolution {int(revolution[i + 1])} at "
                           f"{float(opr_s[i + 1])!r} s after revolution {int(revolution[i])} at {float(opr_s[i])!r} s")
-    if not np.isfinite(period).all():
+    if not np.isfinite(opr_s).all():
         raise BttsimError(f"{path}: OPR times must be finite")
     period = np.append(period, period[-1])[:, None, None]
     first, count = None, 0
     for lo in range(0, toa_s.shape[0], _CHECK_BLOCK):  # in blocks: no run-sized temporaries
-        hi = lo + _CHECK_BLOCK
-        wrong = outside_revolution(toa_s[lo:hi], opr_s[lo:hi, None, None], period[lo:hi])
+        hi = min(lo + _CHECK_BLOCK, toa_s.shape[0])
+        block = toa_s[lo:hi]
+        wrong = outside_revolution(block, opr_s[lo:hi, None, None], period[lo:hi])
         if wrong.any():
             count += int(wrong.sum())
             if first is None:
                 n, b, p = (int(x[0]) for x in np.nonzero(wrong))
-                first = (n + lo, b, p)
+                first = (n + lo, b, p, float(block[n, b, p]))
     if first is not None:
-        n, b, p = first
+        n, b, p, t = first
         raise BttsimError(f"{path}: {count} TOA(s) not within a revolution of their OPR pulse (first: "
-                          f"revolution {int(revolution[n])}, blade {b}, probe {p}: {float(toa_s[n, b, p])!r} s, OPR at "
+                          f"revolution {int(revolution[n])}, blade {b}, probe {p}: {t!r} s, OPR at "
                           f"{float(opr_s[n])!r} s)")
 
 

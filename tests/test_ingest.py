@@ -2,6 +2,7 @@
 labelled TOAs (a short run-up through the EO 8 resonance near 2580 rpm)."""
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -333,6 +334,63 @@ def test_export_folder_errors(sim, tmp_path):
         fh.truncate(2 << 30)
     with pytest.raises(BttsimError, match="toa.csv: .*longer than 64 KiB: not a CSV of numbers"):
         ingest_export(tmp_path / "exp", tmp_path / "x.mcap")
+
+
+def _edit_csv(path: Path, row: int, column: str, value: str | None) -> None:
+    """Set ``column`` of data row ``row`` of a CSV table (None: repeat that row)."""
+    lines = path.read_text().splitlines()
+    if value is None:
+        lines.insert(row + 1, lines[row + 1])
+    else:
+        parts = lines[row + 1].split(",")
+        parts[lines[0].split(",").index(column)] = value
+        lines[row + 1] = ",".join(parts)
+    path.write_text("\n".join(lines) + "\n")
+
+
+_RUN_JSON_EDITS = {
+    "run is a list": (lambda d: d.__setitem__("run", [1, 2]), 'no "run" object'),
+    "file is a list": (lambda d: [1, 2, 3], 'no "run" object'),
+    "tables is a list": (lambda d: d.__setitem__("tables", ["opr", "toa"]), '"tables" must map'),
+    "a table without file": (lambda d: d["tables"].__setitem__("opr", {}), '"tables" must map'),
+    "n_blades a string": (lambda d: d["run"].__setitem__("n_blades", "29"), "n_blades must be an integer"),
+    "n_blades fractional": (lambda d: d["run"].__setitem__("n_blades", 29.5), "n_blades must be an integer"),
+    "angles not numbers": (lambda d: d["run"].__setitem__("probe_angles_rad", "abc"), "could not convert"),
+    "engine_orders a number": (lambda d: d["run"].__setitem__("engine_orders", 8), "not iterable"),
+    "scenario_toml a number": (lambda d: d["run"].__setitem__("scenario_toml", 5), "must be a string"),
+    "tip radius NaN": (lambda d: d["run"].__setitem__("tip_radius_m", math.nan), "tip_radius_m = nan"),
+    "negative duration": (lambda d: d["run"].__setitem__("duration_s", -5.0), "duration_s = -5.0"),
+    "fewer revolutions than the tables": (lambda d: d["run"].__setitem__("n_revolutions", 10),
+                                          "but the run has 10 revolution(s)"),
+}
+_TABLE_EDITS = {
+    "NaN OPR time": ("opr.csv", 4, "opr_s", "nan", "column opr_s must hold finite numbers"),
+    "OPR time going back": ("opr.csv", 5, "opr_s", "0.0", "OPR times must increase"),
+    "a TOA of 1e300": ("toa.csv", 6, "toa_s", "1e300", "not within a revolution of their OPR pulse"),
+    "a TOA row twice": ("toa.csv", 6, "toa_s", None, "repeat a (revolution, blade, probe)"),
+    "a fractional blade": ("toa.csv", 6, "blade", "2.5", "column blade must hold integers"),
+    "a blade that is text": ("toa.csv", 6, "blade", "x", "line 8: not a number"),
+}
+
+
+@pytest.mark.parametrize("case", list(_RUN_JSON_EDITS) + list(_TABLE_EDITS))
+def test_a_hand_edited_export_is_refused_before_anything_is_written(sim, tmp_path, capsys, case):
+    """What the readers of a recording refuse (``process``, ``export``, ``view``), ingest
+    refuses before writing it; a run.json of other shapes or types is one line too."""
+    export_run(sim["mcap"], tmp_path / "exp", "csv")
+    if case in _RUN_JSON_EDITS:
+        edit, words = _RUN_JSON_EDITS[case]
+        doc = json.loads((tmp_path / "exp" / "run.json").read_text())
+        got = edit(doc)
+        (tmp_path / "exp" / "run.json").write_text(json.dumps(doc if got is None else got))
+    else:
+        table, row, column, value, words = _TABLE_EDITS[case]
+        _edit_csv(tmp_path / "exp" / table, row, column, value)
+    capsys.readouterr()
+    assert main(["ingest", "--from-export", str(tmp_path / "exp"), "--out", str(tmp_path / "x.mcap")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("bttsim: error:") and words in err[0], err
+    assert not (tmp_path / "x.mcap").exists()
 
 
 def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
