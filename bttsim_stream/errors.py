@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import errno
+import os
+import stat
 import sys
+from pathlib import Path
 
-__all__ = ["BttsimError", "ScenarioError", "ModelFileError", "exit_status"]
+__all__ = ["BttsimError", "ScenarioError", "ModelFileError", "exit_status", "replaceable_file"]
 
 
 class BttsimError(Exception):
@@ -18,6 +21,27 @@ class ScenarioError(BttsimError):
 
 class ModelFileError(BttsimError):
     """A modal model file is missing, corrupt, pickled, or inconsistent."""
+
+
+def replaceable_file(path, flag: str = "--out") -> Path:
+    """The file an output written through a temporary file and a rename replaces: ``path``
+    itself, or what its symbolic link points to (the link stays). A folder, or an existing
+    device, pipe or socket (a rename would put a regular file in its place), is a
+    :class:`BttsimError` naming ``flag``."""
+    path = Path(path)
+    if not str(path).strip() or path.name in ("", ".", ".."):
+        raise BttsimError(f"{flag} {path}: names a folder, not a file")
+    target = Path(os.path.realpath(path))
+    try:
+        mode = os.stat(target).st_mode
+    except OSError:
+        return target  # not there yet (or not readable: the write says why)
+    if stat.S_ISDIR(mode):
+        raise BttsimError(f"{flag} {path}: is a folder, not a file")
+    if not stat.S_ISREG(mode):
+        raise BttsimError(f"{flag} {path}: is not a regular file (a device, pipe or socket); it would be "
+                          "replaced by one")
+    return target
 
 
 #: File-system errors that are the environment's, not a bug: a full disk, no permission, a

@@ -45,7 +45,7 @@ from . import __version__
 from .bus.recording import McapRecorder
 from .bus.stream import MessageStream
 from .defaults import DEFAULT_RIG
-from .errors import BttsimError
+from .errors import BttsimError, replaceable_file
 from .process.displacement import Geometry, rotor_phase_from_opr
 from .process.identify import (calibration_end, encoder_revolutions, identification_params, identify_window,
                                last_pulse_s, window_revolutions)
@@ -244,9 +244,16 @@ def _run_id(*parts) -> str:
     return h.hexdigest()[:16]
 
 
-def _check_out(out) -> None:
-    """Refuse an output path that cannot be written, before anything is read."""
+def _check_out(out, inputs=()) -> None:
+    """Refuse an output path that cannot be written, or that is one of the ``inputs`` (files,
+    or folders whose files are read), before anything is read."""
+    replaceable_file(out)
     out = Path(out)
+    real = os.path.realpath(out)
+    for path in inputs:
+        p = os.path.realpath(path)
+        if real == p or (os.path.isdir(p) and os.path.dirname(real) == p and os.path.exists(real)):
+            raise BttsimError(f"--out {out}: that is the input {path}; it would be overwritten")
     if out.is_dir():
         raise BttsimError(f"{out}: is a folder (--out takes the recording's file name)")
     if not out.parent.is_dir():
@@ -300,7 +307,7 @@ def _write(out, info: RunInfo, revolution: np.ndarray, opr_s: np.ndarray, toa_ro
     ``toa_rows(a, b)`` gives the TOAs of revolutions ``a:b``, ``shape`` those of the run
     ``(revolution, blade, probe)``; ``extra_passage`` indexes it flattened."""
     _check_run(where, info, revolution, opr_s, toa_rows, shape)
-    out = Path(out)
+    out = replaceable_file(out)  # through a link: its target
     stream = MessageStream(info.run_id, info.rig)
     nr, nb, npr = shape
     tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
@@ -429,7 +436,7 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
     rig : str, optional
         Rig name on the bus (default: the export's).
     """
-    _check_out(out)
+    _check_out(out, [folder])
     folder = Path(folder)
     meta_file = folder / "run.json"
     if not meta_file.is_file():
@@ -862,7 +869,7 @@ def ingest_pulses(opr_path, probes: list, out, *, n_blades: int | None = None, t
     -------
     IngestResult
     """
-    _check_out(out)
+    _check_out(out, [opr_path, *(pr[1] for pr in probes)])
     info, notes = _geometry([pr[0] for pr in probes], n_blades, tip_radius_m, scenario_path, engine_orders, rig)
     nb, npr = info.n_blades, info.n_probes
     opr, encoder = _read_opr(opr_path, column, encoder_pulses, encoder_index, notes)

@@ -223,6 +223,9 @@ class _Acquisition:
         self.n = 0
         self.ignored = 0
         self.duplicates = 0
+        #: Duplicates whose content differs from the first's, and the first of them (a description).
+        self.conflicts = 0
+        self.first_conflict = ""
 
     def _row(self, revolution: int) -> int:
         i = self.index.get(revolution)
@@ -249,6 +252,8 @@ class _Acquisition:
             i = self._row(rev)
             if self.has_opr[i]:
                 self.duplicates += 1
+                if self.opr[i] != float(opr):
+                    self._conflict(f"the OPR pulse of revolution {rev}")
                 return
             self.opr[i], self.has_opr[i] = float(opr), True
         elif kind == "toa":
@@ -260,9 +265,15 @@ class _Acquisition:
             i = self._row(rev)
             if self.seen[i, probe]:
                 self.duplicates += 1
+                if not np.array_equal(self.toa[i, :, probe], toa, equal_nan=True):
+                    self._conflict(f"the TOAs of revolution {rev}, probe {probe}")
                 return
             self.toa[i, :, probe] = toa
             self.seen[i, probe] = True
+
+    def _conflict(self, what: str) -> None:
+        self.conflicts += 1
+        self.first_conflict = self.first_conflict or what
 
     def complete(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Revolution numbers, OPR times and TOAs of the complete revolutions, in order (the
@@ -320,7 +331,7 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     truth_2d = {*kept_truth, "toa_s"}  # the per-probe truth fields decoded (toa_s: the table checks its shape)
     n_messages = 0
     error: BttsimError | None = None  # a decoding error, raised after the truncation check
-    meta = None
+    meta = meta_key = meta_payload = None
     early: list = []  # acquisition before the run metadata (kept until it comes)
     asm = truth = None
     seqs = SequenceTracker()
@@ -353,8 +364,11 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
             kind = keys.parse_key(m.key).kind
             if kind in ("opr", "toa"):
                 seqs.accept(m.key, m.seq)
+            if kind == "meta" and meta is not None and m.key == meta_key and bytes(m.payload) != meta_payload:
+                raise BttsimError(f"{m.key}: a second, different run metadata message (which run is it?)")
             if kind == "meta" and meta is None:
                 meta = codec.decode_run_metadata(m.payload, m.key).body
+                meta_key, meta_payload = m.key, bytes(m.payload)
                 asm = _Acquisition(meta.n_blades, meta.n_probes, _capacity(path, meta))
                 for item in early:
                     take(*item)
@@ -374,6 +388,9 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         raise BttsimError(f"{path}: {error}") from None
     if meta is None:
         raise BttsimError(f"{path}: no run metadata ({keys.PREFIX}/<rig>/meta) in the recording")
+    if asm.conflicts:  # a recorder writes the first of a number's payloads and refuses the others
+        raise BttsimError(f"{path}: {asm.conflicts} OPR/TOA message(s) differ from an earlier one of the same "
+                          f"revolution (first: {asm.first_conflict}); which one is the acquisition?")
     ignored = asm.ignored
     numbers, opr_s, toa_s = asm.complete()
     asm = None  # its tables are handed over

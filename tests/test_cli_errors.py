@@ -1,6 +1,8 @@
 """Issue 12: impossible input to ``bttsim cn``, ``probes``, ``process`` and ``scenario --check``
 ends in one line and exit status 2 (never a traceback, never ``inf`` with status 0)."""
 
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -195,6 +197,28 @@ def test_outputs_that_are_empty_or_the_input_and_files_that_cannot_be_written(ca
         capsys, "replay", sample, "--status-file", "folder")
     assert "invalid node name 'a/b'" in _error(capsys, "record", "--out", "r.mcap", "--until", "a/b")
     assert not any(p.name not in ("s.toml", "folder", "one.npy") for p in tmp_path.iterdir())
+
+
+def test_outputs_written_through_a_rename_are_files(capsys, tmp_path, monkeypatch):
+    """A model or an ingested recording is written to a temporary file, then renamed over its
+    ``--out``: a folder, or a pipe (a device alike), would be replaced by a regular file, so
+    they are refused; through a symbolic link the link's target is written and the link stays."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "folder").mkdir()
+    os.mkfifo(tmp_path / "pipe")
+    for out, words in ((".", "names a folder"), ("folder", "is a folder"), ("pipe", "is not a regular file")):
+        assert words in _error(capsys, "model", "build", "--out", out)
+    assert (tmp_path / "folder").is_dir() and stat.S_ISFIFO(os.stat(tmp_path / "pipe").st_mode)
+    (tmp_path / "link.npz").symlink_to("target.npz")
+    assert cli.main(["model", "build", "--out", "link.npz"]) == 0
+    assert (tmp_path / "link.npz").is_symlink() and (tmp_path / "target.npz").is_file()
+
+
+def test_certificate_names_and_hosts_are_checked_before_anything_is_written(capsys, tmp_path):
+    assert "use 1 to 64 letters" in _error(capsys, "certs", str(tmp_path / "c"), "--names", "x" * 65)
+    assert "bad host name '999.1.1.1'" in _error(capsys, "certs", str(tmp_path / "c"), "--host", "999.1.1.1")
+    assert "bad host name 'a..b'" in _error(capsys, "certs", str(tmp_path / "c"), "--host", "a..b")
+    assert not (tmp_path / "c").exists()
 
 
 def test_numbers_beyond_what_the_code_can_hold_are_refused(capsys, tmp_path, monkeypatch):

@@ -1071,6 +1071,52 @@ def test_issue_recordings_give_one_line_errors(workdir, base_mcap, name, command
     assert words in o.err, o.err
 
 
+def _with_copy_before(messages: list[Message], kind: str, revolution: int, change) -> list[Message]:
+    """Messages with a changed copy of the first ``kind`` message of ``revolution`` (or the
+    metadata) placed right before it, with its key and number (a forger who comes first)."""
+    out, done = [], False
+    for m in messages:
+        if not done and keys.parse_key(m.key).kind == kind and (kind == "meta" or m.seq == revolution):
+            p = _PB[kind]()
+            p.ParseFromString(m.payload)
+            change(p)
+            out.append(Message(m.key, p.SerializeToString(), m.log_time_ns, m.seq))
+            done = True
+        out.append(m)
+    assert done
+    return out
+
+
+@pytest.mark.parametrize("command", ["process", "export"])
+def test_a_second_different_message_for_a_number_is_refused(workdir, base_mcap, command):
+    """A recorder writes the first payload of a number and refuses the others; a recording
+    holding two different ones (a forger's before the real one) cannot say which is the
+    acquisition: one line, status 2. The same message twice is a duplicate, counted."""
+    raw = read_recording(base_mcap).messages
+
+    def shifted(p):
+        p.toa_s[:] = [t + 1e-6 for t in p.toa_s]
+
+    cases = {
+        "toa": (_with_copy_before(raw, "toa", 5, shifted), "differ from an earlier one of the same revolution"),
+        "opr": (_with_copy_before(raw, "opr", 7, lambda p: setattr(p, "opr_s", p.opr_s + 1e-6)),
+                "the OPR pulse of revolution 7"),
+        "meta": (_with_copy_before(raw, "meta", 0, lambda p: setattr(p, "tip_radius_m", 0.5)),
+                 "a second, different run metadata"),
+        "same": (_with_copy_before(raw, "toa", 5, lambda p: None), None),
+    }
+    for name, (msgs, words) in cases.items():
+        path = workdir / f"second-{command}-{name}.mcap"
+        _write(path, msgs)
+        argv = [command, path] + (["--out", workdir / f"second-{name}.export"] if command == "export" else [])
+        o = run_case(f"a second {name} message", argv)
+        assert o.problem is None, report([o])
+        if words is None:
+            assert o.status == 0, o.err
+        else:
+            assert o.status == 2 and words in o.err, o.err
+
+
 SCENARIO_CASES = {
     "engine_order = 4294967296": ("[[excitation]]\nengine_order = 4294967296\n", "engine_order"),
     "1 blade": ("[rotor]\nn_blades = 1\n[[excitation]]\nnodal_diameter = 0\n", "n_blades"),
@@ -1079,6 +1125,7 @@ SCENARIO_CASES = {
     "amplitude_n = 1e300": ("[[excitation]]\namplitude_n = 1e300\n", "above 5% of the tip radius"),
     "amplitude_n = 1e6": ("[[excitation]]\namplitude_n = 1e6\n", "above 5% of the tip radius"),
     "a year-long run": ("[speed]\nduration_s = 3.2e7\n", "revolutions"),
+    "a run of no revolution": ("[speed]\nstart_rpm = 0.001\nend_rpm = 0.002\nduration_s = 6.0\n", "fewer than the 2"),
 }
 
 

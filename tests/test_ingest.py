@@ -402,12 +402,20 @@ def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
         (["--opr", args[1], "--probe", "5:p.csv", "--blades", "29", "--tip-radius-m", "0.19",
           "--out", str(tmp_path / "x.mcap")], "ANGLE_DEG=FILE"),
         (["--from-export", str(tmp_path), *args, "--out", str(tmp_path / "x.mcap")], "takes no --opr"),
+        ([*args, "--blades", "29", "--tip-radius-m", "0.19", "--out", args[3].partition("=")[2]],
+         "that is the input"),
+        ([*args, "--blades", "29", "--tip-radius-m", "0.19", "--out", args[1]], "that is the input"),
     ]
+    export_run(sim["mcap"], tmp_path / "exp", "csv")
+    cases.append((["--from-export", str(tmp_path / "exp"), "--out", str(tmp_path / "exp" / "toa.csv")],
+                  "that is the input"))
+    inputs = {p: p.read_bytes() for p in [*(tmp_path / "t").iterdir(), tmp_path / "exp" / "toa.csv"]}
     for argv, words in cases:
         assert main(["ingest", *argv]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and words in err, err
     assert not (tmp_path / "x.mcap").exists()
+    assert all(p.read_bytes() == data for p, data in inputs.items())  # no input overwritten
 
 
 # -- raw probe signals -------------------------------------------------------------------

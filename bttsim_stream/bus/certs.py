@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import ipaddress
+import re
 import os
 from pathlib import Path
 
@@ -40,13 +41,17 @@ def _x509():
     return x509, hashes, serialization, ec, ExtendedKeyUsageOID, NameOID
 
 
+#: A DNS name: dot-separated labels of letters, digits and '-' (not at either end), 1-63 each.
+_DNS_NAME = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)(\.(?!-)[A-Za-z0-9-]{1,63}(?<!-))*\.?")
+
+
 def _san_entries(x509, hosts):
     out = []
     for h in dict.fromkeys([*_LOCAL, *hosts]):
         try:
             out.append(x509.IPAddress(ipaddress.ip_address(h)))
         except ValueError:
-            if not h or any(c.isspace() or c in "/:" for c in h):
+            if not _DNS_NAME.fullmatch(str(h)) or len(h) > 253 or re.fullmatch(r"[0-9.]+", h):
                 raise BttsimError(f"bad host name {h!r} for a certificate (a DNS name or an IP address)") from None
             out.append(x509.DNSName(h))
     return out
@@ -70,13 +75,13 @@ def generate_certificates(folder, names=IDENTITIES, *, hosts=(), days: int = 365
         Replace existing files (otherwise an existing ``ca.pem`` is an error: a new CA would
         invalidate every certificate already handed out).
     """
-    import re
-
     x509, hashes, serialization, ec, EKU, NameOID = _x509()
     folder = Path(folder)
-    bad = [n for n in names if not re.fullmatch(r"[A-Za-z0-9_-]+", str(n)) or n == "ca"]
+    bad = [n for n in names if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", str(n)) or n == "ca"]
     if bad or not names:
-        raise BttsimError(f"bad certificate name(s) {bad or names!r}: use letters, digits, '_' and '-' (not 'ca')")
+        raise BttsimError(f"bad certificate name(s) {bad or names!r}"[:200] + ": use 1 to 64 letters, digits, '_' and "
+                          "'-' (not 'ca')")
+    san = _san_entries(x509, hosts)  # checked before anything is written
     if not 0 < days <= MAX_DAYS:
         raise BttsimError(f"--days must be in [1, {MAX_DAYS}], got {days}")
     if (folder / "ca.pem").exists() and not overwrite:
@@ -85,7 +90,7 @@ def generate_certificates(folder, names=IDENTITIES, *, hosts=(), days: int = 365
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BttsimError(f"{folder}: cannot create the folder ({exc.strerror or exc})") from None
-    san = x509.SubjectAlternativeName(_san_entries(x509, hosts))
+    san = x509.SubjectAlternativeName(san)
     now = _dt.datetime.now(_dt.timezone.utc) - _dt.timedelta(minutes=5)  # clock skew between hosts
     until = now + _dt.timedelta(days=int(days))
 

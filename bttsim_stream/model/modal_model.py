@@ -28,7 +28,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import __version__
 from ..defaults import MAX_BLADES, MAX_MODE_FREQ_HZ, MAX_SPEEDS
-from ..errors import ModelFileError, ScenarioError
+from ..errors import ModelFileError, ScenarioError, replaceable_file
 from ..scenario import Scenario
 from .bladed_disk import (
     BladedDiskDesign,
@@ -525,7 +525,7 @@ def model_from_cartesian(freq_hz, tip_xyz, tip_shapes_xyz, force_xyz, force_shap
 
 def save_model(model: ModalModel, path) -> None:
     """Write the model as an uncompressed ``.npz`` (no pickled objects)."""
-    path = Path(path)
+    path = replaceable_file(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".part")
