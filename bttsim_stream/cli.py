@@ -208,6 +208,9 @@ def _cmd_export(args: argparse.Namespace) -> None:
     rows = ", ".join(f"{name} {n}" for name, n in counts.items())
     print(f"wrote {args.out}: {len(counts)} {args.format} tables ({rows} rows) and run.json in "
           f"{time.perf_counter() - t0:.1f} s")
+    if counts.incomplete:
+        print(f"bttsim: warning: {args.mcap}: INCOMPLETE: {counts.incomplete}: the tables are not the whole run",
+              file=sys.stderr)
 
 
 class _Tagged(argparse.Action):
@@ -234,6 +237,11 @@ def _cmd_ingest(args: argparse.Namespace) -> None:
             raise BttsimError("at least one --probe ANGLE_DEG=FILE (or --signal ANGLE_DEG=FILE) is required")
         eos = parse_engine_orders(args.eo) if args.eo else None
         probes = [parse_probe(v) if k == "probe" else parse_signal(v) for k, v in args.sources]
+        signal_flags = [f for f in ("sample_rate", "trigger", "level_v", "hysteresis_v", "edge", "fraction", "clock_hz")
+                        if getattr(args, f, None) is not None]
+        if signal_flags and not any(k == "signal" for k, _ in args.sources):
+            raise BttsimError(f"--{signal_flags[0].replace('_', '-')} is for raw probe signals: give them with "
+                              "--signal ANGLE_DEG=FILE (a --probe file holds pulse times)")
         trig = args.trigger.split(",") if args.trigger else None
         signal = SignalOptions(sample_rate_hz=args.sample_rate, start_s=args.signal_start_s,
                                trigger=None if trig is None else (trig[0] if len(trig) == 1 else tuple(trig)),
@@ -262,6 +270,7 @@ def _cmd_node(args: argparse.Namespace):
 
 def _cmd_process(args: argparse.Namespace) -> None:
     # the phases on a terminal only: on a pipe, stderr stays the errors and warnings
+    opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")  # before the read
     progress = Progress(sys.stderr.isatty())
     progress.phase(f"reading {args.mcap} ...")
     # the exact expected times (a whole-run array as large as the TOAs) only when asked for
@@ -269,7 +278,6 @@ def _cmd_process(args: argparse.Namespace) -> None:
     run = load_run(args.mcap, truth_fields=kept)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
-    opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")
     if opts.window > run.revolution.size:
         raise BttsimError(f"{args.mcap}: a sine-fit window of {opts.window} revolutions is longer than the run's "
                           f"{run.revolution.size}")

@@ -48,7 +48,7 @@ from .errors import BttsimError
 from .sim.core import Truth
 
 __all__ = ["FORMATS", "COLUMNS", "BLOCK_ROWS", "TOA_TRUTH_FIELDS", "Unstreamable", "RunTables",
-           "run_tables", "export_run", "read_tables"]
+           "run_tables", "export_run", "read_tables", "ExportCounts"]
 
 FORMATS = ("csv", "parquet")
 _NAN = re.compile(r"(?<![^,\n])nan(?![^,\n])")  # a whole CSV field "nan"
@@ -465,7 +465,7 @@ def _column_meta(name: str, a: np.ndarray) -> dict:
     return {"unit": unit, "dtype": kind, "description": meaning}
 
 
-def export_run(path, out_dir, fmt: str = "csv") -> dict:
+def export_run(path, out_dir, fmt: str = "csv") -> "ExportCounts":
     """Export a recording to tidy tables in ``out_dir`` (created if missing).
 
     Parameters
@@ -478,8 +478,9 @@ def export_run(path, out_dir, fmt: str = "csv") -> dict:
 
     Returns
     -------
-    dict
-        Table name -> number of rows.
+    ExportCounts
+        Table name -> number of rows (a dict); its ``incomplete`` says what the recording
+        lacks of its run ("" when it holds the whole run).
 
     Raises
     ------
@@ -503,8 +504,17 @@ def export_run(path, out_dir, fmt: str = "csv") -> dict:
         return _export(load_run(path), path, out, fmt)
 
 
-def _export(run, path, out: Path, fmt: str) -> dict:
+class ExportCounts(dict):
+    """Rows per table written; ``incomplete``: what the recording lacks of its run, one line
+    ("" when whole: every revolution, nothing lost)."""
+
+    incomplete: str = ""
+
+
+def _export(run, path, out: Path, fmt: str) -> ExportCounts:
     """Write the tables and ``run.json`` of a loaded run (see :func:`export_run`)."""
+    from .offline import completeness
+
     rt = run_tables(run)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -512,7 +522,11 @@ def _export(run, path, out: Path, fmt: str) -> dict:
         raise BttsimError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
     if not out.is_dir():
         raise BttsimError(f"{out}: not a folder")
-    counts, described = {}, {}
+    counts, described = ExportCounts(), {}
+    c = completeness(run)
+    if not c.complete:
+        counts.incomplete = (f"{c.revolutions_processed} of {c.revolutions_expected} revolutions"
+                             + (f", {c.lost} messages lost" if c.lost else ""))
     try:
         for name in rt.tables:  # one table at a time, a block at a time: built, written, dropped
             file = out / f"{name}.{fmt}"

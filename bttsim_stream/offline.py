@@ -53,6 +53,8 @@ def processing_options(args: argparse.Namespace, **extra) -> ProcessOptions:
     further options); a bad value is a :class:`BttsimError`."""
     eos = parse_engine_orders(args.eo) if getattr(args, "eo", None) else None
     eo_range = _eo_range(args.eo_range) if getattr(args, "eo_range", None) else None
+    if eos is not None and eo_range is not None:
+        raise BttsimError("give --eo (the orders to fit) or --eo-range (a scan), not both")
     try:
         return ProcessOptions(prep=not args.no_prep, window=args.window, method=args.method, engine_orders=eos,
                               eo_range=eo_range, **extra)

@@ -238,6 +238,14 @@ def positive_count(text: str) -> int:
     return count(text, 1)
 
 
+def port(text: str) -> int:
+    """A TCP port argument: 1 to 65535."""
+    value = count(text, 1)
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port (1 to 65535)")
+    return value
+
+
 def add_duration_argument(p: argparse.ArgumentParser) -> None:
     """``--duration``: a node stops after that many seconds (a finite number above 0)."""
     p.add_argument("--duration", type=positive_seconds, metavar="S", help="stop after S seconds")
@@ -287,9 +295,9 @@ def add_wait_arguments(p: argparse.ArgumentParser) -> None:
 def add_web_arguments(p: argparse.ArgumentParser) -> None:
     """``--web-port``, ``--grpc-port``, ``--bind``: where the Rerun web viewer is served (the
     viewer node, ``bttsim run`` and ``bttsim view`` alike)."""
-    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT, metavar="PORT",
+    p.add_argument("--web-port", type=port, default=DEFAULT_WEB_PORT, metavar="PORT",
                    help=f"web viewer HTTP port ({DEFAULT_WEB_PORT})")
-    p.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT, metavar="PORT",
+    p.add_argument("--grpc-port", type=port, default=DEFAULT_GRPC_PORT, metavar="PORT",
                    help=f"port of the web viewer's data server ({DEFAULT_GRPC_PORT})")
     p.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDR",
                    help=f"IP address the web viewer listens on ({DEFAULT_BIND}: this machine only)")

@@ -23,6 +23,9 @@ def _error(capsys, *argv) -> str:
 
 
 @pytest.mark.parametrize("argv,words", [
+    (["process", "x.mcap", "--eo", "8", "--eo-range", "1-10"], "give --eo (the orders to fit) or --eo-range"),
+    (["ingest", "--opr", "o.csv", "--probe", "5=p.csv", "--sample-rate", "1e6", "--out", "x.mcap"],
+     "--sample-rate is for raw probe signals"),
     (["cn", "--eo", "0"], "engine order must be in [1, 1000]"),
     (["cn", "--eo", "-8"], "engine order must be in [1, 1000]"),
     (["cn", "--eo", "8.5"], "whole numbers"),
@@ -156,6 +159,8 @@ def test_a_closed_output_pipe_is_not_a_traceback():
     (["campaign", "c.toml", "--out", "o", "--workers", "0"], "argument --workers: '0' is below 1"),
     (["campaign", "c.toml", "--out", "o", "--connect-timeout", "nan"], "argument --connect-timeout: 'nan'"),
     (["campaign", "c.toml", "--out", "o", "--dashboard", "bogus"], "argument --dashboard: 'bogus' is not HOST:PORT"),
+    (["run", "--out", "o", "--web-port", "70000"], "argument --web-port: '70000' is not a port"),
+    (["view", "x.mcap", "--rrd", "x.rrd", "--grpc-port", "0"], "argument --grpc-port: '0' is below 1"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_node_options_refuse_impossible_numbers_before_starting(capsys, tmp_path, monkeypatch, argv, words):
     """A negative count of consumers, a queue of none, a duration that is not a finite positive

@@ -171,6 +171,27 @@ def test_a_recording_without_truth_exports_no_truth(recording, exported_csv, tmp
     assert _csv(tmp_path / "o" / "toa.csv") == _csv(exported_csv / "toa.csv")
 
 
+def test_a_recording_cut_short_exports_what_it_holds_and_says_so(recording, exported_csv, tmp_path, capsys):
+    """A recording holding the first half of its run exports that half, and the export says
+    the tables are not the whole run (a warning line; the whole recording gives none)."""
+    from bttsim_stream.bus.recording import McapRecorder, read_recording
+
+    msgs = read_recording(recording / "run.mcap").messages
+    n = load_run(recording / "run.mcap").meta.n_revolutions
+    with McapRecorder(tmp_path / "half.mcap") as rec:
+        for m in msgs:
+            if not (m.key.split("/")[2] in ("opr", "toa", "truth") and m.seq >= n // 2):
+                rec.write(m.key, m.payload, m.log_time_ns, seq=m.seq)
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "half.mcap"), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"bttsim: warning: {tmp_path / 'half.mcap'}: INCOMPLETE: {n // 2} of {n} revolutions: the tables "
+                   "are not the whole run"], err
+    assert len(_csv(tmp_path / "o" / "opr.csv")["revolution"]) == n // 2
+    assert main(["export", str(recording / "run.mcap"), "--out", str(tmp_path / "whole")]) == 0
+    assert "INCOMPLETE" not in capsys.readouterr().err
+
+
 def test_parquet_without_pyarrow_names_the_extra(recording, monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(sys.modules, "pyarrow", None)  # import pyarrow -> ImportError
     monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)

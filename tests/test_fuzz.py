@@ -1051,6 +1051,8 @@ RECORDING_CASES = {
     "huge engine order": ("meta", _set_meta(engine_orders=[2**31]), "engine order"),
     "huge revolution count": ("meta", _set_meta(n_revolutions=2**62), "n_revolutions"),
     "infinite TOA": ("toa", lambda p, r: p.toa_s.__setitem__(3, math.inf), "TOA(s) not within a revolution"),
+    "three probes without a TOA": ("toa", lambda p, r: p.toa_s.__setitem__(slice(None), [math.nan] * len(p.toa_s))
+                                   if p.probe >= 2 else None, "probe(s) 2, 3, 4 hold no TOA"),
     "no revolutions in the metadata": ("meta", _set_meta(n_revolutions=0), "n_revolutions = 0"),
     "speed range upside down": ("meta", _set_meta(speed_min_rpm=5000.0), "the lowest above the highest"),
     "NaN metadata time": ("meta", lambda p, r: setattr(p.header, "t_s", math.nan), "header time nan"),
