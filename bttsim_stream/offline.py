@@ -548,6 +548,8 @@ def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:
     with McapRecorder(out_path) as rec:
         batch: list[Message] = []
         for m in RecordingScan(path):
+            if keys.is_status_key(m.key):  # a node's state then, not data: nothing shows it
+                continue
             batch.append(m)
             kind = keys.parse_key(m.key).kind
             if kind in ("opr", "toa", "truth"):

@@ -95,6 +95,8 @@ def main(conf, args: argparse.Namespace) -> dict:
             if stop:
                 break
             read += 1
+            if keys.is_status_key(m.key):
+                continue
             if m.key not in known:
                 raise BttsimError(f"{args.mcap}: the file changed while it was replayed (a message of {m.key} "
                                   "the first reading did not hold)")
@@ -117,7 +119,9 @@ def main(conf, args: argparse.Namespace) -> dict:
                                 ", ".join(sorted(waiting)), r, args.drain_timeout)
         result = {"messages": sent, "of": head.count, "stopped_by_signal": stop.signal}
         node.status("done", result)
-    print(f"replayed {sent} of {head.count} messages from {args.mcap}", flush=True)
+    print(f"replayed {sent} of {head.count} messages from {args.mcap}"
+          + (f" ({head.status} status message(s) of the recorded run's nodes not replayed)" if head.status else ""),
+          flush=True)
     return result
 
 
@@ -133,8 +137,12 @@ class _Survey:
         first: dict[str, None] = {}
         self.metas: list = []
         self.count, self.data, self.t0_log_ns = 0, False, None
+        self.status = 0  # messages of status keys: a node's state then, not data (never replayed)
         for m in scan:
             self.count += 1
+            if keys.is_status_key(m.key):
+                self.status += 1
+                continue
             first.setdefault(m.key)
             if m.key.endswith("/meta"):
                 self.metas.append(m)

@@ -131,6 +131,45 @@ def test_replay_delivers_every_message_and_a_recorder_reproduces_the_file(direct
     assert _messages(_record_a_replay(direct, tmp_path / "replayed.mcap")) == _messages(direct)
 
 
+def test_status_messages_in_a_recording_are_not_data(direct, tmp_path):
+    """A node's status recorded beside the data (a file written by another tool): the replay
+    does not put it back on the live status key, and ``view`` and ``process`` read the data
+    as if it were not there."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    path = tmp_path / "with-status.mcap"
+    with open(direct, "rb") as f, open(path, "wb") as g:
+        w = Writer(g)
+        w.start()
+        schemas, chans = {}, {}
+        status = w.register_channel("bttsim/rig1/status/sim", "json", 0)
+        for i, (sch, ch, m) in enumerate(make_reader(f).iter_messages()):
+            schemas.setdefault(sch.id, w.register_schema(sch.name, sch.encoding, sch.data))
+            chans.setdefault(ch.id, w.register_channel(ch.topic, ch.message_encoding, schemas[sch.id], ch.metadata))
+            w.add_message(chans[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+            if i == 3:
+                w.add_message(status, m.log_time, b'{"state": "running"}', m.log_time, 0)
+        w.finish()
+    port = free_port()
+    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", tmp_path / "r.mcap",
+                 "-l", f"tcp/127.0.0.1:{port}")
+    try:
+        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", path, "--wait", "120",
+                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=180)
+        assert rep.returncode == 0, rep.stderr
+        rec.communicate(timeout=60)
+    finally:
+        _stop(rec)
+    n = len(read_recording(direct).messages)
+    assert f"replayed {n} of {n + 1} messages" in rep.stdout and "1 status message(s)" in rep.stdout, rep.stdout
+    assert _messages(tmp_path / "r.mcap") == _messages(direct)
+    for argv in (["view", path, "--rrd", tmp_path / "v.rrd"], ["process", path]):
+        res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", *map(str, argv)], cwd=REPO,
+                             capture_output=True, text=True, timeout=180)
+        assert res.returncode == 0, res.stderr
+
+
 def _replay_error(path, *options) -> list:
     """The stderr lines of ``bttsim replay PATH --wait 0 OPTIONS``, which must fail with status 2."""
     res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", path, "--wait", "0", *options],
