@@ -383,13 +383,20 @@ def _cmd_view(args: argparse.Namespace) -> None:
     from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()
+    run = load_run(args.mcap, truth_fields=())  # checked as a run
+    whole = completeness(run)
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
-        src = with_processing(args.mcap, Path(tmp) / "processed.mcap")
+        src = with_processing(args.mcap, Path(tmp) / "processed.mcap", run=run)
+        del run
         try:
             session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
                                     grpc_port=args.grpc_port, bind=args.bind)
         except BttsimError as exc:  # name the user's file, not the processed copy
             raise BttsimError(str(exc).replace(str(src), str(args.mcap), 1)) from None
+        if not whole.complete:
+            print(f"bttsim: warning: {args.mcap}: INCOMPLETE: {whole.revolutions_processed} of "
+                  f"{whole.revolutions_expected} revolutions" + (f", {whole.lost} messages lost" if whole.lost else "")
+                  + ": the views are not the whole run", file=sys.stderr, flush=True)
         if args.web:
             from .bus.session import StopFlag
 

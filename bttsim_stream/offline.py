@@ -533,15 +533,18 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
     return msgs + tail, summary
 
 
-def with_processing(path, out_path, *, allow_truncated: bool = False) -> str:
+def with_processing(path, out_path, *, allow_truncated: bool = False, run: RecordedRun | None = None) -> str:
     """``path`` if the recording holds the processor's messages, else a copy at ``out_path``
     with them added, each message of the processor node's own
     :class:`~bttsim_stream.processor.ProcessorSession` (the messages of
     :func:`processing_messages`) right after the one that made it, as a live run records them.
 
     Read and written as a stream: memory does not grow with the recording (beyond the
-    processor session's own state)."""
-    meta = load_run(path, allow_truncated=allow_truncated, truth_fields=()).meta  # checked as a run
+    processor session's own state). ``run``: the recording already read (:func:`load_run`),
+    else it is read (and checked as a run) here."""
+    if run is None:
+        run = load_run(path, allow_truncated=allow_truncated, truth_fields=())
+    meta = run.meta
     if any(keys.parse_key(m.key).kind == "fit" for m in RecordingScan(path)):
         return str(path)
     session = ProcessorSession(meta, ProcessOptions())

@@ -171,8 +171,8 @@ def test_a_recording_without_truth_exports_no_truth(recording, exported_csv, tmp
     assert _csv(tmp_path / "o" / "toa.csv") == _csv(exported_csv / "toa.csv")
 
 
-def test_a_recording_cut_short_exports_what_it_holds_and_says_so(recording, exported_csv, tmp_path, capsys):
-    """A recording holding the first half of its run exports that half, and the export says
+def test_a_recording_cut_short_exports_and_views_what_it_holds_and_says_so(recording, exported_csv, tmp_path, capsys):
+    """A recording holding the first half of its run exports (and views) that half, and says
     the tables are not the whole run (a warning line; the whole recording gives none)."""
     from bttsim_stream.bus.recording import McapRecorder, read_recording
 
@@ -190,6 +190,11 @@ def test_a_recording_cut_short_exports_what_it_holds_and_says_so(recording, expo
     assert len(_csv(tmp_path / "o" / "opr.csv")["revolution"]) == n // 2
     assert main(["export", str(recording / "run.mcap"), "--out", str(tmp_path / "whole")]) == 0
     assert "INCOMPLETE" not in capsys.readouterr().err
+    # the views of it say so too
+    assert main(["view", str(tmp_path / "half.mcap"), "--rrd", str(tmp_path / "half.rrd")]) == 0
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"bttsim: warning: {tmp_path / 'half.mcap'}: INCOMPLETE: {n // 2} of {n} revolutions: the views are not "
+        "the whole run"]
 
 
 def test_parquet_without_pyarrow_names_the_extra(recording, monkeypatch, capsys, tmp_path):

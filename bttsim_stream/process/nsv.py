@@ -710,7 +710,10 @@ def revolution_amplitudes(d_m: np.ndarray, arrival_angles_rad: np.ndarray, order
         a2 = (ss * rc - sc * rs) / det
         amp = 2.0 * np.hypot(a1, a2)
         amp = np.where((ok.sum(-1) >= 3) & (det > 1e-9), amp, np.nan)
-        return np.sqrt(np.nanmean(amp * amp, axis=1))
+        sq = amp * amp
+        n = np.count_nonzero(~np.isnan(sq), axis=1)
+        # np.nanmean without its warning for a blade with no fit: NaN there
+        return np.sqrt(np.where(n > 0, np.nansum(sq, axis=1) / np.maximum(n, 1), np.nan))
 
 
 def detect_nsv(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
