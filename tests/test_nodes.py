@@ -29,8 +29,9 @@ def _messages(path):
     return sorted((m.key, m.seq, m.payload, m.log_time_ns) for m in read_recording(path).messages)
 
 
-def _record_a_replay(recording: Path, out: Path) -> Path:
-    """``bttsim replay`` of ``recording`` into a recorder node writing ``out`` (stopped by PID)."""
+def _record_a_replay(recording: Path, out: Path, said: list | None = None) -> Path:
+    """``bttsim replay`` of ``recording`` into a recorder node writing ``out`` (stopped by PID);
+    the replay's stdout appended to ``said``."""
     port = free_port()
     rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", out, "-l", f"tcp/127.0.0.1:{port}")
     try:  # the replay waits (up to --wait s) until the recorder subscribes to every key
@@ -40,6 +41,8 @@ def _record_a_replay(recording: Path, out: Path) -> Path:
         rec.communicate(timeout=60)
     finally:
         _stop(rec)
+    if said is not None:
+        said.append(rep.stdout)
     return out
 
 
@@ -151,19 +154,10 @@ def test_status_messages_in_a_recording_are_not_data(direct, tmp_path):
             if i == 3:
                 w.add_message(status, m.log_time, b'{"state": "running"}', m.log_time, 0)
         w.finish()
-    port = free_port()
-    rec = _start("bttsim_stream.nodes.recorder_node", "--rig", "rig1", "--out", tmp_path / "r.mcap",
-                 "-l", f"tcp/127.0.0.1:{port}")
-    try:
-        rep = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", "replay", path, "--wait", "120",
-                              "-e", f"tcp/127.0.0.1:{port}"], cwd=REPO, capture_output=True, text=True, timeout=180)
-        assert rep.returncode == 0, rep.stderr
-        rec.communicate(timeout=60)
-    finally:
-        _stop(rec)
+    said: list = []
+    assert _messages(_record_a_replay(path, tmp_path / "r.mcap", said)) == _messages(direct)
     n = len(read_recording(direct).messages)
-    assert f"replayed {n} of {n + 1} messages" in rep.stdout and "1 status message(s)" in rep.stdout, rep.stdout
-    assert _messages(tmp_path / "r.mcap") == _messages(direct)
+    assert f"replayed {n} of {n + 1} messages" in said[0] and "1 status message(s)" in said[0], said
     for argv in (["view", path, "--rrd", tmp_path / "v.rrd"], ["process", path]):
         res = subprocess.run([sys.executable, "-m", "bttsim_stream.cli", *map(str, argv)], cwd=REPO,
                              capture_output=True, text=True, timeout=180)
