@@ -181,12 +181,23 @@ class Scenario:
                        _entries("rotating_stall", self.rotating_stall, RotatingStall, allow_empty=True))
         self._check_flutter()
         self._check_section_types()
+        self._check_revolutions()
         set_normalised(self, "excitation", _entries("excitation", self.excitation, Excitation, allow_empty=False))
         self._check_nodal_diameters()
         self._check_probe_position()
         self._check_centrifugal()
         self._check_mistuning()
         self._check_acquisition()
+
+    def _check_revolutions(self) -> None:
+        """At least one whole revolution between two OPR pulses: the run's first pulse comes
+        when the OPR mark passes the sensor, ``opr_angle_deg`` into the first revolution."""
+        total = self.speed.revolutions()
+        past = total - self.probes.opr_angle_deg / 360.0
+        if not past >= 1.0:
+            raise _FieldError("[speed]", "", f"makes {total:.3g} revolutions, {max(past, 0.0):.3g} of them after the "
+                              f"first OPR pulse ([probes] opr_angle_deg {self.probes.opr_angle_deg:g}): no whole "
+                              "revolution between two pulses; raise the speed or duration_s")
 
     def _check_section_types(self) -> None:
         for name, cls in SECTIONS.items():

@@ -55,8 +55,6 @@ MAX_SIGNAL_SIZE_M = 0.05
 #: Slowest speed of a profile point, rpm: far below any run, far above a speed whose
 #: rad/s underflows (the checks divide by it and square it).
 MIN_RPM = 1e-3
-#: The fewest revolutions a speed profile may make (see :class:`Speed`).
-MIN_REVOLUTIONS = 2
 #: Shortest and longest speed ramp or dwell, s: a shorter one's acceleration, a longer
 #: one's revolution count overflow before the revolution limit can refuse them.
 MIN_DURATION_S, MAX_DURATION_S = 1e-3, 1e9
@@ -310,9 +308,8 @@ class Speed:
     own ``end_rpm`` in its ``duration_s``; a dwell is a segment that keeps the speed. Then
     ``end_rpm`` and ``duration_s`` are derived (and must be absent from a file).
     Programmatically, segments may be pairs or mappings. The whole profile makes at most
-    1,000,000 revolutions (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`) and at least
-    :data:`MIN_REVOLUTIONS` (whatever the OPR sensor's angle, one whole revolution between
-    two OPR pulses: a run's metadata holds at least one).
+    1,000,000 revolutions (:data:`~bttsim_stream.defaults.MAX_REVOLUTIONS`), and with the OPR
+    sensor's angle at least one whole revolution between two OPR pulses (the scenario checks).
     """
 
     start_rpm: float = spec(1000.0, kind="float", unit="rpm", lo=MIN_RPM, hi=MAX_RPM, doc=(
@@ -336,14 +333,15 @@ class Speed:
         if self.segments:
             set_normalised(self, "end_rpm", self.segments[-1][1])
             set_normalised(self, "duration_s", math.fsum(d for d, _ in self.segments))
-        t_s, rpm = self.breakpoints()
-        revolutions = math.fsum(0.5 * (a + b) * d for a, b, d in zip(rpm[:-1], rpm[1:], np.diff(t_s))) / 60.0
+        revolutions = self.revolutions()
         if not revolutions <= MAX_REVOLUTIONS:
             raise _FieldError(w, "", f"makes {revolutions:.3g} revolutions, more than the "
                               f"{MAX_REVOLUTIONS:,} of one run: shorten duration_s or the segments")
-        if not revolutions >= MIN_REVOLUTIONS:
-            raise _FieldError(w, "", f"makes {revolutions:.3g} revolutions, fewer than the {MIN_REVOLUTIONS} that give "
-                              "one whole revolution between OPR pulses: raise the speed or duration_s")
+
+    def revolutions(self) -> float:
+        """Revolutions the profile makes (the area under its speed), a fraction."""
+        t_s, rpm = self.breakpoints()
+        return math.fsum(0.5 * (a + b) * d for a, b, d in zip(rpm[:-1], rpm[1:], np.diff(t_s))) / 60.0
 
     def _has_segments(self) -> bool:
         try:

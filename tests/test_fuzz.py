@@ -1127,7 +1127,8 @@ SCENARIO_CASES = {
     "amplitude_n = 1e300": ("[[excitation]]\namplitude_n = 1e300\n", "above 5% of the tip radius"),
     "amplitude_n = 1e6": ("[[excitation]]\namplitude_n = 1e6\n", "above 5% of the tip radius"),
     "a year-long run": ("[speed]\nduration_s = 3.2e7\n", "revolutions"),
-    "a run of no revolution": ("[speed]\nstart_rpm = 0.001\nend_rpm = 0.002\nduration_s = 6.0\n", "fewer than the 2"),
+    "a run of no revolution": ("[speed]\nstart_rpm = 0.001\nend_rpm = 0.002\nduration_s = 6.0\n",
+                               "no whole revolution"),
 }
 
 

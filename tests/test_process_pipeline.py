@@ -202,7 +202,9 @@ def test_validate_reports_every_check():
 
 def test_streamed_displacements_are_the_array_codes_bit_for_bit_with_missing_and_infinite_arrivals(hp_stream):
     # the per-revolution Eq. 1 (in place, Python-scalar rotor phase) against the array code on
-    # the same 3-pulse window, NaN (missing) and inf arrivals included: the same bytes
+    # the same 3-pulse window, NaN (missing) arrivals included: the same bytes. An infinite
+    # arrival is not within a revolution of its OPR pulse: the streaming processor drops its
+    # probe's batch (as a recording holding it is refused), which the array code then gets too.
     from types import SimpleNamespace
 
     from bttsim_stream.process.displacement import displacements_from_phase, rotor_phase_from_opr
@@ -215,6 +217,8 @@ def test_streamed_displacements_are_the_array_codes_bit_for_bit_with_missing_and
     short = SimpleNamespace(opr_s=run.opr_s[:n], info=run.info)
     with np.errstate(invalid="ignore"):
         proc, outs, _ = _stream(short, toa, ProcessOptions(calibration=None))
+        assert proc.refused_batches == 1
+        toa[100, :, 1] = np.nan  # the batch refused
         psi = proc.geometry.nominal_arrival_angles()
         for k in range(1, n - 1):
             phase = rotor_phase_from_opr(run.opr_s[k - 1:k + 2]).rows(slice(1, 2))

@@ -143,7 +143,7 @@ def test_steady_start_at_resonance_has_the_quasi_steady_amplitude_at_revolution_
 
 
 def test_rest_start_is_at_rest():
-    scn = scenario_from_dict(_ramp(1000.0, 0.15, "rest"))  # 2.5 revolutions: the fewest a run makes is 2
+    scn = scenario_from_dict(_ramp(1000.0, 0.15, "rest"))  # 2.5 revolutions: a run needs one whole one
     sim = RunUpSimulator(scn)
     assert np.all(sim.integrator.a_plus == 0) and np.all(sim.integrator.a_minus == 0)
 

@@ -17,7 +17,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import BttsimError
+from ..errors import BttsimError, ScenarioError
 from ..model import build_model, load_model
 from ..model.speed_modes import is_speed_dependent
 from .bounds import check_tip_amplitude
@@ -117,6 +117,9 @@ class RunUpSimulator:
         self.timing = {"envelopes_s": 0.0, "crossings_s": 0.0}
         total = int(np.floor((self.speed.angle(self.speed.duration_s) - self.theta_opr) / TWO_PI))
         self.n_revolutions = max(0, total if n_revolutions is None else min(total, n_revolutions))
+        if self.n_revolutions < 1:  # the scenario's check leaves a rounding's width: no run without one
+            raise ScenarioError("the speed profile makes no whole revolution between two OPR pulses: raise the "
+                                "speed or duration_s")
         r = self.basis.nodes.shape[0]
         self._VT = np.ascontiguousarray(self.basis.nodes.reshape(r, -1).T)  # (nt * 3, r)
         # P_nom tangential, axial and d_eqv direction (Eq. 3-4)
