@@ -28,7 +28,8 @@ from .errors import BttsimError, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
 from .nodes import program, programs
-from .offline import (PROCESS_TRUTH_FIELDS, add_processing_arguments, completeness, load_run, parse_engine_orders,
+from .offline import (PROCESS_TRUTH_FIELDS, add_processing_arguments, check_probes, completeness, load_run,
+                      parse_engine_orders,
                       processing_options, result_warnings, with_processing)
 from .orchestrate import run_all
 from .process.pipeline import process_arrays
@@ -239,6 +240,8 @@ def _cmd_ingest(args: argparse.Namespace) -> None:
         probes = [parse_probe(v) if k == "probe" else parse_signal(v) for k, v in args.sources]
         signal_flags = [f for f in ("sample_rate", "trigger", "level_v", "hysteresis_v", "edge", "fraction", "clock_hz")
                         if getattr(args, f, None) is not None]
+        signal_flags += [f for f, default in (("signal_start_s", 0.0), ("holdoff", 0.25))
+                         if getattr(args, f) != default]
         if signal_flags and not any(k == "signal" for k, _ in args.sources):
             raise BttsimError(f"--{signal_flags[0].replace('_', '-')} is for raw probe signals: give them with "
                               "--signal ANGLE_DEG=FILE (a --probe file holds pulse times)")
@@ -278,6 +281,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
     run = load_run(args.mcap, truth_fields=kept)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
+    probe_notes = check_probes(args.mcap, run, opts)
     if opts.window > run.revolution.size:
         raise BttsimError(f"{args.mcap}: a sine-fit window of {opts.window} revolutions is longer than the run's "
                           f"{run.revolution.size}")
@@ -293,6 +297,8 @@ def _cmd_process(args: argparse.Namespace) -> None:
     summary = build_summary(result.summary, completeness(run),
                             missing_toas=int(np.count_nonzero(np.isnan(run.toa_s))),  # pulses that did not trigger
                             doubles=run.doubles)  # extra trigger edges, each in its blade's window
+    if probe_notes:
+        summary["notes"] = probe_notes + list(summary.get("notes", []))
     if args.summary:  # before anything is printed: a closed stdout must not lose it
         try:
             Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
@@ -384,10 +390,10 @@ def _cmd_view(args: argparse.Namespace) -> None:
 
     t0 = time.perf_counter()
     run = load_run(args.mcap, truth_fields=())  # checked as a run
-    whole = completeness(run)
+    whole, meta = completeness(run), run.meta
+    del run  # its arrays: not held while the processor session rebuilds its own
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
-        src = with_processing(args.mcap, Path(tmp) / "processed.mcap", run=run)
-        del run
+        src = with_processing(args.mcap, Path(tmp) / "processed.mcap", meta=meta)
         try:
             session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
                                     grpc_port=args.grpc_port, bind=args.bind)

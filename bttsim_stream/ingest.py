@@ -245,14 +245,13 @@ def _run_id(*parts) -> str:
 
 
 def _check_out(out, inputs=()) -> None:
-    """Refuse an output path that cannot be written, or that is one of the ``inputs`` (files,
-    or folders whose files are read), before anything is read."""
+    """Refuse an output path that cannot be written, or that is one of the ``inputs`` (files),
+    before anything is read."""
     replaceable_file(out)
     out = Path(out)
     real = os.path.realpath(out)
     for path in inputs:
-        p = os.path.realpath(path)
-        if real == p or (os.path.isdir(p) and os.path.dirname(real) == p and os.path.exists(real)):
+        if real == os.path.realpath(path):
             raise BttsimError(f"--out {out}: that is the input {path}; it would be overwritten")
     if out.is_dir():
         raise BttsimError(f"{out}: is a folder (--out takes the recording's file name)")
@@ -436,12 +435,13 @@ def ingest_export(folder, out, *, rig: str | None = None) -> IngestResult:
     rig : str, optional
         Rig name on the bus (default: the export's).
     """
-    _check_out(out, [folder])
     folder = Path(folder)
     meta_file = folder / "run.json"
     if not meta_file.is_file():
+        _check_out(out)
         raise BttsimError(f"{folder}: no run.json (not a `bttsim export` folder)")
     doc = _export_doc(meta_file)
+    _check_out(out, [meta_file, *(folder / t["file"] for t in doc.get("tables", {}).values())])
     run = doc["run"]
     info = _checked_info(_run_info(run, str(meta_file)), meta_file)
     opr = _table(folder, doc, "opr", ("revolution", "opr_s"))

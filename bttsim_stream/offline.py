@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -32,7 +32,7 @@ from .sim.records import RunInfo, Truth
 
 __all__ = ["RecordedRun", "PROCESS_TRUTH_FIELDS", "load_run", "messages_of", "completeness", "result_warnings",
            "processing_messages", "with_processing", "add_processing_arguments", "processing_options",
-           "parse_engine_orders", "check_times"]
+           "parse_engine_orders", "check_times", "check_probes"]
 
 
 def add_processing_arguments(p: argparse.ArgumentParser) -> None:
@@ -478,6 +478,39 @@ def check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s) -> None:
                           f"{float(opr_s[n])!r} s)")
 
 
+def check_probes(path, run: RecordedRun, options: ProcessOptions) -> list[str]:
+    """A probe that holds no TOA in the whole recording leaves the others to separate the
+    engine orders (each, and jointly when several are fitted together): if they cannot, the
+    run cannot be processed (a :class:`BttsimError` naming the file and the empty probes),
+    rather than fitted to NaN and reported as showing no resonance. Returns the notes (which
+    probes are empty) when the others can."""
+    from .process.displacement import Geometry
+    from .process.options import engine_orders_of, fits_jointly, layout_condition_numbers
+
+    with np.errstate(invalid="ignore"):
+        present = np.isfinite(run.toa_s).any(axis=(0, 1))
+    if present.all():
+        return []
+    if not present.any():
+        raise BttsimError(f"{path}: no probe holds a TOA in the whole recording")
+    empty = ", ".join(str(j) for j in np.flatnonzero(~present))
+    geometry = Geometry.from_info(run.meta)
+    left = replace(geometry, probe_angles_rad=geometry.probe_angles_rad[present])
+    scan = options.eo_range is not None
+    eos = tuple(range(options.eo_range[0], options.eo_range[1] + 1)) if scan else engine_orders_of(run.meta, options)
+    try:
+        kept, _, _ = layout_condition_numbers(eos, left, scan)
+    except ValueError as exc:  # LayoutError
+        raise BttsimError(f"{path}: probe(s) {empty} hold no TOA in the whole recording; {exc}") from None
+    if not scan and len(eos) > 1 and fits_jointly(eos, geometry) and not fits_jointly(eos, left):
+        raise BttsimError(f"{path}: probe(s) {empty} hold no TOA in the whole recording: the probes left cannot fit "
+                          f"EO {'+'.join(map(str, eos))} jointly; give one engine order (--eo)")
+    if scan and len(kept) < len(eos):
+        raise BttsimError(f"{path}: probe(s) {empty} hold no TOA in the whole recording: the probes left cannot "
+                          f"separate EO {', '.join(str(e) for e in eos if e not in kept)}; narrow --eo-range")
+    return [f"probe(s) {empty} hold no TOA in the whole recording: the others are fitted"]
+
+
 def completeness(run: RecordedRun) -> Completeness:
     """What of the run the recording holds: complete revolutions against the run metadata's
     count, acquisition messages missing or repeated by their sequence numbers."""
@@ -533,18 +566,17 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
     return msgs + tail, summary
 
 
-def with_processing(path, out_path, *, allow_truncated: bool = False, run: RecordedRun | None = None) -> str:
+def with_processing(path, out_path, *, allow_truncated: bool = False, meta: RunInfo | None = None) -> str:
     """``path`` if the recording holds the processor's messages, else a copy at ``out_path``
     with them added, each message of the processor node's own
     :class:`~bttsim_stream.processor.ProcessorSession` (the messages of
     :func:`processing_messages`) right after the one that made it, as a live run records them.
 
     Read and written as a stream: memory does not grow with the recording (beyond the
-    processor session's own state). ``run``: the recording already read (:func:`load_run`),
-    else it is read (and checked as a run) here."""
-    if run is None:
-        run = load_run(path, allow_truncated=allow_truncated, truth_fields=())
-    meta = run.meta
+    processor session's own state). ``meta``: the run metadata of the recording already read
+    (:func:`load_run`), else it is read (and checked as a run) here."""
+    if meta is None:
+        meta = load_run(path, allow_truncated=allow_truncated, truth_fields=()).meta
     if any(keys.parse_key(m.key).kind == "fit" for m in RecordingScan(path)):
         return str(path)
     session = ProcessorSession(meta, ProcessOptions())

@@ -224,6 +224,9 @@ def test_certificate_names_and_hosts_are_checked_before_anything_is_written(caps
     assert "bad host name '999.1.1.1'" in _error(capsys, "certs", str(tmp_path / "c"), "--host", "999.1.1.1")
     assert "bad host name 'a..b'" in _error(capsys, "certs", str(tmp_path / "c"), "--host", "a..b")
     assert not (tmp_path / "c").exists()
+    # a Compose service name and a wildcard are DNS names
+    assert cli.main(["certs", str(tmp_path / "ok"), "--names", "sim", "--host", "my_host",
+                     "--host", "*.example.com"]) == 0
 
 
 def test_numbers_beyond_what_the_code_can_hold_are_refused(capsys, tmp_path, monkeypatch):

@@ -1051,8 +1051,6 @@ RECORDING_CASES = {
     "huge engine order": ("meta", _set_meta(engine_orders=[2**31]), "engine order"),
     "huge revolution count": ("meta", _set_meta(n_revolutions=2**62), "n_revolutions"),
     "infinite TOA": ("toa", lambda p, r: p.toa_s.__setitem__(3, math.inf), "TOA(s) not within a revolution"),
-    "three probes without a TOA": ("toa", lambda p, r: p.toa_s.__setitem__(slice(None), [math.nan] * len(p.toa_s))
-                                   if p.probe >= 2 else None, "probe(s) 2, 3, 4 hold no TOA"),
     "no revolutions in the metadata": ("meta", _set_meta(n_revolutions=0), "n_revolutions = 0"),
     "speed range upside down": ("meta", _set_meta(speed_min_rpm=5000.0), "the lowest above the highest"),
     "NaN metadata time": ("meta", lambda p, r: setattr(p.header, "t_s", math.nan), "header time nan"),
@@ -1087,6 +1085,40 @@ def _with_copy_before(messages: list[Message], kind: str, revolution: int, chang
         out.append(m)
     assert done
     return out
+
+
+def _without_probes(messages: list[Message], probes) -> list[Message]:
+    def empty(p, _rev):
+        if p.probe in probes:
+            p.toa_s[:] = [math.nan] * len(p.toa_s)
+    return _edit(messages, "toa", empty)
+
+
+def test_probes_without_any_toa_leave_the_others_to_separate_the_orders(workdir, base_mcap):
+    """Probes that hold no TOA in the whole recording: if the probes left cannot separate the
+    engine order (or fit several jointly), ``process`` refuses, naming them (before: NaN fits
+    reported as no resonance found, exit 0); if they can, a note names them. The recording's
+    tables still export."""
+    raw = read_recording(base_mcap).messages
+    cases = [((2, 3, 4), [], 2, "probe(s) 2, 3, 4 hold no TOA in the whole recording; the probe layout"),
+             ((4,), ["--eo", "8,9"], 2, "the probes left cannot fit EO 8+9 jointly"),
+             ((0, 1, 2, 3, 4), [], 2, "no probe holds a TOA")]
+    for probes, options, status, words in cases:
+        path = workdir / f"empty-{'-'.join(map(str, probes))}{'-joint' if options else ''}.mcap"
+        _write(path, _without_probes(raw, probes))
+        o = run_case(f"probes {probes} without TOAs", ["process", path, *options])
+        assert o.problem is None and o.status == status, report([o]) if o.problem else o.err
+        assert words in (o.out if status == 0 else o.err), (o.out, o.err)
+    o = run_case("export of it", ["export", path.with_name("empty-2-3-4.mcap"), "--out", workdir / "empty.export"])
+    assert o.problem is None and o.status == 0, o.err
+    # one empty probe of five: the others separate EO 8, and the note says which is empty
+    from bttsim_stream.offline import check_probes, load_run
+    from bttsim_stream.process.options import ProcessOptions
+
+    _write(workdir / "empty-4.mcap", _without_probes(raw, (4,)))
+    assert check_probes("f", load_run(workdir / "empty-4.mcap"), ProcessOptions()) == [
+        "probe(s) 4 hold no TOA in the whole recording: the others are fitted"]
+    assert check_probes("f", load_run(base_mcap), ProcessOptions()) == []
 
 
 @pytest.mark.parametrize("command", ["process", "export"])

@@ -416,6 +416,8 @@ def test_cli_flag_and_output_errors(sim, tmp_path, capsys):
         assert err.count("\n") == 1 and words in err, err
     assert not (tmp_path / "x.mcap").exists()
     assert all(p.read_bytes() == data for p, data in inputs.items())  # no input overwritten
+    for _ in range(2):  # a file of its own beside the export's: written, and written again
+        assert main(["ingest", "--from-export", str(tmp_path / "exp"), "--out", str(tmp_path / "exp" / "in.mcap")]) == 0
 
 
 # -- raw probe signals -------------------------------------------------------------------

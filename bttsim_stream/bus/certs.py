@@ -41,8 +41,9 @@ def _x509():
     return x509, hashes, serialization, ec, ExtendedKeyUsageOID, NameOID
 
 
-#: A DNS name: dot-separated labels of letters, digits and '-' (not at either end), 1-63 each.
-_DNS_NAME = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)(\.(?!-)[A-Za-z0-9-]{1,63}(?<!-))*\.?")
+#: A DNS name: dot-separated labels of letters, digits, '_' and '-' (not '-' at either end),
+#: 1-63 each; a first label '*' (a wildcard).
+_DNS_NAME = re.compile(r"(\*|(?!-)[A-Za-z0-9_-]{1,63}(?<!-))(\.(?!-)[A-Za-z0-9_-]{1,63}(?<!-))*\.?")
 
 
 def _san_entries(x509, hosts):
@@ -52,7 +53,8 @@ def _san_entries(x509, hosts):
             out.append(x509.IPAddress(ipaddress.ip_address(h)))
         except ValueError:
             if not _DNS_NAME.fullmatch(str(h)) or len(h) > 253 or re.fullmatch(r"[0-9.]+", h):
-                raise BttsimError(f"bad host name {h!r} for a certificate (a DNS name or an IP address)") from None
+                raise BttsimError(f"bad host name {h!r} for a certificate (an IP address, or a DNS name: labels of "
+                                  "letters, digits, '_' and '-' joined by dots, '*' first for a wildcard)") from None
             out.append(x509.DNSName(h))
     return out
 

@@ -32,7 +32,6 @@ from . import crb
 from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
-from .probes import LayoutError
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
                         TruthRows, find_peaks, own_envelope, window_truth)
 from .results import ProcessingResult, RevolutionFit, RevolutionOutput
@@ -191,7 +190,6 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
     notes: list[str] = []
     eos_asked, cns, joint = _orders_asked(info, geometry, options, notes)
-    _probes_with_data(toa, geometry, eos_asked, options, notes)
     rows_truth = _truth_rows(truth, n_rev, revolution0)
     t_exp = _exact_times(truth, options)
     # 1. first pass: nominal geometry (or exact times) zeroed on the run's median
@@ -253,23 +251,6 @@ def _orders_asked(info, geometry: Geometry, options: ProcessOptions, notes: list
         notes.append(f"EO {'+'.join(map(str, eos))} cannot be fitted jointly with these probes: each order "
                      f"is fitted on its own and their responses leak into each other")
     return eos, cns, joint
-
-
-def _probes_with_data(toa: np.ndarray, geometry: Geometry, eos: tuple, options: ProcessOptions, notes: list) -> None:
-    """A probe that holds no TOA in the whole run leaves the others to separate the engine
-    orders: if they cannot, the run cannot be processed (a :class:`LayoutError` naming the
-    empty probes), rather than fitted to NaN and reported as showing no resonance."""
-    with np.errstate(invalid="ignore"):
-        present = np.isfinite(toa).any(axis=(0, 1))
-    if present.all():
-        return
-    empty = ", ".join(str(j) for j in np.flatnonzero(~present))
-    try:
-        layout_condition_numbers(eos, replace(geometry, probe_angles_rad=geometry.probe_angles_rad[present]),
-                                 options.eo_range is not None)
-    except LayoutError as exc:
-        raise LayoutError(f"probe(s) {empty} hold no TOA in the whole run; {exc}") from None
-    notes.append(f"probe(s) {empty} hold no TOA in the whole run: the others are fitted")
 
 
 def _exact_times(truth, options: ProcessOptions) -> np.ndarray | None:

@@ -341,6 +341,11 @@ class StreamingProcessor:
         (the last revolution takes the period before it)."""
         period = opr[k + 1] - opr[k] if k + 1 < opr.size else opr[k] - opr[k - 1]
         row = self._toa.row(k)
+        # the rule's own arithmetic on the row's extremes first (NaN ignored; none finite: NaN,
+        # both tests pass): only a row that may break it goes through the whole rule
+        lo, hi = float(np.fmin.reduce(row, axis=None)) - opr[k], float(np.fmax.reduce(row, axis=None)) - opr[k]
+        if not (lo < -period or hi > 2.0 * period or period <= 0.0):
+            return
         bad = outside_revolution(row, opr[k], period).any(axis=0)
         if bad.any():
             row[:, bad] = np.nan
