@@ -247,14 +247,11 @@ def _run_id(*parts) -> str:
 def _check_out(out, inputs=()) -> None:
     """Refuse an output path that cannot be written, or that is one of the ``inputs`` (files),
     before anything is read."""
-    replaceable_file(out)
+    real = replaceable_file(out)  # a folder, device, pipe or socket is refused here
     out = Path(out)
-    real = os.path.realpath(out)
     for path in inputs:
-        if real == os.path.realpath(path):
+        if real == Path(os.path.realpath(path)):
             raise BttsimError(f"--out {out}: that is the input {path}; it would be overwritten")
-    if out.is_dir():
-        raise BttsimError(f"{out}: is a folder (--out takes the recording's file name)")
     if not out.parent.is_dir():
         raise BttsimError(f"{out}: cannot write (no folder {out.parent})")
     if not os.access(out.parent, os.W_OK):
