@@ -38,7 +38,7 @@ from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutE
 from .process.resonance import summary_table
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, checked, positive_count, \
-    positive_seconds, run_parsed
+    positive_seconds, rig_name, run_parsed
 from .sim.bounds import check_tip_amplitude
 from .sim.core import load_scenario_model
 from .summary import build_summary, describe_exit
@@ -205,7 +205,7 @@ def _cmd_export(args: argparse.Namespace) -> None:
     from .export import export_run
 
     t0 = time.perf_counter()
-    counts = export_run(args.mcap, args.out, args.format)
+    counts = export_run(args.mcap, args.out, args.format, rig=args.rig)
     rows = ", ".join(f"{name} {n}" for name, n in counts.items())
     print(f"wrote {args.out}: {len(counts)} {args.format} tables ({rows} rows) and run.json in "
           f"{time.perf_counter() - t0:.1f} s")
@@ -278,7 +278,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
     progress.phase(f"reading {args.mcap} ...")
     # the exact expected times (a whole-run array as large as the TOAs) only when asked for
     kept = PROCESS_TRUTH_FIELDS if args.exact_expected else tuple(f for f in PROCESS_TRUTH_FIELDS if f != "t_exp_s")
-    run = load_run(args.mcap, truth_fields=kept)
+    run = load_run(args.mcap, truth_fields=kept, rig=args.rig)
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     probe_notes = check_probes(args.mcap, run, opts)
@@ -389,14 +389,14 @@ def _cmd_view(args: argparse.Namespace) -> None:
     from .views import log_recording  # rerun takes 0.5 s to import: only here
 
     t0 = time.perf_counter()
-    run = load_run(args.mcap, truth_fields=())  # checked as a run
+    run = load_run(args.mcap, truth_fields=(), rig=args.rig)  # checked as a run
     whole, meta = completeness(run), run.meta
     del run  # its arrays: not held while the processor session rebuilds its own
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
         src = with_processing(args.mcap, Path(tmp) / "processed.mcap", meta=meta)
         try:
             session = log_recording(src, args.rrd, serve_web=args.web, web_port=args.web_port,
-                                    grpc_port=args.grpc_port, bind=args.bind)
+                                    grpc_port=args.grpc_port, bind=args.bind, rig=meta.rig)
         except BttsimError as exc:  # name the user's file, not the processed copy
             raise BttsimError(str(exc).replace(str(src), str(args.mcap), 1)) from None
         if not whole.complete:
@@ -614,11 +614,18 @@ def _add_crb_parser(sub) -> None:
     p.set_defaults(func=_cmd_crb)
 
 
+def _add_rig_argument(p) -> None:
+    """``--rig``: which run of a recording of several rigs is read."""
+    p.add_argument("--rig", type=rig_name, help="the rig whose run is read (needed when the recording holds "
+                                                "several rigs' runs; default its only one)")
+
+
 def _add_process_parser(sub) -> None:
     """``bttsim process``: a recording to the resonance report."""
     p = sub.add_parser("process", help="process a recording offline into the resonance report")
     p.add_argument("mcap", help="recording (MCAP)")
     p.add_argument("--summary", help="write the summary JSON here")
+    _add_rig_argument(p)
     p.add_argument("--exact-expected", action="store_true",
                    help="use the truth's exact expected arrival times (reproduces the paper)")
     add_processing_arguments(p)
@@ -633,6 +640,7 @@ def _add_export_parser(sub) -> None:
     p.add_argument("--format", choices=("csv", "parquet"), default="csv",
                    help="csv (always available) or parquet (the parquet extra: pyarrow)")
     p.add_argument("--out", required=True, help="output folder: one file per table and run.json")
+    _add_rig_argument(p)
     p.set_defaults(func=_cmd_export)
 
 
@@ -683,6 +691,7 @@ def _add_view_parser(sub) -> None:
     p.add_argument("mcap", help="recording (MCAP); processed first if it holds no fits")
     p.add_argument("--rrd", help="write the views to this .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer until Ctrl-C")
+    _add_rig_argument(p)
     add_web_arguments(p)
     p.set_defaults(func=_cmd_view)
 

@@ -293,7 +293,7 @@ def run_tables(run, result=None) -> RunTables:
     if run.truth is not None:
         tr = run.truth
         if tr.toa_s is None:  # the per-TOA truth not kept: read from the recording
-            t["truth"] = lambda: _truth_stream(run.path, rev, n_b, n_p)
+            t["truth"] = lambda: _truth_stream(run.path, rev, n_b, n_p, run.meta.rig)
         else:
             t["truth"] = lambda: _blocks(n_rev, n_b * n_p, lambda a, b: _truth_table(tr, toa_idx(a, b), a, b))
         t["truth_revolution"] = lambda: _blocks(n_rev, n_b, lambda a, b: dict(
@@ -320,7 +320,7 @@ def _truth_table(tr, idx: dict, a: int, b: int) -> dict:
                 d_tang_m=f64(tr.d_tang_m[a:b]), d_z_m=f64(tr.d_z_m[a:b]), d_eq1_m=f64(tr.d_eq1_m[a:b]))
 
 
-def _truth_stream(path, rev: np.ndarray, n_b: int, n_p: int):
+def _truth_stream(path, rev: np.ndarray, n_b: int, n_p: int, rig: str):
     """The ``truth`` table read from the recording's truth messages as it is written, in
     blocks: one message per revolution of ``rev``, in order.
 
@@ -346,7 +346,7 @@ def _truth_stream(path, rev: np.ndarray, n_b: int, n_p: int):
                      for f in ("opr_s",) + TOA_TRUTH_FIELDS + ("d_eqv_pkpk_m", "omega_mean")])
         return _truth_table(tr, long_cols((len(rows), n_b, n_p), names, rev[a:a + len(rows)]), 0, len(rows))
 
-    for m in RecordingScan(path):
+    for m in keys.of_rig(RecordingScan(path), rig):
         if "/truth" not in m.key or keys.parse_key(m.key).kind != "truth":
             continue
         d = codec.decode_truth(m.payload, m.key)
@@ -465,7 +465,7 @@ def _column_meta(name: str, a: np.ndarray) -> dict:
     return {"unit": unit, "dtype": kind, "description": meaning}
 
 
-def export_run(path, out_dir, fmt: str = "csv") -> "ExportCounts":
+def export_run(path, out_dir, fmt: str = "csv", rig: str | None = None) -> "ExportCounts":
     """Export a recording to tidy tables in ``out_dir`` (created if missing).
 
     Parameters
@@ -475,6 +475,9 @@ def export_run(path, out_dir, fmt: str = "csv") -> "ExportCounts":
     out_dir : path-like
         Output folder: one ``<table>.csv`` or ``<table>.parquet`` per table and ``run.json``.
     fmt : {"csv", "parquet"}
+    rig : str, optional
+        The rig whose run is exported (:func:`~bttsim_stream.offline.load_run`; default: the
+        recording's only one).
 
     Returns
     -------
@@ -499,9 +502,9 @@ def export_run(path, out_dir, fmt: str = "csv") -> "ExportCounts":
     out = Path(out_dir)
     kept = tuple(f.name for f in fields(Truth) if f.name not in TOA_TRUTH_FIELDS)
     try:  # the per-TOA truth read from the file as its table is written
-        return _export(load_run(path, truth_fields=kept), path, out, fmt)
+        return _export(load_run(path, truth_fields=kept, rig=rig), path, out, fmt)
     except Unstreamable:  # an odd truth stream: the whole run's arrays say what it holds
-        return _export(load_run(path), path, out, fmt)
+        return _export(load_run(path, rig=rig), path, out, fmt)
 
 
 class ExportCounts(dict):

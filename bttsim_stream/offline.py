@@ -100,7 +100,7 @@ class RecordedRun:
         The simulator's truth of these revolutions, from the truth channel (the fields not
         asked for by :func:`load_run`'s ``truth_fields`` are None).
     messages : list of Message or None
-        Every recorded message, in file order (None unless :func:`load_run` was asked to keep
+        Every recorded message of the run's rig, in file order (None unless :func:`load_run` was asked to keep
         them: :func:`messages_of` streams them from ``path`` again).
     doubles : dict
         Double pulses of the recorded TOA batches (``double_pulses``, ``extra_edges``,
@@ -135,9 +135,9 @@ PROCESS_TRUTH_FIELDS = ("opr_s", "t_exp_s", "d_eqv_pkpk_m", "omega_mean", "eo_en
 
 
 class _TruthTable:
-    """Per-revolution truth rows in preallocated arrays (a later message of a revolution
-    replaces the earlier one, as a dict would); memory: the kept fields' arrays, no Python
-    object per revolution."""
+    """Per-revolution truth rows in preallocated arrays (the first message of a revolution
+    holds, as in the recorder; a later one that differs in a kept field is counted in
+    ``conflicts``); memory: the kept fields' arrays, no Python object per revolution."""
 
     def __init__(self, names, capacity: int, toa_tail: tuple) -> None:
         self.names = tuple(names)
@@ -149,6 +149,8 @@ class _TruthTable:
         self.tails: dict[str, tuple | None] = {}  # per field: (tail shape, dtype kind), None: absent
         self.bad: set[int] = set()  # revolutions whose latest truth is of another rotor or layout
         self.str_size: dict[str, int] = {}
+        self.conflicts = 0
+        self.first_conflict: int | None = None  # its revolution
 
     def _fits(self, t: Truth) -> bool:
         if t.toa_s.shape[1:] != self.toa_tail:
@@ -172,15 +174,20 @@ class _TruthTable:
             return
         self.bad.discard(revolution)
         i = self.index.get(revolution)
-        if i is None:
-            i = self.index[revolution] = self.n
-            self.n += 1
-            if self.n > self.capacity:
-                self.capacity *= 2
-                for name, a in self.tables.items():
-                    grown = np.empty((self.capacity,) + a.shape[1:], dtype=a.dtype)
-                    grown[: a.shape[0]] = a
-                    self.tables[name] = grown
+        if i is not None:  # a copy: the first holds
+            if not all(np.array_equal(a[i], getattr(t, name)[0], equal_nan=a.dtype.kind in "fc")
+                       for name, a in self.tables.items()):
+                self.conflicts += 1
+                self.first_conflict = revolution if self.first_conflict is None else self.first_conflict
+            return
+        i = self.index[revolution] = self.n
+        self.n += 1
+        if self.n > self.capacity:
+            self.capacity *= 2
+            for name, a in self.tables.items():
+                grown = np.empty((self.capacity,) + a.shape[1:], dtype=a.dtype)
+                grown[: a.shape[0]] = a
+                self.tables[name] = grown
         for name, a in self.tables.items():
             row = getattr(t, name)
             a[i] = row[0]
@@ -302,7 +309,7 @@ def _capacity(path, meta) -> int:
 
 
 def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False,
-             truth_fields=None) -> RecordedRun:
+             truth_fields=None, rig: str | None = None) -> RecordedRun:
     """Read and decode a recording; a corrupt, truncated, foreign or impossible file is a
     one-line error (:class:`BttsimError` naming the file).
 
@@ -319,6 +326,10 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     truth_fields : iterable of str, optional
         The :class:`~bttsim_stream.sim.core.Truth` fields to keep (default all; the others are
         None), e.g. :data:`PROCESS_TRUTH_FIELDS`.
+    rig : str, optional
+        The rig whose run is read (its ``bttsim/<rig>/...`` keys; the other rigs' messages are
+        not decoded). Default: the recording's only rig; a recording of several rigs is then
+        an error that names them.
 
     Notes
     -----
@@ -356,46 +367,88 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
             else:
                 extras.pop((d.header.revolution, d.body.probe), None)
 
+    rigs: dict[str, None] = {}  # the rigs with run metadata, in file order
+    want = rig  # the rig read: the one asked for, else the first with run metadata
     for m in scan:
         n_messages += 1
         if messages is not None:
             messages.append(m)
-        if error is not None:
-            continue
         try:
-            kind = keys.parse_key(m.key).kind
+            info = keys.parse_key(m.key)
+        except BttsimError as exc:
+            error = error or exc
+            continue
+        if info.kind == "meta":
+            rigs.setdefault(info.rig, None)
+        if error is not None or (want is not None and info.rig != want):  # another rig's: not read
+            continue
+        kind = info.kind
+        try:
             if kind in ("opr", "toa"):
                 seqs.accept(m.key, m.seq)
             if kind == "meta" and meta is not None and m.key == meta_key and bytes(m.payload) != meta_payload:
                 raise BttsimError(f"{m.key}: a second, different run metadata message (which run is it?)")
             if kind == "meta" and meta is None:
                 meta = codec.decode_run_metadata(m.payload, m.key).body
-                meta_key, meta_payload = m.key, bytes(m.payload)
+                if meta.rig != info.rig:
+                    raise BttsimError(f"{m.key}: the run metadata of rig {meta.rig!r} on another rig's key")
+                want, meta_key, meta_payload = info.rig, m.key, bytes(m.payload)
                 asm = _Acquisition(meta.n_blades, meta.n_probes, _capacity(path, meta))
-                for item in early:
-                    take(*item)
+                for r, *item in early:
+                    if r == want:
+                        take(*item)
                 early = []
             elif kind in ("opr", "toa", "truth"):
                 d = codec.decode_truth(m.payload, m.key, fields=truth_2d) if kind == "truth" else \
                     codec.decode_message(m.key, m.payload)
                 if meta is None:
-                    early.append((kind, d))
+                    early.append((info.rig, kind, d))
                 else:
                     take(kind, d)
         except BttsimError as exc:
             error = exc
-    if scan.truncated and not allow_truncated:
-        raise BttsimError(f"{path}: truncated MCAP (no footer; {n_messages} messages readable)")
-    if error is not None:
-        raise BttsimError(f"{path}: {error}") from None
-    if meta is None:
-        raise BttsimError(f"{path}: no run metadata ({keys.PREFIX}/<rig>/meta) in the recording")
+    _refuse_scan(path, scan.truncated and not allow_truncated, n_messages, rig, list(rigs), error, meta)
     if asm.conflicts:  # a recorder writes the first of a number's payloads and refuses the others
         raise BttsimError(f"{path}: {asm.conflicts} OPR/TOA message(s) differ from an earlier one of the same "
                           f"revolution (first: {asm.first_conflict}); which one is the acquisition?")
+    if truth is not None and truth.conflicts:
+        raise BttsimError(f"{path}: {truth.conflicts} truth message(s) differ from an earlier one of the same "
+                          f"revolution (first: revolution {truth.first_conflict}); which one is the truth?")
+    numbers, opr_s, toa_s = _complete_revolutions(path, meta, asm)
+    asm = None  # its tables are handed over
+    tr = None if truth is None else truth.rows(numbers.tolist(), all_truth)
+    doubles, edges = _extra_edges(extras, numbers)
+    if messages is not None:
+        messages = list(keys.of_rig(messages, want))
+    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=messages,
+                       doubles=doubles, extra_edges=edges, path=str(path),
+                       lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+
+
+def _refuse_scan(path, truncated: bool, n_messages: int, rig: str | None, rigs: list, error, meta) -> None:
+    """The one-line errors of a recording's scan, in this order: cut short (no footer), the
+    runs of several rigs and none asked for, a message that did not decode, no run metadata
+    (of the rig asked for)."""
+    if truncated:
+        raise BttsimError(f"{path}: truncated MCAP (no footer; {n_messages} messages readable)")
+    if rig is None and len(rigs) > 1:
+        raise BttsimError(f"{path}: the recording holds the runs of {len(rigs)} rigs ({', '.join(rigs)}): "
+                          f"choose one with --rig")
+    if error is not None:
+        raise BttsimError(f"{path}: {error}") from None
+    if meta is None and rig is not None:
+        raise BttsimError(f"{path}: no run metadata of rig {rig!r} in the recording"
+                          + (f" (its rigs: {', '.join(rigs)})" if rigs else ""))
+    if meta is None:
+        raise BttsimError(f"{path}: no run metadata ({keys.PREFIX}/<rig>/meta) in the recording")
+
+
+def _complete_revolutions(path, meta: RunInfo, asm: _Acquisition) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The numbers, OPR times and TOAs of the acquisition's complete revolutions (its tables
+    handed over), checked as a run: three at least, within the metadata's count, none
+    missing between them, times that make sense (:func:`check_times`)."""
     ignored = asm.ignored
     numbers, opr_s, toa_s = asm.complete()
-    asm = None  # its tables are handed over
     if numbers.size < 3:
         why = (f" ({ignored} OPR/TOA message(s) ignored: a blade count other than the metadata's "
                f"{meta.n_blades}, a probe index beyond {meta.n_probes - 1}, a revolution out of range, a "
@@ -408,24 +461,27 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
         raise BttsimError(f"{path}: {missing} revolution(s) missing in the recording")
     check_times(path, numbers, opr_s, toa_s)
-    tr = None if truth is None else truth.rows(numbers.tolist(), all_truth)
+    return numbers, opr_s, toa_s
+
+
+def _extra_edges(extras: dict, numbers: np.ndarray) -> tuple[dict, dict]:
+    """The double-pulse summary and the extra-edge rows of the latest TOA batches with extra
+    edges (``(revolution, probe) -> (toa_s, extra_toa_s)``) of revolutions ``numbers``."""
     doubles = DoublePulses()
     rows = []
     for (rev, probe), (toa, extra) in sorted(extras.items()):
         if numbers[0] <= rev <= numbers[-1]:
             doubles.add(toa, extra)
             rows.append((rev, probe, assign_extra_edges(toa, extra), extra))
-    return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=messages,
-                       doubles=doubles.to_summary(), extra_edges=_edge_rows(rows), path=str(path),
-                       lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+    return doubles.to_summary(), _edge_rows(rows)
 
 
 def messages_of(run: RecordedRun):
-    """The recording's messages in file order: :attr:`RecordedRun.messages` if kept, else
+    """The messages of the run's rig in file order: :attr:`RecordedRun.messages` if kept, else
     streamed from the file again (a truncated file up to its cut)."""
     if run.messages is not None:
         return iter(run.messages)
-    return iter(RecordingScan(run.path))
+    return keys.of_rig(RecordingScan(run.path), run.meta.rig)
 
 
 def _edge_rows(rows: list) -> dict:
@@ -567,8 +623,8 @@ def processing_messages(run: RecordedRun, options: ProcessOptions = ProcessOptio
 
 
 def with_processing(path, out_path, *, allow_truncated: bool = False, meta: RunInfo | None = None) -> str:
-    """``path`` if the recording holds the processor's messages, else a copy at ``out_path``
-    with them added, each message of the processor node's own
+    """``path`` if the recording holds the processor's messages of the run's rig, else a copy
+    of that rig's messages at ``out_path`` with them added, each message of the processor node's own
     :class:`~bttsim_stream.processor.ProcessorSession` (the messages of
     :func:`processing_messages`) right after the one that made it, as a live run records them.
 
@@ -577,12 +633,12 @@ def with_processing(path, out_path, *, allow_truncated: bool = False, meta: RunI
     (:func:`load_run`), else it is read (and checked as a run) here."""
     if meta is None:
         meta = load_run(path, allow_truncated=allow_truncated, truth_fields=()).meta
-    if any(keys.parse_key(m.key).kind == "fit" for m in RecordingScan(path)):
+    if any(keys.parse_key(m.key).kind == "fit" for m in keys.of_rig(RecordingScan(path), meta.rig)):
         return str(path)
     session = ProcessorSession(meta, ProcessOptions())
     with McapRecorder(out_path) as rec:
         batch: list[Message] = []
-        for m in RecordingScan(path):
+        for m in keys.of_rig(RecordingScan(path), meta.rig):  # the run's rig only
             if keys.is_status_key(m.key):  # a node's state then, not data: nothing shows it
                 continue
             batch.append(m)

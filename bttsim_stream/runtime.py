@@ -246,6 +246,14 @@ def port(text: str) -> int:
     return value
 
 
+def rig_name(text: str) -> str:
+    """A rig name argument (letters, digits, ``_`` and ``-``)."""
+    try:
+        return keys.validate_rig(text)
+    except BttsimError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def add_duration_argument(p: argparse.ArgumentParser) -> None:
     """``--duration``: a node stops after that many seconds (a finite number above 0)."""
     p.add_argument("--duration", type=positive_seconds, metavar="S", help="stop after S seconds")

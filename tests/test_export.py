@@ -197,6 +197,52 @@ def test_a_recording_cut_short_exports_and_views_what_it_holds_and_says_so(recor
         "the whole run"]
 
 
+def test_a_recording_of_two_rigs_is_read_one_rig_at_a_time(recording, exported_csv, tmp_path, capsys):
+    """One file of two rigs' runs (as a recorder of every rig writes it): ``process``,
+    ``export`` and ``view`` refuse to choose between them (one line naming both, exit 2);
+    with ``--rig`` each gives what the rig's own recording gives; a rig it does not hold, and
+    run metadata on another rig's key, are one-line errors."""
+    from bttsim_stream.bus.recording import McapRecorder, read_recording
+
+    (tmp_path / "rig2.toml").write_text(SCENARIO + '[run]\nrig = "rig2"\n')
+    assert main(["simulate", str(tmp_path / "rig2.toml"), "--out", str(tmp_path / "rig2.mcap"), "-q"]) == 0
+    own = {"rig1": recording / "run.mcap", "rig2": tmp_path / "rig2.mcap"}
+    both = tmp_path / "both.mcap"
+    msgs = sorted([m for f in own.values() for m in read_recording(f).messages], key=lambda m: m.log_time_ns)
+    with McapRecorder(both) as rec:
+        rec.write_all(msgs)
+    capsys.readouterr()
+    for cmd in (["process", str(both)], ["export", str(both), "--out", str(tmp_path / "x")],
+                ["view", str(both), "--rrd", str(tmp_path / "x.rrd")], ["process", str(both), "--rig", "rig3"]):
+        assert main(cmd) == 2, cmd
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "rig1, rig2" in err[0] and str(both) in err[0], err
+        assert ("choose one with --rig" if "rig3" not in cmd else "no run metadata of rig 'rig3'") in err[0]
+    assert not (tmp_path / "x").exists() and not (tmp_path / "x.rrd").exists()
+    for rig, alone in own.items():
+        assert main(["process", str(both), "--rig", rig, "--summary", str(tmp_path / f"{rig}.json")]) == 0
+        assert main(["process", str(alone), "--summary", str(tmp_path / f"{rig}-alone.json")]) == 0
+        assert (tmp_path / f"{rig}.json").read_bytes() == (tmp_path / f"{rig}-alone.json").read_bytes(), rig
+    assert main(["export", str(both), "--rig", "rig2", "--out", str(tmp_path / "e2")]) == 0
+    assert main(["export", str(own["rig2"]), "--out", str(tmp_path / "e2-alone")]) == 0
+    for table in ("opr", "toa", "fit", "resonance", "truth"):
+        assert _csv(tmp_path / "e2" / f"{table}.csv") == _csv(tmp_path / "e2-alone" / f"{table}.csv"), table
+    assert json.loads((tmp_path / "e2" / "run.json").read_text())["run"]["rig"] == "rig2"
+    capsys.readouterr()
+    assert main(["view", str(both), "--rig", "rig1", "--rrd", str(tmp_path / "v1.rrd")]) == 0
+    err = capsys.readouterr().err
+    assert "rejected" not in err and "ignoring run" not in err, err  # the other rig's messages are not read
+    assert (tmp_path / "v1.rrd").stat().st_size > 0
+    # run metadata of rig1 on rig2's key
+    meta = next(m for m in read_recording(own["rig1"]).messages if m.key == "bttsim/rig1/meta")
+    with McapRecorder(tmp_path / "forged.mcap") as rec:
+        rec.write_all(read_recording(own["rig1"]).messages)
+        rec.write("bttsim/rig2/meta", meta.payload, meta.log_time_ns, seq=0)
+    assert main(["process", str(tmp_path / "forged.mcap"), "--rig", "rig2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the run metadata of rig 'rig1' on another rig's key" in err[0], err
+
+
 def test_parquet_without_pyarrow_names_the_extra(recording, monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(sys.modules, "pyarrow", None)  # import pyarrow -> ImportError
     monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)

@@ -1125,7 +1125,7 @@ def test_probes_without_any_toa_leave_the_others_to_separate_the_orders(workdir,
 def test_a_second_different_message_for_a_number_is_refused(workdir, base_mcap, command):
     """A recorder writes the first payload of a number and refuses the others; a recording
     holding two different ones (a forger's before the real one) cannot say which is the
-    acquisition: one line, status 2. The same message twice is a duplicate, counted."""
+    acquisition (or the truth): one line, status 2. The same message twice is a duplicate, counted."""
     raw = read_recording(base_mcap).messages
 
     def shifted(p):
@@ -1137,6 +1137,8 @@ def test_a_second_different_message_for_a_number_is_refused(workdir, base_mcap, 
                 "the OPR pulse of revolution 7"),
         "meta": (_with_copy_before(raw, "meta", 0, lambda p: setattr(p, "tip_radius_m", 0.5)),
                  "a second, different run metadata"),
+        "truth": (_with_copy_before(raw, "truth", 9, lambda p: p.d_eqv_pkpk_m.__setitem__(0, 2 * p.d_eqv_pkpk_m[0])),
+                  "1 truth message(s) differ from an earlier one of the same revolution (first: revolution 9)"),
         "same": (_with_copy_before(raw, "toa", 5, lambda p: None), None),
     }
     for name, (msgs, words) in cases.items():

@@ -54,7 +54,7 @@ def test_export_truth_out_of_order_falls_back_to_the_whole_run(recording, tmp_pa
         rec.write_all(msgs)
     run = load_run(odd, truth_fields=())
     with pytest.raises(export.Unstreamable):
-        list(export._truth_stream(odd, run.revolution, run.meta.n_blades, run.meta.n_probes))
+        list(export._truth_stream(odd, run.revolution, run.meta.n_blades, run.meta.n_probes, run.meta.rig))
     counts = export.export_run(odd, tmp_path / "odd", "csv")
     back = export.read_tables(tmp_path / "odd")["truth"]
     whole = export.run_tables(load_run(odd)).table("truth")  # every truth field held

@@ -59,6 +59,7 @@ __all__ = [
     "status_key",
     "status_all_key",
     "is_status_key",
+    "of_rig",
     "all_key",
     "acquisition_keys",
     "parse_key",
@@ -231,6 +232,15 @@ def is_status_key(key: str) -> bool:
     """Is ``key`` a status key (``bttsim/<any>/status/<any>``)? Recorders and views skip them."""
     parts = str(key).split("/")
     return len(parts) == 4 and parts[0] == PREFIX and parts[2] == "status"
+
+
+def of_rig(messages, rig: str):
+    """The messages (anything with a ``key``) of one rig's keys, in their order; a message whose
+    key is not a ``bttsim/<rig>/...`` key is kept, for its reader to refuse."""
+    for m in messages:
+        parts = str(m.key).split("/", 2)
+        if len(parts) < 3 or parts[0] != PREFIX or parts[1] == rig:
+            yield m
 
 
 def alive_all_key(rig: str) -> str:

@@ -51,7 +51,7 @@ def _decoded(messages, decoder: MessageDecoder, stride: int, signal_key: str | N
             yield msg
 
 
-def _survey(recording_path, signal_probe: int) -> _Survey:
+def _survey(recording_path, signal_probe: int, rig: str | None) -> _Survey:
     """First pass over a recording, as a stream: the run metadata, the fitted engine orders
     (in order of appearance), and every message decoded once, so that one that does not
     decode is refused before anything is written.
@@ -63,7 +63,7 @@ def _survey(recording_path, signal_probe: int) -> _Survey:
     """
     meta = None
     decoder = MessageDecoder()
-    for m in RecordingScan(recording_path):  # the metadata comes first: the scan stops there
+    for m in _scan(recording_path, rig):  # the metadata comes first: the scan stops there
         if m.key.endswith("/meta") and (d := decoder.decode(m.key, m.payload)) is not None:
             meta = d.decoded.body
             break
@@ -73,7 +73,7 @@ def _survey(recording_path, signal_probe: int) -> _Survey:
     eos: dict[int, None] = {}
     max_probe, has_signal = 0, False
     scan = RecordingScan(recording_path)
-    for m in scan:
+    for m in _scan(scan, rig):
         has_signal = has_signal or "/signal/" in m.key
         for msg in _decoded((m,), decoder, stride, signal_key):
             if msg.kind == "fit":
@@ -85,6 +85,13 @@ def _survey(recording_path, signal_probe: int) -> _Survey:
         raise BttsimError(f"{scan.path}: {decoder.first_bad}{more}")
     return _Survey(meta=meta, engine_orders=list(eos), max_probe=max_probe, has_signal=has_signal, stride=stride,
                    signal_key=signal_key)
+
+
+def _scan(recording, rig: str | None):
+    """The messages of a recording (a path or a :class:`RecordingScan`), of one rig's keys if
+    ``rig`` is given."""
+    scan = recording if isinstance(recording, RecordingScan) else RecordingScan(recording)
+    return scan if rig is None else keys.of_rig(scan, rig)
 
 
 @dataclass(eq=False)
@@ -118,7 +125,7 @@ class ViewSession:
 def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web_port: int = DEFAULT_WEB_PORT,
                   grpc_port: int = DEFAULT_GRPC_PORT, bind: str = DEFAULT_BIND, grpc_url: str | None = None,
                   blades: Sequence[int] | None = None, exaggeration: float = DEFAULT_EXAGGERATION,
-                  signal_probe: int = 0) -> ViewSession:
+                  signal_probe: int = 0, rig: str | None = None) -> ViewSession:
     """Log every view of an MCAP recording to Rerun in one pass.
 
     Parameters
@@ -141,6 +148,8 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
         Tip deflection gain of the rotor view.
     signal_probe : int
         Probe of the raw signal view (when the recording holds raw signals).
+    rig : str, optional
+        Show only this rig's messages (a recording of several rigs); default every message.
 
     Returns
     -------
@@ -153,7 +162,7 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
         of range: nothing is written), or no output requested.
     """
     t_start = time.perf_counter()
-    survey = _survey(recording_path, signal_probe)
+    survey = _survey(recording_path, signal_probe, rig)
     meta, decoder = survey.meta, MessageDecoder(log_bad=False)
     eos = survey.engine_orders or (list(engine_orders_of(meta, ProcessOptions())) if meta else [8])
     n_probes = meta.n_probes if meta is not None else 1 + survey.max_probe
@@ -165,7 +174,7 @@ def log_recording(recording_path, rrd_path=None, *, serve_web: bool = False, web
     views = LiveViews(rec, live=False, blades=blades, exaggeration=exaggeration, send_blueprint=False,
                       engine_orders=eos, decoder=decoder, signal_probe=signal_probe)
     scan = RecordingScan(recording_path)
-    for i, msg in enumerate(_decoded(scan, decoder, survey.stride, survey.signal_key)):
+    for i, msg in enumerate(_decoded(_scan(scan, rig), decoder, survey.stride, survey.signal_key)):
         views.feed_decoded(msg)
         if i % FLUSH_EVERY == FLUSH_EVERY - 1:  # bounded: what is read is logged and dropped
             views.flush()
