@@ -73,7 +73,7 @@ import numpy as np
 from .fit import design_matrix
 
 __all__ = ["Z95", "MODEL_ERROR", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms",
-           "crossing_intervals", "dwell_intervals", "layout_gain", "crossing_notes", "no_crossing_note"]
+           "crossing_intervals", "dwell_intervals", "dwell_misfit", "layout_gain", "crossing_notes", "no_crossing_note"]
 
 #: Two-sided 95 % normal quantile.
 Z95 = 1.959963984540054
@@ -334,19 +334,92 @@ def _without_error(amp: np.ndarray, ph: np.ndarray, lo: int, hi: int, error):
     return a2, np.angle(P2), np.where(np.isfinite(shift), shift, 0.0), np.where(ok, k2, np.nan)
 
 
-def dwell_intervals(peaks):
-    """A dwell's intervals: ``+- 1.96`` its standard uncertainties (the mean of many
-    revolutions of a steady response), the phase's from the amplitude's."""
+def dwell_misfit(d_mean_m: np.ndarray, probe_angles_rad, engine_orders, index: int,
+                 tip_radius_m: float | None = None) -> tuple[np.ndarray, int]:
+    """A dwell's systematic misfit: what the probes' positions put into each blade's response
+    that no mean over revolutions takes out.
+
+    A steady response is the same every revolution, so a probe angle error (or any constant
+    per probe) is too: the revolutions' mean cannot reduce it, and a dwell alone cannot be
+    calibrated (its response is a constant like the error). What the fit of Eq. 16 cannot
+    absorb shows in its residual; the part common to every blade is the probes' (a blade's
+    own misfit, such as the sampling-angle harmonics, changes with its phase and averages out
+    over a travelling wave). Its variance ``s^2 = |r_c|^2 / (n_probes - p)`` through the
+    layout, ``2 sqrt(s^2 u^T (B^T B)^-1 u)``, is the amplitude's standard uncertainty (pk-pk):
+    the unseen part of the error, inside the model's span, is taken as large per degree of
+    freedom as the seen part.
+
+    Parameters
+    ----------
+    d_mean_m : ndarray, shape (n_blades, n_probes)
+        Each blade's mean displacement at each probe over the dwell, m (NaN: no sample).
+    probe_angles_rad : array_like, shape (n_probes,)
+    engine_orders : tuple of int
+        Fitted jointly.
+    index : int
+        The dwell's order among them.
+    tip_radius_m : float, optional
+        Fit at the sampling angles ``theta_j - d_j / R`` (as the report's fits).
+
+    Returns
+    -------
+    std_m : ndarray, shape (n_blades,)
+        Pk-pk standard uncertainty (NaN where a blade has too few probes; 0 with no blade).
+    dof : int
+        Degrees of freedom of ``s^2`` (probes with data less the fit's unknowns; 0: the misfit
+        cannot be seen).
+    """
+    d = np.asarray(d_mean_m, dtype=float)
+    th = np.atleast_1d(np.asarray(probe_angles_rad, dtype=float))
+    nb, npr = d.shape
+    p = 1 + 2 * len(engine_orders)
+    res = np.full((nb, npr), np.nan)
+    gain = np.full(nb, np.nan)
+    i = 1 + 2 * int(index)
+    for b in range(nb):  # one fit per blade (its own sampling angles)
+        ok = np.isfinite(d[b])
+        if ok.sum() <= p:
+            continue
+        B = design_matrix(th[ok] - (d[b, ok] / tip_radius_m if tip_radius_m else 0.0), engine_orders)
+        coef, *_ = np.linalg.lstsq(B, d[b, ok], rcond=None)
+        res[b, ok] = d[b, ok] - B @ coef
+        G = np.linalg.pinv(B.T @ B)
+        u1, u2 = np.cos(math.atan2(coef[i + 1], coef[i])), np.sin(math.atan2(coef[i + 1], coef[i]))
+        gain[b] = max(u1 * u1 * G[i, i] + 2 * u1 * u2 * G[i, i + 1] + u2 * u2 * G[i + 1, i + 1], 0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        common = np.nanmean(res, axis=0)
+    seen = np.isfinite(common)
+    dof = int(seen.sum()) - p
+    if dof <= 0:
+        return np.full(nb, np.nan), 0
+    s2 = float(np.sum(common[seen] ** 2)) / dof
+    return 2.0 * np.sqrt(s2 * gain), dof
+
+
+def dwell_intervals(peaks, layout_m=None, probes_m=None, dof: int = 0, zeroing_m=0.0):
+    """A dwell's intervals: ``1.96 sqrt(s_noise^2 + s_layout^2) + t_dof s_probes + b_zero``
+    for the amplitude (the noise: the mean of many revolutions of a steady response; the
+    layout term as a crossing's; the probes' systematic misfit, :func:`dwell_misfit`, with
+    Student's 95 % quantile for its ``dof`` degrees of freedom; ``zeroing_m`` the zeroing
+    reference's bias bound, NaN: unknown, and so no interval), not below zero; the phase
+    turned by at most ``asin(h / A)``; the frequency ``+- 1.96`` its standard uncertainty."""
     from dataclasses import replace
+
+    from scipy.stats import t as student_t
 
     A = np.asarray(peaks.amp_pkpk_m, dtype=float)
     s = np.asarray(peaks.amp_std_m, dtype=float)
+    lay = np.zeros_like(A) if layout_m is None else np.asarray(layout_m, dtype=float)
+    sys_ = np.zeros_like(A) if probes_m is None or dof <= 0 else np.asarray(probes_m, dtype=float)
+    t95 = float(student_t.ppf(0.975, dof)) if dof > 0 else 0.0
+    h = Z95 * np.sqrt(s * s + lay * lay) + t95 * np.where(np.isfinite(sys_), sys_, 0.0) + zeroing_m
     fs = np.asarray(peaks.freq_std_hz, dtype=float)
     f = np.asarray(peaks.freq_hz, dtype=float)
     with np.errstate(all="ignore"):
-        hp = np.minimum(Z95 * s / A, math.pi)
+        hp = np.where(h < A, np.arcsin(np.minimum(h / A, 1.0)), np.where(np.isnan(h), np.nan, math.pi))
     psi = np.asarray(peaks.phase_rad, dtype=float)
-    return replace(peaks, amp_ci95_m=np.stack([A - Z95 * s, A + Z95 * s], 1),
+    return replace(peaks, amp_ci95_m=np.stack([np.maximum(A - h, 0.0), A + h], 1),
                    freq_ci95_hz=np.stack([f - Z95 * fs, f + Z95 * fs], 1),
                    phase_ci95_rad=np.stack([psi - hp, psi + hp], 1))
 
