@@ -388,3 +388,31 @@ def test_the_live_screen_is_the_scans_first_step():
             assert screen_block(d, opts) == screen_block(d, opts, finite=finite) == want
             seen.add(want)
     assert seen == {True, False}
+
+
+@pytest.mark.parametrize("order,nd,rigid", [(0.13, 0, True), (0.13, 3, False), (6.13, 0, False)],
+                         ids=["order0.13-nd0", "order0.13-nd3", "order6.13-nd0"])
+def test_the_rotors_own_motion_is_named_not_reported_as_vibration(order, nd, rigid):
+    """ND 0 below the shaft frequency (every blade's arrival moved alike, slower than the
+    shaft: a speed fluctuation, shaft torsion, OPR timing) is not a blade's non-synchronous
+    vibration: no detection is reported, offline or live, and a note names it. The same
+    content at ND 3, or ND 0 above the shaft frequency (a blade mode), stays a detection."""
+    from bttsim_stream.process import StreamingProcessor
+
+    run = synthesize(n_rev=256, rpm0=3000.0, order=order, nd=nd, amp_pk_m=0.1e-3, noise_s=2e-8, seed=4)
+    res = _process(run)
+    notes = [n for n in res.summary["notes"] if n.startswith("rigid-body motion, not blade vibration: ND 0")]
+    if rigid:
+        assert res.nsv == () and not res.summary.get("non_synchronous") and len(notes) == 1, res.summary["notes"]
+        assert f"(order {order:.3f}, slower than the shaft)" in notes[0]
+    else:
+        assert len(res.nsv) == 1 and res.nsv[0].nd == nd and res.nsv[0].order == pytest.approx(order, abs=ORDER_TOL)
+        assert notes == []
+    live = StreamingProcessor(_geometry(run))
+    found = []
+    for k in range(run.opr_s.size):
+        live.push(k, run.opr_s[k], run.toa_s[k])
+        found += live.nsv_ready()
+    live.flush()
+    found += live.nsv_ready()
+    assert (found == []) == rigid, found

@@ -66,7 +66,7 @@ import numpy as np
 
 __all__ = ["NsvOptions", "NsvScan", "NsvDetection", "NsvTruthRows", "scan_blocks", "screen_block", "detections",
            "detect_nsv",
-           "nsv_truth_rows", "score_nsv", "nsv_note", "nsv_table_lines"]
+           "nsv_truth_rows", "score_nsv", "nsv_note", "nsv_table_lines", "is_rigid_body", "rigid_body_note"]
 
 TWO_PI = 2.0 * np.pi
 #: The shortest run analysed as one block when it is shorter than ``min_blocks`` blocks.
@@ -797,6 +797,24 @@ def score_nsv(det: NsvDetection, truth: NsvTruthRows, revolution0: int = 0) -> d
 
 def _nd_text(nd: int) -> str:
     return f"ND {nd:+d} ({'forward' if nd > 0 else 'backward' if nd < 0 else 'standing'})"
+
+
+def is_rigid_body(det: NsvDetection) -> bool:
+    """Is a detection the rotor's own angular motion rather than blade vibration: ND 0 (every
+    blade the same) at an order below 1 (slower than the shaft in the rotor frame; no order the
+    probes could not tell from it)? A speed fluctuation, shaft torsion or OPR timing moves
+    every blade's arrival alike, and Eq. 1 turns that into this pattern; a blade's own modes lie
+    far above the shaft frequency."""
+    return int(det.nd) == 0 and abs(float(det.order)) < 1.0 and not det.order_alternatives
+
+
+def rigid_body_note(det: NsvDetection) -> str:
+    """The note that replaces a rigid-body detection (:func:`is_rigid_body`) in the report."""
+    return (f"rigid-body motion, not blade vibration: ND 0 content at {det.freq_hz:.2f} Hz in the rotor frame (order "
+            f"{det.order:.3f}, slower than the shaft), the same on every blade, {1e3 * det.amp_pkpk_m:.4f} mm pk-pk, "
+            f"revolutions {det.first_revolution}-{det.last_revolution}: the rotor turning unevenly against its OPR "
+            f"pulse (a speed fluctuation, shaft torsion, OPR timing), which Eq. 1 cannot tell from a vibration; not "
+            f"reported as non-synchronous vibration")
 
 
 def nsv_note(det: dict) -> str:

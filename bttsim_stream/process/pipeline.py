@@ -30,7 +30,7 @@ from .intervals import (MODEL_ERROR, TERM_NOTE_PCT, crossing_intervals, crossing
                         layout_gain, no_crossing_note)
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
-from .nsv import NsvScan, detect_nsv, nsv_note, nsv_truth_rows, score_nsv
+from .nsv import NsvScan, detect_nsv, is_rigid_body, nsv_note, nsv_truth_rows, rigid_body_note, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
@@ -297,6 +297,8 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
     if len(eos_asked) > 1 and not joint:
         crossings = resolve_engine_orders(crossings, _misfits(d0, angles, eos_asked, fit0))
     nsv_scan, nsv = _detect_nsv(first, d0, geometry, options, truth, revolution0)
+    notes += [rigid_body_note(n) for n in nsv if is_rigid_body(n)]
+    nsv = tuple(n for n in nsv if not is_rigid_body(n))
     if nsv:
         crossings = _not_nsv(crossings, nsv, revolution0, omega, notes)
     crossings = _separate(crossings)

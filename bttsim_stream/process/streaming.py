@@ -26,7 +26,7 @@ import numpy as np
 from .displacement import TWO_PI, Geometry, calibrate_arrival_angles, outside_revolution, revolution_displacements, \
     rotor_phase_from_opr
 from .fit import design_matrix, fit_revolutions
-from .nsv import NsvDetection, detections, scan_blocks, screen_block
+from .nsv import NsvDetection, detections, is_rigid_body, scan_blocks, screen_block
 from .options import LIVE_CALIBRATION, ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .pipeline import process_arrays
 from .results import ProcessingResult, RevolutionOutput
@@ -272,7 +272,8 @@ class StreamingProcessor:
         """Non-synchronous vibration of the blocks of revolutions completed since the last
         call (:mod:`.nsv`, ``options.nsv.block`` revolutions each): each detected block, once
         it is the ``min_blocks``-th consecutive one or later, as a one-block
-        :class:`NsvDetection` (the final report groups the blocks over the whole run).
+        :class:`NsvDetection` (the final report groups the blocks over the whole run); not the
+        rotor's own angular motion (:func:`~.nsv.is_rigid_body`).
 
         A block in which the calibration of the arrival angles switched on is skipped (its
         displacements change their zeroing mid-block)."""
@@ -304,8 +305,9 @@ class StreamingProcessor:
             self._nsv_last = scan
             if self._nsv_run >= int(opts.min_blocks):
                 one = replace(opts, min_blocks=1)
-                out += list(detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s,
-                                       omega_rad_s=self._omega.array[s:s + L]))
+                out += [det for det in detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s,
+                                                  omega_rad_s=self._omega.array[s:s + L])
+                        if not is_rigid_body(det)]  # the rotor's own motion: the final report's note names it
         return out
 
     # -- per revolution -------------------------------------------------------------------
