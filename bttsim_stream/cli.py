@@ -92,6 +92,10 @@ def _cmd_crb(args: argparse.Namespace) -> None:
     except (ValueError, LayoutError) as exc:
         raise BttsimError(f"{args.scenario}: {exc}") from None
     print(bounds_table(bounds))
+    bad = [b.eo for b in bounds if not (np.all(np.isfinite(b.crb_amp_m)) and np.all(np.isfinite(b.crb_freq_hz)))]
+    if bad:
+        print(f"bttsim: warning: {args.scenario}: no bound (nan) for EO {', '.join(map(str, bad))}: the crossing's "
+              f"revolutions cannot resolve its SDOF parameters", file=sys.stderr)
     if bounds and bounds[0].toa_sigma_s == 0:
         print("bttsim: note: the scenario has no TOA noise (trigger_jitter_s 0, no clock): every bound is 0; "
               "give --toa-sigma-s", file=sys.stderr)

@@ -9,9 +9,11 @@ revolution's speed (the excitations of that order summed), and
   :func:`~bttsim_stream.process.options.fits_jointly`);
 * the noise: a TOA standard deviation (the scenario's ``trigger_jitter_s`` and clock
   quantisation, or given), as a displacement ``Omega R sigma_t`` (Eq. 15);
-* the revolutions used: those whose blade-mean predicted amplitude is at least a tenth of
-  the peak; the SDOF parameters where the bound is evaluated: each blade's predicted peak
-  amplitude, frequency and phase, and the damping of the half-power width.
+* the revolutions used: those around the peak whose blade-mean predicted amplitude is at least
+  a tenth of the peak (one crossing: a profile that comes back through the resonance crosses
+  it again, apart); the SDOF parameters where the bound is evaluated: each blade's predicted
+  peak amplitude, frequency and phase, and the damping of the half-power width (its
+  frequencies, on a run-up or a run-down alike). A dwell crosses nothing: no bound.
 
 Zero-speed modes (a speed-dependent model's crossings shift with its frequencies).
 """
@@ -88,6 +90,14 @@ def _steady_response(model, C: np.ndarray, f_hz: np.ndarray, v_eqv: np.ndarray) 
     return v_eqv.T @ H
 
 
+def _around(mask: np.ndarray, k: int) -> tuple[int, int]:
+    """First and last index of the run of True in ``mask`` that holds ``k`` (one crossing: a
+    profile that returns through the resonance crosses it again, apart)."""
+    out = np.flatnonzero(~mask)
+    before, after = out[out < k], out[out > k]
+    return (int(before[-1]) + 1 if before.size else 0), (int(after[0]) - 1 if after.size else mask.size - 1)
+
+
 def scenario_bounds(scn, toa_sigma_s: float | None = None, model=None) -> list[CrossingBound]:
     """The bounds of the scenario's predicted crossings, one per engine order with a peak
     inside the speed range (see the module docstring).
@@ -122,10 +132,12 @@ def scenario_bounds(scn, toa_sigma_s: float | None = None, model=None) -> list[C
         k = int(np.argmax(mean))
         if k in (0, mean.size - 1) or not mean[k] > 0:
             continue  # no peak inside the run
-        half = np.flatnonzero(mean >= mean[k] / np.sqrt(2.0))
-        zeta = max(float(f[half.max()] - f[half.min()]) / (2.0 * f[k]), 1e-4)
-        used = np.flatnonzero(mean >= USED_LEVEL * mean[k])
-        lo, hi = int(used.min()), int(used.max())
+        h0, h1 = _around(mean >= mean[k] / np.sqrt(2.0), k)  # this crossing's half-power band
+        band = float(np.ptp(f[h0:h1 + 1]))  # its frequencies, run-up or run-down alike
+        if not band > 1e-6 * f[k]:
+            continue  # a dwell: the speed does not cross the resonance
+        zeta = max(band / (2.0 * f[k]), 1e-4)
+        lo, hi = _around(mean >= USED_LEVEL * mean[k], k)
         kb = lo + np.argmax(amp[:, lo:hi + 1], axis=1)
         cols = np.arange(m.n_blades)
         P = G[cols, kb] * np.exp(-1j * eo * blade_angle)

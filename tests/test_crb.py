@@ -116,6 +116,30 @@ def test_crb_command_prints_the_table_and_refuses_bad_input(tmp_path):
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
 
 
+def test_crb_of_a_run_down_equals_the_run_up_and_a_dwell_crosses_nothing():
+    """The same sweep down gives the run-up's damping and bounds (the half-power band read on
+    its frequencies, not in revolution order: a run-down had the 1e-4 floor, 4x the bound);
+    a profile up then down is bounded on one crossing, as the processing fits it; a dwell at
+    the resonance crosses nothing: no bound (before: a NaN row, exit 0)."""
+    from bttsim_stream.crb_report import scenario_bounds
+    from bttsim_stream.scenario import scenario_from_dict
+
+    def bound(speed):
+        return scenario_bounds(scenario_from_dict({"speed": speed}), 1e-6)
+
+    (up,) = bound({"start_rpm": 2300.0, "end_rpm": 2900.0, "duration_s": 6.0})
+    (down,) = bound({"start_rpm": 2900.0, "end_rpm": 2300.0, "duration_s": 6.0})
+    (both,) = bound({"start_rpm": 2300.0, "segments": [{"duration_s": 6.0, "end_rpm": 2900.0},
+                                                       {"duration_s": 6.0, "end_rpm": 2300.0}]})
+    assert 0.008 < up.damping_ratio < 0.011  # the model's 0.0097 (beta omega / 2), to a revolution
+    for b in (down, both):
+        assert b.damping_ratio == pytest.approx(up.damping_ratio, rel=1e-6)
+        np.testing.assert_allclose(b.crb_amp_m, up.crb_amp_m, rtol=0.02)
+        np.testing.assert_allclose(b.crb_freq_hz, up.crb_freq_hz, rtol=0.02)
+    assert both.revolutions == up.revolutions
+    assert bound({"start_rpm": 2580.0, "end_rpm": 2580.0, "duration_s": 3.0}) == []
+
+
 @pytest.mark.slow
 def test_noise_limited_run_errors_against_the_bound():
     """1 us TOA jitter and 0.1 deg probe errors, the paper's sweep rate, two seeds: the
