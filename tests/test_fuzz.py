@@ -1163,6 +1163,7 @@ SCENARIO_CASES = {
     "a year-long run": ("[speed]\nduration_s = 3.2e7\n", "revolutions"),
     "a run of no revolution": ("[speed]\nstart_rpm = 0.001\nend_rpm = 0.002\nduration_s = 6.0\n",
                                "no whole revolution"),
+    "a probe off the tip": ("[probes]\naxial_position_m = 0.005\n", "lies outside the model's tip nodes"),
 }
 
 

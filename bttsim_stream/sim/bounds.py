@@ -21,7 +21,8 @@ from .modal import FixedModes, quasi_steady_envelope
 from .sources import excitation_sources
 from .speed import SpeedProfile, speed_profile_from_scenario
 
-__all__ = ["EULER_CHORD", "modal_response_bound", "TipAmplitudeBound", "tip_amplitude_bound", "check_tip_amplitude"]
+__all__ = ["EULER_CHORD", "modal_response_bound", "TipAmplitudeBound", "tip_amplitude_bound", "check_tip_amplitude",
+           "check_tip_nodes"]
 
 
 #: Longest chord of the Euler (Cornu) spiral, ``max |int_s1^s2 exp(i pi x^2 / 2) dx|`` over all
@@ -231,6 +232,24 @@ def tip_amplitude_bound(scn, model, sources=None) -> TipAmplitudeBound:
     return TipAmplitudeBound(2.0 * deqv, tip, radius)
 
 
+def check_tip_nodes(model, z_probe: float) -> None:
+    """The probe's axial position within the tip nodes, which run from the trailing edge.
+
+    Raises
+    ------
+    BttsimError
+        One line naming the position and the nodes' range, or the nodes' order.
+    """
+    z_nodes = model.tip_ref[..., 2]
+    if np.any(z_probe > z_nodes.max(axis=1)) or np.any(z_probe < z_nodes.min(axis=1)):
+        raise BttsimError(
+            f"[probes] axial_position_m = {z_probe * 1e3:.3f} mm lies outside the model's tip "
+            f"nodes (z {z_nodes.min() * 1e3:.3f} .. {z_nodes.max() * 1e3:.3f} mm)")
+    order = np.argsort(-z_nodes, axis=1)
+    if not np.all(order == np.arange(model.n_tip)):
+        raise BttsimError("model: tip nodes must be ordered from the trailing edge (z decreasing)")
+
+
 def check_tip_amplitude(scn, model, sources=None) -> TipAmplitudeBound:
     """Refuse a scenario whose tip motion could leave the linear model's validity.
 
@@ -251,6 +270,7 @@ def check_tip_amplitude(scn, model, sources=None) -> TipAmplitudeBound:
         One line naming the bound, the limit and the force to lower (or the speed), or the
         non-synchronous options that a speed-dependent model does not support.
     """
+    check_tip_nodes(model, scn.probes.axial_position_m)  # where the probe sees the tip, first
     bound = tip_amplitude_bound(scn, model, sources)
     amp = float(np.max(bound.tip_0pk_m))
     if not amp <= bound.limit_m:

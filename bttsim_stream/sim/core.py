@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import BttsimError, ScenarioError
 from ..model import build_model, load_model
 from ..model.speed_modes import is_speed_dependent
-from .bounds import check_tip_amplitude
+from .bounds import check_tip_amplitude, check_tip_nodes
 from .modal import FixedModes, GridPoints
 from .records import RevolutionBatch, RunInfo, Truth
 from .signal import RawSignals
@@ -88,7 +88,7 @@ class RunUpSimulator:
         self.theta_opr = np.deg2rad(scn.probes.opr_angle_deg)
         self.z_probe = scn.probes.axial_position_m
         self.tip_ref = m.tip_ref
-        _check_tip_nodes(m, self.z_probe)
+        check_tip_nodes(m, self.z_probe)
         self.theta_p = m.tip_ref[:, p, 1]
         self.chunk = (int(chunk_revolutions) if chunk_revolutions is not None else
                       max(1, min(64, round(CROSSINGS_PER_CHUNK / (m.n_blades * probes.size)))))
@@ -494,18 +494,6 @@ class _Crossings:
     frame: object
     u_r: np.ndarray
     du_r: np.ndarray
-
-
-def _check_tip_nodes(model, z_probe: float) -> None:
-    """The probe's axial position within the tip nodes, which run from the trailing edge."""
-    z_nodes = model.tip_ref[..., 2]
-    if np.any(z_probe > z_nodes.max(axis=1)) or np.any(z_probe < z_nodes.min(axis=1)):
-        raise BttsimError(
-            f"[probes] axial_position_m = {z_probe * 1e3:.3f} mm lies outside the model's tip "
-            f"nodes (z {z_nodes.min() * 1e3:.3f} .. {z_nodes.max() * 1e3:.3f} mm)")
-    order = np.argsort(-z_nodes, axis=1)
-    if not np.all(order == np.arange(model.n_tip)):
-        raise BttsimError("model: tip nodes must be ordered from the trailing edge (z decreasing)")
 
 
 def _rows(idx: np.ndarray):
