@@ -24,7 +24,7 @@ from .bus.certs import IDENTITIES, generate_certificates
 from .bus.ports import check_web_ports
 from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
-from .errors import BttsimError, exit_status
+from .errors import BttsimError, comma_values, exit_status
 from .model import build_model, load_model, save_model
 from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
 from .nodes import program, programs
@@ -165,17 +165,11 @@ def _cmd_model_import(args: argparse.Namespace) -> None:
 
 
 def _ints(text: str, what: str) -> list:
-    try:
-        return [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise BttsimError(f"{what} must be comma-separated whole numbers, got {text!r}") from None
+    return comma_values(text, int, what, "comma-separated whole numbers")
 
 
 def _floats(text: str, what: str, n: int) -> list:
-    try:
-        vals = [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        vals = []
+    vals = comma_values(text, float, what, f"{n} comma-separated numbers")
     if len(vals) != n:
         raise BttsimError(f"{what} must be {n} comma-separated numbers, got {text!r}")
     return vals
@@ -455,11 +449,7 @@ def _cmd_probes(args: argparse.Namespace) -> None:
 
 
 def _angles(text: str, what: str = "probe angles") -> tuple:
-    try:
-        vals = [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise BttsimError(f"{what} must be comma-separated degrees, got {text!r}") from None
-    return check_angles(vals, what)
+    return check_angles(comma_values(text, float, what, "comma-separated degrees"), what)
 
 
 def _cmd_study(args: argparse.Namespace) -> None:

@@ -8,7 +8,7 @@ import stat
 import sys
 from pathlib import Path
 
-__all__ = ["BttsimError", "ScenarioError", "ModelFileError", "exit_status", "replaceable_file"]
+__all__ = ["BttsimError", "ScenarioError", "ModelFileError", "exit_status", "replaceable_file", "comma_values"]
 
 
 class BttsimError(Exception):
@@ -48,6 +48,19 @@ def replaceable_file(path, flag: str = "--out") -> Path:
 #: read-only file system, a missing folder... (one line, status 2, like bad input).
 _FILE_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT,
                           errno.ENOTDIR, errno.EISDIR, errno.EFBIG, errno.EEXIST))
+
+
+def comma_values(text, convert, what: str, expected: str) -> list:
+    """The comma-separated values of an option, each converted (``int``, ``float``); an empty
+    item (``8,,9``, ``,8``, a trailing comma) or one that does not convert is a one-line error
+    ``{what} must be {expected}, got '...'``."""
+    items = str(text).split(",")
+    try:
+        if any(not x.strip() for x in items):
+            raise ValueError
+        return [convert(x) for x in items]
+    except ValueError:
+        raise BttsimError(f"{what} must be {expected}, got {text!r}") from None
 
 
 def exit_status(fn, *args) -> int:

@@ -23,7 +23,7 @@ from .bus import codec, keys
 from .bus.recording import McapRecorder, RecordingScan
 from .bus.stream import Completeness, Message, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
-from .errors import BttsimError
+from .errors import BttsimError, comma_values
 from .process.displacement import DoublePulses, assign_extra_edges, outside_revolution
 from .process.pipeline import METHODS, ProcessOptions
 from .process.probes import check_engine_orders
@@ -75,10 +75,7 @@ def _eo_range(text: str) -> tuple:
 
 def parse_engine_orders(text: str) -> tuple:
     """``--eo 8`` or ``--eo 8,9``: the engine orders, checked (:class:`BttsimError` otherwise)."""
-    try:
-        vals = [int(x) for x in str(text).split(",") if x.strip()]
-    except ValueError:
-        raise BttsimError(f"--eo must be comma-separated whole numbers, got {text!r}") from None
+    vals = comma_values(text, int, "--eo", "comma-separated whole numbers")
     twice = sorted({v for v in vals if vals.count(v) > 1})
     if twice:  # a fit of one order twice is singular
         raise BttsimError(f"--eo: engine order {twice[0]} given twice")
