@@ -28,15 +28,25 @@ the amplitude error of that example drops to 0.2 %.
 
 from __future__ import annotations
 
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["design_matrix", "SineFit", "fit_revolutions", "sine_at_probes"]
+__all__ = ["design_matrix", "SineFit", "fit_revolutions", "sine_at_probes", "quiet"]
 
 TWO_PI = 2.0 * np.pi
 _MAX_COND = 1e10  # beyond this the present probes cannot separate the unknowns
 _FAST = True  # the closed-form path of the sampling-angle fit (tests compare it with the general one)
+
+
+@contextmanager
+def quiet():
+    """Silence numpy's RuntimeWarnings of empty slices and the like (NaN is the answer)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
 
 
 def design_matrix(probe_angles_rad, engine_orders) -> np.ndarray:

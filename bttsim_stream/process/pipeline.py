@@ -22,12 +22,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
-                     predicted_contamination, predicted_response, resolve_engine_orders, speed_segments)
+                     predicted_contamination, resolve_engine_orders, speed_segments)
 from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, Displacements, Geometry, compute_displacements,
                            rotor_phase_from_opr)
-from .fit import SineFit, fit_revolutions
-from .intervals import (MODEL_ERROR, TERM_NOTE_PCT, crossing_intervals, crossing_notes, dwell_intervals, dwell_misfit,
-                        layout_gain, no_crossing_note)
+from .fit import SineFit, fit_revolutions, quiet
+from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
+from .steady import dwell_entries
+from .zeroing import correction_size, zeroing_correction
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
 from .nsv import NsvScan, detect_nsv, is_rigid_body, nsv_note, nsv_truth_rows, rigid_body_note, score_nsv
@@ -229,7 +230,7 @@ def _sample_times(toa: np.ndarray) -> np.ndarray:
     (NaN: no arrival), for the swept SDOF fits; in blocks of revolutions (a row's mean is its
     own: the same numbers as on the whole array, without its run-sized temporaries)."""
     out = np.empty(toa.shape[:2])
-    with np.errstate(all="ignore"), _quiet():
+    with np.errstate(all="ignore"), quiet():
         for a in range(0, toa.shape[0], DISPLACEMENT_CHUNK):
             out[a:a + DISPLACEMENT_CHUNK] = np.nanmean(toa[a:a + DISPLACEMENT_CHUNK], axis=2)
     return out
@@ -416,7 +417,7 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     """Step 4: one entry per crossing and per dwell, and the report's notes."""
     eos = ctx.eos
     entries = [_crossing_entry(ctx, c) for c in survey.crossings if c.eo in eos]
-    steady = [e for dw in survey.segments.dwells for e in _dwell_entries(ctx, dw)]
+    steady = [e for dw in survey.segments.dwells for e in dwell_entries(ctx, dw)]
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
         skirt = no_crossing_note(ctx.fit.amp_pkpk_m, ctx.omega, ctx.eos, ctx.options.detect.ratio_threshold)
@@ -611,66 +612,6 @@ class _Context:
     nsv: tuple = ()
 
 
-#: The zeroing correction fits the response's growth where the predicted response is at most
-#: this fraction of the peak (the skirt between the reference and the crossing).
-TAIL_LEVEL = 0.3
-
-
-def _zeroing_correction(ctx: _Context, c: Crossing, i: int) -> np.ndarray | None:
-    """The response the zeroing reference held, per blade, to add back to the crossing's
-    complex responses (None: not needed or not estimable).
-
-    The reference subtracted the response ``P_ref`` it held from every revolution. Between
-    the reference and the crossing the measured response is ``P(n) = K (h(n) - h_ref)``,
-    ``h`` the crossing's predicted SDOF shape (:func:`~.detect.predicted_response`): a complex
-    ``K`` per blade fitted there by least squares gives ``P_ref = K h_ref``. Only the growth
-    law ``h`` is assumed, not the phase of the peak, so it also holds for a blade whose peak
-    mixes several (mistuned) modes. When the data preparation removed a baseline fitted
-    around the reference, that baseline took the reference's response already: no
-    correction.
-    """
-    tail = _zeroing_tail(ctx, c, i)
-    if tail is None:
-        return None
-    h_ref, g, P = tail
-    return _tail_gain(g, P) * h_ref
-
-
-def _zeroing_tail(ctx: _Context, c: Crossing, i: int):
-    """``(h_ref, g, P)`` of :func:`_zeroing_correction` (None: no correction): the growth law
-    at the reference, its rise ``g = h - h_ref`` over the skirt's revolutions (in revolution
-    order) and the responses there."""
-    ref = ctx.reference
-    if ref is None or ref.start is None or ctx.offset_removed:
-        return None
-    same = [k for k in ctx.crossings if k.eo == c.eo]
-    h = predicted_response(ctx.omega, same)
-    h_ref = complex(np.mean(h[ref.start:ref.stop]))
-    idx = np.arange(ref.start, c.peak) if ref.start < c.peak else np.arange(c.peak + 1, ref.stop)
-    idx = idx[np.abs(h[idx]) <= TAIL_LEVEL]
-    if idx.size < 16:
-        return None
-    return h_ref, h[idx] - h_ref, ctx.fit.phasor[idx, :, i]
-
-
-def _tail_gain(g: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Least-squares ``K`` per blade of ``P = K g`` (0 where no data)."""
-    ok = np.isfinite(P)
-    w = np.where(ok, np.abs(g)[:, None] ** 2, 0.0).sum(axis=0)
-    with np.errstate(all="ignore"):
-        K = np.where(ok, np.conj(g)[:, None] * np.where(ok, P, 0.0), 0.0).sum(axis=0) / w
-    return np.where(w > 0, K, 0.0)
-
-
-def _correction_size(corr, P) -> float:
-    """Blade mean of ``|correction| / |peak response|`` (NaN: no correction)."""
-    if corr is None:
-        return math.nan
-    with _quiet():
-        peak = np.nanmax(np.abs(P), axis=0)
-        return float(np.nanmean(np.abs(corr) / peak))
-
-
 def _nd(ctx: _Context, i: int, eo: int, rows) -> int:
     tw = fit_spectra(ctx.fit.phasor[rows, :, i], eo, ctx.geometry.blade_angles_rad)
     return identify_nd(tw)
@@ -681,7 +622,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
     fit, opts = ctx.fit, ctx.options
     freq = ctx.omega * c.eo / TWO_PI
     amp, ph = fit.amp_pkpk_m[..., i], fit.phase_rad[..., i]
-    corr = _zeroing_correction(ctx, c, i)
+    corr = zeroing_correction(ctx, c, i)
     if corr is not None:  # the response the reference held, added back in the crossing's window
         P = fit.phasor[..., i].copy()
         P[c.lo:c.hi + 1] += corr[None, :]
@@ -712,18 +653,18 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
                             half_power_width=c.half_power_width, amp_noise_m=amplitude_noise(raw[c.lo:c.hi + 1]))
         elif opts.method == "sdof":
             pk, sweep = _sdof(ctx, c, i, pk.freq_hz)
-    zc = _correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])
+    zc = correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])
     check = _zeroing_check(ctx, c, i, pk, corr)
     if pk.method == "sdof" and pk.offset_m is not None:  # its own frame: the responses less its constant
         corr = -np.where(np.isfinite(pk.offset_m), pk.offset_m, 0.0)
         P = ctx.raw.phasor[..., i].copy()
         P[c.lo:c.hi + 1] += corr[None, :]
         amp, ph = 2.0 * np.abs(P), np.angle(P)
-        with _quiet():
+        with quiet():
             check = (_model_misfit(pk.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i]), None, None)
     pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc, corr, check)
     pk = _with_bound(ctx, c, pk)
-    with _quiet():
+    with quiet():
         damping = float(np.nanmean(pk.damping_ratio)) if np.isfinite(pk.damping_ratio).any() else math.nan
         f_mean = float(np.nanmean(pk.freq_hz)) if np.isfinite(pk.freq_hz).any() else math.nan
     r0 = ctx.revolution0
@@ -755,7 +696,7 @@ def _with_bound(ctx: _Context, c: Crossing, pk: ResonancePeaks) -> ResonancePeak
         sigma = crb.scatter_sigma(ctx.raw.phasor[sl, :, ctx.eos.index(c.eo)], K)
     zeta = np.where(np.isfinite(pk.damping_ratio), pk.damping_ratio, c.damping_estimate(ctx.omega))
     phase = np.zeros(pk.n_blades) if pk.phase_rad is None else np.nan_to_num(pk.phase_rad)
-    with _quiet():
+    with quiet():
         b = crb.resonance_bound(angles, eos_fit, eos_fit.index(c.eo), ctx.omega[sl] * c.eo / TWO_PI,
                                 np.broadcast_to(sigma, (c.hi + 1 - c.lo, sigma.size)), pk.amp_pkpk_m, pk.freq_hz,
                                 zeta, phase)
@@ -784,16 +725,16 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
     cont = float(ref.contamination) if ref is not None and ref.start is not None else 0.0
     if pk.method == "sdof":
         return None, None, None
-    quiet = corr is None and not cont > ctx.options.detect.contamination_limit and \
+    calm = corr is None and not cont > ctx.options.detect.contamination_limit and \
         not c.half_power_width < FAST_SWEEP_REVOLUTIONS
     sd = _sdof(ctx, c, i, pk.freq_hz)[0]
     off = sd.offset_m
     add = np.zeros(off.size, complex) if corr is None else corr
     err = off + add
-    with _quiet():
+    with quiet():
         bound = np.maximum(2.0 * np.abs(add), cont * np.asarray(pk.amp_pkpk_m, float))
         misfit = _model_misfit(sd.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i])
-    if quiet:
+    if calm:
         misfit = np.zeros_like(misfit)
     return np.where(np.isfinite(err), misfit, bound), err, sd.amp_pkpk_m
 
@@ -816,7 +757,7 @@ def _joint_spread(ctx: _Context, c: Crossing, i: int, rev: np.ndarray) -> np.nda
                         tip_radius_m=radius)
     cols = np.arange(rev.size)
     single = f.amp_pkpk_m[inv, cols, 0]
-    with _quiet():
+    with quiet():
         d = np.abs(ctx.raw.amp_pkpk_m[rev, cols, i] - single)
     return np.where(np.isfinite(d), d, 0.0)
 
@@ -827,7 +768,7 @@ def _model_misfit(misfit_m, amp_raw: np.ndarray) -> np.ndarray:
     amplitudes (:func:`~.methods.amplitude_noise`; complex noise of rms ``s / sqrt(2)``)."""
     from .methods import amplitude_noise
 
-    with _quiet():
+    with quiet():
         s = amplitude_noise(amp_raw)
         m = np.asarray(misfit_m, float)
         return 2.0 * np.sqrt(np.maximum(m * m - 0.5 * np.where(np.isfinite(s), s, 0.0) ** 2, 0.0))
@@ -854,7 +795,7 @@ def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, 
     ref = ctx.reference
     contamination = float(ref.contamination) if ref is not None and ref.start is not None else math.nan
     orders = _joint_spread(ctx, c, i, rev) if len(eos_fit) > 1 else None
-    with _quiet():
+    with quiet():
         pk, terms = crossing_intervals(
             pk, amp, ph, raw, freq, c.lo, c.hi, gain=gain,
             half_power_width=c.half_power_width, zeroing_m=check[0], zeroing_error=check[1], second_m=check[2],
@@ -871,119 +812,6 @@ def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, 
                            nsv_overlap=nsv, other_crossings=others, half_power_width=float(c.half_power_width),
                            fast_sweep_revolutions=FAST_SWEEP_REVOLUTIONS)
     return pk, notes
-
-
-def _dwell_entries(ctx: _Context, dw) -> list[ResonanceEntry]:
-    """Steady-state results of one dwell, one entry per engine order: the mean of the
-    complex responses over the dwell (its first ``settle`` revolutions skipped)."""
-    n = dw.stop - dw.start
-    rate = float(np.mean(ctx.omega[dw.start:dw.stop])) / TWO_PI
-    skip = min(max(int(math.ceil(0.5 * rate)), n // 10), n // 2)
-    a, b = dw.start + skip, dw.stop  # revolutions [a, b)
-    out = []
-    opts = ctx.options
-    with _quiet():
-        d_mean = np.nanmean(ctx.d_flat[a:b], axis=0)  # (blades, probes): the steady response at each probe
-    radius = ctx.geometry.tip_radius_m if opts.sampling_angles else None
-    for i, eo in enumerate(ctx.eos):
-        P = ctx.fit.phasor[a:b, :, i]
-        Praw = ctx.raw.phasor[a:b, :, i]
-        corr, source = _dwell_correction(ctx, eo, i)
-        with _quiet():
-            mean = np.nanmean(P, axis=0) + (corr if corr is not None else 0.0)
-            cnt = np.sum(np.isfinite(Praw), axis=0)
-            spread = np.sqrt(np.nansum(np.abs(Praw - np.nanmean(Praw, axis=0)) ** 2, axis=0) / np.maximum(cnt - 1, 1))
-        amp = 2.0 * np.abs(mean)
-        std = 2.0 * spread / np.sqrt(np.maximum(cnt, 1))
-        f = eo * float(np.mean(ctx.omega[a:b])) / TWO_PI
-        nb = amp.size
-        with _quiet():
-            snr = float(np.nanmean(amp) / max(np.nanmean(std), 1e-300)) if np.isfinite(amp).any() else 0.0
-        eos_fit = ctx.eos if ctx.joint else (eo,)
-        k = eos_fit.index(eo)
-        probes_m, dof = dwell_misfit(d_mean, ctx.geometry.probe_angles_rad, eos_fit, k, radius)
-        layout_m = layout_gain(ctx.geometry.probe_angles_rad, eos_fit, k, mean) * MODEL_ERROR * amp
-        peaks = dwell_intervals(ResonancePeaks(
-            revolution=np.full(nb, float(a)), amp_pkpk_m=amp, freq_hz=np.full(nb, f),
-            damping_ratio=np.full(nb, np.nan), method="mean", phase_rad=np.angle(mean),
-            amp_std_m=std, freq_std_hz=np.full(nb, float(np.std(ctx.omega[a:b])) * eo / TWO_PI)),
-            layout_m, probes_m, dof, _dwell_zeroing_bound(ctx, corr))
-        nd = identify_nd(fit_spectra(mean, eo, ctx.geometry.blade_angles_rad))
-        r0 = ctx.revolution0
-        entry = ResonanceEntry(
-            kind="dwell", eo=eo, nd=nd, cn=ctx.cns.get(eo, ctx.fit.cn), method="mean",
-            rpm=float(np.mean(ctx.omega[a:b])) * 60.0 / TWO_PI, freq_hz=f, damping_ratio=math.nan,
-            detection=Detection("amplitude_snr", min(snr, 1e9), opts.detect.dwell_snr_threshold, min(snr, 1e9),
-                                opts.detect.dwell_snr_threshold),
-            first_revolution=r0 + a, last_revolution=r0 + b - 1, peak_revolution=-1, peaks=peaks,
-            notes=_dwell_notes(ctx, eo, amp, probes_m, dof, corr, source),
-            zeroing_correction=_correction_size(corr, mean[None, :]))
-        out.append(entry.with_truth(window_truth(ctx.truth, eo, a, b - 1, mean=True)))
-    return out
-
-
-def _dwell_correction(ctx: _Context, eo: int, i: int) -> tuple[np.ndarray | None, Crossing | None]:
-    """The response the zeroing reference held at a dwell's order, per blade (complex, m),
-    and the crossing it was estimated from; ``(None, None)`` without a crossing of that order
-    to estimate it from.
-
-    The reference subtracted the response it held, ``P_ref``, from every revolution: a
-    dwell's response is off by it as a crossing's is (:func:`_zeroing_correction`), and more
-    so relative to its size off resonance. ``P_ref = K h_ref`` is estimated from the crossing
-    of the same order nearest the reference, and added back. Far from the crossing the
-    growth law ``h`` (one mode) is rough, so the interval spans the uncorrected value too
-    (``2 |P_ref|`` pk-pk, as a crossing's when its check fails)."""
-    ref = ctx.reference
-    same = [c for c in ctx.crossings if c.eo == eo]
-    if not same or ref is None or ref.start is None:
-        return None, None
-    c = min(same, key=lambda k: abs(k.peak - ref.start))
-    corr = _zeroing_correction(ctx, c, i)
-    return (corr, c) if corr is not None else (None, None)
-
-
-def _dwell_zeroing_bound(ctx: _Context, corr) -> np.ndarray | float:
-    """A dwell's zeroing bias bound, pk-pk (m): ``2 |P_ref|`` with a correction, 0 with no
-    reference (nominal geometry or exact times: nothing subtracted), NaN when the reference's
-    response is unknown (no crossing of the order to estimate it from, or a baseline that took
-    it with the slowly varying part of the dwell's own response): no interval then."""
-    if corr is not None:
-        return 2.0 * np.abs(corr)
-    ref = ctx.reference
-    return 0.0 if ref is None or ref.start is None else math.nan
-
-
-def _dwell_notes(ctx: _Context, eo: int, amp: np.ndarray, probes_m: np.ndarray, dof: int, corr, source) -> tuple:
-    """What limits a dwell's estimate: the zeroing reference's response (added back, or
-    unknown), the probes' systematic misfit (:func:`~.intervals.dwell_misfit`) where it is
-    above :data:`~.intervals.TERM_NOTE_PCT` of the amplitude, or that it cannot be seen."""
-    ref = ctx.reference
-    nominal = ref is None or ref.start is None
-    notes = []
-    with _quiet():
-        if corr is not None:
-            pct = float(np.nanmedian(100.0 * 2.0 * np.abs(corr) / amp))
-            notes.append(f"zeroing: the reference held a response at EO {eo} of {pct:.2g} % of the dwell's amplitude "
-                         f"(blade median), estimated from the crossing at revolution {ctx.revolution0 + source.peak} "
-                         f"and added back; the "
-                         f"interval spans the uncorrected value too")
-        elif not nominal:
-            r0 = ctx.revolution0
-            why = "; ".join(w for w, on in (
-                (f"no crossing of EO {eo} to estimate it from", not any(c.eo == eo for c in ctx.crossings)),
-                ("the baseline removed with the offsets took it, with the part of the dwell's own response that "
-                 "varies slowly with speed", ctx.offset_removed)) if on) or "the crossing's skirt is too short to tell"
-            notes.append(f"zeroing: the response the reference (revolutions {r0 + ref.start}-{r0 + ref.stop - 1}) "
-                         f"held at EO {eo} is unknown ({why}): the dwell's amplitude is relative to it, and no "
-                         f"interval is given")
-        why = " (a dwell alone cannot be calibrated: nominal geometry)" if nominal else ""
-        if dof <= 0:
-            notes.append(f"no redundant probe: the probes' position errors{why} cannot be seen in the fits; the "
-                         f"interval holds the noise and the layout's share only")
-        elif (pct := float(np.nanmedian(100.0 * probes_m / amp))) > TERM_NOTE_PCT:
-            notes.append(f"probe positions{why}: the fits' misfit common to every blade is {pct:.2g} % of the "
-                         f"amplitude (blade median, {dof} degree(s) of freedom); the interval includes it")
-    return tuple(notes)
 
 
 def _why_none(eos, segments: RunSegments, omega, info, det: DetectOptions) -> str:
@@ -1012,17 +840,3 @@ def _why_none(eos, segments: RunSegments, omega, info, det: DetectOptions) -> st
             msg += (f"; no mode family frequency of the run's model lies in the swept range "
                     f"({min(eos) * lo_rpm / 60:.1f}-{max(eos) * hi_rpm / 60:.1f} Hz)")
     return msg
-
-
-class _quiet:
-    """Silence numpy's empty-slice warnings (NaN is the answer)."""
-
-    def __enter__(self):
-        import warnings
-        self._w = warnings.catch_warnings()
-        self._w.__enter__()
-        warnings.simplefilter("ignore", RuntimeWarning)
-
-    def __exit__(self, *exc):
-        return self._w.__exit__(*exc)
-

@@ -1,0 +1,135 @@
+"""Steady-state results of dwells: per engine order the mean complex response over the dwell
+and its 95 % intervals (``docs/processing.md``, "Steady state (dwells)").
+
+``ctx`` is the pipeline's processing context (geometry, orders, fits, speeds, zeroing
+reference, truth, options).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .detect import Crossing
+from .displacement import TWO_PI
+from .fit import quiet
+from .intervals import MODEL_ERROR, TERM_NOTE_PCT, dwell_intervals, dwell_misfit, layout_gain
+from .resonance import Detection, ResonanceEntry, ResonancePeaks, window_truth
+from .travelling_wave import fit_spectra, identify_nd
+from .zeroing import correction_size, zeroing_correction
+
+__all__ = ["dwell_entries"]
+
+
+def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
+    """Steady-state results of one dwell, one entry per engine order: the mean of the
+    complex responses over the dwell (its first ``settle`` revolutions skipped)."""
+    n = dw.stop - dw.start
+    rate = float(np.mean(ctx.omega[dw.start:dw.stop])) / TWO_PI
+    skip = min(max(int(math.ceil(0.5 * rate)), n // 10), n // 2)
+    a, b = dw.start + skip, dw.stop  # revolutions [a, b)
+    out = []
+    opts = ctx.options
+    with quiet():
+        d_mean = np.nanmean(ctx.d_flat[a:b], axis=0)  # (blades, probes): the steady response at each probe
+    radius = ctx.geometry.tip_radius_m if opts.sampling_angles else None
+    for i, eo in enumerate(ctx.eos):
+        P = ctx.fit.phasor[a:b, :, i]
+        Praw = ctx.raw.phasor[a:b, :, i]
+        corr, source = _dwell_correction(ctx, eo, i)
+        with quiet():
+            mean = np.nanmean(P, axis=0) + (corr if corr is not None else 0.0)
+            cnt = np.sum(np.isfinite(Praw), axis=0)
+            spread = np.sqrt(np.nansum(np.abs(Praw - np.nanmean(Praw, axis=0)) ** 2, axis=0) / np.maximum(cnt - 1, 1))
+        amp = 2.0 * np.abs(mean)
+        std = 2.0 * spread / np.sqrt(np.maximum(cnt, 1))
+        f = eo * float(np.mean(ctx.omega[a:b])) / TWO_PI
+        nb = amp.size
+        with quiet():
+            snr = float(np.nanmean(amp) / max(np.nanmean(std), 1e-300)) if np.isfinite(amp).any() else 0.0
+        eos_fit = ctx.eos if ctx.joint else (eo,)
+        k = eos_fit.index(eo)
+        probes_m, dof = dwell_misfit(d_mean, ctx.geometry.probe_angles_rad, eos_fit, k, radius)
+        layout_m = layout_gain(ctx.geometry.probe_angles_rad, eos_fit, k, mean) * MODEL_ERROR * amp
+        peaks = dwell_intervals(ResonancePeaks(
+            revolution=np.full(nb, float(a)), amp_pkpk_m=amp, freq_hz=np.full(nb, f),
+            damping_ratio=np.full(nb, np.nan), method="mean", phase_rad=np.angle(mean),
+            amp_std_m=std, freq_std_hz=np.full(nb, float(np.std(ctx.omega[a:b])) * eo / TWO_PI)),
+            layout_m, probes_m, dof, _dwell_zeroing_bound(ctx, corr))
+        nd = identify_nd(fit_spectra(mean, eo, ctx.geometry.blade_angles_rad))
+        r0 = ctx.revolution0
+        entry = ResonanceEntry(
+            kind="dwell", eo=eo, nd=nd, cn=ctx.cns.get(eo, ctx.fit.cn), method="mean",
+            rpm=float(np.mean(ctx.omega[a:b])) * 60.0 / TWO_PI, freq_hz=f, damping_ratio=math.nan,
+            detection=Detection("amplitude_snr", min(snr, 1e9), opts.detect.dwell_snr_threshold, min(snr, 1e9),
+                                opts.detect.dwell_snr_threshold),
+            first_revolution=r0 + a, last_revolution=r0 + b - 1, peak_revolution=-1, peaks=peaks,
+            notes=_dwell_notes(ctx, eo, amp, probes_m, dof, corr, source),
+            zeroing_correction=correction_size(corr, mean[None, :]))
+        out.append(entry.with_truth(window_truth(ctx.truth, eo, a, b - 1, mean=True)))
+    return out
+
+
+def _dwell_correction(ctx, eo: int, i: int) -> tuple[np.ndarray | None, Crossing | None]:
+    """The response the zeroing reference held at a dwell's order, per blade (complex, m),
+    and the crossing it was estimated from; ``(None, None)`` without a crossing of that order
+    to estimate it from.
+
+    The reference subtracted the response it held, ``P_ref``, from every revolution: a
+    dwell's response is off by it as a crossing's is (:func:`~.zeroing.zeroing_correction`), and more
+    so relative to its size off resonance. ``P_ref = K h_ref`` is estimated from the crossing
+    of the same order nearest the reference, and added back. Far from the crossing the
+    growth law ``h`` (one mode) is rough, so the interval spans the uncorrected value too
+    (``2 |P_ref|`` pk-pk, as a crossing's when its check fails)."""
+    ref = ctx.reference
+    same = [c for c in ctx.crossings if c.eo == eo]
+    if not same or ref is None or ref.start is None:
+        return None, None
+    c = min(same, key=lambda k: abs(k.peak - ref.start))
+    corr = zeroing_correction(ctx, c, i)
+    return (corr, c) if corr is not None else (None, None)
+
+
+def _dwell_zeroing_bound(ctx, corr) -> np.ndarray | float:
+    """A dwell's zeroing bias bound, pk-pk (m): ``2 |P_ref|`` with a correction, 0 with no
+    reference (nominal geometry or exact times: nothing subtracted), NaN when the reference's
+    response is unknown (no crossing of the order to estimate it from, or a baseline that took
+    it with the slowly varying part of the dwell's own response): no interval then."""
+    if corr is not None:
+        return 2.0 * np.abs(corr)
+    ref = ctx.reference
+    return 0.0 if ref is None or ref.start is None else math.nan
+
+
+def _dwell_notes(ctx, eo: int, amp: np.ndarray, probes_m: np.ndarray, dof: int, corr, source) -> tuple:
+    """What limits a dwell's estimate: the zeroing reference's response (added back, or
+    unknown), the probes' systematic misfit (:func:`~.intervals.dwell_misfit`) where it is
+    above :data:`~.intervals.TERM_NOTE_PCT` of the amplitude, or that it cannot be seen."""
+    ref = ctx.reference
+    nominal = ref is None or ref.start is None
+    notes = []
+    with quiet():
+        if corr is not None:
+            pct = float(np.nanmedian(100.0 * 2.0 * np.abs(corr) / amp))
+            notes.append(f"zeroing: the reference held a response at EO {eo} of {pct:.2g} % of the dwell's amplitude "
+                         f"(blade median), estimated from the crossing at revolution {ctx.revolution0 + source.peak} "
+                         f"and added back; the "
+                         f"interval spans the uncorrected value too")
+        elif not nominal:
+            r0 = ctx.revolution0
+            why = "; ".join(w for w, on in (
+                (f"no crossing of EO {eo} to estimate it from", not any(c.eo == eo for c in ctx.crossings)),
+                ("the baseline removed with the offsets took it, with the part of the dwell's own response that "
+                 "varies slowly with speed", ctx.offset_removed)) if on) or "the crossing's skirt is too short to tell"
+            notes.append(f"zeroing: the response the reference (revolutions {r0 + ref.start}-{r0 + ref.stop - 1}) "
+                         f"held at EO {eo} is unknown ({why}): the dwell's amplitude is relative to it, and no "
+                         f"interval is given")
+        why = " (a dwell alone cannot be calibrated: nominal geometry)" if nominal else ""
+        if dof <= 0:
+            notes.append(f"no redundant probe: the probes' position errors{why} cannot be seen in the fits; the "
+                         f"interval holds the noise and the layout's share only")
+        elif (pct := float(np.nanmedian(100.0 * probes_m / amp))) > TERM_NOTE_PCT:
+            notes.append(f"probe positions{why}: the fits' misfit common to every blade is {pct:.2g} % of the "
+                         f"amplitude (blade median, {dof} degree(s) of freedom); the interval includes it")
+    return tuple(notes)
