@@ -256,3 +256,76 @@ def test_numbers_beyond_what_the_code_can_hold_are_refused(capsys, tmp_path, mon
     assert exit_status(too_big) == 2
     err = capsys.readouterr().err
     assert err.startswith("bttsim: error: out of memory: ") and err.count("\n") == 1, err
+
+
+# ---- model files and sector files: damaged, forged, implausible ---------------------------
+
+@pytest.fixture(scope="module")
+def model_files(tmp_path_factory):
+    """A valid sector file (the built-in model's) and a valid model file."""
+    from bttsim_stream.model import build_model, save_model
+    from bttsim_stream.model.cyclic import builtin_sector, save_sector
+
+    folder = tmp_path_factory.mktemp("model_files")
+    save_sector(builtin_sector(), folder / "sector.npz")
+    save_model(build_model(), folder / "model.npz")
+    return folder / "sector.npz", folder / "model.npz"
+
+
+def _forged_npy_header() -> bytes:
+    """A .npz whose one member's header declares 8 TB of float64 over 64 bytes of data."""
+    import io
+    import zipfile
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zf:
+        zf.writestr("meta.npy", head.getvalue() + bytes(64))
+    return out.getvalue()
+
+
+def _huge_declared_size(data: bytes) -> bytes:
+    """The first member's uncompressed size in the central directory set to 4 GB."""
+    import struct
+
+    b = bytearray(data)
+    struct.pack_into("<I", b, b.find(b"PK\x01\x02") + 24, 0xFFFFFFF0)
+    return bytes(b)
+
+
+DAMAGED = {
+    "truncated": (lambda d: d[: len(d) // 2], "corrupt or truncated"),
+    "bad-crc": (lambda d: d[: len(d) // 2] + b"\xff" * 40 + d[len(d) // 2 + 40:], "Bad CRC-32"),
+    "zip-magic-only": (lambda d: b"PK\x03\x04" + bytes(100), "corrupt or truncated"),
+    "text": (lambda d: b"this is not an archive\n", "not an .npz archive"),
+    "forged-npy-header": (lambda d: _forged_npy_header(), "declares (1000000000000,) float64"),
+    "huge-declared-size": (_huge_declared_size, "more than 2147483648, refusing to load"),
+}
+
+
+@pytest.mark.parametrize("command", ["import", "import-second-speed", "show", "scenario-source"])
+@pytest.mark.parametrize("case", list(DAMAGED), ids=list(DAMAGED))
+def test_a_damaged_or_forged_npz_is_one_line_naming_it(capsys, tmp_path, model_files, case, command):
+    """Every reader of a user's .npz (model import, model show, a scenario's [model] source):
+    one line naming the file and the problem, exit 2, nothing written (never a zipfile
+    traceback, nor numpy allocating what a forged header declares)."""
+    sector, model = model_files
+    src = model if command in ("show", "scenario-source") else sector
+    make, words = DAMAGED[case]
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(make(src.read_bytes()))
+    out = tmp_path / "out.npz"
+    if command == "import":
+        err = _error(capsys, "model", "import", str(bad), "--out", str(out))
+    elif command == "import-second-speed":
+        err = _error(capsys, "model", "import", str(sector), str(bad), "--speeds-rpm", "0,1000", "--out", str(out))
+    elif command == "show":
+        err = _error(capsys, "model", "show", str(bad), "--png", str(tmp_path / "p.png"))
+    else:
+        scn = tmp_path / "s.toml"
+        scn.write_text(f'[model]\nsource = "{bad}"\n')
+        err = _error(capsys, "scenario", "--check", str(scn))
+    assert f"{bad}: " in err and words in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["bad.npz"] + (["s.toml"] if "scenario" in command
+                                                                                 else []))

@@ -48,6 +48,7 @@ from ..errors import ModelFileError
 from .bladed_disk import rotation_z
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
 from .modal_model import MAX_SPEEDS, ModalModel, model_from_cartesian, to_polar
+from .npzfile import read_npz
 
 __all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "TIP_RADIUS_RANGE_M", "CyclicSector", "expand_sector",
            "expand_sectors_at_speeds", "save_sector", "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
@@ -480,10 +481,10 @@ def save_sector(sector: CyclicSector, path) -> None:
                  force_shapes=np.asarray(sector.force_shapes, complex))
 
 
-def _shapes(z, name: str, where: str) -> np.ndarray:
-    if name in z.files:
+def _shapes(z: dict, name: str, where: str) -> np.ndarray:
+    if name in z:
         return np.asarray(z[name])
-    if f"{name}_cos" in z.files and f"{name}_sin" in z.files:
+    if f"{name}_cos" in z and f"{name}_sin" in z:
         c, s = np.asarray(z[f"{name}_cos"]), np.asarray(z[f"{name}_sin"])
         if c.shape != s.shape or c.dtype.kind != "f" or s.dtype.kind != "f":
             raise ModelFileError(f"{where}: {name}_cos and {name}_sin must be real arrays of one shape")
@@ -492,39 +493,29 @@ def _shapes(z, name: str, where: str) -> np.ndarray:
 
 
 def load_sector(path) -> CyclicSector:
-    """Read a neutral-format sector file (``np.load(allow_pickle=False)``); any problem is a
-    one-line :class:`ModelFileError`."""
+    """Read a neutral-format sector file (:func:`~bttsim_stream.model.npzfile.read_npz`:
+    ``allow_pickle=False``, size checks); any problem is a one-line :class:`ModelFileError`."""
     where = str(path)
+    z = read_npz(path, "sector file")
+    missing = [k for k in ("meta",) + _ARRAYS if k not in z]
+    if missing:
+        raise ModelFileError(f"{where}: missing {', '.join(missing)} (schema {SECTOR_SCHEMA})")
     try:
-        z = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ModelFileError(f"{where}: no such file") from None
-    except (ValueError, OSError, EOFError) as exc:
-        raise ModelFileError(f"{where}: not a readable .npz sector file ({exc})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):  # one .npy array
-        raise ModelFileError(f"{where}: not an .npz sector file (a single array)")
-    with z:
-        try:
-            missing = [k for k in ("meta",) + _ARRAYS if k not in z.files]
-            if missing:
-                raise ModelFileError(f"{where}: missing {', '.join(missing)} (schema {SECTOR_SCHEMA})")
-            try:
-                meta = json.loads(str(z["meta"]))
-            except (json.JSONDecodeError, ValueError) as exc:
-                raise ModelFileError(f"{where}: meta is not JSON ({exc})") from None
-            if not isinstance(meta, dict) or meta.get("schema") != SECTOR_SCHEMA:
-                raise ModelFileError(f"{where}: meta.schema must be {SECTOR_SCHEMA!r}")
-            if meta.get("schema_version") != SECTOR_SCHEMA_VERSION:
-                raise ModelFileError(f"{where}: schema_version {meta.get('schema_version')!r} is not supported "
-                                     f"(this reader knows {SECTOR_SCHEMA_VERSION})")
-            if not isinstance(meta.get("n_sectors"), int):
-                raise ModelFileError(f"{where}: meta.n_sectors must be an integer")
-            arrays = {k: np.asarray(z[k]) for k in _ARRAYS}
-            tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
-        except ValueError as exc:  # pickled object arrays and damaged members
-            raise ModelFileError(f"{where}: unreadable array ({exc})") from None
+        meta = json.loads(str(z["meta"]))
+    except json.JSONDecodeError as exc:
+        raise ModelFileError(f"{where}: meta is not JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("schema") != SECTOR_SCHEMA:
+        raise ModelFileError(f"{where}: meta.schema must be {SECTOR_SCHEMA!r}")
+    if meta.get("schema_version") != SECTOR_SCHEMA_VERSION:
+        raise ModelFileError(f"{where}: schema_version {meta.get('schema_version')!r} is not supported "
+                             f"(this reader knows {SECTOR_SCHEMA_VERSION})")
+    n_sectors = meta.get("n_sectors")
+    if not isinstance(n_sectors, int):
+        raise ModelFileError(f"{where}: meta.n_sectors must be an integer")
+    arrays = {k: z[k] for k in _ARRAYS}
+    tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
     try:
-        return CyclicSector(n_sectors=meta["n_sectors"], harmonic_index=arrays["harmonic_index"],
+        return CyclicSector(n_sectors=n_sectors, harmonic_index=arrays["harmonic_index"],
                             freq_hz=arrays["freq_hz"], tip_xyz=arrays["tip_xyz"], tip_shapes=tip,
                             force_xyz=arrays["force_xyz"], force_shapes=force,
                             nominal_node=int(meta.get("nominal_node", arrays["tip_xyz"].shape[0] // 2)),
