@@ -329,3 +329,32 @@ def test_a_damaged_or_forged_npz_is_one_line_naming_it(capsys, tmp_path, model_f
     assert f"{bad}: " in err and words in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["bad.npz"] + (["s.toml"] if "scenario" in command
                                                                                  else []))
+
+
+def _sector_with(src: Path, dst: Path, meta=None, **arrays) -> Path:
+    """A copy of the sector file ``src`` with some meta keys and arrays replaced."""
+    import json
+
+    with np.load(src, allow_pickle=False) as z:
+        a = {k: z[k] for k in z.files}
+    a["meta"] = np.array(json.dumps({**json.loads(str(a["meta"])), **(meta or {})}))
+    a.update(arrays)
+    np.savez(dst, **a)
+    return dst
+
+
+@pytest.mark.parametrize("n", [1_000_000_000, 201, 1])
+def test_an_impossible_sector_count_is_refused_up_front(capsys, tmp_path, model_files, n):
+    """meta.n_sectors outside the blade count of a run, [2, 200], is refused before anything is
+    expanded (10^9 sectors took 93 s to fail), and so is --n-sectors."""
+    import time
+
+    sector, _ = model_files
+    bad = _sector_with(sector, tmp_path / "bad.npz", {"n_sectors": n})
+    t0 = time.perf_counter()
+    err = _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
+    assert time.perf_counter() - t0 < 10.0
+    assert f"{bad}: meta.n_sectors must be an integer in [2, 200] (the blades of a run), got {n}" in err, err
+    err = _error(capsys, "model", "import", str(sector), "--n-sectors", str(n), "--out", str(tmp_path / "m.npz"))
+    assert f"n_sectors must be an integer in [2, 200] (the blades of a run), got {n}" in err, err
+    assert not (tmp_path / "m.npz").exists()

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..defaults import MAX_BLADES
 from ..errors import ModelFileError
 from .bladed_disk import rotation_z
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
@@ -105,8 +106,8 @@ class CyclicSector:
         k, f = np.asarray(self.harmonic_index), np.asarray(self.freq_hz)
         n = f.shape[0] if f.ndim == 1 else -1
         problems = []
-        if N < 2:
-            problems.append(f"n_sectors must be >= 2, got {N}")
+        if not 2 <= N <= MAX_BLADES:
+            problems.append(f"n_sectors must be in [2, {MAX_BLADES}] (the blades of a run), got {N}")
         if f.ndim != 1 or n == 0:
             problems.append(f"freq_hz must be a non-empty 1-D array, got shape {f.shape}")
         elif not np.all(np.isfinite(f)) or np.any(f <= 0):
@@ -510,8 +511,9 @@ def load_sector(path) -> CyclicSector:
         raise ModelFileError(f"{where}: schema_version {meta.get('schema_version')!r} is not supported "
                              f"(this reader knows {SECTOR_SCHEMA_VERSION})")
     n_sectors = meta.get("n_sectors")
-    if not isinstance(n_sectors, int):
-        raise ModelFileError(f"{where}: meta.n_sectors must be an integer")
+    if isinstance(n_sectors, bool) or not isinstance(n_sectors, int) or not 2 <= n_sectors <= MAX_BLADES:
+        raise ModelFileError(f"{where}: meta.n_sectors must be an integer in [2, {MAX_BLADES}] (the blades of a "
+                             f"run), got {n_sectors!r}")
     arrays = {k: z[k] for k in _ARRAYS}
     tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
     try:
