@@ -358,3 +358,36 @@ def test_an_impossible_sector_count_is_refused_up_front(capsys, tmp_path, model_
     err = _error(capsys, "model", "import", str(sector), "--n-sectors", str(n), "--out", str(tmp_path / "m.npz"))
     assert f"n_sectors must be an integer in [2, 200] (the blades of a run), got {n}" in err, err
     assert not (tmp_path / "m.npz").exists()
+
+
+IMPLAUSIBLE = {
+    "all-zero-shapes": (lambda a: {"tip_shapes": np.zeros_like(a["tip_shapes"])},
+                        "tip_shapes: 75 of 75 solutions do not move the tip nodes (solution 0, harmonic index 0, "
+                        "344.39 Hz: all zero"),
+    "one-zero-mode": (lambda a: {"tip_shapes": a["tip_shapes"] * (np.arange(75) != 3)[:, None, None]},
+                      "tip_shapes: 1 of 75 solutions do not move the tip nodes (solution 3, harmonic index 0"),
+    "tiny-shapes": (lambda a: {"tip_shapes": a["tip_shapes"] * 1e-200}, "at most 1.3e-199"),
+    "absurd-shapes": (lambda a: {"tip_shapes": a["tip_shapes"] * 1e200},
+                      "tip_shapes: a component of 1.91e+201 m per unit modal coordinate, above 1e+06"),
+    "absurd-force-shapes": (lambda a: {"force_shapes": a["force_shapes"] * 1e200},
+                            "force_shapes: a component of 1.44e+201 m per unit modal coordinate, above 1e+06"),
+    "tip-at-one-point": (lambda a: {"tip_xyz": np.repeat(a["tip_xyz"][:1], 9, axis=0)},
+                         "tip_xyz: tip nodes 0 and 1 are 0 m apart, less than 1e-06 of the tip radius"),
+    "two-tip-nodes-coincide": (lambda a: {"tip_xyz": a["tip_xyz"][[0, 1, 2, 3, 3, 5, 6, 7, 8]]},
+                               "tip_xyz: tip nodes 3 and 4 are 0 m apart"),
+}
+
+
+@pytest.mark.parametrize("case", list(IMPLAUSIBLE), ids=list(IMPLAUSIBLE))
+def test_implausible_sector_shapes_and_tip_geometry_are_refused(capsys, tmp_path, model_files, case):
+    """Finite arrays of the right shapes that no FE solution gives (schemas/cyclic_sector.md,
+    "Plausibility"): one line naming the array and why, exit 2, no numpy warning, nothing written
+    (they were imported with a NaN localisation and a 0 mm chord)."""
+    sector, _ = model_files
+    with np.load(sector, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    make, words = IMPLAUSIBLE[case]
+    bad = _sector_with(sector, tmp_path / "bad.npz", **make(arrays))
+    err = _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
+    assert f"{bad}: " in err and words in err, err
+    assert not (tmp_path / "m.npz").exists()

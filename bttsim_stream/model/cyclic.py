@@ -51,12 +51,21 @@ from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
 from .modal_model import MAX_SPEEDS, ModalModel, model_from_cartesian, to_polar
 from .npzfile import read_npz
 
-__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "TIP_RADIUS_RANGE_M", "CyclicSector", "expand_sector",
-           "expand_sectors_at_speeds", "save_sector", "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
+__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "TIP_RADIUS_RANGE_M", "SHAPE_RANGE", "TIP_SPACING_MIN",
+           "CyclicSector", "expand_sector", "expand_sectors_at_speeds", "save_sector", "load_sector", "builtin_sector",
+           "tip_geometry", "TipGeometry"]
 
 #: Mean radius of a sector's tip nodes, m: a rotor between 5 mm and 10 m (coordinates in
 #: another unit land outside).
 TIP_RADIUS_RANGE_M = (0.005, 10.0)
+#: Range of the largest component of each solution's tip shape, m per unit mass-normalised
+#: modal coordinate (m / sqrt(kg)): below, a mode that does not move the tip (an all-zero,
+#: blank export); above, a modal mass under 1e-12 kg (shapes not mass-normalised, or not SI).
+#: The force shapes are held to the upper bound.
+SHAPE_RANGE = (1e-12, 1e6)
+#: Least distance between consecutive tip nodes, as a fraction of the tip radius (0.19 um at
+#: 0.19 m): closer nodes are one point, and a chord of one point has no stagger.
+TIP_SPACING_MIN = 1e-6
 
 SECTOR_SCHEMA = "bttsim.cyclic_sector"
 SECTOR_SCHEMA_VERSION = 1
@@ -138,6 +147,8 @@ class CyclicSector:
             if not lo <= r_tip <= hi:
                 problems.append(f"the tip radius is {r_tip:.4g} m, outside [{lo:g}, {hi:g}] m: tip_xyz must be in "
                                 f"metres" + (" (this looks like mm)" if r_tip > hi else ""))
+            else:
+                problems += _implausible(t, np.asarray(self.tip_shapes), np.asarray(self.force_shapes), k, f, r_tip)
         if problems:
             raise ModelFileError("; ".join(problems))
 
@@ -150,6 +161,33 @@ class CyclicSector:
         k = np.asarray(self.harmonic_index)
         return {int(h): np.flatnonzero(k == h)[np.argsort(self.freq_hz[k == h], kind="stable")]
                 for h in np.unique(k)}
+
+
+def _implausible(tip_xyz, tip_shapes, force_shapes, k, f, r_tip: float) -> list:
+    """What makes finite, well-shaped sector arrays implausible: tip nodes that coincide, a
+    solution that does not move the tip, shapes beyond any mass-normalised SI mode."""
+    problems = []
+    gap = np.linalg.norm(np.diff(tip_xyz, axis=0), axis=1)
+    if gap.min() < TIP_SPACING_MIN * r_tip:
+        i = int(np.argmin(gap))
+        problems.append(f"tip_xyz: tip nodes {i} and {i + 1} are {gap[i]:.3g} m apart, less than {TIP_SPACING_MIN:g} "
+                        f"of the tip radius: the tip nodes must be distinct points along the chord")
+    lo, hi = SHAPE_RANGE
+    with np.errstate(over="ignore"):
+        top = np.abs(tip_shapes).max(axis=(1, 2))
+        top_force = float(np.abs(force_shapes).max())
+    small = np.flatnonzero(top < lo)
+    if small.size:
+        i = int(small[0])
+        size = "all zero" if top[i] == 0 else f"at most {top[i]:.3g}"
+        problems.append(f"tip_shapes: {small.size} of {top.size} solutions do not move the tip nodes (solution {i}, "
+                        f"harmonic index {k[i]}, {f[i]:.6g} Hz: {size}; each needs a component of at least {lo:g} "
+                        "m per unit modal coordinate)")
+    for name, big in (("tip_shapes", float(top.max())), ("force_shapes", top_force)):
+        if big > hi:
+            problems.append(f"{name}: a component of {big:.3g} m per unit modal coordinate, above {hi:g} (a modal "
+                            "mass below 1e-12 kg): not mass-normalised SI shapes")
+    return problems
 
 
 @dataclass(frozen=True, slots=True, eq=False)
