@@ -391,3 +391,19 @@ def test_implausible_sector_shapes_and_tip_geometry_are_refused(capsys, tmp_path
     err = _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
     assert f"{bad}: " in err and words in err, err
     assert not (tmp_path / "m.npz").exists()
+
+
+@pytest.mark.parametrize("key", ["stiffness_factors", "mass_factors"])
+def test_a_model_with_a_negative_mistuning_factor_is_refused(capsys, tmp_path, model_files, key):
+    """A blade factor of -1 (a negative stiffness or mass) passed model show and scenario --check."""
+    _, model = model_files
+    with np.load(model, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays[key] = np.r_[-1.0, np.ones(28)]
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    words = f"{bad}: {key} must be > 0 (a blade's factor on the tuned blade), got -1"
+    assert words in _error(capsys, "model", "show", str(bad))
+    scn = tmp_path / "s.toml"
+    scn.write_text(f'[model]\nsource = "{bad}"\n')
+    assert words in _error(capsys, "scenario", "--check", str(scn))

@@ -655,6 +655,10 @@ def _validate(a: dict, where: str) -> dict:
         for k in ("freq_hz", "tip_shapes", "force_shapes", "force_shapes_trailing_edge", "campbell_freq_hz"):
             if k + "_at_speed" in a and not np.array_equal(a[k + "_at_speed"][0], a[k]):
                 raise ModelFileError(f"{where}: row 0 of {k}_at_speed (speed 0) differs from {k}")
+    for k in ("stiffness_factors", "mass_factors"):
+        if k in a and np.any(a[k] <= 0):
+            raise ModelFileError(f"{where}: {k} must be > 0 (a blade's factor on the tuned blade), got "
+                                 f"{float(a[k].min()):g}")
     if np.any(a["damping_ratio"] < 0) or np.any(a["damping_ratio"] >= 1):
         raise ModelFileError(f"{where}: damping_ratio must be in [0, 1)")
     if np.any(a["tip_ref"][..., 0] <= 0) or np.any(a["force_ref"][..., 0] <= 0):
