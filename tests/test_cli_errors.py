@@ -407,3 +407,21 @@ def test_a_model_with_a_negative_mistuning_factor_is_refused(capsys, tmp_path, m
     scn = tmp_path / "s.toml"
     scn.write_text(f'[model]\nsource = "{bad}"\n')
     assert words in _error(capsys, "scenario", "--check", str(scn))
+
+
+def test_model_show_png_must_be_a_png_file(capsys, tmp_path, model_files):
+    """--png afile.txt was a matplotlib traceback, --png DIR (a folder) wrote DIR.png and said
+    "wrote DIR": both one line and exit 2 before anything is printed or written."""
+    _, model = model_files
+    (tmp_path / "DIR").mkdir()
+    (tmp_path / "D.png").mkdir()
+    (tmp_path / "afile.txt").write_text("kept\n")
+    for png, words in (("afile.txt", "--png {}: the plot is a PNG image: give a file name ending in .png"),
+                       ("DIR", "--png {}: is a folder, not a file"), ("D.png", "--png {}: is a folder, not a file")):
+        path = tmp_path / png
+        assert words.format(path) in _error(capsys, "model", "show", str(model), "--png", str(path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["D.png", "DIR", "afile.txt"]
+    assert (tmp_path / "afile.txt").read_text() == "kept\n" and not any((tmp_path / "DIR").iterdir())
+    assert cli.main(["model", "show", str(model), "--png", str(tmp_path / "ok.PNG")]) == 0
+    assert (tmp_path / "ok.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (tmp_path / "ok.PNG.part").exists() and f"wrote {tmp_path / 'ok.PNG'}" in capsys.readouterr().out
