@@ -425,3 +425,20 @@ def test_model_show_png_must_be_a_png_file(capsys, tmp_path, model_files):
     assert cli.main(["model", "show", str(model), "--png", str(tmp_path / "ok.PNG")]) == 0
     assert (tmp_path / "ok.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not (tmp_path / "ok.PNG.part").exists() and f"wrote {tmp_path / 'ok.PNG'}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "true", '"3"'])
+def test_n_families_must_be_a_count_of_at_least_one(capsys, tmp_path, model_files, value):
+    """n_families = 0 was reported as "0 families requested but some harmonic index has only 5
+    solutions"."""
+    from bttsim_stream.errors import ModelFileError
+    from bttsim_stream.model.cyclic import expand_sector, load_sector
+
+    sector, _ = model_files
+    (tmp_path / "o.toml").write_text(f"n_families = {value}\n")
+    err = _error(capsys, "model", "import", str(sector), "--options", str(tmp_path / "o.toml"),
+                 "--out", str(tmp_path / "m.npz"))
+    assert "n_families must be an integer >= 1 (families kept per nodal diameter)" in err, err
+    assert not (tmp_path / "m.npz").exists()
+    with pytest.raises(ModelFileError, match=r"^n_families must be >= 1 \(families kept per nodal diameter\), got 0$"):
+        expand_sector(load_sector(sector), n_families=0)

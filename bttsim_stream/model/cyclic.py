@@ -297,7 +297,9 @@ def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: f
         raise ModelFileError(f"harmonic indices missing from the sector results: {shown} "
                              f"(a {N}-sector wheel needs 0..{N // 2}; select them all in the FE solution)")
     n_fam = min(len(v) for v in fams.values()) if n_families is None else int(n_families)
-    if n_fam < 1 or any(len(v) < n_fam for v in fams.values()):
+    if n_fam < 1:
+        raise ModelFileError(f"n_families must be >= 1 (families kept per nodal diameter), got {n_fam}")
+    if any(len(v) < n_fam for v in fams.values()):
         raise ModelFileError(f"{n_fam} families requested but some harmonic index has only "
                              f"{min(len(v) for v in fams.values())} solutions")
     theta = 2.0 * np.pi * np.arange(N) / N

@@ -158,6 +158,9 @@ def _checked(o: ImportOptions, where: str) -> ImportOptions:
         bad(f"speeds_rpm must be a list of speeds >= 0 rpm, got {o.speeds_rpm!r}")
     if o.speeds_rpm and (o.speeds_rpm[0] != 0 or any(b <= a for a, b in zip(o.speeds_rpm, o.speeds_rpm[1:]))):
         bad(f"speeds_rpm must be strictly ascending from 0, got {', '.join(f'{v:g}' for v in o.speeds_rpm)}")
+    if o.n_families is not None and (isinstance(o.n_families, bool) or not isinstance(o.n_families, int)
+                                     or o.n_families < 1):
+        bad(f"n_families must be an integer >= 1 (families kept per nodal diameter), got {o.n_families!r}")
     if not (isinstance(o.damping_beta_s, (int, float)) and 0 <= o.damping_beta_s < 1e-2):
         bad(f"damping_beta_s must be a number in [0, 0.01) s, got {o.damping_beta_s!r}")
     return o
