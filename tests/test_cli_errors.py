@@ -442,3 +442,17 @@ def test_n_families_must_be_a_count_of_at_least_one(capsys, tmp_path, model_file
     assert not (tmp_path / "m.npz").exists()
     with pytest.raises(ModelFileError, match=r"^n_families must be >= 1 \(families kept per nodal diameter\), got 0$"):
         expand_sector(load_sector(sector), n_families=0)
+
+
+@pytest.mark.parametrize("key,value,words", [
+    ("nominal_node", "x", "meta.nominal_node must be a tip node index, got 'x'"),
+    ("nominal_node", None, "meta.nominal_node must be a tip node index, got None"),
+    ("stagger_deg", "abc", "meta.stagger_deg must be a number of degrees, got 'abc'"),
+    ("provenance", [1], "meta.provenance must be a JSON object"),
+], ids=["nominal-text", "nominal-null", "stagger-text", "provenance-list"])
+def test_a_forged_sector_meta_is_one_line(capsys, tmp_path, model_files, key, value, words):
+    """Meta values of the wrong type ended in int() / float() / dict() tracebacks."""
+    sector, _ = model_files
+    bad = _sector_with(sector, tmp_path / "bad.npz", {key: value})
+    assert f"{bad}: {words}" in _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
+    assert not (tmp_path / "m.npz").exists()

@@ -554,15 +554,22 @@ def load_sector(path) -> CyclicSector:
     if isinstance(n_sectors, bool) or not isinstance(n_sectors, int) or not 2 <= n_sectors <= MAX_BLADES:
         raise ModelFileError(f"{where}: meta.n_sectors must be an integer in [2, {MAX_BLADES}] (the blades of a "
                              f"run), got {n_sectors!r}")
+    nominal, stagger = meta.get("nominal_node", z["tip_xyz"].shape[0] // 2), meta.get("stagger_deg")
+    if isinstance(nominal, bool) or not isinstance(nominal, int):
+        raise ModelFileError(f"{where}: meta.nominal_node must be a tip node index, got {nominal!r}")
+    if stagger is not None and (isinstance(stagger, bool) or not isinstance(stagger, (int, float))
+                                or not math.isfinite(stagger)):
+        raise ModelFileError(f"{where}: meta.stagger_deg must be a number of degrees, got {stagger!r}")
+    if not isinstance(meta.get("provenance", {}), dict):
+        raise ModelFileError(f"{where}: meta.provenance must be a JSON object")
     arrays = {k: z[k] for k in _ARRAYS}
     tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
     try:
         return CyclicSector(n_sectors=n_sectors, harmonic_index=arrays["harmonic_index"],
                             freq_hz=arrays["freq_hz"], tip_xyz=arrays["tip_xyz"], tip_shapes=tip,
                             force_xyz=arrays["force_xyz"], force_shapes=force,
-                            nominal_node=int(meta.get("nominal_node", arrays["tip_xyz"].shape[0] // 2)),
-                            stagger_deg=meta.get("stagger_deg"), normalisation=meta.get("normalisation", "sector"),
-                            provenance=meta.get("provenance", {}))
+                            nominal_node=nominal, stagger_deg=stagger,
+                            normalisation=meta.get("normalisation", "sector"), provenance=meta.get("provenance", {}))
     except ModelFileError as exc:
         raise ModelFileError(f"{where}: {exc}") from None
 
