@@ -24,7 +24,7 @@ from .bus.certs import IDENTITIES, generate_certificates
 from .bus.ports import check_web_ports
 from .bus.security import write_config_files
 from .bus.session import CONNECT_TIMEOUT_S
-from .errors import BttsimError, comma_values, exit_status
+from .errors import BttsimError, comma_values, exit_status, replaceable_file
 from .model import build_model, load_model, save_model
 from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
 from .nodes import program, programs
@@ -113,6 +113,12 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
     eos = _ints(args.eo, "--eo") if args.eo else list(DEFAULT_ENGINE_ORDERS)
     if not eos or any(e < 1 or e > 1000 for e in eos):
         raise BttsimError(f"--eo must be engine orders in [1, 1000], got {args.eo!r}")
+    png = Path(args.png) if args.png else Path(args.model).with_suffix(".png")
+    target = replaceable_file(png, "--png" if args.png else "the plot")  # not a folder, device or pipe
+    if png.suffix.lower() != ".png":
+        raise BttsimError(f"--png {png}: the plot is a PNG image: give a file name ending in .png")
+    if target == Path(args.model).resolve():
+        raise BttsimError(f"--png {png}: is the model file itself")
     model = load_model(args.model)
     if args.scenario:
         scn, source = scenario.load_scenario(args.scenario), f"scenario {args.scenario}"
@@ -121,9 +127,8 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
     forced = [(int(e.engine_order), int(e.nodal_diameter)) for e in scn.excitation]
     print(family_table(model), flush=True)
     print(campbell_table(model, eos, excitations=forced, source=source), flush=True)
-    png = Path(args.png) if args.png else Path(args.model).with_suffix(".png")
     try:
-        plot_family_frequencies(model, png, eos)
+        plot_family_frequencies(model, target, eos)
     except PlotExtraMissing as exc:
         if args.png:  # asked for the plot: the one-line error, exit 2
             raise

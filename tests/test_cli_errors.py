@@ -259,3 +259,203 @@ def test_numbers_beyond_what_the_code_can_hold_are_refused(capsys, tmp_path, mon
     assert exit_status(too_big) == 2
     err = capsys.readouterr().err
     assert err.startswith("bttsim: error: out of memory: ") and err.count("\n") == 1, err
+
+
+# ---- model files and sector files: damaged, forged, implausible ---------------------------
+
+@pytest.fixture(scope="module")
+def model_files(tmp_path_factory):
+    """A valid sector file (the built-in model's) and a valid model file."""
+    from bttsim_stream.model import build_model, save_model
+    from bttsim_stream.model.cyclic import builtin_sector, save_sector
+
+    folder = tmp_path_factory.mktemp("model_files")
+    save_sector(builtin_sector(), folder / "sector.npz")
+    save_model(build_model(), folder / "model.npz")
+    return folder / "sector.npz", folder / "model.npz"
+
+
+def _forged_npy_header() -> bytes:
+    """A .npz whose one member's header declares 8 TB of float64 over 64 bytes of data."""
+    import io
+    import zipfile
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zf:
+        zf.writestr("meta.npy", head.getvalue() + bytes(64))
+    return out.getvalue()
+
+
+def _huge_declared_size(data: bytes) -> bytes:
+    """The first member's uncompressed size in the central directory set to 4 GB."""
+    import struct
+
+    b = bytearray(data)
+    struct.pack_into("<I", b, b.find(b"PK\x01\x02") + 24, 0xFFFFFFF0)
+    return bytes(b)
+
+
+DAMAGED = {
+    "truncated": (lambda d: d[: len(d) // 2], "corrupt or truncated"),
+    "bad-crc": (lambda d: d[: len(d) // 2] + b"\xff" * 40 + d[len(d) // 2 + 40:], "Bad CRC-32"),
+    "zip-magic-only": (lambda d: b"PK\x03\x04" + bytes(100), "corrupt or truncated"),
+    "text": (lambda d: b"this is not an archive\n", "not an .npz archive"),
+    "forged-npy-header": (lambda d: _forged_npy_header(), "declares (1000000000000,) float64"),
+    "huge-declared-size": (_huge_declared_size, "more than 2147483648, refusing to load"),
+}
+
+
+@pytest.mark.parametrize("command", ["import", "import-second-speed", "show", "scenario-source"])
+@pytest.mark.parametrize("case", list(DAMAGED), ids=list(DAMAGED))
+def test_a_damaged_or_forged_npz_is_one_line_naming_it(capsys, tmp_path, model_files, case, command):
+    """Every reader of a user's .npz (model import, model show, a scenario's [model] source):
+    one line naming the file and the problem, exit 2, nothing written (never a zipfile
+    traceback, nor numpy allocating what a forged header declares)."""
+    sector, model = model_files
+    src = model if command in ("show", "scenario-source") else sector
+    make, words = DAMAGED[case]
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(make(src.read_bytes()))
+    out = tmp_path / "out.npz"
+    if command == "import":
+        err = _error(capsys, "model", "import", str(bad), "--out", str(out))
+    elif command == "import-second-speed":
+        err = _error(capsys, "model", "import", str(sector), str(bad), "--speeds-rpm", "0,1000", "--out", str(out))
+    elif command == "show":
+        err = _error(capsys, "model", "show", str(bad), "--png", str(tmp_path / "p.png"))
+    else:
+        scn = tmp_path / "s.toml"
+        scn.write_text(f'[model]\nsource = "{bad}"\n')
+        err = _error(capsys, "scenario", "--check", str(scn))
+    assert f"{bad}: " in err and words in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["bad.npz"] + (["s.toml"] if "scenario" in command
+                                                                                 else []))
+
+
+def _sector_with(src: Path, dst: Path, meta=None, **arrays) -> Path:
+    """A copy of the sector file ``src`` with some meta keys and arrays replaced."""
+    import json
+
+    with np.load(src, allow_pickle=False) as z:
+        a = {k: z[k] for k in z.files}
+    a["meta"] = np.array(json.dumps({**json.loads(str(a["meta"])), **(meta or {})}))
+    a.update(arrays)
+    np.savez(dst, **a)
+    return dst
+
+
+@pytest.mark.parametrize("n", [1_000_000_000, 201, 1])
+def test_an_impossible_sector_count_is_refused_up_front(capsys, tmp_path, model_files, n):
+    """meta.n_sectors outside the blade count of a run, [2, 200], is refused before anything is
+    expanded (10^9 sectors took 93 s to fail), and so is --n-sectors."""
+    import time
+
+    sector, _ = model_files
+    bad = _sector_with(sector, tmp_path / "bad.npz", {"n_sectors": n})
+    t0 = time.perf_counter()
+    err = _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
+    assert time.perf_counter() - t0 < 10.0
+    assert f"{bad}: meta.n_sectors must be an integer in [2, 200] (the blades of a run), got {n}" in err, err
+    err = _error(capsys, "model", "import", str(sector), "--n-sectors", str(n), "--out", str(tmp_path / "m.npz"))
+    assert f"n_sectors must be an integer in [2, 200] (the blades of a run), got {n}" in err, err
+    assert not (tmp_path / "m.npz").exists()
+
+
+IMPLAUSIBLE = {
+    "all-zero-shapes": (lambda a: {"tip_shapes": np.zeros_like(a["tip_shapes"])},
+                        "tip_shapes: 75 of 75 solutions do not move the tip nodes (solution 0, harmonic index 0, "
+                        "344.39 Hz: all zero"),
+    "one-zero-mode": (lambda a: {"tip_shapes": a["tip_shapes"] * (np.arange(75) != 3)[:, None, None]},
+                      "tip_shapes: 1 of 75 solutions do not move the tip nodes (solution 3, harmonic index 0"),
+    "tiny-shapes": (lambda a: {"tip_shapes": a["tip_shapes"] * 1e-200}, "at most 1.3e-199"),
+    "absurd-shapes": (lambda a: {"tip_shapes": a["tip_shapes"] * 1e200},
+                      "tip_shapes: a component of 1.91e+201 m per unit modal coordinate, above 1e+06"),
+    "absurd-force-shapes": (lambda a: {"force_shapes": a["force_shapes"] * 1e200},
+                            "force_shapes: a component of 1.44e+201 m per unit modal coordinate, above 1e+06"),
+    "tip-at-one-point": (lambda a: {"tip_xyz": np.repeat(a["tip_xyz"][:1], 9, axis=0)},
+                         "tip_xyz: tip nodes 0 and 1 are 0 m apart, less than 1e-06 of the tip radius"),
+    "two-tip-nodes-coincide": (lambda a: {"tip_xyz": a["tip_xyz"][[0, 1, 2, 3, 3, 5, 6, 7, 8]]},
+                               "tip_xyz: tip nodes 3 and 4 are 0 m apart"),
+}
+
+
+@pytest.mark.parametrize("case", list(IMPLAUSIBLE), ids=list(IMPLAUSIBLE))
+def test_implausible_sector_shapes_and_tip_geometry_are_refused(capsys, tmp_path, model_files, case):
+    """Finite arrays of the right shapes that no FE solution gives (schemas/cyclic_sector.md,
+    "Plausibility"): one line naming the array and why, exit 2, no numpy warning, nothing written
+    (they were imported with a NaN localisation and a 0 mm chord)."""
+    sector, _ = model_files
+    with np.load(sector, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    make, words = IMPLAUSIBLE[case]
+    bad = _sector_with(sector, tmp_path / "bad.npz", **make(arrays))
+    err = _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
+    assert f"{bad}: " in err and words in err, err
+    assert not (tmp_path / "m.npz").exists()
+
+
+@pytest.mark.parametrize("key", ["stiffness_factors", "mass_factors"])
+def test_a_model_with_a_negative_mistuning_factor_is_refused(capsys, tmp_path, model_files, key):
+    """A blade factor of -1 (a negative stiffness or mass) passed model show and scenario --check."""
+    _, model = model_files
+    with np.load(model, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays[key] = np.r_[-1.0, np.ones(28)]
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    words = f"{bad}: {key} must be > 0 (a blade's factor on the tuned blade), got -1"
+    assert words in _error(capsys, "model", "show", str(bad))
+    scn = tmp_path / "s.toml"
+    scn.write_text(f'[model]\nsource = "{bad}"\n')
+    assert words in _error(capsys, "scenario", "--check", str(scn))
+
+
+def test_model_show_png_must_be_a_png_file(capsys, tmp_path, model_files):
+    """--png afile.txt was a matplotlib traceback, --png DIR (a folder) wrote DIR.png and said
+    "wrote DIR": both one line and exit 2 before anything is printed or written."""
+    _, model = model_files
+    (tmp_path / "DIR").mkdir()
+    (tmp_path / "D.png").mkdir()
+    (tmp_path / "afile.txt").write_text("kept\n")
+    for png, words in (("afile.txt", "--png {}: the plot is a PNG image: give a file name ending in .png"),
+                       ("DIR", "--png {}: is a folder, not a file"), ("D.png", "--png {}: is a folder, not a file")):
+        path = tmp_path / png
+        assert words.format(path) in _error(capsys, "model", "show", str(model), "--png", str(path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["D.png", "DIR", "afile.txt"]
+    assert (tmp_path / "afile.txt").read_text() == "kept\n" and not any((tmp_path / "DIR").iterdir())
+    assert cli.main(["model", "show", str(model), "--png", str(tmp_path / "ok.PNG")]) == 0
+    assert (tmp_path / "ok.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (tmp_path / "ok.PNG.part").exists() and f"wrote {tmp_path / 'ok.PNG'}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "true", '"3"'])
+def test_n_families_must_be_a_count_of_at_least_one(capsys, tmp_path, model_files, value):
+    """n_families = 0 was reported as "0 families requested but some harmonic index has only 5
+    solutions"."""
+    from bttsim_stream.errors import ModelFileError
+    from bttsim_stream.model.cyclic import expand_sector, load_sector
+
+    sector, _ = model_files
+    (tmp_path / "o.toml").write_text(f"n_families = {value}\n")
+    err = _error(capsys, "model", "import", str(sector), "--options", str(tmp_path / "o.toml"),
+                 "--out", str(tmp_path / "m.npz"))
+    assert "n_families must be an integer >= 1 (families kept per nodal diameter)" in err, err
+    assert not (tmp_path / "m.npz").exists()
+    with pytest.raises(ModelFileError, match=r"^n_families must be >= 1 \(families kept per nodal diameter\), got 0$"):
+        expand_sector(load_sector(sector), n_families=0)
+
+
+@pytest.mark.parametrize("key,value,words", [
+    ("nominal_node", "x", "meta.nominal_node must be a tip node index, got 'x'"),
+    ("nominal_node", None, "meta.nominal_node must be a tip node index, got None"),
+    ("stagger_deg", "abc", "meta.stagger_deg must be a number of degrees, got 'abc'"),
+    ("provenance", [1], "meta.provenance must be a JSON object"),
+], ids=["nominal-text", "nominal-null", "stagger-text", "provenance-list"])
+def test_a_forged_sector_meta_is_one_line(capsys, tmp_path, model_files, key, value, words):
+    """Meta values of the wrong type ended in int() / float() / dict() tracebacks."""
+    sector, _ = model_files
+    bad = _sector_with(sector, tmp_path / "bad.npz", {key: value})
+    assert f"{bad}: {words}" in _error(capsys, "model", "import", str(bad), "--out", str(tmp_path / "m.npz"))
+    assert not (tmp_path / "m.npz").exists()

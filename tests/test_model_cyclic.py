@@ -173,7 +173,7 @@ def test_missing_harmonic_index_and_bad_files(tmp_path):
         CyclicSector(**{**{f: getattr(s, f) for f in s.__slots__}, "harmonic_index": s.harmonic_index + 2})
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(ModelFileError, match="not a readable"):
+    with pytest.raises(ModelFileError, match="not an .npz archive"):
         load_sector(bad)
     np.savez(tmp_path / "pickled.npz", meta=np.array([{"a": 1}], dtype=object), harmonic_index=np.arange(2),
              freq_hz=np.ones(2), tip_xyz=np.ones((2, 3)), force_xyz=np.ones(3))

@@ -82,6 +82,9 @@ BAD = {
     "unknown-array": (lambda f: {"surprise": np.zeros(3)}, "unknown array(s) surprise"),
     "negative-frequency": (lambda f: {"freq_hz": -np.ones(145)}, "freq_hz must be in .0, 1e.06. Hz"),
     "absurd-frequency": (lambda f: {"freq_hz": np.full(145, 1e300)}, "freq_hz must be in .0, 1e.06. Hz"),
+    "negative-stiffness-factor": (lambda f: {"stiffness_factors": np.r_[-1.0, np.ones(28)]},
+                                  "stiffness_factors must be > 0 (a blade's factor on the tuned blade), got -1"),
+    "zero-mass-factor": (lambda f: {"mass_factors": np.r_[np.ones(28), 0.0]}, "mass_factors must be > 0"),
 }
 
 

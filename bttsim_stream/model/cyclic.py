@@ -44,17 +44,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..defaults import MAX_BLADES
 from ..errors import ModelFileError
 from .bladed_disk import rotation_z
 from .modal_model import SCHEMA_VERSION as MODEL_SCHEMA_VERSION
 from .modal_model import MAX_SPEEDS, ModalModel, model_from_cartesian, to_polar
+from .npzfile import read_npz
 
-__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "TIP_RADIUS_RANGE_M", "CyclicSector", "expand_sector",
-           "expand_sectors_at_speeds", "save_sector", "load_sector", "builtin_sector", "tip_geometry", "TipGeometry"]
+__all__ = ["SECTOR_SCHEMA", "SECTOR_SCHEMA_VERSION", "TIP_RADIUS_RANGE_M", "SHAPE_RANGE", "TIP_SPACING_MIN",
+           "CyclicSector", "expand_sector", "expand_sectors_at_speeds", "save_sector", "load_sector", "builtin_sector",
+           "tip_geometry", "TipGeometry"]
 
 #: Mean radius of a sector's tip nodes, m: a rotor between 5 mm and 10 m (coordinates in
 #: another unit land outside).
 TIP_RADIUS_RANGE_M = (0.005, 10.0)
+#: Range of the largest component of each solution's tip shape, m per unit mass-normalised
+#: modal coordinate (m / sqrt(kg)): below, a mode that does not move the tip (an all-zero,
+#: blank export); above, a modal mass under 1e-12 kg (shapes not mass-normalised, or not SI).
+#: The force shapes are held to the upper bound.
+SHAPE_RANGE = (1e-12, 1e6)
+#: Least distance between consecutive tip nodes, as a fraction of the tip radius (0.19 um at
+#: 0.19 m): closer nodes are one point, and a chord of one point has no stagger.
+TIP_SPACING_MIN = 1e-6
 
 SECTOR_SCHEMA = "bttsim.cyclic_sector"
 SECTOR_SCHEMA_VERSION = 1
@@ -104,8 +115,8 @@ class CyclicSector:
         k, f = np.asarray(self.harmonic_index), np.asarray(self.freq_hz)
         n = f.shape[0] if f.ndim == 1 else -1
         problems = []
-        if N < 2:
-            problems.append(f"n_sectors must be >= 2, got {N}")
+        if not 2 <= N <= MAX_BLADES:
+            problems.append(f"n_sectors must be in [2, {MAX_BLADES}] (the blades of a run), got {N}")
         if f.ndim != 1 or n == 0:
             problems.append(f"freq_hz must be a non-empty 1-D array, got shape {f.shape}")
         elif not np.all(np.isfinite(f)) or np.any(f <= 0):
@@ -136,6 +147,8 @@ class CyclicSector:
             if not lo <= r_tip <= hi:
                 problems.append(f"the tip radius is {r_tip:.4g} m, outside [{lo:g}, {hi:g}] m: tip_xyz must be in "
                                 f"metres" + (" (this looks like mm)" if r_tip > hi else ""))
+            else:
+                problems += _implausible(t, np.asarray(self.tip_shapes), np.asarray(self.force_shapes), k, f, r_tip)
         if problems:
             raise ModelFileError("; ".join(problems))
 
@@ -148,6 +161,33 @@ class CyclicSector:
         k = np.asarray(self.harmonic_index)
         return {int(h): np.flatnonzero(k == h)[np.argsort(self.freq_hz[k == h], kind="stable")]
                 for h in np.unique(k)}
+
+
+def _implausible(tip_xyz, tip_shapes, force_shapes, k, f, r_tip: float) -> list:
+    """What makes finite, well-shaped sector arrays implausible: tip nodes that coincide, a
+    solution that does not move the tip, shapes beyond any mass-normalised SI mode."""
+    problems = []
+    gap = np.linalg.norm(np.diff(tip_xyz, axis=0), axis=1)
+    if gap.min() < TIP_SPACING_MIN * r_tip:
+        i = int(np.argmin(gap))
+        problems.append(f"tip_xyz: tip nodes {i} and {i + 1} are {gap[i]:.3g} m apart, less than {TIP_SPACING_MIN:g} "
+                        f"of the tip radius: the tip nodes must be distinct points along the chord")
+    lo, hi = SHAPE_RANGE
+    with np.errstate(over="ignore"):
+        top = np.abs(tip_shapes).max(axis=(1, 2))
+        top_force = float(np.abs(force_shapes).max())
+    small = np.flatnonzero(top < lo)
+    if small.size:
+        i = int(small[0])
+        size = "all zero" if top[i] == 0 else f"at most {top[i]:.3g}"
+        problems.append(f"tip_shapes: {small.size} of {top.size} solutions do not move the tip nodes (solution {i}, "
+                        f"harmonic index {k[i]}, {f[i]:.6g} Hz: {size}; each needs a component of at least {lo:g} "
+                        "m per unit modal coordinate)")
+    for name, big in (("tip_shapes", float(top.max())), ("force_shapes", top_force)):
+        if big > hi:
+            problems.append(f"{name}: a component of {big:.3g} m per unit modal coordinate, above {hi:g} (a modal "
+                            "mass below 1e-12 kg): not mass-normalised SI shapes")
+    return problems
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -257,7 +297,9 @@ def expand_sector(sector: CyclicSector, *, damping_ratio=None, damping_beta_s: f
         raise ModelFileError(f"harmonic indices missing from the sector results: {shown} "
                              f"(a {N}-sector wheel needs 0..{N // 2}; select them all in the FE solution)")
     n_fam = min(len(v) for v in fams.values()) if n_families is None else int(n_families)
-    if n_fam < 1 or any(len(v) < n_fam for v in fams.values()):
+    if n_fam < 1:
+        raise ModelFileError(f"n_families must be >= 1 (families kept per nodal diameter), got {n_fam}")
+    if any(len(v) < n_fam for v in fams.values()):
         raise ModelFileError(f"{n_fam} families requested but some harmonic index has only "
                              f"{min(len(v) for v in fams.values())} solutions")
     theta = 2.0 * np.pi * np.arange(N) / N
@@ -480,10 +522,10 @@ def save_sector(sector: CyclicSector, path) -> None:
                  force_shapes=np.asarray(sector.force_shapes, complex))
 
 
-def _shapes(z, name: str, where: str) -> np.ndarray:
-    if name in z.files:
+def _shapes(z: dict, name: str, where: str) -> np.ndarray:
+    if name in z:
         return np.asarray(z[name])
-    if f"{name}_cos" in z.files and f"{name}_sin" in z.files:
+    if f"{name}_cos" in z and f"{name}_sin" in z:
         c, s = np.asarray(z[f"{name}_cos"]), np.asarray(z[f"{name}_sin"])
         if c.shape != s.shape or c.dtype.kind != "f" or s.dtype.kind != "f":
             raise ModelFileError(f"{where}: {name}_cos and {name}_sin must be real arrays of one shape")
@@ -492,44 +534,42 @@ def _shapes(z, name: str, where: str) -> np.ndarray:
 
 
 def load_sector(path) -> CyclicSector:
-    """Read a neutral-format sector file (``np.load(allow_pickle=False)``); any problem is a
-    one-line :class:`ModelFileError`."""
+    """Read a neutral-format sector file (:func:`~bttsim_stream.model.npzfile.read_npz`:
+    ``allow_pickle=False``, size checks); any problem is a one-line :class:`ModelFileError`."""
     where = str(path)
+    z = read_npz(path, "sector file")
+    missing = [k for k in ("meta",) + _ARRAYS if k not in z]
+    if missing:
+        raise ModelFileError(f"{where}: missing {', '.join(missing)} (schema {SECTOR_SCHEMA})")
     try:
-        z = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ModelFileError(f"{where}: no such file") from None
-    except (ValueError, OSError, EOFError) as exc:
-        raise ModelFileError(f"{where}: not a readable .npz sector file ({exc})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):  # one .npy array
-        raise ModelFileError(f"{where}: not an .npz sector file (a single array)")
-    with z:
-        try:
-            missing = [k for k in ("meta",) + _ARRAYS if k not in z.files]
-            if missing:
-                raise ModelFileError(f"{where}: missing {', '.join(missing)} (schema {SECTOR_SCHEMA})")
-            try:
-                meta = json.loads(str(z["meta"]))
-            except (json.JSONDecodeError, ValueError) as exc:
-                raise ModelFileError(f"{where}: meta is not JSON ({exc})") from None
-            if not isinstance(meta, dict) or meta.get("schema") != SECTOR_SCHEMA:
-                raise ModelFileError(f"{where}: meta.schema must be {SECTOR_SCHEMA!r}")
-            if meta.get("schema_version") != SECTOR_SCHEMA_VERSION:
-                raise ModelFileError(f"{where}: schema_version {meta.get('schema_version')!r} is not supported "
-                                     f"(this reader knows {SECTOR_SCHEMA_VERSION})")
-            if not isinstance(meta.get("n_sectors"), int):
-                raise ModelFileError(f"{where}: meta.n_sectors must be an integer")
-            arrays = {k: np.asarray(z[k]) for k in _ARRAYS}
-            tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
-        except ValueError as exc:  # pickled object arrays and damaged members
-            raise ModelFileError(f"{where}: unreadable array ({exc})") from None
+        meta = json.loads(str(z["meta"]))
+    except json.JSONDecodeError as exc:
+        raise ModelFileError(f"{where}: meta is not JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("schema") != SECTOR_SCHEMA:
+        raise ModelFileError(f"{where}: meta.schema must be {SECTOR_SCHEMA!r}")
+    if meta.get("schema_version") != SECTOR_SCHEMA_VERSION:
+        raise ModelFileError(f"{where}: schema_version {meta.get('schema_version')!r} is not supported "
+                             f"(this reader knows {SECTOR_SCHEMA_VERSION})")
+    n_sectors = meta.get("n_sectors")
+    if isinstance(n_sectors, bool) or not isinstance(n_sectors, int) or not 2 <= n_sectors <= MAX_BLADES:
+        raise ModelFileError(f"{where}: meta.n_sectors must be an integer in [2, {MAX_BLADES}] (the blades of a "
+                             f"run), got {n_sectors!r}")
+    nominal, stagger = meta.get("nominal_node", z["tip_xyz"].shape[0] // 2), meta.get("stagger_deg")
+    if isinstance(nominal, bool) or not isinstance(nominal, int):
+        raise ModelFileError(f"{where}: meta.nominal_node must be a tip node index, got {nominal!r}")
+    if stagger is not None and (isinstance(stagger, bool) or not isinstance(stagger, (int, float))
+                                or not math.isfinite(stagger)):
+        raise ModelFileError(f"{where}: meta.stagger_deg must be a number of degrees, got {stagger!r}")
+    if not isinstance(meta.get("provenance", {}), dict):
+        raise ModelFileError(f"{where}: meta.provenance must be a JSON object")
+    arrays = {k: z[k] for k in _ARRAYS}
+    tip, force = _shapes(z, "tip_shapes", where), _shapes(z, "force_shapes", where)
     try:
-        return CyclicSector(n_sectors=meta["n_sectors"], harmonic_index=arrays["harmonic_index"],
+        return CyclicSector(n_sectors=n_sectors, harmonic_index=arrays["harmonic_index"],
                             freq_hz=arrays["freq_hz"], tip_xyz=arrays["tip_xyz"], tip_shapes=tip,
                             force_xyz=arrays["force_xyz"], force_shapes=force,
-                            nominal_node=int(meta.get("nominal_node", arrays["tip_xyz"].shape[0] // 2)),
-                            stagger_deg=meta.get("stagger_deg"), normalisation=meta.get("normalisation", "sector"),
-                            provenance=meta.get("provenance", {}))
+                            nominal_node=nominal, stagger_deg=stagger,
+                            normalisation=meta.get("normalisation", "sector"), provenance=meta.get("provenance", {}))
     except ModelFileError as exc:
         raise ModelFileError(f"{where}: {exc}") from None
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..defaults import MAX_BLADES
 from ..errors import ModelFileError
 from .cyclic import TIP_RADIUS_RANGE_M, CyclicSector, expand_sector, load_sector
 from .frd import read_frd
@@ -138,8 +139,9 @@ def _checked(o: ImportOptions, where: str) -> ImportOptions:
         bad(f"format must be one of {', '.join(FORMATS)}, got {o.format!r}")
     if o.units not in _UNITS:
         bad(f"units must be one of {', '.join(_UNITS)}, got {o.units!r}")
-    if o.n_sectors is not None and (not isinstance(o.n_sectors, int) or o.n_sectors < 2):
-        bad(f"n_sectors must be an integer >= 2, got {o.n_sectors!r}")
+    if o.n_sectors is not None and (isinstance(o.n_sectors, bool) or not isinstance(o.n_sectors, int)
+                                    or not 2 <= o.n_sectors <= MAX_BLADES):
+        bad(f"n_sectors must be an integer in [2, {MAX_BLADES}] (the blades of a run), got {o.n_sectors!r}")
     if sum(bool(x) for x in (o.tip_nodes, o.tip_nset, o.tip_xyz)) > 1:
         bad("give the tip nodes one way: tip_nodes, tip_nset or tip_xyz")
     if sum(x is not None for x in (o.force_node, o.force_nset, o.force_xyz)) > 1:
@@ -156,6 +158,9 @@ def _checked(o: ImportOptions, where: str) -> ImportOptions:
         bad(f"speeds_rpm must be a list of speeds >= 0 rpm, got {o.speeds_rpm!r}")
     if o.speeds_rpm and (o.speeds_rpm[0] != 0 or any(b <= a for a, b in zip(o.speeds_rpm, o.speeds_rpm[1:]))):
         bad(f"speeds_rpm must be strictly ascending from 0, got {', '.join(f'{v:g}' for v in o.speeds_rpm)}")
+    if o.n_families is not None and (isinstance(o.n_families, bool) or not isinstance(o.n_families, int)
+                                     or o.n_families < 1):
+        bad(f"n_families must be an integer >= 1 (families kept per nodal diameter), got {o.n_families!r}")
     if not (isinstance(o.damping_beta_s, (int, float)) and 0 <= o.damping_beta_s < 1e-2):
         bad(f"damping_beta_s must be a number in [0, 0.01) s, got {o.damping_beta_s!r}")
     return o

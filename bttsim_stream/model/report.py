@@ -107,10 +107,14 @@ def plot_family_frequencies(model: ModalModel, png: Path, engine_orders=DEFAULT_
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
+    png = Path(png)
+    tmp = png.with_name(png.name + ".part")  # a failed write leaves the previous plot as it was
     try:
         png.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(png, dpi=110)
+        fig.savefig(tmp, dpi=110, format="png")
+        tmp.replace(png)
     except OSError as exc:
+        tmp.unlink(missing_ok=True)
         raise BttsimError(f"{png}: cannot write: {exc.strerror or exc}") from None
     finally:
         plt.close(fig)
