@@ -285,15 +285,12 @@ def _cmd_process(args: argparse.Namespace) -> None:
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     probe_notes = check_probes(args.mcap, run, opts)
-    if opts.window > run.revolution.size:
-        raise BttsimError(f"{args.mcap}: a sine-fit window of {opts.window} revolutions is longer than the run's "
-                          f"{run.revolution.size}")
     progress.phase(f"processing {run.revolution.size} revolutions ...")
     progress.close()
     try:
         result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
                                 revolution0=int(run.revolution[0]), spectra=False)  # the report only
-    except ValueError as exc:  # an impossible layout (LayoutError), inconsistent arrays
+    except ValueError as exc:  # an impossible layout (LayoutError), a window longer than the run, inconsistent arrays
         raise BttsimError(f"{args.mcap}: {exc}") from None
     except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway
         raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None
@@ -712,8 +709,8 @@ def _add_campaign_parser(sub) -> None:
     p.add_argument("--out", required=True, help="output folder: results.parquet, report.md, runs/")
     p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://HOST:PORT); default: an "
                                                          "embedded LocalCluster on loopback")
-    p.add_argument("--workers", type=positive_count, metavar="N",
-                   help="workers of the embedded cluster (default: one per core)")
+    p.add_argument("--workers", type=_worker_count, metavar="N",
+                   help="workers of the embedded cluster (default: one per core; never more than the runs)")
     p.add_argument("--tls-dir", metavar="DIR", help="TLS to a tls:// scheduler with the certificates of bttsim certs: "
                                                    "DIR/ca.pem, DIR/campaign.pem, DIR/campaign-key.pem")
     p.add_argument("--resume", action="store_true", help="keep the runs already in --out, run the rest")
@@ -723,6 +720,16 @@ def _add_campaign_parser(sub) -> None:
                    help="serve the embedded cluster's Dask dashboard there (needs bokeh; e.g. 127.0.0.1:8787)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_campaign)
+
+
+def _worker_count(text: str) -> int:
+    """``--workers N``: 1 to the embedded cluster's maximum."""
+    from .campaign.driver import MAX_WORKERS
+
+    n = positive_count(text)
+    if n > MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"{text!r} is above {MAX_WORKERS} (the most workers of the embedded cluster)")
+    return n
 
 
 def _dashboard_address(text: str) -> str:

@@ -606,7 +606,7 @@ def _comment(text: str) -> list[str]:
 
 
 def _emit_table(lines: list[str], cls: type, table: Mapping[str, Any], comments: bool) -> None:
-    docs = _comments(cls)
+    docs = _comments(cls) if comments else {}  # the comments cost more than the rest of the text
     for k, v in table.items():
         if k == "segments" and not v:
             if comments:

@@ -299,7 +299,9 @@ def test_user_processor_and_failures(cluster, tmp_path, monkeypatch):
     ("[axes]\n\"speed.duration_s\" = {start = 1.0, stop = 2.0}\n", "range"),
     ("[campagn]\n", "did you mean 'campaign'"),
     ("[campaign\n", "malformed TOML"),
-], ids=["seeds", "method", "axis-name", "axis-value", "range", "table", "toml"])
+    ("[campaign]\nseeds = 1000\n[axes]\n\"acquisition.trigger_jitter_s\" = {start = 0.0, stop = 1e-6, num = 101}\n",
+     "expands to 101000 runs (at most 100000)"),
+], ids=["seeds", "method", "axis-name", "axis-value", "range", "table", "toml", "too-many-runs"])
 def test_bad_spec_exit_2(tmp_path, capsys, text, needle):
     (tmp_path / "bad.toml").write_text(text)
     assert main(["campaign", str(tmp_path / "bad.toml"), "--out", str(tmp_path / "out")]) == 2
@@ -317,6 +319,166 @@ def test_scheduler_unreachable_exit_2(tmp_path, capsys):
                  "--scheduler", f"tcp://127.0.0.1:{port}", "--connect-timeout", "2"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot reach the Dask scheduler" in err
+    assert not (tmp_path / "out").exists()  # a failed start leaves no folder
+    (tmp_path / "empty").mkdir()
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--out", str(tmp_path / "empty"), "-q",
+                 "--scheduler", f"tcp://127.0.0.1:{port}", "--connect-timeout", "1"]) == 2
+    assert list((tmp_path / "empty").iterdir()) == []  # nor anything in an existing one
+    capsys.readouterr()
+
+
+#: One short run (128 revolutions), for the checks of the output folder and the options.
+SHORT = """
+[campaign]
+seeds = 1
+processors = ["peak"]
+
+[scenario.speed]
+start_rpm = 2450.0
+end_rpm = 2700.0
+duration_s = 3.0
+
+[axes]
+"acquisition.trigger_jitter_s" = [0.0]
+"""
+
+
+def _snapshot(d: Path) -> dict:
+    return {str(p.relative_to(d)): (p.read_bytes() if p.is_file() else None) for p in sorted(d.rglob("*"))}
+
+
+def test_window_longer_than_the_run_is_an_error_row(cluster, tmp_path):
+    """A processor whose sine-fit window is longer than the run is refused as `bttsim process
+    --window` refuses it: an error row with the reason, never a scored result."""
+    (tmp_path / "spec.toml").write_text(SHORT.replace('["peak"]', '["peak", {name = "w1000", method = "peak", '
+                                                                    'window = 1000}]'))
+    spec = load_spec(tmp_path / "spec.toml")
+    res = run_campaign(spec, tmp_path / "out", scheduler=cluster.scheduler_address)
+    rows = pq.read_table(tmp_path / "out" / "results.parquet").to_pylist()
+    from bttsim_stream.campaign.run import _simulate
+    from bttsim_stream.scenario import scenario_from_dict
+    import tomllib
+
+    run = expand(spec)[0]
+    n_rev = _simulate(run, scenario_from_dict(tomllib.loads(run.scenario_toml)))[2].size  # the run's revolutions
+    assert {r["status"] for r in rows if r["method"] == "peak"} == {"ok"}
+    (bad,) = [r for r in rows if r["method"] == "w1000"]
+    assert bad["status"] == "error" and np.isnan(bad["E_A_pct"]) and bad["blade"] == -1
+    assert f"a sine-fit window of 1000 revolutions is longer than the run's {n_rev}" in bad["error"], bad["error"]
+    assert res.failed == 1 and 100 < n_rev < 1000
+    assert "| w1000 | error | 1 |" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_resume_reruns_a_damaged_or_foreign_part(cluster, tmp_path):
+    """--resume trusts only a part file that is a readable Parquet file of the campaign's
+    columns holding its own run's rows: a truncated one, one of other columns, or another
+    run's, is run again, and results.parquet is the same as the first call's."""
+    (tmp_path / "spec.toml").write_text(SHORT.replace("[0.0]", "[0.0, 1e-6]"))
+    spec = load_spec(tmp_path / "spec.toml")
+    out = tmp_path / "out"
+    run_campaign(spec, out, scheduler=cluster.scheduler_address)
+    first = _values(out / "results.parquet")
+    a, b = (out / "runs" / f"{r.run_id}.parquet" for r in expand(spec))
+    import pyarrow as pa
+
+    for damage in (lambda: a.write_bytes(a.read_bytes()[:100]),  # truncated
+                   lambda: pq.write_table(pa.table({"index": [0]}), a),  # a Parquet file of other columns
+                   lambda: shutil.copyfile(b, a)):  # the other run's rows
+        damage()
+        resumed = run_campaign(spec, out, scheduler=cluster.scheduler_address, resume=True)
+        assert (resumed.executed, resumed.skipped) == (1, 1)
+        assert _values(out / "results.parquet") == first and _values(a) == _values(b.with_name(a.name))
+
+
+def test_resume_refuses_another_study(tmp_path, capsys):
+    """--resume on a folder of another spec, or of campaign outputs without spec.json, is one
+    line and exit 2 before anything starts, and the folder is left as it was."""
+    from bttsim_stream.campaign.driver import spec_record
+
+    (tmp_path / "a.toml").write_text(SHORT)
+    (tmp_path / "b.toml").write_text(SHORT.replace("[0.0]", "[1e-6]"))
+    (tmp_path / "c.toml").write_text(SHORT.replace('["peak"]', '[{name = "peak", method = "peak", window = 3}]'))
+    other, foreign = tmp_path / "other", tmp_path / "foreign"
+    (other / "runs").mkdir(parents=True)
+    (other / "spec.json").write_text(json.dumps(spec_record(load_spec(tmp_path / "a.toml"))))
+    (other / "results.parquet").write_bytes(b"the earlier study's results")
+    (other / "report.md").write_text("# the earlier study\n")
+    foreign.mkdir()
+    (foreign / "report.md").write_text("# someone's report\n")
+    (foreign / "results.parquet").write_bytes(b"someone's table")
+    unreachable = ["--scheduler", "tcp://127.0.0.1:9", "--connect-timeout", "1", "-q", "--resume"]
+    for spec, out, needle in (("b", other, "other/spec.json: the folder holds another study (its spec differs)"),
+                              ("c", other, "another study"),
+                              ("a", foreign, "holds results.parquet, report.md but no spec.json")):
+        before = _snapshot(out)
+        assert main(["campaign", str(tmp_path / f"{spec}.toml"), "--out", str(out), *unreachable]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and needle in err, err
+        assert _snapshot(out) == before
+
+
+def test_results_path_not_a_file(tmp_path, capsys):
+    """A results.parquet that is a folder is named (not a temporary file) and nothing is left."""
+    from bttsim_stream.campaign.driver import spec_record
+    from bttsim_stream.campaign.results import write_rows
+    from bttsim_stream.errors import BttsimError
+
+    (tmp_path / "spec.toml").write_text(SHORT)
+    spec = load_spec(tmp_path / "spec.toml")
+    out = tmp_path / "out"
+    (out / "results.parquet").mkdir(parents=True)
+    (out / "spec.json").write_text(json.dumps(spec_record(spec)))
+    before = _snapshot(out)
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--out", str(out), "-q", "--resume",
+                 "--scheduler", "tcp://127.0.0.1:9", "--connect-timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'results.parquet'}: not a file" in err and ".tmp" not in err, err
+    assert _snapshot(out) == before
+    with pytest.raises(BttsimError, match=r"results\.parquet: cannot write") as info:
+        write_rows(out / "results.parquet", [], spec)
+    assert ".tmp" not in str(info.value) and _snapshot(out) == before
+
+
+def test_bad_workers_or_dashboard_exit_2(tmp_path):
+    """--workers beyond the maximum is an argument error; a dashboard address not on this
+    machine is one line: both exit 2 at once and leave no folder."""
+    (tmp_path / "spec.toml").write_text(SHORT)
+    for opt, needle in ((["--workers", "1000000"], "argument --workers: '1000000' is above 256"),
+                        (["--dashboard", "192.0.2.1:8787"], "cannot start the embedded Dask cluster with --dashboard "
+                                                            "192.0.2.1:8787")):
+        p = subprocess.Popen([sys.executable, "-m", "bttsim_stream.cli", "campaign", tmp_path / "spec.toml", "--out",
+                              tmp_path / "out", "-q", *opt], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        try:
+            _, err = p.communicate(timeout=120)
+        finally:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        assert p.returncode == 2 and err.count("\n") == 1 and needle in err, err
+        assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.unit
+def test_expansion_validates_each_axis_point_once(tmp_path, monkeypatch):
+    """Each axis point's scenario is built once whatever the seed count, and every run's TOML
+    is the scenario writer's own text of that run (seed included)."""
+    import tomllib
+
+    from bttsim_stream.campaign import spec as spec_mod
+    from bttsim_stream.scenario import dumps_toml, scenario_from_dict
+
+    (tmp_path / "spec.toml").write_text(SHORT.replace("seeds = 1", "seeds = 7").replace("[0.0]", "[0.0, 1e-6, 2e-6]")
+                                        + '"excitation.amplitude_n" = [1.0, 2.25]\n')
+    spec = load_spec(tmp_path / "spec.toml")
+    calls = []
+    monkeypatch.setattr(spec_mod, "scenario_from_dict", lambda *a, **k: calls.append(1) or scenario_from_dict(*a, **k))
+    runs = expand(spec)
+    assert len(runs) == 42 and len(calls) == 6 and len({r.run_id for r in runs}) == 42
+    for r in runs:
+        d = tomllib.loads(r.scenario_toml)
+        assert d["run"]["seed"] == r.seed and r.scenario_toml == dumps_toml(scenario_from_dict(d))
+        assert d["acquisition"]["trigger_jitter_s"] == r.point["acquisition.trigger_jitter_s"]
 
 
 @pytest.mark.unit

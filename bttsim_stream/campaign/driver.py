@@ -24,11 +24,18 @@ from pathlib import Path
 from .. import __version__
 from ..errors import BttsimError
 from .report import write_report
-from .results import PARTS, read_rows, sort_rows, write_rows
+from .results import PARTS, read_part, sort_rows, write_rows
 from .run import execute_run, warm_up
 from .spec import CampaignSpec, RunSpec, expand
 
-__all__ = ["CampaignOutcome", "run_campaign", "connect", "tls_security"]
+__all__ = ["CampaignOutcome", "run_campaign", "connect", "tls_security", "spec_record", "MAX_WORKERS"]
+
+#: Most workers of the embedded cluster (``--workers``); it never starts more than there are
+#: runs to do.
+MAX_WORKERS = 256
+
+#: The files a campaign writes in its folder (besides ``runs/`` and the figures).
+OUTPUTS = ("spec.json", "campaign.json", "results.parquet", "report.md")
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,14 +118,19 @@ def connect(scheduler: str | None, n_workers: int | None, *, timeout_s: float = 
             raise BttsimError(f"cannot reach the Dask scheduler at {scheduler} "
                               f"({' '.join(str(exc).split())[:200]}){hint}") from None
     n = int(n_workers) if n_workers else (os.cpu_count() or 1)
-    if n < 1:
-        raise BttsimError(f"--workers must be >= 1, got {n}")
+    if not 1 <= n <= MAX_WORKERS:
+        raise BttsimError(f"--workers must be in 1..{MAX_WORKERS}, got {n}")
     # the scheduler's HTTP server (health, metrics; the dashboard with bokeh) always starts:
     # on a free loopback port unless an address is asked for
-    with dask.config.set(EMBEDDED_CONFIG | {"distributed.nanny.pre-spawn-environ": worker_environ()}):
-        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                           dashboard_address=dashboard or "127.0.0.1:0",
-                                           silence_logs=logging.CRITICAL)
+    try:
+        with dask.config.set(EMBEDDED_CONFIG | {"distributed.nanny.pre-spawn-environ": worker_environ()}):
+            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                               dashboard_address=dashboard or "127.0.0.1:0",
+                                               silence_logs=logging.CRITICAL)
+    except (OSError, RuntimeError) as exc:  # Dask's "Cluster failed to start: [Errno 99] ..."
+        where = f" with --dashboard {dashboard}" if dashboard else ""
+        raise BttsimError(f"cannot start the embedded Dask cluster{where} ({' '.join(str(exc).split())[:200]})"
+                          ) from None
     return distributed.Client(cluster), cluster
 
 
@@ -206,6 +218,76 @@ def _write_summary(path: Path, outcome: CampaignOutcome, *, resume: bool, schedu
         "software_version": __version__}, indent=2, allow_nan=False) + "\n")
 
 
+def spec_record(spec: CampaignSpec) -> dict:
+    """``spec.json``: the expanded spec as JSON values (what ``--resume`` compares, but for the
+    spec file's path and the software version)."""
+    return json.loads(json.dumps({"name": spec.name, "source": spec.source, "base": spec.base,
+                                  "axes": {a.name: list(a.values) for a in spec.axes}, "seeds": list(spec.seeds),
+                                  "processors": [{"name": p.name, "method": p.method, "prep": p.prep,
+                                                  "window": p.window, "target": p.target} for p in spec.processors],
+                                  "software_version": __version__}))
+
+
+def _same_study(a: dict, b: dict) -> bool:
+    def key(d):
+        return {k: v for k, v in d.items() if k not in ("source", "software_version")}
+
+    return isinstance(a, dict) and key(a) == key(b)
+
+
+def _check_folder(out: Path, record: dict, resume: bool) -> None:
+    """Refuse an output folder (one-line :class:`BttsimError`, nothing written) that is not a
+    folder, holds a campaign without ``resume``, or with ``resume`` holds another study's
+    (its ``spec.json`` differs) or campaign outputs without a ``spec.json``."""
+    if out.exists() and not out.is_dir():
+        raise BttsimError(f"{out}: not a folder")
+    for name in OUTPUTS:
+        if (out / name).exists() and not (out / name).is_file():
+            raise BttsimError(f"{out / name}: not a file (the campaign writes it there); use another --out")
+    found = [n for n in OUTPUTS if (out / n).exists()]
+    if (out / PARTS).is_dir() and any((out / PARTS).glob("*.parquet")):
+        found.append(f"{PARTS}/")
+    if not found:
+        return
+    if not resume:
+        raise BttsimError(f"{out} already holds a campaign: --resume to finish it, or another --out")
+    path = out / "spec.json"
+    if "spec.json" not in found:
+        raise BttsimError(f"{out}: holds {', '.join(found)} but no spec.json (not a campaign to resume); "
+                          "use another --out")
+    try:
+        prev = json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise BttsimError(f"{path}: unreadable, not a campaign's spec; use another --out") from None
+    if not _same_study(prev, record):
+        raise BttsimError(f"{path}: the folder holds another study (its spec differs); use another --out")
+
+
+def _kept_runs(parts: Path, runs: list[RunSpec], spec: CampaignSpec, progress) -> dict:
+    """run_id -> rows of the runs already in ``parts`` (``--resume``). A part file that is
+    unreadable, of other columns or of another run is not trusted: its run runs again."""
+    have = {p.stem for p in parts.glob("*.parquet")} if parts.is_dir() else set()
+    kept = {}
+    for r in runs:
+        if r.run_id in have:
+            path = parts / f"{r.run_id}.parquet"
+            try:
+                kept[r.run_id] = read_part(path, spec, r.run_id)
+            except ValueError as exc:
+                if progress is not None:
+                    progress.note(f"campaign: {path}: {exc}; the run runs again")
+    return kept
+
+
+def _start_folder(out: Path, record: dict) -> None:
+    """Create ``out`` and ``out/runs`` and write ``spec.json``."""
+    try:
+        (out / PARTS).mkdir(parents=True, exist_ok=True)
+        (out / "spec.json").write_text(json.dumps(record, indent=2) + "\n")
+    except OSError as exc:
+        raise BttsimError(f"{out}: cannot write ({exc.strerror or exc})") from None
+
+
 def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n_workers: int | None = None,
                  resume: bool = False, progress=None, timeout_s: float = 10.0,
                  dashboard: str | None = None, security=None) -> CampaignOutcome:
@@ -233,30 +315,28 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
     pyarrow_modules()  # the extra is there before anything runs
     out = Path(out_dir)
     runs = expand(spec)
+    record = spec_record(spec)
+    _check_folder(out, record, resume)
     parts = out / PARTS
-    existing = {p.stem for p in parts.glob("*.parquet")} if parts.is_dir() else set()
-    if (existing or (out / "results.parquet").exists()) and not resume:
-        raise BttsimError(f"{out} already holds a campaign: --resume to finish it, or another --out")
-    try:
-        parts.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise BttsimError(f"{out}: cannot create ({exc.strerror or exc})") from None
-    (out / "spec.json").write_text(json.dumps({"name": spec.name, "source": spec.source, "base": spec.base,
-                                               "axes": {a.name: list(a.values) for a in spec.axes},
-                                               "seeds": list(spec.seeds),
-                                               "processors": [p.name for p in spec.processors],
-                                               "software_version": __version__}, indent=2) + "\n")
-    todo = [r for r in runs if r.run_id not in existing]
+    kept = _kept_runs(parts, runs, spec, progress) if resume else {}
+    todo = [r for r in runs if r.run_id not in kept]
     skipped = len(runs) - len(todo)
+    by_run = dict(kept)  # run_id -> its rows
     lost: list[dict] = []
     t0 = time.perf_counter()
     t_submit = t_last = t0
     done = failed = 0
     n_workers_seen = 0
     interrupted = False
-    if todo:
-        client, cluster = connect(scheduler, n_workers, timeout_s=timeout_s, dashboard=dashboard, security=security)
+    if not todo:
+        _start_folder(out, record)
+    else:
+        # no more workers than runs; the folder is written once the cluster is up (a failed
+        # start leaves nothing)
+        n = None if scheduler else min(n_workers or os.cpu_count() or 1, len(todo))
+        client, cluster = connect(scheduler, n, timeout_s=timeout_s, dashboard=dashboard, security=security)
         try:
+            _start_folder(out, record)
             distributed = _dask()
             n_workers_seen = len(client.scheduler_info().get("workers", {}))
             client.run(warm_up)  # imports on every worker now, not in the first runs' timings
@@ -276,6 +356,7 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
                     if fut.status == "finished":
                         rows = fut.result()
                         write_rows(parts / f"{r.run_id}.parquet", rows, spec)
+                        by_run[r.run_id] = rows
                         bad = any(x["status"] == "error" for x in rows)
                     else:
                         rows = _lost_rows(r, fut.exception())
@@ -299,9 +380,7 @@ def run_campaign(spec: CampaignSpec, out_dir, *, scheduler: str | None = None, n
     wall, compute = t_last - t0, t_last - t_submit
     if progress is not None:
         progress.close()
-    ids = {r.run_id for r in runs}
-    rows = [row for p in parts.glob("*.parquet") if p.stem in ids for row in read_rows(p)]
-    rows = sort_rows(rows + lost, spec)
+    rows = sort_rows([row for rs in by_run.values() for row in rs] + lost, spec)
     results = out / "results.parquet"
     write_rows(results, rows, spec)
     report = out / "report.md"

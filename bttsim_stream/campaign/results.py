@@ -16,7 +16,7 @@ from ..errors import BttsimError
 from .run import ROW_COLUMNS
 from .spec import CampaignSpec
 
-__all__ = ["pyarrow_modules", "schema", "write_rows", "read_rows", "sort_rows", "PARTS"]
+__all__ = ["pyarrow_modules", "schema", "write_rows", "read_rows", "read_part", "sort_rows", "PARTS"]
 
 #: The folder of per-run part files under the output folder.
 PARTS = "runs"
@@ -66,20 +66,42 @@ def _cell(v, t, pa):
 
 
 def write_rows(path, rows: list[dict], spec: CampaignSpec) -> None:
-    """Write ``rows`` as Parquet at ``path``, atomically (a temporary file renamed)."""
+    """Write ``rows`` as Parquet at ``path``, atomically (a temporary file renamed); a path
+    that cannot be written is a one-line :class:`BttsimError` naming it (no temporary left)."""
     pa, pq = pyarrow_modules()
     sch = schema(spec)
     cols = {f.name: pa.array([_cell(r.get(f.name), f.type, pa) for r in rows], type=f.type) for f in sch}
     path = Path(path)
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    pq.write_table(pa.table(cols, schema=sch), tmp)
-    os.replace(tmp, path)
+    try:
+        pq.write_table(pa.table(cols, schema=sch), tmp)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise BttsimError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
 
 def read_rows(path) -> list[dict]:
     """The rows of a results (or part) file as dicts."""
     _, pq = pyarrow_modules()
     return pq.read_table(path).to_pylist()
+
+
+def read_part(path, spec: CampaignSpec, run_id: str) -> list[dict]:
+    """The rows of a run's part file, checked: a readable Parquet file of the spec's columns
+    and types holding rows of ``run_id`` only. ValueError saying why otherwise (a damaged,
+    truncated or foreign file: ``--resume`` runs the run again)."""
+    pa, pq = pyarrow_modules()
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise ValueError(f"unreadable ({' '.join(str(exc).split())[:200]})") from None
+    if not table.schema.equals(schema(spec)):
+        raise ValueError("not the columns of this campaign's results")
+    ids = set(table.column("run_id").to_pylist())
+    if ids != {run_id}:
+        raise ValueError(f"rows of run(s) {', '.join(sorted(map(str, ids))) or 'none'}, not of run {run_id}")
+    return table.to_pylist()
 
 
 def sort_rows(rows: list[dict], spec: CampaignSpec) -> list[dict]:

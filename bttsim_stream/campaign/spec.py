@@ -34,7 +34,7 @@ import itertools
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,13 +43,15 @@ import numpy as np
 from .. import __version__
 from ..errors import BttsimError
 from ..process.pipeline import METHODS
-from ..scenario import MAX_SEED, dumps_toml, load_scenario, read_toml_file, scenario_from_dict, scenario_to_dict
+from ..scenario import (MAX_SEED, Scenario, dumps_toml, load_scenario, read_toml_file, scenario_from_dict,
+                        scenario_to_dict)
 
 __all__ = ["SpecError", "Processor", "Axis", "CampaignSpec", "RunSpec", "load_spec", "spec_from_dict", "expand",
            "run_seed", "MAX_RUNS"]
 
-#: Most runs one spec may expand to (a typo in a range must not submit a billion tasks).
-MAX_RUNS = 1_000_000
+#: Most runs one spec may expand to (a typo in a range must not submit a billion tasks): a
+#: spec of this many expands in about 3 s (twice: when read and when the campaign starts).
+MAX_RUNS = 100_000
 _CAMPAIGN_KEYS = ("name", "scenario", "seed", "seeds", "processors", "retries", "mcap")
 _TOP_KEYS = ("campaign", "scenario", "axes")
 _PROCESSOR_KEYS = ("name", "method", "prep", "window")
@@ -409,22 +411,25 @@ def _set_path(d: dict, name: str, value) -> dict:
 
 def expand(spec: CampaignSpec) -> list[RunSpec]:
     """Every run of the spec, validated: axis points in grid order (first axis outermost),
-    replicates innermost. A bad value is a :class:`SpecError` naming the axis values."""
+    replicates innermost. A bad value is a :class:`SpecError` naming the axis values.
+
+    Each axis point's scenario is built and validated once: its runs differ only in ``[run]
+    seed`` (checked when the spec is read; no check of a scenario reads it), so their TOML is
+    the point's with the seed line changed (:func:`_seed_tomls`)."""
     runs, seen = [], {}
     grids = [a.values for a in spec.axes]
     for point in itertools.product(*grids):
         values = dict(zip(spec.axis_names, point))
-        for r, seed in enumerate(spec.seeds):
-            d = spec.base
-            for n, v in values.items():
-                d = _set_path(d, n, v)
-            d = _set_path(d, "run.seed", seed)
-            where = ", ".join(f"{n} = {v!r}" for n, v in values.items()) or "the base scenario"
-            try:
-                scn = scenario_from_dict(d, source="[scenario]", base_dir=spec.base_dir)
-            except BttsimError as exc:
-                raise _fail(spec.source, f"run with {where}: {exc}") from None
-            toml = dumps_toml(scn)
+        d = spec.base
+        for n, v in values.items():
+            d = _set_path(d, n, v)
+        d = _set_path(d, "run.seed", spec.seeds[0])
+        where = ", ".join(f"{n} = {v!r}" for n, v in values.items()) or "the base scenario"
+        try:
+            scn = scenario_from_dict(d, source="[scenario]", base_dir=spec.base_dir)
+        except BttsimError as exc:
+            raise _fail(spec.source, f"run with {where}: {exc}") from None
+        for r, (seed, toml) in enumerate(zip(spec.seeds, _seed_tomls(scn, spec.seeds))):
             run_id = _run_id(toml, spec.processors)
             if run_id in seen:
                 raise _fail(spec.source, f"runs {seen[run_id]} and {len(runs)} are the same scenario ({where})")
@@ -432,6 +437,25 @@ def expand(spec: CampaignSpec) -> list[RunSpec]:
             runs.append(RunSpec(run_id=run_id, index=len(runs), replicate=r, seed=seed, point=values,
                                 scenario_toml=toml, processors=spec.processors, mcap=spec.mcap))
     return runs
+
+
+def _seed_tomls(scn: Scenario, seeds) -> list[str]:
+    """``dumps_toml`` of ``scn`` with each of ``seeds`` as its ``[run] seed``: two texts are
+    written, and the others made from them by their one differing line (``seed = N``); the
+    texts themselves when they differ otherwise."""
+    def dumps(seed):
+        return dumps_toml(replace(scn, run=replace(scn.run, seed=seed)))
+
+    first = dumps(seeds[0])
+    if len(seeds) == 1:
+        return [first]
+    other = seeds[1]
+    a, b = first.split("\n"), dumps(other).split("\n")
+    diff = [i for i, (x, y) in enumerate(zip(a, b)) if x != y]
+    if len(a) != len(b) or len(diff) != 1 or (a[diff[0]], b[diff[0]]) != (f"seed = {seeds[0]}", f"seed = {other}"):
+        return [dumps(seed) for seed in seeds]
+    head, tail = "\n".join(a[:diff[0]]) + "\nseed = ", "\n" + "\n".join(a[diff[0] + 1:])
+    return [f"{head}{seed}{tail}" for seed in seeds]
 
 
 def _run_id(scenario_toml: str, processors) -> str:

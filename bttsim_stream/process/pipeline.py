@@ -42,7 +42,7 @@ from .travelling_wave import fit_spectra, identify_nd, probe_spectra
 # ProcessOptions, RevolutionFit, RevolutionOutput and engine_orders_of are re-exported for
 # the callers that import them from here.
 __all__ = ["ProcessOptions", "ProcessingResult", "RevolutionFit", "RevolutionOutput", "process_arrays",
-           "engine_orders_of", "METHODS", "REPORT_MODULES", "load_report_modules"]
+           "check_window", "engine_orders_of", "METHODS", "REPORT_MODULES", "load_report_modules"]
 
 #: The modules the report imports when it first needs them (the crossings' peaks, the
 #: smoother, the fits): about a second of imports, left out of the start of every command.
@@ -140,6 +140,13 @@ def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
     return np.where(np.isfinite(med), med, 0.0)
 
 
+def check_window(window: int, n_rev: int) -> None:
+    """A sine-fit window must fit in the run: ValueError, one line, when ``window`` revolutions
+    are more than the run's ``n_rev``."""
+    if window > n_rev:
+        raise ValueError(f"a sine-fit window of {window} revolutions is longer than the run's {n_rev}")
+
+
 def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessOptions = ProcessOptions(),
                    truth=None, *, revolution0: int = 0, spectra: bool = True) -> ProcessingResult:
     """Process a whole run: find every resonance crossing and dwell, and report them.
@@ -190,6 +197,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     n_rev = opr.size
     if n_rev < 3:
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
+    check_window(options.window, n_rev)
     notes: list[str] = []
     eos_asked, cns, joint = _orders_asked(info, geometry, options, notes)
     rows_truth = _truth_rows(truth, n_rev, revolution0)
