@@ -32,7 +32,7 @@ from .offline import (PROCESS_TRUTH_FIELDS, add_processing_arguments, check_prob
                       parse_engine_orders,
                       processing_options, result_warnings, with_processing)
 from .orchestrate import run_all
-from .process.pipeline import process_arrays
+from .process.pipeline import check_window, process_arrays
 from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
                              check_layout, layout_report, rank_layouts)
 from .process.resonance import summary_table
@@ -285,12 +285,16 @@ def _cmd_process(args: argparse.Namespace) -> None:
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     probe_notes = check_probes(args.mcap, run, opts)
+    try:
+        check_window(opts.window, run.revolution.size)
+    except ValueError as exc:
+        raise BttsimError(f"{args.mcap}: {exc}") from None
     progress.phase(f"processing {run.revolution.size} revolutions ...")
     progress.close()
     try:
         result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
                                 revolution0=int(run.revolution[0]), spectra=False)  # the report only
-    except ValueError as exc:  # an impossible layout (LayoutError), a window longer than the run, inconsistent arrays
+    except ValueError as exc:  # an impossible layout (LayoutError), inconsistent arrays
         raise BttsimError(f"{args.mcap}: {exc}") from None
     except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway
         raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None

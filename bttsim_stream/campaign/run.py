@@ -31,7 +31,7 @@ from dataclasses import fields
 
 import numpy as np
 
-from ..process.pipeline import ProcessOptions, process_arrays
+from ..process.pipeline import ProcessOptions, check_window, process_arrays
 from ..process.resonance import truth_peaks
 from ..scenario import Scenario
 from .spec import Processor, RunSpec
@@ -181,6 +181,7 @@ def _score_builtin(base: dict, p: Processor, opr_s, toa_s, revolution, info, tru
     """Rows of one built-in method: one per resonance crossing and blade (``bttsim process``'s
     numbers exactly: the same :func:`process_arrays` on the same arrays)."""
     opts = ProcessOptions(method=p.method, prep=p.prep, window=p.window)
+    check_window(opts.window, int(np.size(opr_s)))  # as bttsim process: an error row
     result = process_arrays(opr_s, toa_s, info, opts, truth=truth, revolution0=int(revolution[0]))
     summary = result.summary
     crossings = [e for e in summary.get("resonances", []) if e.get("kind", "crossing") != "dwell"]

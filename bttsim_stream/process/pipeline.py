@@ -141,8 +141,10 @@ def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
 
 
 def check_window(window: int, n_rev: int) -> None:
-    """A sine-fit window must fit in the run: ValueError, one line, when ``window`` revolutions
-    are more than the run's ``n_rev``."""
+    """A sine-fit window must fit in a recorded run (``bttsim process``, a campaign's
+    processors): ValueError, one line, when ``window`` revolutions are more than the run's
+    ``n_rev``. Not checked by :func:`process_arrays` itself: the live processor's final report
+    of a run cut short reports what it holds."""
     if window > n_rev:
         raise ValueError(f"a sine-fit window of {window} revolutions is longer than the run's {n_rev}")
 
@@ -197,7 +199,6 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     n_rev = opr.size
     if n_rev < 3:
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
-    check_window(options.window, n_rev)
     notes: list[str] = []
     eos_asked, cns, joint = _orders_asked(info, geometry, options, notes)
     rows_truth = _truth_rows(truth, n_rev, revolution0)
