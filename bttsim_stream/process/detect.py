@@ -42,6 +42,7 @@ blade)``), SI units; revolutions are indices into the run's arrays.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,7 +52,7 @@ from .prep import median_then_mean
 
 __all__ = ["DetectOptions", "SpeedSegment", "Sweep", "RunSegments", "Crossing", "Reference",
            "speed_segments", "detection_curve", "detect_crossings", "choose_reference", "resolve_engine_orders",
-           "predicted_contamination", "predicted_response"]
+           "predicted_contamination", "predicted_response", "block_sigma", "MIN_BLOCKS"]
 
 TWO_PI = 2.0 * np.pi
 _SNR_CAP = 1e9  # a noise-free curve: reported as this, not inf (JSON)
@@ -378,8 +379,30 @@ def _run_around(above: np.ndarray, i: int) -> tuple[int, int]:
     return lo, hi
 
 
+#: The m-revolution means' scatter is measured when a sweep holds at least this many of them.
+MIN_BLOCKS = 10
+
+
+def block_sigma(a_raw: np.ndarray, m: int) -> float:
+    """The scatter of ``m``-revolution means of a detection curve, from their second
+    differences (a trend and a curvature cancel; robust: a resonance takes few of them):
+    ``1.4826 MAD(b[k+1] - 2 b[k] + b[k-1]) / sqrt(6)``. On white noise it equals the
+    per-revolution estimate ``sigma / sqrt(m)``; noise correlated over several revolutions (a
+    speed fluctuation: the rotor turning unevenly between OPR pulses aliases into every
+    order's fit) makes it larger. 0 with fewer than :data:`MIN_BLOCKS` means."""
+    n = a_raw.size // m
+    if n < MIN_BLOCKS:
+        return 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        b = np.nanmean(a_raw[:n * m].reshape(n, m), axis=1)
+    d2 = b[2:] - 2.0 * b[1:-1] + b[:-2]
+    d2 = d2[np.isfinite(d2)]
+    return 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if d2.size >= MIN_BLOCKS - 2 else 0.0
+
+
 def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
-                     options: DetectOptions = DetectOptions()) -> list[Crossing]:
+                     options: DetectOptions = DetectOptions(), dropped: list | None = None) -> list[Crossing]:
     """Resonance crossings of one engine order in every sweep of the run.
 
     Parameters
@@ -390,6 +413,9 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
     eo : int
     segments : RunSegments
     options : DetectOptions
+    dropped : list, optional
+        Gets ``(revolution, snr, slow_snr)`` of each peak that passed the per-revolution test
+        but not the one against the curve's own slow scatter (:func:`block_sigma`).
 
     Returns
     -------
@@ -407,6 +433,7 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
         resid = a_raw - a
         resid = resid[np.isfinite(resid)]
         sigma = 1.4826 * float(np.median(np.abs(resid))) / math.sqrt(m) if resid.size else 0.0
+        slow = block_sigma(a_raw, m)
         # scipy.signal takes 0.5 s to import: only when a run is searched for crossings, not
         # at the start of every command and node
         from scipy.signal import find_peaks
@@ -418,6 +445,10 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
             ratio = top / base if base > 0 else _SNR_CAP
             snr = float(prom) / sigma if sigma > 0 else _SNR_CAP
             if ratio < options.ratio_threshold or snr < options.snr_threshold:
+                continue
+            if slow > 0 and float(prom) < options.snr_threshold * slow:  # one of the curve's own slow bumps
+                if dropped is not None:
+                    dropped.append((sw.start + int(p), min(snr, _SNR_CAP), float(prom) / slow))
                 continue
             hp_lo, hp_hi = _run_around(a >= top / math.sqrt(2.0), int(p))
             width = hp_hi - hp_lo + 1

@@ -303,7 +303,13 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
     segments = speed_segments(opr, omega, det)
     crossings: list[Crossing] = []
     for i, eo in enumerate(eos_asked):
-        crossings += detect_crossings(fit0.amp_pkpk_m[..., i], eo, segments, det)
+        dropped: list = []
+        crossings += detect_crossings(fit0.amp_pkpk_m[..., i], eo, segments, det, dropped)
+        notes += [f"EO {eo}: the peak at revolution {revolution0 + r} ({omega[r] * 60 / TWO_PI:.0f} rpm, SNR {snr:.3g} "
+                  f"against the per-revolution noise) is not reported as a resonance: the amplitude's own scatter "
+                  f"over {det.filter_revolutions} revolutions makes it as large (SNR {slow:.2g} < "
+                  f"{det.snr_threshold:g}; noise correlated over several revolutions, e.g. a speed fluctuation)"
+                  for r, snr, slow in dropped]
     if len(eos_asked) > 1 and not joint:
         crossings = resolve_engine_orders(crossings, _misfits(d0, angles, eos_asked, fit0))
     nsv_scan, nsv = _detect_nsv(first, d0, geometry, options, truth, revolution0)
