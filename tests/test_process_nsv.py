@@ -21,6 +21,17 @@ def _geometry(run):
     return Geometry(run.n_blades, run.probe_angles_rad, run.tip_radius_m)
 
 
+def _live_nsv(proc, run) -> list:
+    """Every revolution of ``run`` pushed into the streaming processor ``proc``: the NSV
+    detections it published live (flushed at the end, not finished)."""
+    live = []
+    for n in range(run.opr_s.size):
+        proc.push(n, run.opr_s[n], run.toa_s[n])
+        live += proc.nsv_ready()
+    proc.flush()
+    return live + proc.nsv_ready()
+
+
 def _process(run, **opts):
     return process_arrays(run.opr_s, run.toa_s, _geometry(run), ProcessOptions(**opts))
 
@@ -153,12 +164,7 @@ def test_live_blocks_agree_with_the_report_and_travel_on_the_bus():
     run = synthesize(n_rev=256, rpm0=3000.0, order=3.45, nd=-7, amp_pk_m=0.1e-3, noise_s=2e-8, seed=8)
     g = _geometry(run)
     proc = StreamingProcessor(g)
-    live = []
-    for n in range(run.opr_s.size):
-        proc.push(n, run.opr_s[n], run.toa_s[n])
-        live += proc.nsv_ready()
-    proc.flush()
-    live += proc.nsv_ready()
+    live = _live_nsv(proc, run)
     proc.finish()
     assert len(live) >= 4  # blocks 64.. (block 32-63 holds the calibration switch; the first detected one waits)
     assert all(d.nd == -7 and d.order == pytest.approx(3.45, abs=ORDER_TOL) for d in live)
@@ -408,11 +414,5 @@ def test_the_rotors_own_motion_is_named_not_reported_as_vibration(order, nd, rig
     else:
         assert len(res.nsv) == 1 and res.nsv[0].nd == nd and res.nsv[0].order == pytest.approx(order, abs=ORDER_TOL)
         assert notes == []
-    live = StreamingProcessor(_geometry(run))
-    found = []
-    for k in range(run.opr_s.size):
-        live.push(k, run.opr_s[k], run.toa_s[k])
-        found += live.nsv_ready()
-    live.flush()
-    found += live.nsv_ready()
+    found = _live_nsv(StreamingProcessor(_geometry(run)), run)
     assert (found == []) == rigid, found
