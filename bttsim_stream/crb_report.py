@@ -13,7 +13,8 @@ revolution's speed (the excitations of that order summed), and
   a tenth of the peak (one crossing: a profile that comes back through the resonance crosses
   it again, apart); the SDOF parameters where the bound is evaluated: each blade's predicted
   peak amplitude, frequency and phase, and the damping of the half-power width (its
-  frequencies, on a run-up or a run-down alike). A dwell crosses nothing: no bound.
+  frequencies, on a run-up or a run-down alike). A dwell, or a ramp that stops or turns at
+  the resonance, crosses nothing: no bound.
 
 Zero-speed modes (a speed-dependent model's crossings shift with its frequencies).
 """
@@ -134,8 +135,9 @@ def scenario_bounds(scn, toa_sigma_s: float | None = None, model=None) -> list[C
             continue  # no peak inside the run
         h0, h1 = _around(mean >= mean[k] / np.sqrt(2.0), k)  # this crossing's half-power band
         band = float(np.ptp(f[h0:h1 + 1]))  # its frequencies, run-up or run-down alike
-        if not band > 1e-6 * f[k]:
-            continue  # a dwell: the speed does not cross the resonance
+        tol = 1e-6 * f[k]
+        if not (abs(f[h0] - f[k]) > tol and abs(f[h1] - f[k]) > tol and (f[h0] - f[k]) * (f[h1] - f[k]) < 0):
+            continue  # not crossed: a dwell at the resonance, or a ramp that stops or turns on it
         zeta = max(band / (2.0 * f[k]), 1e-4)
         lo, hi = _around(mean >= USED_LEVEL * mean[k], k)
         kb = lo + np.argmax(amp[:, lo:hi + 1], axis=1)

@@ -166,17 +166,18 @@ class _TruthTable:
                     self.tables[name] = np.empty((self.capacity,) + a.shape[1:],
                                                  dtype=object if a.dtype.kind == "U" else a.dtype)
                     self.str_size[name] = 0
-        if not self.tails or not self._fits(t):
-            self.bad.add(revolution)
-            return
-        self.bad.discard(revolution)
+        fits = bool(self.tails) and self._fits(t)
         i = self.index.get(revolution)
-        if i is not None:  # a copy: the first holds
-            if not all(np.array_equal(a[i], getattr(t, name)[0], equal_nan=a.dtype.kind in "fc")
-                       for name, a in self.tables.items()):
+        if i is not None:  # a copy: the first holds; one that differs (or is of another shape) conflicts
+            if not fits or not all(np.array_equal(a[i], getattr(t, name)[0], equal_nan=a.dtype.kind in "fc")
+                                   for name, a in self.tables.items()):
                 self.conflicts += 1
                 self.first_conflict = revolution if self.first_conflict is None else self.first_conflict
             return
+        if not fits:
+            self.bad.add(revolution)
+            return
+        self.bad.discard(revolution)
         i = self.index[revolution] = self.n
         self.n += 1
         if self.n > self.capacity:

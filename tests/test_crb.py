@@ -120,7 +120,8 @@ def test_crb_of_a_run_down_equals_the_run_up_and_a_dwell_crosses_nothing():
     """The same sweep down gives the run-up's damping and bounds (the half-power band read on
     its frequencies, not in revolution order: a run-down had the 1e-4 floor, 4x the bound);
     a profile up then down is bounded on one crossing, as the processing fits it; a dwell at
-    the resonance crosses nothing: no bound (before: a NaN row, exit 0)."""
+    the resonance, or a ramp that stops on it, crosses nothing: no bound (before: a NaN row,
+    exit 0, and half the damping)."""
     from bttsim_stream.crb_report import scenario_bounds
     from bttsim_stream.scenario import scenario_from_dict
 
@@ -138,6 +139,9 @@ def test_crb_of_a_run_down_equals_the_run_up_and_a_dwell_crosses_nothing():
         np.testing.assert_allclose(b.crb_freq_hz, up.crb_freq_hz, rtol=0.02)
     assert both.revolutions == up.revolutions
     assert bound({"start_rpm": 2580.0, "end_rpm": 2580.0, "duration_s": 3.0}) == []
+    # a ramp that stops on the resonance: one-sided, not crossed (before: half the damping)
+    assert bound({"start_rpm": 2300.0, "segments": [{"duration_s": 3.0, "end_rpm": 2579.1},
+                                                    {"duration_s": 3.0, "end_rpm": 2579.1}]}) == []
 
 
 @pytest.mark.slow

@@ -262,3 +262,28 @@ def test_bad_input_is_one_line_exit_2(recording, tmp_path, capsys, what):
     assert main(["export", str(src), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("bttsim: error:"), err
+
+
+def test_a_truth_copy_of_another_shape_conflicts_and_keeps_the_first():
+    """Truth rows: a second copy of a revolution that differs, in a value or in its shape, is a
+    conflict and the first holds (before: a copy of another shape marked the revolution bad
+    and the whole run's truth was dropped without a word)."""
+    from dataclasses import fields
+
+    from bttsim_stream.offline import _TruthTable
+    from bttsim_stream.sim.core import Truth
+
+    def truth(value, n_probes=2):
+        return Truth(*[np.full((1, 3, n_probes), value) if f in ("toa_s", "t_exp_s") else
+                       (np.full((1, 3), value) if f == "d_eqv_pkpk_m" else None)
+                       for f in ("opr_s", "toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m",
+                                 "d_eqv_pkpk_m", "omega_mean")])
+
+    for copy, conflicts in ((truth(1.0), 0), (truth(2.0), 1), (truth(1.0, n_probes=3), 1)):
+        t = _TruthTable(("d_eqv_pkpk_m",), 4, (3, 2))
+        t.add(0, truth(1.0))
+        t.add(0, copy)
+        t.add(1, truth(5.0))
+        assert t.conflicts == conflicts
+        rows = t.rows([0, 1], tuple(f.name for f in fields(Truth)))
+        assert rows is not None and rows.d_eqv_pkpk_m[0, 0] == 1.0 and rows.d_eqv_pkpk_m[1, 0] == 5.0

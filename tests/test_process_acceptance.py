@@ -199,6 +199,18 @@ def test_dwell_intervals_hold_the_truth(summaries, name):
             assert any(n.startswith("zeroing: the reference held a response at EO 8") for n in e["notes"]), e["notes"]
 
 
+def test_a_dwell_calibrated_on_a_given_window_claims_no_interval(summaries):
+    """Calibrated on a window given in the options (the first 64 revolutions), the response
+    that window held is unknown: the dwells give no amplitude interval, and say so (before:
+    no zeroing term, and a note calling the geometry nominal)."""
+    run, _ = summaries("ramp_dwells")
+    res = process_arrays(run.opr_s, run.toa_s, run.info, ProcessOptions(calibration=64), truth=run.truth)
+    for e in res.summary["steady"]:
+        assert all("amp_ci95_m" not in b for b in e["blades"]), e["blades"][0]
+        assert any("the calibration window given in the options" in n for n in e["notes"]), e["notes"]
+        assert not any("nominal geometry" in n for n in e["notes"]), e["notes"]
+
+
 def test_a_dwell_whose_zeroing_reference_is_unknown_claims_no_interval(summaries):
     """Ramp and dwell below resonance, no crossing: the reference (the slowest revolutions)
     held a quasi-static response of unknown size, comparable to the dwell's own, so the

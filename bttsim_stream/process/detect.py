@@ -379,26 +379,31 @@ def _run_around(above: np.ndarray, i: int) -> tuple[int, int]:
     return lo, hi
 
 
-#: The m-revolution means' scatter is measured when a sweep holds at least this many of them.
-MIN_BLOCKS = 10
+#: The m-revolution means' scatter is measured from at least this many of their second
+#: differences (fewer: 0, not measured; the per-revolution noise alone decides).
+MIN_BLOCKS = 20
+#: The slow scatter counts only where it exceeds the per-revolution noise this many times (on
+#: white noise the two are equal, within the block estimate's spread).
+SLOW_NOISE_FACTOR = 2.0
 
 
 def block_sigma(a_raw: np.ndarray, m: int) -> float:
     """The scatter of ``m``-revolution means of a detection curve, from their second
-    differences (a trend and a curvature cancel; robust: a resonance takes few of them):
-    ``1.4826 MAD(b[k+1] - 2 b[k] + b[k-1]) / sqrt(6)``. On white noise it equals the
+    differences (a trend and a curvature cancel; robust): ``1.4826 MAD(b[k+1] - 2 b[k] +
+    b[k-1]) / sqrt(6)``, over the blocks that hold a finite mean (NaN in ``a_raw`` masks
+    revolutions, e.g. the crossing candidates' windows). On white noise it equals the
     per-revolution estimate ``sigma / sqrt(m)``; noise correlated over several revolutions (a
     speed fluctuation: the rotor turning unevenly between OPR pulses aliases into every
-    order's fit) makes it larger. 0 with fewer than :data:`MIN_BLOCKS` means."""
+    order's fit) makes it larger. 0 with fewer than :data:`MIN_BLOCKS` second differences."""
     n = a_raw.size // m
-    if n < MIN_BLOCKS:
+    if n < MIN_BLOCKS + 2:
         return 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         b = np.nanmean(a_raw[:n * m].reshape(n, m), axis=1)
     d2 = b[2:] - 2.0 * b[1:-1] + b[:-2]
     d2 = d2[np.isfinite(d2)]
-    return 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if d2.size >= MIN_BLOCKS - 2 else 0.0
+    return 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if d2.size >= MIN_BLOCKS else 0.0
 
 
 def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
@@ -433,12 +438,12 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
         resid = a_raw - a
         resid = resid[np.isfinite(resid)]
         sigma = 1.4826 * float(np.median(np.abs(resid))) / math.sqrt(m) if resid.size else 0.0
-        slow = block_sigma(a_raw, m)
         # scipy.signal takes 0.5 s to import: only when a run is searched for crossings, not
         # at the start of every command and node
         from scipy.signal import find_peaks
 
         peaks, props = find_peaks(a, prominence=0.0)
+        found = []  # (p, prom, top, base, ratio, snr, hp_lo, hp_hi, lo, hi) of the peaks that pass
         for p, prom, lb, rb in zip(peaks, props["prominences"], props["left_bases"], props["right_bases"]):
             top = float(a[p])
             base = top - float(prom)
@@ -446,14 +451,24 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
             snr = float(prom) / sigma if sigma > 0 else _SNR_CAP
             if ratio < options.ratio_threshold or snr < options.snr_threshold:
                 continue
-            if slow > 0 and float(prom) < options.snr_threshold * slow:  # one of the curve's own slow bumps
-                if dropped is not None:
-                    dropped.append((sw.start + int(p), min(snr, _SNR_CAP), float(prom) / slow))
-                continue
             hp_lo, hp_hi = _run_around(a >= top / math.sqrt(2.0), int(p))
             width = hp_hi - hp_lo + 1
             reach = int(math.ceil(options.window_widths * width))
-            lo, hi = max(int(lb), int(p) - reach), min(int(rb), int(p) + reach)
+            found.append((int(p), float(prom), top, base, ratio, snr, hp_lo, hp_hi,
+                          max(int(lb), int(p) - reach), min(int(rb), int(p) + reach)))
+        # the curve's own slow scatter, away from every candidate's window
+        masked = a_raw.astype(float, copy=True)
+        for f in found:
+            masked[f[8]:f[9] + 1] = np.nan
+        slow = block_sigma(masked, m)
+        if not slow > SLOW_NOISE_FACTOR * sigma:
+            slow = 0.0
+        for p, prom, top, base, ratio, snr, hp_lo, hp_hi, lo, hi in found:
+            if slow > 0 and prom < options.snr_threshold * slow:  # one of the curve's own slow bumps
+                if dropped is not None:
+                    dropped.append((sw.start + p, min(snr, _SNR_CAP), prom / slow))
+                continue
+            width = hp_hi - hp_lo + 1
             ex_lo, ex_hi = _run_around(a >= max(options.exclusion_level * top, base), int(p))
             margin = int(math.ceil(options.exclusion_margin * width))
             out.append(Crossing(

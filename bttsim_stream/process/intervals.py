@@ -413,7 +413,7 @@ def dwell_intervals(peaks, layout_m=None, probes_m=None, dof: int = 0, zeroing_m
     lay = np.zeros_like(A) if layout_m is None else np.asarray(layout_m, dtype=float)
     sys_ = np.zeros_like(A) if probes_m is None or dof <= 0 else np.asarray(probes_m, dtype=float)
     t95 = float(student_t.ppf(0.975, dof)) if dof > 0 else 0.0
-    h = Z95 * np.sqrt(s * s + lay * lay) + t95 * np.where(np.isfinite(sys_), sys_, 0.0) + zeroing_m
+    h = Z95 * np.sqrt(s * s + lay * lay) + t95 * sys_ + zeroing_m  # a blade whose misfit is unseen: no interval
     fs = np.asarray(peaks.freq_std_hz, dtype=float)
     f = np.asarray(peaks.freq_hz, dtype=float)
     with np.errstate(all="ignore"):

@@ -91,15 +91,31 @@ def _dwell_correction(ctx, eo: int, i: int) -> tuple[np.ndarray | None, Crossing
     return (corr, c) if corr is not None else (None, None)
 
 
+def _zeroing_kind(ctx) -> str:
+    """How the run was zeroed: ``"exact"`` (the truth's expected times), ``"nominal"`` (the
+    nominal geometry: nothing subtracted), ``"reference"`` (calibrated on the chosen
+    reference window) or ``"window"`` (calibrated on a window given in the options)."""
+    opts = ctx.options
+    if opts.expected_times == "exact":
+        return "exact"
+    ref = ctx.reference
+    if ref is not None and ref.start is not None:
+        return "reference"
+    cal = opts.calibration
+    if cal is None or cal is False or isinstance(cal, str) or (isinstance(cal, (int, np.integer)) and int(cal) == 0):
+        return "nominal"  # off, or "auto" that found no ramp to zero on
+    return "window"
+
+
 def _dwell_zeroing_bound(ctx, corr) -> np.ndarray | float:
-    """A dwell's zeroing bias bound, pk-pk (m): ``2 |P_ref|`` with a correction, 0 with no
-    reference (nominal geometry or exact times: nothing subtracted), NaN when the reference's
-    response is unknown (no crossing of the order to estimate it from, or a baseline that took
-    it with the slowly varying part of the dwell's own response): no interval then."""
+    """A dwell's zeroing bias bound, pk-pk (m): ``2 |P_ref|`` with a correction, 0 when nothing
+    was subtracted (nominal geometry or exact times), NaN when what the calibration window
+    held is unknown (no crossing of the order to estimate it from, a window given in the
+    options, or a baseline that took it with the slowly varying part of the dwell's own
+    response): no interval then."""
     if corr is not None:
         return 2.0 * np.abs(corr)
-    ref = ctx.reference
-    return 0.0 if ref is None or ref.start is None else math.nan
+    return 0.0 if _zeroing_kind(ctx) in ("nominal", "exact") else math.nan
 
 
 def _dwell_notes(ctx, eo: int, amp: np.ndarray, probes_m: np.ndarray, dof: int, corr, source) -> tuple:
@@ -107,7 +123,8 @@ def _dwell_notes(ctx, eo: int, amp: np.ndarray, probes_m: np.ndarray, dof: int, 
     unknown), the probes' systematic misfit (:func:`~.intervals.dwell_misfit`) where it is
     above :data:`~.intervals.TERM_NOTE_PCT` of the amplitude, or that it cannot be seen."""
     ref = ctx.reference
-    nominal = ref is None or ref.start is None
+    kind = _zeroing_kind(ctx)
+    nominal = kind == "nominal"
     notes = []
     with quiet():
         if corr is not None:
@@ -116,7 +133,10 @@ def _dwell_notes(ctx, eo: int, amp: np.ndarray, probes_m: np.ndarray, dof: int, 
                          f"(blade median), estimated from the crossing at revolution {ctx.revolution0 + source.peak} "
                          f"and added back; the "
                          f"interval spans the uncorrected value too")
-        elif not nominal:
+        elif kind == "window":
+            notes.append(f"zeroing: the response the calibration window given in the options held at EO {eo} is "
+                         f"unknown: the dwell's amplitude is relative to it, and no interval is given")
+        elif kind == "reference":
             r0 = ctx.revolution0
             why = "; ".join(w for w, on in (
                 (f"no crossing of EO {eo} to estimate it from", not any(c.eo == eo for c in ctx.crossings)),
