@@ -44,7 +44,7 @@ amplitude (pk-pk, m), frequency (Hz, Eq. 17), phase (rad) and their standard unc
     with the sweep in the model. The modal coordinate ``q'' + 2 zeta w_n q' + w_n^2 q =
     exp(i phi(t))``, ``phi = EO x`` rotor angle (the OPR model of :mod:`.displacement`), is
     integrated exactly over the measured speed profile (two first-order poles, a
-    linear-phase forcing between grid points ``T / 8`` apart, :func:`scipy.signal.lfilter`);
+    linear-phase forcing between grid points ``T / 8`` apart, :mod:`.swept`);
     its envelope ``z = q exp(-i phi)`` at each revolution is fitted to the complex Eq. 16
     responses, ``P_n = C z(t_n) + c`` (``C``, ``c`` complex, solved linearly; ``f_n``,
     ``zeta`` by nonlinear least squares). Because the model is swept like the run, the
@@ -70,6 +70,7 @@ import numpy as np
 from .displacement import RotorPhase
 from .fit import fit_revolutions
 from .resonance import ResonancePeaks
+from .swept import SweptForcing, sdof_envelope
 
 __all__ = ["METHODS", "QUASI_STEADY_REVOLUTIONS", "SHAPE_MISFIT", "amplitude_noise", "quadratic_peak", "fit_half_width",
            "resonance_fit", "peak_method", "cff_method", "sdof_method", "sdof_envelope"]
@@ -491,113 +492,6 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
         freq_std_hz=np.where(has, fstd, nan))
 
 
-def sdof_envelope(fn_hz: float, zeta: float, grid_s: np.ndarray, phi_rad: np.ndarray) -> np.ndarray:
-    """Envelope ``z = q exp(-i phi)`` of the unit-forced modal coordinate on a uniform grid.
-
-    ``q'' + 2 zeta w_n q' + w_n^2 q = exp(i phi(t))`` is split into the poles
-    ``lambda_1,2 = -zeta w_n +- i w_d``, ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``,
-    ``y' = lambda y + exp(i phi)``; over each step the forcing phase is linear, and
-    ``y_{m+1} = e^{lambda h} y_m + e^{i phi_m} (e^{i w_m h} - e^{lambda h}) / (i w_m - lambda)``
-    exactly; the start is the quasi-steady state.
-
-    Parameters
-    ----------
-    fn_hz, zeta : float
-    grid_s : ndarray, shape (m,)
-        Uniform time grid, s.
-    phi_rad : ndarray, shape (m,)
-        Forcing phase on the grid (``EO x`` rotor angle), rad.
-
-    Returns
-    -------
-    ndarray of complex, shape (m,)
-    """
-    return _SweptForcing(grid_s, phi_rad).envelope(fn_hz, zeta)
-
-
-class _SweptForcing:
-    """The forcing's terms of :func:`sdof_envelope` on one grid (they do not depend on ``f_n``,
-    ``zeta``: computed once per crossing, not once per trial of the fit), and each blade's
-    envelopes and linear solves by ``(f_n, zeta)``: the fit's last trial, its swept peak and its
-    finite differences reuse them instead of integrating the same model again."""
-
-    def __init__(self, grid_s: np.ndarray, phi_rad: np.ndarray):
-        self.grid, self.phi = grid_s, phi_rad
-        self.h = h = float(grid_s[1] - grid_s[0])
-        self.w = w = np.diff(phi_rad) / h
-        self.e_phi = np.exp(1j * phi_rad[:-1])
-        self.e_wh = np.exp(1j * w * h)
-        self.jw = 1j * w
-        self.e_phi0 = np.exp(1j * phi_rad[0])
-        self.e_mphi = np.exp(-1j * phi_rad)
-        self._z: dict = {}
-        self._solved: dict = {}
-
-    def envelope(self, fn_hz: float, zeta: float) -> np.ndarray:
-        """:func:`sdof_envelope` of ``(fn_hz, zeta)`` on this grid (remembered until :meth:`clear`)."""
-        from scipy.signal import lfilter
-
-        key = (float(fn_hz), float(zeta))
-        z = self._z.get(key)
-        if z is not None:
-            return z
-        h, w = self.h, self.w
-        wn = TWO_PI * key[0]
-        zeta = key[1]
-        wd = wn * math.sqrt(max(1.0 - zeta * zeta, 1e-12))
-        lam = (-zeta * wn + 1j * wd, -zeta * wn - 1j * wd)
-        # the same operations as y_1 - y_2 of whole arrays, into two scratch arrays and q
-        q = np.empty(w.size + 1, complex)
-        x, den = np.empty(w.size, complex), np.empty(w.size, complex)
-        for i, lm in enumerate(lam):
-            a = np.exp(lm * h)
-            np.multiply(self.e_phi, np.subtract(self.e_wh, a, out=x), out=x)
-            np.divide(x, np.subtract(self.jw, lm, out=den), out=x)
-            y0 = self.e_phi0 / (1j * w[0] - lm)
-            y, _ = lfilter([1.0], [1.0, -a], x, zi=np.array([a * y0]))
-            if i == 0:
-                q[0], q[1:] = y0, y
-            else:
-                q[0] = q[0] - y0
-                np.subtract(q[1:], y, out=q[1:])
-        np.divide(q, lam[0] - lam[1], out=q)
-        z = self._z[key] = np.multiply(q, self.e_mphi, out=q)
-        _forget_oldest(self._z)
-        return z
-
-    def solve(self, q, ts: np.ndarray, yn: np.ndarray):
-        """``(A, c, A c - yn)``: the linear part ``yn = C z(ts) + c`` of the SDOF fit at ``q = (f_n, zeta)``."""
-        key = (float(q[0]), float(q[1]))
-        got = self._solved.get(key)
-        if got is None:
-            z = _interp_c(ts, self.grid, self.envelope(q[0], q[1]))
-            A = np.stack([z, np.ones_like(z)], axis=1)
-            c, *_ = np.linalg.lstsq(A, yn, rcond=None)
-            got = self._solved[key] = (A, c, A @ c - yn)
-            _forget_oldest(self._solved)
-        return got
-
-    def clear(self) -> None:
-        """Forget the remembered envelopes and solves (the next blade's data differ)."""
-        self._z.clear()
-        self._solved.clear()
-
-
-#: Envelopes and solves :class:`_SweptForcing` remembers, the newest (a fit's last trials and
-#: their finite differences: each one grid long, so the memory does not grow with the fit).
-SWEPT_MEMORY = 3
-
-
-def _forget_oldest(memory: dict) -> None:
-    """Drop the oldest entries of ``memory`` beyond :data:`SWEPT_MEMORY`."""
-    while len(memory) > SWEPT_MEMORY:
-        del memory[next(iter(memory))]
-
-
-def _interp_c(x, xp, fp):
-    return np.interp(x, xp, fp.real) + 1j * np.interp(x, xp, fp.imag)
-
-
 def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, phase: RotorPhase, eo: int,
                 lo: int, hi: int, *, fn0_hz: np.ndarray, zeta0: float) -> tuple[ResonancePeaks, float]:
     """Swept SDOF fit of amplitude and phase through one crossing, per blade.
@@ -626,8 +520,6 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     sweep_rate : float
         ``|d omega / dt| / omega_n^2`` at the resonance (blade median), dimensionless.
     """
-    from scipy.optimize import least_squares
-
     n_rev, nb = phasor.shape
     opr = np.asarray(opr_s, dtype=float)
     last = min(hi + 1, n_rev - 1)
@@ -643,7 +535,7 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     out["offset"] = np.full(nb, np.nan + 0j)
     etas = []
     sel = slice(lo, hi + 1)
-    forcing = _SweptForcing(grid, phi)
+    forcing = SweptForcing(grid, phi)
     w_rate = np.gradient(w_exc, h)
     for b in range(nb):
         y = phasor[sel, b]
@@ -661,14 +553,8 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
         def solve(q, ts=ts, yn=yn):
             return forcing.solve(q, ts, yn)
 
-        def resid(q):
-            r = solve(q)[2]
-            return np.concatenate([r.real, r.imag])
-
-        f0 = float(fn0_hz[b])
         try:
-            res = least_squares(resid, [f0, zeta0], x_scale=[max(f0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1],
-                                bounds=([0.8 * f0, 1e-5], [1.2 * f0, 0.3]))
+            res = forcing.fit(ts, yn, float(fn0_hz[b]), zeta0)
         except (ValueError, np.linalg.LinAlgError):
             continue
         fn, zeta = (float(v) for v in res.x)
