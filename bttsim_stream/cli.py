@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
 from .bus.certs import IDENTITIES
 from .bus.session import CONNECT_TIMEOUT_S
 from .errors import BttsimError, comma_values, exit_status, replaceable_file
@@ -800,9 +799,24 @@ def _add_validate_parser(sub) -> None:
     p.set_defaults(func=_cmd_validate)
 
 
+class _Version(argparse.Action):
+    """``--version``: argparse's own, but the version is read only when asked (the package
+    metadata: 40 ms of imports every other command would pay)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show program's version number and exit"):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from . import __version__
+
+        print(f"bttsim {__version__}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
-    parser.add_argument("--version", action="version", version=f"bttsim {__version__}")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_run_parser(sub)
     _add_certs_parser(sub)

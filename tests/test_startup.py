@@ -29,10 +29,12 @@ HEAVY = ("bttsim_stream.model", "bttsim_stream.scenario", "bttsim_stream.sim.cor
          "bttsim_stream.process.streaming", "scipy")
 
 
-#: What building the parsers must not load besides: the recordings and the live run.
+#: What building the parsers must not load besides: the recordings, the live run and the
+#: package metadata (read only by a command that writes the version).
 MACHINERY = HEAVY + ("bttsim_stream.bus.codec", "bttsim_stream.bus.recording", "bttsim_stream.bus.stream",
                      "bttsim_stream.acquisition", "bttsim_stream.offline", "bttsim_stream.processor",
-                     "bttsim_stream.orchestrate", "bttsim_stream.views", "mcap", "google.protobuf", "rerun")
+                     "bttsim_stream.orchestrate", "bttsim_stream.views", "mcap", "google.protobuf", "rerun",
+                     "importlib.metadata")
 NODES = Path(__file__).resolve().parents[1] / "nodes"
 
 
