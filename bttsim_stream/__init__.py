@@ -11,10 +11,17 @@ Conventions used across the package (written down once):
 * Axis order of event arrays: (revolution, blade, probe).
 """
 
-from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
-from importlib.metadata import version as _dist_version
 
-try:  # one source of the version: the installed package's metadata (pyproject.toml)
-    __version__ = _dist_version("bttsim-stream")
-except _PackageNotFoundError:  # a source tree on sys.path that was never installed
-    __version__ = "0+unknown"
+def __getattr__(name: str) -> str:
+    """``__version__``, read on first use (PEP 562): importlib.metadata takes 40 ms to import,
+    which a command that writes no version need not pay."""
+    if name != "__version__":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:  # one source of the version: the installed package's metadata (pyproject.toml)
+        value = version("bttsim-stream")
+    except PackageNotFoundError:  # a source tree on sys.path that was never installed
+        value = "0+unknown"
+    globals()["__version__"] = value
+    return value

@@ -9,44 +9,26 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__, scenario
-from ._plotting import PlotExtraMissing
-from .acquisition import simulate_to_mcap
-from .diskspace import check_free_space, estimate_output_bytes
-from .bus.certs import IDENTITIES, generate_certificates
-from .bus.ports import check_web_ports
-from .bus.security import write_config_files
+from .bus.certs import IDENTITIES
 from .bus.session import CONNECT_TIMEOUT_S
 from .errors import BttsimError, comma_values, exit_status, replaceable_file
-from .model import build_model, load_model, save_model
-from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
 from .nodes import program, programs
-from .offline import (PROCESS_TRUTH_FIELDS, add_processing_arguments, check_probes, completeness, load_run,
-                      parse_engine_orders,
-                      processing_options, result_warnings, with_processing)
-from .orchestrate import run_all
-from .process.pipeline import check_window, process_arrays
-from .process.probes import (CN_SINGULAR, CN_WARN, PAPER_CANDIDATES_DEG, LayoutError, check_angles,
-                             check_layout, layout_report, rank_layouts)
-from .process.resonance import summary_table
+from .processing_flags import add_processing_arguments, parse_engine_orders, processing_options
 from .runtime import Parser as _Parser
 from .runtime import Progress, add_drain_argument, add_node_parser, add_web_arguments, checked, positive_count, \
     positive_seconds, rig_name, run_parsed
-from .sim.bounds import check_tip_amplitude
-from .sim.core import load_scenario_model
-from .summary import build_summary, describe_exit
 from .threads import single_threaded_blas
 
-# Imported by the commands that use them: the views (rerun takes 0.5 s to import) and the
-# paper's code (never loaded by the runtime). matplotlib (an optional extra) is imported by
-# the plot functions when they run.
+# Here: what the parser needs. Each command imports what it uses (the scenario, the
+# simulator, the model, recordings, the processing, the live run, the views: rerun takes
+# 0.5 s, the paper's code is never loaded by the runtime), so a command pays for its own
+# imports only; matplotlib (an optional extra) is imported by the plot functions when they run.
 
 __all__ = ["main", "build_parser", "EXIT_INCOMPLETE"]
 
@@ -56,7 +38,13 @@ EXIT_INCOMPLETE = 3
 
 
 def _cmd_scenario(args: argparse.Namespace) -> None:
+    from . import scenario
+
     if args.check is not None:
+        from .process.probes import LayoutError, layout_report
+        from .sim.bounds import check_tip_amplitude
+        from .sim.core import load_scenario_model
+
         scn = scenario.load_scenario(args.check)
         eos = [int(e.engine_order) for e in scn.excitation]
         try:  # a layout that cannot separate an engine order is refused before anything runs
@@ -81,7 +69,9 @@ def _cmd_scenario(args: argparse.Namespace) -> None:
 
 
 def _cmd_crb(args: argparse.Namespace) -> None:
+    from . import scenario
     from .crb_report import bounds_table, scenario_bounds
+    from .process.probes import LayoutError
 
     sigma = args.toa_sigma_s
     if sigma is not None and not (sigma == 0 or 1e-15 <= sigma <= 1e-3):  # NaN fails both
@@ -102,6 +92,9 @@ def _cmd_crb(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_build(args: argparse.Namespace) -> None:
+    from . import scenario
+    from .model import build_model, save_model
+
     scn = scenario.load_scenario(args.scenario) if args.scenario else scenario.Scenario()
     model = build_model(scn)
     save_model(model, args.out)
@@ -110,6 +103,11 @@ def _cmd_model_build(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_show(args: argparse.Namespace) -> None:
+    from . import scenario
+    from ._plotting import PlotExtraMissing
+    from .model import load_model
+    from .model.report import DEFAULT_ENGINE_ORDERS, campbell_table, family_table, plot_family_frequencies
+
     eos = _ints(args.eo, "--eo") if args.eo else list(DEFAULT_ENGINE_ORDERS)
     if not eos or any(e < 1 or e > 1000 for e in eos):
         raise BttsimError(f"--eo must be engine orders in [1, 1000], got {args.eo!r}")
@@ -138,8 +136,10 @@ def _cmd_model_show(args: argparse.Namespace) -> None:
 
 
 def _cmd_model_import(args: argparse.Namespace) -> None:
+    from .model import save_model
     from .model.importers import (ImportOptions, check_options, format_report, import_model, import_model_speeds,
                                   load_import_options)
+    from .model.report import family_table
 
     opts = load_import_options(args.options) if args.options else ImportOptions()
     flags = {"format": args.format, "deck": args.deck, "n_sectors": args.n_sectors, "tip_nset": args.tip_nset,
@@ -181,12 +181,15 @@ def _floats(text: str, what: str, n: int) -> list:
 
 
 def _scenario(path):
+    from . import scenario
 
     return scenario.load_scenario(path) if path else scenario.Scenario()
 
 
 def _cmd_simulate(args: argparse.Namespace) -> None:
-
+    from .acquisition import simulate_to_mcap
+    from .diskspace import check_free_space, estimate_output_bytes
+    from .sim.core import load_scenario_model
 
     scn = _scenario(args.scenario)
     model = None
@@ -275,6 +278,11 @@ def _cmd_node(args: argparse.Namespace):
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
+    from .offline import PROCESS_TRUTH_FIELDS, check_probes, completeness, load_run, result_warnings
+    from .process.pipeline import check_window, process_arrays
+    from .process.resonance import summary_table
+    from .summary import build_summary
+
     # the phases on a terminal only: on a pipe, stderr stays the errors and warnings
     opts = processing_options(args, expected_times="exact" if args.exact_expected else "opr")  # before the read
     progress = Progress(sys.stderr.isatty())
@@ -316,6 +324,9 @@ def _cmd_process(args: argparse.Namespace) -> None:
 
 
 def _cmd_certs(args: argparse.Namespace) -> None:
+    from .bus.certs import generate_certificates
+    from .bus.security import write_config_files
+
     names = [n.strip() for n in args.names.split(",") if n.strip()]
     made = [n for n in generate_certificates(args.dir, names, hosts=args.host, days=args.days,
                                              overwrite=args.force) if n != "ca"]
@@ -325,6 +336,8 @@ def _cmd_certs(args: argparse.Namespace) -> None:
 
 
 def _print_run(res: dict) -> None:
+    from .process.resonance import summary_table
+
     summary, files = res["summary"], res["files"]
     if summary is not None and "error" in summary:
         print(f"NO REPORT: {summary['error']}")
@@ -335,6 +348,9 @@ def _print_run(res: dict) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from .orchestrate import run_all
+    from .summary import describe_exit
+
     served: list[dict] = []
 
     def on_serving(res: dict) -> None:  # --web: the result now, while the viewer serves on
@@ -388,9 +404,14 @@ def _by_key(counts) -> str:
 def _cmd_view(args: argparse.Namespace) -> None:
     if not (args.rrd or args.web):  # refused before the recording is read and processed
         raise BttsimError("no output: give --rrd OUT.rrd and/or --web")
+    import tempfile
+
+    from .bus.ports import check_web_ports
+    from .offline import completeness, load_run, with_processing
+
     if args.web:  # a busy port too
         args.bind = check_web_ports(args.bind, args.web_port, args.grpc_port)
-    from .views import log_recording  # rerun takes 0.5 s to import: only here
+    from .views import log_recording  # rerun takes 0.5 s to import: after the checks above
 
     t0 = time.perf_counter()
     run = load_run(args.mcap, truth_fields=(), rig=args.rig)  # checked as a run
@@ -420,6 +441,8 @@ def _cmd_view(args: argparse.Namespace) -> None:
 
 
 def _cmd_cn(args: argparse.Namespace) -> None:
+    from .process.probes import CN_WARN, check_layout
+
     # impossible input (EO < 1, too few probes, angles outside [0, 360), a singular layout):
     # LayoutError, one line, exit 2
     eos = parse_engine_orders(args.eo)
@@ -431,6 +454,8 @@ def _cmd_cn(args: argparse.Namespace) -> None:
 
 
 def _cmd_probes(args: argparse.Namespace) -> None:
+    from .process.probes import CN_SINGULAR, PAPER_CANDIDATES_DEG, rank_layouts
+
     eos = parse_engine_orders(args.eo)
     cands = _angles(args.candidates, "candidate angles") if args.candidates else PAPER_CANDIDATES_DEG
     unknowns = 1 + 2 * len(eos)
@@ -455,6 +480,8 @@ def _cmd_probes(args: argparse.Namespace) -> None:
 
 
 def _angles(text: str, what: str = "probe angles") -> tuple:
+    from .process.probes import check_angles
+
     return check_angles(comma_values(text, float, what, "comma-separated degrees"), what)
 
 
@@ -772,9 +799,24 @@ def _add_validate_parser(sub) -> None:
     p.set_defaults(func=_cmd_validate)
 
 
+class _Version(argparse.Action):
+    """``--version``: argparse's own, but the version is read only when asked (the package
+    metadata: 40 ms of imports every other command would pay)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show program's version number and exit"):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from . import __version__
+
+        print(f"bttsim {__version__}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bttsim", description="Virtual blade tip timing acquisition system.")
-    parser.add_argument("--version", action="version", version=f"bttsim {__version__}")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_run_parser(sub)
     _add_certs_parser(sub)

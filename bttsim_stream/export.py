@@ -45,7 +45,7 @@ import numpy as np
 
 from . import __version__
 from .errors import BttsimError
-from .sim.core import Truth
+from .sim.records import Truth  # not from sim.core: the export never loads the simulator
 
 __all__ = ["FORMATS", "COLUMNS", "BLOCK_ROWS", "TOA_TRUTH_FIELDS", "Unstreamable", "RunTables",
            "run_tables", "export_run", "read_tables", "ExportCounts"]
@@ -332,7 +332,6 @@ def _truth_stream(path, rev: np.ndarray, n_b: int, n_p: int, rig: str):
     """
     from .bus import codec, keys
     from .bus.recording import RecordingScan
-    from .sim.core import Truth
 
     r0, r1 = int(rev[0]), int(rev[-1])
     step = max(1, BLOCK_ROWS // (n_b * n_p))

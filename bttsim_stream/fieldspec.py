@@ -369,7 +369,9 @@ class Spec:
 
         ``siblings`` (the section's specs) serve ``{f[name].unit}`` and ``{f[name].range}``.
         """
-        shown = {k: _Shown(v.unit, v.range_text()) for k, v in (siblings or {}).items()}
+        return self._formatted(_shown(siblings or {}))
+
+    def _formatted(self, shown: Mapping[str, _Shown]) -> str:
         return self.template.format(unit=self.unit, range=self.range_text(), count=self.count_text(), f=shown)
 
     def validate(self, where: str, key: str, value: Any, siblings: Any) -> Any:
@@ -487,7 +489,12 @@ def _specs(cls: type) -> dict[str, Spec]:
 def comments(cls: type) -> dict[str, str]:
     """The TOML comment of every field of a section dataclass."""
     specs = _specs(cls)
-    return {name: s.comment(specs) for name, s in specs.items()}
+    shown = _shown(specs)  # once a section, not once a field (every section's docstring is made at import)
+    return {name: s._formatted(shown) for name, s in specs.items()}
+
+
+def _shown(specs: Mapping[str, Spec]) -> dict[str, _Shown]:
+    return {k: _Shown(v.unit, v.range_text()) for k, v in specs.items()}
 
 
 def _sentence(text: str) -> str:

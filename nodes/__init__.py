@@ -5,7 +5,10 @@ and declares one :class:`~bttsim_stream.runtime.NodeProgram` (``PROGRAM``): its 
 arguments and ``main``. Run one as ``bttsim node NAME ...``, ``python -m
 bttsim_stream.nodes NAME ...``, ``python -m bttsim_stream.nodes.<module> ...`` or its console
 script (``bttsim-sim-node``, ``bttsim-recorder``, ``bttsim-processor``, ``bttsim-viewer``,
-``bttsim-replay``): the same flags and help everywhere.
+``bttsim-replay``): the same flags and help everywhere. Every ``bttsim`` command imports every
+node module to build its parsers, so a module imports at its top only what its parser needs
+(the runtime, the keys); its ``main`` imports the node's machinery (the simulator, the codec,
+MCAP, the processing, the views).
 
 =============  ====================  ===============================================
 name           module                what it does

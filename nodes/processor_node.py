@@ -26,18 +26,18 @@ import logging
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done
-from bttsim_stream.bus.stream import missing_line
 from bttsim_stream.errors import BttsimError
-from bttsim_stream.offline import add_processing_arguments, processing_options
-from bttsim_stream.process.pipeline import load_report_modules
-from bttsim_stream.process.resonance import summary_table
-from bttsim_stream.processor import ProcessorSession
+from bttsim_stream.processing_flags import add_processing_arguments, processing_options
 from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_duration_argument, \
     add_status_argument, node_session, run_node
+
+if TYPE_CHECKING:
+    from bttsim_stream.processor import ProcessorSession
 
 log = logging.getLogger("bttsim.processor")
 
@@ -45,6 +45,11 @@ log = logging.getLogger("bttsim.processor")
 
 def main(conf, args: argparse.Namespace) -> dict | None:
     """Process until the simulator ends; returns the summary dict."""
+    # the processing: imported when the node runs, not whenever `bttsim` builds its parsers
+    from bttsim_stream.process.pipeline import load_report_modules
+    from bttsim_stream.process.resonance import summary_table
+    from bttsim_stream.processor import ProcessorSession
+
     rig = keys.validate_rig(args.rig)
     options = processing_options(args)  # a bad value: one line, exit 2
     stop = StopFlag(args.duration)
@@ -126,6 +131,8 @@ def main(conf, args: argparse.Namespace) -> dict | None:
 
 def _log_verdict(summary: dict | None, missing: dict) -> None:
     """Say whether the result rests on the whole run, and what is missing per key."""
+    from bttsim_stream.bus.stream import missing_line  # loaded with the processor by main
+
     if summary is None:
         log.warning("INCOMPLETE: no run metadata received, no report")
     elif summary.get("complete"):

@@ -51,14 +51,17 @@ import json
 import logging
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from bttsim_stream.bus import keys
-from bttsim_stream.bus.admission import RecordGate
-from bttsim_stream.bus.recording import McapRecorder
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_duration_argument, \
     add_name_argument, add_status_argument, node_session, positive_count, run_node
+
+if TYPE_CHECKING:
+    from bttsim_stream.bus.admission import RecordGate
+    from bttsim_stream.bus.recording import McapRecorder
+    from bttsim_stream.bus.stream import StreamEnd
 
 log = logging.getLogger("bttsim.recorder")
 #: After a gap opened, the publishers' caches are asked again at most this often (s) ...
@@ -77,6 +80,11 @@ WRITE_BATCH = 256
 
 def main(conf, args: argparse.Namespace) -> dict:
     """Record until stopped; returns (and prints as JSON) the statistics."""
+    # the codec and the MCAP writer: imported when the node runs, not whenever `bttsim` builds
+    # its parsers
+    from bttsim_stream.bus.admission import RecordGate
+    from bttsim_stream.bus.recording import McapRecorder
+
     rig = args.rig if args.rig == "*" else keys.validate_rig(args.rig)
     until = tuple(keys.validate_node(n) for n in args.until.split(",") if n)
     stop = StopFlag(args.duration)
@@ -165,6 +173,8 @@ class _Actions:
     def __call__(self, v) -> None:
         if v.action == "write":
             if v.meta is not None:
+                from bttsim_stream.bus.stream import StreamEnd  # loaded with the gate by main
+
                 info = v.meta
                 self.write_pending()  # the file keeps the order of the verdicts
                 self.rec.write_run_metadata(info.run_id, info.rig, info.scenario_toml, info.software_version)

@@ -27,11 +27,9 @@ import logging
 import sys
 import time
 
-from bttsim_stream.bus import codec, keys
-from bttsim_stream.bus.recording import RecordingScan
+from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done, \
     wait_for_subscribers
-from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, add_duration_argument, add_status_argument, \
     add_wait_arguments, node_session, parse_rate, run_node, seconds
@@ -42,6 +40,12 @@ log = logging.getLogger("bttsim.replay")
 def main(conf, args: argparse.Namespace) -> dict:
     """Replay the recording; returns ``{"messages": sent, "of": total, "stopped_by_signal": signal or None}``
     (also the ``done`` status)."""
+    # the codec and the MCAP reader: imported when the node runs, not whenever `bttsim` builds
+    # its parsers
+    from bttsim_stream.bus import codec
+    from bttsim_stream.bus.recording import RecordingScan
+    from bttsim_stream.bus.stream import StreamEnd
+
     rate = parse_rate(args.rate)
     head = _Survey(args.mcap)  # the first pass: what the file holds, no message kept but the metadata
     if head.truncated and not args.allow_truncated:
@@ -133,6 +137,8 @@ class _Survey:
     publish it."""
 
     def __init__(self, path) -> None:
+        from bttsim_stream.bus.recording import RecordingScan  # loaded by main
+
         scan = RecordingScan(path)
         first: dict[str, None] = {}
         self.metas: list = []

@@ -23,12 +23,10 @@ import logging
 import sys
 import time
 
-from bttsim_stream.acquisition import AcquisitionStream
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_consumers, wait_for_done
 from bttsim_stream.runtime import RATE_HELP, NodeProgram, Progress, add_duration_argument, add_status_argument, \
     add_wait_arguments, node_session, parse_rate, positive_count, run_node, seconds
-from bttsim_stream.scenario import Scenario, load_scenario
 
 log = logging.getLogger("bttsim.sim")
 #: Messages each acquisition key keeps for late joiners and for consumers catching up after a
@@ -40,6 +38,10 @@ LOSSY_DRAIN_S = 5.0
 
 def main(conf, args: argparse.Namespace) -> dict:
     """Publish the scenario's acquisition stream (options: see :func:`add_arguments`)."""
+    # the simulator: imported when the node runs, not whenever `bttsim` builds its parsers
+    from bttsim_stream.acquisition import AcquisitionStream
+    from bttsim_stream.scenario import Scenario, load_scenario
+
     scenario = load_scenario(args.scenario) if args.scenario else Scenario()
     rate = parse_rate(args.rate)
     stop = StopFlag(args.duration)

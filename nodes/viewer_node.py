@@ -31,14 +31,16 @@ import argparse
 import json
 import logging
 import sys
+from typing import TYPE_CHECKING
 
 from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.bus.admission import RecordGate
-from bttsim_stream.bus.stream import StreamEnd
 from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_duration_argument, \
     add_name_argument, add_status_argument, add_web_arguments, node_session, run_node
+
+if TYPE_CHECKING:
+    from bttsim_stream.bus.admission import RecordGate
 
 log = logging.getLogger("bttsim.viewer")
 
@@ -46,7 +48,9 @@ log = logging.getLogger("bttsim.viewer")
 def main(conf, args: argparse.Namespace) -> dict:
     """Show the rig's bus until stopped (options: see :func:`add_arguments`); returns the
     counts of what was shown, refused and missed."""
-    from bttsim_stream import views  # rerun takes 0.5 s to import: not for every ``bttsim --help``
+    # imported when the node runs, not whenever `bttsim` builds its parsers (rerun takes 0.5 s)
+    from bttsim_stream import views
+    from bttsim_stream.bus.admission import RecordGate
 
     rig = keys.validate_rig(args.rig)
     until = tuple(keys.validate_node(n) for n in args.until.split(",") if n) or ("sim",)
@@ -90,6 +94,7 @@ def _show(node, live, gate: RecordGate, stop: StopFlag, drain_s: float) -> None:
     followed), the processor's resonance report: its last output, which a link that lags may
     deliver after the processor's token has gone (the processor waits for our ``reported``
     token, up to its ``--drain-timeout``)."""
+    from bttsim_stream.bus.stream import StreamEnd
     from bttsim_stream.views.live import Incoming
 
     ends: list = []  # has the whole run (acquisition, report) come in?

@@ -474,21 +474,21 @@ def test_fuzz_model_npz(workdir, monkeypatch):
     outcomes, loadable = [], []
     t0 = time.perf_counter()
     plotted = 0
-    import bttsim_stream.cli as cli_mod
+    import bttsim_stream.model.report as report_mod  # `bttsim model show` imports the plot from there
 
-    real_plot = cli_mod.plot_family_frequencies
+    real_plot = report_mod.plot_family_frequencies
     for i in range(N_NPZ):
         path = workdir / f"m{i}.npz"
         what = mutate_model(rng, arrays, path)
         plot = plotted < N_NPZ_PLOT and rng.random() < 0.3
         plotted += plot
         # the plot takes 0.3 s: most cases check the loading and the table only
-        monkeypatch.setattr(cli_mod, "plot_family_frequencies", real_plot if plot else (lambda m, png, *args: None))
+        monkeypatch.setattr(report_mod, "plot_family_frequencies", real_plot if plot else (lambda m, png, *args: None))
         o = run_case(f"npz #{i} ({what})", ["model", "show", path, "--png", workdir / f"m{i}.png"])
         outcomes.append(o)
         if o.status == 0:
             loadable.append((o.case, path))
-    monkeypatch.setattr(cli_mod, "plot_family_frequencies", real_plot)
+    monkeypatch.setattr(report_mod, "plot_family_frequencies", real_plot)
     for case, path in rng.sample(loadable, min(6, len(loadable))):  # the simulator on a user's model
         toml = path.with_suffix(".toml")
         toml.write_text(BASE_TOML + f"[model]\nsource = {json.dumps(str(path))}\n")

@@ -209,8 +209,8 @@ def test_a_recording_changed_between_the_replays_two_readings_is_a_one_line_erro
     one line naming the change, status 2 (in this process: the second reading is made to see
     the rewritten file)."""
     from bttsim_stream import cli
+    from bttsim_stream.bus import recording
     from bttsim_stream.bus.recording import RecordingScan
-    import bttsim_stream.nodes.replay_node as replay_node
 
     msgs = read_recording(direct).messages
     changed = tmp_path / "changed.mcap"
@@ -226,7 +226,7 @@ def test_a_recording_changed_between_the_replays_two_readings_is_a_one_line_erro
         readings.append(path)
         return RecordingScan(path if len(readings) == 1 else changed)
 
-    monkeypatch.setattr(replay_node, "RecordingScan", scan)
+    monkeypatch.setattr(recording, "RecordingScan", scan)  # the replay imports it from there when it runs
     assert cli.main(["replay", str(direct), "--wait", "0", "-l", f"tcp/127.0.0.1:{free_port()}"]) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(readings) == 2 and len(err) == 1, err

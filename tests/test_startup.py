@@ -1,13 +1,18 @@
-"""What the bus's consumers import at start-up, and how the live loop batches its work.
+"""What the command line and the bus's consumers import at start-up, and how the live loop
+batches its work.
 
 Every node is a process of its own that pays its imports: a recorder, a processor or a viewer
 decodes the bus without the modal model, the scenario parser or the simulator; only the
-processor's final report loads scipy.
+processor's final report loads scipy. Every ``bttsim`` command builds the parsers of every
+command and node: that loads none of their machinery (each command and each node's ``main``
+imports its own).
 """
+import ast
 import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -24,23 +29,46 @@ HEAVY = ("bttsim_stream.model", "bttsim_stream.scenario", "bttsim_stream.sim.cor
          "bttsim_stream.process.streaming", "scipy")
 
 
+#: What building the parsers must not load besides: the recordings, the live run and the
+#: package metadata (read only by a command that writes the version).
+MACHINERY = HEAVY + ("bttsim_stream.bus.codec", "bttsim_stream.bus.recording", "bttsim_stream.bus.stream",
+                     "bttsim_stream.acquisition", "bttsim_stream.offline", "bttsim_stream.processor",
+                     "bttsim_stream.orchestrate", "bttsim_stream.views", "mcap", "google.protobuf", "rerun",
+                     "importlib.metadata")
+NODES = Path(__file__).resolve().parents[1] / "nodes"
+
+
 def _loaded(code: str) -> set[str]:
     out = subprocess.run([sys.executable, "-c", code + "\nimport sys, json; print(json.dumps(sorted(sys.modules)))"],
                          capture_output=True, text=True, check=True, timeout=120)
     return set(json.loads(out.stdout.splitlines()[-1]))
 
 
+def _node_imports(node: str) -> str:
+    """Every import statement of the node's module, those inside its ``main`` and helpers too
+    (read from its source): what the node has loaded once it runs."""
+    tree = ast.parse((NODES / f"{node}.py").read_text())
+    return "\n".join(ast.unparse(n) for n in ast.walk(tree)
+                     if isinstance(n, (ast.Import, ast.ImportFrom)) and getattr(n, "module", "") != "__future__")
+
+
 @pytest.mark.parametrize("node", ["recorder_node", "viewer_node"])
 def test_a_recorder_and_a_viewer_start_without_the_simulator_or_the_processing(node):
-    mods = _loaded(f"import bttsim_stream.nodes.{node}; import bttsim_stream.bus.codec")
+    mods = _loaded(_node_imports(node))
     assert "bttsim_stream.bus.codec" in mods and "bttsim_stream.sim.records" in mods
     assert not sorted(m for m in mods if m in HEAVY)
 
 
 def test_the_processor_starts_without_the_simulator_and_scipy():
-    mods = _loaded("import bttsim_stream.nodes.processor_node")
+    mods = _loaded(_node_imports("processor_node"))
     assert "bttsim_stream.processor" in mods and "bttsim_stream.process.streaming" in mods
     assert not sorted(m for m in mods if m in HEAVY[:3] + ("scipy",))
+
+
+def test_the_parsers_of_every_command_and_node_load_none_of_their_machinery():
+    mods = _loaded("import bttsim_stream.cli; bttsim_stream.cli.build_parser()")
+    assert {f"bttsim_stream.nodes.{m}" for m in ("sim_node", "recorder_node", "processor_node")} <= mods
+    assert not sorted(m for m in mods if m in MACHINERY or m.split(".")[0] in MACHINERY)
 
 
 def test_the_processing_package_gives_every_public_name_from_its_module():

@@ -32,7 +32,6 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 import numpy as np
 
-from .. import __version__
 from ..errors import BttsimError
 from . import codec
 from . import keys as _keys
@@ -178,6 +177,8 @@ class McapRecorder:
         self._channels: dict[str, int] = {}
         self._closed = False
         self.n_messages = 0
+        from .. import __version__  # read here: a reader of recordings never needs it
+
         self._guard(self._writer.start, profile="", library=f"bttsim_stream {__version__}")
         if run_metadata is not None:
             self.write_metadata(RUN_METADATA_NAME, run_metadata)
@@ -202,15 +203,21 @@ class McapRecorder:
         self._guard(self._writer.add_metadata, name, {str(k): str(v) for k, v in data.items()})
 
     def write_run_metadata(self, run_id: str, rig: str, scenario_toml: str,
-                           software_version: str = __version__, **extra: str) -> None:
+                           software_version: str | None = None, **extra: str) -> None:
         """Write the ``bttsim.run`` metadata record (call it first, right after opening).
 
         Parameters
         ----------
-        run_id, rig, scenario_toml, software_version : str
+        run_id, rig, scenario_toml : str
+        software_version : str, optional
+            Default: this package's version.
         **extra : str
             More string entries (e.g. ``has_truth="true"``).
         """
+        if software_version is None:
+            from .. import __version__
+
+            software_version = __version__
         data = {"run_id": run_id, "rig": _keys.validate_rig(rig), "scenario_toml": scenario_toml,
                 "software_version": software_version}
         data.update(extra)

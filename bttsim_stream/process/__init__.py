@@ -6,6 +6,8 @@ One module per stage (paper equations in brackets):
   identification, Eq. 1 displacements;
 * :mod:`.detect` -- what the run holds: speed segments (ramps, dwells), resonance
   crossings per engine order with their detection statistic, the zeroing reference;
+* :mod:`.peak_finding` -- a curve's interior peaks and their prominences (scipy's
+  ``find_peaks``, in numpy: scipy.signal is slow to import);
 * :mod:`.prep` -- data preparation (Sec. 2.3): offset removal and noise reduction;
 * :mod:`.fit` -- windowed multi-EO sine fits (Eq. 16-17);
 * :mod:`.methods` -- resonance per blade through a crossing: peak, swept SDOF, CFF;

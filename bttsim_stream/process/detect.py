@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .peak_finding import interior_peaks
 from .prep import median_then_mean
 
 __all__ = ["DetectOptions", "SpeedSegment", "Sweep", "RunSegments", "Crossing", "Reference",
@@ -438,13 +439,9 @@ def detect_crossings(amp_pkpk_m: np.ndarray, eo: int, segments: RunSegments,
         resid = a_raw - a
         resid = resid[np.isfinite(resid)]
         sigma = 1.4826 * float(np.median(np.abs(resid))) / math.sqrt(m) if resid.size else 0.0
-        # scipy.signal takes 0.5 s to import: only when a run is searched for crossings, not
-        # at the start of every command and node
-        from scipy.signal import find_peaks
-
-        peaks, props = find_peaks(a, prominence=0.0)
+        pk = interior_peaks(a)
         found = []  # (p, prom, top, base, ratio, snr, hp_lo, hp_hi, lo, hi) of the peaks that pass
-        for p, prom, lb, rb in zip(peaks, props["prominences"], props["left_bases"], props["right_bases"]):
+        for p, prom, lb, rb in zip(pk.index, pk.prominence, pk.left_base, pk.right_base):
             top = float(a[p])
             base = top - float(prom)
             ratio = top / base if base > 0 else _SNR_CAP

@@ -44,9 +44,9 @@ from .travelling_wave import fit_spectra, identify_nd, probe_spectra
 __all__ = ["ProcessOptions", "ProcessingResult", "RevolutionFit", "RevolutionOutput", "process_arrays",
            "check_window", "engine_orders_of", "METHODS", "REPORT_MODULES", "load_report_modules"]
 
-#: The modules the report imports when it first needs them (the crossings' peaks, the
-#: smoother, the fits): about a second of imports, left out of the start of every command.
-REPORT_MODULES = ("scipy.signal", "scipy.ndimage", "scipy.optimize")
+#: The modules the report imports when it first needs them (the smoother, the fits): about
+#: half a second of imports, left out of the start of every command.
+REPORT_MODULES = ("scipy.ndimage", "scipy.optimize")
 
 
 def load_report_modules() -> None:
