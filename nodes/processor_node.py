@@ -24,7 +24,6 @@ import argparse
 import json
 import logging
 import sys
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -46,7 +45,6 @@ log = logging.getLogger("bttsim.processor")
 def main(conf, args: argparse.Namespace) -> dict | None:
     """Process until the simulator ends; returns the summary dict."""
     # the processing: imported when the node runs, not whenever `bttsim` builds its parsers
-    from bttsim_stream.process.pipeline import load_report_modules
     from bttsim_stream.process.resonance import summary_table
     from bttsim_stream.processor import ProcessorSession
 
@@ -60,8 +58,6 @@ def main(conf, args: argparse.Namespace) -> dict | None:
             node.subscribe(k, fifo=False)  # in arrival order across the keys: revolutions complete as they come
         node.watch_nodes(("sim",))
         node.announce()
-        # the report's imports while the run goes, not after its end, when the report is awaited
-        threading.Thread(target=load_report_modules, name="report-modules", daemon=True).start()
 
         def publish(messages) -> None:
             for m in messages:

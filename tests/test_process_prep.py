@@ -137,3 +137,24 @@ def test_prepare_switches_and_missing_data():
     np.testing.assert_array_equal(np.isnan(both.d_m), np.isnan(d))
     with pytest.raises(ValueError):
         PrepOptions(min_half_width=0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_median_then_mean_is_scipy_ndimage_bit_for_bit(seed):
+    """The numpy smoother equals scipy.ndimage's running median then running mean, bit for bit:
+    odd and even windows, ties, one and several columns, a window as long as the curve."""
+    from scipy.ndimage import median_filter, uniform_filter1d
+
+    from bttsim_stream.process.prep import median_then_mean
+
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        n = int(rng.integers(1, 400))
+        size = int(rng.integers(1, min(n, 70) + 1))
+        shape = (n,) if rng.random() < 0.5 else (n, int(rng.integers(1, 7)))
+        x = rng.normal(size=shape) * 10 ** rng.uniform(-7, 3)
+        if rng.random() < 0.3:
+            x = np.round(x, 1)
+        ref = uniform_filter1d(median_filter(x, size=(size,) + (1,) * (x.ndim - 1), mode="nearest"), size,
+                               axis=0, mode="nearest")
+        assert np.array_equal(median_then_mean(x, size), ref), (n, size, shape)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.process.swept import SweptForcing, first_order
+from bttsim_stream.process.varpro import linear_part, projected_jacobian
 
 TWO_PI = 2.0 * math.pi
 
@@ -52,7 +53,6 @@ def _case(seed=1):
     z = forcing.envelope(342.5, 0.012)
     zt = np.interp(ts, grid, z.real) + 1j * np.interp(ts, grid, z.imag)
     yn = (0.7 + 0.2j) * zt / np.abs(zt).max() + 0.05 + 0.01 * (rng.normal(size=ts.size) + 1j * rng.normal(size=ts.size))
-    forcing.clear()
     return forcing, ts, yn / np.abs(yn).max()
 
 
@@ -67,26 +67,92 @@ def test_envelope_derivatives_are_central_differences():
         assert np.abs(fd - d).max() <= 1e-5 * np.abs(d).max()
 
 
+def _rows(forcing, truth, seed=2):
+    """Several blades' noisy samples of the model, of different lengths (packed rows)."""
+    rng = np.random.default_rng(seed)
+    m = [150, 90, 120]
+    ts = np.full((len(truth), max(m)), forcing.grid[0])
+    yn = np.zeros(ts.shape, complex)
+    w = np.zeros(ts.shape, bool)
+    for j, ((fn, zeta), mj) in enumerate(zip(truth, m)):
+        t = np.sort(rng.uniform(0.1, 1.4, mj))
+        z = forcing.envelope(fn, zeta)
+        zt = np.interp(t, forcing.grid, z.real) + 1j * np.interp(t, forcing.grid, z.imag)
+        y = (0.7 + 0.2j) * zt / np.abs(zt).max() + 0.05 + 0.01 * (rng.normal(size=mj) + 1j * rng.normal(size=mj))
+        ts[j, :mj], yn[j, :mj], w[j, :mj] = t, y / np.abs(y).max(), True
+    return ts, yn, w
+
+
+TRUTH = [(342.5, 0.012), (343.4, 0.008), (341.8, 0.02)]
+
+
+def test_envelope_at_samples_is_numpy_interp():
+    forcing, _, _ = _case()
+    ts, _, w = _rows(forcing, TRUTH)
+    fn, zeta = np.array([342.0, 343.0, 341.0]), np.array([0.011, 0.009, 0.018])
+    z, dz, peak, z_peak = forcing.at(fn, zeta, ts, derivatives=True)
+    for j in range(3):
+        zj, d_fn, d_zeta = forcing.derivatives(fn[j], zeta[j])
+        for got, ref in ((z[j], zj), (dz[j, :, 0], d_fn), (dz[j, :, 1], d_zeta)):
+            want = np.interp(ts[j], forcing.grid, ref.real) + 1j * np.interp(ts[j], forcing.grid, ref.imag)
+            np.testing.assert_allclose(got[w[j]], want[w[j]], rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+        assert peak[j] == np.argmax(np.abs(zj)) and z_peak[j] == zj[peak[j]]
+
+
 def test_projection_jacobian_is_central_differences():
     """The variable-projection Jacobian (the linear part re-solved at every trial) against
-    central differences of the residuals."""
-    forcing, ts, yn = _case()
-    q = np.array([342.0, 0.011])
-    J = forcing.jacobian(q, ts, yn)
+    central differences of the residuals, for several blades at once."""
+    forcing, _, _ = _case()
+    ts, yn, w = _rows(forcing, TRUTH)
+    q = np.array([[342.0, 0.011], [343.0, 0.009], [341.0, 0.018]])
 
     def resid(p):
-        r = forcing.solve(p, ts, yn)[2]
-        return np.concatenate([r.real, r.imag])
+        z, _, _, _ = forcing.at(p[:, 0], p[:, 1], ts)
+        return linear_part(z, yn, w).r
 
+    z, dz, _, _ = forcing.at(q[:, 0], q[:, 1], ts, derivatives=True)
+    cols = projected_jacobian(linear_part(z, yn, w), dz, w)
     for k, step in enumerate((1e-4, 1e-8)):
         e = np.zeros(2)
         e[k] = step
         fd = (resid(q + e) - resid(q - e)) / (2 * step)
-        assert np.abs(fd - J[:, k]).max() <= 1e-5 * np.abs(J[:, k]).max()
+        for j in range(3):
+            assert np.abs(fd[j] - cols[j, :, k]).max() <= 1e-5 * np.abs(cols[j, :, k]).max()
+        assert not np.any(cols[~w])
 
 
-def test_fit_recovers_the_model():
-    forcing, ts, yn = _case()
-    res = forcing.fit(ts, yn, 341.0, 0.02)
-    assert res.x[0] == pytest.approx(342.5, rel=2e-4)
-    assert res.x[1] == pytest.approx(0.012, rel=0.05)
+def test_fit_recovers_the_model_and_matches_least_squares():
+    """Each blade's fit finds the model it was drawn from, and the minimum that
+    ``scipy.optimize.least_squares`` finds on the same residuals."""
+    from scipy.optimize import least_squares
+
+    forcing, _, _ = _case()
+    ts, yn, w = _rows(forcing, TRUTH)
+    fn0 = np.array([341.0, 344.0, 342.5])
+    res = forcing.fit(ts, yn, w, fn0, 0.015)
+    assert res.ok.all()
+    for j, (fn, zeta) in enumerate(TRUTH):
+        assert res.q[j, 0] == pytest.approx(fn, rel=1e-3)
+        assert res.q[j, 1] == pytest.approx(zeta, rel=0.15)
+
+        def r(p, j=j):
+            z, _, _, _ = forcing.at(np.array([p[0]]), np.array([p[1]]), ts[j:j + 1])
+            rr = linear_part(z, yn[j:j + 1], w[j:j + 1]).r[0]
+            return np.concatenate([rr.real, rr.imag])
+
+        ref = least_squares(r, [fn0[j], 0.015], x_scale=[fn0[j] * 0.0015, 0.0015],
+                            bounds=([0.8 * fn0[j], 1e-5], [1.2 * fn0[j], 0.3]), xtol=1e-12, ftol=1e-12)
+        assert res.q[j, 0] == pytest.approx(ref.x[0], rel=1e-8)
+        assert res.q[j, 1] == pytest.approx(ref.x[1], rel=1e-5)
+        jtj = ref.jac.T @ ref.jac
+        np.testing.assert_allclose(res.jtj[j], jtj, rtol=1e-5, atol=1e-5 * math.sqrt(jtj[0, 0] * jtj[1, 1]))
+
+
+def test_a_blade_fits_alike_alone_and_with_others():
+    forcing, _, _ = _case()
+    ts, yn, w = _rows(forcing, TRUTH)
+    fn0 = np.array([341.0, 344.0, 342.5])
+    together = forcing.fit(ts, yn, w, fn0, 0.015)
+    for j in range(3):
+        alone = forcing.fit(ts[j:j + 1], yn[j:j + 1], w[j:j + 1], fn0[j:j + 1], 0.015)
+        np.testing.assert_allclose(alone.q[0], together.q[j], rtol=1e-12)

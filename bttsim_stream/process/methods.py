@@ -71,6 +71,7 @@ from .displacement import RotorPhase
 from .fit import fit_revolutions
 from .resonance import ResonancePeaks
 from .swept import SweptForcing, sdof_envelope
+from .varpro import fit_blades, inverse2, linear_part, projected_jacobian
 
 __all__ = ["METHODS", "QUASI_STEADY_REVOLUTIONS", "SHAPE_MISFIT", "amplitude_noise", "quadratic_peak", "fit_half_width",
            "resonance_fit", "peak_method", "cff_method", "sdof_method", "sdof_envelope"]
@@ -187,57 +188,75 @@ QUASI_STEADY_REVOLUTIONS = 60
 SHAPE_MISFIT = 0.01
 
 
-def _steady_h(f: np.ndarray, fn: float, zeta: float) -> np.ndarray:
-    r = f / fn
-    return 1.0 / (1.0 - r * r + 2j * zeta * r)
+def _steady_model(f: np.ndarray, yn: np.ndarray, w: np.ndarray):
+    """The fit's model for :func:`.varpro.fit_blades`: ``h`` at each blade's frequencies and its
+    derivatives by ``f_n`` and ``zeta`` (``dh = -h^2 d(den)``)."""
+
+    def model(q, rows):
+        fn, zeta = q[:, :1], q[:, 1:]
+        r = f[rows] / fn
+        h = 1.0 / (1.0 - r * r + 2j * zeta * r)
+        dz = -(h * h)[..., None] * np.stack([(2.0 * r * r - 2j * zeta * r) / fn, 2j * r], axis=-1)
+        lp = linear_part(h, yn[rows], w[rows])
+        return lp, projected_jacobian(lp, dz, w[rows])
+
+    return model
 
 
-def _fit_one(y: np.ndarray, f: np.ndarray, f0: float, zeta0: float):
-    """Variable-projection fit of ``y = C h(f) + c`` (one blade); None where it fails."""
-    from scipy.optimize import least_squares
+def _fit_shape(y: np.ndarray, f: np.ndarray, w: np.ndarray, f0: np.ndarray, zeta0: float):
+    """Variable-projection fits of ``y = C h(f) + c``, one per row (a blade's samples ``w``):
+    amplitude, peak frequency, phase, amplitude std, frequency std (NaN where a fit fails or
+    its misfit beyond the noise exceeds :data:`SHAPE_MISFIT`)."""
+    k = y.shape[0]
+    got = np.full((5, k), np.nan)
+    scale = np.max(np.where(w, np.abs(y), 0.0), axis=1, initial=0.0)
+    use = np.flatnonzero((scale > 0) & (w.sum(axis=1) >= 8))
+    if use.size == 0:
+        return got
+    y, f, w, scale, f0 = y[use], f[use], w[use], scale[use], f0[use]
+    yn = np.where(w, y, 0) / scale[:, None]
+    f = np.where(w, f, 1.0)
+    model = _steady_model(f, yn, w)
+    ones = np.ones_like(f0)
+    res = fit_blades(model, np.stack([f0, zeta0 * ones], axis=1), np.stack([0.9 * f0, 1e-5 * ones], axis=1),
+                     np.stack([1.1 * f0, 0.3 * ones], axis=1),
+                     np.stack([np.maximum(f0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1 * ones], axis=1))
+    q = np.where(res.ok[:, None], res.q, f0[:, None])  # a failed row: any finite point, dropped below
+    lp = model(q, np.arange(use.size))[0]
+    s2 = 2.0 * lp.cost / np.maximum(2 * lp.n - 6, 1)
+    cov = s2[:, None, None] * inverse2(res.jtj)
+    fn, zeta = q[:, 0], q[:, 1]
 
-    scale = float(np.max(np.abs(y)))
-    if not scale > 0 or y.size < 8:
-        return None
-    yn = y / scale
+    def peak(fn_q, zeta_q):
+        C = linear_part(_h(f, fn_q, zeta_q), yn, w).C
+        return 2.0 * np.abs(C) * scale / (2.0 * zeta_q * np.sqrt(np.maximum(1.0 - zeta_q * zeta_q, 1e-12)))
 
-    def solve(q):
-        A = np.stack([_steady_h(f, q[0], q[1]), np.ones_like(f, dtype=complex)], axis=1)
-        c, *_ = np.linalg.lstsq(A, yn, rcond=None)
-        return A, c, A @ c - yn
-
-    def resid(q):
-        r = solve(q)[2]
-        return np.concatenate([r.real, r.imag])
-
-    try:
-        res = least_squares(resid, [f0, zeta0], x_scale=[max(f0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1],
-                            bounds=([0.9 * f0, 1e-5], [1.1 * f0, 0.3]))
-        A, c, r = solve(res.x)
-        s2 = float(np.sum(np.abs(r) ** 2)) / max(2 * r.size - 6, 1)
-        cov = s2 * np.linalg.inv(res.jac.T @ res.jac)
-        g00 = float(np.real(np.linalg.inv(A.conj().T @ A)[0, 0]))
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    fn, zeta = (float(v) for v in res.x)
-
-    def peak(q):
-        cq = solve(q)[1][0]
-        return 2.0 * abs(cq) * scale / (2.0 * q[1] * math.sqrt(max(1.0 - q[1] * q[1], 1e-12)))
-
-    amp = peak(res.x)
-    grad = np.array([(peak([fn * (1 + 1e-6), zeta]) - amp) / (fn * 1e-6),
-                     (peak([fn, zeta * (1 + 1e-4)]) - amp) / (zeta * 1e-4)])
-    var = s2 * g00 * (amp / abs(c[0])) ** 2 + float(grad @ cov @ grad)  # |C|'s share, then (f_n, zeta)'s
-    fpk = fn * math.sqrt(max(1.0 - 2.0 * zeta * zeta, 1e-12))
-    ph = float(np.angle(c[0] * _steady_h(np.array([fpk]), fn, zeta)[0]))
+    amp = 2.0 * np.abs(lp.C) * scale / (2.0 * zeta * np.sqrt(np.maximum(1.0 - zeta * zeta, 1e-12)))
+    grad = np.stack([(peak(fn * (1 + 1e-6), zeta) - amp) / (fn * 1e-6),
+                     (peak(fn, zeta * (1 + 1e-4)) - amp) / (zeta * 1e-4)], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # |C|'s share (1 / |z_c|^2 is (A^H A)^-1's [0, 0]), then (f_n, zeta)'s
+        var = s2 / lp.nz2 * (amp / np.abs(lp.C)) ** 2 + np.einsum("kp,kpq,kq->k", grad, cov, grad)
+    fpk = fn * np.sqrt(np.maximum(1.0 - 2.0 * zeta * zeta, 1e-12))
+    ph = np.angle(lp.C * _h(fpk[:, None], fn, zeta)[:, 0])
     # misfit beyond the noise, per real component, over the response's amplitude (A / 2): white
     # complex noise of variance s^2 per component has E |Delta^2 e|^2 = 12 s^2, median ln 2 of it
-    noise2 = float(np.median(np.abs(np.diff(yn, 2)) ** 2)) / (12.0 * math.log(2.0)) if yn.size > 2 else 0.0
-    beyond = math.sqrt(max(float(np.mean(np.abs(r) ** 2)) / 2.0 - noise2, 0.0)) * scale / (0.5 * amp)
-    if not beyond <= SHAPE_MISFIT:
-        return None
-    return amp, fpk, ph, math.sqrt(max(var, 0.0)), math.sqrt(max(cov[0, 0], 0.0)), fn, zeta
+    noise2 = np.array([float(np.median(np.abs(np.diff(yn[j, w[j]], 2)) ** 2)) / (12.0 * math.log(2.0))
+                       if lp.n[j] > 2 else 0.0 for j in range(use.size)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        beyond = np.sqrt(np.maximum(lp.cost / lp.n - noise2, 0.0)) * scale / (0.5 * amp)
+    good = (res.ok & (beyond <= SHAPE_MISFIT) & np.all(np.isfinite(cov), axis=(1, 2)) & (lp.nz2 > 0)
+            & np.isfinite(var))
+    got[:, use[good]] = np.stack([amp, fpk, ph, np.sqrt(np.maximum(var, 0.0)),
+                                  np.sqrt(np.maximum(cov[:, 0, 0], 0.0))])[:, good]
+    return got
+
+
+def _h(f: np.ndarray, fn: np.ndarray, zeta: np.ndarray) -> np.ndarray:
+    """``h(f) = 1 / (1 - (f / f_n)^2 + 2 i zeta f / f_n)`` of each row's frequencies with its own
+    ``(f_n, zeta)`` (:func:`resonance_fit`)."""
+    r = f / fn[:, None]
+    return 1.0 / (1.0 - r * r + 2j * zeta[:, None] * r)
 
 
 def resonance_fit(phasor: np.ndarray, freq_hz: np.ndarray, center: np.ndarray, half: int, lo: int, hi: int,
@@ -280,22 +299,27 @@ def resonance_fit(phasor: np.ndarray, freq_hz: np.ndarray, center: np.ndarray, h
     f_all = np.asarray(freq_hz, dtype=float)
     n, nb = P.shape
     out = np.full((6, nb), np.nan)
-    for b in range(nb):
-        k = int(np.clip(center[b], 0, n - 1))
-        a0, a1 = max(lo, k - int(half), 0), min(hi, k + int(half), n - 1)
-        sel = np.arange(a0, a1 + 1)
-        ok = np.isfinite(P[sel, b]) & np.isfinite(f_all[sel])
-        if ok.sum() < 8:
-            continue
-        got = _fit_one(P[sel[ok], b], f_all[sel[ok]], float(f_all[k]), float(zeta0))
-        if got is None:
-            continue
-        amp, fpk, ph, s_a, s_f, _, _ = got
-        fs = f_all[sel[ok]]
+    k = np.clip(np.asarray(center, dtype=np.int64), 0, n - 1)
+    a0, a1 = np.maximum(np.maximum(lo, k - int(half)), 0), np.minimum(np.minimum(hi, k + int(half)), n - 1)
+    span = int(max(np.max(a1 - a0, initial=-1) + 1, 0))
+    if span == 0:
+        return tuple(out)
+    # each blade's window, its usable samples packed to the left of a row (order kept)
+    sel = a0[:, None] + np.arange(span)
+    inside = sel <= a1[:, None]
+    sel = np.minimum(sel, n - 1)
+    y, f = P[sel, np.arange(nb)[:, None]], f_all[sel]
+    w = inside & np.isfinite(y) & np.isfinite(f)
+    order = np.argsort(~w, axis=1, kind="stable")
+    w, y, f, sel = (np.take_along_axis(a, order, axis=1) for a in (w, y, f, sel))
+    got = _fit_shape(y, f, w, f_all[k], float(zeta0))
+    for b in np.flatnonzero(np.isfinite(got[0])):
+        amp, fpk, ph, s_a, s_f = got[:, b]
+        fs, rows = f[b, w[b]], sel[b, w[b]]
         if not (fs.min() < fpk < fs.max()):
             continue
-        order = np.argsort(fs)
-        out[:, b] = amp, np.interp(fpk, fs[order], sel[ok][order].astype(float)), fpk, ph, s_a, s_f
+        by_f = np.argsort(fs)
+        out[:, b] = amp, np.interp(fpk, fs[by_f], rows[by_f].astype(float)), fpk, ph, s_a, s_f
     return tuple(out)
 
 
@@ -533,76 +557,69 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     out = {k: np.full(nb, np.nan) for k in ("amp", "freq", "phase", "amp_std", "freq_std", "zeta", "steady",
                                             "fn", "rev", "zeta_std", "misfit")}
     out["offset"] = np.full(nb, np.nan + 0j)
-    etas = []
-    sel = slice(lo, hi + 1)
-    forcing = SweptForcing(grid, phi)
     w_rate = np.gradient(w_exc, h)
-    for b in range(nb):
-        y = phasor[sel, b]
-        ts = t_sample_s[sel, b]
-        ok = np.isfinite(y) & np.isfinite(ts) & (ts >= grid[0]) & (ts <= grid[-1])
-        if ok.sum() < 8 or not np.isfinite(fn0_hz[b]):
-            continue
-        y, ts = y[ok], ts[ok]
-        scale = float(np.max(np.abs(y)))
-        if not scale > 0:
-            continue
-        yn = y / scale
-        forcing.clear()
+    # each blade's samples in the window, packed to the left of a row (unused: the grid's start)
+    y = np.asarray(phasor[lo:hi + 1], dtype=complex).T
+    ts = np.asarray(t_sample_s[lo:hi + 1], dtype=float).T
+    ok = np.isfinite(y) & np.isfinite(ts) & (ts >= grid[0]) & (ts <= grid[-1])
+    order = np.argsort(~ok, axis=1, kind="stable")
+    ok, y, ts = (np.take_along_axis(a, order, axis=1) for a in (ok, y, ts))
+    ts = np.where(ok, ts, grid[0])
+    scale = np.max(np.where(ok, np.abs(y), 0.0), axis=1, initial=0.0)
+    fn0 = np.asarray(fn0_hz, dtype=float)
+    use = np.flatnonzero((ok.sum(axis=1) >= 8) & np.isfinite(fn0) & (scale > 0))
+    if use.size == 0:
+        return _sdof_peaks(out), math.nan
+    ok, ts, scale = ok[use], ts[use], scale[use]
+    yn = np.where(ok, y[use], 0) / scale[:, None]
+    forcing = SweptForcing(grid, phi)
+    res = forcing.fit(ts, yn, ok, fn0[use], zeta0)
+    got = res.ok
+    use, ok, ts, yn, scale = use[got], ok[got], ts[got], yn[got], scale[got]
+    fn, zeta, jtj = res.q[got, 0], res.q[got, 1], res.jtj[got]
+    if use.size == 0:
+        return _sdof_peaks(out), math.nan
+    z_ts, _, k, z_k = forcing.at(fn, zeta, ts)
+    lp = linear_part(z_ts, yn, ok)
+    dof = np.maximum(2 * lp.n - 6, 1)
+    s2 = 2.0 * lp.cost / dof
+    cov = s2[:, None, None] * inverse2(jtj)  # NaN where J^T J is singular
+    C = lp.C * scale
+    wn = TWO_PI * fn
+    hmax = 1.0 / (2.0 * zeta * np.sqrt(np.maximum(1.0 - zeta * zeta, 1e-12)) * wn * wn)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g00 = 1.0 / lp.nz2  # the linear part's share: |C| from (A^H A)^-1
+    var_c = s2 * g00 / 2.0 * (2.0 * scale * np.abs(z_k)) ** 2
+    amp = 2.0 * np.abs(C * z_k)
+    grad = np.empty((use.size, 2))
+    for j, (q_fn, q_zeta, dq) in enumerate(((fn * (1 + 1e-4), zeta, 1e-4 * fn), (fn, zeta * (1 + 1e-3), zeta * 1e-3))):
+        z_q, _, _, zk_q = forcing.at(q_fn, q_zeta, ts)
+        swept = 2.0 * np.abs(linear_part(z_q, yn, ok).C) * scale * np.abs(zk_q)
+        grad[:, j] = (swept - amp) / dq
+    finite = np.all(np.isfinite(cov), axis=(1, 2))
+    var_q = np.where(finite, np.einsum("kp,kpq,kq->k", grad, np.where(finite[:, None, None], cov, 0.0), grad), np.nan)
+    out["amp"][use] = amp
+    out["freq"][use] = w_exc[k] / TWO_PI
+    out["phase"][use] = np.angle(C * z_k)
+    out["steady"][use] = 2.0 * np.abs(C) * hmax
+    out["offset"][use] = lp.c * scale
+    out["misfit"][use] = np.sqrt(2.0 * lp.cost / lp.n) * scale
+    out["zeta"][use] = zeta
+    out["fn"][use] = fn
+    out["rev"][use] = np.interp(grid[k], opr, np.arange(n_rev))
+    out["amp_std"][use] = np.where(np.isfinite(var_q), np.sqrt(np.maximum(var_c, 0.0) + np.maximum(var_q, 0.0)), np.nan)
+    out["freq_std"][use] = np.where(finite, np.sqrt(np.maximum(cov[:, 0, 0], 0.0)), np.nan)
+    out["zeta_std"][use] = np.where(finite, np.sqrt(np.maximum(cov[:, 1, 1], 0.0)), np.nan)
+    etas = np.abs(w_rate[k]) / (wn * wn)
+    return _sdof_peaks(out), float(np.median(etas))
 
-        def solve(q, ts=ts, yn=yn):
-            return forcing.solve(q, ts, yn)
 
-        try:
-            res = forcing.fit(ts, yn, float(fn0_hz[b]), zeta0)
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        fn, zeta = (float(v) for v in res.x)
-        A, c, r = solve(res.x)
-        m = 2 * r.size
-        dof = max(m - 6, 1)
-        s2 = float(np.sum(np.abs(r) ** 2)) / dof
-        try:
-            cov = s2 * np.linalg.inv(res.jac.T @ res.jac)
-        except np.linalg.LinAlgError:
-            cov = np.full((2, 2), np.nan)
-        z_grid = forcing.envelope(fn, zeta)
-        k = int(np.argmax(np.abs(z_grid)))
-        C = c[0] * scale
-        wn = TWO_PI * fn
-        hmax = 1.0 / (2.0 * zeta * math.sqrt(max(1.0 - zeta * zeta, 1e-12)) * wn * wn)
-        try:  # the linear part's share: |C| from (A^H A)^-1
-            g00 = float(np.real(np.linalg.inv(A.conj().T @ A)[0, 0]))
-        except np.linalg.LinAlgError:
-            g00 = math.nan
-        var_c = s2 * g00 / 2.0 * (2.0 * scale * float(np.abs(z_grid[k]))) ** 2
-
-        def swept(q):
-            _, cq, _ = solve(q)
-            return 2.0 * abs(cq[0]) * scale * float(np.abs(forcing.envelope(q[0], q[1])).max())
-
-        amp = 2.0 * abs(C * z_grid[k])
-        grad = np.array([(swept([fn + dq, zeta]) - amp) / dq for dq in (1e-4 * fn,)]
-                        + [(swept([fn, zeta * (1 + 1e-3)]) - amp) / (zeta * 1e-3)])
-        var_q = float(grad @ cov @ grad) if np.all(np.isfinite(cov)) else math.nan
-        out["amp"][b] = amp
-        out["freq"][b] = w_exc[k] / TWO_PI
-        out["phase"][b] = float(np.angle(C * z_grid[k]))
-        out["steady"][b] = 2.0 * abs(C) * hmax
-        out["offset"][b] = c[1] * scale
-        out["misfit"][b] = math.sqrt(float(np.mean(np.abs(r) ** 2))) * scale
-        out["zeta"][b] = zeta
-        out["fn"][b] = fn
-        out["rev"][b] = float(np.interp(grid[k], opr, np.arange(n_rev)))
-        out["amp_std"][b] = math.sqrt(max(var_c, 0.0) + max(var_q, 0.0)) if math.isfinite(var_q) else math.nan
-        out["freq_std"][b] = math.sqrt(max(cov[0, 0], 0.0)) if np.all(np.isfinite(cov)) else math.nan
-        out["zeta_std"][b] = math.sqrt(max(cov[1, 1], 0.0)) if np.all(np.isfinite(cov)) else math.nan
-        etas.append(abs(float(w_rate[k])) / (wn * wn))
-    peaks = ResonancePeaks(revolution=out["rev"], amp_pkpk_m=out["amp"], freq_hz=out["freq"],
-                           damping_ratio=out["zeta"], method="sdof", phase_rad=out["phase"],
-                           amp_std_m=out["amp_std"], freq_std_hz=out["freq_std"],
-                           steady_amp_pkpk_m=out["steady"], natural_freq_hz=out["fn"], **_sdof_extra(out))
-    return peaks, (float(np.median(etas)) if etas else math.nan)
+def _sdof_peaks(out: dict) -> ResonancePeaks:
+    """The swept SDOF fit's :class:`~.resonance.ResonancePeaks` from its per-blade fields."""
+    return ResonancePeaks(revolution=out["rev"], amp_pkpk_m=out["amp"], freq_hz=out["freq"],
+                          damping_ratio=out["zeta"], method="sdof", phase_rad=out["phase"],
+                          amp_std_m=out["amp_std"], freq_std_hz=out["freq_std"],
+                          steady_amp_pkpk_m=out["steady"], natural_freq_hz=out["fn"], **_sdof_extra(out))
 
 
 def _sdof_extra(out: dict) -> dict:

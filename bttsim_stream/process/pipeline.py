@@ -42,20 +42,7 @@ from .travelling_wave import fit_spectra, identify_nd, probe_spectra
 # ProcessOptions, RevolutionFit, RevolutionOutput and engine_orders_of are re-exported for
 # the callers that import them from here.
 __all__ = ["ProcessOptions", "ProcessingResult", "RevolutionFit", "RevolutionOutput", "process_arrays",
-           "check_window", "engine_orders_of", "METHODS", "REPORT_MODULES", "load_report_modules"]
-
-#: The modules the report imports when it first needs them (the smoother, the fits): about
-#: half a second of imports, left out of the start of every command.
-REPORT_MODULES = ("scipy.ndimage", "scipy.optimize")
-
-
-def load_report_modules() -> None:
-    """Import :data:`REPORT_MODULES` now: a node that waits before its report (the processor,
-    while the run goes) loads them then, not after the run's end, when the report is awaited."""
-    import importlib
-
-    for name in REPORT_MODULES:
-        importlib.import_module(name)
+           "check_window", "engine_orders_of", "METHODS"]
 
 #: The data preparation's baseline is fitted where every crossing's predicted response is below
 #: this fraction of its peak (the skirts of the resonances are not offsets).

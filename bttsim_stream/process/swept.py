@@ -21,17 +21,12 @@ Pure numpy; no I/O.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-__all__ = ["first_order", "sdof_envelope", "SweptForcing", "SWEPT_MEMORY"]
+__all__ = ["first_order", "sdof_envelope", "SweptForcing", "ROW_SAMPLES"]
 
 TWO_PI = 2.0 * np.pi
 
-#: Envelopes and solves :class:`SweptForcing` remembers, the newest (a fit's last trials: each
-#: one grid long, so the memory does not grow with the fit).
-SWEPT_MEMORY = 3
 
 
 def first_order(lam_h, x: np.ndarray, y0) -> np.ndarray:
@@ -86,21 +81,28 @@ def sdof_envelope(fn_hz: float, zeta: float, grid_s: np.ndarray, phi_rad: np.nda
     return SweptForcing(grid_s, phi_rad).envelope(fn_hz, zeta)
 
 
-def _poles(fn_hz: float, zeta: float):
-    """``(lambda_1, lambda_2)`` and their derivatives by ``f_n`` and by ``zeta``."""
+def _poles(fn_hz, zeta):
+    """``(lambda_1, lambda_2)`` and their derivatives by ``f_n`` and by ``zeta``, each of shape
+    ``(k, 2)`` for ``k`` pairs ``(f_n, zeta)``."""
+    fn_hz, zeta = np.atleast_1d(np.asarray(fn_hz, dtype=float)), np.atleast_1d(np.asarray(zeta, dtype=float))
     wn = TWO_PI * fn_hz
-    s = math.sqrt(max(1.0 - zeta * zeta, 1e-12))
-    lam = (-zeta * wn + 1j * wn * s, -zeta * wn - 1j * wn * s)
-    d_fn = (TWO_PI * (-zeta + 1j * s), TWO_PI * (-zeta - 1j * s))
-    d_zeta = (wn * (-1.0 - 1j * zeta / s), wn * (-1.0 + 1j * zeta / s))
+    s = np.sqrt(np.maximum(1.0 - zeta * zeta, 1e-12))
+    lam = np.stack([-zeta * wn + 1j * wn * s, -zeta * wn - 1j * wn * s], axis=1)
+    d_fn = TWO_PI * np.stack([-zeta + 1j * s, -zeta - 1j * s], axis=1)
+    d_zeta = wn[:, None] * np.stack([-1.0 - 1j * zeta / s, -1.0 + 1j * zeta / s], axis=1)
     return lam, d_fn, d_zeta
+
+
+#: Rows (blades x poles) times grid samples that :class:`SweptForcing` integrates at once: a
+#: block of 512 kB per complex array (it stays in a core's cache), whatever the crossing's length.
+ROW_SAMPLES = 1 << 15
 
 
 class SweptForcing:
     """The forcing's terms on one grid (they do not depend on ``f_n``, ``zeta``: computed once per
-    crossing, not once per trial of the fit), and each blade's envelopes, derivatives and linear
-    solves by ``(f_n, zeta)``: the fit's Jacobian, its swept peak and its last trial reuse them
-    instead of integrating the same model again."""
+    crossing), and, for many pairs ``(f_n, zeta)`` at once (one per blade), the envelopes,
+    their derivatives and their values at each blade's sample times, integrated in blocks of
+    :data:`ROW_SAMPLES`."""
 
     def __init__(self, grid_s: np.ndarray, phi_rad: np.ndarray):
         self.grid, self.phi = grid_s, phi_rad
@@ -111,116 +113,116 @@ class SweptForcing:
         self.jw = 1j * w
         self.e_phi0 = np.exp(1j * phi_rad[0])
         self.e_mphi = np.exp(-1j * phi_rad)
-        self._z: dict = {}
-        self._dz: dict = {}
-        self._y: dict = {}
-        self._solved: dict = {}
 
-    def _response(self, key):
-        """Both poles' recursions at ``key = (f_n, zeta)``: ``(lam, x, den, y)``, ``y`` of shape
-        ``(2, M + 1)`` (remembered until :meth:`clear`)."""
-        got = self._y.get(key)
-        if got is None:
-            lam = np.array(_poles(*key)[0])[:, None]
-            den = self.jw[None, :] - lam
-            x = self.e_phi * (self.e_wh - np.exp(lam * self.h)) / den
-            y = np.empty((2, x.shape[1] + 1), complex)
-            y[:, 0] = self.e_phi0 / den[:, 0]
-            y[:, 1:] = first_order(lam[:, 0] * self.h, x, y[:, 0])
-            got = self._y[key] = (lam, x, den, y)
-            _forget_oldest(self._y)
-        return got
+    def _block(self, fn_hz: np.ndarray, zeta: np.ndarray, derivatives: bool):
+        """Envelopes ``z`` of shape ``(k, G)`` (and ``dz / d f_n``, ``dz / d zeta``) of ``k``
+        pairs: both poles' recursions and, for the derivatives, ``dy / d lambda`` by the
+        module docstring's recursion, through ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``."""
+        lam, d_fn, d_zeta = _poles(fn_hz, zeta)
+        flat = lam.reshape(-1, 1)  # rows b0 pole 1, b0 pole 2, b1 pole 1, ...
+        den = self.jw[None, :] - flat
+        ah = np.exp(flat * self.h)
+        x = self.e_phi * (self.e_wh - ah) / den
+        y = np.empty((flat.shape[0], x.shape[1] + 1), complex)
+        y[:, 0] = self.e_phi0 / den[:, 0]
+        y[:, 1:] = first_order(flat[:, 0] * self.h, x, y[:, 0])
+        d = (lam[:, 0] - lam[:, 1])[:, None]
+        q = (y[0::2] - y[1::2]) / d
+        z = q * self.e_mphi
+        if not derivatives:
+            return z, None
+        ah *= self.h
+        u = ah * y[:, :-1] + (x - ah * self.e_phi) / den
+        del x
+        dy = np.empty_like(y)
+        dy[:, 0] = y[:, 0] / den[:, 0]
+        dy[:, 1:] = first_order(flat[:, 0] * self.h, u, dy[:, 0])
+        del u, y
+        dq1, dq2 = (dy[0::2] - q) / d, (q - dy[1::2]) / d  # dq / d lambda_1, dq / d lambda_2
+        dz = np.stack([(dq1 * d_fn[:, :1] + dq2 * d_fn[:, 1:]) * self.e_mphi,
+                       (dq1 * d_zeta[:, :1] + dq2 * d_zeta[:, 1:]) * self.e_mphi], axis=-1)
+        return z, dz
 
     def envelope(self, fn_hz: float, zeta: float) -> np.ndarray:
-        """:func:`sdof_envelope` of ``(fn_hz, zeta)`` on this grid (remembered until :meth:`clear`)."""
-        key = (float(fn_hz), float(zeta))
-        z = self._z.get(key)
-        if z is None:
-            lam, _, _, y = self._response(key)
-            z = self._z[key] = (y[0] - y[1]) / (lam[0, 0] - lam[1, 0]) * self.e_mphi
-            _forget_oldest(self._z)
-        return z
+        """:func:`sdof_envelope` of ``(fn_hz, zeta)`` on this grid, shape ``(G,)``."""
+        return self._block(np.array([fn_hz], float), np.array([zeta], float), False)[0][0]
 
     def derivatives(self, fn_hz: float, zeta: float):
-        """``(z, dz / d f_n, dz / d zeta)`` on this grid: ``dy / d lambda`` of each pole by the
-        module docstring's recursion, through ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``."""
-        key = (float(fn_hz), float(zeta))
-        got = self._dz.get(key)
-        if got is None:
-            lam, x, den, y = self._response(key)
-            ah = np.exp(lam * self.h) * self.h
-            u = ah * y[:, :-1] + (x - ah * self.e_phi) / den
-            dy = np.empty_like(y)
-            dy[:, 0] = y[:, 0] / den[:, 0]
-            dy[:, 1:] = first_order(lam[:, 0] * self.h, u, dy[:, 0])
-            d = lam[0, 0] - lam[1, 0]
-            q = (y[0] - y[1]) / d
-            dq1, dq2 = (dy[0] - q) / d, (q - dy[1]) / d  # dq / d lambda_1, dq / d lambda_2
-            _, d_fn, d_zeta = _poles(*key)
-            got = self._dz[key] = (self.envelope(*key), (dq1 * d_fn[0] + dq2 * d_fn[1]) * self.e_mphi,
-                                   (dq1 * d_zeta[0] + dq2 * d_zeta[1]) * self.e_mphi)
-            _forget_oldest(self._dz)
-        return got
+        """``(z, dz / d f_n, dz / d zeta)`` on this grid, each of shape ``(G,)``."""
+        z, dz = self._block(np.array([fn_hz], float), np.array([zeta], float), True)
+        return z[0], dz[0, :, 0], dz[0, :, 1]
 
-    def solve(self, q, ts: np.ndarray, yn: np.ndarray):
-        """``(A, c, A c - yn)``: the linear part ``yn = C z(ts) + c`` of the SDOF fit at ``q = (f_n, zeta)``."""
-        key = (float(q[0]), float(q[1]))
-        got = self._solved.get(key)
-        if got is None:
-            z = interp_complex(ts, self.grid, self.envelope(q[0], q[1]))
-            A = np.stack([z, np.ones_like(z)], axis=1)
-            c, *_ = np.linalg.lstsq(A, yn, rcond=None)
-            got = self._solved[key] = (A, c, A @ c - yn)
-            _forget_oldest(self._solved)
-        return got
+    def at(self, fn_hz: np.ndarray, zeta: np.ndarray, ts: np.ndarray, derivatives: bool = False):
+        """Each pair's envelope at its row of sample times, and its peak on the grid.
 
-    def jacobian(self, q, ts: np.ndarray, yn: np.ndarray) -> np.ndarray:
-        """Jacobian of ``[Re r, Im r]``, ``r = A c - yn`` with ``c`` the linear least-squares
-        solution (variable projection, Golub and Pereyra): ``dr = P dA c - A (A^H A)^-1 dA^H r``,
-        ``P`` the projector off the columns of ``A``, ``dA`` the envelope's derivative in the
-        first column. Shape ``(2 m, 2)``."""
-        A, c, r = self.solve(q, ts, yn)
-        _, dz_fn, dz_zeta = self.derivatives(q[0], q[1])
-        Q, R = np.linalg.qr(A)
-        cols = []
-        for dz_grid in (dz_fn, dz_zeta):
-            dz = interp_complex(ts, self.grid, dz_grid)
-            v = c[0] * dz
-            v = v - Q @ (Q.conj().T @ v)
-            g = np.linalg.solve(R.conj().T, np.array([np.vdot(dz, r), 0.0]))  # R^-H dA^H r
-            cols.append(v - Q @ g)
-        d = np.stack(cols, axis=1)
-        return np.concatenate([d.real, d.imag])
+        Parameters
+        ----------
+        fn_hz, zeta : ndarray, shape (k,)
+        ts : ndarray, shape (k, m)
+            Sample times within the grid, s (a blade's unused samples: any time on the grid).
+        derivatives : bool
+            Also the derivatives at ``ts``.
 
-    def fit(self, ts: np.ndarray, yn: np.ndarray, fn0_hz: float, zeta0: float):
-        """The nonlinear least-squares fit of ``(f_n, zeta)`` (``yn = C z(ts) + c`` with ``C``, ``c``
-        solved linearly at each trial) from ``(fn0_hz, zeta0)``, within 20 % of ``fn0_hz`` and
-        ``1e-5 <= zeta <= 0.3``, with :meth:`jacobian`: :func:`scipy.optimize.least_squares`'
-        result."""
-        from scipy.optimize import least_squares
+        Returns
+        -------
+        z_ts : ndarray of complex, shape (k, m)
+        dz_ts : ndarray of complex, shape (k, m, 2), or None
+            ``dz / d f_n`` and ``dz / d zeta`` at ``ts``.
+        peak : ndarray of int, shape (k,)
+            The grid index of ``max |z|``.
+        z_peak : ndarray of complex, shape (k,)
+            ``z`` there.
+        """
+        fn_hz, zeta = np.asarray(fn_hz, dtype=float), np.asarray(zeta, dtype=float)
+        ts = np.asarray(ts, dtype=float)
+        k, g = fn_hz.size, self.grid.size
+        i = np.clip(np.floor((ts - self.grid[0]) / self.h).astype(np.intp), 0, g - 2)
+        t = (ts - self.grid[i]) / (self.grid[i + 1] - self.grid[i])
+        z_ts = np.empty(ts.shape, complex)
+        dz_ts = np.empty(ts.shape + (2,), complex) if derivatives else None
+        peak = np.empty(k, dtype=np.intp)
+        z_peak = np.empty(k, complex)
+        per = max(1, ROW_SAMPLES // (2 * g))
+        for a in range(0, k, per):
+            b = min(k, a + per)
+            z, dz = self._block(fn_hz[a:b], zeta[a:b], derivatives)
+            ia, ta = i[a:b], t[a:b]
+            z_ts[a:b] = _lerp(z, ia, ta)
+            if derivatives:
+                dz_ts[a:b, :, 0] = _lerp(dz[..., 0], ia, ta)
+                dz_ts[a:b, :, 1] = _lerp(dz[..., 1], ia, ta)
+            peak[a:b] = np.argmax(np.abs(z), axis=1)
+            z_peak[a:b] = z[np.arange(b - a), peak[a:b]]
+        return z_ts, dz_ts, peak, z_peak
 
-        def resid(q):
-            r = self.solve(q, ts, yn)[2]
-            return np.concatenate([r.real, r.imag])
+    def fit(self, ts: np.ndarray, yn: np.ndarray, w: np.ndarray, fn0_hz: np.ndarray, zeta0: float):
+        """The variable-projection fit (:func:`.varpro.fit_blades`) of ``yn = C z(ts) + c`` per
+        row, from ``(fn0_hz, zeta0)``, within 20 % of ``fn0_hz`` and ``1e-5 <= zeta <= 0.3``.
 
-        return least_squares(resid, [fn0_hz, zeta0], jac=lambda q: self.jacobian(q, ts, yn),
-                             x_scale=[max(fn0_hz * zeta0 * 0.1, 1e-3), zeta0 * 0.1],
-                             bounds=([0.8 * fn0_hz, 1e-5], [1.2 * fn0_hz, 0.3]))
+        Parameters
+        ----------
+        ts, yn : ndarray, shape (k, m)
+            Each blade's sample times (s) and normalised responses.
+        w : ndarray of bool, shape (k, m)
+            Each blade's samples.
+        fn0_hz : ndarray, shape (k,)
+        zeta0 : float
+        """
+        from .varpro import fit_blades, linear_part, projected_jacobian
 
-    def clear(self) -> None:
-        """Forget the remembered envelopes and solves (the next blade's data differ)."""
-        self._z.clear()
-        self._dz.clear()
-        self._y.clear()
-        self._solved.clear()
+        def model(q, rows):
+            z, dz, _, _ = self.at(q[:, 0], q[:, 1], ts[rows], derivatives=True)
+            lp = linear_part(z, yn[rows], w[rows])
+            return lp, projected_jacobian(lp, dz, w[rows])
 
-
-def _forget_oldest(memory: dict) -> None:
-    """Drop the oldest entries of ``memory`` beyond :data:`SWEPT_MEMORY`."""
-    while len(memory) > SWEPT_MEMORY:
-        del memory[next(iter(memory))]
+        fn0 = np.asarray(fn0_hz, dtype=float)
+        ones = np.ones_like(fn0)
+        return fit_blades(model, np.stack([fn0, zeta0 * ones], axis=1),
+                          np.stack([0.8 * fn0, 1e-5 * ones], axis=1), np.stack([1.2 * fn0, 0.3 * ones], axis=1),
+                          np.stack([np.maximum(fn0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1 * ones], axis=1))
 
 
-def interp_complex(x, xp, fp):
-    """:func:`numpy.interp` of a complex ``fp``."""
-    return np.interp(x, xp, fp.real) + 1j * np.interp(x, xp, fp.imag)
+def _lerp(z: np.ndarray, i: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Row ``r`` of ``z`` linearly interpolated at fractional index ``i[r] + t[r]``."""
+    z0 = np.take_along_axis(z, i, axis=1)
+    return z0 + t * (np.take_along_axis(z, i + 1, axis=1) - z0)
