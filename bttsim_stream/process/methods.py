@@ -221,7 +221,7 @@ def _fit_shape(y: np.ndarray, f: np.ndarray, w: np.ndarray, f0: np.ndarray, zeta
     res = fit_blades(model, np.stack([f0, zeta0 * ones], axis=1), np.stack([0.9 * f0, 1e-5 * ones], axis=1),
                      np.stack([1.1 * f0, 0.3 * ones], axis=1),
                      np.stack([np.maximum(f0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1 * ones], axis=1))
-    q = np.where(res.ok[:, None], res.q, f0[:, None])  # a failed row: any finite point, dropped below
+    q = np.where(res.ok[:, None], res.q, [[1.0, 0.1]])  # a failed row: a finite point, dropped below
     lp = model(q, np.arange(use.size))[0]
     s2 = 2.0 * lp.cost / np.maximum(2 * lp.n - 6, 1)
     cov = s2[:, None, None] * inverse2(res.jtj)
@@ -245,8 +245,10 @@ def _fit_shape(y: np.ndarray, f: np.ndarray, w: np.ndarray, f0: np.ndarray, zeta
                        if lp.n[j] > 2 else 0.0 for j in range(use.size)])
     with np.errstate(invalid="ignore", divide="ignore"):
         beyond = np.sqrt(np.maximum(lp.cost / lp.n - noise2, 0.0)) * scale / (0.5 * amp)
+    # a damping ratio held on its bound, or a resonance a millionth of the responses, is no
+    # resonance's shape: the bound's, or the noise's
     good = (res.ok & (beyond <= SHAPE_MISFIT) & np.all(np.isfinite(cov), axis=(1, 2)) & (lp.nz2 > 0)
-            & np.isfinite(var))
+            & np.isfinite(var) & (zeta > 1e-5) & (zeta < 0.3) & (amp > 1e-6 * scale))
     got[:, use[good]] = np.stack([amp, fpk, ph, np.sqrt(np.maximum(var, 0.0)),
                                   np.sqrt(np.maximum(cov[:, 0, 0], 0.0))])[:, good]
     return got

@@ -162,7 +162,8 @@ def median_then_mean(x: np.ndarray, size: int) -> np.ndarray:
     ..), mode="nearest"), size, axis=0, mode="nearest")``, in numpy (scipy.ndimage takes
     0.2 s to import): the window of sample ``i`` is ``i - size // 2 .. i - size // 2 + size -
     1``, the median its element of rank ``size // 2``, the mean a running sum (the first
-    window's sum, then what enters minus what leaves, in order) divided by ``size``.
+    window's sum, then what enters minus what leaves, in order) divided by ``size``. For
+    finite values (the callers fill NaN first).
     """
     x = np.asarray(x, dtype=float)
     size = int(size)

@@ -177,7 +177,7 @@ class SweptForcing:
         ts = np.asarray(ts, dtype=float)
         k, g = fn_hz.size, self.grid.size
         i = np.clip(np.floor((ts - self.grid[0]) / self.h).astype(np.intp), 0, g - 2)
-        t = (ts - self.grid[i]) / (self.grid[i + 1] - self.grid[i])
+        t = np.clip((ts - self.grid[i]) / (self.grid[i + 1] - self.grid[i]), 0.0, 1.0)  # np.interp's ends
         z_ts = np.empty(ts.shape, complex)
         dz_ts = np.empty(ts.shape + (2,), complex) if derivatives else None
         peak = np.empty(k, dtype=np.intp)

@@ -15,11 +15,14 @@ of the projected residual (variable projection, the Kaufman-free form)::
 real problem stacks ``Re r`` and ``Im r``: ``J^T J = Re(dr^H dr)``, ``J^T r = Re(dr^H r)``.
 
 The iteration (Marquardt with Nielsen's damping update, in the variables scaled by
-``x_scale``): a step solves ``(J^T J + mu I) d = -J^T r``, is clipped to the bounds and kept
-when it lowers the cost. A blade stops when a kept step lowers the cost by less than
-``ftol`` of it (with a ratio of actual to predicted reduction above 1/4), or the step is
-shorter than ``xtol (xtol + |q|)`` (``scipy.optimize.least_squares``' tests and
-tolerances), or after ``max_steps`` trials.
+``x_scale``): a step solves ``(J^T J + mu I) d = -J^T r`` for the parameters that are free
+(a parameter on a bound that the gradient pushes outwards is held), goes along ``d`` as far
+as the box allows (the bound it meets is then held exactly: an active set, never a step
+clipped component by component into a corner), and is kept when it lowers the cost. A
+blade stops when its free gradient is below ``gtol``, when a kept step lowers the cost by
+less than ``ftol`` of it (with a ratio of actual to predicted reduction above 1/4), when
+the step is shorter than ``xtol (xtol + |q|)`` (``scipy.optimize.least_squares``' tests
+and tolerances), or after ``max_steps`` trials.
 
 Pure numpy; no I/O.
 """
@@ -101,7 +104,7 @@ class VarProFit:
 
 
 def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_scale: np.ndarray, *,
-               ftol: float = 1e-8, xtol: float = 1e-8, max_steps: int = 200) -> VarProFit:
+               ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8, max_steps: int = 200) -> VarProFit:
     """Minimise each row's ``|C z(q) + c - y|^2`` over ``lower <= q <= upper``.
 
     Parameters
@@ -142,21 +145,40 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
         nu = np.full(rows.size, 2.0)
         while rows.size:
             s = x_scale[rows]
+            qr, lo, hi = q[rows], lower[rows], upper[rows]
             a_s = jtj[rows] * s[:, :, None] * s[:, None, :]
             g_s = g * s  # J^T r in the scaled variables
-            d = _solve2(a_s + mu[:, None, None] * np.eye(2), -g_s)
-            q_try = np.clip(q[rows] + d * s, lower[rows], upper[rows])
-            d = (q_try - q[rows]) / s  # the step taken, scaled
+            # a parameter on a bound that the descent would push out of the box stays there
+            blocked = ((qr <= lo) & (g_s > 0)) | ((qr >= hi) & (g_s < 0))
+            small_g = np.max(np.abs(np.where(blocked, 0.0, g_s)), axis=1) < gtol
+            if small_g.any():
+                live = ~small_g
+                rows, cost, mu, nu, g = rows[live], cost[live], mu[live], nu[live], g[live]
+                s, qr, lo, hi, a_s, g_s, blocked = (v[live] for v in (s, qr, lo, hi, a_s, g_s, blocked))
+                if not rows.size:
+                    break
+            free = ~blocked
+            m = a_s * (free[:, :, None] & free[:, None, :]) + (mu[:, None] * free + blocked)[:, :, None] * np.eye(2)
+            d = _solve2(m, -np.where(free, g_s, 0.0))
+            # along the step, as far as the box allows; the bound it meets is held exactly
+            with np.errstate(invalid="ignore", divide="ignore"):
+                reach = np.where(d > 0, (hi - qr) / s / d, np.where(d < 0, (lo - qr) / s / d, np.inf))
+            alpha = np.minimum(np.min(reach, axis=1), 1.0)
+            q_try = np.clip(qr + alpha[:, None] * d * s, lo, hi)
+            meets = (reach <= alpha[:, None]) & (alpha < 1.0)[:, None]
+            q_try = np.where(meets & (d > 0), hi, np.where(meets & (d < 0), lo, q_try))
+            d = (q_try - qr) / s  # the step taken, scaled
             steps[rows] += 1
             lp_try, cols_try = model(q_try, rows)
             cost_try = lp_try.cost
             pred = -(np.sum(g_s * d, axis=1) + 0.5 * np.einsum("kp,kpq,kq->k", d, a_s, d))
             finite = np.isfinite(cost_try) & np.all(np.isfinite(cols_try), axis=(1, 2))
             keep = finite & (cost_try < cost)
-            with np.errstate(invalid="ignore", divide="ignore"):
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
                 rho = np.where(pred > 0, (cost - cost_try) / pred, 0.0)
+                shrink = np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho, -1.0, 2.0) - 1.0) ** 3)
             dnorm = np.sqrt(np.sum(d * d, axis=1))
-            small_x = dnorm <= xtol * (xtol + np.sqrt(np.sum(q[rows] ** 2, axis=1)))
+            small_x = dnorm <= xtol * (xtol + np.sqrt(np.sum(qr ** 2, axis=1)))
             small_f = keep & (cost - cost_try < ftol * cost) & (rho > 0.25)
             # the kept trials move; the damping follows the gain ratio
             idx = rows[keep]
@@ -166,8 +188,9 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
             g = g.copy()
             g[keep] = g_new
             cost = np.where(keep, cost_try, cost)
-            mu = np.where(keep, mu * np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), mu * nu)
-            nu = np.where(keep, 2.0, nu * 2.0)
+            with np.errstate(over="ignore"):
+                mu = np.where(keep, mu * shrink, mu * nu)
+                nu = np.where(keep, 2.0, nu * 2.0)
             done = small_x | small_f | (steps[rows] >= max_steps) | ~np.isfinite(mu) | (mu > 1e300)
             live = ~done
             rows, cost, mu, nu, g = rows[live], cost[live], mu[live], nu[live], g[live]
