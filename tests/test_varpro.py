@@ -33,7 +33,7 @@ def _decay(t, w):
         z = np.exp(-(q[:, :1] + 1j * q[:, 1:]) * tt)
         dz = np.stack([-tt * z, -1j * tt * z], axis=-1)
         lp = linear_part(z, y[rows], w[rows])
-        return lp, projected_jacobian(lp, dz, w[rows])
+        return lp, projected_jacobian(lp, dz, w[rows]), (z,)
 
     rng = np.random.default_rng(4)
     truth = np.array([[2.0, 5.0], [0.5, 9.0], [1.2, 3.0]])
@@ -51,6 +51,7 @@ def test_the_minimum_is_least_squares_and_the_bounds_hold():
     lower, upper = q0 * 0.5, q0 * 1.5
     res = fit_blades(model, q0, lower, upper, np.full((3, 2), 0.1))
     assert res.ok.all()
+    np.testing.assert_array_equal(res.extra[0], model(res.q, np.arange(3))[2][0])  # kept for the final point
     for j in range(3):
         def r(p, j=j):
             rr = model(np.array([p]), np.array([j]))[0].r[0]

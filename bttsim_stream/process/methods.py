@@ -198,7 +198,7 @@ def _steady_model(f: np.ndarray, yn: np.ndarray, w: np.ndarray):
         h = 1.0 / (1.0 - r * r + 2j * zeta * r)
         dz = -(h * h)[..., None] * np.stack([(2.0 * r * r - 2j * zeta * r) / fn, 2j * r], axis=-1)
         lp = linear_part(h, yn[rows], w[rows])
-        return lp, projected_jacobian(lp, dz, w[rows])
+        return lp, projected_jacobian(lp, dz, w[rows]), ()
 
     return model
 
@@ -519,7 +519,8 @@ def cff_method(d_m: np.ndarray, probe_angles_rad, engine_orders, index: int, ome
 
 
 def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, phase: RotorPhase, eo: int,
-                lo: int, hi: int, *, fn0_hz: np.ndarray, zeta0: float) -> tuple[ResonancePeaks, float]:
+                lo: int, hi: int, *, fn0_hz: np.ndarray, zeta0: float,
+                uncertainty: bool = True) -> tuple[ResonancePeaks, float]:
     """Swept SDOF fit of amplitude and phase through one crossing, per blade.
 
     Parameters
@@ -538,6 +539,9 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
         Starting natural frequencies (e.g. the peak pick's).
     zeta0 : float
         Starting damping ratio.
+    uncertainty : bool
+        Compute ``amp_std_m`` and ``freq_std_hz`` (False: NaN, and two integrations fewer per
+        blade, for a caller that uses the fit's constant, misfit and peak only).
 
     Returns
     -------
@@ -581,7 +585,7 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     fn, zeta, jtj = res.q[got, 0], res.q[got, 1], res.jtj[got]
     if use.size == 0:
         return _sdof_peaks(out), math.nan
-    z_ts, _, k, z_k = forcing.at(fn, zeta, ts)
+    z_ts, k, z_k = (a[got] for a in res.extra)  # the envelope at the fitted point
     lp = linear_part(z_ts, yn, ok)
     dof = np.maximum(2 * lp.n - 6, 1)
     s2 = 2.0 * lp.cost / dof
@@ -593,8 +597,10 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
         g00 = 1.0 / lp.nz2  # the linear part's share: |C| from (A^H A)^-1
     var_c = s2 * g00 / 2.0 * (2.0 * scale * np.abs(z_k)) ** 2
     amp = 2.0 * np.abs(C * z_k)
-    grad = np.empty((use.size, 2))
+    grad = np.full((use.size, 2), np.nan)
     for j, (q_fn, q_zeta, dq) in enumerate(((fn * (1 + 1e-4), zeta, 1e-4 * fn), (fn, zeta * (1 + 1e-3), zeta * 1e-3))):
+        if not uncertainty:
+            break
         z_q, _, _, zk_q = forcing.at(q_fn, q_zeta, ts)
         swept = 2.0 * np.abs(linear_part(z_q, yn, ok).C) * scale * np.abs(zk_q)
         grad[:, j] = (swept - amp) / dq

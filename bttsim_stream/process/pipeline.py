@@ -729,7 +729,7 @@ def _zeroing_check(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, corr)
         return None, None, None
     calm = corr is None and not cont > ctx.options.detect.contamination_limit and \
         not c.half_power_width < FAST_SWEEP_REVOLUTIONS
-    sd = _sdof(ctx, c, i, pk.freq_hz)[0]
+    sd = _sdof(ctx, c, i, pk.freq_hz, uncertainty=False)[0]  # its constant, misfit and peak
     off = sd.offset_m
     add = np.zeros(off.size, complex) if corr is None else corr
     err = off + add
@@ -776,10 +776,10 @@ def _model_misfit(misfit_m, amp_raw: np.ndarray) -> np.ndarray:
         return 2.0 * np.sqrt(np.maximum(m * m - 0.5 * np.where(np.isfinite(s), s, 0.0) ** 2, 0.0))
 
 
-def _sdof(ctx: _Context, c: Crossing, i: int, fn0_hz: np.ndarray):
+def _sdof(ctx: _Context, c: Crossing, i: int, fn0_hz: np.ndarray, uncertainty: bool = True):
     """The swept SDOF fit of one crossing (:func:`~.methods.sdof_method`) and its sweep rate."""
     return sdof_method(ctx.raw.phasor[..., i], ctx.t_sample, ctx.opr, rotor_phase_from_opr(ctx.opr), c.eo,
-                       c.lo, c.hi, fn0_hz=fn0_hz, zeta0=c.damping_estimate(ctx.omega))
+                       c.lo, c.hi, fn0_hz=fn0_hz, zeta0=c.damping_estimate(ctx.omega), uncertainty=uncertainty)
 
 
 def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, freq, zc: float, corr, check):

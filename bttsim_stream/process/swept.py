@@ -197,7 +197,8 @@ class SweptForcing:
 
     def fit(self, ts: np.ndarray, yn: np.ndarray, w: np.ndarray, fn0_hz: np.ndarray, zeta0: float):
         """The variable-projection fit (:func:`.varpro.fit_blades`) of ``yn = C z(ts) + c`` per
-        row, from ``(fn0_hz, zeta0)``, within 20 % of ``fn0_hz`` and ``1e-5 <= zeta <= 0.3``.
+        row, from ``(fn0_hz, zeta0)``, within 20 % of ``fn0_hz`` and ``1e-5 <= zeta <= 0.3``;
+        its ``extra`` is :meth:`at`'s ``(z_ts, peak, z_peak)`` at the fitted point.
 
         Parameters
         ----------
@@ -211,9 +212,9 @@ class SweptForcing:
         from .varpro import fit_blades, linear_part, projected_jacobian
 
         def model(q, rows):
-            z, dz, _, _ = self.at(q[:, 0], q[:, 1], ts[rows], derivatives=True)
+            z, dz, peak, z_peak = self.at(q[:, 0], q[:, 1], ts[rows], derivatives=True)
             lp = linear_part(z, yn[rows], w[rows])
-            return lp, projected_jacobian(lp, dz, w[rows])
+            return lp, projected_jacobian(lp, dz, w[rows]), (z, peak, z_peak)
 
         fn0 = np.asarray(fn0_hz, dtype=float)
         ones = np.ones_like(fn0)

@@ -101,6 +101,7 @@ class VarProFit:
     jtj: np.ndarray  # (k, 2, 2) J^T J at q (the stacked real residual's)
     ok: np.ndarray  # (k,) bool: started (a feasible, finite start) and ended finite
     steps: np.ndarray  # (k,) trials
+    extra: tuple = ()  # what the model returned beside the residual at q, per row (arrays of k rows)
 
 
 def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_scale: np.ndarray, *,
@@ -110,8 +111,10 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
     Parameters
     ----------
     model : callable
-        ``model(q, rows) -> (LinearPart, cols)`` for the rows ``rows`` (int array) at ``q``
-        (shape ``(len(rows), 2)``): the linear part and :func:`projected_jacobian`'s columns.
+        ``model(q, rows) -> (LinearPart, cols, extra)`` for the rows ``rows`` (int array) at
+        ``q`` (shape ``(len(rows), 2)``): the linear part, :func:`projected_jacobian`'s
+        columns, and a tuple of arrays with one row per fitted row (kept for the final ``q``:
+        :attr:`VarProFit.extra`; ``()`` for none).
     q0, lower, upper, x_scale : ndarray, shape (k, 2)
         Start, bounds, and the typical scale of each parameter's change.
 
@@ -129,13 +132,16 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
     ok = start.copy()
     rows = np.flatnonzero(start)
     if rows.size:
-        lp, cols = model(q[rows], rows)
+        lp, cols, got = model(q[rows], rows)
+        extra = tuple(np.zeros((k,) + a.shape[1:], a.dtype) for a in got)
+        for e, a in zip(extra, got):
+            e[rows] = a
         cost = lp.cost
         good = np.isfinite(cost) & np.all(np.isfinite(cols), axis=(1, 2))
         ok[rows[~good]] = False
         rows, cost, cols, r = rows[good], cost[good], cols[good], lp.r[good]
     else:
-        cost = np.zeros(0)
+        cost, extra = np.zeros(0), ()
     if rows.size:
         a, g = _normal(cols, r)
         jtj[rows] = a
@@ -169,7 +175,7 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
             q_try = np.where(meets & (d > 0), hi, np.where(meets & (d < 0), lo, q_try))
             d = (q_try - qr) / s  # the step taken, scaled
             steps[rows] += 1
-            lp_try, cols_try = model(q_try, rows)
+            lp_try, cols_try, got = model(q_try, rows)
             cost_try = lp_try.cost
             pred = -(np.sum(g_s * d, axis=1) + 0.5 * np.einsum("kp,kpq,kq->k", d, a_s, d))
             finite = np.isfinite(cost_try) & np.all(np.isfinite(cols_try), axis=(1, 2))
@@ -183,6 +189,8 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
             # the kept trials move; the damping follows the gain ratio
             idx = rows[keep]
             q[idx] = q_try[keep]
+            for e, a in zip(extra, got):
+                e[idx] = a[keep]
             a_new, g_new = _normal(cols_try[keep], lp_try.r[keep])
             jtj[idx] = a_new
             g = g.copy()
@@ -196,7 +204,7 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
             rows, cost, mu, nu, g = rows[live], cost[live], mu[live], nu[live], g[live]
     ok &= np.all(np.isfinite(q), axis=1)
     q[~start] = np.nan
-    return VarProFit(q=q, jtj=jtj, ok=ok, steps=steps)
+    return VarProFit(q=q, jtj=jtj, ok=ok, steps=steps, extra=extra)
 
 
 def _solve2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
