@@ -71,7 +71,7 @@ from .displacement import RotorPhase
 from .fit import fit_revolutions
 from .resonance import ResonancePeaks
 from .swept import SweptForcing, sdof_envelope
-from .varpro import fit_blades, inverse2, linear_part, projected_jacobian
+from .varpro import fit_blades, inverse2, linear_part, pack_rows, projected_jacobian
 
 __all__ = ["METHODS", "QUASI_STEADY_REVOLUTIONS", "SHAPE_MISFIT", "amplitude_noise", "quadratic_peak", "fit_half_width",
            "resonance_fit", "peak_method", "cff_method", "sdof_method", "sdof_envelope"]
@@ -195,7 +195,7 @@ def _steady_model(f: np.ndarray, yn: np.ndarray, w: np.ndarray):
     def model(q, rows):
         fn, zeta = q[:, :1], q[:, 1:]
         r = f[rows] / fn
-        h = 1.0 / (1.0 - r * r + 2j * zeta * r)
+        h = _h(f[rows], q[:, 0], q[:, 1])
         dz = -(h * h)[..., None] * np.stack([(2.0 * r * r - 2j * zeta * r) / fn, 2j * r], axis=-1)
         lp = linear_part(h, yn[rows], w[rows])
         return lp, projected_jacobian(lp, dz, w[rows]), ()
@@ -311,9 +311,7 @@ def resonance_fit(phasor: np.ndarray, freq_hz: np.ndarray, center: np.ndarray, h
     inside = sel <= a1[:, None]
     sel = np.minimum(sel, n - 1)
     y, f = P[sel, np.arange(nb)[:, None]], f_all[sel]
-    w = inside & np.isfinite(y) & np.isfinite(f)
-    order = np.argsort(~w, axis=1, kind="stable")
-    w, y, f, sel = (np.take_along_axis(a, order, axis=1) for a in (w, y, f, sel))
+    w, y, f, sel = pack_rows(inside & np.isfinite(y) & np.isfinite(f), y, f, sel)
     got = _fit_shape(y, f, w, f_all[k], float(zeta0))
     for b in np.flatnonzero(np.isfinite(got[0])):
         amp, fpk, ph, s_a, s_f = got[:, b]
@@ -567,9 +565,7 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     # each blade's samples in the window, packed to the left of a row (unused: the grid's start)
     y = np.asarray(phasor[lo:hi + 1], dtype=complex).T
     ts = np.asarray(t_sample_s[lo:hi + 1], dtype=float).T
-    ok = np.isfinite(y) & np.isfinite(ts) & (ts >= grid[0]) & (ts <= grid[-1])
-    order = np.argsort(~ok, axis=1, kind="stable")
-    ok, y, ts = (np.take_along_axis(a, order, axis=1) for a in (ok, y, ts))
+    ok, y, ts = pack_rows(np.isfinite(y) & np.isfinite(ts) & (ts >= grid[0]) & (ts <= grid[-1]), y, ts)
     ts = np.where(ok, ts, grid[0])
     scale = np.max(np.where(ok, np.abs(y), 0.0), axis=1, initial=0.0)
     fn0 = np.asarray(fn0_hz, dtype=float)
@@ -598,12 +594,12 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     var_c = s2 * g00 / 2.0 * (2.0 * scale * np.abs(z_k)) ** 2
     amp = 2.0 * np.abs(C * z_k)
     grad = np.full((use.size, 2), np.nan)
-    for j, (q_fn, q_zeta, dq) in enumerate(((fn * (1 + 1e-4), zeta, 1e-4 * fn), (fn, zeta * (1 + 1e-3), zeta * 1e-3))):
-        if not uncertainty:
-            break
-        z_q, _, _, zk_q = forcing.at(q_fn, q_zeta, ts)
-        swept = 2.0 * np.abs(linear_part(z_q, yn, ok).C) * scale * np.abs(zk_q)
-        grad[:, j] = (swept - amp) / dq
+    if uncertainty:
+        steps = ((fn * (1 + 1e-4), zeta, 1e-4 * fn), (fn, zeta * (1 + 1e-3), zeta * 1e-3))
+        for j, (q_fn, q_zeta, dq) in enumerate(steps):
+            z_q, _, _, zk_q = forcing.at(q_fn, q_zeta, ts)
+            swept = 2.0 * np.abs(linear_part(z_q, yn, ok).C) * scale * np.abs(zk_q)
+            grad[:, j] = (swept - amp) / dq
     finite = np.all(np.isfinite(cov), axis=(1, 2))
     var_q = np.where(finite, np.einsum("kp,kpq,kq->k", grad, np.where(finite[:, None, None], cov, 0.0), grad), np.nan)
     out["amp"][use] = amp
@@ -627,9 +623,6 @@ def _sdof_peaks(out: dict) -> ResonancePeaks:
     return ResonancePeaks(revolution=out["rev"], amp_pkpk_m=out["amp"], freq_hz=out["freq"],
                           damping_ratio=out["zeta"], method="sdof", phase_rad=out["phase"],
                           amp_std_m=out["amp_std"], freq_std_hz=out["freq_std"],
-                          steady_amp_pkpk_m=out["steady"], natural_freq_hz=out["fn"], **_sdof_extra(out))
+                          steady_amp_pkpk_m=out["steady"], natural_freq_hz=out["fn"],
+                          offset_m=out["offset"], misfit_m=out["misfit"])
 
-
-def _sdof_extra(out: dict) -> dict:
-    """The SDOF fit's constant and misfit (:class:`~.resonance.ResonancePeaks`' ``offset_m``, ``misfit_m``)."""
-    return {"offset_m": out["offset"], "misfit_m": out["misfit"]}

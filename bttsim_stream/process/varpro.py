@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LinearPart", "linear_part", "projected_jacobian", "VarProFit", "fit_blades", "inverse2"]
+__all__ = ["LinearPart", "linear_part", "projected_jacobian", "VarProFit", "fit_blades", "inverse2", "pack_rows"]
 
 
 @dataclass(frozen=True)
@@ -225,3 +225,10 @@ def inverse2(a: np.ndarray) -> np.ndarray:
                         np.stack([-a[:, 1, 0], a[:, 0, 0]], axis=1)], axis=1) / det[:, None, None]
     inv[bad] = np.nan
     return inv
+
+
+def pack_rows(w: np.ndarray, *arrays: np.ndarray) -> tuple:
+    """Each row's samples where ``w`` moved to the row's start, in their order: ``(w, *arrays)``
+    reordered alike (the rows' layout :func:`fit_blades`' models take)."""
+    order = np.argsort(~w, axis=1, kind="stable")
+    return tuple(np.take_along_axis(a, order, axis=1) for a in (w, *arrays))
