@@ -156,3 +156,46 @@ def test_a_blade_fits_alike_alone_and_with_others():
     for j in range(3):
         alone = forcing.fit(ts[j:j + 1], yn[j:j + 1], w[j:j + 1], fn0[j:j + 1], 0.015)
         np.testing.assert_allclose(alone.q[0], together.q[j], rtol=1e-12)
+
+
+@pytest.mark.parametrize("steps", [997, 4096])
+def test_segments_join_into_one_integration(monkeypatch, steps):
+    """A long crossing is integrated in time segments, each from the previous one's last
+    value: the envelopes, derivatives and peaks equal one integration of the whole grid."""
+    from bttsim_stream.process import swept
+
+    forcing, ts, _ = _case()
+    fn, zeta = np.array([342.5, 343.5, 344.5]), np.array([0.012, 0.004, 0.008])
+    rows = np.stack([ts, ts, np.sort(ts * 0.5 + 0.3)])
+    whole = forcing.at(fn, zeta, rows, derivatives=True)
+    z_whole = forcing.envelope(342.5, 0.012)
+    assert len(forcing._segments()) == 1
+    monkeypatch.setattr(swept, "SEGMENT_STEPS", steps)
+    assert len(forcing._segments()) == -(-(forcing.grid.size - 1) // steps)
+    got = forcing.at(fn, zeta, rows, derivatives=True)
+    for a, b in zip(got[:2], whole[:2]):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * np.abs(b).max())
+    np.testing.assert_array_equal(got[2], whole[2])  # the peak: inside the grid, not at a join
+    assert 0 < whole[2].min() and whole[2].max() < forcing.grid.size - 1
+    np.testing.assert_allclose(got[3], whole[3], rtol=1e-11)
+    np.testing.assert_allclose(forcing.envelope(342.5, 0.012), z_whole, rtol=0, atol=1e-11 * np.abs(z_whole).max())
+
+
+def test_blades_fitted_in_groups_fit_as_one(monkeypatch):
+    """A long crossing's blades are fitted in groups (each blade's fit is its own): the same
+    numbers as all at once, also where a group holds a blade that cannot start."""
+    from bttsim_stream.process import swept
+
+    forcing, _, _ = _case()
+    ts, yn, w = _rows(forcing, TRUTH)
+    fn0 = np.array([341.0, 344.0, 342.5])
+    fn0_bad = fn0.copy()
+    fn0_bad[2] = np.nan
+    for start in (fn0, fn0_bad):
+        together = forcing.fit(ts, yn, w, start, 0.015)
+        monkeypatch.setattr(swept, "FIT_SAMPLES", ts.shape[1] * 2)
+        grouped = forcing.fit(ts, yn, w, start, 0.015)
+        monkeypatch.undo()
+        for a, b in zip((grouped.q, grouped.jtj, grouped.ok, grouped.steps) + grouped.extra,
+                        (together.q, together.jtj, together.ok, together.steps) + together.extra):
+            np.testing.assert_array_equal(a, b)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["first_order", "sdof_envelope", "SweptForcing", "ROW_SAMPLES"]
+__all__ = ["first_order", "sdof_envelope", "SweptForcing", "ROW_SAMPLES", "SEGMENT_STEPS", "FIT_SAMPLES"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -97,12 +97,22 @@ def _poles(fn_hz, zeta):
 #: block of 512 kB per complex array (it stays in a core's cache), whatever the crossing's length.
 ROW_SAMPLES = 1 << 15
 
+#: Grid steps integrated at once along the time axis: a longer crossing (a slower sweep) is
+#: integrated in segments of this many steps, each starting from the previous one's last value,
+#: so the model's memory does not grow with the crossing's length. A grid of at most this many
+#: steps is one segment.
+SEGMENT_STEPS = ROW_SAMPLES // 2
+
+#: Blades times samples that :meth:`SweptForcing.fit` fits at once (the blades of a long
+#: crossing in groups: each blade's fit is its own, so the groups do not change it).
+FIT_SAMPLES = 1 << 16
+
 
 class SweptForcing:
     """The forcing's terms on one grid (they do not depend on ``f_n``, ``zeta``: computed once per
     crossing), and, for many pairs ``(f_n, zeta)`` at once (one per blade), the envelopes,
     their derivatives and their values at each blade's sample times, integrated in blocks of
-    :data:`ROW_SAMPLES`."""
+    :data:`ROW_SAMPLES` (rows) and :data:`SEGMENT_STEPS` (time)."""
 
     def __init__(self, grid_s: np.ndarray, phi_rad: np.ndarray):
         self.grid, self.phi = grid_s, phi_rad
@@ -111,46 +121,68 @@ class SweptForcing:
         self.e_phi = np.exp(1j * phi_rad[:-1])
         self.e_wh = np.exp(1j * w * h)
         self.jw = 1j * w
-        self.e_phi0 = np.exp(1j * phi_rad[0])
         self.e_mphi = np.exp(-1j * phi_rad)
 
+    def _segments(self):
+        """``(s, e)`` grid points of each segment (``e`` included: the next one's ``s``)."""
+        n = self.grid.size - 1
+        return [(s, min(s + SEGMENT_STEPS, n)) for s in range(0, max(n, 1), SEGMENT_STEPS)]
+
     def _block(self, fn_hz: np.ndarray, zeta: np.ndarray, derivatives: bool):
-        """Envelopes ``z`` of shape ``(k, G)`` (and ``dz / d f_n``, ``dz / d zeta``) of ``k``
-        pairs: both poles' recursions and, for the derivatives, ``dy / d lambda`` by the
-        module docstring's recursion, through ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``."""
+        """For ``k`` pairs, each segment's envelopes ``z`` of shape ``(k, e - s + 1)`` (and
+        ``dz / d f_n``, ``dz / d zeta``, shape ``(k, e - s + 1, 2)``), a generator over
+        :meth:`_segments`: both poles' recursions and, for the derivatives, ``dy / d lambda`` by
+        the module docstring's recursion, through ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``;
+        each segment starts from the previous one's last ``y`` and ``dy / d lambda``."""
         lam, d_fn, d_zeta = _poles(fn_hz, zeta)
         flat = lam.reshape(-1, 1)  # rows b0 pole 1, b0 pole 2, b1 pole 1, ...
-        den = self.jw[None, :] - flat
+        lam_h = flat[:, 0] * self.h
         ah = np.exp(flat * self.h)
-        x = self.e_phi * (self.e_wh - ah) / den
-        y = np.empty((flat.shape[0], x.shape[1] + 1), complex)
-        y[:, 0] = self.e_phi0 / den[:, 0]
-        y[:, 1:] = first_order(flat[:, 0] * self.h, x, y[:, 0])
         d = (lam[:, 0] - lam[:, 1])[:, None]
-        q = (y[0::2] - y[1::2]) / d
-        z = q * self.e_mphi
+        den0 = self.jw[None, :1] - flat
+        y_s = (np.exp(1j * self.phi[0]) / den0)[:, 0]  # the quasi-steady start
+        dy_s = y_s / den0[:, 0]
+        for s, e in self._segments():
+            den = self.jw[None, s:e] - flat
+            x = self.e_phi[s:e] * (self.e_wh[s:e] - ah) / den
+            y = np.empty((flat.shape[0], e - s + 1), complex)
+            y[:, 0] = y_s
+            y[:, 1:] = first_order(lam_h, x, y_s)
+            y_s = y[:, -1]
+            q = (y[0::2] - y[1::2]) / d
+            z = q * self.e_mphi[s:e + 1]
+            if not derivatives:
+                yield z, None
+                continue
+            ahh = ah * self.h
+            u = ahh * y[:, :-1] + (x - ahh * self.e_phi[s:e]) / den
+            del x, y
+            dy = np.empty((flat.shape[0], e - s + 1), complex)
+            dy[:, 0] = dy_s
+            dy[:, 1:] = first_order(lam_h, u, dy_s)
+            dy_s = dy[:, -1]
+            del u
+            dq1, dq2 = (dy[0::2] - q) / d, (q - dy[1::2]) / d  # dq / d lambda_1, dq / d lambda_2
+            e_mphi = self.e_mphi[s:e + 1]
+            yield z, np.stack([(dq1 * d_fn[:, :1] + dq2 * d_fn[:, 1:]) * e_mphi,
+                               (dq1 * d_zeta[:, :1] + dq2 * d_zeta[:, 1:]) * e_mphi], axis=-1)
+
+    def _whole(self, fn_hz: float, zeta: float, derivatives: bool):
+        """One pair's envelope (and derivatives) on the whole grid, the segments joined."""
+        parts = list(self._block(np.array([fn_hz], float), np.array([zeta], float), derivatives))
+        z = np.concatenate([parts[0][0][0]] + [p[0][0, 1:] for p in parts[1:]])
         if not derivatives:
             return z, None
-        ah *= self.h
-        u = ah * y[:, :-1] + (x - ah * self.e_phi) / den
-        del x
-        dy = np.empty_like(y)
-        dy[:, 0] = y[:, 0] / den[:, 0]
-        dy[:, 1:] = first_order(flat[:, 0] * self.h, u, dy[:, 0])
-        del u, y
-        dq1, dq2 = (dy[0::2] - q) / d, (q - dy[1::2]) / d  # dq / d lambda_1, dq / d lambda_2
-        dz = np.stack([(dq1 * d_fn[:, :1] + dq2 * d_fn[:, 1:]) * self.e_mphi,
-                       (dq1 * d_zeta[:, :1] + dq2 * d_zeta[:, 1:]) * self.e_mphi], axis=-1)
-        return z, dz
+        return z, np.concatenate([parts[0][1][0]] + [p[1][0, 1:] for p in parts[1:]])
 
     def envelope(self, fn_hz: float, zeta: float) -> np.ndarray:
         """:func:`sdof_envelope` of ``(fn_hz, zeta)`` on this grid, shape ``(G,)``."""
-        return self._block(np.array([fn_hz], float), np.array([zeta], float), False)[0][0]
+        return self._whole(fn_hz, zeta, False)[0]
 
     def derivatives(self, fn_hz: float, zeta: float):
         """``(z, dz / d f_n, dz / d zeta)`` on this grid, each of shape ``(G,)``."""
-        z, dz = self._block(np.array([fn_hz], float), np.array([zeta], float), True)
-        return z[0], dz[0, :, 0], dz[0, :, 1]
+        z, dz = self._whole(fn_hz, zeta, True)
+        return z, dz[:, 0], dz[:, 1]
 
     def at(self, fn_hz: np.ndarray, zeta: np.ndarray, ts: np.ndarray, derivatives: bool = False):
         """Each pair's envelope at its row of sample times, and its peak on the grid.
@@ -169,7 +201,7 @@ class SweptForcing:
         dz_ts : ndarray of complex, shape (k, m, 2), or None
             ``dz / d f_n`` and ``dz / d zeta`` at ``ts``.
         peak : ndarray of int, shape (k,)
-            The grid index of ``max |z|``.
+            The grid index of ``max |z|`` (the first, where several are equal).
         z_peak : ndarray of complex, shape (k,)
             ``z`` there.
         """
@@ -180,19 +212,28 @@ class SweptForcing:
         t = np.clip((ts - self.grid[i]) / (self.grid[i + 1] - self.grid[i]), 0.0, 1.0)  # np.interp's ends
         z_ts = np.empty(ts.shape, complex)
         dz_ts = np.empty(ts.shape + (2,), complex) if derivatives else None
-        peak = np.empty(k, dtype=np.intp)
-        z_peak = np.empty(k, complex)
-        per = max(1, ROW_SAMPLES // (2 * g))
+        peak = np.zeros(k, dtype=np.intp)
+        z_peak = np.zeros(k, complex)
+        segments = self._segments()
+        per = max(1, ROW_SAMPLES // (2 * min(g, SEGMENT_STEPS + 1)))
         for a in range(0, k, per):
             b = min(k, a + per)
-            z, dz = self._block(fn_hz[a:b], zeta[a:b], derivatives)
+            rows = np.arange(b - a)
+            top = np.full(b - a, -1.0)
             ia, ta = i[a:b], t[a:b]
-            z_ts[a:b] = _lerp(z, ia, ta)
-            if derivatives:
-                dz_ts[a:b, :, 0] = _lerp(dz[..., 0], ia, ta)
-                dz_ts[a:b, :, 1] = _lerp(dz[..., 1], ia, ta)
-            peak[a:b] = np.argmax(np.abs(z), axis=1)
-            z_peak[a:b] = z[np.arange(b - a), peak[a:b]]
+            for (s, e), (z, dz) in zip(segments, self._block(fn_hz[a:b], zeta[a:b], derivatives)):
+                last = e == g - 1
+                mag = np.abs(z if last else z[:, :-1])  # the segment's own points (e: the next one's)
+                j = np.argmax(mag, axis=1)
+                better = mag[rows, j] > top  # the first maximum of the whole grid
+                top = np.where(better, mag[rows, j], top)
+                peak[a:b] = np.where(better, s + j, peak[a:b])
+                z_peak[a:b] = np.where(better, z[rows, j], z_peak[a:b])
+                inside = (ia >= s) & (ia < e) if len(segments) > 1 else None
+                _lerp_into(z_ts[a:b], z, ia - s, ta, inside)
+                if derivatives:
+                    _lerp_into(dz_ts[a:b, :, 0], dz[..., 0], ia - s, ta, inside)
+                    _lerp_into(dz_ts[a:b, :, 1], dz[..., 1], ia - s, ta, inside)
         return z_ts, dz_ts, peak, z_peak
 
     def fit(self, ts: np.ndarray, yn: np.ndarray, w: np.ndarray, fn0_hz: np.ndarray, zeta0: float):
@@ -209,7 +250,7 @@ class SweptForcing:
         fn0_hz : ndarray, shape (k,)
         zeta0 : float
         """
-        from .varpro import fit_blades, linear_part, projected_jacobian
+        from .varpro import VarProFit, fit_blades, linear_part, projected_jacobian
 
         def model(q, rows):
             z, dz, peak, z_peak = self.at(q[:, 0], q[:, 1], ts[rows], derivatives=True)
@@ -218,12 +259,37 @@ class SweptForcing:
 
         fn0 = np.asarray(fn0_hz, dtype=float)
         ones = np.ones_like(fn0)
-        return fit_blades(model, np.stack([fn0, zeta0 * ones], axis=1),
-                          np.stack([0.8 * fn0, 1e-5 * ones], axis=1), np.stack([1.2 * fn0, 0.3 * ones], axis=1),
-                          np.stack([np.maximum(fn0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1 * ones], axis=1))
+        q0 = np.stack([fn0, zeta0 * ones], axis=1)
+        bounds = (np.stack([0.8 * fn0, 1e-5 * ones], axis=1), np.stack([1.2 * fn0, 0.3 * ones], axis=1))
+        scale = np.stack([np.maximum(fn0 * zeta0 * 0.1, 1e-3), zeta0 * 0.1 * ones], axis=1)
+        # each row is fitted on its own: a long crossing's blades in groups of FIT_SAMPLES samples
+        per = max(1, FIT_SAMPLES // max(ts.shape[1], 1))
+        if fn0.size <= per:
+            return fit_blades(model, q0, *bounds, scale)
+        parts = []
+        for a in range(0, fn0.size, per):
+            sl = slice(a, a + per)
+            offset = a
+
+            def part(q, rows, offset=offset):
+                return model(q, rows + offset)
+
+            parts.append(fit_blades(part, q0[sl], bounds[0][sl], bounds[1][sl], scale[sl]))
+        shapes = next((f.extra for f in parts if f.extra), ())  # a group where no row started has none
+        extra = tuple(np.concatenate([f.extra[j] if f.extra else np.zeros((f.q.shape[0],) + e.shape[1:], e.dtype)
+                                      for f in parts]) for j, e in enumerate(shapes))
+        return VarProFit(q=np.concatenate([f.q for f in parts]), jtj=np.concatenate([f.jtj for f in parts]),
+                         ok=np.concatenate([f.ok for f in parts]), steps=np.concatenate([f.steps for f in parts]),
+                         extra=extra)
 
 
-def _lerp(z: np.ndarray, i: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Row ``r`` of ``z`` linearly interpolated at fractional index ``i[r] + t[r]``."""
-    z0 = np.take_along_axis(z, i, axis=1)
-    return z0 + t * (np.take_along_axis(z, i + 1, axis=1) - z0)
+def _lerp_into(out: np.ndarray, z: np.ndarray, i: np.ndarray, t: np.ndarray, inside: np.ndarray | None) -> None:
+    """``out[r] =`` row ``r`` of ``z`` linearly interpolated at fractional index ``i[r] + t[r]``,
+    where ``inside`` (None: everywhere; elsewhere ``i`` may lie outside ``z``: left as it is)."""
+    if inside is None:
+        z0 = np.take_along_axis(z, i, axis=1)
+        out[...] = z0 + t * (np.take_along_axis(z, i + 1, axis=1) - z0)
+        return
+    ic = np.clip(i, 0, z.shape[1] - 2)
+    z0 = np.take_along_axis(z, ic, axis=1)
+    np.copyto(out, z0 + t * (np.take_along_axis(z, ic + 1, axis=1) - z0), where=inside)
