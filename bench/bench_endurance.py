@@ -17,7 +17,9 @@ Every ``--every`` seconds the resident set size (``VmRSS``) of each node process
 (recorder, processor, viewer, simulator) is read from ``/proc`` (the time axis is the wall
 time of the run; the revolution and TOA counts are the run's). The JSON has each node's series, its peak, and the
 *growth*: the mean RSS over the last quarter of the run divided by the mean over the second
-quarter (after the start-up); a flat curve is near 1. Linux only (``/proc``).
+quarter (after the start-up); a flat curve is near 1. ``growth_streaming`` and
+``peak_streaming_mb`` are the same over the samples taken while the simulator node ran (the
+stream, without the processor's final report after it). Linux only (``/proc``).
 """
 
 from __future__ import annotations
@@ -89,15 +91,30 @@ def run(duration_s: float, every_s: float, work: Path) -> dict:
             "toas_per_revolution": info.rotor.n_blades * len(info.probes.angles_deg)}
 
 
-def _growth(points: list) -> dict:
-    if len(points) < 8:
-        return {"peak_mb": max((v for _, v in points), default=None), "growth": None}
-    v = [mb for _, mb in points]
+def _quarters(v: list) -> tuple[float, float] | None:
+    """Mean of the second and of the last quarter of ``v`` (None: too few samples)."""
+    if len(v) < 8:
+        return None
     q = len(v) // 4
     second, last = v[q:2 * q], v[3 * q:]
-    return {"peak_mb": max(v), "second_quarter_mean_mb": round(sum(second) / len(second), 1),
-            "last_quarter_mean_mb": round(sum(last) / len(last), 1),
-            "growth": round((sum(last) / len(last)) / (sum(second) / len(second)), 3)}
+    return sum(second) / len(second), sum(last) / len(last)
+
+
+def _growth(points: list, streaming_until: float | None) -> dict:
+    """Peak, and the growth over the whole series and over the samples taken while the
+    simulator ran (the stream itself, without what a node does after it: the processor's
+    final report)."""
+    v = [mb for _, mb in points]
+    out: dict = {"peak_mb": max(v, default=None), "growth": None}
+    whole = _quarters(v)
+    if whole:
+        out.update(second_quarter_mean_mb=round(whole[0], 1), last_quarter_mean_mb=round(whole[1], 1),
+                   growth=round(whole[1] / whole[0], 3))
+    live = [mb for t, mb in points if streaming_until is None or t <= streaming_until]
+    out["peak_streaming_mb"] = max(live, default=None)
+    q = _quarters(live)
+    out["growth_streaming"] = round(q[1] / q[0], 3) if q else None
+    return out
 
 
 def plot(result: dict, png: str) -> None:
@@ -129,7 +146,8 @@ def main(duration_s: float = 3600.0, every_s: float = 1.0, png: str | None = Non
     result = {"duration_s": duration_s, "revolutions": revs, "toas": revs * r["toas_per_revolution"],
               "wall_s": r["wall_s"],
               "complete": s.get("complete"), "lost": s.get("lost"),
-              "nodes": {n: _growth(p) for n, p in r["series"].items()}, "every_s": every_s,
+              "nodes": {n: _growth(p, max((t for t, _ in r["series"]["sim"]), default=None))
+                        for n, p in r["series"].items()}, "every_s": every_s,
               "series": r["series"]}
     if png:
         plot(result, png)

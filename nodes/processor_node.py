@@ -32,7 +32,7 @@ from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag, pack_attachment, wait_for_done
 from bttsim_stream.errors import BttsimError
 from bttsim_stream.processing_flags import add_processing_arguments, processing_options
-from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_duration_argument, \
+from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_duration_argument, \
     add_status_argument, node_session, run_node
 
 if TYPE_CHECKING:
@@ -52,7 +52,9 @@ def main(conf, args: argparse.Namespace) -> dict | None:
     options = processing_options(args)  # a bad value: one line, exit 2
     stop = StopFlag(args.duration)
     summary = None
-    with node_session(conf, rig, "processor", status_file=args.status_file) as node:
+    # its live samples wait in the inbox (arrival order across the keys), as many as a FIFO
+    # subscription holds: a processor behind the simulator slows it instead of holding more
+    with node_session(conf, rig, "processor", inbox_size=FIFO_SIZE, status_file=args.status_file) as node:
         for k in (keys.meta_key(rig), keys.opr_key(rig), keys.toa_all_key(rig)) + (
                 () if args.no_score else (keys.truth_key(rig),)):
             node.subscribe(k, fifo=False)  # in arrival order across the keys: revolutions complete as they come

@@ -29,6 +29,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .history import SpilledRows
+
 __all__ = [
     "STATUSES",
     "Detection",
@@ -210,9 +212,14 @@ class TruthPeakTracker:
         self._amp: np.ndarray | None = None
         self._rev: np.ndarray | None = None
         self._omega: np.ndarray | None = None
-        self._rows: dict[int, tuple[np.ndarray, float]] = {}
-        self._nsv: dict[int, tuple] = {}
-        self._eo: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # per revolution, in arrival order: (revolution, speed, envelope per blade), and
+        # (revolution, which orders, each order's envelope per blade); the older rows in a
+        # scratch file (a long live run's truth, read back once for the final report)
+        self._rows: SpilledRows | None = None
+        self._nsv: dict[int, tuple] = {}  # the revolutions with NSV components
+        self._nsv_seen = False  # a truth that carries NSV components (maybe none)
+        self._eo: SpilledRows | None = None
+        self._eo_orders: list[np.ndarray] = []  # the distinct sets of orders, in order of arrival
 
     def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float, nsv=None,
                eo=None) -> None:
@@ -221,11 +228,19 @@ class TruthPeakTracker:
         truth carries them (to score NSV detections); ``eo``: each engine order's own envelope
         ``(engine_orders (n_eo,), eo_pkpk_m (n_blades, n_eo))`` when the truth carries it."""
         a = np.asarray(d_eqv_pkpk_m, dtype=float)
-        self._rows[int(revolution)] = (a.copy(), float(omega_mean_rad_s))
+        if self._rows is None:
+            self._rows = SpilledRows((a.size + 2,))
+        if a.shape == (self._rows.shape_tail[0] - 2,):  # another shape is never read back
+            self._rows.append(np.concatenate(([revolution, omega_mean_rad_s], a)))
         if nsv is not None:
-            self._nsv[int(revolution)] = tuple(np.asarray(x).reshape(-1) for x in nsv)
+            self._nsv_seen = True
+            parts = tuple(np.asarray(x).reshape(-1) for x in nsv)
+            if any(p.size for p in parts):  # the revolutions without any: nothing to keep
+                self._nsv[int(revolution)] = parts
+            else:
+                self._nsv.pop(int(revolution), None)  # a repeated revolution: the later one holds
         if eo is not None and np.size(eo[0]):
-            self._eo[int(revolution)] = (np.asarray(eo[0], np.int64).reshape(-1), np.array(eo[1], dtype=float))
+            self._add_eo(int(revolution), np.asarray(eo[0], np.int64).reshape(-1), np.asarray(eo[1], dtype=float))
         if self._amp is None:
             self._amp = np.full(a.shape, -np.inf)
             self._rev = np.full(a.shape, -1, dtype=np.int64)
@@ -250,26 +265,42 @@ class TruthPeakTracker:
         nb = self._amp.size
         amp = np.full((int(n_revolutions), nb), np.nan)
         om = np.full(int(n_revolutions), np.nan)
-        for rev, (a, w) in self._rows.items():
-            i = rev - int(first_revolution)
-            if 0 <= i < n_revolutions and a.shape == (nb,):
-                amp[i], om[i] = a, w
+        if self._rows.shape_tail == (nb + 2,):
+            rows, i = _latest(self._rows.array(), first_revolution, n_revolutions)
+            amp[i], om[i] = rows[:, 2:], rows[:, 1]
         orders, own = self._eo_rows(first_revolution, n_revolutions, nb)
         return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om, eo_engine_order=orders, eo_pkpk_m=own)
 
+    def _add_eo(self, revolution: int, orders: np.ndarray, own: np.ndarray) -> None:
+        """Keep one revolution's engine orders' own envelopes (``own``: (n_blades, n_eo)); a
+        table of another shape than the first one's is not kept (it is never read back)."""
+        if own.ndim != 2 or own.shape[1] != orders.size:
+            return
+        if self._eo is None:
+            self._eo = SpilledRows((2 + own.size,))
+        if own.size + 2 != self._eo.shape_tail[0]:
+            return
+        code = next((j for j, o in enumerate(self._eo_orders) if np.array_equal(o, orders)), None)
+        if code is None:
+            code = len(self._eo_orders)
+            self._eo_orders.append(orders.copy())
+        self._eo.append(np.concatenate(([revolution, code], own.ravel())))
+
     def _eo_rows(self, first_revolution: int, n_revolutions: int, nb: int):
         """The engine orders' own envelopes of the rows (NaN where a revolution carried none,
-        or other orders than the first revolution that did), or (None, None)."""
-        if not self._eo:
+        or other orders than the earliest revolution that did), or (None, None)."""
+        if self._eo is None or self._eo.n == 0:
             return None, None
-        orders = self._eo[min(self._eo)][0]
+        every = self._eo.array()
+        kept, _ = _latest(every, None, None)
+        code = int(kept[np.argmin(kept[:, 0]), 1])
+        orders = self._eo_orders[code]
         own = np.full((int(n_revolutions), nb, orders.size), np.nan)
-        for rev, (o, a) in self._eo.items():
-            i = rev - int(first_revolution)
-            if 0 <= i < n_revolutions and np.array_equal(o, orders) and a.shape == own.shape[1:]:
-                own[i] = a
+        if every.shape[1] - 2 == nb * orders.size:
+            rows, i = _latest(every, first_revolution, n_revolutions)
+            same = rows[:, 1] == code
+            own[i[same]] = rows[same, 2:].reshape(-1, nb, orders.size)
         return orders.copy(), own
-
 
     def nsv_rows(self, first_revolution: int, n_revolutions: int):
         """The non-synchronous truth of revolutions ``first_revolution ..``
@@ -277,10 +308,10 @@ class TruthPeakTracker:
         received), None when no truth carried NSV components."""
         from .nsv import NsvTruthRows
 
-        if not self._nsv:
+        if not self._nsv_seen:
             return None
         n = int(n_revolutions)
-        k = max(len(v[0]) for v in self._nsv.values())
+        k = max((len(v[0]) for v in self._nsv.values()), default=0)
         kind = np.full((n, k), "", dtype=object)
         freq, amp = np.full((n, k), np.nan), np.full((n, k), np.nan)
         nd = np.zeros((n, k), np.int64)
@@ -290,6 +321,21 @@ class TruthPeakTracker:
                 m = len(kd)
                 kind[i, :m], freq[i, :m], nd[i, :m], amp[i, :m] = kd, f, d, a
         return NsvTruthRows(kind=kind.astype(str), freq_hz=freq, nd=nd, amp_pkpk_m=amp)
+
+
+def _latest(rows: np.ndarray, first_revolution, n_revolutions):
+    """The rows (column 0: the revolution) of each revolution's last arrival, in revolution
+    order, and, given ``first_revolution``, only those of revolutions ``first_revolution ..``
+    (``n_revolutions`` of them) with their index there."""
+    rev = rows[:, 0].astype(np.int64)
+    _, last = np.unique(rev[::-1], return_index=True)  # a repeated revolution: the later one
+    keep = rev.size - 1 - last
+    rows, rev = rows[keep], rev[keep]
+    if first_revolution is None:
+        return rows, rev
+    i = rev - int(first_revolution)
+    ok = (i >= 0) & (i < int(n_revolutions))
+    return rows[ok], i[ok]
 
 
 def parabolic_peak(amp: np.ndarray, peak: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:

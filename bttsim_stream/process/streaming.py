@@ -26,6 +26,7 @@ import numpy as np
 from .displacement import TWO_PI, Geometry, calibrate_arrival_angles, outside_revolution, revolution_displacements, \
     rotor_phase_from_opr
 from .fit import design_matrix, fit_revolutions
+from .history import RecentRows, SpilledRows
 from .nsv import NsvDetection, detections, is_rigid_body, scan_blocks, screen_block
 from .options import LIVE_CALIBRATION, ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .pipeline import process_arrays
@@ -109,11 +110,13 @@ class StreamingProcessor:
         self._shape = (g.n_blades, g.n_probes)
         cap = int(getattr(info, "n_revolutions", 0) or 0) + 8
         self._opr = _Growable((), cap)
-        self._toa = _Growable(self._shape, cap)
-        self._d = _Growable(self._shape, cap)
-        self._omega = _Growable((), cap)
-        self._was_calibrated: list[bool] = []
-        self._row_sum: list[float] = []  # per revolution, the sum of the displacements (NaN: one is missing)
+        # the TOAs for the final report: the recent revolutions in memory, the others in a
+        # scratch file; the live displacements and speeds only as far back as they are used
+        self._toa = SpilledRows(self._shape)
+        self._d = RecentRows(self._shape)
+        self._omega = RecentRows()
+        self._was_calibrated = RecentRows(dtype=bool, fill=False)
+        self._row_sum = RecentRows()  # per revolution, the sum of the displacements (NaN: one is missing)
         self._first_rev: int | None = None
         self._n_done = 0  # displacements computed for revolutions [0, _n_done)
         self._n_emitted = 0
@@ -264,7 +267,7 @@ class StreamingProcessor:
         if opts.engine_orders is None and opts.eo_range is None:
             opts = replace(opts, engine_orders=engine_orders_of(self.info, opts))
         # the report only: the per-revolution spectra went out live, revolution by revolution
-        self.result = process_arrays(self._opr.array, self._toa.array, self.info, opts,
+        self.result = process_arrays(self._opr.array, self._toa.array(), self.info, opts,
                                      truth=truth_peaks, revolution0=self._first_rev or 0, spectra=False)
         return self.result.summary
 
@@ -285,16 +288,16 @@ class StreamingProcessor:
         while self._nsv_next + L <= self._n_done:
             s = self._nsv_next
             self._nsv_next += L
-            cal = self._was_calibrated[s:s + L]
-            if any(cal) != all(cal):
+            cal = self._was_calibrated.rows(s, s + L)
+            if cal.any() != cal.all():
                 self._nsv_run, self._nsv_last = 0, None
                 continue
-            d = self._d.array[s:s + L]
-            finite = all(map(math.isfinite, self._row_sum[s:s + L]))  # a finite sum: finite samples
+            d = self._d.rows(s, s + L)
+            finite = bool(np.isfinite(self._row_sum.rows(s, s + L)).all())  # a finite sum: finite samples
             if not screen_block(d, opts, finite=finite):  # the statistic alone first (most blocks stop here)
                 self._nsv_run, self._nsv_last = 0, None
                 continue
-            scan = scan_blocks(d, self._omega.array[s:s + L], self._psi, opts, starts=[0])
+            scan = scan_blocks(d, self._omega.rows(s, s + L), self._psi, opts, starts=[0])
             if not scan.detected[0]:
                 self._nsv_run, self._nsv_last = 0, None
                 continue
@@ -306,7 +309,7 @@ class StreamingProcessor:
             if self._nsv_run >= int(opts.min_blocks):
                 one = replace(opts, min_blocks=1)
                 out += [det for det in detections(scan, d, self._psi, one, revolution0=(self._first_rev or 0) + s,
-                                                  omega_rad_s=self._omega.array[s:s + L])
+                                                  omega_rad_s=self._omega.rows(s, s + L))
                         if not is_rigid_body(det)]  # the rotor's own motion: the final report's note names it
         return out
 
@@ -323,11 +326,16 @@ class StreamingProcessor:
             stop = self._cal_window[1]
             n_opr = min(stop + 1, self._opr.n)
             phase = rotor_phase_from_opr(opr[:n_opr])
-            psi = calibrate_arrival_angles(phase, self._toa.array[:n_opr], self._cal_window)
+            a = self._cal_window[0]
+            b = max(min(stop, n_opr), a)  # the window's rows that the history holds
+            psi = calibrate_arrival_angles(phase.rows(slice(a, b)), self._toa.rows(a, b), (0, b - a))
             self._psi = np.where(np.isfinite(psi), psi, self._psi)
             self._calibrated = True
         lo = max(0, k - 2) if final else max(0, k - 1)
         hi = k + 1 if final else max(k + 2, 3)
+        keep = min(self._nsv_next, self._n_emitted - (self._window - 1) // 2)  # the oldest row still used
+        for recent in (self._d, self._omega, self._row_sum, self._was_calibrated):
+            recent.drop_before(keep)
         d = self._d.next_row()  # written in place
         om = revolution_displacements(opr[lo:hi], k - lo, self._toa.row(k), self._psi, self.geometry.tip_radius_m, d)
         self._row_sum.append(_add_all(d))
@@ -413,7 +421,7 @@ class StreamingProcessor:
             # the fit and both spectra as a few small matrix products (precomputed); the
             # element-wise steps run on contiguous (order, blade) rows (the same operations
             # on the same values as on the (blade, order) columns, fewer strided loops)
-            missing = math.isnan(self._row_sum[k])  # np.isnan(d_k.sum())
+            missing = math.isnan(self._row_sum.row(k))  # np.isnan(d_k.sum())
             if missing:
                 a, rss, s2, g11, g22, g12, n_used = self._fit_patterns(d_k)
                 g11, g22, g12x2 = g11.T, g22.T, 2.0 * g12.T
@@ -475,7 +483,7 @@ class StreamingProcessor:
         else:
             lo = max(0, k - (w - 1) // 2)
             hi = min(self._d.n, k + w // 2 + 1)
-            f = fit_revolutions(self._d.array[lo:hi], self.geometry.probe_angles_rad, self.engine_orders,
+            f = fit_revolutions(self._d.rows(lo, hi), self.geometry.probe_angles_rad, self.engine_orders,
                                 window=w)
             i = k - lo
             amp_pkpk, phase, amp_std = f.amp_pkpk_m[i], f.phase_rad[i], f.amp_std_m[i]
@@ -486,8 +494,8 @@ class StreamingProcessor:
         return RevolutionOutput(
             revolution=self._first_rev + k, opr_s=float(self._opr.row(k)), omega_rad_s=om,
             engine_orders=self.engine_orders, freq_hz=om * self._freq_per_omega, cn=self._cn,
-            d_m=d_k, amp_pkpk_m=amp_pkpk, phase_rad=phase, amp_std_m=amp_std, dc_m=dc,
-            residual_rms_m=res, probe_tw=probe_tw, fit_tw=fit_tw, calibrated=self._was_calibrated[k])
+            d_m=d_k.copy(), amp_pkpk_m=amp_pkpk, phase_rad=phase, amp_std_m=amp_std, dc_m=dc,
+            residual_rms_m=res, probe_tw=probe_tw, fit_tw=fit_tw, calibrated=bool(self._was_calibrated.row(k)))
 
 
 _add_rows = np.add.reduce  # ndarray.sum without its Python wrapper (the same reduction)

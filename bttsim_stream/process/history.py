@@ -1,0 +1,152 @@
+"""The per-revolution state of a live run, in memory that does not grow with the run.
+
+* :class:`RecentRows`: rows appended along axis 0 of which the owner needs only the recent ones
+  (the live displacements and speeds: the NSV block and the fit window being worked on); the
+  older rows are dropped.
+* :class:`SpilledRows`: rows appended along axis 0 that are all needed once more at the end
+  (the live processor's TOAs and truth, for its final report): the recent rows in memory, the
+  older ones in an unnamed scratch file (:func:`tempfile.TemporaryFile`: in ``TMPDIR``,
+  deleted when closed or when the process ends), read back when asked for.
+
+Pure numpy and the standard library; no bus, no formats.
+"""
+
+from __future__ import annotations
+
+import tempfile
+
+import numpy as np
+
+__all__ = ["RecentRows", "SpilledRows", "SPILL_BYTES"]
+
+#: Bytes of recent rows a :class:`SpilledRows` keeps in memory before it writes the older half
+#: to its scratch file (twice this at most).
+SPILL_BYTES = 4 << 20
+
+
+class RecentRows:
+    """Rows appended along axis 0, indexed by their absolute row number; the rows before
+    :meth:`drop_before`'s number may be dropped (the buffer is compacted when it is full and
+    at least half of it can go; else it doubles)."""
+
+    def __init__(self, shape_tail: tuple = (), dtype=np.float64, capacity: int = 256, fill=np.nan) -> None:
+        self._fill = fill
+        self._a = np.full((max(int(capacity), 4),) + tuple(shape_tail), fill, dtype=dtype)
+        self._start = 0  # the row number of _a[0]
+        self._keep = 0  # rows before it are not needed any more
+        self.n = 0
+
+    def drop_before(self, k: int) -> None:
+        """Rows before row ``k`` are not needed any more."""
+        self._keep = min(max(self._keep, int(k)), self.n)
+
+    def _room(self) -> None:
+        size = self._a.shape[0]
+        if self.n - self._start < size:
+            return
+        drop = self._keep - self._start
+        if 2 * drop >= size:  # compact: the kept rows to the front
+            m = self.n - self._keep
+            self._a[:m] = self._a[drop:drop + m]
+            self._a[m:] = self._fill
+            self._start = self._keep
+        else:
+            self._a = np.concatenate([self._a, np.full_like(self._a, self._fill)])
+
+    def append(self, row) -> None:
+        self._room()
+        self._a[self.n - self._start] = row
+        self.n += 1
+
+    def next_row(self) -> np.ndarray:
+        """Append a row (the fill value) and return it, to be written in place."""
+        self._room()
+        self.n += 1
+        return self._a[self.n - 1 - self._start]
+
+    def row(self, k: int):
+        """Row ``k`` (a view: valid until the next append)."""
+        i = k - self._start
+        if i < 0 or k >= self.n:
+            raise IndexError(f"row {k} is not held (rows {self._start} .. {self.n - 1})")
+        return self._a[i]
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """Rows ``a .. b - 1`` (a view: valid until the next append)."""
+        if a < self._start or b > self.n:
+            raise IndexError(f"rows {a} .. {b - 1} are not held (rows {self._start} .. {self.n - 1})")
+        return self._a[a - self._start:b - self._start]
+
+
+class SpilledRows:
+    """Rows appended along axis 0, all kept: the recent ones in memory (at least ``keep``
+    rows, at most twice that), the older ones in a scratch file, in order.
+
+    Rows still in memory may be changed in place (:meth:`row`); a spilled row is final.
+    """
+
+    def __init__(self, shape_tail: tuple = (), dtype=np.float64, keep: int | None = None, fill=np.nan) -> None:
+        self.shape_tail = tuple(shape_tail)
+        self.dtype = np.dtype(dtype)
+        self._row_bytes = int(np.prod(self.shape_tail, dtype=np.int64)) * self.dtype.itemsize
+        self._keep = max(4, int(keep) if keep is not None else SPILL_BYTES // max(self._row_bytes, 1))
+        self._fill = fill
+        self._buf = np.full((2 * self._keep,) + self.shape_tail, fill, dtype=self.dtype)
+        self._start = 0  # the row number of _buf[0]: rows before it are in the file
+        self._file = None
+        self.n = 0
+
+    @property
+    def spilled(self) -> int:
+        """Rows in the scratch file."""
+        return self._start
+
+    def _room(self) -> None:
+        if self.n - self._start < self._buf.shape[0]:
+            return
+        k = self._keep
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="bttsim-history-")
+        self._file.seek(0, 2)
+        self._file.write(memoryview(self._buf[:k]).cast("B"))
+        self._buf[:k] = self._buf[k:2 * k]
+        self._buf[k:] = self._fill
+        self._start += k
+
+    def append(self, row) -> None:
+        self._room()
+        self._buf[self.n - self._start] = row
+        self.n += 1
+
+    def row(self, k: int) -> np.ndarray:
+        """Row ``k``, still in memory (a view: changes write through; valid until the next
+        append)."""
+        i = k - self._start
+        if i < 0 or k >= self.n:
+            raise IndexError(f"row {k} is not in memory (rows {self._start} .. {self.n - 1})")
+        return self._buf[i]
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """A copy of rows ``a .. b - 1``, from the file and from memory."""
+        a, b = max(int(a), 0), min(int(b), self.n)
+        out = np.empty((max(b - a, 0),) + self.shape_tail, self.dtype)
+        m = min(b, self._start) - a  # rows from the file
+        if m > 0:
+            self._file.seek(a * self._row_bytes)
+            view = memoryview(out[:m]).cast("B")
+            got = self._file.readinto(view)
+            if got != view.nbytes:
+                raise OSError(f"the scratch file of the run's history is short ({got} of {view.nbytes} bytes)")
+        m = max(m, 0)
+        out[m:] = self._buf[a + m - self._start:b - self._start]
+        return out
+
+    def array(self) -> np.ndarray:
+        """Every row, in one array."""
+        return self.rows(0, self.n)
+
+    def close(self) -> None:
+        """Delete the scratch file (the rows spilled to it are gone)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
