@@ -98,14 +98,16 @@ def test_truth_tracker_rows_spilled_are_the_latest_of_each_revolution(monkeypatc
     tr = TruthPeakTracker(8)
     ref_amp, ref_om, ref_eo = {}, {}, {}
     revs = list(range(3, 400)) + [50, 51, 399, 2, 1000]  # repeats, one earlier, one far out
-    rng.shuffle(revs[:100])
-    for j, rev in enumerate(revs):
+    head = revs[:100]
+    rng.shuffle(head)
+    revs[:100] = head  # out of order
+    for rev in revs:
         a, w = rng.random(nb), 300.0 + rng.random()
         orders = np.array([8, 9]) if rev != 51 else np.array([8, 10])
         own = rng.random((nb, 2))
         tr.update(rev, a, w, eo=(orders, own))
         ref_amp[rev], ref_om[rev], ref_eo[rev] = a, w, (orders, own)
-    assert tr._rows.spilled > 0 and tr._eo.spilled > 0
+    assert tr._rows.spilled > 0 and tr._eo[nb * 2].spilled > 0
     got = tr.rows(10, 395)
     for i in range(395):
         rev = 10 + i
@@ -124,3 +126,37 @@ def test_truth_tracker_rows_spilled_are_the_latest_of_each_revolution(monkeypatc
     rows = early.rows(0, 2)
     np.testing.assert_array_equal(rows.eo_engine_order, [4])  # revolution 0's orders, whatever came first
     assert rows.eo_pkpk_m[0, 0, 0] == 2.0 and np.isnan(rows.eo_pkpk_m[1]).all()
+    mixed = TruthPeakTracker(8)  # tables of another number of orders than the first one's
+    mixed.update(1, np.ones(nb), 1.0, eo=(np.array([8]), np.ones((nb, 1))))
+    mixed.update(0, np.ones(nb), 1.0, eo=(np.array([8, 16]), np.full((nb, 2), 2.0)))
+    mixed.update(2, np.ones(nb), 1.0, eo=(np.array([8, 16]), np.full((nb, 2), 3.0)))
+    mixed.update(2, np.ones(nb), 1.0, eo=(np.array([8]), np.ones((nb, 1))))  # revolution 2 again: the later
+    rows = mixed.rows(0, 3)
+    np.testing.assert_array_equal(rows.eo_engine_order, [8, 16])
+    assert (rows.eo_pkpk_m[0] == 2.0).all() and np.isnan(rows.eo_pkpk_m[1:]).all()
+
+
+def test_a_long_gap_is_filled_before_its_rows_can_be_spilled(monkeypatch):
+    """Lost revolutions are filled with missing arrivals; a gap longer than the TOAs kept in
+    memory is worked through as it is filled, so no revolution is spilled before Eq. 1."""
+    from bttsim_stream.paper.validate_processing import simulate
+
+    run = simulate()
+    skip = range(1500, 2300)
+
+    def stream(proc):
+        outs = []
+        for n in range(run.opr_s.size):
+            if n not in skip:
+                outs += proc.push(n, run.opr_s[n], run.toa_s[n])
+        return outs + proc.flush()
+
+    held = stream(StreamingProcessor(run.info))
+    monkeypatch.setattr(history, "SPILL_BYTES", 100 * run.toa_s[0].nbytes)
+    bounded_proc = StreamingProcessor(run.info)
+    bounded = stream(bounded_proc)
+    assert bounded_proc._toa.spilled > 2300
+    assert [o.revolution for o in bounded] == [o.revolution for o in held] == list(range(run.opr_s.size))
+    for a, b in zip(bounded, held):
+        np.testing.assert_array_equal(a.d_m, b.d_m)
+        np.testing.assert_array_equal(a.amp_pkpk_m, b.amp_pkpk_m)

@@ -115,6 +115,12 @@ class ProcessOptions:
         cal = self.calibration
         if isinstance(cal, str) and cal != "auto":
             raise ValueError(f'calibration must be "auto", an int, (start, stop) or None, got {cal!r}')
+        if isinstance(cal, (int, np.integer)) and not isinstance(cal, bool) and cal < 0:
+            raise ValueError(f"calibration must be a window of >= 0 revolutions, got {cal}")
+        if isinstance(cal, (tuple, list)) and not (
+                len(cal) == 2 and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in cal)
+                and 0 <= cal[0] < cal[1]):
+            raise ValueError(f"calibration must be (start, stop) revolutions with 0 <= start < stop, got {cal!r}")
 
 
 def engine_orders_of(info, options: ProcessOptions) -> tuple:

@@ -218,8 +218,9 @@ class TruthPeakTracker:
         self._rows: SpilledRows | None = None
         self._nsv: dict[int, tuple] = {}  # the revolutions with NSV components
         self._nsv_seen = False  # a truth that carries NSV components (maybe none)
-        self._eo: SpilledRows | None = None
+        self._eo: dict[int, SpilledRows] = {}  # by the table's size: (revolution, orders, arrival, table)
         self._eo_orders: list[np.ndarray] = []  # the distinct sets of orders, in order of arrival
+        self._eo_arrivals = 0
 
     def update(self, revolution: int, d_eqv_pkpk_m: np.ndarray, omega_mean_rad_s: float, nsv=None,
                eo=None) -> None:
@@ -272,34 +273,39 @@ class TruthPeakTracker:
         return TruthRows(d_eqv_pkpk_m=amp, omega_mean=om, eo_engine_order=orders, eo_pkpk_m=own)
 
     def _add_eo(self, revolution: int, orders: np.ndarray, own: np.ndarray) -> None:
-        """Keep one revolution's engine orders' own envelopes (``own``: (n_blades, n_eo)); a
-        table of another shape than the first one's is not kept (it is never read back)."""
+        """Keep one revolution's engine orders' own envelopes (``own``: (n_blades, n_eo)),
+        with which orders they are and when they came (a repeated revolution: the later one)."""
         if own.ndim != 2 or own.shape[1] != orders.size:
-            return
-        if self._eo is None:
-            self._eo = SpilledRows((2 + own.size,))
-        if own.size + 2 != self._eo.shape_tail[0]:
-            return
+            return  # not a table of these orders (the codec refuses it): never read back
         code = next((j for j, o in enumerate(self._eo_orders) if np.array_equal(o, orders)), None)
         if code is None:
             code = len(self._eo_orders)
             self._eo_orders.append(orders.copy())
-        self._eo.append(np.concatenate(([revolution, code], own.ravel())))
+        store = self._eo.get(own.size)
+        if store is None:
+            store = self._eo[own.size] = SpilledRows((3 + own.size,))
+        store.append(np.concatenate(([revolution, code, self._eo_arrivals], own.ravel())))
+        self._eo_arrivals += 1
 
     def _eo_rows(self, first_revolution: int, n_revolutions: int, nb: int):
         """The engine orders' own envelopes of the rows (NaN where a revolution carried none,
         or other orders than the earliest revolution that did), or (None, None)."""
-        if self._eo is None or self._eo.n == 0:
+        if not self._eo:
             return None, None
-        every = self._eo.array()
-        kept, _ = _latest(every, None, None)
-        code = int(kept[np.argmin(kept[:, 0]), 1])
+        tables = {size: store.array() for size, store in self._eo.items()}
+        head = np.concatenate([t[:, :3] for t in tables.values()])  # revolution, orders, arrival
+        latest = head[np.lexsort((head[:, 2], head[:, 0]))]
+        latest = latest[np.r_[latest[1:, 0] != latest[:-1, 0], True]]  # each revolution's last arrival
+        code = int(latest[np.argmin(latest[:, 0]), 1])
         orders = self._eo_orders[code]
         own = np.full((int(n_revolutions), nb, orders.size), np.nan)
-        if every.shape[1] - 2 == nb * orders.size:
-            rows, i = _latest(every, first_revolution, n_revolutions)
-            same = rows[:, 1] == code
-            own[i[same]] = rows[same, 2:].reshape(-1, nb, orders.size)
+        rows = tables.get(nb * orders.size)
+        if rows is not None:
+            last = latest[np.searchsorted(latest[:, 0], rows[:, 0]), 2]  # latest: by revolution
+            mine = (rows[:, 1] == code) & (rows[:, 2] == last)
+            i = rows[:, 0].astype(np.int64) - int(first_revolution)
+            ok = mine & (i >= 0) & (i < int(n_revolutions))
+            own[i[ok]] = rows[ok, 3:].reshape(-1, nb, orders.size)
         return orders.copy(), own
 
     def nsv_rows(self, first_revolution: int, n_revolutions: int):

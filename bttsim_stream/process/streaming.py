@@ -187,22 +187,27 @@ class StreamingProcessor:
         expected = self._first_rev + self._opr.n
         if revolution < expected:
             raise ValueError(f"revolution {revolution} pushed after revolution {expected - 1}")
+        out: list[RevolutionOutput] = []
         if revolution > expected:  # lost revolutions: no arrivals, OPR times interpolated
             last = self._opr[self._opr.n - 1]
             gap = revolution - expected
             for k in range(1, gap + 1):
                 self._opr.append(last + (float(opr_s) - last) * k / (gap + 1))
                 self._toa.append(np.full(self._shape, np.nan))
+                self._displace_ready(out)  # each one before the TOA history can move it to its file
         self._opr.append(float(opr_s))
         self._toa.append(toa)
-        out = []
-        # revolution k needs OPR k+1 for its speed (and revolution 0 also OPR 2, for the
-        # acceleration of revolution 1)
+        self._displace_ready(out)
+        return out
+
+    def _displace_ready(self, out: list) -> None:
+        """Eq. 1 of every revolution whose next OPR pulse has come, and the outputs that
+        completes (appended to ``out``). Revolution k needs OPR k+1 for its speed (and
+        revolution 0 also OPR 2, for the acceleration of revolution 1)."""
         while self._n_done < self._opr.n - 1 and (self._n_done > 0 or self._opr.n >= 3):
             self._displace(self._n_done, final=False)
             self._n_done += 1
             out.extend(self._emit_ready(final=False))
-        return out
 
     def advance(self, revolution: int, opr_s: float) -> list[RevolutionOutput]:
         """The OPR pulse of ``revolution``, ahead of its TOAs: the outputs it completes now.
