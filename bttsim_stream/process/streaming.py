@@ -5,9 +5,10 @@ travelling waves out, and the offline pipeline's report at the end.
 ``(n_blades, n_probes)`` TOAs); each :meth:`~StreamingProcessor.push` returns the
 per-revolution outputs that became computable, one revolution late (revolution ``n`` needs
 OPR ``n + 1`` for its speed), and :meth:`~StreamingProcessor.finish` runs the offline
-pipeline (:func:`~.pipeline.process_arrays`) over the stored history (``n_rev x n_blades x
-n_probes`` floats, small) for the final resonance report, so the report is identical to the
-offline one.
+pipeline (:func:`~.pipeline.process_arrays`) over the stored TOAs for the final resonance
+report, so the report is identical to the offline one. While the run streams its memory does
+not grow with the run (:mod:`.history`): the TOAs are kept in a scratch file but for the
+latest few MB, the live displacements only as far back as they are read.
 
 The per-revolution fits are computed on the displacements as they come (no smoothing, which
 would need future revolutions), with the nominal blade geometry until the calibration window
