@@ -294,8 +294,7 @@ class TruthPeakTracker:
             return None, None
         tables = {size: store.array() for size, store in self._eo.items()}
         head = np.concatenate([t[:, :3] for t in tables.values()])  # revolution, orders, arrival
-        latest = head[np.lexsort((head[:, 2], head[:, 0]))]
-        latest = latest[np.r_[latest[1:, 0] != latest[:-1, 0], True]]  # each revolution's last arrival
+        latest, _ = _latest(head[np.argsort(head[:, 2])], None, None)  # in arrival order first
         code = int(latest[np.argmin(latest[:, 0]), 1])
         orders = self._eo_orders[code]
         own = np.full((int(n_revolutions), nb, orders.size), np.nan)

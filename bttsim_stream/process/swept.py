@@ -138,6 +138,7 @@ class SweptForcing:
         flat = lam.reshape(-1, 1)  # rows b0 pole 1, b0 pole 2, b1 pole 1, ...
         lam_h = flat[:, 0] * self.h
         ah = np.exp(flat * self.h)
+        ahh = ah * self.h
         d = (lam[:, 0] - lam[:, 1])[:, None]
         den0 = self.jw[None, :1] - flat
         y_s = (np.exp(1j * self.phi[0]) / den0)[:, 0]  # the quasi-steady start
@@ -154,7 +155,6 @@ class SweptForcing:
             if not derivatives:
                 yield z, None
                 continue
-            ahh = ah * self.h
             u = ahh * y[:, :-1] + (x - ahh * self.e_phi[s:e]) / den
             del x, y
             dy = np.empty((flat.shape[0], e - s + 1), complex)
