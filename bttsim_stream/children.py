@@ -26,21 +26,33 @@ __all__ = ["die_with_parent"]
 _PR_SET_PDEATHSIG = 1
 
 
-def die_with_parent(sig: int = signal.SIGTERM) -> Callable[[], None] | None:
+def die_with_parent(sig: int = signal.SIGTERM, ignore: tuple = ()) -> Callable[[], None] | None:
     """A ``preexec_fn`` for :class:`subprocess.Popen`: the child gets ``sig`` when this
-    process ends (Linux), or None where the kernel offers no such request.
+    process ends (Linux), or None where the kernel offers no such request (and nothing is
+    to be ignored).
+
+    ``ignore``: signals the child starts with ignored (an ignored signal stays ignored across
+    ``exec``), for those a node handles once it is running and that must not end it before
+    (their default action) -- e.g. :data:`~bttsim_stream.bus.session.GONE_SIGNAL`.
 
     libc is loaded here, in the parent: a forked child of a threaded process must not
     ``dlopen``. If the parent already died before the request took effect, the child exits.
     """
+    ignored = tuple(int(s) for s in ignore)
+
+    def ignore_them() -> None:
+        for s in ignored:
+            signal.signal(s, signal.SIG_IGN)
+
     if not sys.platform.startswith("linux"):
-        return None
+        return ignore_them if ignored else None
     import ctypes
 
     prctl = ctypes.CDLL(None, use_errno=True).prctl
     parent = os.getpid()
 
     def preexec() -> None:
+        ignore_them()
         if prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")  # Popen raises it
         if os.getppid() != parent:  # the parent is gone already: the signal will never come

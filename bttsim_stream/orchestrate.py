@@ -52,7 +52,7 @@ import numpy as np
 from .bus import codec, keys
 from .bus.ports import check_web_ports
 from .bus.security import TlsFiles
-from .bus.session import CONNECT_TIMEOUT_S, declare_subscriber, free_port, make_config, opened
+from .bus.session import CONNECT_TIMEOUT_S, GONE_SIGNAL, declare_subscriber, free_port, make_config, opened
 from .bus.status import StatusBoard
 from .children import die_with_parent
 from .diskspace import check_free_space, estimate_output_bytes
@@ -329,7 +329,9 @@ class Run:
             self.procs[n] = subprocess.Popen([sys.executable, "-m", "bttsim_stream.nodes", *self.plan.commands[n]],
                                              stdout=self._logs[n], stderr=subprocess.STDOUT,
                                              start_new_session=True,  # Ctrl-C reaches only us
-                                             preexec_fn=die_with_parent())  # and they end when we do
+                                             # they end when we do; the gone signal before they
+                                             # handle it is ignored, not their end
+                                             preexec_fn=die_with_parent(ignore=(GONE_SIGNAL,)))
 
     def watch(self, session) -> None:
         """Until the simulator ends: the progress line from the bus (the run's revolution count,
@@ -362,11 +364,13 @@ class Run:
         sim_ok = sim is not None and sim.returncode == 0
         grace = 120 if sim_ok else FAILED_SIM_GRACE_S
         if not sim_ok:  # one deadline for all: each had the same time to notice, none waits on another
+            self._gone_for_good(("processor", "recorder", "viewer"))
             self._stop_consumers_after(FAILED_SIM_GRACE_S)
         self.progress.phase("making the report ...")
         self._wait("processor", grace)
         processor = self.procs.get("processor")
         if sim_ok and processor is not None and processor.returncode not in (0, None, NODE_INCOMPLETE):
+            self._gone_for_good(("recorder", "viewer"))
             self._stop_consumers_after(FAILED_PROCESSOR_GRACE_S)  # not 30 s of silence for its report
         self.progress.phase("finishing the recording ...")
         self._wait("recorder", grace)
@@ -458,6 +462,16 @@ class Run:
         except subprocess.TimeoutExpired:
             _signal(p, signal.SIGKILL)
             p.wait()
+
+    def _gone_for_good(self, names) -> None:
+        """Tell the named consumers that the nodes they follow which have gone will not come
+        back (:data:`GONE_SIGNAL`): a failed node's process has been reaped, so each ends once
+        it has handed out what it received and its inbox stays quiet, instead of waiting its
+        ``--drain-timeout`` of silence for data that can no longer come."""
+        for n in names:
+            p = self.procs.get(n)
+            if p is not None and p.poll() is None:
+                p.send_signal(GONE_SIGNAL)  # the node alone, not its process group
 
     def _stop_consumers_after(self, timeout_s: float) -> None:
         """Wait up to ``timeout_s`` for the consumers (all at once) to end on their own, then

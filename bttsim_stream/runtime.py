@@ -567,7 +567,9 @@ class NodeContext:
         watched nodes have ended and the inbox has been empty for ``idle_s`` (drained). A
         node's liveliness token travels ahead of its last data (declarations go first), so a
         node that can tell whether it has everything (``done()``: e.g. every revolution of the
-        run) waits up to ``patience_s`` of silence for the rest before it gives up.
+        run) waits up to ``patience_s`` of silence for the rest before it gives up -- unless
+        the watched nodes are known to be gone for good (:attr:`NodeWatch.final`: their
+        process was reaped), when ``idle_s`` of silence is enough.
         """
         idle_since = None
         left = None  # samples still to hand out once stopped
@@ -593,7 +595,7 @@ class NodeContext:
                 return
             if self.watch is not None and self.watch.ended():
                 idle_since = idle_since or time.monotonic()
-                wait = idle_s if done is None or done() else patience_s
+                wait = idle_s if done is None or self.watch.final or done() else patience_s
                 if time.monotonic() - idle_since > wait:
                     return
             yield None

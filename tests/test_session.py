@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from bttsim_stream.bus.session import StopFlag, declare_publisher, free_port, make_config, opened, \
+from bttsim_stream.bus.session import GONE_SIGNAL, StopFlag, declare_publisher, free_port, make_config, opened, \
     wait_for_subscribers
 from bttsim_stream.errors import BttsimError
 
@@ -223,3 +223,72 @@ def test_a_receiver_stalled_with_samples_in_its_fifo_reads_them_intact():
         _procs.stop(proc)
     assert result["n"] == total and result["bad"] == [], (result["bad"][:10], len(result["bad"]))
     assert rc == 0, proc.stderr.read()
+
+
+# --------------------------------------------------------------------------------------
+# A consumer told that the node it follows is gone for good ends once drained
+# --------------------------------------------------------------------------------------
+
+_PATIENT_CONSUMER = """
+import json, sys
+from bttsim_stream.bus.session import StopFlag, make_config
+from bttsim_stream.runtime import node_session
+
+with node_session(make_config(listen=[sys.argv[1]]), "rig1", "recorder") as ctx:
+    ctx.subscribe("bttsim/rig1/data")
+    ctx.watch_nodes(("sim",))
+    ctx.announce()
+    print("ready", flush=True)
+    n = 0
+    # never done, and an hour of patience: only the gone signal ends this before the test's timeout
+    for r in ctx.samples(StopFlag(install=False), done=lambda: False, patience_s=3600.0):
+        n += r is not None
+        if r is not None and n == int(sys.argv[2]):
+            print("got them", flush=True)
+    print(json.dumps({"n": n, "final": ctx.watch.final}), flush=True)
+"""
+
+_PUBLISHER = """
+import sys
+from bttsim_stream.bus.session import make_config
+from bttsim_stream.runtime import node_session
+
+with node_session(make_config(connect=[sys.argv[1]]), "rig1", "sim") as ctx:
+    ctx.announce()
+    pub = ctx.publisher("bttsim/rig1/data")
+    for i in range(int(sys.argv[2])):
+        pub.put(i.to_bytes(8, "little"))
+    print("sent", flush=True)
+    sys.stdin.readline()  # until killed
+"""
+
+
+@pytest.mark.integration
+def test_a_consumer_told_its_publisher_is_gone_for_good_ends_once_drained():
+    """A consumer whose publisher died mid-run would wait its whole patience (``--drain-timeout``)
+    of silence for the rest: the publisher might come back. Told by the gone signal (what
+    ``bttsim run`` sends once it has reaped the failed node), it ends as soon as what came is
+    handed out -- every sample the publisher sent before it died."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    n = 500
+    consumer = subprocess.Popen([sys.executable, "-c", _PATIENT_CONSUMER, ep, str(n)], cwd=_procs.REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    publisher = None
+    try:
+        out = _procs.LineWatch(consumer.stdout)
+        out.wait_for(lambda ln: ln.strip() == "ready", timeout=60)
+        publisher = subprocess.Popen([sys.executable, "-c", _PUBLISHER, ep, str(n)], cwd=_procs.REPO,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _procs.LineWatch(publisher.stdout).wait_for(lambda ln: ln.strip() == "sent", timeout=60)
+        out.wait_for(lambda ln: ln.strip() == "got them", timeout=60)
+        publisher.kill()
+        publisher.wait(30)
+        consumer.send_signal(GONE_SIGNAL)
+        line = out.wait_for(lambda ln: ln.startswith("{"), timeout=60)
+        assert json.loads(line) == {"n": n, "final": True}
+        assert consumer.wait(30) == 0
+    finally:
+        for p in (publisher, consumer):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()

@@ -528,23 +528,42 @@ def wait_for_consumers(session, rig: str, count: int, timeout_s: float, stop: St
             log.warning("%d of %d node(s) confirmed the run metadata of %s; publishing anyway", ready, count, rig)
 
 
+#: The signal that tells a consumer the nodes it follows and saw go are gone for good
+#: (:attr:`NodeWatch.final`). ``bttsim run`` starts its nodes with it ignored
+#: (:func:`~bttsim_stream.children.die_with_parent`), so one sent before a node has installed
+#: its handler is lost, not fatal.
+GONE_SIGNAL = signal.SIGUSR1
+
+
 class NodeWatch:
     """Follows the liveliness tokens ``bttsim/<rig>/alive/<name>`` of the named nodes.
 
     :meth:`ended` is true once every named node has been seen and has gone, or once the
     first of them has gone and ``grace_s`` passed without the others ever appearing (a node
     that was never started). Tokens also go on SIGKILL, so a crashed node ends a run too.
+
+    :attr:`final` tells whether the nodes that went are gone for good: set by
+    :data:`GONE_SIGNAL` (installed here when built in the main thread), which ``bttsim run``
+    sends to its consumers once it has reaped a failed simulator or processor. A token gone
+    may otherwise be a link that comes back (a router restart), worth the consumer's
+    ``--drain-timeout`` of patience; a process reaped is not.
     """
 
     def __init__(self, session, rig: str, names=("sim",), grace_s: float = 5.0) -> None:
         self.names = tuple(names)
         self.seen: set[str] = set()
         self.gone: set[str] = set()
+        self.final = False
         self._first_gone: float | None = None
         self._grace = grace_s
         self._lock = threading.Lock()
         self._sub = session.liveliness().declare_subscriber(
             f"bttsim/{rig}/alive/*", self._on_sample, history=True)
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(GONE_SIGNAL, self._on_gone)
+
+    def _on_gone(self, _signum, _frame) -> None:  # a signal handler: no lock (see StopFlag)
+        self.final = True
 
     def _on_sample(self, sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
