@@ -57,19 +57,27 @@ def first_order(lam_h, x: np.ndarray, y0) -> np.ndarray:
     v = np.empty((lam_h.size, x.shape[-1] + 1), complex)
     v[:, 0] = y0
     v[:, 1:] = x.reshape(lam_h.size, -1)
-    _scan(lam_h, v, np.empty((lam_h.size, x.shape[-1]), complex))
+    _scan(_powers(lam_h, v.shape[1]), v, np.empty((lam_h.size, x.shape[-1]), complex))
     return v[:, 1:].reshape(x.shape)
 
 
-def _scan(lam_h: np.ndarray, v: np.ndarray, tmp: np.ndarray) -> None:
+def _powers(lam_h: np.ndarray, n: int) -> np.ndarray:
+    """``exp(2^s lam_h)`` for each step ``s`` of :func:`_scan` over ``n`` values
+    (``2^s < n``): shape ``(steps, p, 1)`` for ``lam_h`` of shape ``(p, 1)``."""
+    shifts = [1 << s for s in range(max(n - 1, 0).bit_length())]
+    return np.exp(lam_h[None] * np.array(shifts, dtype=float)[:, None, None])
+
+
+def _scan(powers: np.ndarray, v: np.ndarray, tmp: np.ndarray) -> None:
     """:func:`first_order`'s doubling scan in place: each row ``[y_0, x_0, .., x_{M-1}]`` of
-    ``v`` (shape ``(p, M + 1)``) becomes ``[y_0, y_1, .., y_M]``; ``lam_h`` of shape ``(p, 1)``;
-    ``tmp`` of shape ``(p, >= M)`` holds each step's shifted terms (its contents are lost)."""
-    shift, n = 1, v.shape[1]
+    ``v`` (shape ``(p, M + 1)``) becomes ``[y_0, y_1, .., y_M]``; ``powers`` from
+    :func:`_powers` (at least ``M + 1`` values' steps); ``tmp`` of shape ``(p, >= M)`` holds
+    each step's shifted terms (its contents are lost)."""
+    shift, n, step = 1, v.shape[1], 0
     while shift < n:
-        terms = np.multiply(np.exp(lam_h * shift), v[:, :-shift], out=tmp[:, :n - shift])
+        terms = np.multiply(powers[step], v[:, :-shift], out=tmp[:, :n - shift])
         np.add(v[:, shift:], terms, out=v[:, shift:])
-        shift *= 2
+        shift, step = 2 * shift, step + 1
 
 
 def sdof_envelope(fn_hz: float, zeta: float, grid_s: np.ndarray, phi_rad: np.ndarray) -> np.ndarray:
@@ -141,14 +149,17 @@ class SweptForcing:
 
     def _pairs(self, fn_hz: np.ndarray, zeta: np.ndarray) -> "_Pairs":
         """The terms of ``k`` pairs ``(f_n, zeta)`` that do not depend on time: their poles and
-        the poles' derivatives (:func:`_poles`), ``lambda h``, ``a = e^{lambda h}``, ``h a``,
+        the poles' derivatives (:func:`_poles`), the scan's powers of ``a = e^{lambda h}``
+        (:func:`_powers`), ``a``, ``h a``,
         ``lambda_1 - lambda_2`` and the quasi-steady starts ``y_0`` and ``dy_0 / d lambda``."""
         lam, d_fn, d_zeta = _poles(fn_hz, zeta)
         flat = lam.reshape(-1, 1)  # rows b0 pole 1, b0 pole 2, b1 pole 1, ...
         ah = np.exp(flat * self.h)
         den0 = self.jw[None, :1] - flat
         y_s = (np.exp(1j * self.phi[0]) / den0)[:, 0]  # the quasi-steady start
-        return _Pairs(flat=flat, lam_h=flat * self.h, ah=ah, ahh=ah * self.h, d=(lam[:, 0] - lam[:, 1])[:, None],
+        longest = max(e - s + 1 for s, e in self._segments())
+        return _Pairs(flat=flat, powers=_powers(flat * self.h, longest), ah=ah, ahh=ah * self.h,
+                      d=(lam[:, 0] - lam[:, 1])[:, None],
                       d_fn=d_fn, d_zeta=d_zeta, y_s=y_s, dy_s=y_s / den0[:, 0])
 
     def _block(self, p: "_Pairs", derivatives: bool):
@@ -172,7 +183,7 @@ class SweptForcing:
                 u = np.multiply(p.ahh, self.e_phi[s:e], out=np.empty((r, n), complex))
                 np.subtract(x, u, out=u)
                 np.divide(u, den, out=u)
-            _scan(p.lam_h, y, den)
+            _scan(p.powers, y, den)
             y_s = y[:, -1].copy()
             q = np.subtract(y[0::2], y[1::2], out=np.empty((r // 2, n + 1), complex))
             np.divide(q, p.d, out=q)
@@ -185,7 +196,7 @@ class SweptForcing:
             np.multiply(p.ahh, y[:, :-1], out=dy[:, 1:])
             np.add(dy[:, 1:], u, out=dy[:, 1:])
             del y
-            _scan(p.lam_h, dy, u)
+            _scan(p.powers, dy, u)
             dy_s = dy[:, -1].copy()
             yield z, _Derivatives(q, dy, p, self.e_mphi[s:e + 1])
 
@@ -317,13 +328,13 @@ class SweptForcing:
 
 @dataclass(frozen=True)
 class _Pairs:
-    """:meth:`SweptForcing._pairs`' terms of ``k`` pairs: ``flat``, ``lam_h``, ``ah``, ``ahh``
-    (``h a``) and ``y_s``, ``dy_s`` (the starts) per pole (``2 k`` rows: the pairs' two poles
-    interleaved), ``d`` (``lambda_1 - lambda_2``, shape ``(k, 1)``), ``d_fn``, ``d_zeta``
-    (``(k, 2)``) per pair."""
+    """:meth:`SweptForcing._pairs`' terms of ``k`` pairs: per pole (``2 k`` rows, the pairs'
+    two poles interleaved) ``flat`` (the poles, shape ``(2 k, 1)``), ``powers`` (``(steps, 2 k,
+    1)``), ``ah``, ``ahh`` (``h a``) and the starts ``y_s``, ``dy_s``; per pair ``d``
+    (``lambda_1 - lambda_2``, shape ``(k, 1)``), ``d_fn`` and ``d_zeta`` (``(k, 2)``)."""
 
     flat: np.ndarray
-    lam_h: np.ndarray
+    powers: np.ndarray
     ah: np.ndarray
     ahh: np.ndarray
     d: np.ndarray
@@ -335,7 +346,7 @@ class _Pairs:
     def rows(self, a: int, b: int) -> "_Pairs":
         """The pairs ``a`` to ``b - 1``."""
         pole, pair = slice(2 * a, 2 * b), slice(a, b)
-        return _Pairs(self.flat[pole], self.lam_h[pole], self.ah[pole], self.ahh[pole], self.d[pair],
+        return _Pairs(self.flat[pole], self.powers[:, pole], self.ah[pole], self.ahh[pole], self.d[pair],
                       self.d_fn[pair], self.d_zeta[pair], self.y_s[pole], self.dy_s[pole])
 
 
