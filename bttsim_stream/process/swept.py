@@ -21,6 +21,8 @@ Pure numpy; no I/O.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 __all__ = ["first_order", "sdof_envelope", "SweptForcing", "ROW_SAMPLES", "SEGMENT_STEPS", "FIT_SAMPLES"]
@@ -55,11 +57,27 @@ def first_order(lam_h, x: np.ndarray, y0) -> np.ndarray:
     v = np.empty((lam_h.size, x.shape[-1] + 1), complex)
     v[:, 0] = y0
     v[:, 1:] = x.reshape(lam_h.size, -1)
-    shift, n = 1, v.shape[1]
-    while shift < n:
-        v[:, shift:] += np.exp(lam_h * shift) * v[:, :-shift]  # the right side is evaluated first
-        shift *= 2
+    _scan(_powers(lam_h, v.shape[1]), v, np.empty((lam_h.size, x.shape[-1]), complex))
     return v[:, 1:].reshape(x.shape)
+
+
+def _powers(lam_h: np.ndarray, n: int) -> np.ndarray:
+    """``exp(2^s lam_h)`` for each step ``s`` of :func:`_scan` over ``n`` values
+    (``2^s < n``): shape ``(steps, p, 1)`` for ``lam_h`` of shape ``(p, 1)``."""
+    shifts = [1 << s for s in range(max(n - 1, 0).bit_length())]
+    return np.exp(lam_h[None] * np.array(shifts, dtype=float)[:, None, None])
+
+
+def _scan(powers: np.ndarray, v: np.ndarray, tmp: np.ndarray) -> None:
+    """:func:`first_order`'s doubling scan in place: each row ``[y_0, x_0, .., x_{M-1}]`` of
+    ``v`` (shape ``(p, M + 1)``) becomes ``[y_0, y_1, .., y_M]``; ``powers`` from
+    :func:`_powers` (at least ``M + 1`` values' steps); ``tmp`` of shape ``(p, >= M)`` holds
+    each step's shifted terms (its contents are lost)."""
+    shift, n, step = 1, v.shape[1], 0
+    while shift < n:
+        terms = np.multiply(powers[step], v[:, :-shift], out=tmp[:, :n - shift])
+        np.add(v[:, shift:], terms, out=v[:, shift:])
+        shift, step = 2 * shift, step + 1
 
 
 def sdof_envelope(fn_hz: float, zeta: float, grid_s: np.ndarray, phi_rad: np.ndarray) -> np.ndarray:
@@ -112,7 +130,8 @@ class SweptForcing:
     """The forcing's terms on one grid (they do not depend on ``f_n``, ``zeta``: computed once per
     crossing), and, for many pairs ``(f_n, zeta)`` at once (one per blade), the envelopes,
     their derivatives and their values at each blade's sample times, integrated in blocks of
-    :data:`ROW_SAMPLES` (rows) and :data:`SEGMENT_STEPS` (time)."""
+    :data:`ROW_SAMPLES` (rows) and :data:`SEGMENT_STEPS` (time); :meth:`at` forms the
+    derivatives at the grid points next to the sample times only."""
 
     def __init__(self, grid_s: np.ndarray, phi_rad: np.ndarray):
         self.grid, self.phi = grid_s, phi_rad
@@ -128,52 +147,70 @@ class SweptForcing:
         n = self.grid.size - 1
         return [(s, min(s + SEGMENT_STEPS, n)) for s in range(0, max(n, 1), SEGMENT_STEPS)]
 
-    def _block(self, fn_hz: np.ndarray, zeta: np.ndarray, derivatives: bool):
-        """For ``k`` pairs, each segment's envelopes ``z`` of shape ``(k, e - s + 1)`` (and
-        ``dz / d f_n``, ``dz / d zeta``, shape ``(k, e - s + 1, 2)``), a generator over
-        :meth:`_segments`: both poles' recursions and, for the derivatives, ``dy / d lambda`` by
-        the module docstring's recursion, through ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``;
-        each segment starts from the previous one's last ``y`` and ``dy / d lambda``."""
+    def _pairs(self, fn_hz: np.ndarray, zeta: np.ndarray) -> "_Pairs":
+        """The terms of ``k`` pairs ``(f_n, zeta)`` that do not depend on time: their poles and
+        the poles' derivatives (:func:`_poles`), the scan's powers of ``a = e^{lambda h}``
+        (:func:`_powers`), ``a``, ``h a``,
+        ``lambda_1 - lambda_2`` and the quasi-steady starts ``y_0`` and ``dy_0 / d lambda``."""
         lam, d_fn, d_zeta = _poles(fn_hz, zeta)
         flat = lam.reshape(-1, 1)  # rows b0 pole 1, b0 pole 2, b1 pole 1, ...
-        lam_h = flat[:, 0] * self.h
         ah = np.exp(flat * self.h)
-        ahh = ah * self.h
-        d = (lam[:, 0] - lam[:, 1])[:, None]
         den0 = self.jw[None, :1] - flat
         y_s = (np.exp(1j * self.phi[0]) / den0)[:, 0]  # the quasi-steady start
-        dy_s = y_s / den0[:, 0]
+        longest = max(e - s + 1 for s, e in self._segments())
+        return _Pairs(flat=flat, powers=_powers(flat * self.h, longest), ah=ah, ahh=ah * self.h,
+                      d=(lam[:, 0] - lam[:, 1])[:, None],
+                      d_fn=d_fn, d_zeta=d_zeta, y_s=y_s, dy_s=y_s / den0[:, 0])
+
+    def _block(self, p: "_Pairs", derivatives: bool):
+        """For ``k`` pairs (:meth:`_pairs`), each segment's envelopes ``z`` of shape
+        ``(k, e - s + 1)`` and (with ``derivatives``, else None) the segment's
+        :class:`_Derivatives`, a generator over :meth:`_segments`: both poles' recursions and,
+        for the derivatives, ``dy / d lambda`` by the module docstring's recursion, through
+        ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``; each segment starts from the previous
+        one's last ``y`` and ``dy / d lambda``."""
+        y_s, dy_s = p.y_s, p.dy_s
+        r = p.flat.shape[0]
         for s, e in self._segments():
-            den = self.jw[None, s:e] - flat
-            x = self.e_phi[s:e] * (self.e_wh[s:e] - ah) / den
-            y = np.empty((flat.shape[0], e - s + 1), complex)
+            n = e - s
+            den = np.subtract(self.jw[s:e], p.flat, out=np.empty((r, n), complex))
+            y = np.empty((r, n + 1), complex)  # [y_s, x_s, .., x_{e-1}], then y by the scan
             y[:, 0] = y_s
-            y[:, 1:] = first_order(lam_h, x, y_s)
-            y_s = y[:, -1]
-            q = (y[0::2] - y[1::2]) / d
+            x = np.subtract(self.e_wh[s:e], p.ah, out=y[:, 1:])
+            np.multiply(self.e_phi[s:e], x, out=x)
+            np.divide(x, den, out=x)
+            if derivatives:  # dy's input but its h a y term: (x - h a e^{i phi}) / (i w - lambda)
+                u = np.multiply(p.ahh, self.e_phi[s:e], out=np.empty((r, n), complex))
+                np.subtract(x, u, out=u)
+                np.divide(u, den, out=u)
+            _scan(p.powers, y, den)
+            y_s = y[:, -1].copy()
+            q = np.subtract(y[0::2], y[1::2], out=np.empty((r // 2, n + 1), complex))
+            np.divide(q, p.d, out=q)
             z = q * self.e_mphi[s:e + 1]
             if not derivatives:
                 yield z, None
                 continue
-            u = ahh * y[:, :-1] + (x - ahh * self.e_phi[s:e]) / den
-            del x, y
-            dy = np.empty((flat.shape[0], e - s + 1), complex)
+            dy = np.empty((r, n + 1), complex)
             dy[:, 0] = dy_s
-            dy[:, 1:] = first_order(lam_h, u, dy_s)
-            dy_s = dy[:, -1]
-            del u
-            dq1, dq2 = (dy[0::2] - q) / d, (q - dy[1::2]) / d  # dq / d lambda_1, dq / d lambda_2
-            e_mphi = self.e_mphi[s:e + 1]
-            yield z, np.stack([(dq1 * d_fn[:, :1] + dq2 * d_fn[:, 1:]) * e_mphi,
-                               (dq1 * d_zeta[:, :1] + dq2 * d_zeta[:, 1:]) * e_mphi], axis=-1)
+            np.multiply(p.ahh, y[:, :-1], out=dy[:, 1:])
+            np.add(dy[:, 1:], u, out=dy[:, 1:])
+            del y
+            _scan(p.powers, dy, u)
+            dy_s = dy[:, -1].copy()
+            yield z, _Derivatives(q, dy, p, self.e_mphi[s:e + 1])
 
     def _whole(self, fn_hz: float, zeta: float, derivatives: bool):
-        """One pair's envelope (and derivatives) on the whole grid, the segments joined."""
-        parts = list(self._block(np.array([fn_hz], float), np.array([zeta], float), derivatives))
-        z = np.concatenate([parts[0][0][0]] + [p[0][0, 1:] for p in parts[1:]])
-        if not derivatives:
-            return z, None
-        return z, np.concatenate([parts[0][1][0]] + [p[1][0, 1:] for p in parts[1:]])
+        """One pair's envelope (and derivatives, shape ``(G, 2)``) on the whole grid, the
+        segments joined."""
+        zs, dzs = [], []
+        for z, dz in self._block(self._pairs(np.array([fn_hz], float), np.array([zeta], float)), derivatives):
+            cut = 1 if zs else 0  # a segment's first point: the previous one's last
+            zs.append(z[0, cut:])
+            if derivatives:
+                d_fn, d_zeta = dz.at(np.arange(cut, z.shape[1])[None, :])
+                dzs.append(np.stack([d_fn[0], d_zeta[0]], axis=-1))
+        return np.concatenate(zs), (np.concatenate(dzs) if derivatives else None)
 
     def envelope(self, fn_hz: float, zeta: float) -> np.ndarray:
         """:func:`sdof_envelope` of ``(fn_hz, zeta)`` on this grid, shape ``(G,)``."""
@@ -216,24 +253,30 @@ class SweptForcing:
         z_peak = np.zeros(k, complex)
         segments = self._segments()
         per = max(1, ROW_SAMPLES // (2 * min(g, SEGMENT_STEPS + 1)))
+        pairs = self._pairs(fn_hz, zeta)
         for a in range(0, k, per):
             b = min(k, a + per)
             rows = np.arange(b - a)
             top = np.full(b - a, -1.0)
             ia, ta = i[a:b], t[a:b]
-            for (s, e), (z, dz) in zip(segments, self._block(fn_hz[a:b], zeta[a:b], derivatives)):
+            for (s, e), (z, dz) in zip(segments, self._block(pairs.rows(a, b), derivatives)):
                 last = e == g - 1
                 mag = np.abs(z if last else z[:, :-1])  # the segment's own points (e: the next one's)
                 j = np.argmax(mag, axis=1)
-                better = mag[rows, j] > top  # the first maximum of the whole grid
-                top = np.where(better, mag[rows, j], top)
+                mag_j = mag[rows, j]
+                better = mag_j > top  # the first maximum of the whole grid
+                top = np.where(better, mag_j, top)
                 peak[a:b] = np.where(better, s + j, peak[a:b])
                 z_peak[a:b] = np.where(better, z[rows, j], z_peak[a:b])
                 inside = (ia >= s) & (ia < e) if len(segments) > 1 else None
-                _lerp_into(z_ts[a:b], z, ia - s, ta, inside)
-                if derivatives:
-                    _lerp_into(dz_ts[a:b, :, 0], dz[..., 0], ia - s, ta, inside)
-                    _lerp_into(dz_ts[a:b, :, 1], dz[..., 1], ia - s, ta, inside)
+                ic = np.clip(ia - s, 0, e - s - 1)  # the segment's interval of each sample
+                flat_ic = ic + z.shape[1] * rows[:, None]  # the intervals' starts in z, flattened
+                _lerp_into(z_ts[a:b], z.take(flat_ic), z.take(flat_ic + 1), ta, inside)
+                if derivatives:  # at the samples' grid points only
+                    m = ic.shape[1]
+                    ends = dz.at(np.concatenate([ic, ic + 1], axis=1))
+                    for c, dz_c in enumerate(ends):
+                        _lerp_into(dz_ts[a:b, :, c], dz_c[:, :m], dz_c[:, m:], ta, inside)
         return z_ts, dz_ts, peak, z_peak
 
     def fit(self, ts: np.ndarray, yn: np.ndarray, w: np.ndarray, fn0_hz: np.ndarray, zeta0: float):
@@ -283,13 +326,57 @@ class SweptForcing:
                          extra=extra)
 
 
-def _lerp_into(out: np.ndarray, z: np.ndarray, i: np.ndarray, t: np.ndarray, inside: np.ndarray | None) -> None:
-    """``out[r] =`` row ``r`` of ``z`` linearly interpolated at fractional index ``i[r] + t[r]``,
-    where ``inside`` (None: everywhere; elsewhere ``i`` may lie outside ``z``: left as it is)."""
+@dataclass(frozen=True)
+class _Pairs:
+    """:meth:`SweptForcing._pairs`' terms of ``k`` pairs: per pole (``2 k`` rows, the pairs'
+    two poles interleaved) ``flat`` (the poles, shape ``(2 k, 1)``), ``powers`` (``(steps, 2 k,
+    1)``), ``ah``, ``ahh`` (``h a``) and the starts ``y_s``, ``dy_s``; per pair ``d``
+    (``lambda_1 - lambda_2``, shape ``(k, 1)``), ``d_fn`` and ``d_zeta`` (``(k, 2)``)."""
+
+    flat: np.ndarray
+    powers: np.ndarray
+    ah: np.ndarray
+    ahh: np.ndarray
+    d: np.ndarray
+    d_fn: np.ndarray
+    d_zeta: np.ndarray
+    y_s: np.ndarray
+    dy_s: np.ndarray
+
+    def rows(self, a: int, b: int) -> "_Pairs":
+        """The pairs ``a`` to ``b - 1``."""
+        pole, pair = slice(2 * a, 2 * b), slice(a, b)
+        return _Pairs(self.flat[pole], self.powers[:, pole], self.ah[pole], self.ahh[pole], self.d[pair],
+                      self.d_fn[pair], self.d_zeta[pair], self.y_s[pole], self.dy_s[pole])
+
+
+class _Derivatives:
+    """``dz / d f_n`` and ``dz / d zeta`` of one segment of :meth:`SweptForcing._block`, from
+    ``q`` (shape ``(k, L)``), ``dy / d lambda`` (``(2 k, L)``, the poles' rows interleaved)
+    and the pairs' terms (:class:`_Pairs`), at the points asked for only:
+    ``dq / d lambda_1 = (dy_1 - q) / d``, ``dq / d lambda_2 = (q - dy_2) / d``, then through
+    the poles' derivatives, times ``exp(-i phi)``."""
+
+    def __init__(self, q: np.ndarray, dy: np.ndarray, pairs: _Pairs, e_mphi: np.ndarray):
+        self.q, self.dy, self.pairs, self.e_mphi = q, dy, pairs, e_mphi
+
+    def at(self, j: np.ndarray):
+        """``(dz / d f_n, dz / d zeta)`` at the segment's columns ``j`` (shape ``(k, n)``), each
+        of shape ``(k, n)``."""
+        n, p = self.q.shape[1], self.pairs
+        row = n * np.arange(j.shape[0])[:, None]
+        q = self.q.take(j + row)  # q, dy flattened: row b of q, rows 2 b (pole 1), 2 b + 1 of dy
+        dq1 = (self.dy.take(j + 2 * row) - q) / p.d  # dq / d lambda_1
+        dq2 = (q - self.dy.take(j + 2 * row + n)) / p.d  # dq / d lambda_2
+        e_mphi = self.e_mphi[j]
+        return ((dq1 * p.d_fn[:, :1] + dq2 * p.d_fn[:, 1:]) * e_mphi,
+                (dq1 * p.d_zeta[:, :1] + dq2 * p.d_zeta[:, 1:]) * e_mphi)
+
+
+def _lerp_into(out: np.ndarray, z0: np.ndarray, z1: np.ndarray, t: np.ndarray, inside: np.ndarray | None) -> None:
+    """``out = z0 + t (z1 - z0)`` (each sample between its interval's ends ``z0``, ``z1``),
+    where ``inside`` (None: everywhere; elsewhere left as it is)."""
     if inside is None:
-        z0 = np.take_along_axis(z, i, axis=1)
-        out[...] = z0 + t * (np.take_along_axis(z, i + 1, axis=1) - z0)
+        out[...] = z0 + t * (z1 - z0)
         return
-    ic = np.clip(i, 0, z.shape[1] - 2)
-    z0 = np.take_along_axis(z, ic, axis=1)
-    np.copyto(out, z0 + t * (np.take_along_axis(z, ic + 1, axis=1) - z0), where=inside)
+    np.copyto(out, z0 + t * (z1 - z0), where=inside)
