@@ -66,6 +66,10 @@ __all__ = ["run_all", "plan_run", "Run", "RunPlan", "NODES", "describe_exit"]
 
 #: The node programs of a run, in start order (the simulator last: it waits for the others).
 NODES = ("recorder", "processor", "viewer", "sim")
+#: The nodes each consumer of a run follows (the processor: the simulator, its own; the
+#: recorder and the viewer: ``--until``): once all of a consumer's are reaped, it is told
+#: they are gone for good (:data:`~bttsim_stream.bus.session.GONE_SIGNAL`).
+FOLLOWS = {"processor": ("sim",), "recorder": ("sim", "processor"), "viewer": ("sim", "processor")}
 #: After Ctrl-C (or SIGTERM, SIGHUP): seconds the nodes have to end on their own (the
 #: simulator and the processor get SIGTERM at once, the recorder and the viewer end after
 #: them), then every node left gets SIGTERM, and SIGKILL ``STOP_KILL_S`` later; the recorder,
@@ -202,9 +206,11 @@ def _node_args(rig: str, files: dict, scn_file: Path, realtime: bool, web_flags:
     """Each node's own arguments (session and status flags aside)."""
     drain = ["--drain-timeout", f"{drain_timeout_s:g}"]
     return {
-        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", "sim,processor", *drain],
+        "recorder": ["recorder", "--rig", rig, "--out", files["mcap"], "--until", ",".join(FOLLOWS["recorder"]),
+                     *drain],
         "processor": ["processor", "--rig", rig, "--summary", files["summary"], *drain],
-        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", "sim,processor", *drain, *web_flags],
+        "viewer": ["viewer", "--rig", rig, "--rrd", files["rrd"], "--until", ",".join(FOLLOWS["viewer"]), *drain,
+                   *web_flags],
         "sim": ["sim", scn_file, "--wait-for", "3", "--rate", "realtime" if realtime else "max"],
     }
 
@@ -284,6 +290,7 @@ class Run:
         self.recorder: dict = {}
         self.viewer: dict = {}
         self.failed: dict = {}
+        self._told: set = set()  # the consumers told their followed nodes are gone for good
         self.result_complete = False  # the processor's own verdict, before the recording's
         self.write_error = ""  # the summary could not be written (a full disk)
         self._logs: dict = {}
@@ -363,14 +370,14 @@ class Run:
         sim = self.procs.get("sim")
         sim_ok = sim is not None and sim.returncode == 0
         grace = 120 if sim_ok else FAILED_SIM_GRACE_S
+        self._tell_gone()
         if not sim_ok:  # one deadline for all: each had the same time to notice, none waits on another
-            self._gone_for_good(("processor", "recorder", "viewer"))
             self._stop_consumers_after(FAILED_SIM_GRACE_S)
         self.progress.phase("making the report ...")
         self._wait("processor", grace)
         processor = self.procs.get("processor")
+        self._tell_gone()
         if sim_ok and processor is not None and processor.returncode not in (0, None, NODE_INCOMPLETE):
-            self._gone_for_good(("recorder", "viewer"))
             self._stop_consumers_after(FAILED_PROCESSOR_GRACE_S)  # not 30 s of silence for its report
         self.progress.phase("finishing the recording ...")
         self._wait("recorder", grace)
@@ -463,14 +470,19 @@ class Run:
             _signal(p, signal.SIGKILL)
             p.wait()
 
-    def _gone_for_good(self, names) -> None:
-        """Tell the named consumers that the nodes they follow which have gone will not come
-        back (:data:`GONE_SIGNAL`): a failed node's process has been reaped, so each ends once
-        it has handed out what it received and its inbox stays quiet, instead of waiting its
-        ``--drain-timeout`` of silence for data that can no longer come."""
-        for n in names:
+    def _tell_gone(self) -> None:
+        """Tell each consumer whose followed nodes (:data:`FOLLOWS`) have all been reaped (or
+        never started) that they are gone for good (:data:`GONE_SIGNAL`, once): nothing more
+        can come from them, so it ends once it has handed out what it received and its inbox
+        stays quiet, instead of waiting its ``--drain-timeout`` of silence for data that can no
+        longer come (a failed simulator's, a report a failed processor never sent, what a
+        consumer stalled past the lease lost). A consumer that has the whole run ends at once
+        either way."""
+        over = {n for n in NODES if self.procs.get(n) is None or self.procs[n].poll() is not None}
+        for n, follows in FOLLOWS.items():
             p = self.procs.get(n)
-            if p is not None and p.poll() is None:
+            if n not in self._told and set(follows) <= over and p is not None and p.poll() is None:
+                self._told.add(n)
                 p.send_signal(GONE_SIGNAL)  # the node alone, not its process group
 
     def _stop_consumers_after(self, timeout_s: float) -> None:
@@ -481,6 +493,7 @@ class Run:
                  and not (n == "viewer" and self.plan.web)]
         end = time.monotonic() + timeout_s
         while self.stop_at is None and time.monotonic() < end:
+            self._tell_gone()  # the processor ended: the recorder and the viewer follow it
             running = [self.procs[n] for n in names if self.procs[n].poll() is None]
             if not running:
                 return
