@@ -103,3 +103,31 @@ def test_condition_number_in_the_fit():
     assert f.cn == pytest.approx(1.4328125, abs=1e-6)
     with pytest.raises(ValueError):
         fit_revolutions(np.zeros((1, 1, 4)), PROBES, 8)
+
+
+@pytest.mark.parametrize("window", [2, 3, 5])
+@pytest.mark.parametrize("eos", [(8,), (8, 3)], ids=["EO8", "EO8+3"])
+def test_window_fit_is_fit_revolutions_bit_for_bit(window, eos):
+    """WindowFit (the streaming processor's windowed fits) gives revolution i of
+    fit_revolutions over its centred window, every byte: full, truncated windows, missing,
+    infinite and scarce samples."""
+    from bttsim_stream.process.fit import WindowFit
+
+    rng = np.random.default_rng(window * 10 + len(eos))
+    d, _, _, _ = _sines(rng, 12, 29, eos[0])
+    d[rng.random(d.shape) < 0.08] = np.nan
+    d[3, 4, :3] = np.nan  # too few probes in the revolution
+    d[5, 7] = np.nan  # a blade without samples
+    d[6, :, 2] = np.nan  # a probe lost for a revolution
+    d[8, 1, 0] = np.inf
+    d[9] = np.nan
+    wf = WindowFit(PROBES, eos, window)
+    fields = ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m", "residual_rms_m", "n_samples")
+    for k in range(d.shape[0]):
+        lo, hi = max(0, k - (window - 1) // 2), min(d.shape[0], k + window // 2 + 1)
+        ref = fit_revolutions(d[lo:hi], PROBES, eos, window=window)
+        got = wf(d[lo:hi])
+        for name in fields:
+            a, b = getattr(ref, name)[k - lo], getattr(got, name)[0]
+            assert a.tobytes() == b.tobytes() and a.dtype == b.dtype, (k, name)
+        assert got.cn == ref.cn

@@ -260,6 +260,8 @@ def encode_toa_batches(run_id: str, seq, revolution, t_s, probe, toa_s, toa_tick
 
 def varint_bytes(value: int) -> bytes:
     """One protobuf varint (``value`` >= 0)."""
+    if 0 <= value < 128:  # one byte (tags, lengths, small numbers): from a table
+        return _ONE_BYTE[value]
     out = bytearray()
     while True:
         b, value = value & 0x7F, value >> 7
@@ -268,6 +270,7 @@ def varint_bytes(value: int) -> bytes:
             return bytes(out)
 
 
+_ONE_BYTE = tuple(bytes((v,)) for v in range(128))
 _MASK64 = (1 << 64) - 1
 _F8 = struct.Struct("<d")
 _ZERO8 = bytes(8)
@@ -282,14 +285,23 @@ def _varint_field(tag: int, value: int) -> bytes:
 def header_bytes(run_id: str, seq: int, revolution: int, t_s: float) -> bytes:
     """The ``header`` field (field 1) of one message, as protobuf writes it (the header is set,
     so present even when every field is at its default; those are left out)."""
-    rid = run_id.encode()
+    rid, tag_seq, tag_rev, tag_t = _header_parts(run_id)
     t = _F8.pack(float(t_s))
     body = b"".join((
-        varint_bytes(field_tag(_pb.Header, "run_id")) + varint_bytes(len(rid)) + rid if rid else b"",
-        _varint_field(field_tag(_pb.Header, "seq"), seq),
-        _varint_field(field_tag(_pb.Header, "revolution"), revolution),
-        varint_bytes(field_tag(_pb.Header, "t_s")) + t if t != _ZERO8 else b""))
+        rid,
+        _varint_field(tag_seq, seq),
+        _varint_field(tag_rev, revolution),
+        varint_bytes(tag_t) + t if t != _ZERO8 else b""))
     return b"\x0a" + varint_bytes(len(body)) + body
+
+
+@functools.lru_cache(maxsize=16)
+def _header_parts(run_id: str) -> tuple[bytes, int, int, int]:
+    """What every header of a run shares: its ``run_id`` field's bytes (left out when empty) and
+    the tags of ``seq``, ``revolution`` and ``t_s`` (the run's messages ask for them each)."""
+    rid = run_id.encode()
+    return (varint_bytes(field_tag(_pb.Header, "run_id")) + varint_bytes(len(rid)) + rid if rid else b"",
+            field_tag(_pb.Header, "seq"), field_tag(_pb.Header, "revolution"), field_tag(_pb.Header, "t_s"))
 
 
 def encode_probe_waves(run_id: str, seq, revolution: int, t_s: float, forward_m: np.ndarray,
@@ -317,13 +329,21 @@ def encode_probe_waves(run_id: str, seq, revolution: int, t_s: float, forward_m:
         raise ValueError("forward_m: at least one nodal diameter is needed")
     w = 8 * n_nd
     packed = varint_bytes(w)
-    tag_p, tag_f, tag_b = (varint_bytes(field_tag(_pb.TravellingWave, f)) for f in ("probe", "forward_m", "backward_m"))
-    mid = _varint_field(field_tag(_pb.TravellingWave, "n_nd"), n_nd)
-    tail = _varint_field(field_tag(_pb.TravellingWave, "dominant_nd"), nd)
+    tags = _tags("TravellingWave")
+    tag_p, tag_f, tag_b = (varint_bytes(tags[f]) for f in ("probe", "forward_m", "backward_m"))
+    mid = _varint_field(tags["n_nd"], n_nd)
+    tail = _varint_field(tags["dominant_nd"], nd)
     fb, bb = fwd.tobytes(), bwd.tobytes()
     return [b"".join((header_bytes(run_id, seq[p], revolution, t_s), tag_p + varint_bytes(p) if p else b"", mid,
                       tag_f, packed, fb[p * w:(p + 1) * w], tag_b, packed, bb[p * w:(p + 1) * w], tail))
             for p in range(n_probes)]
+
+
+@functools.lru_cache(maxsize=None)
+def _tags(message_name: str) -> dict[str, int]:
+    """:func:`field_tag` of every field of a message of the schema, by field name."""
+    message = getattr(_pb, message_name)
+    return {f: field_tag(message, f) for f in message.DESCRIPTOR.fields_by_name}
 
 
 def _double_field(tag: int, value: float) -> bytes:
@@ -362,7 +382,7 @@ def encode_fits(run_id: str, seq, revolution: int, t_s: float, engine_orders, om
             or dc.shape != amp.shape[:1] or res.shape != amp.shape[:1]:
         raise ValueError(f"fit arrays: expected shapes (n_blades, {n_eo}) and (n_blades,), got {amp.shape}, "
                          f"{phase.shape}, {std.shape}, {dc.shape}, {res.shape}")
-    tag = functools.partial(field_tag, _pb.BladeFits)
+    tag = _tags("BladeFits").__getitem__
     common = (_double_field(tag("omega_mean_rad_s"), omega_rad_s),)
     rest = (_packed_doubles(tag("dc_m"), dc), _packed_doubles(tag("residual_m"), res))
     head = _varint_field(tag("n_blades"), amp.shape[0])

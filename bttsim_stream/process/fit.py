@@ -239,6 +239,110 @@ def fit_revolutions(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
                      float(np.linalg.cond(B)))
 
 
+class WindowFit:
+    """:func:`fit_revolutions` (probe angles, ``window > 1``) of one revolution whose centred
+    window is every row given, bit for bit, with the design matrix's pseudo-inverse, inverse
+    and condition number computed once (the streaming processor's windowed live fits).
+
+    Parameters
+    ----------
+    probe_angles_rad : array_like, shape (n_probes,)
+    engine_orders : sequence of int
+    window : int
+        Revolutions per fit, > 1.
+
+    Raises
+    ------
+    ValueError
+        Fewer probes than unknowns (:func:`fit_revolutions` gives NaN fits then).
+
+    Notes
+    -----
+    Revolution ``i`` of ``fit_revolutions(d[lo:hi], ..., window=w)``, when ``d[lo:hi]`` is its
+    whole centred window (truncated at the ends), sums every row: ``_window_sums`` gives the
+    cumulative sum's last row minus its first (zero) row, the rows added one after the other,
+    which :meth:`__call__` adds in the same order. Every other step is the same operation
+    on that revolution's values (element-wise, or a matrix product row by row).
+    """
+
+    def __init__(self, probe_angles_rad, engine_orders, window: int) -> None:
+        self.engine_orders = tuple(int(e) for e in engine_orders)
+        self.window = int(window)
+        B = design_matrix(probe_angles_rad, self.engine_orders)
+        self._B = B
+        npr, p = B.shape
+        self._p = p
+        if npr < p:
+            raise ValueError(f"{npr} probes cannot separate {p} unknowns")
+        self._cn = float(np.linalg.cond(B))
+        self._pinv = np.linalg.pinv(B)
+        gi = np.linalg.inv(B.T @ B)
+        i1 = np.arange(1, p, 2)
+        self._i1 = i1
+        self._gstack = np.stack([gi[i1, i1], gi[i1 + 1, i1 + 1], gi[i1, i1 + 1]])[None, None]
+
+    def __call__(self, d_m: np.ndarray) -> SineFit:
+        """The fit of the revolution whose window is ``d_m``.
+
+        Parameters
+        ----------
+        d_m : ndarray, shape (m, n_blades, n_probes)
+            The revolution's window, ``1 <= m <= window`` rows (NaN: missing).
+
+        Returns
+        -------
+        SineFit
+            One revolution (``n_rev = 1``), without speed.
+        """
+        m = d_m.shape[0]
+        ok = np.isfinite(d_m)
+        v = np.empty((m, 3) + d_m.shape[1:])  # x, the sample counts and x * x of every row
+        x = v[:, 0]
+        np.copyto(x, d_m)
+        x[~ok] = 0.0  # np.where(ok, d, 0.0)
+        v[:, 1] = ok
+        np.multiply(x, x, out=v[:, 2])
+        tot = v[0].copy()
+        for j in range(1, m):  # _window_sums: the cumulative sum's order
+            tot += v[j]
+        S, C, Q = tot[None, 0], tot[None, 1], tot[None, 2]
+        with np.errstate(invalid="ignore", divide="ignore"):  # one context for the whole fit
+            return self._solve(S, C, Q)
+
+    def _solve(self, S: np.ndarray, C: np.ndarray, Q: np.ndarray) -> SineFit:
+        """The rest of :func:`fit_revolutions` from the window sums, shape (1, n_blades, n_probes)."""
+        B, p, i1 = self._B, self._p, self._i1
+        dbar = S / C
+        n_tot = C.sum(axis=2)
+        uniform = np.all(C == C[..., :1], axis=2) & (C[..., 0] > 0)
+        coeffs = dbar @ self._pinv.T  # NaN where a probe is missing; redone below
+        inv_c = np.where(uniform, 1.0 / C[..., 0], np.nan)[..., None, None]
+        ginv = self._gstack * inv_c
+        coeffs[~uniform] = np.nan
+        rest = ~uniform & (np.sum(C > 0, axis=2) >= p)
+        if np.any(rest):  # fit_revolutions' weighted normal equations
+            c = C[rest]
+            G = np.einsum("rj,jp,jq->rpq", c, B, B)
+            good = np.linalg.cond(G) < _MAX_COND
+            G[~good] = np.eye(p)
+            Ginv = np.linalg.inv(G)
+            a = np.einsum("rpq,jq,rj->rp", Ginv, B, c * np.where(c > 0, dbar[rest], 0.0))
+            a[~good] = np.nan
+            Ginv[~good] = np.nan
+            coeffs[rest] = a
+            ginv[rest] = np.stack([Ginv[:, i1, i1], Ginv[:, i1 + 1, i1 + 1], Ginv[:, i1, i1 + 1]], axis=1)
+        fitted = coeffs @ B.T
+        within = np.where(C > 0, Q - S * dbar, 0.0)
+        misfit = np.where(C > 0, C * (dbar - fitted) ** 2, 0.0)
+        rss = np.maximum(np.sum(within + misfit, axis=2), 0.0)
+        rss = np.where(np.isfinite(coeffs[..., 0]), rss, np.nan)
+        residual_rms = np.sqrt(rss / n_tot)
+        s2 = np.where(n_tot > p, rss / (n_tot - p), np.nan)
+        c11, c22, c12 = (ginv[..., k, :] * s2[..., None] for k in range(3))
+        return _sine_fit(self.engine_orders, self.window, coeffs, (c11, c22, c12), residual_rms, n_tot, None,
+                         self._cn)
+
+
 #: Revolutions fitted at once by :func:`fit_revolutions` with one revolution per fit: every
 #: fit is its own revolution's, so blocks give the same numbers, and the temporaries (a few
 #: dozen arrays of the block's size) stay bounded however long the run.

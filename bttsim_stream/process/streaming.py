@@ -26,7 +26,7 @@ import numpy as np
 
 from .displacement import TWO_PI, Geometry, calibrate_arrival_angles, outside_revolution, revolution_displacements, \
     rotor_phase_from_opr
-from .fit import design_matrix, fit_revolutions
+from .fit import WindowFit, design_matrix, fit_revolutions
 from .history import RecentRows, SpilledRows
 from .nsv import NsvDetection, detections, is_rigid_body, scan_blocks, screen_block
 from .options import LIVE_CALIBRATION, ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
@@ -154,7 +154,14 @@ class StreamingProcessor:
         self._residual = None if self._pinv is None else np.eye(npr) - self._pinv.T @ B.T
         self._freq_per_omega = self._eo_arr / TWO_PI
         self._F_probe, self._F_fit, self._n_nd = _spectrum_matrices(g, self.engine_orders[0])
+        # the windowed fits (window > 1) with the design matrix's inverses computed once
+        self._wfit = WindowFit(g.probe_angles_rad, self.engine_orders, self._window) \
+            if self._window > 1 and self._pinv is not None else None
         self._solvers: dict = {}
+        self._patterns: dict = {}  # a blade's present probes (bool row bytes) -> (list, count, solver)
+        # the complete layout's covariance terms for every blade, (3, n_blades, n_eo)
+        self._g_rows = None if gi is None else np.stack([np.repeat(gt[None, :], g.n_blades, axis=0)
+                                                         for gt in self._ginv])
         self._nsv_next = 0  # first revolution (index) of the next NSV block
         self._nsv_run = 0  # consecutive detected blocks so far
         self._nsv_last = None  # the last block's scan
@@ -382,32 +389,40 @@ class StreamingProcessor:
                                           (gi[i1, i1], gi[i1 + 1, i1 + 1], gi[i1, i1 + 1]), npr, p)
         return self._solvers[present]
 
+    def _pattern(self, ok_b: np.ndarray) -> tuple:
+        """``(present probes as a list, their count, solver)`` of a blade's pattern of present
+        probes (a bool row), cached by the row's bytes."""
+        key = ok_b.tobytes()
+        got = self._patterns.get(key)
+        if got is None:
+            present = tuple(np.flatnonzero(ok_b).tolist())
+            got = self._patterns[key] = (list(present), max(len(present), 1), self._solver(present))
+        return got
+
     def _fit_patterns(self, d_k: np.ndarray):
         """Window-1 fits of one revolution with missing samples: complete blades through the
         shared pseudo-inverse, the others one by one (solvers cached per pattern)."""
         ok = ~np.isnan(d_k)
         full = ok.all(axis=1)
-        a = np.where(ok, d_k, 0.0) @ self._pinvT
-        r = np.where(ok, d_k, 0.0) - a @ self._BT
+        x0 = np.where(ok, d_k, 0.0)
+        a = x0 @ self._pinvT
+        r = x0 - a @ self._BT
         rss = (r * r).sum(axis=1)
         s2 = rss * self._inv_dof
         n_used = np.full(d_k.shape[0], float(self._B.shape[0]))
-        g = [np.repeat(gt[None, :], d_k.shape[0], axis=0) for gt in self._ginv]
-        for b in np.flatnonzero(~full):
-            present = tuple(np.flatnonzero(ok[b]).tolist())
-            sol = self._solver(present)
-            n_used[b] = max(len(present), 1)
+        g = self._g_rows.copy()  # (3, n_blades, n_eo): the complete layout's terms, per blade
+        for b in np.flatnonzero(~full).tolist():
+            present, n_used[b], sol = self._pattern(ok[b])
             if sol is None:
                 a[b], rss[b], s2[b] = np.nan, np.nan, np.nan
                 continue
             pinvT, BT, gi, n, q = sol
-            x = d_k[b, list(present)]
+            x = d_k[b, present]
             a[b] = x @ pinvT
             rb = x - a[b] @ BT
             rss[b] = rb @ rb
             s2[b] = rss[b] / (n - q) if n > q else np.nan
-            for t in range(3):
-                g[t][b] = gi[t]
+            g[0, b], g[1, b], g[2, b] = gi
         return a, rss, s2, g[0], g[1], g[2], n_used
 
     def _emit_ready(self, final: bool) -> list[RevolutionOutput]:
@@ -489,9 +504,12 @@ class StreamingProcessor:
         else:
             lo = max(0, k - (w - 1) // 2)
             hi = min(self._d.n, k + w // 2 + 1)
-            f = fit_revolutions(self._d.rows(lo, hi), self.geometry.probe_angles_rad, self.engine_orders,
-                                window=w)
-            i = k - lo
+            if self._wfit is not None:  # fit_revolutions of the revolution's window, bit for bit
+                f, i = self._wfit(self._d.rows(lo, hi)), 0
+            else:
+                f = fit_revolutions(self._d.rows(lo, hi), self.geometry.probe_angles_rad, self.engine_orders,
+                                    window=w)
+                i = k - lo
             amp_pkpk, phase, amp_std = f.amp_pkpk_m[i], f.phase_rad[i], f.amp_std_m[i]
             dc, res = f.dc_m[i], f.residual_rms_m[i]
             phasor = f.phasor[i, :, 0]

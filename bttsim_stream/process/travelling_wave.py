@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -125,10 +126,32 @@ def signed_nd(bin_index, n_blades: int):
 def _split(Z: np.ndarray, n_blades: int, shift: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Forward/backward arrays from complex amplitudes per bin (last axis), signed ND
     ``k`` sitting in bin ``(k + shift) mod N``."""
+    i_f, i_b = _split_bins(n_blades, shift)
+    return np.abs(Z[..., i_f]), np.abs(Z[..., i_b])
+
+
+@lru_cache(maxsize=64)
+def _split_bins(n_blades: int, shift: int) -> tuple[np.ndarray, np.ndarray]:
+    """The bins of signed ND ``+k`` and ``-k``, ``k = 0 .. N/2`` (:func:`_split`; computed
+    once per blade count and shift)."""
     nd = np.arange(n_blades // 2 + 1)
-    fwd = np.abs(Z[..., (nd + shift) % n_blades])
-    bwd = np.abs(Z[..., (-nd + shift) % n_blades])
-    return fwd, bwd
+    return _frozen((nd + shift) % n_blades), _frozen((-nd + shift) % n_blades)
+
+
+@lru_cache(maxsize=64)
+def _probe_scale(n_blades: int) -> np.ndarray:
+    """pk-pk per DFT magnitude of a real sequence: ``4 / N``, but ``2 / N`` for the
+    self-conjugate bins (0 and N/2), which hold a wave whole (computed once per blade count)."""
+    scale = np.full(n_blades, 4.0 / n_blades)
+    scale[0] = 2.0 / n_blades
+    if n_blades % 2 == 0:
+        scale[n_blades // 2] = 2.0 / n_blades
+    return _frozen(scale)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
 
 
 #: Revolutions transformed at once by :func:`probe_spectra`.
@@ -167,11 +190,7 @@ def probe_spectra(d_m: np.ndarray, engine_order: int) -> TravellingWaveSpectra:
     X = np.fft.fft(np.moveaxis(x, -2, -1), axis=-1)  # (..., n_probes, n_blades)
     # a real sequence splits a wave between bin m and N - m: pk-pk = 4 |X_m| / N, except
     # the self-conjugate bins (0 and N/2) which hold it whole
-    scale = np.full(nb, 4.0 / nb)
-    scale[0] = 2.0 / nb
-    if nb % 2 == 0:
-        scale[nb // 2] = 2.0 / nb
-    X = X * scale
+    X = X * _probe_scale(nb)
     fwd, bwd = _split(X, nb, shift=-int(engine_order))
     return TravellingWaveSpectra(forward_m=fwd, backward_m=bwd, n_blades=nb)
 
