@@ -210,30 +210,12 @@ def fit_revolutions(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
             inv_c = np.where(uniform, 1.0 / C[..., 0], np.nan)[..., None, None]
         ginv = np.stack([gi[i1, i1], gi[i1 + 1, i1 + 1], gi[i1, i1 + 1]])[None, None] * inv_c
     coeffs[~uniform] = np.nan
-    rest = ~uniform & (np.sum(C > 0, axis=2) >= p)
-    if np.any(rest):
-        c = C[rest]
-        G = np.einsum("rj,jp,jq->rpq", c, B, B)
-        good = np.linalg.cond(G) < _MAX_COND
-        G[~good] = np.eye(p)
-        Ginv = np.linalg.inv(G)
-        a = np.einsum("rpq,jq,rj->rp", Ginv, B, c * np.where(c > 0, dbar[rest], 0.0))
-        a[~good] = np.nan
-        Ginv[~good] = np.nan
-        coeffs[rest] = a
-        ginv[rest] = np.stack([Ginv[:, i1, i1], Ginv[:, i1 + 1, i1 + 1], Ginv[:, i1, i1 + 1]], axis=1)
+    _weighted_rows(C, dbar, B, i1, uniform, coeffs, ginv)
     # residual: within-probe scatter plus the misfit of the window means
     fitted = coeffs @ B.T
     with np.errstate(invalid="ignore", divide="ignore"):
-        if window == 1:
-            rss = np.sum((x - fitted) ** 2 * C, axis=2)
-        else:
-            within = np.where(C > 0, Q - S * dbar, 0.0)
-            misfit = np.where(C > 0, C * (dbar - fitted) ** 2, 0.0)
-            rss = np.maximum(np.sum(within + misfit, axis=2), 0.0)
-        rss = np.where(np.isfinite(coeffs[..., 0]), rss, np.nan)
-        residual_rms = np.sqrt(rss / n_tot)
-        s2 = np.where(n_tot > p, rss / (n_tot - p), np.nan)
+        rss = np.sum((x - fitted) ** 2 * C, axis=2) if window == 1 else _window_rss(S, C, Q, dbar, fitted)
+        residual_rms, s2 = _residual_terms(rss, coeffs, n_tot, p)
     c11, c22, c12 = (ginv[..., k, :] * s2[..., None] for k in range(3))
     return _sine_fit(eos, window, coeffs, (c11, c22, c12), residual_rms, n_tot, omega_rad_s,
                      float(np.linalg.cond(B)))
@@ -319,25 +301,8 @@ class WindowFit:
         inv_c = np.where(uniform, 1.0 / C[..., 0], np.nan)[..., None, None]
         ginv = self._gstack * inv_c
         coeffs[~uniform] = np.nan
-        rest = ~uniform & (np.sum(C > 0, axis=2) >= p)
-        if np.any(rest):  # fit_revolutions' weighted normal equations
-            c = C[rest]
-            G = np.einsum("rj,jp,jq->rpq", c, B, B)
-            good = np.linalg.cond(G) < _MAX_COND
-            G[~good] = np.eye(p)
-            Ginv = np.linalg.inv(G)
-            a = np.einsum("rpq,jq,rj->rp", Ginv, B, c * np.where(c > 0, dbar[rest], 0.0))
-            a[~good] = np.nan
-            Ginv[~good] = np.nan
-            coeffs[rest] = a
-            ginv[rest] = np.stack([Ginv[:, i1, i1], Ginv[:, i1 + 1, i1 + 1], Ginv[:, i1, i1 + 1]], axis=1)
-        fitted = coeffs @ B.T
-        within = np.where(C > 0, Q - S * dbar, 0.0)
-        misfit = np.where(C > 0, C * (dbar - fitted) ** 2, 0.0)
-        rss = np.maximum(np.sum(within + misfit, axis=2), 0.0)
-        rss = np.where(np.isfinite(coeffs[..., 0]), rss, np.nan)
-        residual_rms = np.sqrt(rss / n_tot)
-        s2 = np.where(n_tot > p, rss / (n_tot - p), np.nan)
+        _weighted_rows(C, dbar, B, i1, uniform, coeffs, ginv)  # fit_revolutions' own
+        residual_rms, s2 = _residual_terms(_window_rss(S, C, Q, dbar, coeffs @ B.T), coeffs, n_tot, p)
         c11, c22, c12 = (ginv[..., k, :] * s2[..., None] for k in range(3))
         return _sine_fit(self.engine_orders, self.window, coeffs, (c11, c22, c12), residual_rms, n_tot, None,
                          self._cn)
@@ -495,3 +460,41 @@ def _sym_inv(G: np.ndarray) -> np.ndarray:
     out = np.stack([np.stack([A, B, Cc], -1), np.stack([B, D, E], -1), np.stack([Cc, E, F], -1)], -2)
     with np.errstate(all="ignore"):
         return out / det[..., None, None]
+
+
+def _weighted_rows(C: np.ndarray, dbar: np.ndarray, B: np.ndarray, i1: int, uniform: np.ndarray,
+                   coeffs: np.ndarray, ginv: np.ndarray) -> None:
+    """The Eq. 16 fits of the blades whose probes hold unequal counts (``~uniform``, e.g. a
+    missing probe) by their weighted normal equations (``C`` the counts, ``dbar`` the window
+    means, ``B`` the design matrix), written into ``coeffs`` and ``ginv`` (the covariance
+    terms of the first order, rows ``i1``, ``i1 + 1``); NaN where too few probes or the
+    equations are ill-conditioned (:data:`_MAX_COND`)."""
+    p = B.shape[1]
+    rest = ~uniform & (np.sum(C > 0, axis=2) >= p)
+    if not np.any(rest):
+        return
+    c = C[rest]
+    G = np.einsum("rj,jp,jq->rpq", c, B, B)
+    good = np.linalg.cond(G) < _MAX_COND
+    G[~good] = np.eye(p)
+    Ginv = np.linalg.inv(G)
+    a = np.einsum("rpq,jq,rj->rp", Ginv, B, c * np.where(c > 0, dbar[rest], 0.0))
+    a[~good] = np.nan
+    Ginv[~good] = np.nan
+    coeffs[rest] = a
+    ginv[rest] = np.stack([Ginv[:, i1, i1], Ginv[:, i1 + 1, i1 + 1], Ginv[:, i1, i1 + 1]], axis=1)
+
+
+def _window_rss(S: np.ndarray, C: np.ndarray, Q: np.ndarray, dbar: np.ndarray, fitted: np.ndarray) -> np.ndarray:
+    """A windowed fit's residual sum of squares from the window sums (``S``, count ``C``,
+    squares ``Q`` per probe): the scatter within each probe plus the misfit of its mean."""
+    within = np.where(C > 0, Q - S * dbar, 0.0)
+    misfit = np.where(C > 0, C * (dbar - fitted) ** 2, 0.0)
+    return np.maximum(np.sum(within + misfit, axis=2), 0.0)
+
+
+def _residual_terms(rss: np.ndarray, coeffs: np.ndarray, n_tot: np.ndarray, p: int) -> tuple:
+    """``(residual_rms, s2)`` from the residual sum of squares over ``n_tot`` samples and ``p``
+    unknowns (NaN where the fit is)."""
+    rss = np.where(np.isfinite(coeffs[..., 0]), rss, np.nan)
+    return np.sqrt(rss / n_tot), np.where(n_tot > p, rss / (n_tot - p), np.nan)
