@@ -13,6 +13,7 @@ shows what a live run would have shown.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from dataclasses import dataclass, field, fields, replace
 
@@ -99,27 +100,31 @@ class _TruthTable:
         self.conflicts = 0
         self.first_conflict: int | None = None  # its revolution
 
-    def _fits(self, t: Truth) -> bool:
-        if t.toa_s.shape[1:] != self.toa_tail:
+    def _fits(self, tail: tuple, row: dict) -> bool:
+        if tail != self.toa_tail:
             return False
-        return all((getattr(t, n) is None) == (self.tails[n] is None)
-                   and (self.tails[n] is None or (getattr(t, n).shape == (1,) + self.tails[n][0]
-                                                  and getattr(t, n).dtype.kind == self.tails[n][1]))
-                   for n in self.names)
+        for name in self.names:
+            a, spec = row[name], self.tails[name]
+            if (a is None) != (spec is None) or (spec is not None and (a.shape != (1,) + spec[0]
+                                                                     or a.dtype.kind != spec[1])):
+                return False
+        return True
 
-    def add(self, revolution: int, t: Truth) -> None:
-        if not self.tails and t.toa_s.shape[1:] == self.toa_tail:
+    def add(self, revolution: int, tail: tuple, row: dict) -> None:
+        """One revolution's truth: ``tail`` its ``(n_blades, n_probes)``, ``row`` the kept
+        fields' arrays of shape ``(1, ...)`` (:func:`~bttsim_stream.bus.codec.truth_row`)."""
+        if not self.tails and tail == self.toa_tail:
             for name in self.names:
-                a = getattr(t, name)
+                a = row[name]
                 self.tails[name] = None if a is None else (a.shape[1:], a.dtype.kind)
                 if a is not None:
                     self.tables[name] = np.empty((self.capacity,) + a.shape[1:],
                                                  dtype=object if a.dtype.kind == "U" else a.dtype)
                     self.str_size[name] = 0
-        fits = bool(self.tails) and self._fits(t)
+        fits = bool(self.tails) and self._fits(tail, row)
         i = self.index.get(revolution)
         if i is not None:  # a copy: the first holds; one that differs (or is of another shape) conflicts
-            if not fits or not all(np.array_equal(a[i], getattr(t, name)[0], equal_nan=a.dtype.kind in "fc")
+            if not fits or not all(np.array_equal(a[i], row[name][0], equal_nan=a.dtype.kind in "fc")
                                    for name, a in self.tables.items()):
                 self.conflicts += 1
                 self.first_conflict = revolution if self.first_conflict is None else self.first_conflict
@@ -137,10 +142,10 @@ class _TruthTable:
                 grown[: a.shape[0]] = a
                 self.tables[name] = grown
         for name, a in self.tables.items():
-            row = getattr(t, name)
-            a[i] = row[0]
-            if row.dtype.kind == "U":
-                self.str_size[name] = max(self.str_size[name], row.dtype.itemsize // 4)
+            row_ = row[name]
+            a[i] = row_[0]
+            if row_.dtype.kind == "U":
+                self.str_size[name] = max(self.str_size[name], row_.dtype.itemsize // 4)
 
     def rows(self, numbers: list, all_names) -> Truth | None:
         """The truth of revolutions ``numbers`` (None if one is missing or of another rotor)."""
@@ -200,33 +205,41 @@ class _Acquisition:
         return i
 
     def add(self, kind: str, d) -> None:
-        """A decoded ``opr`` or ``toa`` message (others are ignored)."""
+        """A decoded ``opr`` or ``toa`` message (a :class:`~bttsim_stream.bus.codec.Decoded`;
+        others are ignored): :meth:`add_opr` or :meth:`add_toa`."""
         if kind == "opr":
-            rev, opr = int(d.header.revolution), d.body.opr_s
-            if rev < 0 or not np.isfinite(opr):
-                self.ignored += 1
-                return
-            i = self._row(rev)
-            if self.has_opr[i]:
-                self.duplicates += 1
-                if self.opr[i] != float(opr):
-                    self._conflict(f"the OPR pulse of revolution {rev}")
-                return
-            self.opr[i], self.has_opr[i] = float(opr), True
+            self.add_opr(int(d.header.revolution), float(d.body.opr_s))
         elif kind == "toa":
-            rev, probe = int(d.header.revolution), int(d.body.probe)
-            toa = np.asarray(d.body.toa_s, dtype=float)
-            if rev < 0 or not 0 <= probe < self.npr or toa.shape != (self.nb,):
-                self.ignored += 1
-                return
-            i = self._row(rev)
-            if self.seen[i, probe]:
-                self.duplicates += 1
-                if not np.array_equal(self.toa[i, :, probe], toa, equal_nan=True):
-                    self._conflict(f"the TOAs of revolution {rev}, probe {probe}")
-                return
-            self.toa[i, :, probe] = toa
-            self.seen[i, probe] = True
+            self.add_toa(int(d.header.revolution), int(d.body.probe), np.asarray(d.body.toa_s, dtype=float))
+
+    def add_opr(self, rev: int, opr: float) -> None:
+        """A decoded ``opr`` message: its revolution and pulse time
+        (:func:`~bttsim_stream.bus.codec.opr_row`)."""
+        if rev < 0 or not math.isfinite(opr):
+            self.ignored += 1
+            return
+        i = self._row(rev)
+        if self.has_opr[i]:
+            self.duplicates += 1
+            if self.opr[i] != opr:
+                self._conflict(f"the OPR pulse of revolution {rev}")
+            return
+        self.opr[i], self.has_opr[i] = opr, True
+
+    def add_toa(self, rev: int, probe: int, toa: np.ndarray) -> None:
+        """A decoded ``toa`` message: its revolution, probe and TOAs
+        (:func:`~bttsim_stream.bus.codec.toa_row`)."""
+        if rev < 0 or not 0 <= probe < self.npr or toa.shape != (self.nb,):
+            self.ignored += 1
+            return
+        i = self._row(rev)
+        if self.seen[i, probe]:
+            self.duplicates += 1
+            if not np.array_equal(self.toa[i, :, probe], toa, equal_nan=True):
+                self._conflict(f"the TOAs of revolution {rev}, probe {probe}")
+            return
+        self.toa[i, :, probe] = toa
+        self.seen[i, probe] = True
 
     def _conflict(self, what: str) -> None:
         self.conflicts += 1
@@ -289,7 +302,6 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     all_truth = tuple(f.name for f in fields(Truth))
     kept_truth = all_truth if truth_fields is None else tuple(n for n in all_truth if n in set(truth_fields))
     messages: list | None = [] if keep_messages else None
-    truth_2d = {*kept_truth, "toa_s"}  # the per-probe truth fields decoded (toa_s: the table checks its shape)
     n_messages = 0
     error: BttsimError | None = None  # a decoding error, raised after the truncation check
     meta = meta_key = meta_payload = None
@@ -298,22 +310,24 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
     seqs = SequenceTracker()
     extras: dict = {}  # (revolution, probe) -> (toa_s, extra_toa_s) of the latest batch, when it has extras
 
-    def take(kind: str, d) -> None:
+    def take(kind: str, row: tuple) -> None:
         nonlocal truth
-        if d.header.run_id != meta.run_id:  # another run's message (the live receivers refuse it too)
+        if row[0] != meta.run_id:  # another run's message (the live receivers refuse it too)
             asm.ignored += 1
             return
         if kind == "truth":
             if truth is None:
                 truth = _TruthTable(kept_truth, _capacity(path, meta), (meta.n_blades, meta.n_probes))
-            truth.add(d.header.revolution, d.body)
-            return
-        asm.add(kind, d)
-        if kind == "toa":  # once each: the latest batch of a (revolution, probe) holds
-            if d.body.extra_toa_s.size:
-                extras[(d.header.revolution, d.body.probe)] = (d.body.toa_s, d.body.extra_toa_s)
+            truth.add(row[1], row[2], row[3])
+        elif kind == "opr":
+            asm.add_opr(row[1], row[2])
+        else:
+            _, rev, probe, toa, extra = row
+            asm.add_toa(rev, probe, toa)
+            if extra.size:  # once each: the latest batch of a (revolution, probe) holds
+                extras[(rev, probe)] = (toa, extra)
             else:
-                extras.pop((d.header.revolution, d.body.probe), None)
+                extras.pop((rev, probe), None)
 
     rigs: dict[str, None] = {}  # the rigs with run metadata, in file order
     want = rig  # the rig read: the one asked for, else the first with run metadata
@@ -347,12 +361,16 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
                         take(*item)
                 early = []
             elif kind in ("opr", "toa", "truth"):
-                d = codec.decode_truth(m.payload, m.key, fields=truth_2d) if kind == "truth" else \
-                    codec.decode_message(m.key, m.payload)
-                if meta is None:
-                    early.append((info.rig, kind, d))
+                if kind == "toa":
+                    row = codec.toa_row(m.payload, m.key)
+                elif kind == "opr":
+                    row = codec.opr_row(m.payload, m.key)
                 else:
-                    take(kind, d)
+                    row = codec.truth_row(m.payload, m.key, fields=kept_truth)
+                if meta is None:
+                    early.append((info.rig, kind, row))
+                else:
+                    take(kind, row)
         except BttsimError as exc:
             error = exc
     _refuse_scan(path, scan.truncated and not allow_truncated, n_messages, rig, list(rigs), error, meta)

@@ -837,3 +837,30 @@ def test_fits_at_once_are_the_bytes_of_one_at_a_time():
     with pytest.raises(ValueError, match="fit arrays"):
         codec.encode_fits("r", [0], 0, 0.0, (8,), 1.0, [1.0], 1.0, np.zeros((3, 1)), np.zeros((3, 1)),
                           np.zeros((3, 1)), np.zeros(2), np.zeros(3))
+
+
+def test_the_row_decoders_match_the_decoders():
+    """``opr_row``, ``toa_row`` and ``truth_row`` (what ``load_run`` reads with) give the
+    decoders' values."""
+    from _io_helpers import recorded_messages
+
+    for m in recorded_messages():
+        kind = m.key.split("/")[2]
+        if kind == "opr":
+            d = codec.decode_opr(m.payload, m.key)
+            assert codec.opr_row(m.payload, m.key) == (d.header.run_id, d.header.revolution, d.body.opr_s)
+        elif kind == "toa":
+            d = codec.decode_toa_batch(m.payload, m.key)
+            run_id, rev, probe, toa, extra = codec.toa_row(m.payload, m.key)
+            assert (run_id, rev, probe) == (d.header.run_id, d.header.revolution, d.body.probe)
+            assert toa.dtype == d.body.toa_s.dtype and np.array_equal(toa, d.body.toa_s, equal_nan=True)
+            assert extra.dtype == d.body.extra_toa_s.dtype and np.array_equal(extra, d.body.extra_toa_s)
+        elif kind == "truth":
+            d = codec.decode_truth(m.payload, m.key)
+            for fields in (None, ("opr_s", "d_eqv_pkpk_m", "nsv_kind", "eo_pkpk_m"), ("t_exp_s", "omega_mean")):
+                run_id, rev, tail, arrays = codec.truth_row(m.payload, m.key, fields=fields)
+                assert (run_id, rev, tail) == (d.header.run_id, d.header.revolution, d.body.toa_s.shape[1:])
+                assert set(arrays) == set(fields or arrays)
+                for name, a in arrays.items():
+                    b = getattr(d.body, name)
+                    assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), name

@@ -279,11 +279,14 @@ def test_a_truth_copy_of_another_shape_conflicts_and_keeps_the_first():
                        for f in ("opr_s", "toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m",
                                  "d_eqv_pkpk_m", "omega_mean")])
 
+    def add(table, revolution, tr):  # as load_run adds a decoded row (codec.truth_row)
+        table.add(revolution, tr.toa_s.shape[1:], {n: getattr(tr, n) for n in table.names})
+
     for copy, conflicts in ((truth(1.0), 0), (truth(2.0), 1), (truth(1.0, n_probes=3), 1)):
         t = _TruthTable(("d_eqv_pkpk_m",), 4, (3, 2))
-        t.add(0, truth(1.0))
-        t.add(0, copy)
-        t.add(1, truth(5.0))
+        add(t, 0, truth(1.0))
+        add(t, 0, copy)
+        add(t, 1, truth(5.0))
         assert t.conflicts == conflicts
         rows = t.rows([0, 1], tuple(f.name for f in fields(Truth)))
         assert rows is not None and rows.d_eqv_pkpk_m[0, 0] == 1.0 and rows.d_eqv_pkpk_m[1, 0] == 5.0

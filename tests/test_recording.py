@@ -499,3 +499,95 @@ def test_the_gate_counts_head_gaps_and_tail_and_a_late_number_closes_its_gap(run
     other = RecordGate("rig1")
     _admit(other, opr[0])
     assert [(v.action, v.reason) for v in other.finish()] == [("reject", "no run metadata received for its rig")]
+
+
+def _library_read(path) -> tuple:
+    """What the mcap library's own reader makes of a file, as :func:`read_recording` read it
+    before it parsed chunks and message indexes itself: ``(messages, truncated, metadata)``
+    or the one-line error."""
+    from mcap.exceptions import EndOfFile
+    from mcap.records import Channel, Footer, Header, Metadata
+    from mcap.stream_reader import StreamReader
+
+    scan = mcap_io._Scan(str(path))
+    out, channels, truncated = [], {}, False
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        magic = f.read(8)
+        if magic != mcap_io.MCAP_MAGIC:
+            if magic and mcap_io.MCAP_MAGIC.startswith(magic):
+                return [], True, {}
+            return f"{path}: not an MCAP file"
+        strict = mcap_io._StrictFile(f, size, 8)
+        it = iter(StreamReader(strict, skip_magic=True, emit_chunks=True).records)
+        first = True
+        try:
+            while True:
+                start = strict.pos
+                try:
+                    rec = next(it)
+                except StopIteration:
+                    break
+                except EndOfFile:
+                    truncated = True
+                    break
+                except Exception as exc:
+                    raise scan.corrupt(f"record at byte {start}: {mcap_io._one_line(exc)}") from None
+                if first and not isinstance(rec, Header):
+                    raise scan.corrupt("the first record is not a header")
+                first = False
+                if isinstance(rec, Chunk):
+                    try:
+                        inner = breakup_chunk(rec, validate_crc=True)
+                    except Exception as exc:
+                        raise scan.corrupt(f"chunk at byte {start}: {mcap_io._one_line(exc)}") from None
+                else:
+                    if isinstance(rec, Metadata):
+                        scan.metadata[rec.name] = dict(rec.metadata)
+                    elif isinstance(rec, Footer):
+                        mcap_io._check_summary_crc(scan, f, rec, start)
+                    inner = [rec]
+                for r in inner:
+                    if isinstance(r, Message):
+                        if r.channel_id not in channels:
+                            raise scan.corrupt(f"message on unknown channel {r.channel_id}")
+                        out.append((channels[r.channel_id], r.data, r.log_time, r.sequence))
+                    elif isinstance(r, Channel):
+                        channels[r.id] = r.topic
+        except BttsimError as exc:
+            return str(exc)
+    return out, truncated, scan.metadata
+
+
+def _our_read(path):
+    try:
+        rec = read_recording(path)
+    except BttsimError as exc:
+        return str(exc)
+    return [(m.key, m.payload, m.log_time_ns, m.seq) for m in rec.messages], rec.truncated, rec.metadata
+
+
+def test_the_reader_reads_as_the_mcap_library_does(chunked, tmp_path):
+    """Chunks and message indexes are parsed here, not by the library: on the file and on
+    hundreds of damaged copies of it (bytes changed in record heads, lengths and chunk
+    fields, cuts), the messages, the cut and every error are the library's."""
+    path, chunks = chunked
+    data = path.read_bytes()
+    assert _our_read(path) == _library_read(path)
+    rng = np.random.default_rng(7)
+    heads = [c.chunk_start_offset for c in chunks] + [c.chunk_start_offset + c.chunk_length for c in chunks]
+    bad = tmp_path / "bad.mcap"
+    kinds = set()
+    for trial in range(400):
+        copy = bytearray(data)
+        at = int(rng.choice(heads)) + int(rng.integers(0, 60))
+        if trial % 5 == 4:
+            copy = copy[:at]
+        else:
+            copy[at] = int(rng.integers(0, 256)) if trial % 2 else copy[at] ^ (1 << int(rng.integers(0, 8)))
+        bad.write_bytes(bytes(copy))
+        ours, theirs = _our_read(bad), _library_read(bad)
+        assert ours == theirs, (trial, at)
+        kinds.add(ours if isinstance(ours, str) and "record at" not in ours else type(ours).__name__)
+    assert len(kinds) > 5  # the damage took many forms
+

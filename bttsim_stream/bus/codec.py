@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from dataclasses import fields as _dataclass_fields
 
 import numpy as np
 
@@ -75,6 +76,9 @@ __all__ = [
     "decode_toa_batch",
     "encode_truth",
     "decode_truth",
+    "opr_row",
+    "toa_row",
+    "truth_row",
     "encode_opr_batch",
     "encode_toa_batches",
     "encode_truth_batch",
@@ -194,6 +198,9 @@ _TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
 _TRUTH_NUMBERS_2D = tuple(_pb.TruthBatch.DESCRIPTOR.fields_by_name[f].number for f in _TRUTH_2D)
 _TRUTH_NUMBER_PKPK = _pb.TruthBatch.DESCRIPTOR.fields_by_name["d_eqv_pkpk_m"].number
 _TRUTH_NUMBERS = frozenset((*_TRUTH_NUMBERS_2D, _TRUTH_NUMBER_PKPK))
+_TRUTH_NUMBER_OF = dict(zip(_TRUTH_2D, _TRUTH_NUMBERS_2D))
+#: Every field of :class:`~bttsim_stream.sim.core.Truth`, in its order.
+_TRUTH_FIELDS = tuple(f.name for f in _dataclass_fields(Truth))
 
 
 # --------------------------------------------------------------------------------------
@@ -626,6 +633,57 @@ def decode_truth(payload: bytes, key: str | None = None, *, fields=None) -> Deco
                   d_eqv_pkpk_m=(raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb), **arrays,
                   **nsv, **eo)
     return Decoded(header_of(m.header), truth)
+
+
+def opr_row(payload: bytes, key: str | None = None) -> tuple[str, int, float]:
+    """``(run_id, revolution, opr_s)`` of a :class:`bttsim.v1.Opr` payload: every check of
+    :func:`decode_opr` (the same errors for the same payloads), no dataclass built (a reader
+    of a whole recording, :func:`bttsim_stream.offline.load_run`)."""
+    m = _check_opr(payload, key)
+    h = m.header
+    return h.run_id, int(h.revolution), m.opr_s
+
+
+def toa_row(payload: bytes, key: str | None = None) -> tuple[str, int, int, np.ndarray, np.ndarray]:
+    """``(run_id, revolution, probe, toa_s, extra_toa_s)`` of a :class:`bttsim.v1.ToaBatch`
+    payload: every check of :func:`decode_toa_batch` (the same errors for the same payloads)
+    and the same two arrays, without its dataclasses or the tick arrays."""
+    m, extra = _check_toa(payload, key)
+    h = m.header
+    return h.run_id, int(h.revolution), int(m.probe), as_array(m.toa_s), extra
+
+
+def truth_row(payload: bytes, key: str | None = None, *, fields=None) -> tuple[str, int, tuple[int, int], dict]:
+    """``(run_id, revolution, (n_blades, n_probes), arrays)`` of a :class:`bttsim.v1.TruthBatch`
+    payload: every check of :func:`decode_truth` (the same errors for the same payloads), and
+    ``arrays`` the :class:`~bttsim_stream.sim.core.Truth` fields ``fields`` (default all) with
+    the values, shapes and dtypes :func:`decode_truth` gives them, without building the others
+    (a per-probe field not asked for is not read from the payload at all)."""
+    m, nsv, eo = _check_truth(payload, key)
+    nb, npr = int(m.n_blades), int(m.n_probes)
+    names = _TRUTH_FIELDS if fields is None else tuple(n for n in _TRUTH_FIELDS if n in fields)
+    kept = tuple(n for n in _TRUTH_2D if n in names)
+    raw = {}
+    if kept:  # as decode_truth: the per-probe fields straight from the bytes when packed
+        numbers = frozenset((_TRUTH_NUMBER_PKPK, *(k for n, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D) if n in kept)))
+        raw = packed_doubles(bytes(payload), numbers) or {}
+    out = {}
+    for name in names:
+        if name == "opr_s":
+            out[name] = np.array([m.opr_s])
+        elif name == "omega_mean":
+            out[name] = np.array([m.omega_mean_rad_s])
+        elif name == "d_eqv_pkpk_m":
+            k = _TRUTH_NUMBER_PKPK
+            out[name] = (raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb)
+        elif name in nsv:
+            out[name] = nsv[name]
+        elif name in eo:
+            out[name] = eo[name]
+        else:
+            k = _TRUTH_NUMBER_OF[name]
+            out[name] = (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr)
+    return m.header.run_id, int(m.header.revolution), (nb, npr), out
 
 
 # --------------------------------------------------------------------------------------

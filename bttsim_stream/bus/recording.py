@@ -19,10 +19,12 @@ from __future__ import annotations
 import io
 import logging
 import os
+import struct
 import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Footer, Header, Metadata, Schema
@@ -31,6 +33,11 @@ from mcap.records import MessageIndex as McapMessageIndex
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 import numpy as np
+
+try:  # what the mcap library decompresses zstd chunks with (without it: the library's way)
+    import zstandard as _zstd
+except ImportError:  # pragma: no cover
+    _zstd = None
 
 from ..errors import BttsimError
 from . import codec
@@ -62,6 +69,20 @@ REJECTED_PREFIX = "rejected/"
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 _ENCODING = "protobuf"
 _MESSAGE_OPCODE = int(Opcode.MESSAGE)
+_CHUNK_OPCODE = int(Opcode.CHUNK)
+_MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
+_CHANNEL_OPCODE = int(Opcode.CHANNEL)
+_SCHEMA_OPCODE = int(Opcode.SCHEMA)
+#: The mcap stream reader's default record size limit (a longer record is its error).
+_RECORD_SIZE_LIMIT = 4 * 2**30
+_OPCODE_LENGTH = struct.Struct("<BQ")
+#: A chunk record's fixed fields: start and end times, uncompressed size and CRC, the
+#: compression string's length.
+_CHUNK_FIELDS = struct.Struct("<QQQII")
+#: A message record's opcode, length, channel id, sequence, log and publish times.
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+_U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
 
 
 class _PackedMessageIndex(McapMessageIndex):
@@ -435,7 +456,18 @@ class _Scan:
 
 
 def _records(scan: _Scan, decode_chunks: bool = True) -> Iterator:
-    """Records of the file in order (chunks broken up); sets ``scan.truncated`` at a cut."""
+    """Records of the file in order (chunks broken up); sets ``scan.truncated`` at a cut.
+
+    The records are those of the mcap library's :class:`~mcap.stream_reader.StreamReader`
+    and :func:`~mcap.stream_reader.breakup_chunk` (with ``validate_crc``), with two
+    exceptions: a message of a chunk read by :func:`_chunk_records` comes as a tuple
+    ``(channel_id, log_time, data, sequence)``, and message index records are not yielded
+    (no reader of a recording uses them). Chunks and message indexes, the bulk of a file,
+    are read here (:func:`_fast_record`) when their fields fit their record exactly as the
+    library would read them; every other record, and any of those that does not fit, is
+    the library's to read from the same place: the same records, the same errors and the
+    same cut.
+    """
     path = scan.path
     try:
         f = open(path, "rb")
@@ -450,36 +482,153 @@ def _records(scan: _Scan, decode_chunks: bool = True) -> Iterator:
                 return
             raise BttsimError(f"{path}: not an MCAP file")
         strict = _StrictFile(f, size, len(MCAP_MAGIC))
+        # the library's reader, used where this one does not read: between records it holds
+        # nothing but the file's position, which both share
         it = iter(StreamReader(strict, skip_magic=True, emit_chunks=True).records)
         first = True
+        footer = False  # after the footer, the library reads its closing magic
         while True:
             start = strict.pos
-            try:
-                rec = next(it)
-            except StopIteration:
-                return
-            except EndOfFile:
-                scan.truncated = True
-                return
-            except Exception as exc:  # any parse failure of a complete record
-                raise scan.corrupt(f"record at byte {start}: {_one_line(exc)}") from None
+            rec = None if footer else _fast_record(f, strict, size, decode_chunks)
+            if rec is None:
+                try:
+                    rec = next(it)
+                except StopIteration:
+                    return
+                except EndOfFile:
+                    scan.truncated = True
+                    return
+                except Exception as exc:  # any parse failure of a complete record
+                    raise scan.corrupt(f"record at byte {start}: {_one_line(exc)}") from None
             if first and not isinstance(rec, Header):
                 raise scan.corrupt("the first record is not a header")
             first = False
             if isinstance(rec, Chunk):
                 if not decode_chunks:
                     continue
-                try:
-                    inner = breakup_chunk(rec, validate_crc=True)
-                except Exception as exc:
-                    raise scan.corrupt(f"chunk at byte {start}: {_one_line(exc)}") from None
+                inner = _chunk_records(rec)
+                if inner is None:  # not a plain chunk: the library's reading, or its error
+                    try:
+                        inner = breakup_chunk(rec, validate_crc=True)
+                    except Exception as exc:
+                        raise scan.corrupt(f"chunk at byte {start}: {_one_line(exc)}") from None
                 yield from inner
-            else:
+            elif rec is not _SKIPPED:
                 if isinstance(rec, Metadata):
                     scan.metadata[rec.name] = dict(rec.metadata)
                 elif isinstance(rec, Footer):
+                    footer = True
                     _check_summary_crc(scan, f, rec, start)
                 yield rec
+
+
+#: What :func:`_fast_record` gives for a record read and not yielded (a message index).
+_SKIPPED = object()
+
+
+def _fast_record(f, strict: _StrictFile, size: int, decode_chunks: bool):
+    """The chunk (a :class:`~mcap.records.Chunk`, its data not decompressed) or message index
+    (:data:`_SKIPPED`) at ``strict.pos``, read with the file positioned after it, when it lies
+    whole in the file and its fields fit its length -- what the library's
+    :meth:`~mcap.records.Chunk.read` or :meth:`~mcap.records.MessageIndex.read` would read
+    there, padding included. Else None, the file where it was (the library reads it then, and
+    says what is wrong with it)."""
+    pos = strict.pos
+    if size - pos < 9:
+        return None
+    head = f.read(9)
+    if len(head) == 9:
+        opcode, length = _OPCODE_LENGTH.unpack(head)
+        if opcode in (_CHUNK_OPCODE, _MESSAGE_INDEX_OPCODE) and length <= min(_RECORD_SIZE_LIMIT, size - pos - 9):
+            body = f.read(length)
+            if len(body) == length:
+                rec = _chunk_of(body, decode_chunks) if opcode == _CHUNK_OPCODE else _message_index_fits(body)
+                if rec is not None:
+                    strict.pos = pos + 9 + length
+                    return rec
+    f.seek(pos)
+    return None
+
+
+def _message_index_fits(body: bytes):
+    """:data:`_SKIPPED` when a message index record's entries (16 bytes each, read while
+    fewer than ``records_length`` bytes were) end within its ``body``; else None."""
+    if len(body) < 6:
+        return None
+    (records_length,) = _U32.unpack_from(body, 2)
+    return _SKIPPED if 6 + -(-records_length // 16) * 16 <= len(body) else None
+
+
+def _chunk_of(body: bytes, with_data: bool):
+    """The :class:`~mcap.records.Chunk` of a chunk record's ``body`` (None: its fields do not
+    fit it, or its compression is not UTF-8)."""
+    n = len(body)
+    if n < _CHUNK_FIELDS.size:
+        return None
+    t_start, t_end, uncompressed_size, crc, compression_length = _CHUNK_FIELDS.unpack_from(body, 0)
+    p = _CHUNK_FIELDS.size + compression_length
+    if p + 8 > n:
+        return None
+    (data_length,) = _U64.unpack_from(body, p)
+    if p + 8 + data_length > n:
+        return None
+    try:
+        compression = str(body[_CHUNK_FIELDS.size:p], "utf-8")
+    except UnicodeDecodeError:
+        return None
+    data = body[p + 8:p + 8 + data_length] if with_data else b""
+    return Chunk(compression=compression, data=data, message_end_time=t_end, message_start_time=t_start,
+                 uncompressed_crc=crc, uncompressed_size=uncompressed_size)
+
+
+def _chunk_records(chunk: Chunk) -> list | None:
+    """The records of a chunk as :func:`~mcap.stream_reader.breakup_chunk` (with
+    ``validate_crc``) reads them, messages as ``(channel_id, log_time, data, sequence)``
+    tuples; None for a chunk that is not plain (lz4, no zstd module, a decompression or CRC
+    failure, a record that does not end within the chunk, a schema or channel whose fields do
+    not fill its record exactly): :func:`~mcap.stream_reader.breakup_chunk` reads it then, or
+    says what is wrong with it."""
+    if chunk.compression == "zstd":
+        if _zstd is None:
+            return None
+        try:
+            data = _zstd.decompress(chunk.data, chunk.uncompressed_size)
+        except Exception:
+            return None
+    elif chunk.compression == "lz4":
+        return None
+    else:  # the library reads any other compression as none
+        data = chunk.data
+    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+        return None
+    out: list = []
+    append = out.append
+    head = _MESSAGE_HEAD.unpack_from
+    op_len = _OPCODE_LENGTH.unpack_from
+    n, pos = len(data), 0
+    while pos < n:
+        if n - pos < 9:
+            return None
+        opcode, length = op_len(data, pos)
+        end = pos + 9 + length
+        if end > n:
+            return None
+        if opcode == _MESSAGE_OPCODE:
+            if length < 22:
+                return None
+            _, _, channel_id, sequence, log_time, _ = head(data, pos)
+            append((channel_id, log_time, data[pos + 31:end], sequence))
+        elif opcode == _CHANNEL_OPCODE or opcode == _SCHEMA_OPCODE:
+            stream = ReadDataStream(io.BytesIO(data[pos + 9:]))  # the rest of the chunk, as the library reads it
+            try:
+                rec = (Channel if opcode == _CHANNEL_OPCODE else Schema).read(stream)
+            except Exception:
+                return None
+            if stream.count != length:  # the library would go on from where its fields ended
+                return None
+            append(rec)
+        pos = end  # another record: skipped, as the library does
+    return out
 
 
 #: Bytes of a footer record that its summary CRC covers: opcode, length, summary_start and
@@ -512,7 +661,13 @@ def _messages(scan: _Scan, keys, schemas_out: dict) -> Iterator[Message]:
     schema_names: dict[int, str] = {}
     channels: dict[int, tuple[str, bool]] = {}  # id -> (topic, wanted)
     for rec in _records(scan):
-        if isinstance(rec, McapMessage):
+        if type(rec) is tuple:  # (channel_id, log_time, data, sequence): a message of a chunk
+            ch = channels.get(rec[0])
+            if ch is None:
+                raise scan.corrupt(f"message on unknown channel {rec[0]}")
+            if ch[1]:
+                yield Message(ch[0], rec[2], rec[1], rec[3])
+        elif isinstance(rec, McapMessage):
             ch = channels.get(rec.channel_id)
             if ch is None:
                 raise scan.corrupt(f"message on unknown channel {rec.channel_id}")
