@@ -1264,14 +1264,7 @@ def test_fuzz_check_refuses_exactly_what_decode_refuses(processed_mcap):
     for i in range(N_CHECK):
         m = real[rng.randrange(len(real))] if i % 2 else rng.choice(
             [x for x in real if keys.parse_key(x.key).kind == kinds[i // 2 % len(kinds)]])
-        kind = keys.parse_key(m.key).kind
-        if rng.random() < 0.5 or kind not in _PB:
-            payload, _ = mutate_bytes(rng, m.payload)
-        else:
-            p = _PB[kind]()
-            p.ParseFromString(m.payload)
-            mutate_proto(rng, p)
-            payload = p.SerializeToString()
+        payload = _hostile_payload(rng, m)
         key = m.key if rng.random() < 0.9 else rng.choice(real).key
         try:
             whole = codec.Checked.of(codec.decode_message(key, payload))
@@ -1291,6 +1284,18 @@ def test_fuzz_check_refuses_exactly_what_decode_refuses(processed_mcap):
     assert N_CHECK // 10 < refused < N_CHECK - N_CHECK // 10  # both sides of the line were tried
 
 
+def _hostile_payload(rng: random.Random, m) -> bytes:
+    """A mutation of message ``m``'s payload: its bytes, or (half the time, for a kind with a
+    protobuf class) a field of its parsed message."""
+    kind = keys.parse_key(m.key).kind
+    if rng.random() < 0.5 or kind not in _PB:
+        return mutate_bytes(rng, m.payload)[0]
+    p = _PB[kind]()
+    p.ParseFromString(m.payload)
+    mutate_proto(rng, p)
+    return p.SerializeToString()
+
+
 def test_fuzz_rows_refuse_exactly_what_decode_refuses(processed_mcap):
     """``opr_row``, ``toa_row`` and ``truth_row`` (how ``load_run`` reads) against the decoders
     on hostile payloads of the acquisition stream: the same error, word for word, and for the
@@ -1301,14 +1306,7 @@ def test_fuzz_rows_refuse_exactly_what_decode_refuses(processed_mcap):
     refused = 0
     for _ in range(N_CHECK):
         m = real[rng.randrange(len(real))]
-        kind = keys.parse_key(m.key).kind
-        if rng.random() < 0.5:
-            payload, _ = mutate_bytes(rng, m.payload)
-        else:
-            p = _PB[kind]()
-            p.ParseFromString(m.payload)
-            mutate_proto(rng, p)
-            payload = p.SerializeToString()
+        payload = _hostile_payload(rng, m)  # its kind is in _PB: the same draws as before
         key = m.key if rng.random() < 0.9 else rng.choice(real).key
         kind = keys.parse_key(key).kind
         try:
