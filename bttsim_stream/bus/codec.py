@@ -198,7 +198,6 @@ _TRUTH_2D = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
 _TRUTH_NUMBERS_2D = tuple(_pb.TruthBatch.DESCRIPTOR.fields_by_name[f].number for f in _TRUTH_2D)
 _TRUTH_NUMBER_PKPK = _pb.TruthBatch.DESCRIPTOR.fields_by_name["d_eqv_pkpk_m"].number
 _TRUTH_NUMBERS = frozenset((*_TRUTH_NUMBERS_2D, _TRUTH_NUMBER_PKPK))
-_TRUTH_NUMBER_OF = dict(zip(_TRUTH_2D, _TRUTH_NUMBERS_2D))
 #: Every field of :class:`~bttsim_stream.sim.core.Truth`, in its order.
 _TRUTH_FIELDS = tuple(f.name for f in _dataclass_fields(Truth))
 
@@ -617,22 +616,26 @@ def decode_truth(payload: bytes, key: str | None = None, *, fields=None) -> Deco
         Unparsable or oversized payload, missing header, or inconsistent array lengths.
     """
     m, nsv, eo = _check_truth(payload, key)
-    nb, npr = int(m.n_blades), int(m.n_probes)
     kept = _TRUTH_2D if fields is None else tuple(n for n in _TRUTH_2D if n in fields)
-    numbers = _TRUTH_NUMBERS if fields is None else frozenset(
-        (_TRUTH_NUMBER_PKPK, *(k for n, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D) if n in kept)))
-    # the lengths are checked above; without a per-probe field the envelope alone is read
-    # through protobuf's container (one field: walking the payload would cost more)
-    raw = packed_doubles(bytes(payload), numbers) if kept else None
-    if raw is None:
-        raw = {}
-    arrays = {name: (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr) if name in kept
-              else None for name, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D)}
-    k = _TRUTH_NUMBER_PKPK
+    arrays = _truth_arrays(payload, m, kept)
     truth = Truth(opr_s=np.array([m.opr_s]), omega_mean=np.array([m.omega_mean_rad_s]),
-                  d_eqv_pkpk_m=(raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb), **arrays,
-                  **nsv, **eo)
+                  **{name: arrays.get(name) for name in (*_TRUTH_2D, "d_eqv_pkpk_m")}, **nsv, **eo)
     return Decoded(header_of(m.header), truth)
+
+
+def _truth_arrays(payload: bytes, m, kept: tuple) -> dict:
+    """The envelope ``d_eqv_pkpk_m`` (shape (1, n_blades)) and the per-probe fields ``kept``
+    (shape (1, n_blades, n_probes)) of a checked ``TruthBatch`` ``m`` (:func:`_check_truth`)."""
+    nb, npr = int(m.n_blades), int(m.n_probes)
+    numbers = frozenset((_TRUTH_NUMBER_PKPK, *(k for n, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D) if n in kept)))
+    # the lengths are checked; without a per-probe field the envelope alone is read through
+    # protobuf's container (one field: walking the payload would cost more)
+    raw = (packed_doubles(bytes(payload), numbers) if kept else None) or {}
+    out = {name: (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr)
+           for name, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D) if name in kept}
+    k = _TRUTH_NUMBER_PKPK
+    out["d_eqv_pkpk_m"] = (raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb)
+    return out
 
 
 def opr_row(payload: bytes, key: str | None = None) -> tuple[str, int, float]:
@@ -660,30 +663,11 @@ def truth_row(payload: bytes, key: str | None = None, *, fields=None) -> tuple[s
     the values, shapes and dtypes :func:`decode_truth` gives them, without building the others
     (a per-probe field not asked for is not read from the payload at all)."""
     m, nsv, eo = _check_truth(payload, key)
-    nb, npr = int(m.n_blades), int(m.n_probes)
     names = _TRUTH_FIELDS if fields is None else tuple(n for n in _TRUTH_FIELDS if n in fields)
-    kept = tuple(n for n in _TRUTH_2D if n in names)
-    raw = {}
-    if kept:  # as decode_truth: the per-probe fields straight from the bytes when packed
-        numbers = frozenset((_TRUTH_NUMBER_PKPK, *(k for n, k in zip(_TRUTH_2D, _TRUTH_NUMBERS_2D) if n in kept)))
-        raw = packed_doubles(bytes(payload), numbers) or {}
-    out = {}
-    for name in names:
-        if name == "opr_s":
-            out[name] = np.array([m.opr_s])
-        elif name == "omega_mean":
-            out[name] = np.array([m.omega_mean_rad_s])
-        elif name == "d_eqv_pkpk_m":
-            k = _TRUTH_NUMBER_PKPK
-            out[name] = (raw[k] if k in raw else as_array(m.d_eqv_pkpk_m)).reshape(1, nb)
-        elif name in nsv:
-            out[name] = nsv[name]
-        elif name in eo:
-            out[name] = eo[name]
-        else:
-            k = _TRUTH_NUMBER_OF[name]
-            out[name] = (raw[k] if k in raw else as_array(getattr(m, name))).reshape(1, nb, npr)
-    return m.header.run_id, int(m.header.revolution), (nb, npr), out
+    arrays = {"opr_s": np.array([m.opr_s]), "omega_mean": np.array([m.omega_mean_rad_s]), **nsv, **eo,
+              **_truth_arrays(payload, m, tuple(n for n in _TRUTH_2D if n in names))}
+    return (m.header.run_id, int(m.header.revolution), (int(m.n_blades), int(m.n_probes)),
+            {name: arrays[name] for name in names})
 
 
 # --------------------------------------------------------------------------------------
