@@ -545,6 +545,12 @@ class NodeContext:
         simulator waits for it before it closes its session."""
         self.confirm(keys.done_key, rig)
 
+    def sent(self, rig: str | None = None) -> None:
+        """Declare (once per rig) the token ``bttsim/<rig>/sent/<name>``: this node has published
+        all it will and only waits for confirmations now (:func:`~bttsim_stream.bus.keys.sent_key`);
+        the consumers that follow it then end once drained, without waiting for it to leave."""
+        self.confirm(keys.sent_key, rig)
+
     def confirm(self, token_key, rig: str | None = None) -> None:
         """Declare (once per rig) the liveliness token ``token_key(rig, name)``
         (:func:`~bttsim_stream.bus.keys.done_key`, ``awaiting_key``, ``reported_key``)."""

@@ -117,6 +117,7 @@ def main(conf, args: argparse.Namespace) -> dict | None:
                 Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
             print(summary_table(summary), flush=True)
             if not stop:  # the report may still be queued, and closing the session drops it
+                node.sent(rig)
                 waiting = wait_for_done(node.session, rig, args.drain_timeout, stop, asked="awaiting",
                                         given="reported")
                 if waiting:

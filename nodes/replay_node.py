@@ -117,6 +117,8 @@ def main(conf, args: argparse.Namespace) -> dict:
         whole = bool(ends) and all(end.done for end in ends)
         if not stop and whole:  # what went out may still be on its way: stay until it is in
             for r in rigs:
+                node.sent(r)
+            for r in rigs:
                 waiting = wait_for_done(node.session, r, args.drain_timeout, stop)
                 if waiting:
                     log.warning("leaving before %s confirmed the whole stream of %s (%g s)",

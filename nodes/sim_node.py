@@ -80,6 +80,7 @@ def main(conf, args: argparse.Namespace) -> dict:
         progress.close()
         log.info("published %d messages (run %s)", sent, stream.run_id)
         if args.wait_for and not stop:  # what went out may still be on its way: stay until it is in
+            node.sent()  # ... and say so: a consumer that lost the tail need not wait for us to leave
             # --lossy may have dropped a key's last message, and then no "done" ever comes
             drain_s = min(args.drain_timeout, LOSSY_DRAIN_S) if args.lossy else args.drain_timeout
             waiting = wait_for_done(node.session, stream.rig, drain_s, stop)

@@ -292,3 +292,97 @@ def test_a_consumer_told_its_publisher_is_gone_for_good_ends_once_drained():
             if p is not None and p.poll() is None:
                 p.kill()
                 p.wait()
+
+
+_EXITING_CONSUMER = """
+import signal
+from bttsim_stream.bus.session import GONE_SIGNAL, make_config
+from bttsim_stream.runtime import node_session
+
+with node_session(make_config(), "rig1", "viewer") as ctx:
+    ctx.watch_nodes(("sim", "processor"))
+    assert signal.getsignal(GONE_SIGNAL) not in (signal.SIG_IGN, signal.SIG_DFL)  # handled while it runs
+status = dict(line.split(":", 1) for line in open("/proc/self/status") if line.startswith("SigIgn"))
+print(int(status["SigIgn"], 16) >> (int(GONE_SIGNAL) - 1) & 1, flush=True)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
+def test_a_closed_node_ignores_the_gone_signal_while_it_exits():
+    """``bttsim run`` sends the gone signal once the last node a consumer follows is reaped,
+    which may be while that consumer is exiting, its work done. Python resets its own signal
+    handlers to the default action (terminate) at interpreter exit, and a viewer died so of a
+    late signal (the run then said it had failed). Once its session is closed, a node ignores
+    the signal in the kernel, where the interpreter's exit does not undo it."""
+    out = subprocess.run([sys.executable, "-c", _EXITING_CONSUMER], cwd=_procs.REPO, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "1"
+
+
+_SENT_PUBLISHER = """
+import sys
+from bttsim_stream.bus.session import make_config
+from bttsim_stream.runtime import node_session
+
+with node_session(make_config(connect=[sys.argv[1]]), "rig1", "sim") as ctx:
+    ctx.announce()
+    pub = ctx.publisher("bttsim/rig1/data")
+    for i in range(int(sys.argv[2])):
+        pub.put(i.to_bytes(8, "little"))
+    ctx.sent()  # all published; now it would wait for its consumers' confirmations
+    print("sent", flush=True)
+    sys.stdin.readline()  # until told
+"""
+
+_TAIL_CONSUMER = """
+import json, sys, time
+from bttsim_stream.bus.session import StopFlag, make_config
+from bttsim_stream.runtime import node_session
+
+n_all, patience = int(sys.argv[2]), float(sys.argv[3])
+with node_session(make_config(listen=[sys.argv[1]]), "rig1", "processor") as ctx:
+    ctx.subscribe("bttsim/rig1/data")
+    ctx.watch_nodes(("sim",))
+    ctx.announce()
+    print("ready", flush=True)
+    n = 0
+    for r in ctx.samples(StopFlag(install=False), done=lambda: n >= n_all, patience_s=patience):
+        n += r is not None
+    print(json.dumps({"n": n, "sent": sorted(ctx.watch.sent), "t": time.monotonic()}), flush=True)
+"""
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("lost_tail", [False, True])
+def test_a_consumer_ends_once_its_publisher_has_sent_all_while_that_publisher_waits(lost_tail):
+    """The simulator stays after its last sample until its consumers confirm the whole stream;
+    a consumer that waited for the simulator to leave would wait for ever when it lacks the
+    tail (lost to a link cut). Once the publisher declares that it has sent all, a consumer
+    with everything ends once drained, and one that lacks the tail after its patience of
+    silence -- both while the publisher is still there."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    n = 300
+    patience = 2.0
+    consumer = subprocess.Popen([sys.executable, "-c", _TAIL_CONSUMER, ep, str(n + 1 if lost_tail else n),
+                                 str(patience)], cwd=_procs.REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+    publisher = None
+    try:
+        out = _procs.LineWatch(consumer.stdout)
+        out.wait_for(lambda ln: ln.strip() == "ready", timeout=60)
+        publisher = subprocess.Popen([sys.executable, "-c", _SENT_PUBLISHER, ep, str(n)], cwd=_procs.REPO,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _procs.LineWatch(publisher.stdout).wait_for(lambda ln: ln.strip() == "sent", timeout=60)
+        t_sent = time.monotonic()
+        got = json.loads(out.wait_for(lambda ln: ln.startswith("{"), timeout=60))
+        assert got["n"] == n and got["sent"] == ["sim"]
+        assert publisher.poll() is None  # it ended while the publisher was still waiting
+        if lost_tail:  # its patience of silence: not less
+            assert got["t"] - t_sent >= patience
+        assert consumer.wait(30) == 0
+    finally:
+        for p in (publisher, consumer):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()

@@ -56,6 +56,7 @@ __all__ = [
     "done_key",
     "awaiting_key",
     "reported_key",
+    "sent_key",
     "status_key",
     "status_all_key",
     "is_status_key",
@@ -215,6 +216,14 @@ def reported_key(rig: str, node: str) -> str:
     (``bttsim/<rig>/reported/<node>``): the processor's last output is in, so it may close
     its session (which drops what is still queued)."""
     return _token_key(rig, "reported", node)
+
+
+def sent_key(rig: str, node: str) -> str:
+    """Liveliness token of a publisher that has published all it will (``bttsim/<rig>/sent/<node>``:
+    the simulator's or replay's whole stream, the processor's report) and now only waits for its
+    consumers' confirmations: a consumer that follows it stops waiting for its process to end
+    (which waits for that consumer), and waits only for what is still on its way."""
+    return _token_key(rig, "sent", node)
 
 
 def status_key(rig: str, node: str) -> str:

@@ -538,9 +538,12 @@ GONE_SIGNAL = signal.SIGUSR1
 class NodeWatch:
     """Follows the liveliness tokens ``bttsim/<rig>/alive/<name>`` of the named nodes.
 
-    :meth:`ended` is true once every named node has been seen and has gone, or once the
-    first of them has gone and ``grace_s`` passed without the others ever appearing (a node
-    that was never started). Tokens also go on SIGKILL, so a crashed node ends a run too.
+    :meth:`ended` is true once every named node has been seen and is over -- gone, or has
+    declared that it published all it will (``bttsim/<rig>/sent/<name>``,
+    :func:`~bttsim_stream.bus.keys.sent_key`: a simulator that then waits for its consumers'
+    confirmations) -- or once the first of them is over and ``grace_s`` passed without the
+    others ever appearing (a node that was never started). Tokens also go on SIGKILL, so a
+    crashed node ends a run too.
 
     :attr:`final` tells whether the nodes that went are gone for good: set by
     :data:`GONE_SIGNAL` (installed here when built in the main thread), which ``bttsim run``
@@ -553,13 +556,15 @@ class NodeWatch:
         self.names = tuple(names)
         self.seen: set[str] = set()
         self.gone: set[str] = set()
+        self.sent: set[str] = set()
         self.final = False
-        self._first_gone: float | None = None
+        self._first_over: float | None = None
         self._grace = grace_s
         self._lock = threading.Lock()
-        self._sub = session.liveliness().declare_subscriber(
-            f"bttsim/{rig}/alive/*", self._on_sample, history=True)
-        if threading.current_thread() is threading.main_thread():
+        self._subs = [session.liveliness().declare_subscriber(f"bttsim/{rig}/{kind}/*", on, history=True)
+                      for kind, on in (("alive", self._on_sample), ("sent", self._on_sent))]
+        self._handles = threading.current_thread() is threading.main_thread()
+        if self._handles:
             signal.signal(GONE_SIGNAL, self._on_gone)
 
     def _on_gone(self, _signum, _frame) -> None:  # a signal handler: no lock (see StopFlag)
@@ -575,18 +580,31 @@ class NodeWatch:
                 self.gone.discard(name)
             elif name in self.seen:
                 self.gone.add(name)
-                if self._first_gone is None:
-                    self._first_gone = time.monotonic()
+                self._first_over = self._first_over or time.monotonic()
+
+    def _on_sent(self, sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if name in self.names and sample.kind == zenoh.SampleKind.PUT:
+            with self._lock:
+                self.seen.add(name)
+                self.sent.add(name)
+                self._first_over = self._first_over or time.monotonic()
 
     def ended(self) -> bool:
         with self._lock:
-            if not self.gone:
+            over = self.gone | self.sent
+            if not over:
                 return False
-            if self.gone >= set(self.names):
+            if over >= set(self.names):
                 return True
-            if self.gone >= self.seen and time.monotonic() - self._first_gone > self._grace:
-                return True
-            return False
+            return over >= self.seen and time.monotonic() - self._first_over > self._grace
 
     def undeclare(self) -> None:
-        self._sub.undeclare()
+        """Stop following; :data:`GONE_SIGNAL` is ignored again from here on. Python resets
+        its own signal handlers to the default action (terminate) when the interpreter exits,
+        and ``bttsim run`` may send the signal just then, once the last node this one follows
+        is reaped: a node that did its work would die of it."""
+        for sub in self._subs:
+            sub.undeclare()
+        if self._handles:
+            signal.signal(GONE_SIGNAL, signal.SIG_IGN)
