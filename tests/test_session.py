@@ -258,8 +258,10 @@ with node_session(make_config(connect=[sys.argv[1]]), "rig1", "sim") as ctx:
     pub = ctx.publisher("bttsim/rig1/data")
     for i in range(int(sys.argv[2])):
         pub.put(i.to_bytes(8, "little"))
+    if sys.argv[3:] == ["declare"]:
+        ctx.sent()  # all published; now it would wait for its consumers' confirmations
     print("sent", flush=True)
-    sys.stdin.readline()  # until killed
+    sys.stdin.readline()  # until killed (or told)
 """
 
 
@@ -320,21 +322,6 @@ def test_a_closed_node_ignores_the_gone_signal_while_it_exits():
     assert out.stdout.strip() == "1"
 
 
-_SENT_PUBLISHER = """
-import sys
-from bttsim_stream.bus.session import make_config
-from bttsim_stream.runtime import node_session
-
-with node_session(make_config(connect=[sys.argv[1]]), "rig1", "sim") as ctx:
-    ctx.announce()
-    pub = ctx.publisher("bttsim/rig1/data")
-    for i in range(int(sys.argv[2])):
-        pub.put(i.to_bytes(8, "little"))
-    ctx.sent()  # all published; now it would wait for its consumers' confirmations
-    print("sent", flush=True)
-    sys.stdin.readline()  # until told
-"""
-
 _TAIL_CONSUMER = """
 import json, sys, time
 from bttsim_stream.bus.session import StopFlag, make_config
@@ -371,7 +358,7 @@ def test_a_consumer_ends_once_its_publisher_has_sent_all_while_that_publisher_wa
     try:
         out = _procs.LineWatch(consumer.stdout)
         out.wait_for(lambda ln: ln.strip() == "ready", timeout=60)
-        publisher = subprocess.Popen([sys.executable, "-c", _SENT_PUBLISHER, ep, str(n)], cwd=_procs.REPO,
+        publisher = subprocess.Popen([sys.executable, "-c", _PUBLISHER, ep, str(n), "declare"], cwd=_procs.REPO,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         _procs.LineWatch(publisher.stdout).wait_for(lambda ln: ln.strip() == "sent", timeout=60)
         t_sent = time.monotonic()
