@@ -309,6 +309,7 @@ print(int(status["SigIgn"], 16) >> (int(GONE_SIGNAL) - 1) & 1, flush=True)
 """
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
 def test_a_closed_node_ignores_the_gone_signal_while_it_exits():
     """``bttsim run`` sends the gone signal once the last node a consumer follows is reaped,
