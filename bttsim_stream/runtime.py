@@ -575,7 +575,9 @@ class NodeContext:
         node that can tell whether it has everything (``done()``: e.g. every revolution of the
         run) waits up to ``patience_s`` of silence for the rest before it gives up -- unless
         the watched nodes are known to be gone for good (:attr:`NodeWatch.final`: their
-        process was reaped), when ``idle_s`` of silence is enough.
+        process was reaped), when ``idle_s`` of silence is enough. A consumer that lacks part
+        of the run also counts a watched node that declared it has sent all (its ``sent``
+        token) as ended: that node waits for this one's confirmation before it leaves.
         """
         idle_since = None
         left = None  # samples still to hand out once stopped
@@ -599,9 +601,12 @@ class NodeContext:
                 continue
             if left is not None:
                 return
-            if self.watch is not None and self.watch.ended():
+            have = self.watch is not None and (done is None or done())
+            # a followed node that sent all and waits for confirmations ends the wait only of a
+            # consumer that lacks part of the run (it would wait for that node, which waits for it)
+            if self.watch is not None and self.watch.ended(sent=not have):
                 idle_since = idle_since or time.monotonic()
-                wait = idle_s if done is None or self.watch.final or done() else patience_s
+                wait = idle_s if have or self.watch.final else patience_s
                 if time.monotonic() - idle_since > wait:
                     return
             yield None

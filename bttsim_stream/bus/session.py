@@ -558,7 +558,7 @@ class NodeWatch:
         self.gone: set[str] = set()
         self.sent: set[str] = set()
         self.final = False
-        self._first_over: float | None = None
+        self._first: dict[str, float] = {}  # when the first node went ("gone") or sent all ("sent")
         self._grace = grace_s
         self._lock = threading.Lock()
         self._subs = [session.liveliness().declare_subscriber(f"bttsim/{rig}/{kind}/*", on, history=True)
@@ -580,31 +580,40 @@ class NodeWatch:
                 self.gone.discard(name)
             elif name in self.seen:
                 self.gone.add(name)
-                self._first_over = self._first_over or time.monotonic()
+                self._first.setdefault("gone", time.monotonic())
 
     def _on_sent(self, sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if name in self.names and sample.kind == zenoh.SampleKind.PUT:
-            with self._lock:
+        if name not in self.names:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
                 self.seen.add(name)
                 self.sent.add(name)
-                self._first_over = self._first_over or time.monotonic()
+                self._first.setdefault("sent", time.monotonic())
+            else:  # that instance left (its alive token goes too); one that comes back declares anew
+                self.sent.discard(name)
 
-    def ended(self) -> bool:
+    def ended(self, sent: bool = True) -> bool:
+        """True once the named nodes are over (above); ``sent=False``: only once they are gone
+        (a node that sent all but still waits for confirmations is not over)."""
         with self._lock:
-            over = self.gone | self.sent
+            over = self.gone | self.sent if sent else set(self.gone)
             if not over:
                 return False
             if over >= set(self.names):
                 return True
-            return over >= self.seen and time.monotonic() - self._first_over > self._grace
+            first = min(t for k, t in self._first.items() if sent or k == "gone")
+            return over >= self.seen and time.monotonic() - first > self._grace
 
     def undeclare(self) -> None:
         """Stop following; :data:`GONE_SIGNAL` is ignored again from here on. Python resets
         its own signal handlers to the default action (terminate) when the interpreter exits,
         and ``bttsim run`` may send the signal just then, once the last node this one follows
         is reaped: a node that did its work would die of it."""
-        for sub in self._subs:
-            sub.undeclare()
-        if self._handles:
-            signal.signal(GONE_SIGNAL, signal.SIG_IGN)
+        try:
+            for sub in self._subs:
+                sub.undeclare()
+        finally:
+            if self._handles and signal.getsignal(GONE_SIGNAL) == self._on_gone:  # still ours
+                signal.signal(GONE_SIGNAL, signal.SIG_IGN)
