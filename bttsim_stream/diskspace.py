@@ -34,7 +34,9 @@ def estimate_output_bytes(scn, *, model=None, include_truth: bool = True, run: b
     (the output folder) for scenario ``scn`` (``model``: its modal model, when already built)."""
     from .acquisition import AcquisitionStream  # the simulator: only when asked
 
-    acq = AcquisitionStream(scn, model, include_truth=include_truth, chunk_revolutions=SAMPLE_REVOLUTIONS)
+    # in the simulator's own batches (as ``simulate`` runs it): a batch of SAMPLE_REVOLUTIONS
+    # revolutions of 16 probes held 48 MB of crossings at once, more than the whole simulation
+    acq = AcquisitionStream(scn, model, include_truth=include_truth, chunk_revolutions=None)
     n_rev = int(acq.info.n_revolutions)
     payload, revs = [], 0
     for batch, msgs in acq.batches():
