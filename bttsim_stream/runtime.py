@@ -262,8 +262,9 @@ def add_duration_argument(p: argparse.ArgumentParser) -> None:
 def add_drain_argument(p: argparse.ArgumentParser) -> None:
     """``--drain-timeout``: how long a consumer waits for the rest of a run whose nodes have gone."""
     p.add_argument("--drain-timeout", type=seconds, default=DRAIN_TIMEOUT_S, metavar="S",
-                   help="when the nodes it follows are gone before the whole run came in (a router restart, a "
-                        f"lease expiry), wait up to S seconds of silence for the rest ({DRAIN_TIMEOUT_S:g})")
+                   help="when the nodes it follows are gone (or have sent all) before the whole run came in (a "
+                        f"router restart, a lease expiry), wait up to S seconds of silence for the rest "
+                        f"({DRAIN_TIMEOUT_S:g})")
 
 
 #: Names a consumer node cannot take: the publishers (which ``--wait-for`` does not count, and

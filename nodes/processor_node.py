@@ -10,7 +10,8 @@ the end ``bttsim/<rig>/resonance`` (``ResonanceReport``) and, with ``--summary``
 Liveliness: ``bttsim/<rig>/alive/processor``; status ``bttsim/<rig>/status/processor`` (``done``
 with the report's completeness counts and the acquisition numbers not received, per key).
 Ends when the simulator's token goes (at once if the whole acquisition stream came in, else
-after ``--drain-timeout`` seconds of silence: it may come back, a router restart), on
+after ``--drain-timeout`` seconds of silence: it may come back, a router restart; so also once
+the simulator has declared that it sent all, ``bttsim/<rig>/sent/sim``, while it waits for it), on
 ``--duration``, SIGINT or SIGTERM. After its report it stays until every node that awaits
 it (token ``bttsim/<rig>/awaiting/<node>``: a recorder or viewer that follows the processor)
 has it (``bttsim/<rig>/reported/<node>``), at most ``--drain-timeout`` seconds: closing the

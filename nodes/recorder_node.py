@@ -36,7 +36,8 @@ Following the processor, the recorder declares ``bttsim/<rig>/awaiting/recorder`
 metadata and ``bttsim/<rig>/reported/recorder`` once it has the report: the processor stays
 until then. Stops when the liveliness tokens of the nodes named by ``--until`` (default: the
 simulator, ``alive/sim``) have gone -- at once if the whole acquisition stream came in, else after
-``--drain-timeout`` seconds of silence (they may come back: a router restart) -- after
+``--drain-timeout`` seconds of silence (they may come back: a router restart; so also once they
+have declared that they sent all, ``bttsim/<rig>/sent/<node>``, while they wait for it) -- after
 ``--duration`` seconds, or on SIGINT / SIGTERM; the file is finalised in every case. After
 SIGKILL the file reads back up to its last complete chunk. A recorder that misses numbers (a
 stall, a lost link) asks the publishers' caches for them again -- the simulator's keep its

@@ -19,8 +19,9 @@ received (head, gaps, tail against the run's counts); exit status 3 when anythin
 Stops when the nodes named by ``--until`` (default: the simulator) have gone and the bus is
 drained -- if the run is not whole (its acquisition stream and, when ``--until`` names the
 processor, the processor's resonance report), after ``--drain-timeout`` seconds of
-silence (with ``--web`` it then finalises the .rrd, says so in its status, ``serving``, and
-keeps serving) -- after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
+silence, also counted from when they declared that they sent all (``bttsim/<rig>/sent/<node>``;
+with ``--web`` it then finalises the .rrd, says so in its status, ``serving``, and keeps
+serving) -- after ``--duration`` seconds, or on SIGINT / SIGTERM / SIGHUP;
 the .rrd is finalised in every case. The web viewer (page and data server) listens on
 ``--bind`` (127.0.0.1) only.
 """
