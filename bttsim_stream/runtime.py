@@ -549,7 +549,7 @@ class NodeContext:
     def sent(self, rig: str | None = None) -> None:
         """Declare (once per rig) the token ``bttsim/<rig>/sent/<name>``: this node has published
         all it will and only waits for confirmations now (:func:`~bttsim_stream.bus.keys.sent_key`);
-        the consumers that follow it then end once drained, without waiting for it to leave."""
+        a consumer that follows it and lacks part of the run then stops waiting for it to leave."""
         self.confirm(keys.sent_key, rig)
 
     def confirm(self, token_key, rig: str | None = None) -> None:

@@ -221,8 +221,9 @@ def reported_key(rig: str, node: str) -> str:
 def sent_key(rig: str, node: str) -> str:
     """Liveliness token of a publisher that has published all it will (``bttsim/<rig>/sent/<node>``:
     the simulator's or replay's whole stream, the processor's report) and now only waits for its
-    consumers' confirmations: a consumer that follows it stops waiting for its process to end
-    (which waits for that consumer), and waits only for what is still on its way."""
+    consumers' confirmations: a consumer that follows it and lacks part of the run stops waiting
+    for its process to end (which waits for that consumer), and waits only for what may still be
+    on its way."""
     return _token_key(rig, "sent", node)
 
 

@@ -541,9 +541,10 @@ class NodeWatch:
     :meth:`ended` is true once every named node has been seen and is over -- gone, or has
     declared that it published all it will (``bttsim/<rig>/sent/<name>``,
     :func:`~bttsim_stream.bus.keys.sent_key`: a simulator that then waits for its consumers'
-    confirmations) -- or once the first of them is over and ``grace_s`` passed without the
-    others ever appearing (a node that was never started). Tokens also go on SIGKILL, so a
-    crashed node ends a run too.
+    confirmations; :meth:`~bttsim_stream.runtime.NodeContext.samples` counts that only for a
+    consumer lacking part of the run) -- or once the first of them is over and ``grace_s``
+    passed without the others ever appearing (a node that was never started). Tokens also go
+    on SIGKILL, so a crashed node ends a run too.
 
     :attr:`final` tells whether the nodes that went are gone for good: set by
     :data:`GONE_SIGNAL` (installed here when built in the main thread), which ``bttsim run``
