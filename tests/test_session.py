@@ -229,23 +229,25 @@ def test_a_receiver_stalled_with_samples_in_its_fifo_reads_them_intact():
 # A consumer told that the node it follows is gone for good ends once drained
 # --------------------------------------------------------------------------------------
 
-_PATIENT_CONSUMER = """
-import json, sys
+_CONSUMER = """
+import json, sys, time
 from bttsim_stream.bus.session import StopFlag, make_config
 from bttsim_stream.runtime import node_session
 
+# argv: endpoint, samples to announce ("all in"), samples that make it done (-1: never), patience
+n_sent, n_all, patience = int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
 with node_session(make_config(listen=[sys.argv[1]]), "rig1", "recorder") as ctx:
     ctx.subscribe("bttsim/rig1/data")
     ctx.watch_nodes(("sim",))
     ctx.announce()
     print("ready", flush=True)
     n = 0
-    # never done, and an hour of patience: only the gone signal ends this before the test's timeout
-    for r in ctx.samples(StopFlag(install=False), done=lambda: False, patience_s=3600.0):
+    for r in ctx.samples(StopFlag(install=False), done=lambda: n_all >= 0 and n >= n_all, patience_s=patience):
         n += r is not None
-        if r is not None and n == int(sys.argv[2]):
-            print("got them", flush=True)
-    print(json.dumps({"n": n, "final": ctx.watch.final}), flush=True)
+        if r is not None and n == n_sent:
+            print("all in", flush=True)
+    print(json.dumps({"n": n, "final": ctx.watch.final, "sent": sorted(ctx.watch.sent), "t": time.monotonic()}),
+          flush=True)
 """
 
 _PUBLISHER = """
@@ -274,7 +276,8 @@ def test_a_consumer_told_its_publisher_is_gone_for_good_ends_once_drained():
     handed out -- every sample the publisher sent before it died."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     n = 500
-    consumer = subprocess.Popen([sys.executable, "-c", _PATIENT_CONSUMER, ep, str(n)], cwd=_procs.REPO,
+    # never done, and an hour of patience: only the gone signal ends it before the test's timeout
+    consumer = subprocess.Popen([sys.executable, "-c", _CONSUMER, ep, str(n), "-1", "3600"], cwd=_procs.REPO,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     publisher = None
     try:
@@ -283,12 +286,13 @@ def test_a_consumer_told_its_publisher_is_gone_for_good_ends_once_drained():
         publisher = subprocess.Popen([sys.executable, "-c", _PUBLISHER, ep, str(n)], cwd=_procs.REPO,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         _procs.LineWatch(publisher.stdout).wait_for(lambda ln: ln.strip() == "sent", timeout=60)
-        out.wait_for(lambda ln: ln.strip() == "got them", timeout=60)
+        out.wait_for(lambda ln: ln.strip() == "all in", timeout=60)
         publisher.kill()
         publisher.wait(30)
         consumer.send_signal(GONE_SIGNAL)
         line = out.wait_for(lambda ln: ln.startswith("{"), timeout=60)
-        assert json.loads(line) == {"n": n, "final": True}
+        got = json.loads(line)
+        assert (got["n"], got["final"]) == (n, True)
         assert consumer.wait(30) == 0
     finally:
         for p in (publisher, consumer):
@@ -324,26 +328,6 @@ def test_a_closed_node_ignores_the_gone_signal_while_it_exits():
     assert out.stdout.strip() == "1"
 
 
-_TAIL_CONSUMER = """
-import json, sys, time
-from bttsim_stream.bus.session import StopFlag, make_config
-from bttsim_stream.runtime import node_session
-
-n_all, patience = int(sys.argv[2]), float(sys.argv[3])
-with node_session(make_config(listen=[sys.argv[1]]), "rig1", "processor") as ctx:
-    ctx.subscribe("bttsim/rig1/data")
-    ctx.watch_nodes(("sim",))
-    ctx.announce()
-    print("ready", flush=True)
-    n = 0
-    for r in ctx.samples(StopFlag(install=False), done=lambda: n >= n_all, patience_s=patience):
-        n += r is not None
-        if r is not None and n == n_all:
-            print("all in", flush=True)
-    print(json.dumps({"n": n, "sent": sorted(ctx.watch.sent), "t": time.monotonic()}), flush=True)
-"""
-
-
 @pytest.mark.integration
 @pytest.mark.parametrize("lost_tail", [False, True])
 def test_a_consumer_that_lost_the_tail_ends_while_its_publisher_waits(lost_tail):
@@ -356,7 +340,7 @@ def test_a_consumer_that_lost_the_tail_ends_while_its_publisher_waits(lost_tail)
     ep = f"tcp/127.0.0.1:{free_port()}"
     n = 300
     patience = 2.0
-    consumer = subprocess.Popen([sys.executable, "-c", _TAIL_CONSUMER, ep, str(n + 1 if lost_tail else n),
+    consumer = subprocess.Popen([sys.executable, "-c", _CONSUMER, ep, str(n), str(n + 1 if lost_tail else n),
                                  str(patience)], cwd=_procs.REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True)
     publisher = None
@@ -382,6 +366,5 @@ def test_a_consumer_that_lost_the_tail_ends_while_its_publisher_waits(lost_tail)
         assert consumer.wait(30) == 0
     finally:
         for p in (publisher, consumer):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait()
+            if p is not None:
+                _procs.stop(p, signal.SIGKILL)
