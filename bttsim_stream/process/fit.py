@@ -130,6 +130,11 @@ class SineFit:
         """
         return self.coeffs[..., 1::2] + 1j * self.coeffs[..., 2::2]
 
+    def phasor_at(self, i: int, rows=slice(None), blades=slice(None)) -> np.ndarray:
+        """``phasor[rows, blades, i]`` (the same numbers) without the whole run's phasors:
+        order ``i``'s complex response of the revolutions (and blades) asked for."""
+        return self.coeffs[rows, blades, 1 + 2 * i] + 1j * self.coeffs[rows, blades, 2 + 2 * i]
+
 
 def _window_sums(x: np.ndarray, window: int) -> np.ndarray:
     """Sum of ``x`` along axis 0 over the centred window (truncated at the ends)."""

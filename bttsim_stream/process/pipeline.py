@@ -25,7 +25,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_contamination, resolve_engine_orders, speed_segments)
 from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, Displacements, Geometry, compute_displacements,
                            rotor_phase_from_opr)
-from .fit import SineFit, fit_revolutions, quiet
+from .fit import FIT_CHUNK, SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
 from .zeroing import correction_size, zeroing_correction
@@ -118,6 +118,19 @@ def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: in
     return fit
 
 
+def _first_amplitudes(d0: "_Centred", angles, eos: tuple, joint: bool) -> np.ndarray:
+    """The first pass's Eq. 16 amplitudes (one revolution per fit), shape (n_rev, n_blades,
+    n_orders): fitted :data:`~.fit.FIT_CHUNK` revolutions at a time, as :func:`_fit` does
+    (the same numbers: no fit spans two revolutions), without the run's other fit arrays or
+    the zeroed displacements held whole."""
+    n_rev, nb = d0.shape[:2]
+    amp = np.empty((n_rev, nb, len(eos)))
+    for a in range(0, n_rev, FIT_CHUNK):
+        b = min(a + FIT_CHUNK, n_rev)
+        amp[a:b] = _fit(d0[a:b], angles, eos, joint, None, 1).amp_pkpk_m
+    return amp
+
+
 def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
     x = d if rows is None else d[rows]
     import warnings
@@ -157,8 +170,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         truth).
     spectra : bool
         Compute the per-revolution travelling-wave spectra (``probe_tw``, ``fit_tw``: two
-        run-sized arrays that the report does not use; False: None, for the callers that
-        need the report only).
+        run-sized arrays that the report does not use) and keep the prepared displacements
+        (False: the report only, for the callers that need nothing else: the spectra are
+        None and ``prepared.d_m`` is None, freed once the report's fits are made).
 
     Returns
     -------
@@ -201,6 +215,11 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes)
     d = prepared.d_m if prepared is not None else disp.d_m
     fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options)
+    eo = survey.eos[0]
+    probe_tw = probe_spectra(d, eo) if spectra else None
+    del d
+    if not spectra and prepared is not None:  # the report alone: the prepared displacements are done with
+        prepared = replace(prepared, d_m=None)
     # 4. per crossing and per dwell
     ctx = _Context(geometry=geometry, eos=survey.eos, joint=survey.joint, cns=cns, fit=fit, raw=raw, d_flat=d_flat,
                    omega=survey.omega, opr=opr, t_sample=_sample_times(toa) if survey.crossings else None,
@@ -211,10 +230,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                    offset_removed=bool(prepared is not None and prepared.options.remove_offset), nsv=tuple(survey.nsv))
     report = _report(ctx, survey, eos_asked, info, ref_info, notes)
     # 5. travelling waves and the resonance revolutions of the first order
-    eo = survey.eos[0]
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
-                            displacements=disp, prepared=prepared, fit=fit,
-                            probe_tw=probe_spectra(d, eo) if spectra else None,
+                            displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_tw,
                             fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad) if spectra else None,
                             resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev),
                             report=report, segments=survey.segments, crossings=tuple(survey.crossings),
@@ -285,21 +302,21 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
     scan = options.eo_range is not None
     angles = geometry.probe_angles_rad
     omega = first.omega_rad_s
-    d0 = first.d_m - _column_median(first.d_m)[None]
-    fit0 = _fit(d0, angles, eos_asked, joint, omega, 1)
+    d0 = _Centred(first.d_m, _column_median(first.d_m))
+    amp0 = _first_amplitudes(d0, angles, eos_asked, joint)
     segments = speed_segments(opr, omega, det)
     crossings: list[Crossing] = []
     for i, eo in enumerate(eos_asked):
         dropped: list = []
-        crossings += detect_crossings(fit0.amp_pkpk_m[..., i], eo, segments, det, dropped)
+        crossings += detect_crossings(amp0[..., i], eo, segments, det, dropped)
         notes += [f"EO {eo}: the peak at revolution {revolution0 + r} ({omega[r] * 60 / TWO_PI:.0f} rpm, SNR {snr:.3g} "
                   f"against the per-revolution noise) is not reported as a resonance: the amplitude's own scatter "
                   f"over {det.filter_revolutions} revolutions makes it as large (SNR {slow:.2g} < "
                   f"{det.snr_threshold:g}; noise correlated over several revolutions, e.g. a speed fluctuation)"
                   for r, snr, slow in dropped]
-    if len(eos_asked) > 1 and not joint:
-        crossings = resolve_engine_orders(crossings, _misfits(d0, angles, eos_asked, fit0))
-    nsv_scan, nsv = _detect_nsv(first, d0, geometry, options, truth, revolution0)
+    if len(eos_asked) > 1 and not joint:  # each order on its own: their misfits tell them apart
+        crossings = resolve_engine_orders(crossings, _misfits(d0[:], angles, eos_asked))
+    nsv_scan, nsv = _detect_nsv(first, d0[:], geometry, options, truth, revolution0)
     notes += [rigid_body_note(n) for n in nsv if is_rigid_body(n)]
     nsv = tuple(n for n in nsv if not is_rigid_body(n))
     if nsv:
@@ -307,10 +324,10 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
     crossings = _separate(crossings)
     eos = tuple(sorted({c.eo for c in crossings})) if scan else eos_asked
     if scan and not eos:
-        eos = (_best_dwell_eo(fit0, eos_asked, segments) or eos_asked[0],)
+        eos = (_best_dwell_eo(amp0, eos_asked, segments) or eos_asked[0],)
     if scan:
         joint = fits_jointly(eos, geometry)
-    return _Survey(omega=omega, amp0=fit0.amp_pkpk_m, segments=segments, crossings=crossings, nsv_scan=nsv_scan,
+    return _Survey(omega=omega, amp0=amp0, segments=segments, crossings=crossings, nsv_scan=nsv_scan,
                    nsv=nsv, eos=eos, joint=joint)
 
 
@@ -491,11 +508,11 @@ def _num(x):
     return x if math.isfinite(x) else None
 
 
-def _misfits(d: np.ndarray, angles, eos: tuple, fit: SineFit) -> dict:
+def _misfits(d: np.ndarray, angles, eos: tuple) -> dict:
     """Per order: relative misfit of its own single-order fit over a range of revolutions."""
     out = {}
-    for _i, eo in enumerate(eos):
-        f = fit if len(eos) == 1 else fit_revolutions(d, angles, (eo,))
+    for eo in eos:
+        f = fit_revolutions(d, angles, (eo,))
         res = f.residual_rms_m
         amp = f.amp_pkpk_m[..., 0]
 
@@ -508,13 +525,14 @@ def _misfits(d: np.ndarray, angles, eos: tuple, fit: SineFit) -> dict:
     return out
 
 
-def _best_dwell_eo(fit0: SineFit, eos: tuple, segments: RunSegments):
-    """In a scan without crossing: the order with the largest response over the dwells."""
+def _best_dwell_eo(amp0: np.ndarray, eos: tuple, segments: RunSegments):
+    """In a scan without crossing: the order with the largest response over the dwells
+    (``amp0``: the first pass's amplitudes, (n_rev, n_blades, n_orders))."""
     if not segments.dwells:
         return None
-    mask = segments.dwell_mask(fit0.amp_pkpk_m.shape[0])
+    mask = segments.dwell_mask(amp0.shape[0])
     with np.errstate(all="ignore"):
-        amp = np.nanmean(fit0.amp_pkpk_m[mask], axis=(0, 1))
+        amp = np.nanmean(amp0[mask], axis=(0, 1))
     return int(eos[int(np.nanargmax(amp))]) if np.isfinite(amp).any() else None
 
 
@@ -584,6 +602,22 @@ class _Flat:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class _Centred:
+    """Displacements less a constant per column, ``d_m - median[None]``, computed for the
+    revolutions asked for (``centred[rows]``: the same numbers as the whole array's rows)."""
+
+    d_m: np.ndarray
+    median_m: np.ndarray
+
+    @property
+    def shape(self) -> tuple:
+        return self.d_m.shape
+
+    def __getitem__(self, rows) -> np.ndarray:
+        return self.d_m[rows] - self.median_m[None]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class _Raw:
     """Unsmoothed (offset-removed) fits: amplitude and complex response."""
 
@@ -615,7 +649,7 @@ class _Context:
 
 
 def _nd(ctx: _Context, i: int, eo: int, rows) -> int:
-    tw = fit_spectra(ctx.fit.phasor[rows, :, i], eo, ctx.geometry.blade_angles_rad)
+    tw = fit_spectra(ctx.fit.phasor_at(i, rows), eo, ctx.geometry.blade_angles_rad)
     return identify_nd(tw)
 
 
@@ -626,7 +660,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
     amp, ph = fit.amp_pkpk_m[..., i], fit.phase_rad[..., i]
     corr = zeroing_correction(ctx, c, i)
     if corr is not None:  # the response the reference held, added back in the crossing's window
-        P = fit.phasor[..., i].copy()
+        P = fit.phasor_at(i)
         P[c.lo:c.hi + 1] += corr[None, :]
         amp, ph = 2.0 * np.abs(P), np.angle(P)
     method, sweep = opts.method, math.nan
@@ -655,7 +689,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
                             half_power_width=c.half_power_width, amp_noise_m=amplitude_noise(raw[c.lo:c.hi + 1]))
         elif opts.method == "sdof":
             pk, sweep = _sdof(ctx, c, i, pk.freq_hz)
-    zc = correction_size(corr, fit.phasor[c.lo:c.hi + 1, :, i])
+    zc = correction_size(corr, fit.phasor_at(i, slice(c.lo, c.hi + 1)))
     check = _zeroing_check(ctx, c, i, pk, corr)
     if pk.method == "sdof" and pk.offset_m is not None:  # its own frame: the responses less its constant
         corr = -np.where(np.isfinite(pk.offset_m), pk.offset_m, 0.0)
@@ -791,8 +825,8 @@ def _intervals(ctx: _Context, c: Crossing, i: int, pk: ResonancePeaks, amp, ph, 
         raw = raw.copy()
         raw[c.lo:c.hi + 1] = 2.0 * np.abs(ctx.raw.phasor[c.lo:c.hi + 1, :, i] + corr[None, :])
     eos_fit = ctx.eos if ctx.joint else (c.eo,)
-    rev = np.clip(np.nan_to_num(pk.revolution, nan=c.peak).round().astype(np.int64), 0, ctx.fit.phasor.shape[0] - 1)
-    P = ctx.fit.phasor[rev, np.arange(rev.size), i]
+    rev = np.clip(np.nan_to_num(pk.revolution, nan=c.peak).round().astype(np.int64), 0, ctx.fit.coeffs.shape[0] - 1)
+    P = ctx.fit.phasor_at(i, rev, np.arange(rev.size))
     gain = layout_gain(ctx.geometry.probe_angles_rad, eos_fit, eos_fit.index(c.eo), P)
     ref = ctx.reference
     contamination = float(ref.contamination) if ref is not None and ref.start is not None else math.nan

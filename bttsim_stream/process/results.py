@@ -137,6 +137,7 @@ class ProcessingResult:
     displacements : Displacements
         Raw Eq. 1 displacements (zeroed on :attr:`reference`).
     prepared : PreparedData or None
+        Its ``d_m`` None when the report alone was asked for (``spectra=False``).
     fit : SineFit
         Fits of the prepared displacements (raw when ``prep`` is off).
     probe_tw : TravellingWaveSpectra or None

@@ -35,7 +35,7 @@ def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
         d_mean = np.nanmean(ctx.d_flat[a:b], axis=0)  # (blades, probes): the steady response at each probe
     radius = ctx.geometry.tip_radius_m if opts.sampling_angles else None
     for i, eo in enumerate(ctx.eos):
-        P = ctx.fit.phasor[a:b, :, i]
+        P = ctx.fit.phasor_at(i, slice(a, b))
         Praw = ctx.raw.phasor[a:b, :, i]
         corr, source = _dwell_correction(ctx, eo, i)
         with quiet():

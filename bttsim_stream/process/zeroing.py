@@ -55,7 +55,7 @@ def zeroing_tail(ctx, c: Crossing, i: int):
     idx = idx[np.abs(h[idx]) <= TAIL_LEVEL]
     if idx.size < 16:
         return None
-    return h_ref, h[idx] - h_ref, ctx.fit.phasor[idx, :, i]
+    return h_ref, h[idx] - h_ref, ctx.fit.phasor_at(i, idx)
 
 
 def tail_gain(g: np.ndarray, P: np.ndarray) -> np.ndarray:
