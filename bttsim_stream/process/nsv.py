@@ -28,8 +28,8 @@ in revolution ``n`` at rotor angle ``2 pi n + psi_bj`` (``psi_bj`` the arrival a
   ND ``k`` by a spatial DFT (a wrong whole part ``m`` of the order shifts the ND by the same
   amount: the stationary-frame order ``nu - k`` is what one probe alone sees).
 
-Method (per block, vectorised over blocks)
-------------------------------------------
+Method (per block, vectorised over the blocks of a chunk)
+---------------------------------------------------------
 Each blade and probe's block of displacements has its mean and a quadratic trend in the
 revolution removed (the slowly varying synchronous response and the offsets), is Hann
 windowed, and transformed along the revolutions (zero-padded FFT). The power summed over
@@ -73,6 +73,12 @@ TWO_PI = 2.0 * np.pi
 MIN_WHOLE_RUN = 16
 #: ``amp_last_pkpk_m``: the median of the per-revolution amplitudes over this many last revolutions.
 LAST_REVOLUTIONS = 8
+#: Samples (revolutions x blades x probes) of the whole blocks that :func:`scan_blocks` reads
+#: and transforms at once (at least one block): every block is analysed on its own (its
+#: spectrum, statistic, peak and fit use its own revolutions only), so chunks of blocks give
+#: the same numbers, with temporaries bounded by the chunk (a few arrays of it, 2 MB each)
+#: instead of growing with the run.
+NSV_CHUNK = 1 << 18
 
 
 @dataclass(frozen=True, slots=True)
@@ -298,14 +304,21 @@ def _detrend_basis(L: int) -> np.ndarray:
     return q
 
 
-def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
+def scan_blocks(d_m, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
                 options: NsvOptions = NsvOptions(), *, starts=None) -> NsvScan:
     """Analyse every whole block of revolutions for a non-synchronous response.
 
+    The blocks are read and transformed in chunks of whole blocks (:data:`NSV_CHUNK`
+    samples): the temporaries are bounded by the chunk, not the run; every block's numbers
+    are its own (the same as in one pass over the whole run).
+
     Parameters
     ----------
-    d_m : ndarray, shape (n_rev, n_blades, n_probes)
-        Eq. 1 displacements, m (NaN: missing); offsets need not be removed.
+    d_m : ndarray or row-sliceable object, shape (n_rev, n_blades, n_probes)
+        Eq. 1 displacements, m (NaN: missing); offsets need not be removed. Only
+        ``d_m.shape`` and row slices ``d_m[a:b]`` (contiguous revolutions, returning an
+        ndarray of those rows) are used: a lazy object computing the rows asked for will do
+        (e.g. the pipeline's ``_Flat``).
     omega_rad_s : ndarray, shape (n_rev,)
         Mean speed of each revolution, rad/s.
     arrival_angles_rad : ndarray, shape (n_blades, n_probes)
@@ -319,8 +332,7 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     -------
     NsvScan
     """
-    d = np.asarray(d_m, dtype=float)
-    n_rev, nb, npr = d.shape
+    n_rev, nb, npr = (int(n) for n in d_m.shape)
     L = int(options.block)
     whole = starts is None and MIN_WHOLE_RUN <= n_rev < int(options.min_blocks) * L
     if whole:  # a short run: one block of all of it (persistence cannot be checked)
@@ -339,24 +351,41 @@ def scan_blocks(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np
     if nblk == 0 or sp is None:
         return _scan(st, L, out, alternatives, om_blk, np.zeros(nblk, bool), whole)
     n_fft, band, _, _, w_sum = sp
-    S, ratio, i_pk, peak = _band_power(d[idx].reshape(nblk, L, nb * npr), sp)
-    out["ratio"] = ratio
-    k_pk = i_pk + band[0]
-    out["near"] = (i_pk == 0) & (S[:, band[0] - 1] >= S[:, band[0]])
-    # a rough pk-pk amplitude of the peak (a wave equal on every series): blocks far below
-    # the amplitude threshold are not analysed further
-    rough = 4.0 * np.sqrt(peak / (nb * npr)) / w_sum
-    cand = np.flatnonzero((ratio >= options.ratio_threshold) & (rough >= 0.5 * options.min_amp_m))
+    out["near"] = np.zeros(nblk, bool)
     max_order = float(options.max_order) if options.max_order is not None else float(nb)
-    for k in cand:  # few blocks: the ones that may hold an NSV
-        mu0 = _refine(S[k], int(k_pk[k]), n_fft)
-        out["alias"][k] = mu0
-        coef = _joint_fit(_detrended(d[st[k]:st[k] + L][None])[0], mu0)
-        Z = coef[4] + 1j * coef[3]  # A exp(i phase) of each blade and probe at the alias, m
-        _orders(Z, mu0, arrival_angles_rad, max_order, options, out, alternatives, k)
+    per = max(1, NSV_CHUNK // (L * nb * npr))  # whole blocks per chunk
+    for c in range(0, nblk, per):  # chunks of blocks: each block's numbers are its own
+        y = _block_rows(d_m, st[c:c + per], L)  # (n, L, nb, npr)
+        S, ratio, i_pk, peak = _band_power(y.reshape(y.shape[0], L, nb * npr), sp)
+        out["ratio"][c:c + per] = ratio
+        k_pk = i_pk + band[0]
+        out["near"][c:c + per] = (i_pk == 0) & (S[:, band[0] - 1] >= S[:, band[0]])
+        # a rough pk-pk amplitude of the peak (a wave equal on every series): blocks far below
+        # the amplitude threshold are not analysed further
+        rough = 4.0 * np.sqrt(peak / (nb * npr)) / w_sum
+        cand = np.flatnonzero((ratio >= options.ratio_threshold) & (rough >= 0.5 * options.min_amp_m))
+        for i in cand:  # few blocks: the ones that may hold an NSV
+            k = c + int(i)
+            mu0 = _refine(S[i], int(k_pk[i]), n_fft)
+            out["alias"][k] = mu0
+            coef = _joint_fit(_detrended(y[i][None])[0], mu0)
+            Z = coef[4] + 1j * coef[3]  # A exp(i phase) of each blade and probe at the alias, m
+            _orders(Z, mu0, arrival_angles_rad, max_order, options, out, alternatives, k)
+    ratio = out["ratio"]
     detected = ((ratio >= options.ratio_threshold) & (out["amp"] >= options.min_amp_m)
                 & (np.nan_to_num(out["coherence"]) >= options.min_coherence))
     return _scan(st, L, out, alternatives, om_blk, detected, whole)
+
+
+def _block_rows(d_m, starts: np.ndarray, L: int) -> np.ndarray:
+    """The revolutions of the blocks starting at ``starts``, shape (n, L, nb, npr), float, read
+    from ``d_m`` as row slices only: one slice when the blocks follow one another (the
+    default blocks), else one per block."""
+    lo = int(starts[0])
+    if np.array_equal(starts, lo + L * np.arange(starts.size)):
+        x = np.asarray(d_m[lo:lo + L * starts.size], dtype=float)
+        return x.reshape(starts.size, L, *x.shape[1:])
+    return np.stack([np.asarray(d_m[int(s):int(s) + L], dtype=float) for s in starts])
 
 
 def _band_power(y: np.ndarray, sp: tuple) -> tuple:
@@ -559,10 +588,14 @@ def _wave(q: np.ndarray) -> tuple:
     return fwd, bwd, (-i_b if bwd[i_b] > fwd[i_f] else i_f), float(max(fwd[i_f], bwd[i_b]))
 
 
-def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, options: NsvOptions = NsvOptions(),
+def detections(scan: NsvScan, d_m, arrival_angles_rad: np.ndarray, options: NsvOptions = NsvOptions(),
                *, revolution0: int = 0, omega_rad_s: np.ndarray | None = None) -> tuple:
     """Group detected blocks into detections (runs of ``min_blocks`` consecutive blocks of one
     ND and orders within ``3 / block``), with the per-revolution amplitude growth.
+
+    ``d_m`` (n_rev, n_blades, n_probes), as for :func:`scan_blocks` (an ndarray or an object
+    with row slices): only the revolutions of the detections' resolved blocks are read, one
+    block ``d_m[s:s + block]`` at a time (:func:`revolution_amplitudes`).
 
     With ``omega_rad_s`` (n_rev,), each block's frequency is its order times the speed
     averaged with the per-revolution amplitudes squared as weights (where the vibration is:
@@ -575,7 +608,7 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
     """
     near = np.zeros(scan.n_blocks, bool) if scan.near_sync is None else np.asarray(scan.near_sync, bool)
     out = []
-    d = np.asarray(d_m, dtype=float)
+    omega = None if omega_rad_s is None else np.asarray(omega_rad_s, float)
     for run in _group_blocks(scan, near):
         if len(run) < int(options.min_blocks) and not scan.whole_run:
             continue
@@ -588,12 +621,12 @@ def detections(scan: NsvScan, d_m: np.ndarray, arrival_angles_rad: np.ndarray, o
         for k in resolved:
             s = int(scan.start[k])
             revs.append(np.arange(s, s + scan.block))
-            a = revolution_amplitudes(d[s:s + scan.block], arrival_angles_rad, float(scan.order[k]),
-                                      float(scan.alias[k]))
+            a = revolution_amplitudes(np.asarray(d_m[s:s + scan.block], dtype=float), arrival_angles_rad,
+                                      float(scan.order[k]), float(scan.alias[k]))
             amps.append(a)
             w = np.nan_to_num(a) ** 2
-            if omega_rad_s is not None and w.sum() > 0:
-                om = float(np.sum(w * np.asarray(omega_rad_s, float)[s:s + scan.block]) / w.sum())
+            if omega is not None and w.sum() > 0:
+                om = float(np.sum(w * omega[s:s + scan.block]) / w.sum())
             else:
                 om = float(scan.omega_rad_s[k])
             f.append(float(scan.order[k]) * om / TWO_PI)
@@ -716,9 +749,14 @@ def revolution_amplitudes(d_m: np.ndarray, arrival_angles_rad: np.ndarray, order
         return np.sqrt(np.where(n > 0, np.nansum(sq, axis=1) / np.maximum(n, 1), np.nan))
 
 
-def detect_nsv(d_m: np.ndarray, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
+def detect_nsv(d_m, omega_rad_s: np.ndarray, arrival_angles_rad: np.ndarray,
                options: NsvOptions = NsvOptions(), *, revolution0: int = 0) -> tuple[NsvScan, tuple]:
-    """:func:`scan_blocks` then :func:`detections`: the block analysis and the detections."""
+    """:func:`scan_blocks` then :func:`detections`: the block analysis and the detections.
+
+    ``d_m`` (n_rev, n_blades, n_probes): an ndarray, or any object with ``.shape`` and row
+    slices ``d_m[a:b]`` returning an ndarray of those revolutions (e.g. computed on demand):
+    :func:`scan_blocks` reads it in chunks of whole blocks (:data:`NSV_CHUNK` samples),
+    :func:`detections` one detected block at a time; neither holds a run-sized copy."""
     scan = scan_blocks(d_m, omega_rad_s, arrival_angles_rad, options)
     return scan, detections(scan, d_m, arrival_angles_rad, options, revolution0=revolution0, omega_rad_s=omega_rad_s)
 
