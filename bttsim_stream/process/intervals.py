@@ -258,10 +258,10 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
         a0, a1 = _plateau(amp[:, b], k, A[b] - 2.0 * h[b], lo, hi)
         dphi = ph[a0:a1 + 1, b] - psi[b]
         if alt is not None and np.isfinite(alt[3][b]):  # the sequence without the zeroing error
-            k2 = int(alt[3][b])
-            c0, c1 = _plateau(alt[0][:, b], k2, float(alt[0][k2, b]) - 2.0 * h[b], lo, hi)
-            a0, a1 = min(a0, c0), max(a1, c1)
+            k2 = int(alt[3][b]) - lo  # alt's rows are revolutions lo .. hi
+            c0, c1 = _plateau(alt[0][:, b], k2, float(alt[0][k2, b]) - 2.0 * h[b], 0, hi - lo)
             dphi = np.concatenate([dphi, alt[1][c0:c1 + 1, b] - ph[k, b] + np.angle(np.exp(1j * (ph[k, b] - psi[b])))])
+            a0, a1 = min(a0, lo + c0), max(a1, lo + c1)
         fs = f[a0:a1 + 1]
         st = 0.5 * float(np.max(step[a0:a1 + 1]))
         fb = float(peaks.freq_hz[b])
@@ -296,9 +296,12 @@ def _sampling(amp: np.ndarray, ph: np.ndarray, rev: np.ndarray, lo: int, hi: int
         return np.zeros(nb)
     ok = np.isfinite(rev)
     k = np.clip(np.where(ok, rev, lo).round().astype(np.int64), s, n - 1 - s)
-    P = 0.5 * amp * np.exp(1j * ph)
     cols = np.arange(nb)
-    d2 = np.abs(P[k + s, cols] - 2.0 * P[k, cols] + P[k - s, cols]) / (s * s)
+
+    def P(r):  # the responses at revolutions r (one per blade), not the whole run's
+        return 0.5 * amp[r, cols] * np.exp(1j * ph[r, cols])
+
+    d2 = np.abs(P(k + s) - 2.0 * P(k) + P(k - s)) / (s * s)
     out = 2.0 * d2 * (0.125 + 0.5 * float(spread))
     return np.where(ok & np.isfinite(out), out, 0.0)
 
@@ -318,16 +321,15 @@ def _plateau(a: np.ndarray, k: int, floor: float, lo: int, hi: int) -> tuple[int
 def _without_error(amp: np.ndarray, ph: np.ndarray, lo: int, hi: int, error):
     """The crossing's sequences with a complex error ``error`` (per blade, ``a1 + i a2``, m)
     taken out: ``(amp, phase, peak shift, peak revolution)`` (None without an error; NaN
-    revolution for a blade without)."""
+    revolution for a blade without). The amplitude and phase are those of revolutions
+    ``lo .. hi`` only (row 0 is revolution ``lo``); the peak revolution counts from 0."""
     if error is None:
         return None
     e = np.asarray(error, dtype=complex)
-    P = 0.5 * amp * np.exp(1j * ph)
-    P2 = P.copy()
-    P2[lo:hi + 1] = P[lo:hi + 1] - np.where(np.isfinite(e), e, 0.0)[None, :]
+    P2 = 0.5 * amp[lo:hi + 1] * np.exp(1j * ph[lo:hi + 1]) - np.where(np.isfinite(e), e, 0.0)[None, :]
     a2 = 2.0 * np.abs(P2)
     w1 = np.where(np.isfinite(amp[lo:hi + 1]), amp[lo:hi + 1], -np.inf)
-    w2 = np.where(np.isfinite(a2[lo:hi + 1]), a2[lo:hi + 1], -np.inf)
+    w2 = np.where(np.isfinite(a2), a2, -np.inf)
     k2 = lo + np.argmax(w2, axis=0)
     ok = np.isfinite(e) & np.isfinite(w2).any(axis=0)
     shift = np.where(ok, np.max(w2, axis=0) - np.max(w1, axis=0), 0.0)

@@ -98,24 +98,62 @@ def _merge_spans(spans) -> list:
     return out
 
 
-def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius, spans) -> SineFit:
+def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius, spans,
+               report_only: bool = False) -> SineFit:
     """Fits at the probe angles everywhere and, inside ``spans`` (the crossings and dwells,
     where results are read), at the sampling angles. Outside them the response is small, and
-    the two agree (the correction is proportional to the displacement)."""
-    fit = _fit(d, angles, eos, joint, omega, window, None)
+    the two agree (the correction is proportional to the displacement). ``report_only`` (one
+    revolution per fit): only what the report reads -- coefficients, amplitudes, phases --
+    the fit's other arrays None."""
+    if report_only and window == 1:
+        fit = _report_fit(d, angles, eos, joint, omega)
+    else:
+        fit = _fit(d, angles, eos, joint, omega, window, None)
     if radius is None or not spans:
         return fit
     # written in place: the fit's arrays are this function's own (no second copy of the run's fits)
     arrays = {k: getattr(fit, k) for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
-                                           "residual_rms_m", "n_samples")}
+                                           "residual_rms_m", "n_samples") if getattr(fit, k) is not None}
     h = window // 2
     n = d.shape[0]
     for a, b in spans:
+        if window == 1:
+            for lo, hi, f in _chunk_fits(d, a, b, angles, eos, joint, omega, radius):
+                for k, arr in arrays.items():
+                    arr[lo:hi] = getattr(f, k)
+            continue
         lo, hi = max(0, a - h), min(n, b + h)
         f = _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], window, radius)
         for k, arr in arrays.items():
             arr[a:b] = getattr(f, k)[a - lo:b - lo]
     return fit
+
+
+def _report_fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega) -> SineFit:
+    """:func:`_fit` with one revolution per fit, keeping only the coefficients, amplitudes
+    and phases (the same numbers; ``amp_std_m``, ``residual_rms_m`` and ``n_samples`` None):
+    three run-sized arrays fewer for a report."""
+    n_rev, nb = d.shape[:2]
+    n_eo = len(eos)
+    coeffs = np.empty((n_rev, nb, 1 + 2 * n_eo))
+    amp, phase = np.empty((n_rev, nb, n_eo)), np.empty((n_rev, nb, n_eo))
+    f = None
+    for lo, hi, f in _chunk_fits(d, 0, n_rev, angles, eos, joint, omega, None):
+        coeffs[lo:hi], amp[lo:hi], phase[lo:hi] = f.coeffs, f.amp_pkpk_m, f.phase_rad
+    om = np.asarray(omega, dtype=float)
+    return SineFit(engine_orders=tuple(eos), window=1, coeffs=coeffs, amp_pkpk_m=amp, phase_rad=phase, amp_std_m=None,
+                   dc_m=coeffs[..., 0], residual_rms_m=None, n_samples=None, omega_rad_s=om,
+                   freq_hz=om[:, None] * np.asarray(eos, float)[None, :] / TWO_PI, cn=f.cn)
+
+
+def _chunk_fits(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radius):
+    """``(lo, hi, fit)``: the one-revolution fits of revolutions ``a .. b - 1``,
+    :data:`~.fit.FIT_CHUNK` at a time from ``a``, as :func:`_fit` of them all makes them (the
+    same numbers), without a fit of the whole span at once. ``d``: an array or a
+    :class:`_Flat` (rows computed when asked for)."""
+    for lo in range(a, b, FIT_CHUNK):
+        hi = min(lo + FIT_CHUNK, b)
+        yield lo, hi, _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], 1, radius)
 
 
 def _first_amplitudes(d0: "_Centred", angles, eos: tuple, joint: bool) -> np.ndarray:
@@ -172,7 +210,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         Compute the per-revolution travelling-wave spectra (``probe_tw``, ``fit_tw``: two
         run-sized arrays that the report does not use) and keep the prepared displacements
         (False: the report only, for the callers that need nothing else: the spectra are
-        None and ``prepared.d_m`` is None, freed once the report's fits are made).
+        None, ``prepared.d_m`` is None, freed once the report's fits are made, and, with one
+        revolution per fit, so are the fit's ``amp_std_m``, ``residual_rms_m`` and
+        ``n_samples``, which the report does not read).
 
     Returns
     -------
@@ -214,7 +254,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     # 3. data preparation, and the fits of the report
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes)
     d = prepared.d_m if prepared is not None else disp.d_m
-    fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options)
+    fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra)
     eo = survey.eos[0]
     probe_tw = probe_spectra(d, eo) if spectra else None
     del d
@@ -316,7 +356,7 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
                   for r, snr, slow in dropped]
     if len(eos_asked) > 1 and not joint:  # each order on its own: their misfits tell them apart
         crossings = resolve_engine_orders(crossings, _misfits(d0[:], angles, eos_asked))
-    nsv_scan, nsv = _detect_nsv(first, d0[:], geometry, options, truth, revolution0)
+    nsv_scan, nsv = _detect_nsv(first, d0, geometry, options, truth, revolution0)
     notes += [rigid_body_note(n) for n in nsv if is_rigid_body(n)]
     nsv = tuple(n for n in nsv if not is_rigid_body(n))
     if nsv:
@@ -331,10 +371,10 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
                    nsv=nsv, eos=eos, joint=joint)
 
 
-def _detect_nsv(first: Displacements, d0: np.ndarray, geometry: Geometry, options: ProcessOptions, truth,
+def _detect_nsv(first: Displacements, d0: "_Centred", geometry: Geometry, options: ProcessOptions, truth,
                 revolution0: int) -> tuple[NsvScan | None, tuple]:
-    """Non-synchronous vibration of the first pass, scored against the truth when given
-    (scored only: the truth never steers the processing)."""
+    """Non-synchronous vibration of the first pass (``d0`` read by blocks of revolutions),
+    scored against the truth when given (scored only: the truth never steers the processing)."""
     n_rev = d0.shape[0]
     psi0 = first.arrival_angles_rad if first.arrival_angles_rad is not None else geometry.nominal_arrival_angles()
     nsv_scan, nsv = detect_nsv(d0, first.omega_rad_s, psi0, options.nsv, revolution0=revolution0)
@@ -411,15 +451,16 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
-                 survey: _Survey, options: ProcessOptions) -> tuple[SineFit, "_Raw", "_Flat"]:
+                 survey: _Survey, options: ProcessOptions, report_only: bool) -> tuple[SineFit, "_Raw", "_Flat"]:
     """Eq. 16 fits of the prepared displacements ``d`` (at the sampling angles inside the
-    crossings and dwells), the unsmoothed fits where those need them, and the offset-removed,
-    unsmoothed displacements (:class:`_Flat`: computed for the revolutions asked for)."""
+    crossings and dwells; ``report_only``: what the report reads, :func:`_fit_spans`), the
+    unsmoothed fits where those need them, and the offset-removed, unsmoothed displacements
+    (:class:`_Flat`: computed for the revolutions asked for)."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = _merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
                          + [(dw.start, dw.stop) for dw in survey.segments.dwells])
-    fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
+    fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans, report_only)
     d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
     if (prepared is None or not options.prep_options.smooth) and options.window == 1:
         return fit, _Raw(fit.amp_pkpk_m, fit.phasor), d_flat
@@ -427,8 +468,8 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
     amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
     ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
     for a, b in spans:
-        f_r = _fit(d_flat[a:b], angles, eos, joint, omega[a:b], 1, radius)
-        amp_r[a:b], ph_r[a:b] = f_r.amp_pkpk_m, f_r.phasor
+        for lo, hi, f_r in _chunk_fits(d_flat, a, b, angles, eos, joint, omega, radius):
+            amp_r[lo:hi], ph_r[lo:hi] = f_r.amp_pkpk_m, f_r.phasor
     return fit, _Raw(amp_r, ph_r), d_flat
 
 

@@ -139,7 +139,9 @@ class ProcessingResult:
     prepared : PreparedData or None
         Its ``d_m`` None when the report alone was asked for (``spectra=False``).
     fit : SineFit
-        Fits of the prepared displacements (raw when ``prep`` is off).
+        Fits of the prepared displacements (raw when ``prep`` is off); with the report alone
+        (``spectra=False``) and one revolution per fit, its ``amp_std_m``, ``residual_rms_m``
+        and ``n_samples`` are None.
     probe_tw : TravellingWaveSpectra or None
         Per revolution and probe, shape (n_rev, n_probes, n_nd), first EO (None when the
         report alone was asked for: ``process_arrays(..., spectra=False)``).
