@@ -5,8 +5,9 @@ import warnings
 import numpy as np
 import pytest
 
-from bttsim_stream.process import (PrepOptions, locate_resonance, prepare, remove_offset, smooth_revolutions,
-                                   speed_adaptive_half_width)
+import bttsim_stream.process.prep as prep
+from bttsim_stream.process import (PrepOptions, fit_baseline, locate_resonance, prepare, remove_offset,
+                                   smooth_revolutions, speed_adaptive_half_width)
 
 PROBES = np.deg2rad([5.0, 15.15, 23.82, 220.0, 301.5])
 
@@ -107,6 +108,45 @@ def test_offset_fit_is_robust_to_outliers():
     good = np.ones(1000, bool)
     good[::37] = False
     np.testing.assert_allclose(offset[good, 1, 2], base[good, 0, 2], atol=1e-9)
+
+
+@pytest.mark.parametrize("clip", [False, True])
+def test_baseline_rows_are_the_whole_offsets_rows(monkeypatch, clip):
+    """A :class:`Baseline` gives, for any revolutions, the rows of the whole offset array (in
+    small windows and column blocks too), and ``prepare(keep_offset=False)`` the same numbers."""
+    d, clean, base, omega = _resonance_run()
+    d = d.copy()
+    d[1::53, 2, 1] = np.nan
+    d[:, 2, 0] = np.nan  # a column without data
+    region = locate_resonance(d, PROBES, 8)
+    exclude = region.mask.copy()
+    if clip:
+        exclude[:300, ::2] = True  # fitted on part of the speeds: clipped, not extrapolated
+    out, offset = remove_offset(d, omega, exclude)
+    n = d.shape[0]
+    rows_asked = (slice(0, 1), slice(17, 400), slice(n - 5, None), np.array([n - 1, 0, 700]), 5)
+    b = fit_baseline(d, omega, exclude)
+    assert (b.lo is not None) == clip
+    assert np.array_equal(b.to_array(), offset, equal_nan=True)
+    for rows in rows_asked:
+        assert np.array_equal(b[rows], offset[rows], equal_nan=True)
+    assert np.all(offset[:, 2, 0] == 0)
+    # cut in small column blocks and row windows: a row's numbers do not depend on the rows asked
+    # for (the fit itself may move in the last digit: the small products are not the whole's)
+    monkeypatch.setattr(prep, "PREP_BLOCK", 4096)
+    monkeypatch.setattr(prep, "GEMM_SMALL", 0)
+    b = fit_baseline(d, omega, exclude)
+    assert len(prep._row_windows(n, 15, 3)) > 1
+    whole = b.to_array()
+    np.testing.assert_allclose(whole, offset, rtol=1e-9, atol=1e-15)
+    for rows in rows_asked:
+        assert np.array_equal(b[rows], whole[rows], equal_nan=True)
+    monkeypatch.undo()
+    opts = PrepOptions()
+    whole = prepare(d, omega, PROBES, 8, opts)
+    lean = prepare(d, omega, PROBES, 8, opts, keep_offset=False)
+    assert np.array_equal(whole.d_m, lean.d_m, equal_nan=True)
+    assert np.array_equal(lean.offset_m[100:200], whole.offset_m[100:200], equal_nan=True)
 
 
 def test_prepare_reduces_noise_and_keeps_the_peak():

@@ -48,8 +48,8 @@ _SOURCES = {
     **dict.fromkeys(('process_arrays',), 'pipeline'),
     **dict.fromkeys(('ProcessingResult', 'RevolutionFit', 'RevolutionOutput',), 'results'),
     **dict.fromkeys(('StreamingProcessor',), 'streaming'),
-    **dict.fromkeys(('PreparedData', 'PrepOptions', 'ResonanceRegion', 'locate_resonance', 'prepare',
-                     'remove_offset', 'smooth_revolutions', 'speed_adaptive_half_width',), 'prep'),
+    **dict.fromkeys(('Baseline', 'PreparedData', 'PrepOptions', 'ResonanceRegion', 'fit_baseline', 'locate_resonance',
+                     'prepare', 'remove_offset', 'smooth_revolutions', 'speed_adaptive_half_width',), 'prep'),
     **dict.fromkeys(('LayoutCandidate', 'LayoutError', 'check_layout', 'condition_number', 'layout_report',
                      'rank_layouts',), 'probes'),
     **dict.fromkeys(('Detection', 'ResonanceEntry', 'ResonancePeaks', 'ResonanceReport', 'TruthPeaks',
@@ -72,8 +72,8 @@ if TYPE_CHECKING:  # for readers and type checkers: the eager form
     from .pipeline import process_arrays
     from .results import ProcessingResult, RevolutionFit, RevolutionOutput
     from .streaming import StreamingProcessor
-    from .prep import (PreparedData, PrepOptions, ResonanceRegion, locate_resonance, prepare, remove_offset,
-                       smooth_revolutions, speed_adaptive_half_width)
+    from .prep import (Baseline, PreparedData, PrepOptions, ResonanceRegion, fit_baseline, locate_resonance, prepare,
+                       remove_offset, smooth_revolutions, speed_adaptive_half_width)
     from .probes import LayoutCandidate, LayoutError, check_layout, condition_number, layout_report, rank_layouts
     from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
                             TruthRows, find_peaks, resonance_errors, resonance_report, summary_table, truth_peaks,
@@ -85,7 +85,7 @@ __all__ = [
     "Geometry", "RotorPhase", "Displacements", "mean_speed_from_opr", "rotor_phase_from_opr",
     "calibrate_arrival_angles", "expected_times", "btt_displacement", "compute_displacements",
     "identify_blades", "DoublePulses", "assign_extra_edges",
-    "PrepOptions", "ResonanceRegion", "PreparedData", "locate_resonance", "remove_offset",
+    "PrepOptions", "ResonanceRegion", "PreparedData", "Baseline", "locate_resonance", "fit_baseline", "remove_offset",
     "smooth_revolutions", "speed_adaptive_half_width", "prepare",
     "SineFit", "design_matrix", "fit_revolutions", "sine_at_probes",
     "DetectOptions", "RunSegments", "Crossing", "Reference", "speed_segments", "detect_crossings", "choose_reference",

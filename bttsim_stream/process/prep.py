@@ -46,7 +46,9 @@ __all__ = [
     "PrepOptions",
     "ResonanceRegion",
     "PreparedData",
+    "Baseline",
     "locate_resonance",
+    "fit_baseline",
     "remove_offset",
     "median_then_mean",
     "smooth_revolutions",
@@ -139,19 +141,24 @@ class PreparedData:
     Attributes
     ----------
     d_m : ndarray, shape (n_rev, n_blades, n_probes)
-    offset_m : ndarray, shape (n_rev, n_blades, n_probes)
-        The subtracted baseline (zeros when off).
+    offset_m : ndarray or Baseline, shape (n_rev, n_blades, n_probes)
+        The subtracted baseline (zeros when off). With ``prepare(..., keep_offset=False)`` not
+        held as a whole array: the :class:`Baseline` itself (``offset_m[rows]`` gives the
+        rows' offsets, the same numbers), or a read-only broadcast zero when off.
     region : ResonanceRegion
     half_width : ndarray, shape (n_rev,)
         Smoother half-width per revolution (NaN when off).
     options : PrepOptions
+    baseline : Baseline or None
+        The fitted baseline (None when the offset removal is off).
     """
 
     d_m: np.ndarray
-    offset_m: np.ndarray
+    offset_m: np.ndarray | Baseline
     region: ResonanceRegion
     half_width: np.ndarray
     options: PrepOptions
+    baseline: Baseline | None = None
 
 
 def median_then_mean(x: np.ndarray, size: int) -> np.ndarray:
@@ -276,6 +283,260 @@ def locate_resonance(d_m: np.ndarray, probe_angles_rad, engine_orders, *,
                            half_power_width=width, significant=significant, mask=mask)
 
 
+#: Matrix products (``M x K`` times ``K x N``) with ``M N K`` at most this many multiply-adds run
+#: in OpenBLAS's small-matrix ``dgemm`` kernels on AVX-512 cores (SkylakeX), which sum in
+#: another order than its blocked kernels: a product cut in blocks gives the whole product's
+#: numbers bit for bit only when every block runs in the same regime as the whole.
+GEMM_SMALL = 1_000_000
+
+#: Alignment of the column blocks of the baseline fit (the blocked ``dgemm`` kernels work on
+#: tiles of 16 rows of the column-major output: a block starting on a tile boundary keeps
+#: every column in the same kind of tile as in the whole product).
+FIT_ALIGN = 16
+
+#: Alignment of the row windows in which a baseline is evaluated (3 x the ``dgemm`` kernel's
+#: column unroll of 2, times 8: OpenBLAS packs and runs the output's columns, here
+#: revolutions, in groups of 6).
+ROW_ALIGN = 48
+
+
+def _aligned_blocks(n: int, per: int, other: int, align: int) -> list:
+    """Slices of ``n`` (a dimension of a matrix product's output, ``per`` the multiply-adds of
+    one of its lines, ``other`` times the inner dimension) in which the product gives the whole
+    product's numbers: the whole when it is small (:data:`GEMM_SMALL`), else blocks of a
+    multiple of ``align`` lines above the small-matrix limit, the last one taking a short rest."""
+    if n * other <= GEMM_SMALL:
+        return [slice(0, n)]
+    step = max(1, per, GEMM_SMALL // max(other, 1) + 1)
+    step = -(-step // align) * align
+    starts = list(range(0, n, step))
+    if len(starts) > 1 and ((n - starts[-1]) * other <= GEMM_SMALL or n - starts[-1] < 2):
+        starts.pop()
+    return [slice(a, starts[i + 1] if i + 1 < len(starts) else n) for i, a in enumerate(starts)]
+
+
+def _row_windows(n_rev: int, n_col: int, p: int) -> list:
+    """Windows of revolutions in which ``V @ coef`` (``V`` (n_rev, p), ``coef`` (p, n_col)) is
+    evaluated: fixed for a run, so a revolution's numbers do not depend on the rows asked for."""
+    if n_rev == 0:
+        return [slice(0, 0)]
+    return _aligned_blocks(n_rev, PREP_BLOCK // max(n_col, 1), n_col * p, ROW_ALIGN)
+
+
+def _product_columns(V: np.ndarray, coef: np.ndarray, cols: slice, windows: list) -> np.ndarray:
+    """Columns ``cols`` of ``V @ coef``, computed in the row ``windows`` over all columns."""
+    if len(windows) == 1 and cols.start == 0 and cols.stop == coef.shape[1]:
+        return V @ coef
+    out = np.empty((V.shape[0], cols.stop - cols.start))
+    for w in windows:
+        out[w] = (V[w] @ coef)[:, cols]
+    return out
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Baseline:
+    """Fitted per blade/probe baselines in speed (:func:`fit_baseline`), evaluated on demand.
+
+    ``baseline[rows]`` gives the offsets of some revolutions, shape ``(len, n_blades,
+    n_probes)``, bit for bit the rows of the whole array (:meth:`to_array`, what
+    :func:`remove_offset` subtracts), without holding the whole array: they are computed in
+    fixed windows of :attr:`window` revolutions (the matrix product's numbers depend on its
+    shape, so a row is always computed inside the same window).
+
+    Attributes
+    ----------
+    x : ndarray, shape (n_rev,)
+        Normalised speed per revolution, ``(Omega - centre_rad_s) / half_span_rad_s``.
+    coef : ndarray, shape (degree + 1, n_col)
+        Polynomial coefficients in ``x`` per column (``n_col = n_blades * n_probes``, blade
+        major), lowest degree first.
+    lo, hi : ndarray, shape (n_col,), or None
+        Clip bounds of ``x`` (the speeds of the revolutions each column was fitted to: no
+        extrapolation), ``-inf``/``inf`` for columns without enough data; None when no column
+        needs clipping (then evaluated as a matrix product ``V @ coef``).
+    enough : ndarray of bool, shape (n_col,)
+        Columns with enough usable revolutions for the polynomial.
+    mean_m : ndarray, shape (n_col,)
+        The weighted mean of each column (the constant baseline of the columns without enough
+        data; 0 for a column without any), m.
+    shape : tuple
+        ``(n_rev, n_blades, n_probes)``.
+    centre_rad_s, half_span_rad_s : float
+        Normalisation of the speed, rad/s.
+    """
+
+    x: np.ndarray
+    coef: np.ndarray
+    lo: np.ndarray | None
+    hi: np.ndarray | None
+    enough: np.ndarray
+    mean_m: np.ndarray
+    shape: tuple
+    centre_rad_s: float
+    half_span_rad_s: float
+
+    @property
+    def window(self) -> int:
+        """Revolutions per evaluation window (the last window takes a short rest)."""
+        return self._windows()[0].stop
+
+    def _windows(self) -> list:
+        return _row_windows(self.shape[0], self.coef.shape[1], self.coef.shape[0])
+
+    def _window(self, a: int, b: int) -> np.ndarray:
+        """Offsets of revolutions ``a:b`` (one whole window), shape ``(b - a, n_col)``."""
+        x = self.x[a:b]
+        if self.lo is None:
+            off = np.vander(x, self.coef.shape[0], increasing=True) @ self.coef
+        else:
+            xc = np.clip(x[:, None], self.lo, self.hi)
+            off = np.zeros_like(xc)
+            for k in range(self.coef.shape[0] - 1, -1, -1):  # Horner
+                off = off * xc + self.coef[k][None, :]
+        off[:, ~self.enough] = self.mean_m[~self.enough]
+        return off
+
+    def __getitem__(self, rows) -> np.ndarray:
+        """Offsets of the revolutions ``rows`` (an int, a slice or an integer array), m."""
+        n_rev, nb, npr = self.shape
+        if isinstance(rows, slice) and rows.step in (None, 1):
+            a, b, _ = rows.indices(n_rev)
+            b = max(a, b)
+            out = np.empty((b - a, nb * npr))
+            for w in self._windows():
+                lo, hi = max(a, w.start), min(b, w.stop)
+                if lo < hi:
+                    out[lo - a:hi - a] = self._window(w.start, w.stop)[lo - w.start:hi - w.start]
+            return out.reshape(b - a, nb, npr)
+        idx = np.arange(n_rev)[rows]
+        scalar = idx.ndim == 0
+        idx = np.atleast_1d(idx)
+        out = np.empty((idx.size, nb * npr))
+        for w in self._windows():
+            sel = np.flatnonzero((idx >= w.start) & (idx < w.stop))
+            if sel.size:
+                out[sel] = self._window(w.start, w.stop)[idx[sel] - w.start]
+        out = out.reshape(idx.shape + (nb, npr))
+        return out[0] if scalar else out
+
+    rows = __getitem__
+
+    def to_array(self) -> np.ndarray:
+        """The whole baseline, shape ``(n_rev, n_blades, n_probes)``, m."""
+        return self[:]
+
+    def subtract(self, d_m: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``d_m - baseline`` window by window (into ``out`` when given; ``out`` may be
+        ``d_m`` itself), m."""
+        d = np.asarray(d_m, dtype=float)
+        if out is None:
+            out = np.empty_like(d)
+        for w in self._windows():
+            out[w] = d[w] - self[w]
+        return out
+
+
+def fit_baseline(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray | None = None, *,
+                 degree: int = 2, robust: bool = True, noise_weighting: bool = True,
+                 iterations: int = 3) -> Baseline:
+    """Fit a per blade/probe polynomial baseline in speed outside ``exclude``.
+
+    The fit of :func:`remove_offset`, without evaluating the baseline: every column (blade and
+    probe) is fitted on its own, in blocks of columns, so the temporaries are bounded by a
+    block (:data:`PREP_BLOCK` samples, or the fewest columns whose normal equations are
+    computed by the same ``dgemm`` kernels as the whole run's, see :data:`GEMM_SMALL`): the
+    same numbers as a fit of all columns at once.
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    omega_rad_s : ndarray, shape (n_rev,)
+    exclude : ndarray of bool, shape (n_rev, n_blades), optional
+        Revolutions left out of each blade's fit (the resonance region).
+    degree : int
+    robust : bool
+        Tukey bisquare reweighting (``c = 4.685`` MAD-scaled residuals).
+    noise_weighting : bool
+        Eq. 15 weights ``1 / Omega^2``.
+    iterations : int
+        Reweighting iterations when ``robust``.
+
+    Returns
+    -------
+    Baseline
+    """
+    d = np.asarray(d_m, dtype=float)
+    n_rev, nb, npr = d.shape
+    om = np.asarray(omega_rad_s, dtype=float)
+    span = max(float(om.max() - om.min()), 1e-12)
+    centre = 0.5 * (om.max() + om.min())
+    x = (om - centre) / (0.5 * span)
+    V = np.vander(x, int(degree) + 1, increasing=True)  # (n_rev, p)
+    y = d.reshape(n_rev, nb * npr)
+    n_col = y.shape[1]
+    keep = None if exclude is None else ~np.asarray(exclude, bool)
+    rel = om * om / np.mean(om * om) if noise_weighting else None
+    p = V.shape[1]
+    VV = (V[:, :, None] * V[:, None, :]).reshape(n_rev, p * p)
+    n_it = 1 + (int(iterations) if robust else 0)
+    blocks = _aligned_blocks(n_col, PREP_BLOCK // max(n_rev, 1), n_rev * p, FIT_ALIGN)
+    windows = _row_windows(n_rev, n_col, p)
+    coef = np.empty((n_col, p))
+    enough = np.empty(n_col, bool)
+    small, big = np.empty(n_col), np.empty(n_col)
+    sw, swy = np.empty(n_col), np.empty(n_col)
+    # every column has its own baseline: blocks of columns, each with the kernels the whole
+    # run's matrix products would use, give the same numbers with bounded temporaries; the
+    # fitted baselines of the robust reweighting come from the product of all columns, in row
+    # windows (a product cut in columns may sum in another order than the whole one)
+    for it in range(n_it):
+        prev, coef = coef, np.empty((n_col, p))
+        for c in blocks:
+            yc = y[:, c]
+            ok = np.isfinite(yc)
+            w0 = ok.astype(float)
+            if keep is not None:
+                w0 *= keep[:, np.arange(c.start, c.stop) // npr]
+            if rel is not None:
+                w0 /= rel[:, None]
+            yz = np.where(ok, yc, 0.0)
+            del ok, yc
+            if it == 0:
+                enough[c] = np.sum(w0 > 0, axis=0) >= 3 * p
+                # no extrapolation: outside the speeds of its reference revolutions (e.g. a
+                # crossing near the start of a run), a column's baseline keeps its value at the
+                # nearest end
+                used = w0 > 0
+                big[c] = np.where(used, x[:, None], -np.inf).max(axis=0)
+                small[c] = np.where(used, x[:, None], np.inf).min(axis=0)
+                del used
+                sw[c] = w0.sum(axis=0)
+                swy[c] = (w0 * yz).sum(axis=0)
+                w = w0
+            else:
+                r = yz - _product_columns(V, prev.T, c, windows)
+                sc = 1.4826 * _masked_median(np.abs(r), w0 > 0)
+                sc = np.where(np.isfinite(sc) & (sc > 0), sc, np.inf)
+                u = r / (4.685 * sc)
+                del r
+                w = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+                del u
+            G = (w.T @ VV).reshape(-1, p, p)
+            G[~enough[c]] = np.eye(p)
+            rhs = (w * yz).T @ V
+            del w, w0, yz
+            coef[c] = np.linalg.solve(G, rhs[..., None])[..., 0]
+    del prev
+    # columns without enough reference revolutions: weighted mean, or nothing at all
+    with np.errstate(all="ignore"):
+        mean = np.where(sw > 0, swy / sw, 0.0)
+    lo = hi = None
+    if np.any(enough & ((x.min() < small) | (x.max() > big))):
+        lo, hi = np.where(enough, small, -np.inf), np.where(enough, big, np.inf)
+    return Baseline(x=x, coef=coef.T, lo=lo, hi=hi, enough=enough, mean_m=mean, shape=(n_rev, nb, npr),
+                    centre_rad_s=float(centre), half_span_rad_s=float(0.5 * span))
+
+
 def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray | None = None, *,
                   degree: int = 2, robust: bool = True, noise_weighting: bool = True,
                   iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -302,76 +563,16 @@ def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray 
         outside the speeds of the revolutions it was fitted to, the baseline keeps its value
         at the nearest of them. A column with fewer than ``3 (degree + 1)`` usable
         revolutions gets a constant (weighted mean) baseline, one with none a zero baseline.
+
+    See Also
+    --------
+    fit_baseline : the fit alone (a :class:`Baseline` evaluated on demand: no whole arrays).
     """
     d = np.asarray(d_m, dtype=float)
-    n_rev, nb, npr = d.shape
-    om = np.asarray(omega_rad_s, dtype=float)
-    span = max(float(om.max() - om.min()), 1e-12)
-    x = (om - 0.5 * (om.max() + om.min())) / (0.5 * span)
-    V = np.vander(x, int(degree) + 1, increasing=True)  # (n_rev, p)
-    y = d.reshape(n_rev, nb * npr)
-    ok = np.isfinite(y)
-    w0 = ok.astype(float)
-    if exclude is not None:
-        w0 *= np.repeat(~np.asarray(exclude, bool), npr, axis=1)
-    if noise_weighting:
-        w0 /= (om * om / np.mean(om * om))[:, None]
-    yz = np.where(ok, y, 0.0)
-    del ok
-    p = V.shape[1]
-    enough = np.sum(w0 > 0, axis=0) >= 3 * p
-    w = w0.copy()
-    VV = (V[:, :, None] * V[:, None, :]).reshape(n_rev, p * p)
-    n_it = 1 + (int(iterations) if robust else 0)
-    # the sums over revolutions (matrix products) on whole arrays, the rest column by column
-    # in blocks (every column has its own baseline): the same numbers, bounded temporaries
-    blocks = _column_blocks(n_rev, y.shape[1])
-    for it in range(n_it):
-        G = (w.T @ VV).reshape(-1, p, p)
-        G[~enough] = np.eye(p)
-        rhs = (w * yz).T @ V
-        coef = np.linalg.solve(G, rhs[..., None])[..., 0].T
-        if it == n_it - 1:
-            break
-        fitted = V @ coef
-        for c in blocks:
-            r = yz[:, c] - fitted[:, c]
-            sc = 1.4826 * _masked_median(np.abs(r), w0[:, c] > 0)
-            sc = np.where(np.isfinite(sc) & (sc > 0), sc, np.inf)
-            u = r / (4.685 * sc)
-            w[:, c] = w0[:, c] * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        del fitted
-    del w
-    # no extrapolation: outside the speeds of its reference revolutions (e.g. a crossing
-    # near the start of a run), a column's baseline keeps its value at the nearest end
-    used = w0 > 0
-    big = np.where(used, x[:, None], -np.inf).max(axis=0)
-    small = np.where(used, x[:, None], np.inf).min(axis=0)
-    del used
-    if np.any(enough & ((x.min() < small) | (x.max() > big))):
-        lo, hi = np.where(enough, small, -np.inf), np.where(enough, big, np.inf)
-        offset = np.empty(y.shape)
-        for c in blocks:
-            xc = np.clip(x[:, None], lo[c], hi[c])  # (n_rev, block)
-            off = np.zeros_like(xc)
-            for k in range(p - 1, -1, -1):  # Horner, column by column
-                off = off * xc + coef[k][None, c]
-            offset[:, c] = off
-    else:
-        offset = V @ coef
-    # columns without enough reference revolutions: weighted mean, or nothing at all
-    sw = w0.sum(axis=0)
-    with np.errstate(all="ignore"):
-        mean = np.where(sw > 0, (w0 * yz).sum(axis=0) / sw, 0.0)
-    offset[:, ~enough] = mean[~enough]
-    offset = offset.reshape(n_rev, nb, npr)
+    baseline = fit_baseline(d, omega_rad_s, exclude, degree=degree, robust=robust,
+                            noise_weighting=noise_weighting, iterations=iterations)
+    offset = baseline.to_array()
     return d - offset, offset
-
-
-def _column_blocks(n_rev: int, n_col: int) -> list:
-    """Slices of columns, each of at most :data:`PREP_BLOCK` samples (at least one column)."""
-    step = max(1, PREP_BLOCK // max(n_rev, 1))
-    return [slice(c, min(c + step, n_col)) for c in range(0, n_col, step)]
 
 
 def speed_adaptive_half_width(omega_rad_s: np.ndarray, half_width_at_res: float, omega_res: float, *,
@@ -558,7 +759,9 @@ def smoothing_gain(half_width: np.ndarray, weights: np.ndarray | None, rows) -> 
 
 #: Samples (revolutions x blades x probes) of the blocks in which :func:`prepare` removes
 #: the offsets and smooths: every column is processed on its own, so blocks of blades give
-#: the same numbers, with temporaries bounded by the block (a few dozen arrays of it).
+#: the same numbers, with temporaries bounded by the block (a few dozen arrays of it). The
+#: baseline's column blocks and row windows are at least this size, rounded up to
+#: :data:`FIT_ALIGN` / :data:`ROW_ALIGN` and above the small-matrix limit :data:`GEMM_SMALL`.
 PREP_BLOCK = 1 << 19
 
 
@@ -572,7 +775,7 @@ def _blade_blocks(shape: tuple) -> list:
 def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
             options: PrepOptions = PrepOptions(), *, region: ResonanceRegion | None = None,
             half_width: np.ndarray | None = None,
-            exclude_revolutions: np.ndarray | None = None) -> PreparedData:
+            exclude_revolutions: np.ndarray | None = None, keep_offset: bool = True) -> PreparedData:
     """Run the data preparation (resonance location, offset removal, noise reduction).
 
     Parameters
@@ -592,10 +795,20 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     exclude_revolutions : ndarray of bool, shape (n_rev,), optional
         Further revolutions left out of the baseline fit (e.g. dwells: at one speed, their
         vibration cannot be told from an offset).
+    keep_offset : bool
+        Hold the subtracted baseline as a whole array in ``offset_m`` (as before); False:
+        ``offset_m`` is the :class:`Baseline` (rows evaluated on demand, the same numbers),
+        which saves an array of the run's size.
 
     Returns
     -------
     PreparedData
+
+    Notes
+    -----
+    The baseline is fitted in blocks of columns (:func:`fit_baseline`) and subtracted in
+    windows of revolutions, into the array that is then smoothed in place: besides the input
+    and the output, only the offsets (when kept) and block-sized temporaries are held.
     """
     d = np.asarray(d_m, dtype=float)
     om = np.asarray(omega_rad_s, dtype=float)
@@ -604,36 +817,43 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
         region = locate_resonance(d, probe_angles_rad, engine_orders,
                                   exclusion_level=options.exclusion_level,
                                   exclusion_margin=options.exclusion_margin)
+    half = np.full(n_rev, np.nan)
+    kernel = None
+    if options.smooth and n_rev >= 3:
+        if half_width is not None:
+            half = np.clip(np.asarray(half_width, dtype=float), max(options.min_half_width, 1.0),
+                           options.max_half_width)
+        else:
+            sig = region.significant
+            if options.smooth_half_width is not None:
+                h_res = float(options.smooth_half_width)
+            elif np.any(sig):
+                h_res = options.smooth_width_fraction * float(np.median(region.half_power_width[sig]))
+            else:
+                h_res = options.min_half_width
+            i_res = int(np.median(region.peak_revolution[sig])) if np.any(sig) else int(np.argmax(om))
+            half = speed_adaptive_half_width(om, h_res, om[i_res], adaptive=options.speed_adaptive,
+                                             lo=max(options.min_half_width, 1.0), hi=options.max_half_width)
+        # the smoother's kernel first: its construction's temporaries do not meet the baseline's
+        kernel = _smoother(n_rev, half, 1.0 / (om * om) if options.noise_weighting else None)
     out = d
-    offset = np.zeros_like(d)
+    offset = np.zeros_like(d) if keep_offset else np.broadcast_to(np.zeros(()), d.shape)
+    baseline = None
     if options.remove_offset:
         exclude = region.mask
         if exclude_revolutions is not None:
             exclude = exclude | np.asarray(exclude_revolutions, bool)[:, None]
-        out, offset = remove_offset(d, om, exclude, degree=options.offset_degree,
-                                    robust=options.robust, noise_weighting=options.noise_weighting)
-    half = np.full(n_rev, np.nan)
-    if options.smooth and n_rev >= 3 and half_width is not None:
-        half = np.clip(np.asarray(half_width, dtype=float), max(options.min_half_width, 1.0), options.max_half_width)
-        w = 1.0 / (om * om) if options.noise_weighting else None
-        kernel = _smoother(d.shape[0], half, w)
+        baseline = fit_baseline(d, om, exclude, degree=options.offset_degree, robust=options.robust,
+                                noise_weighting=options.noise_weighting)
+        del exclude
+        out = baseline.subtract(d)  # window by window: no whole offset array besides the kept one
+        offset = baseline.to_array() if keep_offset else baseline
+    if kernel is not None:
         # each column is smoothed on its own: blocks of blades, written back in place when the
         # offset-removed array is this function's own (a block reads only its own columns)
         smoothed = out if out is not d else np.empty_like(d)
         for sl in _blade_blocks(d.shape):
             smoothed[:, sl] = _smooth(out[:, sl], *kernel)
         out = smoothed
-    elif options.smooth and n_rev >= 3:
-        sig = region.significant
-        if options.smooth_half_width is not None:
-            h_res = float(options.smooth_half_width)
-        elif np.any(sig):
-            h_res = options.smooth_width_fraction * float(np.median(region.half_power_width[sig]))
-        else:
-            h_res = options.min_half_width
-        i_res = int(np.median(region.peak_revolution[sig])) if np.any(sig) else int(np.argmax(om))
-        half = speed_adaptive_half_width(om, h_res, om[i_res], adaptive=options.speed_adaptive,
-                                         lo=max(options.min_half_width, 1.0), hi=options.max_half_width)
-        w = 1.0 / (om * om) if options.noise_weighting else None
-        out = smooth_revolutions(out, half, w)
-    return PreparedData(d_m=out, offset_m=offset, region=region, half_width=half, options=options)
+    return PreparedData(d_m=out, offset_m=offset, region=region, half_width=half, options=options,
+                        baseline=baseline)
