@@ -107,8 +107,9 @@ def test_recording_regrouped_as_the_assembler_does(seed):
 
 def test_report_only_is_the_same_report():
     """``spectra=False`` (``bttsim process``, the processor's final report) leaves out the
-    run's spectra and the prepared displacements (freed after the report's fits) and nothing
-    else: the same report, number for number, the same fits, and the input intact."""
+    run's spectra, the prepared displacements (freed after the report's fits) and the whole
+    baseline array (evaluated by rows) and nothing else: the same report, number for number,
+    the same fits and offsets, and the input intact."""
     import json
 
     from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
@@ -122,5 +123,6 @@ def test_report_only_is_the_same_report():
     assert full.probe_tw.forward_m.shape == (900, PROBES.size, NB // 2 + 1)
     assert json.dumps(only.summary, sort_keys=True) == json.dumps(full.summary, sort_keys=True)
     assert only.prepared.d_m is None and full.prepared.d_m.shape == toa.shape
-    assert _same(only.prepared.offset_m, full.prepared.offset_m) and _same(only.fit.coeffs, full.fit.coeffs)
+    assert _same(only.prepared.offset_m[:], full.prepared.offset_m)  # a Baseline, or zeros: by rows
+    assert _same(only.fit.coeffs, full.fit.coeffs) and _same(only.fit.amp_pkpk_m, full.fit.amp_pkpk_m)
     assert _same(toa, kept)

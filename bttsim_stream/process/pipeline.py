@@ -33,7 +33,7 @@ from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_meth
 from . import crb
 from .nsv import NsvScan, detect_nsv, is_rigid_body, nsv_note, nsv_truth_rows, rigid_body_note, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
-from .prep import PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
+from .prep import Baseline, PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
                         TruthRows, find_peaks, own_envelope, window_truth)
 from .results import ProcessingResult, RevolutionFit, RevolutionOutput
@@ -210,7 +210,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         Compute the per-revolution travelling-wave spectra (``probe_tw``, ``fit_tw``: two
         run-sized arrays that the report does not use) and keep the prepared displacements
         (False: the report only, for the callers that need nothing else: the spectra are
-        None, ``prepared.d_m`` is None, freed once the report's fits are made, and, with one
+        None, ``prepared.d_m`` is None, freed once the report's fits are made,
+        ``prepared.offset_m`` is the :class:`~.prep.Baseline` (not a whole array), and, with one
         revolution per fit, so are the fit's ``amp_std_m``, ``residual_rms_m`` and
         ``n_samples``, which the report does not read).
 
@@ -252,7 +253,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                                          notes)
     del first  # the first pass's displacements (unless they are disp): not needed any more
     # 3. data preparation, and the fits of the report
-    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes)
+    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra)
     d = prepared.d_m if prepared is not None else disp.d_m
     fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra)
     eo = survey.eos[0]
@@ -427,7 +428,7 @@ def _zeroing(first: Displacements, opr: np.ndarray, toa: np.ndarray, geometry: G
 
 
 def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: ProcessOptions,
-             notes: list) -> PreparedData | None:
+             notes: list, keep_offset: bool = True) -> PreparedData | None:
     """Step 3: data preparation (None when off) with every crossing (and dwell) out of the
     baseline: the baseline (offsets slowly varying with speed) is fitted where no crossing's
     response is predicted above the reference's limit, so it does not take the forced
@@ -447,7 +448,7 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
         notes.append("no offset removal: the run holds too little data on both sides of the crossings for a "
                      "baseline in speed to bridge them (the zeroing reference alone is used)")
     return prepare(d, omega, angles, survey.eos, prep_opts, region=region, half_width=hw,
-                   exclude_revolutions=dwell_mask | skirts)
+                   exclude_revolutions=dwell_mask | skirts, keep_offset=keep_offset)
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
@@ -628,17 +629,18 @@ def _region(amp0: np.ndarray, crossings, n_rev: int) -> ResonanceRegion:
 class _Flat:
     """The offset-removed, unsmoothed displacements ``d_m - offset_m``, computed for the
     revolutions asked for (``flat[rows]``: the same numbers as the whole array's rows) instead
-    of held for the whole run."""
+    of held for the whole run. ``offset_m``: an array, a :class:`~.prep.Baseline` (evaluated
+    for those rows) or a float."""
 
     d_m: np.ndarray
-    offset_m: np.ndarray | float
+    offset_m: "np.ndarray | Baseline | float"
 
     @property
     def shape(self) -> tuple:
         return self.d_m.shape
 
     def __getitem__(self, rows) -> np.ndarray:
-        off = self.offset_m[rows] if isinstance(self.offset_m, np.ndarray) else self.offset_m
+        off = self.offset_m if isinstance(self.offset_m, float) else self.offset_m[rows]
         return self.d_m[rows] - off
 
 
