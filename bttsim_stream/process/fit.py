@@ -315,8 +315,9 @@ class WindowFit:
 
 #: Revolutions fitted at once by :func:`fit_revolutions` with one revolution per fit: every
 #: fit is its own revolution's, so blocks give the same numbers, and the temporaries (a few
-#: dozen arrays of the block's size) stay bounded however long the run.
-FIT_CHUNK = 2048
+#: dozen arrays of the block's size, about 18 kB a revolution of the default wheel) stay
+#: bounded however long the run.
+FIT_CHUNK = 512
 
 
 def _fit_blocks(d: np.ndarray, probe_angles_rad, eos: tuple, omega_rad_s, tip_radius_m) -> SineFit:

@@ -25,7 +25,8 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_contamination, resolve_engine_orders, speed_segments)
 from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, Displacements, Geometry, compute_displacements,
                            rotor_phase_from_opr)
-from .fit import FIT_CHUNK, SineFit, fit_revolutions, quiet
+from . import fit as fitting
+from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
 from .zeroing import correction_size, zeroing_correction
@@ -151,8 +152,8 @@ def _chunk_fits(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radiu
     :data:`~.fit.FIT_CHUNK` at a time from ``a``, as :func:`_fit` of them all makes them (the
     same numbers), without a fit of the whole span at once. ``d``: an array or a
     :class:`_Flat` (rows computed when asked for)."""
-    for lo in range(a, b, FIT_CHUNK):
-        hi = min(lo + FIT_CHUNK, b)
+    for lo in range(a, b, fitting.FIT_CHUNK):
+        hi = min(lo + fitting.FIT_CHUNK, b)
         yield lo, hi, _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], 1, radius)
 
 
@@ -163,8 +164,8 @@ def _first_amplitudes(d0: "_Centred", angles, eos: tuple, joint: bool) -> np.nda
     the zeroed displacements held whole."""
     n_rev, nb = d0.shape[:2]
     amp = np.empty((n_rev, nb, len(eos)))
-    for a in range(0, n_rev, FIT_CHUNK):
-        b = min(a + FIT_CHUNK, n_rev)
+    for a in range(0, n_rev, fitting.FIT_CHUNK):
+        b = min(a + fitting.FIT_CHUNK, n_rev)
         amp[a:b] = _fit(d0[a:b], angles, eos, joint, None, 1).amp_pkpk_m
     return amp
 
