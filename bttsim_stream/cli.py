@@ -299,15 +299,18 @@ def _cmd_process(args: argparse.Namespace) -> None:
         raise BttsimError(f"{args.mcap}: {exc}") from None
     progress.phase(f"processing {run.revolution.size} revolutions ...")
     progress.close()
+    missing_toas = int(np.count_nonzero(np.isnan(run.toa_s)))  # pulses that did not trigger
+    # the TOAs handed over (nothing here holds them): the report frees them once Eq. 1 is done
+    toa = [run.toa_s]
+    run = replace(run, toa_s=None)
     try:
-        result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
+        result = process_arrays(run.opr_s, toa.pop(), run.meta, opts, truth=run.truth,
                                 revolution0=int(run.revolution[0]), spectra=False)  # the report only
     except ValueError as exc:  # an impossible layout (LayoutError), inconsistent arrays
         raise BttsimError(f"{args.mcap}: {exc}") from None
     except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway
         raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None
-    summary = build_summary(result.summary, completeness(run),
-                            missing_toas=int(np.count_nonzero(np.isnan(run.toa_s))),  # pulses that did not trigger
+    summary = build_summary(result.summary, completeness(run), missing_toas=missing_toas,
                             doubles=run.doubles)  # extra trigger edges, each in its blade's window
     if probe_notes:
         summary["notes"] = probe_notes + list(summary.get("notes", []))

@@ -211,7 +211,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         Compute the per-revolution travelling-wave spectra (``probe_tw``, ``fit_tw``: two
         run-sized arrays that the report does not use) and keep the prepared displacements
         (False: the report only, for the callers that need nothing else: the spectra are
-        None, ``prepared.d_m`` is None, freed once the report's fits are made,
+        None, ``displacements.toa_s`` is None (the TOAs are not held past Eq. 1), ``prepared.d_m``
+        is None, freed once the report's fits are made,
         ``prepared.offset_m`` is the :class:`~.prep.Baseline` (not a whole array), and, with one
         revolution per fit, so are the fit's ``amp_std_m``, ``residual_rms_m`` and
         ``n_samples``, which the report does not read).
@@ -253,6 +254,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     disp, reference, ref_info = _zeroing(first, opr, toa, geometry, survey, options, t_exp is not None, revolution0,
                                          notes)
     del first  # the first pass's displacements (unless they are disp): not needed any more
+    t_sample = _sample_times(toa) if survey.crossings else None
+    if not spectra:  # the report alone: this function's last use of the TOAs (a caller may still hold them)
+        disp = replace(disp, toa_s=None)
+        del toa, toa_s
     # 3. data preparation, and the fits of the report
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra)
     d = prepared.d_m if prepared is not None else disp.d_m
@@ -264,7 +269,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         prepared = replace(prepared, d_m=None)
     # 4. per crossing and per dwell
     ctx = _Context(geometry=geometry, eos=survey.eos, joint=survey.joint, cns=cns, fit=fit, raw=raw, d_flat=d_flat,
-                   omega=survey.omega, opr=opr, t_sample=_sample_times(toa) if survey.crossings else None,
+                   omega=survey.omega, opr=opr, t_sample=t_sample,
                    half_width=(prepared.half_width if prepared is not None else None),
                    gain_weights=1.0 / (survey.omega * survey.omega) if options.prep_options.noise_weighting else None,
                    truth=rows_truth, revolution0=revolution0, options=options, reference=reference,
