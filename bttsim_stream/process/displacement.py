@@ -48,6 +48,8 @@ __all__ = [
     "Geometry",
     "RotorPhase",
     "Displacements",
+    "DisplacementRows",
+    "first_pass_rows",
     "mean_speed_from_opr",
     "rotor_phase_from_opr",
     "calibrate_arrival_angles",
@@ -517,6 +519,77 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
 
 #: Revolutions of Eq. 1 computed at once by :func:`compute_displacements`.
 DISPLACEMENT_CHUNK = 4096
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class DisplacementRows:
+    """Eq. 1 displacements computed when asked for, not held: ``rows[a:b]`` (a slice of
+    revolutions) or :meth:`blades` (every revolution of some blades) are the same numbers as
+    the rows or blades of :func:`compute_displacements`'s ``d_m`` (Eq. 1 is element-wise).
+
+    Attributes
+    ----------
+    phase : RotorPhase
+    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+    arrival_angles_rad : ndarray, shape (n_blades, n_probes), or None
+        ``psi`` (None with exact expected times).
+    tip_radius_m : float
+    exact_t_exp_s : ndarray, shape (n_rev, n_blades, n_probes), or None
+        Exact expected times (the truth's), instead of the OPR model's.
+    """
+
+    phase: RotorPhase
+    toa_s: np.ndarray
+    arrival_angles_rad: np.ndarray | None
+    tip_radius_m: float
+    exact_t_exp_s: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple:
+        return self.toa_s.shape
+
+    @property
+    def omega_rad_s(self) -> np.ndarray:
+        """Mean speed of each revolution, rad/s."""
+        return self.phase.omega_mean_rad_s
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        return self._eq1(rows, slice(None))
+
+    def blades(self, sel: slice) -> np.ndarray:
+        """Every revolution of blades ``sel``, shape (n_rev, n_selected, n_probes), computed
+        :data:`DISPLACEMENT_CHUNK` revolutions at a time."""
+        n = self.toa_s.shape[0]
+        out = np.empty((n,) + self.toa_s[:1, sel].shape[1:])
+        for a in range(0, n, DISPLACEMENT_CHUNK):
+            b = min(a + DISPLACEMENT_CHUNK, n)
+            out[a:b] = self._eq1(slice(a, b), sel)
+        return out
+
+    def _eq1(self, rows: slice, sel: slice) -> np.ndarray:
+        toa = self.toa_s[rows, sel]
+        if self.exact_t_exp_s is not None:
+            return btt_displacement(self.phase.omega_mean_rad_s[rows], self.tip_radius_m,
+                                    self.exact_t_exp_s[rows, sel], toa)
+        return displacements_from_phase(self.phase.rows(rows), toa, self.arrival_angles_rad[sel],
+                                        self.tip_radius_m)[0]
+
+
+def first_pass_rows(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geometry, *,
+                    t_exp_s: np.ndarray | None = None) -> DisplacementRows:
+    """The displacements of :func:`compute_displacements` with the nominal geometry (or exact
+    expected times) and no calibration, as :class:`DisplacementRows`: computed when asked for."""
+    opr = np.asarray(opr_s, dtype=float)
+    toa = np.asarray(toa_s, dtype=float)
+    if toa.ndim != 3 or toa.shape[0] != opr.size:
+        raise ValueError(f"toa_s must be (n_rev, n_blades, n_probes) with n_rev = {opr.size}, got {toa.shape}")
+    if toa.shape[1:] != (geometry.n_blades, geometry.n_probes):
+        raise ValueError(f"toa_s has {toa.shape[1:]} (blades, probes); the geometry "
+                         f"({geometry.n_blades}, {geometry.n_probes})")
+    phase = rotor_phase_from_opr(opr)
+    if t_exp_s is not None:
+        return DisplacementRows(phase, toa, None, geometry.tip_radius_m, np.asarray(t_exp_s, dtype=float))
+    return DisplacementRows(phase, toa, geometry.nominal_arrival_angles(), geometry.tip_radius_m)
 
 
 def displacements_from_phase(phase: RotorPhase, toa_s: np.ndarray, arrival_angles_rad: np.ndarray,

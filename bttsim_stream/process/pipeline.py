@@ -23,8 +23,8 @@ import numpy as np
 
 from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_reference, detect_crossings,
                      predicted_contamination, resolve_engine_orders, speed_segments)
-from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, Displacements, Geometry, compute_displacements,
-                           rotor_phase_from_opr)
+from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, DisplacementRows, Displacements, Geometry,
+                           compute_displacements, first_pass_rows, rotor_phase_from_opr)
 from . import fit as fitting
 from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
@@ -34,7 +34,7 @@ from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_meth
 from . import crb
 from .nsv import NsvScan, detect_nsv, is_rigid_body, nsv_note, nsv_truth_rows, rigid_body_note, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
-from .prep import Baseline, PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
+from .prep import PREP_BLOCK, Baseline, PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
                         TruthRows, find_peaks, own_envelope, window_truth)
 from .results import ProcessingResult, RevolutionFit, RevolutionOutput
@@ -170,12 +170,19 @@ def _first_amplitudes(d0: "_Centred", angles, eos: tuple, joint: bool) -> np.nda
     return amp
 
 
-def _column_median(d: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-    x = d if rows is None else d[rows]
+def _column_median(d: DisplacementRows) -> np.ndarray:
+    """Each column's (blade's and probe's) median over the run (0 where it has none), shape
+    (n_blades, n_probes): computed on blocks of blades (a column's median is its own: the
+    same numbers as on the whole array)."""
     import warnings
+
+    n_rev, nb, npr = d.shape
+    step = max(1, PREP_BLOCK // max(n_rev * npr, 1))
+    med = np.empty((nb, npr))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(x, axis=0)
+        for b in range(0, nb, step):
+            med[b:b + step] = np.nanmedian(d.blades(slice(b, b + step)), axis=0)
     return np.where(np.isfinite(med), med, 0.0)
 
 
@@ -248,12 +255,11 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     rows_truth = _truth_rows(truth, n_rev, revolution0)
     t_exp = _exact_times(truth, options)
     # 1. first pass: nominal geometry (or exact times) zeroed on the run's median
-    first = compute_displacements(opr, toa, geometry, t_exp_s=t_exp, calibration=None)
+    first = first_pass_rows(opr, toa, geometry, t_exp_s=t_exp)  # computed by blocks when needed, not held
     survey = _survey(first, opr, geometry, eos_asked, joint, options, truth, revolution0, notes)
     # 2. zeroing reference, Eq. 1 again
-    disp, reference, ref_info = _zeroing(first, opr, toa, geometry, survey, options, t_exp is not None, revolution0,
-                                         notes)
-    del first  # the first pass's displacements (unless they are disp): not needed any more
+    disp, reference, ref_info = _zeroing(opr, toa, geometry, survey, options, t_exp, revolution0, notes)
+    del first
     t_sample = _sample_times(toa) if survey.crossings else None
     if not spectra:  # the report alone: this function's last use of the TOAs (a caller may still hold them)
         disp = replace(disp, toa_s=None)
@@ -341,7 +347,7 @@ class _Survey:
     joint: bool
 
 
-def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked: tuple, joint: bool,
+def _survey(first: DisplacementRows, opr: np.ndarray, geometry: Geometry, eos_asked: tuple, joint: bool,
             options: ProcessOptions, truth, revolution0: int, notes: list) -> _Survey:
     """Step 1: Eq. 16 fits of the first-pass displacements zeroed on the run's median, speed
     segments, crossings per engine order and non-synchronous vibration."""
@@ -349,7 +355,7 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
     scan = options.eo_range is not None
     angles = geometry.probe_angles_rad
     omega = first.omega_rad_s
-    d0 = _Centred(first.d_m, _column_median(first.d_m))
+    d0 = _Centred(first, _column_median(first))
     amp0 = _first_amplitudes(d0, angles, eos_asked, joint)
     segments = speed_segments(opr, omega, det)
     crossings: list[Crossing] = []
@@ -378,7 +384,7 @@ def _survey(first: Displacements, opr: np.ndarray, geometry: Geometry, eos_asked
                    nsv=nsv, eos=eos, joint=joint)
 
 
-def _detect_nsv(first: Displacements, d0: "_Centred", geometry: Geometry, options: ProcessOptions, truth,
+def _detect_nsv(first: DisplacementRows, d0: "_Centred", geometry: Geometry, options: ProcessOptions, truth,
                 revolution0: int) -> tuple[NsvScan | None, tuple]:
     """Non-synchronous vibration of the first pass (``d0`` read by blocks of revolutions),
     scored against the truth when given (scored only: the truth never steers the processing)."""
@@ -392,28 +398,32 @@ def _detect_nsv(first: Displacements, d0: "_Centred", geometry: Geometry, option
     return nsv_scan, nsv
 
 
-def _zeroing(first: Displacements, opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Survey,
-             options: ProcessOptions, exact: bool, revolution0: int,
-             notes: list) -> tuple[Displacements, Reference | None, dict]:
+def _zeroing(opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Survey, options: ProcessOptions,
+             t_exp: np.ndarray | None, revolution0: int, notes: list) -> tuple[Displacements, Reference | None, dict]:
     """Step 2: the zeroing reference (the options' window, or one chosen away from every
     crossing) and Eq. 1 again on it; returns the displacements, the reference and the
     summary's description of it."""
     n_rev = opr.size
     det = options.detect
+    exact = t_exp is not None
+
+    def first() -> Displacements:  # the first pass's displacements, whole: Eq. 1 once more
+        return compute_displacements(opr, toa, geometry, t_exp_s=t_exp, calibration=None)
+
     reference = None
     cal = options.calibration
     if exact:
-        disp = first
+        disp = first()
         ref_info = {"method": "exact", "first": None, "last": None, "contamination_pct": None,
                     "reason": "the truth's exact expected arrival times"}
     elif cal is None or cal is False or (isinstance(cal, (int, np.integer)) and int(cal) == 0):
-        disp = first
+        disp = first()
         ref_info = {"method": "nominal", "first": None, "last": None, "contamination_pct": None,
                     "reason": "nominal geometry (calibration off)"}
     elif cal == "auto":
         reference = choose_reference(survey.omega, survey.segments, survey.crossings, det)
         if reference.start is None:
-            disp = first
+            disp = first()
             ref_info = {"method": "nominal", "first": None, "last": None, "contamination_pct": None,
                         "reason": reference.reason}
         else:
