@@ -219,7 +219,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         run-sized arrays that the report does not use) and keep the prepared displacements
         (False: the report only, for the callers that need nothing else: the spectra are
         None, ``displacements.toa_s`` is None (the TOAs are not held past Eq. 1), ``prepared.d_m``
-        is None, freed once the report's fits are made,
+        and ``prepared.region`` are None, freed once the report's fits are made,
         ``prepared.offset_m`` is the :class:`~.prep.Baseline` (not a whole array), and, with one
         revolution per fit, so are the fit's ``amp_std_m``, ``residual_rms_m`` and
         ``n_samples``, which the report does not read).
@@ -271,8 +271,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     eo = survey.eos[0]
     probe_tw = probe_spectra(d, eo) if spectra else None
     del d
-    if not spectra and prepared is not None:  # the report alone: the prepared displacements are done with
-        prepared = replace(prepared, d_m=None)
+    if not spectra:  # the report alone: the prepared displacements and the first pass's amplitudes are done with
+        survey = replace(survey, amp0=None)
+        if prepared is not None:
+            prepared = replace(prepared, d_m=None, region=None)
     # 4. per crossing and per dwell
     ctx = _Context(geometry=geometry, eos=survey.eos, joint=survey.joint, cns=cns, fit=fit, raw=raw, d_flat=d_flat,
                    omega=survey.omega, opr=opr, t_sample=t_sample,
@@ -334,11 +336,12 @@ def _exact_times(truth, options: ProcessOptions) -> np.ndarray | None:
 @dataclass(frozen=True, slots=True, eq=False)
 class _Survey:
     """What the first pass found: the speeds, the first-pass amplitudes (``amp0``, their
-    fits' ``amp_pkpk_m``), the segments, the crossings (the NSV's leaks dropped) and the
-    non-synchronous vibration, and the orders to report."""
+    fits' ``amp_pkpk_m``; None once the data preparation has used them, for the report
+    alone), the segments, the crossings (the NSV's leaks dropped) and the non-synchronous
+    vibration, and the orders to report."""
 
     omega: np.ndarray
-    amp0: np.ndarray
+    amp0: np.ndarray | None
     segments: RunSegments
     crossings: list
     nsv_scan: NsvScan | None

@@ -137,7 +137,7 @@ class ProcessingResult:
     displacements : Displacements
         Raw Eq. 1 displacements (zeroed on :attr:`reference`).
     prepared : PreparedData or None
-        Its ``d_m`` None when the report alone was asked for (``spectra=False``).
+        Its ``d_m`` and ``region`` None when the report alone was asked for (``spectra=False``).
     fit : SineFit
         Fits of the prepared displacements (raw when ``prep`` is off); with the report alone
         (``spectra=False``) and one revolution per fit, its ``amp_std_m``, ``residual_rms_m``
