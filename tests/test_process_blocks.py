@@ -67,6 +67,30 @@ def test_blocks_give_the_whole_arrays_numbers(monkeypatch):
     assert not np.allclose(np.nan_to_num(p2.offset_m), 0.0)  # a baseline was removed, smoothing done
 
 
+def test_displacement_rows_are_the_whole_arrays_rows(monkeypatch):
+    """The first pass's displacements computed when asked for (rows, blocks of blades; OPR
+    model or exact times) are the rows and columns of :func:`compute_displacements`'s, and
+    the pipeline's column medians on blocks of blades are the whole array's."""
+    from bttsim_stream.process.pipeline import _column_median
+
+    opr, toa, geo, _ = _run(700)
+    t_exp = toa + 1e-7
+    for t in (None, t_exp):
+        whole = compute_displacements(opr, toa, geo, t_exp_s=t, calibration=None).d_m
+        rows = displacement.first_pass_rows(opr, toa, geo, t_exp_s=t)
+        assert rows.shape == whole.shape
+        assert _same(rows[0:700], whole) and _same(rows[123:456], whole[123:456])
+        assert _same(rows.blades(slice(3, 8)), whole[:, 3:8])
+        monkeypatch.setattr(displacement, "DISPLACEMENT_CHUNK", 64)  # blades computed in blocks of revolutions
+        assert _same(rows.blades(slice(0, NB)), whole)
+        monkeypatch.setattr(prep, "PREP_BLOCK", 700 * 5 * 2)  # medians on two blades at a time
+        monkeypatch.setattr("bttsim_stream.process.pipeline.PREP_BLOCK", 700 * 5 * 2)
+        with np.errstate(all="ignore"):
+            want = np.nanmedian(whole, axis=0)
+        assert _same(_column_median(rows), np.where(np.isfinite(want), want, 0.0))
+        monkeypatch.undo()
+
+
 def _msg(kind, rev, value, probe=0):
     header = SimpleNamespace(revolution=rev)
     body = SimpleNamespace(opr_s=value) if kind == "opr" else SimpleNamespace(probe=probe, toa_s=value)
@@ -105,24 +129,30 @@ def test_recording_regrouped_as_the_assembler_does(seed):
     assert acq.duplicates == asm.duplicates
 
 
-def test_report_only_is_the_same_report():
+@pytest.mark.parametrize("options", [dict(engine_orders=(3,)), dict(engine_orders=(3,), method="sdof"),
+                                     dict(engine_orders=(3, 5), calibration=None), dict(engine_orders=(3,), window=5)])
+def test_report_only_is_the_same_report(options):
     """``spectra=False`` (``bttsim process``, the processor's final report) leaves out the
-    run's spectra, the prepared displacements (freed after the report's fits) and the whole
-    baseline array (evaluated by rows) and nothing else: the same report, number for number,
-    the same fits and offsets, and the input intact."""
+    run's spectra, the TOAs past Eq. 1, the prepared displacements and the first pass's
+    amplitudes (freed after the report's fits), the whole baseline array (evaluated by rows)
+    and the fits' arrays the report does not read, and nothing else: the same report,
+    number for number, the same fits and offsets, and the input intact."""
     import json
 
     from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
 
     opr, toa, geo, omega = _run(900, seed=3)
     kept = toa.copy()
-    opts = ProcessOptions(engine_orders=(3,))
+    opts = ProcessOptions(**options)
     full = process_arrays(opr, toa, geo, opts)
     only = process_arrays(opr, toa, geo, opts, spectra=False)
-    assert only.probe_tw is None and only.fit_tw is None
+    assert only.probe_tw is None and only.fit_tw is None and only.displacements.toa_s is None
     assert full.probe_tw.forward_m.shape == (900, PROBES.size, NB // 2 + 1)
     assert json.dumps(only.summary, sort_keys=True) == json.dumps(full.summary, sort_keys=True)
     assert only.prepared.d_m is None and full.prepared.d_m.shape == toa.shape
     assert _same(only.prepared.offset_m[:], full.prepared.offset_m)  # a Baseline, or zeros: by rows
-    assert _same(only.fit.coeffs, full.fit.coeffs) and _same(only.fit.amp_pkpk_m, full.fit.amp_pkpk_m)
+    assert _same(only.displacements.d_m, full.displacements.d_m)
+    for name in ("coeffs", "amp_pkpk_m", "phase_rad", "freq_hz"):
+        assert _same(getattr(only.fit, name), getattr(full.fit, name)), name
+    assert (only.fit.n_samples is None) == (opts.window == 1)
     assert _same(toa, kept)
