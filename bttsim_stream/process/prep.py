@@ -632,73 +632,162 @@ def smooth_revolutions(d_m: np.ndarray, half_width: np.ndarray | float,
     Without NaN every column shares the per-revolution equivalent kernel, applied as
     ``2 H + 1`` shifted multiply-adds; the few outputs whose window holds a NaN solve their
     own local fit. Windows are truncated at the ends of the run (the local quadratic then
-    extrapolates without the bias of a symmetric average).
+    extrapolates without the bias of a symmetric average). The kernels are computed in
+    blocks of revolutions (:class:`_Smoother`): the memory held besides the input and the
+    output does not grow with the run.
     """
     d = np.asarray(d_m, dtype=float)
-    return _smooth(d, *_smoother(d.shape[0], half_width, weights))
+    return _smooth(d, _smoother(d.shape[0], half_width, weights))
 
 
-def _smoother(n: int, half_width, weights) -> tuple:
-    """The kernel weights ``K`` and equivalent kernel ``L`` of :func:`smooth_revolutions`
-    over ``n`` revolutions, with the offsets ``j`` and the largest half-width ``H``."""
+#: Alignment of the blocks of revolutions in which the smoother's kernels are computed: the
+#: moments ``K @ j**k`` are matrix-vector products, which OpenBLAS's ``dgemv`` kernels compute
+#: for groups of 4 rows (the rest of the matrix, its last ``n % 4`` rows, by another kernel
+#: that sums in another order; numpy computes a one-row product as a dot product, in yet
+#: another order): blocks of a multiple of this many rows, the last one ending with the run
+#: and at least this long, give every row the whole product's numbers, bit for bit.
+SMOOTH_ALIGN = 64
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Smoother:
+    """The kernel of :func:`smooth_revolutions` over ``n`` revolutions, computed on demand
+    for blocks of revolutions (:meth:`rows`): each row of ``K`` depends only on that
+    revolution's half-width, the weights around it and its position, each row of ``L`` only
+    on that row of ``K``.
+
+    Attributes
+    ----------
+    h : ndarray, shape (n,)
+        Half-width per revolution.
+    w_rev : ndarray, shape (n,)
+        Sample weight per revolution.
+    H : int
+        The largest half-width, rounded up (the kernels hold ``2 H + 1`` offsets).
+    j : ndarray, shape (2 H + 1,)
+        The offsets ``-H .. H``.
+    """
+
+    h: np.ndarray
+    w_rev: np.ndarray
+    H: int
+    j: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.h.shape[0]
+
+    def blocks(self, n_col: int) -> list:
+        """Blocks ``(a, b)`` of revolutions for data of ``n_col`` columns: a multiple of
+        :data:`SMOOTH_ALIGN` revolutions each, the last one taking the rest (and a rest
+        shorter than :data:`SMOOTH_ALIGN`), with the kernels' and the data's block at most
+        about :data:`PREP_BLOCK` samples."""
+        n = self.n
+        step = PREP_BLOCK // max(n_col, 2 * self.H + 1, 1)
+        step = max(SMOOTH_ALIGN, step // SMOOTH_ALIGN * SMOOTH_ALIGN)
+        starts = list(range(0, n, step))
+        if len(starts) > 1 and n - starts[-1] < SMOOTH_ALIGN:
+            starts.pop()
+        return [(a, starts[i + 1] if i + 1 < len(starts) else n) for i, a in enumerate(starts)]
+
+    def kernel(self, a: int, b: int) -> np.ndarray:
+        """Sample weights ``K`` of revolutions ``a:b``, shape ``(b - a, 2 H + 1)`` (elementwise:
+        any rows give the numbers of the whole array)."""
+        n, H, j = self.n, self.H, self.j
+        idx = np.arange(a, b)[:, None] + np.arange(-H, H + 1)[None, :]
+        inside = (idx >= 0) & (idx < n)
+        u = np.abs(j)[None, :] / (self.h[a:b, None] + 1.0)
+        return (np.where(u < 1.0, (1.0 - u ** 3) ** 3, 0.0)
+                * np.where(inside, self.w_rev[np.clip(idx, 0, n - 1)], 0.0))
+
+    def rows(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """``K`` and the equivalent kernel ``L`` (:func:`_local_quadratic_weights`) of
+        revolutions ``a:b``, one of :meth:`blocks` (``a`` a multiple of :data:`SMOOTH_ALIGN`,
+        ``b`` too or the end of the run: then ``L`` has the whole array's numbers)."""
+        K = self.kernel(a, b)
+        return K, _local_quadratic_weights(K, self.j)
+
+
+def _smoother(n: int, half_width, weights) -> _Smoother:
+    """The kernel of :func:`smooth_revolutions` over ``n`` revolutions (rows on demand)."""
     h = np.broadcast_to(np.asarray(half_width, dtype=float), (n,))
     if np.any(~np.isfinite(h)) or np.any(h < 1):
         raise ValueError("half_width must be finite and >= 1")
     H = int(np.ceil(h.max()))
     j = np.arange(-H, H + 1, dtype=float)
     w_rev = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
-    idx = np.arange(n)[:, None] + np.arange(-H, H + 1)[None, :]
-    inside = (idx >= 0) & (idx < n)
-    u = np.abs(j)[None, :] / (h[:, None] + 1.0)
-    K = np.where(u < 1.0, (1.0 - u ** 3) ** 3, 0.0) * np.where(inside, w_rev[np.clip(idx, 0, n - 1)], 0.0)
-    L = _local_quadratic_weights(K, j)
-    return K, L, j, H
+    return _Smoother(h=h, w_rev=w_rev, H=H, j=j)
 
 
-def _smooth(d: np.ndarray, K: np.ndarray, L: np.ndarray, j: np.ndarray, H: int) -> np.ndarray:
-    """:func:`smooth_revolutions` of ``d`` with the kernel of :func:`_smoother`."""
+def _smooth(d: np.ndarray, sm: _Smoother, in_place: bool = False) -> np.ndarray:
+    """:func:`smooth_revolutions` of ``d`` with the kernel ``sm``, by blocks of revolutions
+    (:meth:`_Smoother.blocks`): a block's outputs read the input's revolutions ``a - H ..
+    b + H - 1``, so besides the input and the output only block-sized arrays are held.
+    ``in_place``: the output is written into ``d`` when it is contiguous (the ``H`` input
+    revolutions before the next block are kept aside); the result is returned either way."""
     n = d.shape[0]
+    H = sm.H
     flat = d.reshape(n, -1)
-    nan = np.isnan(flat)
-    xz = np.where(nan, 0.0, flat)
-    pad = np.zeros((n + 2 * H, flat.shape[1]))
-    pad[H:H + n] = xz
-    out = np.zeros_like(flat)
+    ncol = flat.shape[1]
+    res = flat if in_place else np.empty_like(flat)
+    carry = None  # input revolutions max(0, a - H) .. a - 1, when they are overwritten
+    for a, b in sm.blocks(ncol):
+        lo, hi = max(0, a - H), min(n, b + H)
+        src = flat[lo:hi] if carry is None else np.concatenate([carry, flat[a:hi]])
+        if in_place:
+            carry = src[max(0, b - H) - lo:b - lo].copy()
+        res[a:b] = _smooth_block(src, lo, a, b, n, sm)
+    return res.reshape(d.shape)
+
+
+def _smooth_block(src: np.ndarray, lo: int, a: int, b: int, n: int, sm: _Smoother) -> np.ndarray:
+    """Smoothed revolutions ``a:b`` of ``n`` from ``src``, the input's revolutions ``lo = max(0,
+    a - H) .. min(n, b + H) - 1``: per element, the operations (and their order) of the whole
+    run's computation."""
+    H, j = sm.H, sm.j
+    m, ncol = b - a, src.shape[1]
+    K, L = sm.rows(a, b)
+    nan = np.isnan(src)
+    # pad[i] is revolution a - H + i (zeros outside the run and for missing samples)
+    pad = np.zeros((m + 2 * H, ncol))
+    pad[lo - (a - H):lo - (a - H) + src.shape[0]] = np.where(nan, 0.0, src)
+    own = src[a - lo:b - lo]
+    out = np.zeros((m, ncol))
     Lz = np.nan_to_num(L)
     for k in range(2 * H + 1):
         rows = np.flatnonzero(Lz[:, k])
         if rows.size:
-            a, b = rows[0], rows[-1] + 1  # h(n) follows the speed: a contiguous range
-            out[a:b] += Lz[a:b, k, None] * pad[k + a:k + b]
-    out[np.any(np.isnan(L), axis=1)] = flat[np.any(np.isnan(L), axis=1)]
+            r0, r1 = rows[0], rows[-1] + 1
+            out[r0:r1] += Lz[r0:r1, k, None] * pad[k + r0:k + r1]
+    bad = np.any(np.isnan(L), axis=1)
+    out[bad] = own[bad]
     if np.any(nan):
         # outputs whose window holds a missing sample: their own local fit, from the
         # complete-data moments minus those of the missing samples (sparse), in u = j / (H + 1)
-        ncol = flat.shape[1]
         uj = j / (H + 1.0)
-        M_full = np.stack([K @ uj ** k for k in range(5)])  # (5, n)
+        M_full = np.stack([K @ uj ** k for k in range(5)])  # (5, m)
         r0, c0 = np.nonzero(nan)
-        rows = r0[:, None] - np.arange(-H, H + 1)[None, :]  # outputs that see the sample at offset j
-        ok = (rows >= 0) & (rows < n)
-        rows_c = np.clip(rows, 0, n - 1)
+        rows = (r0 + lo - a)[:, None] - np.arange(-H, H + 1)[None, :]  # outputs that see the sample at offset j
+        ok = (rows >= 0) & (rows < m)
+        rows_c = np.clip(rows, 0, m - 1)
         kw = np.where(ok, K[rows_c, np.arange(2 * H + 1)[None, :]], 0.0)
         lin = (rows_c * ncol + c0[:, None]).ravel()
-        hit = np.bincount(lin, weights=(kw > 0).ravel().astype(float), minlength=n * ncol) > 0
+        hit = np.bincount(lin, weights=(kw > 0).ravel().astype(float), minlength=m * ncol) > 0
         r, c = np.divmod(np.flatnonzero(hit), ncol)
-        pos = np.full(n * ncol, -1, dtype=np.int64)
+        pos = np.full(m * ncol, -1, dtype=np.int64)
         pos[np.flatnonzero(hit)] = np.arange(r.size)
-        M = M_full[:, r].copy()  # (5, m)
+        M = M_full[:, r].copy()  # (5, n_hit)
         sel = pos[lin]
         for k in range(5):
             M[k] -= np.bincount(sel[sel >= 0], weights=(kw * uj ** k).ravel()[sel >= 0], minlength=r.size)
         Y = np.zeros((3, r.size))
         for jj in range(2 * H + 1):
-            rr = r + jj - H
+            rr = r + a + jj - H
             inside_r = (rr >= 0) & (rr < n)
             kv = np.where(inside_r, K[r, jj], 0.0)
             if not np.any(kv):
                 continue
-            xv = xz[np.clip(rr, 0, n - 1), c] * kv
+            xv = pad[r + jj, c] * kv
             Y[0] += xv
             Y[1] += xv * uj[jj]
             Y[2] += xv * uj[jj] ** 2
@@ -711,9 +800,9 @@ def _smooth(d: np.ndarray, K: np.ndarray, L: np.ndarray, j: np.ndarray, H: int) 
         good = np.abs(det) > 1e-10 * scale
         with np.errstate(all="ignore"):
             val = (c00 * Y[0] + c01 * Y[1] + c02 * Y[2]) / det
-        out[r, c] = np.where(good, val, flat[r, c])
-        out[nan] = np.nan
-    return out.reshape(d.shape)
+        out[r, c] = np.where(good, val, own[r, c])
+        out[nan[a - lo:b - lo]] = np.nan
+    return out
 
 
 def smoothing_gain(half_width: np.ndarray, weights: np.ndarray | None, rows) -> np.ndarray:
@@ -758,18 +847,12 @@ def smoothing_gain(half_width: np.ndarray, weights: np.ndarray | None, rows) -> 
 
 
 #: Samples (revolutions x blades x probes) of the blocks in which :func:`prepare` removes
-#: the offsets and smooths: every column is processed on its own, so blocks of blades give
-#: the same numbers, with temporaries bounded by the block (a few dozen arrays of it). The
-#: baseline's column blocks and row windows are at least this size, rounded up to
-#: :data:`FIT_ALIGN` / :data:`ROW_ALIGN` and above the small-matrix limit :data:`GEMM_SMALL`.
+#: the offsets and smooths, with temporaries bounded by the block (a few dozen arrays of it).
+#: The baseline's column blocks and row windows are at least this size, rounded up to
+#: :data:`FIT_ALIGN` / :data:`ROW_ALIGN` and above the small-matrix limit :data:`GEMM_SMALL`;
+#: the smoother's blocks of revolutions (all columns, and the kernels' ``2 H + 1`` offsets) at
+#: most this size, rounded down to :data:`SMOOTH_ALIGN` revolutions.
 PREP_BLOCK = 1 << 19
-
-
-def _blade_blocks(shape: tuple) -> list:
-    """Slices of blades, each of at most :data:`PREP_BLOCK` samples (at least one blade)."""
-    n_rev, nb, npr = shape
-    step = max(1, PREP_BLOCK // max(n_rev * npr, 1))
-    return [slice(b, min(b + step, nb)) for b in range(0, nb, step)]
 
 
 def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
@@ -807,8 +890,10 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     Notes
     -----
     The baseline is fitted in blocks of columns (:func:`fit_baseline`) and subtracted in
-    windows of revolutions, into the array that is then smoothed in place: besides the input
-    and the output, only the offsets (when kept) and block-sized temporaries are held.
+    windows of revolutions, into the array that is then smoothed in place by blocks of
+    revolutions (the smoother's kernels computed block by block): besides the input and the
+    output, only the offsets (when kept), per-revolution vectors and block-sized temporaries
+    are held.
     """
     d = np.asarray(d_m, dtype=float)
     om = np.asarray(omega_rad_s, dtype=float)
@@ -834,7 +919,7 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
             i_res = int(np.median(region.peak_revolution[sig])) if np.any(sig) else int(np.argmax(om))
             half = speed_adaptive_half_width(om, h_res, om[i_res], adaptive=options.speed_adaptive,
                                              lo=max(options.min_half_width, 1.0), hi=options.max_half_width)
-        # the smoother's kernel first: its construction's temporaries do not meet the baseline's
+        # the smoother (its kernels are computed block by block while smoothing)
         kernel = _smoother(n_rev, half, 1.0 / (om * om) if options.noise_weighting else None)
     out = d
     offset = np.zeros_like(d) if keep_offset else np.broadcast_to(np.zeros(()), d.shape)
@@ -849,11 +934,8 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
         out = baseline.subtract(d)  # window by window: no whole offset array besides the kept one
         offset = baseline.to_array() if keep_offset else baseline
     if kernel is not None:
-        # each column is smoothed on its own: blocks of blades, written back in place when the
-        # offset-removed array is this function's own (a block reads only its own columns)
-        smoothed = out if out is not d else np.empty_like(d)
-        for sl in _blade_blocks(d.shape):
-            smoothed[:, sl] = _smooth(out[:, sl], *kernel)
-        out = smoothed
+        # by blocks of revolutions, written back in place when the offset-removed array is this
+        # function's own
+        out = _smooth(out, kernel, in_place=out is not d)
     return PreparedData(d_m=out, offset_m=offset, region=region, half_width=half, options=options,
                         baseline=baseline)
