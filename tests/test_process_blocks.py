@@ -91,6 +91,27 @@ def test_displacement_rows_are_the_whole_arrays_rows(monkeypatch):
         monkeypatch.undo()
 
 
+@pytest.mark.parametrize("remove_offset", [True, False])
+def test_prepared_rows_are_the_whole_arrays_rows(monkeypatch, remove_offset):
+    """``prepare(..., rows_only=True)`` prepares the revolutions asked for: in any slices, in
+    any order, over several smoother blocks, with missing samples, the rows of the whole
+    prepared array."""
+    opr, toa, geo, omega = _run(700)
+    d = compute_displacements(opr, toa, geo, calibration=64).d_m
+    assert np.isnan(d).any()
+    half = np.clip(3.0 + 6.0 * np.arange(700) / 700, 1, 40)
+    opts = prep.PrepOptions(remove_offset=remove_offset)
+    region = prep.locate_resonance(d, PROBES, (3,))
+    monkeypatch.setattr(prep, "PREP_BLOCK", 64 * NB * PROBES.size)  # smoother blocks of 64 revolutions
+    whole = prep.prepare(d, omega, PROBES, (3,), opts, region=region, half_width=half)
+    lazy = prep.prepare(d, omega, PROBES, (3,), opts, region=region, half_width=half, rows_only=True)
+    assert isinstance(lazy.d_m, prep.PreparedRows) and lazy.d_m.shape == d.shape
+    for a, b in ((0, 700), (650, 700), (0, 1), (63, 65), (100, 611), (5, 6), (0, 700)):
+        assert _same(lazy.d_m[a:b], whole.d_m[a:b]), (a, b)
+    assert _same(np.concatenate([lazy.d_m[a:a + 50] for a in range(0, 700, 50)]), whole.d_m)
+    assert _same(lazy.offset_m[:], whole.offset_m)
+
+
 def _msg(kind, rev, value, probe=0):
     header = SimpleNamespace(revolution=rev)
     body = SimpleNamespace(opr_s=value) if kind == "opr" else SimpleNamespace(probe=probe, toa_s=value)

@@ -265,7 +265,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         disp = replace(disp, toa_s=None)
         del toa, toa_s
     # 3. data preparation, and the fits of the report
-    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra)
+    # the report alone (one revolution per fit): the prepared displacements made by blocks as the fits read them
+    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra,
+                        rows_only=not spectra and options.window == 1)
     d = prepared.d_m if prepared is not None else disp.d_m
     fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra)
     eo = survey.eos[0]
@@ -447,7 +449,7 @@ def _zeroing(opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Surv
 
 
 def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: ProcessOptions,
-             notes: list, keep_offset: bool = True) -> PreparedData | None:
+             notes: list, keep_offset: bool = True, rows_only: bool = False) -> PreparedData | None:
     """Step 3: data preparation (None when off) with every crossing (and dwell) out of the
     baseline: the baseline (offsets slowly varying with speed) is fitted where no crossing's
     response is predicted above the reference's limit, so it does not take the forced
@@ -467,7 +469,7 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
         notes.append("no offset removal: the run holds too little data on both sides of the crossings for a "
                      "baseline in speed to bridge them (the zeroing reference alone is used)")
     return prepare(d, omega, angles, survey.eos, prep_opts, region=region, half_width=hw,
-                   exclude_revolutions=dwell_mask | skirts, keep_offset=keep_offset)
+                   exclude_revolutions=dwell_mask | skirts, keep_offset=keep_offset, rows_only=rows_only)
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,

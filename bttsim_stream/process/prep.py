@@ -46,6 +46,7 @@ __all__ = [
     "PrepOptions",
     "ResonanceRegion",
     "PreparedData",
+    "PreparedRows",
     "Baseline",
     "locate_resonance",
     "fit_baseline",
@@ -140,7 +141,9 @@ class PreparedData:
 
     Attributes
     ----------
-    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    d_m : ndarray or PreparedRows, shape (n_rev, n_blades, n_probes)
+        The prepared displacements; with ``prepare(..., rows_only=True)`` a
+        :class:`PreparedRows` (``d_m[a:b]`` prepares those revolutions, the same numbers).
     offset_m : ndarray or Baseline, shape (n_rev, n_blades, n_probes)
         The subtracted baseline (zeros when off). With ``prepare(..., keep_offset=False)`` not
         held as a whole array: the :class:`Baseline` itself (``offset_m[rows]`` gives the
@@ -719,6 +722,59 @@ def _smoother(n: int, half_width, weights) -> _Smoother:
     return _Smoother(h=h, w_rev=w_rev, H=H, j=j)
 
 
+class PreparedRows:
+    """Prepared displacements computed for the revolutions asked for, not held: ``rows[a:b]``
+    (a slice) is ``d_m - baseline``, smoothed, of revolutions ``a .. b - 1`` -- the same
+    numbers as :func:`prepare`'s whole array (every smoother block is computed as the whole
+    array's is, from the offset-removed input around it; the last block is kept for the next
+    rows asked for).
+
+    Parameters
+    ----------
+    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+        The displacements before preparation.
+    baseline : Baseline or None
+        The offsets to subtract (None: none).
+    smoother : _Smoother or None
+        The smoother's kernel (None: no smoothing).
+    """
+
+    def __init__(self, d_m: np.ndarray, baseline: "Baseline | None", smoother: "_Smoother | None") -> None:
+        self.d_m, self.baseline, self.smoother = d_m, baseline, smoother
+        n, nb, npr = d_m.shape
+        self._blocks = smoother.blocks(nb * npr) if smoother is not None else []
+        self._block = (0, 0, None)  # (a, b, smoothed revolutions a .. b - 1)
+
+    @property
+    def shape(self) -> tuple:
+        return self.d_m.shape
+
+    def _flat(self, a: int, b: int) -> np.ndarray:
+        """Offset-removed, unsmoothed revolutions ``a .. b - 1``."""
+        d = self.d_m[a:b]
+        return d if self.baseline is None else d - self.baseline[a:b]
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        a, b, step = rows.indices(self.d_m.shape[0])
+        if step != 1:
+            raise IndexError("PreparedRows takes slices of consecutive revolutions")
+        if self.smoother is None:
+            return self._flat(a, b)
+        out = np.empty((max(b - a, 0),) + self.d_m.shape[1:])
+        n, H = self.d_m.shape[0], self.smoother.H
+        for ba, bb in self._blocks:
+            if bb <= a or ba >= b:
+                continue
+            if self._block[:2] != (ba, bb):
+                lo, hi = max(0, ba - H), min(n, bb + H)
+                src = self._flat(lo, hi).reshape(hi - lo, -1)
+                self._block = (ba, bb, _smooth_block(src, lo, ba, bb, n, self.smoother).reshape(
+                    (bb - ba,) + self.d_m.shape[1:]))
+            lo, hi = max(a, ba), min(b, bb)
+            out[lo - a:hi - a] = self._block[2][lo - ba:hi - ba]
+        return out
+
+
 def _smooth(d: np.ndarray, sm: _Smoother, in_place: bool = False) -> np.ndarray:
     """:func:`smooth_revolutions` of ``d`` with the kernel ``sm``, by blocks of revolutions
     (:meth:`_Smoother.blocks`): a block's outputs read the input's revolutions ``a - H ..
@@ -858,7 +914,8 @@ PREP_BLOCK = 1 << 19
 def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_orders,
             options: PrepOptions = PrepOptions(), *, region: ResonanceRegion | None = None,
             half_width: np.ndarray | None = None,
-            exclude_revolutions: np.ndarray | None = None, keep_offset: bool = True) -> PreparedData:
+            exclude_revolutions: np.ndarray | None = None, keep_offset: bool = True,
+            rows_only: bool = False) -> PreparedData:
     """Run the data preparation (resonance location, offset removal, noise reduction).
 
     Parameters
@@ -882,6 +939,10 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
         Hold the subtracted baseline as a whole array in ``offset_m`` (as before); False:
         ``offset_m`` is the :class:`Baseline` (rows evaluated on demand, the same numbers),
         which saves an array of the run's size.
+    rows_only : bool
+        Do not make the whole prepared array: ``d_m`` is a :class:`PreparedRows` that
+        prepares the revolutions asked for (``d_m[a:b]``, the same numbers), and ``offset_m``
+        the :class:`Baseline` (as with ``keep_offset=False``).
 
     Returns
     -------
@@ -921,6 +982,7 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
                                              lo=max(options.min_half_width, 1.0), hi=options.max_half_width)
         # the smoother (its kernels are computed block by block while smoothing)
         kernel = _smoother(n_rev, half, 1.0 / (om * om) if options.noise_weighting else None)
+    keep_offset = keep_offset and not rows_only
     out = d
     offset = np.zeros_like(d) if keep_offset else np.broadcast_to(np.zeros(()), d.shape)
     baseline = None
@@ -931,8 +993,14 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
         baseline = fit_baseline(d, om, exclude, degree=options.offset_degree, robust=options.robust,
                                 noise_weighting=options.noise_weighting)
         del exclude
-        out = baseline.subtract(d)  # window by window: no whole offset array besides the kept one
         offset = baseline.to_array() if keep_offset else baseline
+        if rows_only:
+            return PreparedData(d_m=PreparedRows(d, baseline, kernel), offset_m=offset, region=region,
+                                half_width=half, options=options, baseline=baseline)
+        out = baseline.subtract(d)  # window by window: no whole offset array besides the kept one
+    if rows_only:
+        return PreparedData(d_m=PreparedRows(d, None, kernel), offset_m=offset, region=region, half_width=half,
+                            options=options, baseline=baseline)
     if kernel is not None:
         # by blocks of revolutions, written back in place when the offset-removed array is this
         # function's own
