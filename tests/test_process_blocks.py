@@ -8,7 +8,7 @@ import pytest
 
 from bttsim_stream.bus.stream import RevolutionAssembler
 from bttsim_stream.offline import _Acquisition
-from bttsim_stream.process import displacement, fit, prep, travelling_wave
+from bttsim_stream.process import displacement, fit, prep, smoothing, travelling_wave
 from bttsim_stream.process.displacement import Geometry, compute_displacements, expected_times
 
 PROBES = np.deg2rad([5.0, 15.15, 23.82, 220.0, 301.5])
@@ -46,6 +46,7 @@ def test_blocks_give_the_whole_arrays_numbers(monkeypatch):
     for mod, name in ((fit, "FIT_CHUNK"), (displacement, "DISPLACEMENT_CHUNK"), (travelling_wave, "SPECTRA_CHUNK")):
         monkeypatch.setattr(mod, name, 64)
     monkeypatch.setattr(prep, "PREP_BLOCK", 700 * 7)
+    monkeypatch.setattr(smoothing, "SMOOTH_BLOCK", 700 * 7)
     blocked = compute_displacements(opr, toa, geo, calibration=64)
     assert _same(blocked.d_m, d)
     assert _same(blocked.t_exp_s, whole.phase.opr_s[:, None, None] + displacement.displacements_from_phase(
@@ -102,7 +103,7 @@ def test_prepared_rows_are_the_whole_arrays_rows(monkeypatch, remove_offset):
     half = np.clip(3.0 + 6.0 * np.arange(700) / 700, 1, 40)
     opts = prep.PrepOptions(remove_offset=remove_offset)
     region = prep.locate_resonance(d, PROBES, (3,))
-    monkeypatch.setattr(prep, "PREP_BLOCK", 64 * NB * PROBES.size)  # smoother blocks of 64 revolutions
+    monkeypatch.setattr(smoothing, "SMOOTH_BLOCK", 64 * NB * PROBES.size)  # smoother blocks of 64 revolutions
     whole = prep.prepare(d, omega, PROBES, (3,), opts, region=region, half_width=half)
     lazy = prep.prepare(d, omega, PROBES, (3,), opts, region=region, half_width=half, rows_only=True)
     assert isinstance(lazy.d_m, prep.PreparedRows) and lazy.d_m.shape == d.shape
