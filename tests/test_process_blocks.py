@@ -152,7 +152,9 @@ def test_recording_regrouped_as_the_assembler_does(seed):
 
 
 @pytest.mark.parametrize("options", [dict(engine_orders=(3,)), dict(engine_orders=(3,), method="sdof"),
-                                     dict(engine_orders=(3, 5), calibration=None), dict(engine_orders=(3,), window=5)])
+                                     dict(engine_orders=(3, 5), calibration=None), dict(engine_orders=(3,), window=5),
+                                     dict(eo_range=(2, 5)), dict(engine_orders=(3,), prep=False),
+                                     dict(engine_orders=(3,), expected_times="exact")])
 def test_report_only_is_the_same_report(options):
     """``spectra=False`` (``bttsim process``, the processor's final report) leaves out the
     run's spectra, the TOAs past Eq. 1, the prepared displacements and the first pass's
@@ -166,13 +168,17 @@ def test_report_only_is_the_same_report(options):
     opr, toa, geo, omega = _run(900, seed=3)
     kept = toa.copy()
     opts = ProcessOptions(**options)
-    full = process_arrays(opr, toa, geo, opts)
-    only = process_arrays(opr, toa, geo, opts, spectra=False)
+    truth = SimpleNamespace(t_exp_s=np.nan_to_num(toa, nan=0.0) + 1e-7) if opts.expected_times == "exact" else None
+    full = process_arrays(opr, toa, geo, opts, truth=truth)
+    only = process_arrays(opr, toa, geo, opts, truth=truth, spectra=False)
     assert only.probe_tw is None and only.fit_tw is None and only.displacements.toa_s is None
     assert full.probe_tw.forward_m.shape == (900, PROBES.size, NB // 2 + 1)
     assert json.dumps(only.summary, sort_keys=True) == json.dumps(full.summary, sort_keys=True)
-    assert only.prepared.d_m is None and full.prepared.d_m.shape == toa.shape
-    assert _same(only.prepared.offset_m[:], full.prepared.offset_m)  # a Baseline, or zeros: by rows
+    if opts.prep:
+        assert only.prepared.d_m is None and full.prepared.d_m.shape == toa.shape
+        assert _same(only.prepared.offset_m[:], full.prepared.offset_m)  # a Baseline, or zeros: by rows
+    else:
+        assert only.prepared is None and full.prepared is None
     assert _same(only.displacements.d_m, full.displacements.d_m)
     for name in ("coeffs", "amp_pkpk_m", "phase_rad", "freq_hz"):
         assert _same(getattr(only.fit, name), getattr(full.fit, name)), name

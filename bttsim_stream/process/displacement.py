@@ -554,6 +554,8 @@ class DisplacementRows:
         return self.phase.omega_mean_rad_s
 
     def __getitem__(self, rows: slice) -> np.ndarray:
+        if not isinstance(rows, slice):
+            raise TypeError(f"DisplacementRows takes a slice of revolutions, got {type(rows).__name__}")
         return self._eq1(rows, slice(None))
 
     def blades(self, sel: slice) -> np.ndarray:

@@ -322,7 +322,8 @@ def _without_error(amp: np.ndarray, ph: np.ndarray, lo: int, hi: int, error):
     """The crossing's sequences with a complex error ``error`` (per blade, ``a1 + i a2``, m)
     taken out: ``(amp, phase, peak shift, peak revolution)`` (None without an error; NaN
     revolution for a blade without). The amplitude and phase are those of revolutions
-    ``lo .. hi`` only (row 0 is revolution ``lo``); the peak revolution counts from 0."""
+    ``lo .. hi`` only (row 0 is revolution ``lo``); the peak revolution is the run's index
+    (not counted from ``lo``)."""
     if error is None:
         return None
     e = np.asarray(error, dtype=complex)

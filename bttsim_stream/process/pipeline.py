@@ -373,7 +373,7 @@ def _survey(first: DisplacementRows, opr: np.ndarray, geometry: Geometry, eos_as
                   f"{det.snr_threshold:g}; noise correlated over several revolutions, e.g. a speed fluctuation)"
                   for r, snr, slow in dropped]
     if len(eos_asked) > 1 and not joint:  # each order on its own: their misfits tell them apart
-        crossings = resolve_engine_orders(crossings, _misfits(d0[:], angles, eos_asked))
+        crossings = resolve_engine_orders(crossings, _misfits(d0, angles, eos_asked))
     nsv_scan, nsv = _detect_nsv(first, d0, geometry, options, truth, revolution0)
     notes += [rigid_body_note(n) for n in nsv if is_rigid_body(n)]
     nsv = tuple(n for n in nsv if not is_rigid_body(n))
@@ -571,17 +571,18 @@ def _num(x):
     return x if math.isfinite(x) else None
 
 
-def _misfits(d: np.ndarray, angles, eos: tuple) -> dict:
-    """Per order: relative misfit of its own single-order fit over a range of revolutions."""
+def _misfits(d: "_Centred", angles, eos: tuple) -> dict:
+    """Per order: relative misfit of its own single-order fit over a range of revolutions
+    ``lo .. hi``, fitted when asked for on those revolutions only (one revolution per fit:
+    the numbers of a fit of the whole run)."""
     out = {}
     for eo in eos:
-        f = fit_revolutions(d, angles, (eo,))
-        res = f.residual_rms_m
-        amp = f.amp_pkpk_m[..., 0]
-
-        def m(lo, hi, res=res, amp=amp):
-            r = res[lo:hi + 1]
-            a = amp[lo:hi + 1]
+        def m(lo, hi, eo=eo):
+            rows = slice(lo, hi + 1)
+            if not len(range(d.shape[0])[rows]):
+                return math.nan
+            f = fit_revolutions(d[rows], angles, (eo,))
+            r, a = f.residual_rms_m, f.amp_pkpk_m[..., 0]
             with np.errstate(all="ignore"):
                 return float(np.sqrt(np.nanmean(r * r)) / max(np.sqrt(np.nanmean(a * a)), 1e-300))
         out[eo] = m
@@ -661,7 +662,7 @@ class _Flat:
         return self.d_m.shape
 
     def __getitem__(self, rows) -> np.ndarray:
-        off = self.offset_m if isinstance(self.offset_m, float) else self.offset_m[rows]
+        off = self.offset_m if isinstance(self.offset_m, (int, float)) else self.offset_m[rows]
         return self.d_m[rows] - off
 
 
@@ -677,7 +678,9 @@ class _Centred:
     def shape(self) -> tuple:
         return self.d_m.shape
 
-    def __getitem__(self, rows) -> np.ndarray:
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        if not isinstance(rows, slice):
+            raise TypeError(f"_Centred takes a slice of revolutions, got {type(rows).__name__}")
         return self.d_m[rows] - self.median_m[None]
 
 

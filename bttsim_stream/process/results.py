@@ -135,9 +135,12 @@ class ProcessingResult:
         The orders of :attr:`fit` (after a scan: those with a crossing).
     opr_s : ndarray, shape (n_rev,)
     displacements : Displacements
-        Raw Eq. 1 displacements (zeroed on :attr:`reference`).
+        Raw Eq. 1 displacements (zeroed on :attr:`reference`); its ``toa_s`` None when the
+        report alone was asked for (``spectra=False``).
     prepared : PreparedData or None
-        Its ``d_m`` and ``region`` None when the report alone was asked for (``spectra=False``).
+        Its ``d_m`` and ``region`` None, and its ``offset_m`` the fitted
+        :class:`~.prep.Baseline` (or a read-only broadcast zero), when the report alone was
+        asked for (``spectra=False``).
     fit : SineFit
         Fits of the prepared displacements (raw when ``prep`` is off); with the report alone
         (``spectra=False``) and one revolution per fit, its ``amp_std_m``, ``residual_rms_m``

@@ -186,6 +186,8 @@ class PreparedRows:
         return d if self.baseline is None else d - self.baseline[a:b]
 
     def __getitem__(self, rows: slice) -> np.ndarray:
+        if not isinstance(rows, slice):
+            raise TypeError(f"PreparedRows takes a slice of revolutions, got {type(rows).__name__}")
         a, b, step = rows.indices(self.d_m.shape[0])
         if step != 1:
             raise IndexError("PreparedRows takes slices of consecutive revolutions")
