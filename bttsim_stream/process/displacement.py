@@ -464,6 +464,19 @@ class Displacements:
         return expected_times(self.phase, self.arrival_angles_rad, self.toa_s)
 
 
+def _run_arrays(opr_s, toa_s, geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    """OPR times and TOAs as float arrays, their shapes checked against each other and the
+    geometry (ValueError)."""
+    opr = np.asarray(opr_s, dtype=float)
+    toa = np.asarray(toa_s, dtype=float)
+    if toa.ndim != 3 or toa.shape[0] != opr.size:
+        raise ValueError(f"toa_s must be (n_rev, n_blades, n_probes) with n_rev = {opr.size}, got {toa.shape}")
+    if toa.shape[1:] != (geometry.n_blades, geometry.n_probes):
+        raise ValueError(f"toa_s has {toa.shape[1:]} (blades, probes); the geometry "
+                         f"({geometry.n_blades}, {geometry.n_probes})")
+    return opr, toa
+
+
 def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geometry, *,
                           t_exp_s: np.ndarray | None = None,
                           calibration: int | tuple[int, int] | None = 64,
@@ -490,13 +503,7 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
     -------
     Displacements
     """
-    opr = np.asarray(opr_s, dtype=float)
-    toa = np.asarray(toa_s, dtype=float)
-    if toa.ndim != 3 or toa.shape[0] != opr.size:
-        raise ValueError(f"toa_s must be (n_rev, n_blades, n_probes) with n_rev = {opr.size}, got {toa.shape}")
-    if toa.shape[1:] != (geometry.n_blades, geometry.n_probes):
-        raise ValueError(f"toa_s has {toa.shape[1:]} (blades, probes); the geometry "
-                         f"({geometry.n_blades}, {geometry.n_probes})")
+    opr, toa = _run_arrays(opr_s, toa_s, geometry)
     phase = rotor_phase_from_opr(opr)
     if t_exp_s is not None:
         t_exp = np.asarray(t_exp_s, dtype=float)
@@ -581,13 +588,7 @@ def first_pass_rows(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geometry, *,
                     t_exp_s: np.ndarray | None = None) -> DisplacementRows:
     """The displacements of :func:`compute_displacements` with the nominal geometry (or exact
     expected times) and no calibration, as :class:`DisplacementRows`: computed when asked for."""
-    opr = np.asarray(opr_s, dtype=float)
-    toa = np.asarray(toa_s, dtype=float)
-    if toa.ndim != 3 or toa.shape[0] != opr.size:
-        raise ValueError(f"toa_s must be (n_rev, n_blades, n_probes) with n_rev = {opr.size}, got {toa.shape}")
-    if toa.shape[1:] != (geometry.n_blades, geometry.n_probes):
-        raise ValueError(f"toa_s has {toa.shape[1:]} (blades, probes); the geometry "
-                         f"({geometry.n_blades}, {geometry.n_probes})")
+    opr, toa = _run_arrays(opr_s, toa_s, geometry)
     phase = rotor_phase_from_opr(opr)
     if t_exp_s is not None:
         return DisplacementRows(phase, toa, None, geometry.tip_radius_m, np.asarray(t_exp_s, dtype=float))

@@ -544,21 +544,8 @@ def fit_baseline(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray |
 def remove_offset(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray | None = None, *,
                   degree: int = 2, robust: bool = True, noise_weighting: bool = True,
                   iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Subtract a per blade/probe polynomial baseline in speed fitted outside ``exclude``.
-
-    Parameters
-    ----------
-    d_m : ndarray, shape (n_rev, n_blades, n_probes)
-    omega_rad_s : ndarray, shape (n_rev,)
-    exclude : ndarray of bool, shape (n_rev, n_blades), optional
-        Revolutions left out of each blade's fit (the resonance region).
-    degree : int
-    robust : bool
-        Tukey bisquare reweighting (``c = 4.685`` MAD-scaled residuals).
-    noise_weighting : bool
-        Eq. 15 weights ``1 / Omega^2``.
-    iterations : int
-        Reweighting iterations when ``robust``.
+    """Subtract a per blade/probe polynomial baseline in speed fitted outside ``exclude``
+    (:func:`fit_baseline`, whose parameters these are).
 
     Returns
     -------
