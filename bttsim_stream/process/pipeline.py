@@ -157,16 +157,14 @@ def _chunk_fits(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radiu
         yield lo, hi, _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], 1, radius)
 
 
-def _first_amplitudes(d0: "_Centred", angles, eos: tuple, joint: bool) -> np.ndarray:
+def _first_amplitudes(d0: "_Flat", angles, eos: tuple, joint: bool, omega: np.ndarray) -> np.ndarray:
     """The first pass's Eq. 16 amplitudes (one revolution per fit), shape (n_rev, n_blades,
-    n_orders): fitted :data:`~.fit.FIT_CHUNK` revolutions at a time, as :func:`_fit` does
-    (the same numbers: no fit spans two revolutions), without the run's other fit arrays or
+    n_orders), fitted by chunks (:func:`_chunk_fits`), without the run's other fit arrays or
     the zeroed displacements held whole."""
     n_rev, nb = d0.shape[:2]
     amp = np.empty((n_rev, nb, len(eos)))
-    for a in range(0, n_rev, fitting.FIT_CHUNK):
-        b = min(a + fitting.FIT_CHUNK, n_rev)
-        amp[a:b] = _fit(d0[a:b], angles, eos, joint, None, 1).amp_pkpk_m
+    for lo, hi, f in _chunk_fits(d0, 0, n_rev, angles, eos, joint, omega, None):
+        amp[lo:hi] = f.amp_pkpk_m
     return amp
 
 
@@ -360,8 +358,8 @@ def _survey(first: DisplacementRows, opr: np.ndarray, geometry: Geometry, eos_as
     scan = options.eo_range is not None
     angles = geometry.probe_angles_rad
     omega = first.omega_rad_s
-    d0 = _Centred(first, _column_median(first))
-    amp0 = _first_amplitudes(d0, angles, eos_asked, joint)
+    d0 = _Flat(first, np.broadcast_to(_column_median(first), first.shape))  # zeroed on the median, by rows
+    amp0 = _first_amplitudes(d0, angles, eos_asked, joint, omega)
     segments = speed_segments(opr, omega, det)
     crossings: list[Crossing] = []
     for i, eo in enumerate(eos_asked):
@@ -389,7 +387,7 @@ def _survey(first: DisplacementRows, opr: np.ndarray, geometry: Geometry, eos_as
                    nsv=nsv, eos=eos, joint=joint)
 
 
-def _detect_nsv(first: DisplacementRows, d0: "_Centred", geometry: Geometry, options: ProcessOptions, truth,
+def _detect_nsv(first: DisplacementRows, d0: "_Flat", geometry: Geometry, options: ProcessOptions, truth,
                 revolution0: int) -> tuple[NsvScan | None, tuple]:
     """Non-synchronous vibration of the first pass (``d0`` read by blocks of revolutions),
     scored against the truth when given (scored only: the truth never steers the processing)."""
@@ -571,7 +569,7 @@ def _num(x):
     return x if math.isfinite(x) else None
 
 
-def _misfits(d: "_Centred", angles, eos: tuple) -> dict:
+def _misfits(d: "_Flat", angles, eos: tuple) -> dict:
     """Per order: relative misfit of its own single-order fit over a range of revolutions
     ``lo .. hi``, fitted when asked for on those revolutions only (one revolution per fit:
     the numbers of a fit of the whole run)."""
@@ -651,8 +649,10 @@ def _region(amp0: np.ndarray, crossings, n_rev: int) -> ResonanceRegion:
 class _Flat:
     """The offset-removed, unsmoothed displacements ``d_m - offset_m``, computed for the
     revolutions asked for (``flat[rows]``: the same numbers as the whole array's rows) instead
-    of held for the whole run. ``offset_m``: an array, a :class:`~.prep.Baseline` (evaluated
-    for those rows) or a float."""
+    of held for the whole run. ``d_m``: an array or rows computed when asked for
+    (:class:`~.displacement.DisplacementRows`); ``offset_m``: an array (e.g. a column's
+    median broadcast over the run), a :class:`~.prep.Baseline` (evaluated for those rows) or
+    a float."""
 
     d_m: np.ndarray
     offset_m: "np.ndarray | Baseline | float"
@@ -664,24 +664,6 @@ class _Flat:
     def __getitem__(self, rows) -> np.ndarray:
         off = self.offset_m if isinstance(self.offset_m, (int, float)) else self.offset_m[rows]
         return self.d_m[rows] - off
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _Centred:
-    """Displacements less a constant per column, ``d_m - median[None]``, computed for the
-    revolutions asked for (``centred[rows]``: the same numbers as the whole array's rows)."""
-
-    d_m: np.ndarray
-    median_m: np.ndarray
-
-    @property
-    def shape(self) -> tuple:
-        return self.d_m.shape
-
-    def __getitem__(self, rows: slice) -> np.ndarray:
-        if not isinstance(rows, slice):
-            raise TypeError(f"_Centred takes a slice of revolutions, got {type(rows).__name__}")
-        return self.d_m[rows] - self.median_m[None]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
