@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.process import history
-from bttsim_stream.process.history import RecentRows, SpilledRows
+from bttsim_stream.process.history import RecentRows, ScratchRows, SpilledRows
 from bttsim_stream.process.options import ProcessOptions
 from bttsim_stream.process.streaming import StreamingProcessor
 
@@ -66,6 +66,37 @@ def _stream_all(run, proc, call_nsv: bool):
 
 
 @pytest.mark.slow
+def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(1000, 7, 3))
+    a[rng.random(a.shape) < 0.1] = np.nan
+    s = ScratchRows(a.shape)
+    for lo in range(0, 1000, 333):  # blocks of any size, in order
+        s.write(a[lo:lo + 333])
+    assert s.written == 1000 and s.shape == a.shape and s.ndim == 3
+    np.testing.assert_array_equal(s[:], a)
+    np.testing.assert_array_equal(s[17:412], a[17:412])
+    np.testing.assert_array_equal(s[990:2000], a[990:])  # a slice clipped as numpy clips it
+    assert s[5:5].shape == (0, 7, 3)
+    for rows in (np.array([3, 4, 5, 9, 2, 2, 999]), 42, -1, slice(0, 100, 7)):
+        np.testing.assert_array_equal(s[rows], a[rows])
+    flat = a.reshape(1000, 21)
+    for cols in (slice(0, 21), slice(4, 11), slice(20, 21)):
+        got = s.columns(cols)
+        np.testing.assert_array_equal(got, flat[:, cols])
+        assert got.flags.c_contiguous  # laid out as the array's rows: BLAS gives the same numbers
+    with pytest.raises(ValueError, match="rows written"):
+        s.write(a[:1])
+    with pytest.raises(IndexError):
+        s.columns(slice(0, 21, 2))
+    part = ScratchRows((10, 2))
+    part.write(np.arange(8.0).reshape(4, 2))
+    np.testing.assert_array_equal(part[:], np.arange(8.0).reshape(4, 2))  # the rows written so far
+    np.testing.assert_array_equal(part.columns(slice(1, 2))[:, 0], [1.0, 3.0, 5.0, 7.0])
+    s.close()
+    part.close()
+
+
 def test_streaming_processor_state_is_bounded_and_gives_the_same_results(monkeypatch):
     from bttsim_stream.paper.validate_processing import simulate
 

@@ -42,6 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .history import ScratchRows
+
 __all__ = [
     "assign_extra_edges",
     "DoublePulses",
@@ -428,7 +430,8 @@ class Displacements:
 
     Attributes
     ----------
-    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    d_m : ndarray or ScratchRows, shape (n_rev, n_blades, n_probes)
+        (:class:`~.history.ScratchRows`: written to scratch files, read by rows or columns.)
     omega_rad_s : ndarray, shape (n_rev,)
         Mean speed of each revolution (from the OPR times), rad/s.
     exact_t_exp_s : ndarray, shape (n_rev, n_blades, n_probes), or None
@@ -480,7 +483,7 @@ def _run_arrays(opr_s, toa_s, geometry: Geometry) -> tuple[np.ndarray, np.ndarra
 def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geometry, *,
                           t_exp_s: np.ndarray | None = None,
                           calibration: int | tuple[int, int] | None = 64,
-                          arrival_angles_rad: np.ndarray | None = None) -> Displacements:
+                          arrival_angles_rad: np.ndarray | None = None, scratch: bool = False) -> Displacements:
     """BTT displacements (Eq. 1) from OPR and TOA arrays.
 
     Parameters
@@ -498,17 +501,24 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
         None or 0: the nominal arrival angles of ``geometry``.
     arrival_angles_rad : ndarray, shape (n_blades, n_probes), optional
         Use these arrival angles (e.g. from an earlier calibration) instead.
+    scratch : bool
+        Write the displacements, block by block, to a :class:`~.history.ScratchRows` (two
+        scratch files read back by rows or columns, the same numbers) instead of holding them
+        (``d_m`` is then that object): for a report of a long run.
 
     Returns
     -------
     Displacements
     """
     opr, toa = _run_arrays(opr_s, toa_s, geometry)
+    d = ScratchRows(toa.shape) if scratch else np.empty(toa.shape)
     phase = rotor_phase_from_opr(opr)
     if t_exp_s is not None:
         t_exp = np.asarray(t_exp_s, dtype=float)
-        return Displacements(btt_displacement(phase.omega_mean_rad_s, geometry.tip_radius_m, t_exp, toa),
-                             phase.omega_mean_rad_s, t_exp, None, "exact")
+        om = phase.omega_mean_rad_s
+        for a, b in _blocks(opr.size):  # element-wise: by blocks, the same numbers
+            _put(d, a, b, btt_displacement(om[a:b], geometry.tip_radius_m, t_exp[a:b], toa[a:b]))
+        return Displacements(d, om, t_exp, None, "exact")
     if arrival_angles_rad is not None:
         psi, method = np.asarray(arrival_angles_rad, dtype=float), "calibrated"
     elif calibration:
@@ -517,15 +527,26 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
         psi = np.where(np.isfinite(psi), psi, nominal)
     else:
         psi, method = geometry.nominal_arrival_angles(), "nominal"
-    d = np.empty(toa.shape)
-    for a in range(0, opr.size, DISPLACEMENT_CHUNK):  # in blocks: bounded temporaries (Eq. 1 is per revolution)
-        b = min(a + DISPLACEMENT_CHUNK, opr.size)
-        d[a:b] = displacements_from_phase(phase.rows(slice(a, b)), toa[a:b], psi, geometry.tip_radius_m)[0]
+    for a, b in _blocks(opr.size):  # in blocks: bounded temporaries (Eq. 1 is per revolution)
+        _put(d, a, b, displacements_from_phase(phase.rows(slice(a, b)), toa[a:b], psi, geometry.tip_radius_m)[0])
     return Displacements(d, phase.omega_mean_rad_s, None, psi, method, phase=phase, toa_s=toa)
 
 
 #: Revolutions of Eq. 1 computed at once by :func:`compute_displacements`.
 DISPLACEMENT_CHUNK = 4096
+
+
+def _blocks(n: int):
+    """``(a, b)``: revolutions ``a .. b - 1``, :data:`DISPLACEMENT_CHUNK` at a time."""
+    return ((a, min(a + DISPLACEMENT_CHUNK, n)) for a in range(0, n, DISPLACEMENT_CHUNK))
+
+
+def _put(d, a: int, b: int, block: np.ndarray) -> None:
+    """Rows ``a .. b - 1`` of ``d`` (an array, or a :class:`~.history.ScratchRows` written in order)."""
+    if isinstance(d, ScratchRows):
+        d.write(block)
+    else:
+        d[a:b] = block
 
 
 @dataclass(frozen=True, slots=True, eq=False)

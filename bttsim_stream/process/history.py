@@ -7,17 +7,21 @@
   (the live processor's TOAs and truth, for its final report): the recent rows in memory, the
   older ones in an unnamed scratch file (:func:`tempfile.TemporaryFile`: in ``TMPDIR``,
   deleted when closed or when the process ends), read back when asked for.
+* :class:`ScratchRows`: a run-sized array written once, in order, by blocks of rows, and then
+  read back by rows or by blocks of columns (the final report's displacements): held in two
+  unnamed scratch files, one row-major and one column-major, not in memory.
 
 Pure numpy and the standard library; no bus, no formats.
 """
 
 from __future__ import annotations
 
+import os
 import tempfile
 
 import numpy as np
 
-__all__ = ["RecentRows", "SpilledRows", "SPILL_BYTES"]
+__all__ = ["RecentRows", "SpilledRows", "ScratchRows", "SPILL_BYTES"]
 
 #: Bytes of recent rows a :class:`SpilledRows` keeps in memory before it writes the older half
 #: to its scratch file (twice this at most).
@@ -150,3 +154,80 @@ class SpilledRows:
         if self._file is not None:
             self._file.close()
             self._file = None
+
+
+class ScratchRows:
+    """An array of shape ``(n_rows, *tail)`` written once, in order, by blocks of rows
+    (:meth:`write`), then read back: ``rows[a:b]`` (or an integer array of rows) and
+    :meth:`columns` (every row of some columns of the array seen as ``(n_rows, n_cols)``)
+    are copies of the values written, the same numbers. Held in two unnamed scratch files
+    (``TMPDIR``; deleted when closed or when the process ends): one row by row, one column
+    by column, so that both reads are contiguous.
+    """
+
+    def __init__(self, shape: tuple, dtype=np.float64) -> None:
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        self.ndim = len(self.shape)
+        self._n_cols = int(np.prod(self.shape[1:], dtype=np.int64))
+        self._rows = tempfile.TemporaryFile(prefix="bttsim-rows-")
+        self._cols = tempfile.TemporaryFile(prefix="bttsim-cols-")
+        self.written = 0
+
+    def write(self, block) -> None:
+        """Append rows ``written .. written + len(block) - 1``."""
+        block = np.ascontiguousarray(block, dtype=self.dtype).reshape(-1, self._n_cols)
+        a, m = self.written, block.shape[0]
+        if a + m > self.shape[0]:
+            raise ValueError(f"{a + m} rows written to a scratch array of {self.shape[0]}")
+        size = self.dtype.itemsize
+        os.pwrite(self._rows.fileno(), memoryview(block).cast("B"), a * self._n_cols * size)
+        fd, cols = self._cols.fileno(), np.ascontiguousarray(block.T)
+        for j in range(self._n_cols):  # each column's segment of these rows
+            os.pwrite(fd, memoryview(cols[j]).cast("B"), (j * self.shape[0] + a) * size)
+        self.written = a + m
+
+    def _read(self, f, offset: int, out: np.ndarray) -> None:
+        if out.size == 0:
+            return
+        view = memoryview(out).cast("B")
+        got = os.preadv(f.fileno(), [view], offset * self.dtype.itemsize)
+        if got != view.nbytes:
+            raise OSError(f"a scratch file of the run's displacements is short ({got} of {view.nbytes} bytes)")
+
+    def __getitem__(self, rows) -> np.ndarray:
+        n = self.written
+        if isinstance(rows, slice) and rows.step in (None, 1):
+            a, b, _ = rows.indices(n)
+            out = np.empty((max(b - a, 0), self._n_cols), self.dtype)
+            self._read(self._rows, a * self._n_cols, out)
+            return out.reshape((out.shape[0],) + self.shape[1:])
+        idx = np.arange(n)[rows]
+        flat = np.atleast_1d(idx)
+        out = np.empty((flat.size, self._n_cols), self.dtype)
+        cuts = np.flatnonzero(np.diff(flat) != 1) + 1  # runs of consecutive rows, one read each
+        for s, e in zip(np.r_[0, cuts], np.r_[cuts, flat.size]):
+            if e > s:
+                self._read(self._rows, int(flat[s]) * self._n_cols, out[s:e])
+        out = out.reshape(flat.shape + self.shape[1:])
+        return out[0] if idx.ndim == 0 else out.reshape(idx.shape + self.shape[1:])
+
+    def columns(self, cols: slice) -> np.ndarray:
+        """Columns ``cols`` (a slice of the ``n_cols`` columns) of every row written, shape
+        ``(n_rows, n)``, row-major (as a block of columns of the array is laid out: numpy
+        and BLAS give the same numbers on it)."""
+        a, b, step = cols.indices(self._n_cols)
+        if step != 1:
+            raise IndexError("ScratchRows.columns takes a slice of consecutive columns")
+        out = np.empty((max(b - a, 0), self.written), self.dtype)
+        if self.written == self.shape[0]:
+            self._read(self._cols, a * self.shape[0], out)
+        else:
+            for j in range(a, b):
+                self._read(self._cols, j * self.shape[0], out[j - a])
+        return np.ascontiguousarray(out.T)
+
+    def close(self) -> None:
+        """Delete the scratch files."""
+        self._rows.close()
+        self._cols.close()

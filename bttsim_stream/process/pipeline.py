@@ -256,7 +256,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     first = first_pass_rows(opr, toa, geometry, t_exp_s=t_exp)  # computed by blocks when needed, not held
     survey = _survey(first, opr, geometry, eos_asked, joint, options, truth, revolution0, notes)
     # 2. zeroing reference, Eq. 1 again
-    disp, reference, ref_info = _zeroing(opr, toa, geometry, survey, options, t_exp, revolution0, notes)
+    # the report alone, one revolution per fit: the displacements are read by rows and columns from scratch files
+    disp, reference, ref_info = _zeroing(opr, toa, geometry, survey, options, t_exp, revolution0, notes,
+                                         scratch=not spectra and options.window == 1)
     del first
     t_sample = _sample_times(toa) if survey.crossings else None
     if not spectra:  # the report alone: this function's last use of the TOAs (a caller may still hold them)
@@ -402,16 +404,18 @@ def _detect_nsv(first: DisplacementRows, d0: "_Flat", geometry: Geometry, option
 
 
 def _zeroing(opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Survey, options: ProcessOptions,
-             t_exp: np.ndarray | None, revolution0: int, notes: list) -> tuple[Displacements, Reference | None, dict]:
+             t_exp: np.ndarray | None, revolution0: int, notes: list,
+             scratch: bool = False) -> tuple[Displacements, Reference | None, dict]:
     """Step 2: the zeroing reference (the options' window, or one chosen away from every
     crossing) and Eq. 1 again on it; returns the displacements, the reference and the
-    summary's description of it."""
+    summary's description of it. ``scratch``: the displacements in scratch files, not held
+    (:class:`~.history.ScratchRows`)."""
     n_rev = opr.size
     det = options.detect
     exact = t_exp is not None
 
     def first() -> Displacements:  # the first pass's displacements, whole: Eq. 1 once more
-        return compute_displacements(opr, toa, geometry, t_exp_s=t_exp, calibration=None)
+        return compute_displacements(opr, toa, geometry, t_exp_s=t_exp, calibration=None, scratch=scratch)
 
     reference = None
     cal = options.calibration
@@ -430,7 +434,8 @@ def _zeroing(opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Surv
             ref_info = {"method": "nominal", "first": None, "last": None, "contamination_pct": None,
                         "reason": reference.reason}
         else:
-            disp = compute_displacements(opr, toa, geometry, calibration=(reference.start, reference.stop))
+            disp = compute_displacements(opr, toa, geometry, calibration=(reference.start, reference.stop),
+                                         scratch=scratch)
             ref_info = {"method": "calibrated", "first": revolution0 + reference.start,
                         "last": revolution0 + reference.stop - 1,
                         "contamination_pct": _num(100.0 * reference.contamination), "reason": reference.reason}
@@ -439,7 +444,7 @@ def _zeroing(opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Surv
                              f"{100 * reference.contamination:.0f} % of a peak, estimated from the response's growth "
                              f"and added back (each resonance's zeroing_correction_pct)")
     else:
-        disp = compute_displacements(opr, toa, geometry, calibration=cal)
+        disp = compute_displacements(opr, toa, geometry, calibration=cal, scratch=scratch)
         w = (0, int(cal)) if isinstance(cal, (int, np.integer)) else (int(cal[0]), int(cal[1]))
         ref_info = {"method": "calibrated", "first": revolution0 + w[0], "last": revolution0 + min(w[1], n_rev) - 1,
                     "contamination_pct": None, "reason": "the window given in the options"}

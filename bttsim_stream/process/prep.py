@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .fit import fit_revolutions
+from .history import ScratchRows
 from .smoothing import PreparedRows, smooth, smoother, smooth_revolutions, smoothing_gain
 
 __all__ = [
@@ -453,7 +454,8 @@ def fit_baseline(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray |
 
     Parameters
     ----------
-    d_m : ndarray, shape (n_rev, n_blades, n_probes)
+    d_m : ndarray or ScratchRows, shape (n_rev, n_blades, n_probes)
+        (:class:`~.history.ScratchRows`: its columns read block by block.)
     omega_rad_s : ndarray, shape (n_rev,)
     exclude : ndarray of bool, shape (n_rev, n_blades), optional
         Revolutions left out of each blade's fit (the resonance region).
@@ -469,15 +471,16 @@ def fit_baseline(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray |
     -------
     Baseline
     """
-    d = np.asarray(d_m, dtype=float)
+    d = d_m if isinstance(d_m, ScratchRows) else np.asarray(d_m, dtype=float)
     n_rev, nb, npr = d.shape
     om = np.asarray(omega_rad_s, dtype=float)
     span = max(float(om.max() - om.min()), 1e-12)
     centre = 0.5 * (om.max() + om.min())
     x = (om - centre) / (0.5 * span)
     V = np.vander(x, int(degree) + 1, increasing=True)  # (n_rev, p)
-    y = d.reshape(n_rev, nb * npr)
-    n_col = y.shape[1]
+    # a block of columns: a view of the array, or read from the scratch file (the same numbers)
+    y = None if isinstance(d, ScratchRows) else d.reshape(n_rev, nb * npr)
+    n_col = nb * npr
     keep = None if exclude is None else ~np.asarray(exclude, bool)
     rel = om * om / np.mean(om * om) if noise_weighting else None
     p = V.shape[1]
@@ -496,7 +499,7 @@ def fit_baseline(d_m: np.ndarray, omega_rad_s: np.ndarray, exclude: np.ndarray |
     for it in range(n_it):
         prev, coef = coef, np.empty((n_col, p))
         for c in blocks:
-            yc = y[:, c]
+            yc = d.columns(c) if y is None else y[:, c]
             ok = np.isfinite(yc)
             w0 = ok.astype(float)
             if keep is not None:
@@ -598,8 +601,9 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
 
     Parameters
     ----------
-    d_m : ndarray, shape (n_rev, n_blades, n_probes)
-        Raw Eq. 1 displacements, m.
+    d_m : ndarray or ScratchRows, shape (n_rev, n_blades, n_probes)
+        Raw Eq. 1 displacements, m (:class:`~.history.ScratchRows`: read from its scratch
+        files by columns and rows with ``rows_only``, else read whole).
     omega_rad_s : ndarray, shape (n_rev,)
         Mean speed per revolution, rad/s.
     probe_angles_rad : array_like, shape (n_probes,)
@@ -634,7 +638,9 @@ def prepare(d_m: np.ndarray, omega_rad_s: np.ndarray, probe_angles_rad, engine_o
     output, only the offsets (when kept), per-revolution vectors and block-sized temporaries
     are held.
     """
-    d = np.asarray(d_m, dtype=float)
+    if isinstance(d_m, ScratchRows) and not rows_only:  # the whole prepared array is made: read whole
+        d_m = d_m[:]
+    d = d_m if isinstance(d_m, ScratchRows) else np.asarray(d_m, dtype=float)
     om = np.asarray(omega_rad_s, dtype=float)
     n_rev = d.shape[0]
     if region is None:
