@@ -353,7 +353,7 @@ def calibrate_arrival_angles(phase: RotorPhase, toa_s: np.ndarray,
         sel = revolutions
     else:
         sel = slice(int(revolutions[0]), int(revolutions[1]))
-    toa = np.asarray(toa_s, dtype=float)[sel]
+    toa = toa_s[sel] if isinstance(toa_s, ScratchRows) else np.asarray(toa_s, dtype=float)[sel]
     if toa.shape[0] == 0:
         raise ValueError("the calibration window holds no revolution")
     ang = phase.rows(sel).angle(toa)
@@ -471,7 +471,7 @@ def _run_arrays(opr_s, toa_s, geometry: Geometry) -> tuple[np.ndarray, np.ndarra
     """OPR times and TOAs as float arrays, their shapes checked against each other and the
     geometry (ValueError)."""
     opr = np.asarray(opr_s, dtype=float)
-    toa = np.asarray(toa_s, dtype=float)
+    toa = toa_s if isinstance(toa_s, ScratchRows) else np.asarray(toa_s, dtype=float)
     if toa.ndim != 3 or toa.shape[0] != opr.size:
         raise ValueError(f"toa_s must be (n_rev, n_blades, n_probes) with n_rev = {opr.size}, got {toa.shape}")
     if toa.shape[1:] != (geometry.n_blades, geometry.n_probes):

@@ -174,6 +174,15 @@ class ScratchRows:
         self._cols = tempfile.TemporaryFile(prefix="bttsim-cols-")
         self.written = 0
 
+    @classmethod
+    def of(cls, array: np.ndarray, block: int = 4096) -> "ScratchRows":
+        """A copy of ``array`` in scratch files, written ``block`` rows at a time."""
+        a = np.asarray(array)
+        out = cls(a.shape, a.dtype)
+        for lo in range(0, a.shape[0], max(int(block), 1)):
+            out.write(a[lo:lo + block])
+        return out
+
     def write(self, block) -> None:
         """Append rows ``written .. written + len(block) - 1``."""
         block = np.ascontiguousarray(block, dtype=self.dtype).reshape(-1, self._n_cols)
@@ -196,6 +205,12 @@ class ScratchRows:
             raise OSError(f"a scratch file of the run's displacements is short ({got} of {view.nbytes} bytes)")
 
     def __getitem__(self, rows) -> np.ndarray:
+        """Rows ``rows`` (a slice, an int or an integer array; or a tuple whose first item is
+        one of these, the rest indexing each row, e.g. ``[a:b, blades]``), a copy."""
+        if isinstance(rows, tuple):
+            head = self[rows[0]]
+            one = not isinstance(rows[0], slice) and np.ndim(rows[0]) == 0
+            return head[rows[1:]] if one else head[(slice(None),) + rows[1:]]
         n = self.written
         if isinstance(rows, slice) and rows.step in (None, 1):
             a, b, _ = rows.indices(n)

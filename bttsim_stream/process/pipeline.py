@@ -26,6 +26,7 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
 from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, DisplacementRows, Displacements, Geometry,
                            compute_displacements, first_pass_rows, rotor_phase_from_opr)
 from . import fit as fitting
+from .history import ScratchRows
 from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
@@ -245,6 +246,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     geometry = Geometry.from_info(info)
     opr = np.asarray(opr_s, dtype=float)
     toa = np.asarray(toa_s, dtype=float)
+    if not spectra:  # the report alone: the TOAs read back by blocks from scratch files (a handed-over array is freed)
+        toa = ScratchRows.of(toa)
+        del toa_s
     n_rev = opr.size
     if n_rev < 3:
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
@@ -261,9 +265,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                                          scratch=not spectra and options.window == 1)
     del first
     t_sample = _sample_times(toa) if survey.crossings else None
-    if not spectra:  # the report alone: this function's last use of the TOAs (a caller may still hold them)
+    if not spectra:  # the report alone: this function's last use of the TOAs
         disp = replace(disp, toa_s=None)
-        del toa, toa_s
+        toa.close()
+        del toa
     # 3. data preparation, and the fits of the report
     # the report alone (one revolution per fit): the prepared displacements made by blocks as the fits read them
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra,
