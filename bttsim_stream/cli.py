@@ -278,7 +278,7 @@ def _cmd_node(args: argparse.Namespace):
 
 
 def _cmd_process(args: argparse.Namespace) -> None:
-    from .offline import PROCESS_TRUTH_FIELDS, check_probes, completeness, load_run, result_warnings
+    from .offline import PROCESS_TRUTH_FIELDS, check_probes, completeness, load_run, missing_toas, result_warnings
     from .process.pipeline import check_window, process_arrays
     from .process.resonance import summary_table
     from .summary import build_summary
@@ -289,7 +289,7 @@ def _cmd_process(args: argparse.Namespace) -> None:
     progress.phase(f"reading {args.mcap} ...")
     # the exact expected times (a whole-run array as large as the TOAs) only when asked for
     kept = PROCESS_TRUTH_FIELDS if args.exact_expected else tuple(f for f in PROCESS_TRUTH_FIELDS if f != "t_exp_s")
-    run = load_run(args.mcap, truth_fields=kept, rig=args.rig)
+    run = load_run(args.mcap, truth_fields=kept, rig=args.rig, scratch=True)  # the TOAs in a scratch file
     if args.exact_expected and run.truth is None:
         raise BttsimError(f"{args.mcap}: --exact-expected needs a recording with truth")
     probe_notes = check_probes(args.mcap, run, opts)
@@ -299,18 +299,17 @@ def _cmd_process(args: argparse.Namespace) -> None:
         raise BttsimError(f"{args.mcap}: {exc}") from None
     progress.phase(f"processing {run.revolution.size} revolutions ...")
     progress.close()
-    missing_toas = int(np.count_nonzero(np.isnan(run.toa_s)))  # pulses that did not trigger
-    # the TOAs handed over (nothing here holds them): the report frees them once Eq. 1 is done
-    toa = [run.toa_s]
-    run = replace(run, toa_s=None)
+    missing = missing_toas(run.toa_s)  # pulses that did not trigger
     try:
-        result = process_arrays(run.opr_s, toa.pop(), run.meta, opts, truth=run.truth,
+        result = process_arrays(run.opr_s, run.toa_s, run.meta, opts, truth=run.truth,
                                 revolution0=int(run.revolution[0]), spectra=False)  # the report only
     except ValueError as exc:  # an impossible layout (LayoutError), inconsistent arrays
         raise BttsimError(f"{args.mcap}: {exc}") from None
     except (np.linalg.LinAlgError, FloatingPointError) as exc:  # numerics that should not fail: one line anyway
         raise BttsimError(f"{args.mcap}: the processing failed ({type(exc).__name__}: {exc})") from None
-    summary = build_summary(result.summary, completeness(run), missing_toas=missing_toas,
+    finally:
+        run.toa_s.close()
+    summary = build_summary(result.summary, completeness(run), missing_toas=missing,
                             doubles=run.doubles)  # extra trigger edges, each in its blade's window
     if probe_notes:
         summary["notes"] = probe_notes + list(summary.get("notes", []))

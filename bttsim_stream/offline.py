@@ -25,6 +25,7 @@ from .bus.stream import Completeness, Message, SequenceTracker
 from .defaults import MAX_TIP_AMPLITUDE_FRACTION
 from .errors import BttsimError
 from .process.displacement import DoublePulses, assign_extra_edges, outside_revolution
+from .process.history import ScratchRows
 from .process.pipeline import ProcessOptions
 from .processor import ProcessorSession
 from .sim.records import RunInfo, Truth
@@ -43,7 +44,8 @@ class RecordedRun:
         The run metadata.
     revolution : ndarray of int64, shape (n_rev,)
     opr_s : ndarray, shape (n_rev,)
-    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
+    toa_s : ndarray or ScratchRows, shape (n_rev, n_blades, n_probes)
+        (a :class:`~.process.history.ScratchRows` when read with ``scratch=True``)
     truth : Truth or None
         The simulator's truth of these revolutions, from the truth channel (the fields not
         asked for by :func:`load_run`'s ``truth_fields`` are None).
@@ -166,6 +168,11 @@ class _TruthTable:
         return Truth(**out)
 
 
+#: Revolutions of TOAs a recording read into scratch files keeps in memory (the latest ones:
+#: a revolution's batches come together; a late one is written into the file).
+_WINDOW = 4096
+
+
 class _Acquisition:
     """A recording's OPR pulses and TOA batches regrouped into revolutions, in preallocated
     arrays: the complete revolutions that ``RevolutionAssembler(n_blades, n_probes)``'s
@@ -173,14 +180,17 @@ class _Acquisition:
     object per revolution. Memory: one ``(n_rev, n_blades, n_probes)`` array, the OPR times
     and a dict of revolution numbers."""
 
-    def __init__(self, n_blades: int, n_probes: int, capacity: int) -> None:
+    def __init__(self, n_blades: int, n_probes: int, capacity: int, scratch: bool = False) -> None:
         self.nb, self.npr = int(n_blades), int(n_probes)
         cap = max(int(capacity), 16)
         self.index: dict[int, int] = {}
         self.numbers = np.empty(cap, np.int64)
         self.opr = np.full(cap, np.nan)
         self.has_opr = np.zeros(cap, bool)
-        self.toa = np.full((cap, self.nb, self.npr), np.nan)
+        # scratch: the TOAs of the latest rows in memory (rows _base ..), the older ones in a scratch file
+        self.store = ScratchRows((self.nb, self.npr)) if scratch else None
+        self._base = 0
+        self.toa = np.full((min(cap, _WINDOW) if scratch else cap, self.nb, self.npr), np.nan)
         self.seen = np.zeros((cap, self.npr), bool)
         self.n = 0
         self.ignored = 0
@@ -195,10 +205,14 @@ class _Acquisition:
             if self.n == self.numbers.size:  # more revolutions than the metadata said: grow
                 for name, fill in (("numbers", 0), ("opr", np.nan), ("has_opr", False), ("toa", np.nan),
                                    ("seen", False)):
+                    if name == "toa" and self.store is not None:
+                        continue
                     a = getattr(self, name)
                     grown = np.full((2 * a.shape[0],) + a.shape[1:], fill, dtype=a.dtype)
                     grown[: a.shape[0]] = a
                     setattr(self, name, grown)
+            if self.store is not None and self.n - self._base == self.toa.shape[0]:
+                self._spill(self.toa.shape[0] // 2)
             i = self.index[revolution] = self.n
             self.numbers[i] = revolution
             self.n += 1
@@ -233,13 +247,26 @@ class _Acquisition:
             self.ignored += 1
             return
         i = self._row(rev)
+        spilled = i < self._base  # a late batch of a row in the scratch file: read, changed, written back
+        row = self.store[i] if spilled else self.toa[i - self._base]
         if self.seen[i, probe]:
             self.duplicates += 1
-            if not np.array_equal(self.toa[i, :, probe], toa, equal_nan=True):
+            if not np.array_equal(row[:, probe], toa, equal_nan=True):
                 self._conflict(f"the TOAs of revolution {rev}, probe {probe}")
             return
-        self.toa[i, :, probe] = toa
+        row[:, probe] = toa
         self.seen[i, probe] = True
+        if spilled:
+            self.store.patch(i, row)
+
+    def _spill(self, m: int) -> None:
+        """The oldest ``m`` rows in memory to the scratch file."""
+        if m <= 0:
+            return
+        self.store.write(self.toa[:m])
+        self.toa[:-m] = self.toa[m:]
+        self.toa[-m:] = np.nan
+        self._base += m
 
     def _conflict(self, what: str) -> None:
         self.conflicts += 1
@@ -247,10 +274,21 @@ class _Acquisition:
 
     def complete(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Revolution numbers, OPR times and TOAs of the complete revolutions, in order (the
-        tables are handed over: call once)."""
+        tables are handed over: call once). With ``scratch``, the TOAs are a
+        :class:`~.process.history.ScratchRows`."""
         n = self.n
         rows = np.flatnonzero(self.has_opr[:n] & self.seen[:n].all(axis=1))
         rows = rows[np.argsort(self.numbers[rows], kind="stable")]
+        if self.store is not None:
+            self._spill(n - self._base)
+            store, self.store, self.toa = self.store, None, None
+            if rows.size < n or not np.array_equal(rows, np.arange(n)):  # a copy of the rows kept, in order
+                kept = ScratchRows(store.tail)
+                for a in range(0, rows.size, _WINDOW):
+                    kept.write(store[rows[a:a + _WINDOW]])
+                store.close()
+                store = kept
+            return self.numbers[rows], self.opr[rows], store
         if rows.size == n and np.array_equal(rows, np.arange(n)):  # as usual: in order, whole
             toa, self.toa = self.toa, None
             toa.resize((n, self.nb, self.npr), refcheck=False)  # in place: no second copy
@@ -270,7 +308,7 @@ def _capacity(path, meta) -> int:
 
 
 def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False,
-             truth_fields=None, rig: str | None = None) -> RecordedRun:
+             truth_fields=None, rig: str | None = None, scratch: bool = False) -> RecordedRun:
     """Read and decode a recording; a corrupt, truncated, foreign or impossible file is a
     one-line error (:class:`BttsimError` naming the file).
 
@@ -291,6 +329,11 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         The rig whose run is read (its ``bttsim/<rig>/...`` keys; the other rigs' messages are
         not decoded). Default: the recording's only rig; a recording of several rigs is then
         an error that names them.
+    scratch : bool
+        Keep the TOAs in a scratch file, not in memory: :attr:`RecordedRun.toa_s` is then a
+        :class:`~.process.history.ScratchRows` (read by blocks of revolutions; its
+        :meth:`~.process.history.ScratchRows.close` deletes the file). Only the latest
+        revolutions are held while the file is read.
 
     Notes
     -----
@@ -355,7 +398,7 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
                 if meta.rig != info.rig:
                     raise BttsimError(f"{m.key}: the run metadata of rig {meta.rig!r} on another rig's key")
                 want, meta_key, meta_payload = info.rig, m.key, bytes(m.payload)
-                asm = _Acquisition(meta.n_blades, meta.n_probes, _capacity(path, meta))
+                asm = _Acquisition(meta.n_blades, meta.n_probes, _capacity(path, meta), scratch=scratch)
                 for r, *item in early:
                     if r == want:
                         take(*item)
@@ -463,6 +506,18 @@ def _edge_rows(rows: list) -> dict:
 _CHECK_BLOCK = 4096  # revolutions per block of the time checks
 
 
+def toa_blocks(toa_s):
+    """The TOAs (an array or a :class:`~.process.history.ScratchRows`) by blocks of
+    :data:`_CHECK_BLOCK` revolutions, each an array."""
+    for lo in range(0, toa_s.shape[0], _CHECK_BLOCK):
+        yield toa_s[lo:lo + _CHECK_BLOCK]
+
+
+def missing_toas(toa_s) -> int:
+    """NaN TOAs (pulses that did not trigger), counted by blocks."""
+    return sum(int(np.count_nonzero(np.isnan(block))) for block in toa_blocks(toa_s))
+
+
 def check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s) -> None:
     """OPR times strictly increasing; TOAs NaN or finite within a revolution of their OPR
     (:func:`~.process.displacement.outside_revolution`). ``toa_s``: shape (n_rev, n_blades,
@@ -484,9 +539,8 @@ def check_times(path, revolution: np.ndarray, opr_s: np.ndarray, toa_s) -> None:
         raise BttsimError(f"{path}: OPR times must be finite")
     period = np.append(period, period[-1])[:, None, None]
     first, count = None, 0
-    for lo in range(0, toa_s.shape[0], _CHECK_BLOCK):  # in blocks: no run-sized temporaries
-        hi = min(lo + _CHECK_BLOCK, toa_s.shape[0])
-        block = toa_s[lo:hi]
+    for lo, block in zip(range(0, toa_s.shape[0], _CHECK_BLOCK), toa_blocks(toa_s)):  # no run-sized temporaries
+        hi = lo + block.shape[0]
         wrong = outside_revolution(block, opr_s[lo:hi, None, None], period[lo:hi])
         if wrong.any():
             count += int(wrong.sum())
@@ -509,8 +563,9 @@ def check_probes(path, run: RecordedRun, options: ProcessOptions) -> list[str]:
     from .process.displacement import Geometry
     from .process.options import engine_orders_of, fits_jointly, layout_condition_numbers
 
-    with np.errstate(invalid="ignore"):
-        present = np.isfinite(run.toa_s).any(axis=(0, 1))
+    present = np.zeros(run.toa_s.shape[2], bool)
+    for block in toa_blocks(run.toa_s):  # by blocks: the TOAs may be a scratch file's
+        present |= np.isfinite(block).any(axis=(0, 1))
     if present.all():
         return []
     if not present.any():

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.bus.stream import RevolutionAssembler
+from bttsim_stream import offline
 from bttsim_stream.offline import _Acquisition
 from bttsim_stream.process import displacement, fit, prep, smoothing, travelling_wave
 from bttsim_stream.process.displacement import Geometry, compute_displacements, expected_times
@@ -120,10 +121,14 @@ def _msg(kind, rev, value, probe=0):
     return kind, SimpleNamespace(header=header, body=body)
 
 
+@pytest.mark.parametrize("scratch", [False, True])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_recording_regrouped_as_the_assembler_does(seed):
+def test_recording_regrouped_as_the_assembler_does(seed, scratch, monkeypatch):
     """Shuffled fragments with duplicates, lost batches, OPR-less revolutions and bad ones:
-    the complete revolutions of ``RevolutionAssembler.pop(final=True)``, in order."""
+    the complete revolutions of ``RevolutionAssembler.pop(final=True)``, in order; also with
+    the TOAs in a scratch file and 8 revolutions in memory (late batches and duplicates of
+    rows already written to the file)."""
+    monkeypatch.setattr(offline, "_WINDOW", 8)
     rng = np.random.default_rng(seed)
     nb, npr, n = 4, 3, 60
     msgs = []
@@ -139,12 +144,14 @@ def test_recording_regrouped_as_the_assembler_does(seed):
              _msg("opr", -1, 0.0), _msg("opr", 9, np.inf)]  # refused
     order = rng.permutation(len(msgs) - 6)  # the duplicates and refused ones last
     msgs = [msgs[i] for i in order] + msgs[-6:]
-    asm, acq = RevolutionAssembler(nb, npr), _Acquisition(nb, npr, 16)  # a small capacity: it grows
+    asm, acq = RevolutionAssembler(nb, npr), _Acquisition(nb, npr, 16, scratch=scratch)  # a small capacity: it grows
     for kind, d in msgs:
         asm.add(kind, d)
         acq.add(kind, d)
     want = [r for r in asm.pop(final=True) if r.complete]
     numbers, opr, toa = acq.complete()
+    assert isinstance(toa, ScratchRows) == scratch
+    toa = toa[:]
     assert numbers.tolist() == [r.revolution for r in want]
     assert _same(opr, np.array([r.opr_s for r in want]))
     assert _same(toa, np.stack([r.toa_s for r in want]))

@@ -70,7 +70,7 @@ def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
     rng = np.random.default_rng(4)
     a = rng.normal(size=(1000, 7, 3))
     a[rng.random(a.shape) < 0.1] = np.nan
-    s = ScratchRows(a.shape)
+    s = ScratchRows((7, 3))
     for lo in range(0, 1000, 333):  # blocks of any size, in order
         s.write(a[lo:lo + 333])
     assert s.written == 1000 and s.shape == a.shape and s.ndim == 3
@@ -78,23 +78,33 @@ def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
     np.testing.assert_array_equal(s[17:412], a[17:412])
     np.testing.assert_array_equal(s[990:2000], a[990:])  # a slice clipped as numpy clips it
     assert s[5:5].shape == (0, 7, 3)
-    for rows in (np.array([3, 4, 5, 9, 2, 2, 999]), 42, -1, slice(0, 100, 7)):
+    for rows in (np.array([3, 4, 5, 9, 2, 2, 999]), 42, -1, slice(0, 100, 7), (slice(3, 50), slice(2, 5)),
+                 (7, 1), (np.array([4, 8]), slice(None), 2)):
         np.testing.assert_array_equal(s[rows], a[rows])
     flat = a.reshape(1000, 21)
     for cols in (slice(0, 21), slice(4, 11), slice(20, 21)):
         got = s.columns(cols)
         np.testing.assert_array_equal(got, flat[:, cols])
         assert got.flags.c_contiguous  # laid out as the array's rows: BLAS gives the same numbers
-    with pytest.raises(ValueError, match="rows written"):
-        s.write(a[:1])
     with pytest.raises(IndexError):
         s.columns(slice(0, 21, 2))
-    part = ScratchRows((10, 2))
-    part.write(np.arange(8.0).reshape(4, 2))
-    np.testing.assert_array_equal(part[:], np.arange(8.0).reshape(4, 2))  # the rows written so far
-    np.testing.assert_array_equal(part.columns(slice(1, 2))[:, 0], [1.0, 3.0, 5.0, 7.0])
+    s.patch(500, np.zeros((7, 3)))  # a row replaced: rows and columns read it
+    s.write(a[:10])  # more rows after columns were read
+    b = np.concatenate([a, a[:10]])
+    b[500] = 0.0
+    np.testing.assert_array_equal(s[:], b)
+    np.testing.assert_array_equal(s.columns(slice(2, 9)), b.reshape(1010, 21)[:, 2:9])
+    with pytest.raises(IndexError):
+        s.patch(1010, a[0])
     s.close()
-    part.close()
+    spilled = SpilledRows((4,), keep=8)
+    rows = rng.normal(size=(100, 4))
+    for r in rows:
+        spilled.append(r)
+    copy = spilled.scratch(block=7)  # from the file and from memory, a block at a time
+    np.testing.assert_array_equal(copy[:], rows)
+    copy.close()
+    spilled.close()
 
 
 def test_streaming_processor_state_is_bounded_and_gives_the_same_results(monkeypatch):

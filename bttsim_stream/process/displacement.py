@@ -511,7 +511,7 @@ def compute_displacements(opr_s: np.ndarray, toa_s: np.ndarray, geometry: Geomet
     Displacements
     """
     opr, toa = _run_arrays(opr_s, toa_s, geometry)
-    d = ScratchRows(toa.shape) if scratch else np.empty(toa.shape)
+    d = ScratchRows(toa.shape[1:]) if scratch else np.empty(toa.shape)
     phase = rotor_phase_from_opr(opr)
     if t_exp_s is not None:
         t_exp = np.asarray(t_exp_s, dtype=float)

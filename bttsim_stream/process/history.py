@@ -7,9 +7,10 @@
   (the live processor's TOAs and truth, for its final report): the recent rows in memory, the
   older ones in an unnamed scratch file (:func:`tempfile.TemporaryFile`: in ``TMPDIR``,
   deleted when closed or when the process ends), read back when asked for.
-* :class:`ScratchRows`: a run-sized array written once, in order, by blocks of rows, and then
-  read back by rows or by blocks of columns (the final report's displacements): held in two
-  unnamed scratch files, one row-major and one column-major, not in memory.
+* :class:`ScratchRows`: a run-sized array written in order by blocks of rows, and read back
+  by rows or by blocks of columns (the report's TOAs, displacements and arrival times):
+  held in unnamed scratch files, row-major (and column-major once columns are read), not
+  in memory.
 
 Pure numpy and the standard library; no bus, no formats.
 """
@@ -149,6 +150,14 @@ class SpilledRows:
         """Every row, in one array."""
         return self.rows(0, self.n)
 
+    def scratch(self, block: int = 4096) -> "ScratchRows":
+        """Every row, in a :class:`ScratchRows` (copied ``block`` rows at a time: never all
+        in memory)."""
+        out = ScratchRows(self.shape_tail, self.dtype)
+        for a in range(0, self.n, max(int(block), 1)):
+            out.write(self.rows(a, a + block))
+        return out
+
     def close(self) -> None:
         """Delete the scratch file (the rows spilled to it are gone)."""
         if self._file is not None:
@@ -157,28 +166,34 @@ class SpilledRows:
 
 
 class ScratchRows:
-    """An array of shape ``(n_rows, *tail)`` written once, in order, by blocks of rows
-    (:meth:`write`), then read back: ``rows[a:b]`` (or an integer array of rows) and
-    :meth:`columns` (every row of some columns of the array seen as ``(n_rows, n_cols)``)
-    are copies of the values written, the same numbers. Held in two unnamed scratch files
-    (``TMPDIR``; deleted when closed or when the process ends): one row by row, one column
-    by column, so that both reads are contiguous.
+    """A run-sized array of rows of shape ``tail`` appended in order by blocks (:meth:`write`;
+    a row already written may be replaced, :meth:`patch`) and read back: ``rows[a:b]`` (or an
+    integer array of rows) and :meth:`columns` (every row of some columns of the array seen
+    as ``(n_rows, n_cols)``) are copies of the values written, the same numbers. Held in an
+    unnamed scratch file (``TMPDIR``; deleted when closed or when the process ends), row by
+    row; a second one, column by column, is made the first time columns are read, so that
+    both reads are contiguous. ``shape`` is that of the rows written so far.
     """
 
-    def __init__(self, shape: tuple, dtype=np.float64) -> None:
-        self.shape = tuple(int(n) for n in shape)
+    def __init__(self, tail: tuple = (), dtype=np.float64) -> None:
+        self.tail = tuple(int(n) for n in tail)
         self.dtype = np.dtype(dtype)
-        self.ndim = len(self.shape)
-        self._n_cols = int(np.prod(self.shape[1:], dtype=np.int64))
+        self.ndim = 1 + len(self.tail)
+        self._n_cols = int(np.prod(self.tail, dtype=np.int64))
         self._rows = tempfile.TemporaryFile(prefix="bttsim-rows-")
-        self._cols = tempfile.TemporaryFile(prefix="bttsim-cols-")
+        self._cols = None  # the column-major copy, of the first _cols_n rows
+        self._cols_n = 0
         self.written = 0
+
+    @property
+    def shape(self) -> tuple:
+        return (self.written,) + self.tail
 
     @classmethod
     def of(cls, array: np.ndarray, block: int = 4096) -> "ScratchRows":
-        """A copy of ``array`` in scratch files, written ``block`` rows at a time."""
+        """A copy of ``array`` in a scratch file, written ``block`` rows at a time."""
         a = np.asarray(array)
-        out = cls(a.shape, a.dtype)
+        out = cls(a.shape[1:], a.dtype)
         for lo in range(0, a.shape[0], max(int(block), 1)):
             out.write(a[lo:lo + block])
         return out
@@ -186,15 +201,18 @@ class ScratchRows:
     def write(self, block) -> None:
         """Append rows ``written .. written + len(block) - 1``."""
         block = np.ascontiguousarray(block, dtype=self.dtype).reshape(-1, self._n_cols)
-        a, m = self.written, block.shape[0]
-        if a + m > self.shape[0]:
-            raise ValueError(f"{a + m} rows written to a scratch array of {self.shape[0]}")
-        size = self.dtype.itemsize
-        os.pwrite(self._rows.fileno(), memoryview(block).cast("B"), a * self._n_cols * size)
-        fd, cols = self._cols.fileno(), np.ascontiguousarray(block.T)
-        for j in range(self._n_cols):  # each column's segment of these rows
-            os.pwrite(fd, memoryview(cols[j]).cast("B"), (j * self.shape[0] + a) * size)
-        self.written = a + m
+        if block.size:
+            offset = self.written * self._n_cols * self.dtype.itemsize
+            os.pwrite(self._rows.fileno(), memoryview(block).cast("B"), offset)
+        self.written += block.shape[0]
+
+    def patch(self, i: int, row) -> None:
+        """Replace row ``i`` (written already)."""
+        if not 0 <= i < self.written:
+            raise IndexError(f"row {i} is not written (rows 0 .. {self.written - 1})")
+        row = np.ascontiguousarray(row, dtype=self.dtype).reshape(self._n_cols)
+        os.pwrite(self._rows.fileno(), memoryview(row).cast("B"), i * self._n_cols * self.dtype.itemsize)
+        self._cols_n = 0  # the column-major copy is made again when read
 
     def _read(self, f, offset: int, out: np.ndarray) -> None:
         if out.size == 0:
@@ -202,7 +220,7 @@ class ScratchRows:
         view = memoryview(out).cast("B")
         got = os.preadv(f.fileno(), [view], offset * self.dtype.itemsize)
         if got != view.nbytes:
-            raise OSError(f"a scratch file of the run's displacements is short ({got} of {view.nbytes} bytes)")
+            raise OSError(f"a scratch file of the run's arrays is short ({got} of {view.nbytes} bytes)")
 
     def __getitem__(self, rows) -> np.ndarray:
         """Rows ``rows`` (a slice, an int or an integer array; or a tuple whose first item is
@@ -216,7 +234,7 @@ class ScratchRows:
             a, b, _ = rows.indices(n)
             out = np.empty((max(b - a, 0), self._n_cols), self.dtype)
             self._read(self._rows, a * self._n_cols, out)
-            return out.reshape((out.shape[0],) + self.shape[1:])
+            return out.reshape((out.shape[0],) + self.tail)
         idx = np.arange(n)[rows]
         flat = np.atleast_1d(idx)
         out = np.empty((flat.size, self._n_cols), self.dtype)
@@ -224,8 +242,19 @@ class ScratchRows:
         for s, e in zip(np.r_[0, cuts], np.r_[cuts, flat.size]):
             if e > s:
                 self._read(self._rows, int(flat[s]) * self._n_cols, out[s:e])
-        out = out.reshape(flat.shape + self.shape[1:])
-        return out[0] if idx.ndim == 0 else out.reshape(idx.shape + self.shape[1:])
+        out = out.reshape(flat.shape + self.tail)
+        return out[0] if idx.ndim == 0 else out.reshape(idx.shape + self.tail)
+
+    def _transpose(self, block: int = 4096) -> None:
+        """The column-major copy of every row written, from the row-major file by blocks."""
+        if self._cols is None:
+            self._cols = tempfile.TemporaryFile(prefix="bttsim-cols-")
+        n, size, fd = self.written, self.dtype.itemsize, self._cols.fileno()
+        for a in range(0, n, block):
+            cols = np.ascontiguousarray(self[a:a + block].reshape(-1, self._n_cols).T)
+            for j in range(self._n_cols):  # each column's segment of these rows
+                os.pwrite(fd, memoryview(cols[j]).cast("B"), (j * n + a) * size)
+        self._cols_n = n
 
     def columns(self, cols: slice) -> np.ndarray:
         """Columns ``cols`` (a slice of the ``n_cols`` columns) of every row written, shape
@@ -234,15 +263,14 @@ class ScratchRows:
         a, b, step = cols.indices(self._n_cols)
         if step != 1:
             raise IndexError("ScratchRows.columns takes a slice of consecutive columns")
+        if self._cols_n != self.written:
+            self._transpose()
         out = np.empty((max(b - a, 0), self.written), self.dtype)
-        if self.written == self.shape[0]:
-            self._read(self._cols, a * self.shape[0], out)
-        else:
-            for j in range(a, b):
-                self._read(self._cols, j * self.shape[0], out[j - a])
+        self._read(self._cols, a * self.written, out)
         return np.ascontiguousarray(out.T)
 
     def close(self) -> None:
         """Delete the scratch files."""
         self._rows.close()
-        self._cols.close()
+        if self._cols is not None:
+            self._cols.close()

@@ -202,8 +202,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     ----------
     opr_s : ndarray, shape (n_rev,)
         OPR times, s.
-    toa_s : ndarray, shape (n_rev, n_blades, n_probes)
-        TOAs, s (NaN: missing).
+    toa_s : ndarray or ScratchRows, shape (n_rev, n_blades, n_probes)
+        TOAs, s (NaN: missing). The report alone reads them by blocks from scratch files
+        (:class:`~.history.ScratchRows`: the one given, or a copy of the array).
     info : Geometry, RunInfo or RunMetadataMsg
         Probe angles, blade count, tip radius, OPR angle (and engine orders).
     options : ProcessOptions
@@ -245,10 +246,11 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     """
     geometry = Geometry.from_info(info)
     opr = np.asarray(opr_s, dtype=float)
-    toa = np.asarray(toa_s, dtype=float)
-    if not spectra:  # the report alone: the TOAs read back by blocks from scratch files (a handed-over array is freed)
-        toa = ScratchRows.of(toa)
-        del toa_s
+    scratch = isinstance(toa_s, ScratchRows)
+    toa = toa_s if scratch and not spectra else np.asarray(toa_s[:] if scratch else toa_s, dtype=float)
+    if not spectra and not scratch:  # the report alone: the TOAs read back by blocks from scratch files
+        toa = ScratchRows.of(toa)  # (a handed-over array is freed)
+    del toa_s
     n_rev = opr.size
     if n_rev < 3:
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
@@ -267,7 +269,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     t_sample = _sample_times(toa) if survey.crossings else None
     if not spectra:  # the report alone: this function's last use of the TOAs
         disp = replace(disp, toa_s=None)
-        toa.close()
+        if not scratch:  # its own scratch files
+            toa.close()
         del toa
     # 3. data preparation, and the fits of the report
     # the report alone (one revolution per fit): the prepared displacements made by blocks as the fits read them
@@ -300,14 +303,19 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                             reference=reference, joint=bool(survey.joint), nsv_scan=survey.nsv_scan, nsv=survey.nsv)
 
 
-def _sample_times(toa: np.ndarray) -> np.ndarray:
+def _sample_times(toa: np.ndarray, scratch: bool = False) -> np.ndarray:
     """Each blade's mean arrival time over the probes per revolution, shape (n_rev, n_blades)
     (NaN: no arrival), for the swept SDOF fits; in blocks of revolutions (a row's mean is its
-    own: the same numbers as on the whole array, without its run-sized temporaries)."""
-    out = np.empty(toa.shape[:2])
+    own: the same numbers as on the whole array, without its run-sized temporaries).
+    ``scratch``: written to a :class:`~.history.ScratchRows`, read back by rows."""
+    out = ScratchRows(toa.shape[1:2]) if scratch else np.empty(toa.shape[:2])
     with np.errstate(all="ignore"), quiet():
         for a in range(0, toa.shape[0], DISPLACEMENT_CHUNK):
-            out[a:a + DISPLACEMENT_CHUNK] = np.nanmean(toa[a:a + DISPLACEMENT_CHUNK], axis=2)
+            mean = np.nanmean(toa[a:a + DISPLACEMENT_CHUNK], axis=2)
+            if scratch:
+                out.write(mean)
+            else:
+                out[a:a + DISPLACEMENT_CHUNK] = mean
     return out
 
 

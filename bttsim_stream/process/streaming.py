@@ -280,8 +280,12 @@ class StreamingProcessor:
         if opts.engine_orders is None and opts.eo_range is None:
             opts = replace(opts, engine_orders=engine_orders_of(self.info, opts))
         # the report only: the per-revolution spectra went out live, revolution by revolution
-        self.result = process_arrays(self._opr.array, self._toa.array(), self.info, opts,
-                                     truth=truth_peaks, revolution0=self._first_rev or 0, spectra=False)
+        toa = self._toa.scratch()  # the run's TOAs read back by blocks, never whole in memory
+        try:
+            self.result = process_arrays(self._opr.array, toa, self.info, opts, truth=truth_peaks,
+                                         revolution0=self._first_rev or 0, spectra=False)
+        finally:
+            toa.close()
         return self.result.summary
 
     def nsv_ready(self) -> list[NsvDetection]:
