@@ -199,3 +199,67 @@ def test_blades_fitted_in_groups_fit_as_one(monkeypatch):
         for a, b in zip((grouped.q, grouped.jtj, grouped.ok, grouped.steps) + grouped.extra,
                         (together.q, together.jtj, together.ok, together.steps) + together.extra):
             np.testing.assert_array_equal(a, b)
+
+
+def test_blocked_sdof_equals_unblocked(monkeypatch):
+    """sdof_method's blocks (the blades in groups of swept.FIT_SAMPLES samples, the grid's
+    terms per segment from the phase at the points asked for, the sweep rate from 5 points
+    around each peak) change no number: tiny blocks equal one block, bit for bit."""
+    from bttsim_stream.process import swept
+    from bttsim_stream.process.displacement import rotor_phase_from_opr
+    from bttsim_stream.process.methods import sdof_method
+
+    rng = np.random.default_rng(5)
+    n_rev, nb, eo = 400, 3, 8
+    omega = TWO_PI * (40.0 + 0.01 * np.arange(n_rev + 1))  # a slow run-up
+    opr = np.concatenate([[0.0], np.cumsum(TWO_PI / omega[:-1])])[:n_rev]
+    t = opr[:, None] + (np.arange(nb) + 0.5) / nb * (TWO_PI / omega[:n_rev, None])
+    fn = eo * omega[200] / TWO_PI
+    x = (eo * omega[:n_rev, None] / TWO_PI - fn) / (0.02 * fn)
+    phasor = 1e-4 / (1.0 + 2j * x) + 1e-7 * (rng.normal(size=(n_rev, nb)) + 1j * rng.normal(size=(n_rev, nb)))
+    phasor[10, 1] = np.nan
+    args = (phasor, t, opr, rotor_phase_from_opr(opr), eo, 150, 250)
+    kw = dict(fn0_hz=np.full(nb, fn * 1.002), zeta0=0.01)
+    whole = sdof_method(*args, **kw)
+    monkeypatch.setattr(swept, "FIT_SAMPLES", 1)
+    monkeypatch.setattr(swept, "SEGMENT_STEPS", 1 << 20)  # one segment
+    blocked = sdof_method(*args, **kw)
+    for name in whole[0].__dataclass_fields__:
+        a, b = getattr(blocked[0], name), getattr(whole[0], name)
+        if isinstance(a, np.ndarray):
+            assert np.array_equal(a, b, equal_nan=True), name
+    assert blocked[1] == whole[1]
+    assert np.isfinite(whole[0].amp_pkpk_m).all()
+
+
+def test_terms_per_segment_equal_the_whole_grids():
+    """SweptForcing's terms of a segment, and UniformGrid's points, are the whole grid's."""
+    from bttsim_stream.process.swept import UniformGrid
+
+    forcing, _, _ = _case()
+    phi = forcing._phi(0, forcing.size)
+    w = np.diff(phi) / forcing.h
+    whole = (np.exp(1j * phi[:-1]), np.exp(1j * w * forcing.h), 1j * w, np.exp(-1j * phi))
+    for s, e in ((0, 997), (997, 5000), (5000, forcing.size - 1)):
+        t = forcing._terms(s, e)
+        for a, b in zip((t.e_phi, t.e_wh, t.jw), whole[:3]):
+            assert np.array_equal(a, b[s:e])
+        assert np.array_equal(t.e_mphi, whole[3][s:e + 1])
+    g = UniformGrid(0.25, 1e-4, 12_001)
+    ref = 0.25 + 1e-4 * np.arange(12_001)
+    j = np.array([0, 1, 7, 12_000])
+    assert np.array_equal(g[j], ref[j]) and g[-1] == ref[-1] and g[0] == ref[0] and len(g) == ref.size
+
+
+def test_phase_rates_are_the_whole_grids_gradients():
+    """The sweep rate's derivatives of the phase, from 5 points around each peak, equal
+    np.gradient over the whole grid (also at and next to both ends)."""
+    from bttsim_stream.process.methods import _phase_rates
+
+    size, h = 40, 0.01
+    phi_all = np.cumsum(np.random.default_rng(2).uniform(1.0, 2.0, size))
+    w_all = np.gradient(phi_all, h)
+    rate_all = np.gradient(w_all, h)
+    k = np.array([0, 1, 2, 17, size - 3, size - 2, size - 1])
+    w, rate = _phase_rates(lambda j: phi_all[j], k, size, h)
+    assert np.array_equal(w, w_all[k]) and np.array_equal(rate, rate_all[k])

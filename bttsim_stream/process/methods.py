@@ -70,7 +70,8 @@ import numpy as np
 from .displacement import RotorPhase
 from .fit import fit_revolutions
 from .resonance import ResonancePeaks
-from .swept import SweptForcing, sdof_envelope
+from . import swept
+from .swept import SweptForcing, UniformGrid, sdof_envelope
 from .varpro import fit_blades, inverse2, linear_part, pack_rows, projected_jacobian
 
 __all__ = ["METHODS", "QUASI_STEADY_REVOLUTIONS", "SHAPE_MISFIT", "amplitude_noise", "quadratic_peak", "fit_half_width",
@@ -554,68 +555,119 @@ def sdof_method(phasor: np.ndarray, t_sample_s: np.ndarray, opr_s: np.ndarray, p
     period = TWO_PI / phase.omega_mean_rad_s
     t0, t1 = float(opr[lo] - 0.25 * period[lo]), float(opr[last] + (period[last] if last == hi else 0.0))
     h = float(np.min(period[lo:hi + 1])) / 8.0
-    grid = t0 + h * np.arange(int(math.ceil((t1 - t0) / h)) + 2)
-    n_g = np.clip(np.searchsorted(opr, grid, side="right") - 1, 0, n_rev - 1)
-    phi = eo * (TWO_PI * n_g + phase.rows(n_g).angle(grid))
-    w_exc = np.gradient(phi, h)
+    grid = UniformGrid(t0, h, int(math.ceil((t1 - t0) / h)) + 2)  # its points where asked only
+
+    def phi(j):  # the forcing phase at the grid points j
+        n_g = np.clip(np.searchsorted(opr, grid[j], side="right") - 1, 0, n_rev - 1)
+        return eo * (TWO_PI * n_g + phase.rows(n_g).angle(grid[j]))
+
     out = {k: np.full(nb, np.nan) for k in ("amp", "freq", "phase", "amp_std", "freq_std", "zeta", "steady",
                                             "fn", "rev", "zeta_std", "misfit")}
     out["offset"] = np.full(nb, np.nan + 0j)
-    w_rate = np.gradient(w_exc, h)
-    # each blade's samples in the window, packed to the left of a row (unused: the grid's start)
-    y = np.asarray(phasor[lo:hi + 1], dtype=complex).T
-    ts = np.asarray(t_sample_s[lo:hi + 1], dtype=float).T
-    ok, y, ts = pack_rows(np.isfinite(y) & np.isfinite(ts) & (ts >= grid[0]) & (ts <= grid[-1]), y, ts)
-    ts = np.where(ok, ts, grid[0])
-    scale = np.max(np.where(ok, np.abs(y), 0.0), axis=1, initial=0.0)
     fn0 = np.asarray(fn0_hz, dtype=float)
-    use = np.flatnonzero((ok.sum(axis=1) >= 8) & np.isfinite(fn0) & (scale > 0))
+    m = hi + 1 - lo
+    per = max(1, swept.FIT_SAMPLES // m)  # the blades in groups (as SweptForcing.fit's), each fit its own
+    count, scale = np.zeros(nb, dtype=np.intp), np.zeros(nb)
+    for a in range(0, nb, per):
+        ok, y, _ = _sdof_rows(phasor, t_sample_s, lo, hi, grid, np.arange(a, min(nb, a + per)))
+        count[a:a + per], scale[a:a + per] = ok.sum(axis=1), np.max(np.where(ok, np.abs(y), 0.0), axis=1, initial=0.0)
+    use = np.flatnonzero((count >= 8) & np.isfinite(fn0) & (scale > 0))
     if use.size == 0:
         return _sdof_peaks(out), math.nan
-    ok, ts, scale = ok[use], ts[use], scale[use]
-    yn = np.where(ok, y[use], 0) / scale[:, None]
-    forcing = SweptForcing(grid, phi)
-    res = forcing.fit(ts, yn, ok, fn0[use], zeta0)
-    got = res.ok
-    use, ok, ts, yn, scale = use[got], ok[got], ts[got], yn[got], scale[got]
-    fn, zeta, jtj = res.q[got, 0], res.q[got, 1], res.jtj[got]
+    forcing = SweptForcing(grid, lambda s, e: phi(np.arange(s, e)))
+    fits = [_sdof_group(forcing, phasor, t_sample_s, lo, hi, grid, use[a:a + per], scale[use[a:a + per]],
+                        fn0[use[a:a + per]], zeta0, uncertainty) for a in range(0, use.size, per)]
+    f = {key: np.concatenate([g[key] for g in fits]) for key in fits[0]}
+    use, scale, fn, zeta, jtj, k, z_k = f["use"], f["scale"], f["fn"], f["zeta"], f["jtj"], f["k"], f["z_k"]
     if use.size == 0:
         return _sdof_peaks(out), math.nan
-    z_ts, k, z_k = (a[got] for a in res.extra)  # the envelope at the fitted point
-    lp = linear_part(z_ts, yn, ok)
-    dof = np.maximum(2 * lp.n - 6, 1)
-    s2 = 2.0 * lp.cost / dof
+    dof = np.maximum(2 * f["n"] - 6, 1)
+    s2 = 2.0 * f["cost"] / dof
     cov = s2[:, None, None] * inverse2(jtj)  # NaN where J^T J is singular
-    C = lp.C * scale
+    C = f["C"] * scale
     wn = TWO_PI * fn
     hmax = 1.0 / (2.0 * zeta * np.sqrt(np.maximum(1.0 - zeta * zeta, 1e-12)) * wn * wn)
     with np.errstate(invalid="ignore", divide="ignore"):
-        g00 = 1.0 / lp.nz2  # the linear part's share: |C| from (A^H A)^-1
+        g00 = 1.0 / f["nz2"]  # the linear part's share: |C| from (A^H A)^-1
     var_c = s2 * g00 / 2.0 * (2.0 * scale * np.abs(z_k)) ** 2
     amp = 2.0 * np.abs(C * z_k)
     grad = np.full((use.size, 2), np.nan)
     if uncertainty:
-        steps = ((fn * (1 + 1e-4), zeta, 1e-4 * fn), (fn, zeta * (1 + 1e-3), zeta * 1e-3))
-        for j, (q_fn, q_zeta, dq) in enumerate(steps):
-            z_q, _, _, zk_q = forcing.at(q_fn, q_zeta, ts)
-            swept = 2.0 * np.abs(linear_part(z_q, yn, ok).C) * scale * np.abs(zk_q)
-            grad[:, j] = (swept - amp) / dq
+        for j, dq in enumerate((1e-4 * fn, zeta * 1e-3)):
+            grad[:, j] = (f[f"swept{j}"] - amp) / dq
     finite = np.all(np.isfinite(cov), axis=(1, 2))
     var_q = np.where(finite, np.einsum("kp,kpq,kq->k", grad, np.where(finite[:, None, None], cov, 0.0), grad), np.nan)
+    w_exc, w_rate = _phase_rates(phi, k, grid.size, h)
     out["amp"][use] = amp
-    out["freq"][use] = w_exc[k] / TWO_PI
+    out["freq"][use] = w_exc / TWO_PI
     out["phase"][use] = np.angle(C * z_k)
     out["steady"][use] = 2.0 * np.abs(C) * hmax
-    out["offset"][use] = lp.c * scale
-    out["misfit"][use] = np.sqrt(2.0 * lp.cost / lp.n) * scale
+    out["offset"][use] = f["c"] * scale
+    out["misfit"][use] = np.sqrt(2.0 * f["cost"] / f["n"]) * scale
     out["zeta"][use] = zeta
     out["fn"][use] = fn
     out["rev"][use] = np.interp(grid[k], opr, np.arange(n_rev))
     out["amp_std"][use] = np.where(np.isfinite(var_q), np.sqrt(np.maximum(var_c, 0.0) + np.maximum(var_q, 0.0)), np.nan)
     out["freq_std"][use] = np.where(finite, np.sqrt(np.maximum(cov[:, 0, 0], 0.0)), np.nan)
     out["zeta_std"][use] = np.where(finite, np.sqrt(np.maximum(cov[:, 1, 1], 0.0)), np.nan)
-    etas = np.abs(w_rate[k]) / (wn * wn)
+    etas = np.abs(w_rate) / (wn * wn)
     return _sdof_peaks(out), float(np.median(etas))
+
+
+def _sdof_rows(phasor, t_sample_s, lo: int, hi: int, grid, blades: np.ndarray):
+    """:func:`sdof_method`'s samples of some blades in the window: ``(ok, y, ts)`` of shape
+    ``(len(blades), hi + 1 - lo)``, each blade's samples (finite, on the grid) packed to the
+    left of its row (:func:`.varpro.pack_rows`)."""
+    y = np.asarray(phasor[lo:hi + 1, blades], dtype=complex).T
+    ts = np.asarray(t_sample_s[lo:hi + 1, blades], dtype=float).T
+    return pack_rows(np.isfinite(y) & np.isfinite(ts) & (ts >= grid[0]) & (ts <= grid[-1]), y, ts)
+
+
+def _sdof_group(forcing: SweptForcing, phasor, t_sample_s, lo: int, hi: int, grid, use: np.ndarray,
+                scale: np.ndarray, fn0: np.ndarray, zeta0: float, uncertainty: bool) -> dict:
+    """:func:`sdof_method`'s fit of one group of blades ``use`` (their ``scale`` and ``fn0``):
+    per fitted blade, the fit, its linear part and (with ``uncertainty``) the swept peaks
+    ``swept0``, ``swept1`` a step of ``f_n`` and of ``zeta`` away."""
+    ok, y, ts = _sdof_rows(phasor, t_sample_s, lo, hi, grid, use)
+    ts = np.where(ok, ts, grid[0])
+    yn = np.where(ok, y, 0) / scale[:, None]
+    del y
+    res = forcing.fit(ts, yn, ok, fn0, zeta0)
+    got = res.ok
+    ok, ts, yn = ok[got], ts[got], yn[got]
+    g = {"use": use[got], "scale": scale[got], "fn": res.q[got, 0], "zeta": res.q[got, 1], "jtj": res.jtj[got]}
+    if not got.any():
+        return {**g, "k": np.zeros(0, np.intp), "z_k": np.zeros(0, complex), "C": np.zeros(0, complex),
+                "c": np.zeros(0, complex), "cost": np.zeros(0), "n": np.zeros(0, np.intp), "nz2": np.zeros(0),
+                "swept0": np.zeros(0), "swept1": np.zeros(0)}
+    z_ts, g["k"], g["z_k"] = (a[got] for a in res.extra)  # the envelope at the fitted point
+    del res
+    lp = linear_part(z_ts, yn, ok)
+    del z_ts
+    g.update(C=lp.C, c=lp.c, cost=lp.cost, n=lp.n, nz2=lp.nz2)
+    del lp
+    fn, zeta = g["fn"], g["zeta"]
+    steps = ((fn * (1 + 1e-4), zeta), (fn, zeta * (1 + 1e-3))) if uncertainty else ()
+    for j, (q_fn, q_zeta) in enumerate(steps):
+        z_q, _, _, zk_q = forcing.at(q_fn, q_zeta, ts)
+        g[f"swept{j}"] = 2.0 * np.abs(linear_part(z_q, yn, ok).C) * g["scale"] * np.abs(zk_q)
+        del z_q
+    if not uncertainty:
+        g["swept0"] = g["swept1"] = np.zeros(got.sum())
+    return g
+
+
+def _phase_rates(phi, k: np.ndarray, size: int, h: float):
+    """``d phi / dt`` and ``d^2 phi / dt^2`` (``np.gradient`` twice on the grid of ``size``
+    points, step ``h``) at the grid points ``k``, from the phase ``phi(j)`` on a window of 5
+    points around each (the same differences as over the whole grid)."""
+    n = min(5, size)
+    start = np.clip(k - 2, 0, size - n)
+    j = start[:, None] + np.arange(n)
+    w = np.gradient(phi(j.ravel()).reshape(j.shape), h, axis=1)
+    rate = np.gradient(w, h, axis=1)
+    rows = np.arange(k.size)
+    return w[rows, k - start], rate[rows, k - start]
 
 
 def _sdof_peaks(out: dict) -> ResonancePeaks:

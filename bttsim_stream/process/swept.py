@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["first_order", "sdof_envelope", "SweptForcing", "ROW_SAMPLES", "SEGMENT_STEPS", "FIT_SAMPLES"]
+__all__ = ["first_order", "sdof_envelope", "SweptForcing", "UniformGrid", "ROW_SAMPLES", "SEGMENT_STEPS", "FIT_SAMPLES"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -121,9 +121,30 @@ ROW_SAMPLES = 1 << 15
 #: steps is one segment.
 SEGMENT_STEPS = ROW_SAMPLES // 2
 
-#: Blades times samples that :meth:`SweptForcing.fit` fits at once (the blades of a long
-#: crossing in groups: each blade's fit is its own, so the groups do not change it).
-FIT_SAMPLES = 1 << 16
+#: Blades times samples that :meth:`SweptForcing.fit` fits at once, and that
+#: :func:`~.methods.sdof_method` prepares, fits and evaluates at once (the blades of a long
+#: crossing in groups, at least one blade a group: each blade's fit is its own, so the groups
+#: change no number). About 200 bytes a sample while fitted: with the integration's segments
+#: (:data:`SEGMENT_STEPS`) the fit's memory, whatever the crossing's length (a blade's samples
+#: are fitted together, however many: a reduction over a row is not split).
+FIT_SAMPLES = 1 << 15
+
+
+class UniformGrid:
+    """The grid ``t0 + h j``, ``j = 0 .. size - 1``, s, computed at the indices asked for (the
+    values of ``t0 + h * np.arange(size)``, with no array over the whole grid): ``grid[j]`` for
+    an int or an int array ``j`` (a negative int counts from the end)."""
+
+    def __init__(self, t0: float, h: float, size: int):
+        self.t0, self.h, self.size = float(t0), float(h), int(size)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __getitem__(self, j):
+        if isinstance(j, (int, np.integer)) and j < 0:
+            j += self.size
+        return self.t0 + self.h * np.asarray(j, dtype=np.intp)
 
 
 class SweptForcing:
@@ -133,18 +154,28 @@ class SweptForcing:
     :data:`ROW_SAMPLES` (rows) and :data:`SEGMENT_STEPS` (time); :meth:`at` forms the
     derivatives at the grid points next to the sample times only."""
 
-    def __init__(self, grid_s: np.ndarray, phi_rad: np.ndarray):
+    def __init__(self, grid_s, phi_rad):
+        """``grid_s``: the uniform grid, s (an ndarray, or a :class:`UniformGrid` that computes
+        its points where asked); ``phi_rad``: the forcing phase on it, rad (an ndarray, or a
+        callable ``phi_rad(s, e)`` giving it at the grid points ``s .. e - 1``, so that no array
+        over the whole grid is held). The forcing's terms are formed one segment at a time
+        (:meth:`_terms`)."""
         self.grid, self.phi = grid_s, phi_rad
-        self.h = h = float(grid_s[1] - grid_s[0])
-        self.w = w = np.diff(phi_rad) / h
-        self.e_phi = np.exp(1j * phi_rad[:-1])
-        self.e_wh = np.exp(1j * w * h)
-        self.jw = 1j * w
-        self.e_mphi = np.exp(-1j * phi_rad)
+        self.size = len(grid_s)
+        self.h = float(grid_s[1] - grid_s[0])
+        self._phi = phi_rad if callable(phi_rad) else (lambda s, e: phi_rad[s:e])
+
+    def _terms(self, s: int, e: int) -> "_Terms":
+        """The forcing's terms of the segment of grid points ``s .. e`` (:class:`_Terms`): the
+        same element-wise operations as over the whole grid, so each value is the same."""
+        phi = self._phi(s, e + 1)
+        w = np.diff(phi) / self.h
+        return _Terms(e_phi=np.exp(1j * phi[:-1]), e_wh=np.exp(1j * w * self.h), jw=1j * w,
+                      e_mphi=np.exp(-1j * phi))
 
     def _segments(self):
         """``(s, e)`` grid points of each segment (``e`` included: the next one's ``s``)."""
-        n = self.grid.size - 1
+        n = self.size - 1
         return [(s, min(s + SEGMENT_STEPS, n)) for s in range(0, max(n, 1), SEGMENT_STEPS)]
 
     def _pairs(self, fn_hz: np.ndarray, zeta: np.ndarray) -> "_Pairs":
@@ -155,50 +186,58 @@ class SweptForcing:
         lam, d_fn, d_zeta = _poles(fn_hz, zeta)
         flat = lam.reshape(-1, 1)  # rows b0 pole 1, b0 pole 2, b1 pole 1, ...
         ah = np.exp(flat * self.h)
-        den0 = self.jw[None, :1] - flat
-        y_s = (np.exp(1j * self.phi[0]) / den0)[:, 0]  # the quasi-steady start
+        phi01 = self._phi(0, 2)
+        den0 = (1j * (np.diff(phi01) / self.h))[None, :1] - flat  # i w_0 - lambda
+        y_s = (np.exp(1j * phi01[0]) / den0)[:, 0]  # the quasi-steady start
         longest = max(e - s + 1 for s, e in self._segments())
         return _Pairs(flat=flat, powers=_powers(flat * self.h, longest), ah=ah, ahh=ah * self.h,
                       d=(lam[:, 0] - lam[:, 1])[:, None],
                       d_fn=d_fn, d_zeta=d_zeta, y_s=y_s, dy_s=y_s / den0[:, 0])
 
     def _block(self, p: "_Pairs", derivatives: bool):
-        """For ``k`` pairs (:meth:`_pairs`), each segment's envelopes ``z`` of shape
-        ``(k, e - s + 1)`` and (with ``derivatives``, else None) the segment's
-        :class:`_Derivatives`, a generator over :meth:`_segments`: both poles' recursions and,
-        for the derivatives, ``dy / d lambda`` by the module docstring's recursion, through
-        ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``; each segment starts from the previous
-        one's last ``y`` and ``dy / d lambda``."""
+        """For ``k`` pairs (:meth:`_pairs`), each segment's :meth:`_step` ``(z, dz)``, a
+        generator over :meth:`_segments`, each segment from the previous one's last values."""
         y_s, dy_s = p.y_s, p.dy_s
-        r = p.flat.shape[0]
         for s, e in self._segments():
-            n = e - s
-            den = np.subtract(self.jw[s:e], p.flat, out=np.empty((r, n), complex))
-            y = np.empty((r, n + 1), complex)  # [y_s, x_s, .., x_{e-1}], then y by the scan
-            y[:, 0] = y_s
-            x = np.subtract(self.e_wh[s:e], p.ah, out=y[:, 1:])
-            np.multiply(self.e_phi[s:e], x, out=x)
-            np.divide(x, den, out=x)
-            if derivatives:  # dy's input but its h a y term: (x - h a e^{i phi}) / (i w - lambda)
-                u = np.multiply(p.ahh, self.e_phi[s:e], out=np.empty((r, n), complex))
-                np.subtract(x, u, out=u)
-                np.divide(u, den, out=u)
-            _scan(p.powers, y, den)
-            y_s = y[:, -1].copy()
-            q = np.subtract(y[0::2], y[1::2], out=np.empty((r // 2, n + 1), complex))
-            np.divide(q, p.d, out=q)
-            z = q * self.e_mphi[s:e + 1]
-            if not derivatives:
-                yield z, None
-                continue
-            dy = np.empty((r, n + 1), complex)
-            dy[:, 0] = dy_s
-            np.multiply(p.ahh, y[:, :-1], out=dy[:, 1:])
-            np.add(dy[:, 1:], u, out=dy[:, 1:])
-            del y
-            _scan(p.powers, dy, u)
-            dy_s = dy[:, -1].copy()
-            yield z, _Derivatives(q, dy, p, self.e_mphi[s:e + 1])
+            z, dz, y_s, dy_s = self._step(self._terms(s, e), p, y_s, dy_s, derivatives)
+            yield z, dz
+
+    @staticmethod
+    def _step(t: "_Terms", p: "_Pairs", y_s: np.ndarray, dy_s: np.ndarray | None, derivatives: bool):
+        """One segment (its terms ``t``, :meth:`_terms`) for ``k`` pairs (:meth:`_pairs`) from
+        the starts ``y_s`` and ``dy_s`` (per pole, shape ``(2 k,)``): the envelopes ``z`` of
+        shape ``(k, e - s + 1)``, (with ``derivatives``, else None) the segment's
+        :class:`_Derivatives`, and the segment's last ``y`` and ``dy / d lambda`` (the next
+        one's starts; None without ``derivatives``). Both poles' recursions and, for the
+        derivatives, ``dy / d lambda`` by the module docstring's recursion, through
+        ``q = (y_1 - y_2) / (lambda_1 - lambda_2)``."""
+        r, n = p.flat.shape[0], t.jw.size
+        den = np.subtract(t.jw, p.flat, out=np.empty((r, n), complex))
+        y = np.empty((r, n + 1), complex)  # [y_s, x_s, .., x_{e-1}], then y by the scan
+        y[:, 0] = y_s
+        x = np.subtract(t.e_wh, p.ah, out=y[:, 1:])
+        np.multiply(t.e_phi, x, out=x)
+        np.divide(x, den, out=x)
+        if derivatives:  # dy's input but its h a y term: (x - h a e^{i phi}) / (i w - lambda)
+            u = np.multiply(p.ahh, t.e_phi, out=np.empty((r, n), complex))
+            np.subtract(x, u, out=u)
+            np.divide(u, den, out=u)
+        _scan(p.powers, y, den)
+        del den
+        y_e = y[:, -1].copy()
+        q = np.subtract(y[0::2], y[1::2], out=np.empty((r // 2, n + 1), complex))
+        np.divide(q, p.d, out=q)
+        z = q * t.e_mphi
+        if not derivatives:
+            return z, None, y_e, None
+        dy = np.empty((r, n + 1), complex)
+        dy[:, 0] = dy_s
+        np.multiply(p.ahh, y[:, :-1], out=dy[:, 1:])
+        del y
+        np.add(dy[:, 1:], u, out=dy[:, 1:])
+        _scan(p.powers, dy, u)
+        del u
+        return z, _Derivatives(q, dy, p, t.e_mphi), y_e, dy[:, -1].copy()
 
     def _whole(self, fn_hz: float, zeta: float, derivatives: bool):
         """One pair's envelope (and derivatives, shape ``(G, 2)``) on the whole grid, the
@@ -244,28 +283,35 @@ class SweptForcing:
         """
         fn_hz, zeta = np.asarray(fn_hz, dtype=float), np.asarray(zeta, dtype=float)
         ts = np.asarray(ts, dtype=float)
-        k, g = fn_hz.size, self.grid.size
+        k, g = fn_hz.size, self.size
         i = np.clip(np.floor((ts - self.grid[0]) / self.h).astype(np.intp), 0, g - 2)
         t = np.clip((ts - self.grid[i]) / (self.grid[i + 1] - self.grid[i]), 0.0, 1.0)  # np.interp's ends
         z_ts = np.empty(ts.shape, complex)
         dz_ts = np.empty(ts.shape + (2,), complex) if derivatives else None
         peak = np.zeros(k, dtype=np.intp)
         z_peak = np.zeros(k, complex)
+        top = np.full(k, -1.0)
         segments = self._segments()
         per = max(1, ROW_SAMPLES // (2 * min(g, SEGMENT_STEPS + 1)))
         pairs = self._pairs(fn_hz, zeta)
-        for a in range(0, k, per):
-            b = min(k, a + per)
-            rows = np.arange(b - a)
-            top = np.full(b - a, -1.0)
-            ia, ta = i[a:b], t[a:b]
-            for (s, e), (z, dz) in zip(segments, self._block(pairs.rows(a, b), derivatives)):
-                last = e == g - 1
+        y_s, dy_s = pairs.y_s.copy(), pairs.dy_s.copy()  # each pole's start of the next segment
+        groups = [(a, min(k, a + per)) for a in range(0, k, per)]
+        for s, e in segments:  # each segment's terms once, for every group of pairs
+            terms = self._terms(s, e)
+            last = e == g - 1
+            for a, b in groups:
+                pole = slice(2 * a, 2 * b)
+                z, dz, y_e, dy_e = self._step(terms, pairs.rows(a, b), y_s[pole], dy_s[pole], derivatives)
+                y_s[pole] = y_e
+                if derivatives:
+                    dy_s[pole] = dy_e
+                rows = np.arange(b - a)
+                ia, ta = i[a:b], t[a:b]
                 mag = np.abs(z if last else z[:, :-1])  # the segment's own points (e: the next one's)
                 j = np.argmax(mag, axis=1)
                 mag_j = mag[rows, j]
-                better = mag_j > top  # the first maximum of the whole grid
-                top = np.where(better, mag_j, top)
+                better = mag_j > top[a:b]  # the first maximum of the whole grid
+                top[a:b] = np.where(better, mag_j, top[a:b])
                 peak[a:b] = np.where(better, s + j, peak[a:b])
                 z_peak[a:b] = np.where(better, z[rows, j], z_peak[a:b])
                 inside = (ia >= s) & (ia < e) if len(segments) > 1 else None
@@ -277,6 +323,7 @@ class SweptForcing:
                     ends = dz.at(np.concatenate([ic, ic + 1], axis=1))
                     for c, dz_c in enumerate(ends):
                         _lerp_into(dz_ts[a:b, :, c], dz_c[:, :m], dz_c[:, m:], ta, inside)
+                del z, dz, mag
         return z_ts, dz_ts, peak, z_peak
 
     def fit(self, ts: np.ndarray, yn: np.ndarray, w: np.ndarray, fn0_hz: np.ndarray, zeta0: float):
@@ -324,6 +371,18 @@ class SweptForcing:
         return VarProFit(q=np.concatenate([f.q for f in parts]), jtj=np.concatenate([f.jtj for f in parts]),
                          ok=np.concatenate([f.ok for f in parts]), steps=np.concatenate([f.steps for f in parts]),
                          extra=extra)
+
+
+@dataclass(frozen=True)
+class _Terms:
+    """:meth:`SweptForcing._terms` of one segment of grid points ``s .. e``: ``e_phi`` (``e^{i
+    phi_m}``), ``e_wh`` (``e^{i w_m h}``), ``jw`` (``i w_m``), each of shape ``(e - s,)``, and
+    ``e_mphi`` (``e^{-i phi}``, shape ``(e - s + 1,)``)."""
+
+    e_phi: np.ndarray
+    e_wh: np.ndarray
+    jw: np.ndarray
+    e_mphi: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -140,10 +140,12 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
         good = np.isfinite(cost) & np.all(np.isfinite(cols), axis=(1, 2))
         ok[rows[~good]] = False
         rows, cost, cols, r = rows[good], cost[good], cols[good], lp.r[good]
+        del lp, got  # only the kept rows' columns and residuals (the model's memory bounded by its calls)
     else:
         cost, extra = np.zeros(0), ()
     if rows.size:
         a, g = _normal(cols, r)
+        del cols, r
         jtj[rows] = a
         s = x_scale[rows]
         mu = 1e-3 * np.max(np.diagonal(a, axis1=1, axis2=2) * s * s, axis=1)
@@ -192,6 +194,7 @@ def fit_blades(model, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, x_sc
             for e, a in zip(extra, got):
                 e[idx] = a[keep]
             a_new, g_new = _normal(cols_try[keep], lp_try.r[keep])
+            del lp_try, cols_try, got  # before the next trial's model
             jtj[idx] = a_new
             g = g.copy()
             g[keep] = g_new
