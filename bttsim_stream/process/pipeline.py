@@ -266,7 +266,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     disp, reference, ref_info = _zeroing(opr, toa, geometry, survey, options, t_exp, revolution0, notes,
                                          scratch=not spectra and options.window == 1)
     del first
-    t_sample = _sample_times(toa) if survey.crossings else None
+    t_sample = _sample_times(toa, scratch=not spectra) if survey.crossings else None
     if not spectra:  # the report alone: this function's last use of the TOAs
         disp = replace(disp, toa_s=None)
         if not scratch:  # its own scratch files
