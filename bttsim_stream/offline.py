@@ -330,10 +330,9 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         not decoded). Default: the recording's only rig; a recording of several rigs is then
         an error that names them.
     scratch : bool
-        Keep the TOAs in a scratch file, not in memory: :attr:`RecordedRun.toa_s` is then a
-        :class:`~.process.history.ScratchRows` (read by blocks of revolutions; its
-        :meth:`~.process.history.ScratchRows.close` deletes the file). Only the latest
-        revolutions are held while the file is read.
+        The TOAs and the truth's envelopes (``d_eqv_pkpk_m``, ``eo_pkpk_m``) in scratch files,
+        not in memory (:class:`~.process.history.ScratchRows`, read by blocks of revolutions;
+        ``close()`` deletes one): only the latest revolutions are held while reading.
 
     Notes
     -----
@@ -417,21 +416,36 @@ def load_run(path, *, allow_truncated: bool = False, keep_messages: bool = False
         except BttsimError as exc:
             error = exc
     _refuse_scan(path, scan.truncated and not allow_truncated, n_messages, rig, list(rigs), error, meta)
-    if asm.conflicts:  # a recorder writes the first of a number's payloads and refuses the others
-        raise BttsimError(f"{path}: {asm.conflicts} OPR/TOA message(s) differ from an earlier one of the same "
-                          f"revolution (first: {asm.first_conflict}); which one is the acquisition?")
-    if truth is not None and truth.conflicts:
-        raise BttsimError(f"{path}: {truth.conflicts} truth message(s) differ from an earlier one of the same "
-                          f"revolution (first: revolution {truth.first_conflict}); which one is the truth?")
+    _refuse_conflicts(path, asm, truth)
     numbers, opr_s, toa_s = _complete_revolutions(path, meta, asm)
     asm = None  # its tables are handed over
-    tr = None if truth is None else truth.rows(numbers.tolist(), all_truth)
+    tr = None if truth is None else _truth_of(truth.rows(numbers.tolist(), all_truth), scratch)
+    truth = None  # its tables are handed over
     doubles, edges = _extra_edges(extras, numbers)
     if messages is not None:
         messages = list(keys.of_rig(messages, want))
     return RecordedRun(meta=meta, revolution=numbers, opr_s=opr_s, toa_s=toa_s, truth=tr, messages=messages,
                        doubles=doubles, extra_edges=edges, path=str(path),
                        lost=seqs.lost + seqs.missed_at_start, duplicates=seqs.duplicates)
+
+
+def _refuse_conflicts(path, asm: _Acquisition, truth: _TruthTable | None) -> None:
+    """A recording whose copies of a message differ: which one is the run? (A recorder writes
+    the first of a number's payloads and refuses the others.)"""
+    if asm.conflicts:
+        raise BttsimError(f"{path}: {asm.conflicts} OPR/TOA message(s) differ from an earlier one of the same "
+                          f"revolution (first: {asm.first_conflict}); which one is the acquisition?")
+    if truth is not None and truth.conflicts:
+        raise BttsimError(f"{path}: {truth.conflicts} truth message(s) differ from an earlier one of the same "
+                          f"revolution (first: revolution {truth.first_conflict}); which one is the truth?")
+
+
+def _truth_of(truth: Truth | None, scratch: bool) -> Truth | None:
+    """The truth read, its run-sized envelopes in scratch files when ``scratch``."""
+    if not scratch or truth is None:
+        return truth
+    return replace(truth, **{f: ScratchRows.of(getattr(truth, f)) for f in ("d_eqv_pkpk_m", "eo_pkpk_m")
+                             if getattr(truth, f) is not None})
 
 
 def _refuse_scan(path, truncated: bool, n_messages: int, rig: str | None, rigs: list, error, meta) -> None:

@@ -101,6 +101,8 @@ def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
     rows = rng.normal(size=(100, 4))
     for r in rows:
         spilled.append(r)
+    empty = ScratchRows.of(np.zeros((5, 3, 0)))  # rows of no values (a truth without per-order envelopes)
+    assert empty.shape == (5, 3, 0) and empty[1:4].shape == (3, 3, 0)
     copy = spilled.scratch(block=7)  # from the file and from memory, a block at a time
     np.testing.assert_array_equal(copy[:], rows)
     copy.close()

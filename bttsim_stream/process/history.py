@@ -200,7 +200,8 @@ class ScratchRows:
 
     def write(self, block) -> None:
         """Append rows ``written .. written + len(block) - 1``."""
-        block = np.ascontiguousarray(block, dtype=self.dtype).reshape(-1, self._n_cols)
+        block = np.ascontiguousarray(block, dtype=self.dtype)
+        block = block.reshape(block.shape[0] if block.ndim > len(self.tail) else 1, self._n_cols)
         if block.size:
             offset = self.written * self._n_cols * self.dtype.itemsize
             os.pwrite(self._rows.fileno(), memoryview(block).cast("B"), offset)

@@ -51,27 +51,37 @@ __all__ = ["ProcessOptions", "ProcessingResult", "RevolutionFit", "RevolutionOut
 SKIRT_LEVEL = 0.1
 
 
-def _truth_rows(truth, n_rev: int, revolution0: int):
-    """Per-revolution truth rows (or TruthPeaks) for :func:`window_truth`."""
+def _truth_rows(truth, n_rev: int, revolution0: int, scratch: bool = False):
+    """Per-revolution truth rows (or TruthPeaks) for :func:`window_truth`. ``scratch``: the
+    envelopes a live run's tracker gives are moved to scratch files (read by rows); those
+    of a truth given are kept as they are (arrays, or scratch rows already)."""
     if truth is None:
         return None
     if isinstance(truth, TruthPeakTracker):
         rows = truth.rows(revolution0, n_rev)
-        return rows if rows is not None else None
+        if rows is not None and scratch:  # the tracker's arrays are this function's own
+            rows = replace(rows, d_eqv_pkpk_m=ScratchRows.of(rows.d_eqv_pkpk_m),
+                           eo_pkpk_m=None if rows.eo_pkpk_m is None else ScratchRows.of(rows.eo_pkpk_m))
+        return rows
     if isinstance(truth, (TruthPeaks, TruthRows)):
         return truth
     pk = getattr(truth, "d_eqv_pkpk_m", None)
     om = getattr(truth, "omega_mean", None)
     if pk is None or om is None:
         return None
-    pk, om = np.asarray(pk, float), np.asarray(om, float)
+    pk, om = _float_rows(pk), np.asarray(om, float)
     if pk.shape[0] != n_rev:
         raise ValueError(f"the truth has {pk.shape[0]} revolutions, the data {n_rev}")
     orders, own = getattr(truth, "eo_engine_order", None), getattr(truth, "eo_pkpk_m", None)
     if orders is None or own is None or np.shape(orders)[0] == 0:
         return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om)
     return TruthRows(d_eqv_pkpk_m=pk, omega_mean=om, eo_engine_order=np.asarray(orders)[0],
-                     eo_pkpk_m=np.asarray(own, float))
+                     eo_pkpk_m=_float_rows(own))
+
+
+def _float_rows(a):
+    """A float array, or scratch rows as they are."""
+    return a if isinstance(a, ScratchRows) else np.asarray(a, float)
 
 
 def _fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius: float | None = None) -> SineFit:
@@ -256,7 +266,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
     notes: list[str] = []
     eos_asked, cns, joint = _orders_asked(info, geometry, options, notes)
-    rows_truth = _truth_rows(truth, n_rev, revolution0)
+    rows_truth = _truth_rows(truth, n_rev, revolution0, scratch=not spectra)
     t_exp = _exact_times(truth, options)
     # 1. first pass: nominal geometry (or exact times) zeroed on the run's median
     first = first_pass_rows(opr, toa, geometry, t_exp_s=t_exp)  # computed by blocks when needed, not held
@@ -522,7 +532,7 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
         # only where a mode family's frequency lies in the swept range (a resonance is expected)
         notes += [skirt] if skirt and survey.segments.sweeps and "no mode family" not in notes[-1] else []
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
-    if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo) is None for eo in eos):
+    if ctx.truth is not None and len(eos) > 1 and any(own_envelope(ctx.truth, eo, slice(0, 0)) is None for eo in eos):
         notes.append("the truth envelope sums every excitation's response: a crossing's E_A also holds the other "
                      "engine orders' off-resonance response at its speed")
     return ResonanceReport.from_entries(entries, steady, eo=eos[0], cn=ctx.cns.get(eos[0], ctx.fit.cn),

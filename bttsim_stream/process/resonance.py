@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .history import SpilledRows
+from .history import ScratchRows, SpilledRows
 
 __all__ = [
     "STATUSES",
@@ -134,11 +134,13 @@ class TruthPeaks:
     freq_hz: np.ndarray
 
 
-def own_envelope(truth, engine_order: int) -> np.ndarray | None:
+def own_envelope(truth, engine_order: int, rows: slice = slice(None)) -> np.ndarray | None:
     """The truth's envelope of ``engine_order``'s own response, (n_rev, n_blades): the column
     of ``eo_pkpk_m`` (n_rev, n_blades, n_eo) whose ``eo_engine_order`` (n_eo,), or
     (n_rev, n_eo) with the same orders on every row, is ``engine_order``; None when the truth
-    does not carry it (then only the sum over the engine orders, ``d_eqv_pkpk_m``, is known)."""
+    does not carry it (then only the sum over the engine orders, ``d_eqv_pkpk_m``, is known).
+    ``rows``: of those revolutions only (the arrays may be
+    :class:`~.history.ScratchRows`, read for those rows)."""
     amp = getattr(truth, "eo_pkpk_m", None)
     orders = getattr(truth, "eo_engine_order", None)
     if amp is None or orders is None:
@@ -147,15 +149,21 @@ def own_envelope(truth, engine_order: int) -> np.ndarray | None:
     if orders.ndim == 2:
         orders = orders[0] if orders.shape[0] else np.zeros(0, np.int64)
     j = np.flatnonzero(orders == int(engine_order))
-    return np.asarray(amp, dtype=float)[..., int(j[0])] if j.size else None
+    return np.asarray(_rows_of(amp, rows), dtype=float)[..., int(j[0])] if j.size else None
 
 
-def truth_envelope(truth, engine_order: int) -> np.ndarray:
+def truth_envelope(truth, engine_order: int, rows: slice = slice(None)) -> np.ndarray:
     """The truth envelope a crossing of ``engine_order`` is scored against, (n_rev, n_blades):
     its own response (:func:`own_envelope`) when the truth carries it, else the sum over the
-    engine orders ``d_eqv_pkpk_m`` (the same with one engine order)."""
-    own = own_envelope(truth, engine_order)
-    return np.asarray(truth.d_eqv_pkpk_m, dtype=float) if own is None else own
+    engine orders ``d_eqv_pkpk_m`` (the same with one engine order). ``rows``: of those
+    revolutions only."""
+    own = own_envelope(truth, engine_order, rows)
+    return np.asarray(_rows_of(truth.d_eqv_pkpk_m, rows), dtype=float) if own is None else own
+
+
+def _rows_of(a, rows: slice):
+    """Rows ``rows`` of an array (a view) or of a :class:`~.history.ScratchRows` (read)."""
+    return a[rows] if isinstance(a, ScratchRows) else np.asarray(a)[rows]
 
 
 def truth_peaks(truth, engine_order: int) -> TruthPeaks:
@@ -175,12 +183,13 @@ class TruthRows:
 
     Attributes
     ----------
-    d_eqv_pkpk_m : ndarray, shape (n_rev, n_blades)
-        NaN for revolutions without truth.
+    d_eqv_pkpk_m : ndarray or ScratchRows, shape (n_rev, n_blades)
+        NaN for revolutions without truth. (Here and in ``eo_pkpk_m``, a
+        :class:`~.history.ScratchRows` for a long run's report: read by rows.)
     omega_mean : ndarray, shape (n_rev,)
         Mean speed, rad/s (NaN without truth).
     eo_engine_order : ndarray of int64, shape (n_eo,), or None
-    eo_pkpk_m : ndarray, shape (n_rev, n_blades, n_eo), or None
+    eo_pkpk_m : ndarray or ScratchRows, shape (n_rev, n_blades, n_eo), or None
         Each engine order's own envelope (:func:`own_envelope`); None: not carried.
     """
 
@@ -904,7 +913,7 @@ def window_truth(truth, engine_order: int, first: int, last: int, *, mean: bool 
         nan = np.full(rev.shape, np.nan)
         return TruthPeaks(revolution=np.where(inside, rev, -1), amp_pkpk_m=np.where(inside, truth.amp_pkpk_m, nan),
                           freq_hz=np.where(inside, truth.freq_hz, nan))
-    pk = truth_envelope(truth, engine_order)[first:last + 1]
+    pk = truth_envelope(truth, engine_order, slice(first, last + 1))
     om = np.asarray(truth.omega_mean, dtype=float)[first:last + 1]
     if pk.size == 0 or not np.isfinite(pk).any():
         return None
