@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import weakref
 
 import numpy as np
 
@@ -112,6 +113,7 @@ class SpilledRows:
         k = self._keep
         if self._file is None:
             self._file = tempfile.TemporaryFile(prefix="bttsim-history-")
+            self._finalizer = weakref.finalize(self, self._file.close)  # closed when dropped, too
         self._file.seek(0, 2)
         self._file.write(memoryview(self._buf[:k]).cast("B"))
         self._buf[:k] = self._buf[k:2 * k]
@@ -184,6 +186,8 @@ class ScratchRows:
         self._cols = None  # the column-major copy, of the first _cols_n rows
         self._cols_n = 0
         self.written = 0
+        self._files = [self._rows]
+        self._finalizer = weakref.finalize(self, _close_all, self._files)  # closed when dropped, too
 
     @property
     def shape(self) -> tuple:
@@ -250,6 +254,7 @@ class ScratchRows:
         """The column-major copy of every row written, from the row-major file by blocks."""
         if self._cols is None:
             self._cols = tempfile.TemporaryFile(prefix="bttsim-cols-")
+            self._files.append(self._cols)
         n, size, fd = self.written, self.dtype.itemsize, self._cols.fileno()
         for a in range(0, n, block):
             cols = np.ascontiguousarray(self[a:a + block].reshape(-1, self._n_cols).T)
@@ -271,7 +276,10 @@ class ScratchRows:
         return np.ascontiguousarray(out.T)
 
     def close(self) -> None:
-        """Delete the scratch files."""
-        self._rows.close()
-        if self._cols is not None:
-            self._cols.close()
+        """Delete the scratch files (also done when the object is dropped)."""
+        self._finalizer()
+
+
+def _close_all(files: list) -> None:
+    for f in files:
+        f.close()

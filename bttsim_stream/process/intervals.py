@@ -71,9 +71,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .fit import design_matrix
+from .spans import as_rows
 
 __all__ = ["Z95", "MODEL_ERROR", "CN_NOTE_THRESHOLD", "TERM_NOTE_PCT", "IntervalTerms",
-           "crossing_intervals", "dwell_intervals", "dwell_misfit", "layout_gain", "crossing_notes", "no_crossing_note"]
+           "crossing_intervals", "dwell_intervals", "dwell_misfit", "layout_gain", "crossing_notes", "no_crossing_note",
+           "blade_medians"]
 
 #: Two-sided 95 % normal quantile.
 Z95 = 1.959963984540054
@@ -210,7 +212,7 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
     nb = A.size
     n = np.asarray(freq_hz).size
     rev = np.asarray(peaks.revolution, dtype=float)
-    raw = np.asarray(amp_raw_m, dtype=float)
+    raw = as_rows(amp_raw_m)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         s_raw = _noise(raw[lo:hi + 1])
@@ -228,8 +230,8 @@ def crossing_intervals(peaks, amp_seq_m: np.ndarray, phase_seq_rad: np.ndarray, 
         model = np.where(np.isfinite(model), model, 0.0)
         zero = np.zeros(nb) if zeroing_m is None else np.asarray(zeroing_m, dtype=float)
         zero = np.where(np.isfinite(zero), zero, 0.0)
-    amp = np.asarray(amp_seq_m, dtype=float)
-    ph = np.asarray(phase_seq_rad, dtype=float)
+    amp = as_rows(amp_seq_m)
+    ph = as_rows(phase_seq_rad)
     alt = _without_error(amp, ph, lo, hi, zeroing_error)
     shift = np.zeros(nb) if alt is None else alt[2]
     if second_m is not None:  # an independent estimate (the swept SDOF fit): the spread to it
@@ -490,31 +492,47 @@ def crossing_notes(*, eo: int, method: str, cn: float, terms: IntervalTerms, amp
     return tuple(notes)
 
 
-def no_crossing_note(amp_pkpk_m: np.ndarray, omega_rad_s: np.ndarray, engine_orders, ratio: float) -> str | None:
+def blade_medians(amp_pkpk_m: np.ndarray) -> np.ndarray:
+    """Each revolution's blade-median amplitude per order, shape (n_rev, n_eo), of amplitudes
+    (n_rev, n_blades, n_eo) (NaN where a revolution has none): each revolution's own (the same
+    numbers for a block of revolutions as for the whole run)."""
+    a = np.asarray(amp_pkpk_m, dtype=float)
+    out = np.empty((a.shape[0], a.shape[2]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for i in range(a.shape[2]):
+            out[:, i] = np.nanmedian(a[:, :, i], axis=1)
+    return out
+
+
+def no_crossing_note(amp_pkpk_m: np.ndarray | None, omega_rad_s: np.ndarray, engine_orders, ratio: float,
+                     medians: np.ndarray | None = None) -> str | None:
     """A note for a run where no crossing was found but the response changes a lot: the run may
     lie inside a resonance (no quiet reference, a resonance broader than the run, a peak at
     its end), so its amplitudes are not a resonance's, and neither is any zeroing quiet.
 
     Parameters
     ----------
-    amp_pkpk_m : ndarray, shape (n_rev, n_blades, n_eo)
-        Per-revolution amplitudes of the fitted orders (the prepared fits).
+    amp_pkpk_m : ndarray, shape (n_rev, n_blades, n_eo), or None
+        Per-revolution amplitudes of the fitted orders (the prepared fits); None: ``medians``.
     omega_rad_s : ndarray, shape (n_rev,)
     engine_orders : tuple of int
     ratio : float
         The detection's prominence ratio: a blade-median amplitude whose 95th percentile over
         the run is at least ``ratio`` times its 5th is named.
+    medians : ndarray, shape (n_rev, n_eo), optional
+        :func:`blade_medians` of the amplitudes, when computed by blocks of revolutions.
 
     Returns
     -------
     str or None
     """
-    a = np.asarray(amp_pkpk_m, dtype=float)
+    meds = blade_medians(amp_pkpk_m) if medians is None else medians
     parts = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for i, eo in enumerate(engine_orders):
-            med = np.nanmedian(a[:, :, i], axis=1)
+            med = meds[:, i]
             ok = np.isfinite(med)
             if ok.sum() < 8:
                 continue

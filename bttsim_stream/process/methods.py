@@ -71,6 +71,7 @@ from .displacement import RotorPhase
 from .fit import fit_revolutions
 from .resonance import ResonancePeaks
 from . import swept
+from .spans import as_rows
 from .swept import SweptForcing, UniformGrid, sdof_envelope
 from .varpro import fit_blades, inverse2, linear_part, pack_rows, projected_jacobian
 
@@ -149,7 +150,7 @@ def quadratic_peak(amp: np.ndarray, center: np.ndarray, half: int):
         Standard deviations of the vertex's value and revolution per unit white noise of
         one sample (``sqrt(g^T (V^T V)^-1 g)``, ``g`` the gradient at the vertex).
     """
-    amp = np.asarray(amp, dtype=float)
+    amp = as_rows(amp)
     n, nb = amp.shape
     c0 = np.asarray(center, dtype=np.int64)
     j = np.arange(-half, half + 1, dtype=float)
@@ -298,7 +299,7 @@ def resonance_fit(phasor: np.ndarray, freq_hz: np.ndarray, center: np.ndarray, h
         NaN where the fit fails, its peak lies outside the revolutions fitted, or its misfit
         beyond the noise exceeds :data:`SHAPE_MISFIT` of the amplitude (not one mode).
     """
-    P = np.asarray(phasor, dtype=complex)
+    P = as_rows(phasor, complex)
     f_all = np.asarray(freq_hz, dtype=float)
     n, nb = P.shape
     out = np.full((6, nb), np.nan)
@@ -385,13 +386,13 @@ def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarr
     -------
     ResonancePeaks
     """
-    amp = np.asarray(amp_pkpk_m, dtype=float)[lo:hi + 1]
+    amp = np.asarray(as_rows(amp_pkpk_m)[lo:hi + 1], dtype=float)
     nb = amp.shape[1]
     has = np.isfinite(amp).any(axis=0)
     k = np.argmax(np.where(np.isfinite(amp), amp, -np.inf), axis=0)
     cols = np.arange(nb)
     idx = lo + k
-    raw_all = np.asarray(amp_pkpk_m if amp_raw_m is None else amp_raw_m, dtype=float)
+    raw_all = as_rows(amp_pkpk_m if amp_raw_m is None else amp_raw_m)
     raw = raw_all[lo:hi + 1]
     g = np.broadcast_to(np.asarray(gain, dtype=float), (np.asarray(freq_hz).size,))[idx]
     nan = np.full(nb, np.nan)
@@ -404,10 +405,10 @@ def peak_method(amp_pkpk_m: np.ndarray, phase_rad: np.ndarray, freq_hz: np.ndarr
         ok, v, r, sv, fv, sf = _refine(raw_all, idx, h, noise, f)
         val, rev, fr = np.where(ok, v, val), np.where(ok, r, rev), np.where(ok, fv, fr)
         std, fstd = np.where(ok, sv, std), np.where(ok, np.hypot(sf, fstd), fstd)
-    ph = np.asarray(phase_rad, float)[np.clip(np.round(rev).astype(np.int64), 0, f.size - 1), cols]
+    ph = as_rows(phase_rad)[np.clip(np.round(rev).astype(np.int64), 0, f.size - 1), cols]
     if half_power_width is not None and phasor_raw is not None:
         # a slow crossing: the resonance's shape fitted over its half-power width each side
-        ok, v, _, _, _, sv, _ = _shape_refine(np.asarray(phasor_raw), f, np.round(rev).astype(np.int64), lo, hi,
+        ok, v, _, _, _, sv, _ = _shape_refine(as_rows(phasor_raw, None), f, np.round(rev).astype(np.int64), lo, hi,
                                                  half_power_width, _zeta_start(f, lo, hi, half_power_width))
         val, std = np.where(ok, v, val), np.where(ok, sv, std)
     return ResonancePeaks(

@@ -25,11 +25,12 @@ from .detect import (Crossing, DetectOptions, Reference, RunSegments, choose_ref
                      predicted_contamination, resolve_engine_orders, speed_segments)
 from .displacement import (DISPLACEMENT_CHUNK, TWO_PI, DisplacementRows, Displacements, Geometry,
                            compute_displacements, first_pass_rows, rotor_phase_from_opr)
-from . import fit as fitting
 from .history import ScratchRows
 from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
+from .span_fits import (blade_mean, chunk_fits, fit_spans, held_fit, merge_spans, read_spans, run_amplitudes)
+from .spans import SpanRows, angle
 from .zeroing import correction_size, zeroing_correction
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
@@ -84,97 +85,13 @@ def _float_rows(a):
     return a if isinstance(a, ScratchRows) else np.asarray(a, float)
 
 
-def _fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius: float | None = None) -> SineFit:
-    """Eq. 16 fits of every order, jointly or one order at a time (stacked as one SineFit);
-    ``radius``: at the sampling angles (:func:`~bttsim_stream.process.fit.fit_revolutions`)."""
-    if joint or len(eos) == 1:
-        return fit_revolutions(d, angles, eos, omega_rad_s=omega, window=window, tip_radius_m=radius)
-    fits = [fit_revolutions(d, angles, (eo,), omega_rad_s=omega, window=window, tip_radius_m=radius) for eo in eos]
-    coeffs = np.concatenate([fits[0].coeffs[..., :1]] + [f.coeffs[..., 1:] for f in fits], axis=-1)
-    cat = lambda name: np.concatenate([getattr(f, name) for f in fits], axis=-1)  # noqa: E731
-    return SineFit(engine_orders=tuple(eos), window=window, coeffs=coeffs, amp_pkpk_m=cat("amp_pkpk_m"),
-                   phase_rad=cat("phase_rad"), amp_std_m=cat("amp_std_m"), dc_m=fits[0].dc_m,
-                   residual_rms_m=fits[0].residual_rms_m, n_samples=fits[0].n_samples,
-                   omega_rad_s=fits[0].omega_rad_s, freq_hz=None if fits[0].freq_hz is None else cat("freq_hz"),
-                   cn=max(f.cn for f in fits))
-
-
-def _merge_spans(spans) -> list:
-    """Sorted, non-overlapping ``[start, stop)`` revolution spans."""
-    out: list = []
-    for a, b in sorted(spans):
-        if out and a <= out[-1][1]:
-            out[-1] = (out[-1][0], max(out[-1][1], b))
-        else:
-            out.append((a, b))
-    return out
-
-
-def _fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius, spans,
-               report_only: bool = False) -> SineFit:
-    """Fits at the probe angles everywhere and, inside ``spans`` (the crossings and dwells,
-    where results are read), at the sampling angles. Outside them the response is small, and
-    the two agree (the correction is proportional to the displacement). ``report_only`` (one
-    revolution per fit): only what the report reads -- coefficients, amplitudes, phases --
-    the fit's other arrays None."""
-    if report_only and window == 1:
-        fit = _report_fit(d, angles, eos, joint, omega)
-    else:
-        fit = _fit(d, angles, eos, joint, omega, window, None)
-    if radius is None or not spans:
-        return fit
-    # written in place: the fit's arrays are this function's own (no second copy of the run's fits)
-    arrays = {k: getattr(fit, k) for k in ("coeffs", "amp_pkpk_m", "phase_rad", "amp_std_m", "dc_m",
-                                           "residual_rms_m", "n_samples") if getattr(fit, k) is not None}
-    h = window // 2
-    n = d.shape[0]
-    for a, b in spans:
-        if window == 1:
-            for lo, hi, f in _chunk_fits(d, a, b, angles, eos, joint, omega, radius):
-                for k, arr in arrays.items():
-                    arr[lo:hi] = getattr(f, k)
-            continue
-        lo, hi = max(0, a - h), min(n, b + h)
-        f = _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], window, radius)
-        for k, arr in arrays.items():
-            arr[a:b] = getattr(f, k)[a - lo:b - lo]
-    return fit
-
-
-def _report_fit(d: np.ndarray, angles, eos: tuple, joint: bool, omega) -> SineFit:
-    """:func:`_fit` with one revolution per fit, keeping only the coefficients, amplitudes
-    and phases (the same numbers; ``amp_std_m``, ``residual_rms_m`` and ``n_samples`` None):
-    three run-sized arrays fewer for a report."""
-    n_rev, nb = d.shape[:2]
-    n_eo = len(eos)
-    coeffs = np.empty((n_rev, nb, 1 + 2 * n_eo))
-    amp, phase = np.empty((n_rev, nb, n_eo)), np.empty((n_rev, nb, n_eo))
-    f = None
-    for lo, hi, f in _chunk_fits(d, 0, n_rev, angles, eos, joint, omega, None):
-        coeffs[lo:hi], amp[lo:hi], phase[lo:hi] = f.coeffs, f.amp_pkpk_m, f.phase_rad
-    om = np.asarray(omega, dtype=float)
-    return SineFit(engine_orders=tuple(eos), window=1, coeffs=coeffs, amp_pkpk_m=amp, phase_rad=phase, amp_std_m=None,
-                   dc_m=coeffs[..., 0], residual_rms_m=None, n_samples=None, omega_rad_s=om,
-                   freq_hz=om[:, None] * np.asarray(eos, float)[None, :] / TWO_PI, cn=f.cn)
-
-
-def _chunk_fits(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radius):
-    """``(lo, hi, fit)``: the one-revolution fits of revolutions ``a .. b - 1``,
-    :data:`~.fit.FIT_CHUNK` at a time from ``a``, as :func:`_fit` of them all makes them (the
-    same numbers), without a fit of the whole span at once. ``d``: an array or a
-    :class:`_Flat` (rows computed when asked for)."""
-    for lo in range(a, b, fitting.FIT_CHUNK):
-        hi = min(lo + fitting.FIT_CHUNK, b)
-        yield lo, hi, _fit(d[lo:hi], angles, eos, joint, omega[lo:hi], 1, radius)
-
-
 def _first_amplitudes(d0: "_Flat", angles, eos: tuple, joint: bool, omega: np.ndarray) -> np.ndarray:
     """The first pass's Eq. 16 amplitudes (one revolution per fit), shape (n_rev, n_blades,
-    n_orders), fitted by chunks (:func:`_chunk_fits`), without the run's other fit arrays or
+    n_orders), fitted by chunks (:func:`~.span_fits.chunk_fits`), without the run's other fit arrays or
     the zeroed displacements held whole."""
     n_rev, nb = d0.shape[:2]
     amp = np.empty((n_rev, nb, len(eos)))
-    for lo, hi, f in _chunk_fits(d0, 0, n_rev, angles, eos, joint, omega, None):
+    for lo, hi, f in chunk_fits(d0, 0, n_rev, angles, eos, joint, omega, None):
         amp[lo:hi] = f.amp_pkpk_m
     return amp
 
@@ -232,7 +149,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         and ``prepared.region`` are None, freed once the report's fits are made,
         ``prepared.offset_m`` is the :class:`~.prep.Baseline` (not a whole array), and, with one
         revolution per fit, so are the fit's ``amp_std_m``, ``residual_rms_m`` and
-        ``n_samples``, which the report does not read).
+        ``n_samples``, which the report does not read, and its other arrays are held on the
+        revolutions the report reads only, :class:`~.spans.SpanRows`, NaN elsewhere).
 
     Returns
     -------
@@ -287,7 +205,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra,
                         rows_only=not spectra and options.window == 1)
     d = prepared.d_m if prepared is not None else disp.d_m
-    fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra)
+    fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra, reference)
     eo = survey.eos[0]
     probe_tw = probe_spectra(d, eo) if spectra else None
     del d
@@ -308,7 +226,8 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
                             displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_tw,
                             fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad) if spectra else None,
-                            resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev),
+                            resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev,
+                                                                         raw.mean_m),
                             report=report, segments=survey.segments, crossings=tuple(survey.crossings),
                             reference=reference, joint=bool(survey.joint), nsv_scan=survey.nsv_scan, nsv=survey.nsv)
 
@@ -499,26 +418,42 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
 
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
-                 survey: _Survey, options: ProcessOptions, report_only: bool) -> tuple[SineFit, "_Raw", "_Flat"]:
+                 survey: _Survey, options: ProcessOptions, report_only: bool,
+                 reference: Reference | None = None) -> tuple[SineFit, "_Raw", "_Flat"]:
     """Eq. 16 fits of the prepared displacements ``d`` (at the sampling angles inside the
-    crossings and dwells; ``report_only``: what the report reads, :func:`_fit_spans`), the
-    unsmoothed fits where those need them, and the offset-removed, unsmoothed displacements
-    (:class:`_Flat`: computed for the revolutions asked for)."""
+    crossings and dwells, :func:`~.span_fits.fit_spans`), the unsmoothed fits where those need them, and
+    the offset-removed, unsmoothed displacements (:class:`_Flat`: computed for the revolutions
+    asked for). ``report_only`` with one revolution per fit: what the report reads -- the
+    coefficients, amplitudes and phases of the revolutions it reads (:func:`~.span_fits.read_spans`,
+    ``reference`` the zeroing's), :func:`~.span_fits.held_fit` -- and no run-sized fit."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
-    spans = _merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
-                         + [(dw.start, dw.stop) for dw in survey.segments.dwells])
-    fit = _fit_spans(d, angles, eos, joint, omega, options.window, radius, spans, report_only)
+    spans = merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
+                        + [(dw.start, dw.stop) for dw in survey.segments.dwells])
+    held = report_only and options.window == 1
+    if held:
+        removed = bool(prepared is not None and prepared.options.remove_offset)
+        fit = held_fit(d, angles, eos, joint, omega, radius, spans,
+                       read_spans(survey.crossings, omega, spans, reference, removed, d.shape[0]))
+    else:
+        fit = fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
     d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
     if (prepared is None or not options.prep_options.smooth) and options.window == 1:
-        return fit, _Raw(fit.amp_pkpk_m, fit.phasor), d_flat
-    # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
-    amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
-    ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
-    for a, b in spans:
-        for lo, hi, f_r in _chunk_fits(d_flat, a, b, angles, eos, joint, omega, radius):
-            amp_r[lo:hi], ph_r[lo:hi] = f_r.amp_pkpk_m, f_r.phasor
-    return fit, _Raw(amp_r, ph_r), d_flat
+        raw = _Raw(fit.amp_pkpk_m, fit.phasor)
+    else:  # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
+        if held:  # held on the spans alone (NaN elsewhere, as the whole arrays)
+            amp_r = SpanRows.filled(d.shape[0], spans, fit.amp_pkpk_m.shape[1:])
+            ph_r = amp_r.like(amp_r.shape[1:], complex, np.nan + 0j)
+        else:
+            amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
+            ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
+        for a, b in spans:
+            for lo, hi, f_r in chunk_fits(d_flat, a, b, angles, eos, joint, omega, radius):
+                amp_r[lo:hi], ph_r[lo:hi] = f_r.amp_pkpk_m, f_r.phasor
+        raw = _Raw(amp_r, ph_r)
+    if held:
+        raw = replace(raw, **run_amplitudes(d, fit, survey.crossings, eos, joint, angles, omega))
+    return fit, raw, d_flat
 
 
 def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: dict, notes: list) -> ResonanceReport:
@@ -528,7 +463,9 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
     steady = [e for dw in survey.segments.dwells for e in dwell_entries(ctx, dw)]
     if not entries:
         notes.append(_why_none(eos_asked, survey.segments, survey.omega, info, ctx.options.detect))
-        skirt = no_crossing_note(ctx.fit.amp_pkpk_m, ctx.omega, ctx.eos, ctx.options.detect.ratio_threshold)
+        # the fits held on some revolutions: the whole run's blade medians, computed by blocks
+        skirt = no_crossing_note(ctx.fit.amp_pkpk_m if ctx.raw.median_m is None else None, ctx.omega, ctx.eos,
+                                 ctx.options.detect.ratio_threshold, medians=ctx.raw.median_m)
         # only where a mode family's frequency lies in the swept range (a resonance is expected)
         notes += [skirt] if skirt and survey.segments.sweeps and "no mode family" not in notes[-1] else []
     notes += [nsv_note(n.to_summary()) for n in survey.nsv]
@@ -539,17 +476,17 @@ def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: 
                                         reference=ref_info, notes=notes, non_synchronous=survey.nsv)
 
 
-def _resonance_revolutions(fit: SineFit, crossings: list, eo: int, n_rev: int) -> np.ndarray:
+def _resonance_revolutions(fit: SineFit, crossings: list, eo: int, n_rev: int, mean_amp=None) -> np.ndarray:
     """The half-power regions of the crossings of ``eo`` (or, without any, where the
-    blade-mean amplitude exceeds half its peak), shape (n_rev,) of bool."""
+    blade-mean amplitude exceeds half its peak; ``mean_amp``: that mean when computed by
+    blocks, :func:`~.span_fits.run_amplitudes`), shape (n_rev,) of bool."""
     res_revs = np.zeros(n_rev, bool)
     for c in crossings:
         if c.eo == eo:
             res_revs[c.hp_lo:c.hp_hi + 1] = True
     if not res_revs.any():
-        amp = fit.amp_pkpk_m[..., 0]
-        ok = np.isfinite(amp)
-        mean_amp = np.where(ok, amp, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
+        if mean_amp is None:
+            mean_amp = blade_mean(fit.amp_pkpk_m[..., 0])
         res_revs = mean_amp >= 0.5 * mean_amp.max() if mean_amp.size else res_revs
     return res_revs
 
@@ -696,10 +633,15 @@ class _Flat:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Raw:
-    """Unsmoothed (offset-removed) fits: amplitude and complex response."""
+    """Unsmoothed (offset-removed) fits: amplitude and complex response (arrays, or
+    :class:`~.spans.SpanRows` held on the revolutions the report reads); with the fits so
+    held, what the report reads of the whole run's fitted amplitudes, or None
+    (:func:`~.span_fits.run_amplitudes`)."""
 
-    amp_pkpk_m: np.ndarray
-    phasor: np.ndarray
+    amp_pkpk_m: "np.ndarray | SpanRows"
+    phasor: "np.ndarray | SpanRows"
+    median_m: np.ndarray | None = None
+    mean_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -739,7 +681,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
     if corr is not None:  # the response the reference held, added back in the crossing's window
         P = fit.phasor_at(i)
         P[c.lo:c.hi + 1] += corr[None, :]
-        amp, ph = 2.0 * np.abs(P), np.angle(P)
+        amp, ph = 2.0 * np.abs(P), angle(P)
     method, sweep = opts.method, math.nan
     if opts.method == "peak" and opts.peak_method not in ("max", "fit"):
         pk = find_peaks(amp[c.lo:c.hi + 1], freq[c.lo:c.hi + 1], method=opts.peak_method)
@@ -772,7 +714,7 @@ def _crossing_entry(ctx: _Context, c: Crossing) -> ResonanceEntry:
         corr = -np.where(np.isfinite(pk.offset_m), pk.offset_m, 0.0)
         P = ctx.raw.phasor[..., i].copy()
         P[c.lo:c.hi + 1] += corr[None, :]
-        amp, ph = 2.0 * np.abs(P), np.angle(P)
+        amp, ph = 2.0 * np.abs(P), angle(P)
         with quiet():
             check = (_model_misfit(pk.misfit_m, ctx.raw.amp_pkpk_m[c.lo:c.hi + 1, :, i]), None, None)
     pk, crossing_notes = _intervals(ctx, c, i, pk, amp, ph, freq, zc, corr, check)

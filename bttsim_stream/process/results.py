@@ -144,7 +144,9 @@ class ProcessingResult:
     fit : SineFit
         Fits of the prepared displacements (raw when ``prep`` is off); with the report alone
         (``spectra=False``) and one revolution per fit, its ``amp_std_m``, ``residual_rms_m``
-        and ``n_samples`` are None.
+        and ``n_samples`` are None and its ``coeffs``, ``amp_pkpk_m``, ``phase_rad`` (and
+        ``dc_m``) are :class:`~.spans.SpanRows`: held on the revolutions the report reads
+        (the crossings and dwells and their margins), NaN elsewhere.
     probe_tw : TravellingWaveSpectra or None
         Per revolution and probe, shape (n_rev, n_probes, n_nd), first EO (None when the
         report alone was asked for: ``process_arrays(..., spectra=False)``).

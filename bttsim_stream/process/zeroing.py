@@ -14,7 +14,7 @@ import numpy as np
 from .detect import Crossing, predicted_response
 from .fit import quiet
 
-__all__ = ["TAIL_LEVEL", "zeroing_correction", "zeroing_tail", "tail_gain", "correction_size"]
+__all__ = ["TAIL_LEVEL", "zeroing_correction", "zeroing_tail", "tail_revolutions", "tail_gain", "correction_size"]
 
 #: The zeroing correction fits the response's growth where the predicted response is at most
 #: this fraction of the peak (the skirt between the reference and the crossing).
@@ -45,17 +45,27 @@ def zeroing_tail(ctx, c: Crossing, i: int):
     """``(h_ref, g, P)`` of :func:`zeroing_correction` (None: no correction): the growth law
     at the reference, its rise ``g = h - h_ref`` over the skirt's revolutions (in revolution
     order) and the responses there."""
-    ref = ctx.reference
-    if ref is None or ref.start is None or ctx.offset_removed:
+    tail = tail_revolutions(ctx.reference, ctx.offset_removed, ctx.crossings, ctx.omega, c)
+    if tail is None:
         return None
-    same = [k for k in ctx.crossings if k.eo == c.eo]
-    h = predicted_response(ctx.omega, same)
+    h_ref, g, idx = tail
+    return h_ref, g, ctx.fit.phasor_at(i, idx)
+
+
+def tail_revolutions(ref, offset_removed: bool, crossings, omega: np.ndarray, c: Crossing):
+    """``(h_ref, g, idx)``: :func:`zeroing_tail` without the responses, ``idx`` the skirt's
+    revolutions whose responses it reads (None: no correction). ``ref``: the zeroing
+    reference; ``crossings``: every crossing of the run."""
+    if ref is None or ref.start is None or offset_removed:
+        return None
+    same = [k for k in crossings if k.eo == c.eo]
+    h = predicted_response(omega, same)
     h_ref = complex(np.mean(h[ref.start:ref.stop]))
     idx = np.arange(ref.start, c.peak) if ref.start < c.peak else np.arange(c.peak + 1, ref.stop)
     idx = idx[np.abs(h[idx]) <= TAIL_LEVEL]
     if idx.size < 16:
         return None
-    return h_ref, h[idx] - h_ref, ctx.fit.phasor_at(i, idx)
+    return h_ref, h[idx] - h_ref, idx
 
 
 def tail_gain(g: np.ndarray, P: np.ndarray) -> np.ndarray:
