@@ -79,6 +79,25 @@ def test_resonance_bound_is_reached_by_the_maximum_likelihood_fit():
     assert np.isnan(crb.resonance_bound(PAPER, eos, 0, f, sigma, [np.nan], [fpk], zeta, [phi]).amp_pkpk_m[0])
 
 
+def test_resonance_bound_by_blocks_of_blades_is_the_whole_bound(monkeypatch):
+    """The Jacobian is built for blocks of blades (bounded memory on a long crossing): each
+    blade's bound is the same number whatever the block."""
+    rng = np.random.default_rng(7)
+    nb, n = 23, 2_000
+    f = np.linspace(100.0, 140.0, n)
+    f[[5, 900]] = np.nan
+    args = (PAPER, (8,), 0, f, rng.uniform(1e-6, 3e-6, (n, nb)), rng.uniform(1e-5, 1e-4, nb),
+            rng.uniform(110.0, 130.0, nb), rng.uniform(1e-3, 1e-2, nb), rng.uniform(-3.0, 3.0, nb))
+    monkeypatch.setattr(crb, "BOUND_SAMPLES", 10**9)
+    whole = crb.resonance_bound(*args)
+    for size in (1, 3 * n, 7 * n + 5):
+        monkeypatch.setattr(crb, "BOUND_SAMPLES", size)
+        b = crb.resonance_bound(*args)
+        assert np.array_equal(b.amp_pkpk_m, whole.amp_pkpk_m, equal_nan=True)
+        assert np.array_equal(b.freq_hz, whole.freq_hz, equal_nan=True)
+    assert np.isfinite(whole.amp_pkpk_m).all()
+
+
 def test_noise_estimates_recover_the_noise():
     rng = np.random.default_rng(8)
     sigma = 15e-6

@@ -46,6 +46,10 @@ __all__ = ["ResonanceBound", "toa_sigma", "displacement_sigma", "phasor_covarian
 
 TWO_PI = 2.0 * np.pi
 
+#: Samples (blades x revolutions) of the Jacobian :func:`resonance_bound` builds at once: its
+#: temporaries are bounded by a block of blades, not by the crossing's length.
+BOUND_SAMPLES = 1 << 14
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class ResonanceBound:
@@ -184,10 +188,16 @@ def resonance_bound(probe_angles_rad, engine_orders, index: int, freq_hz, sigma_
     sg = sg.reshape(f.size, -1) if sg.ndim else sg.reshape(1, 1)
     s = np.broadcast_to(sg, (f.size, nb)).T  # (nb, n)
     use = np.isfinite(f)[None, :] & np.isfinite(s) & (s > 0)
-    J = _jacobian(th, np.broadcast_to(np.where(np.isfinite(f), f, 1.0), (nb, f.size)))  # (nb, n, 4)
-    R = np.stack([J.real, J.imag], axis=-2)  # (nb, n, 2, 4)
     w = np.where(use, 1.0 / np.where(use, s, 1.0) ** 2, 0.0)
-    info = np.einsum("bn,bnip,ij,bnjq->bpq", w, R, Kinv, R)
+    fr = np.where(np.isfinite(f), f, 1.0)
+    info = np.empty((nb, 4, 4))
+    step = max(1, BOUND_SAMPLES // max(f.size, 1))
+    for a in range(0, nb, step):  # a blade's information is its own: by blocks of blades, the same numbers
+        b = slice(a, a + step)
+        J = _jacobian(th[b], np.broadcast_to(fr, (th[b].shape[0], f.size)))  # (blades, n, 4)
+        R = np.stack([J.real, J.imag], axis=-2)  # (blades, n, 2, 4)
+        del J
+        info[b] = np.einsum("bn,bnip,ij,bnjq->bpq", w[b], R, Kinv, R)
     # scale to unit diagonal before inverting (A in m, f in Hz: very different sizes)
     d = np.sqrt(np.abs(np.diagonal(info, axis1=1, axis2=2)))
     good = ok & np.all(d > 0, axis=1)
@@ -223,8 +233,11 @@ def residual_sigma(d_m: np.ndarray, probe_angles_rad, engine_orders) -> np.ndarr
         return np.full(nb, np.nan)
     resid_op = np.eye(npr) - B @ np.linalg.pinv(B)  # (I - B B^+): the residual of a fit
     full = np.all(np.isfinite(d), axis=2)  # (n_rev, nb)
-    r = np.where(full[..., None], d, 0.0) @ resid_op.T
-    rss = np.sum(r * r, axis=(0, 2))
+    z = np.where(full[..., None], d, 0.0)
+    del d, d_m  # (the whole product and sum: cut in blocks, they would round differently)
+    r = z @ resid_op.T
+    del z
+    rss = np.sum(np.multiply(r, r, out=r), axis=(0, 2))
     dof = (npr - p) * np.sum(full, axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)

@@ -202,17 +202,18 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         del toa
     # 3. data preparation, and the fits of the report
     # the report alone (one revolution per fit): the prepared displacements made by blocks as the fits read them
-    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, options, notes, keep_offset=spectra,
+    region = _region(survey.amp0, survey.crossings, n_rev, combined=spectra) if options.prep else None
+    if not spectra:  # the report alone: the first pass's amplitudes are done with
+        survey = replace(survey, amp0=None)
+    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, region, options, notes, keep_offset=spectra,
                         rows_only=not spectra and options.window == 1)
     d = prepared.d_m if prepared is not None else disp.d_m
     fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra, reference)
     eo = survey.eos[0]
     probe_tw = probe_spectra(d, eo) if spectra else None
     del d
-    if not spectra:  # the report alone: the prepared displacements and the first pass's amplitudes are done with
-        survey = replace(survey, amp0=None)
-        if prepared is not None:
-            prepared = replace(prepared, d_m=None, region=None)
+    if not spectra and prepared is not None:  # the report alone: the prepared displacements are done with
+        prepared = replace(prepared, d_m=None, region=None)
     # 4. per crossing and per dwell
     ctx = _Context(geometry=geometry, eos=survey.eos, joint=survey.joint, cns=cns, fit=fit, raw=raw, d_flat=d_flat,
                    omega=survey.omega, opr=opr, t_sample=t_sample,
@@ -393,8 +394,9 @@ def _zeroing(opr: np.ndarray, toa: np.ndarray, geometry: Geometry, survey: _Surv
     return disp, reference, ref_info
 
 
-def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: ProcessOptions,
-             notes: list, keep_offset: bool = True, rows_only: bool = False) -> PreparedData | None:
+def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, region: ResonanceRegion | None,
+             options: ProcessOptions, notes: list, keep_offset: bool = True,
+             rows_only: bool = False) -> PreparedData | None:
     """Step 3: data preparation (None when off) with every crossing (and dwell) out of the
     baseline: the baseline (offsets slowly varying with speed) is fitted where no crossing's
     response is predicted above the reference's limit, so it does not take the forced
@@ -406,7 +408,6 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, options: Proces
     dwell_mask = survey.segments.dwell_mask(n_rev)
     skirts = predicted_contamination(omega, crossings) > SKIRT_LEVEL
     hw = _half_widths(omega, crossings, options.prep_options)
-    region = _region(survey.amp0, crossings, n_rev)
     prep_opts = options.prep_options
     bridge = _baseline_bridges(omega, ~(dwell_mask | skirts | region.mask.any(axis=1)))
     if prep_opts.remove_offset and crossings and not bridge:
@@ -595,15 +596,16 @@ def _half_widths(omega: np.ndarray, crossings, prep: PrepOptions) -> np.ndarray:
     return np.clip(h, max(prep.min_half_width, 1.0), prep.max_half_width)
 
 
-def _region(amp0: np.ndarray, crossings, n_rev: int) -> ResonanceRegion:
+def _region(amp0: np.ndarray, crossings, n_rev: int, combined: bool = True) -> ResonanceRegion:
     """The data preparation's view of the crossings: every blade's baseline leaves out each
-    crossing's exclusion region."""
+    crossing's exclusion region. ``combined``: its ``amp_pkpk_m`` (the orders' first-pass
+    amplitudes combined, which the preparation does not read; else None)."""
     nb = amp0.shape[1]
     mask = np.zeros((n_rev, nb), bool)
     for c in crossings:
         mask[c.excl_lo:c.excl_hi + 1] = True
     strongest = max(crossings, key=lambda c: c.amp_peak_m) if crossings else None
-    combined = np.sqrt(np.nansum(amp0 ** 2, axis=2))
+    combined = np.sqrt(np.nansum(amp0 ** 2, axis=2)) if combined else None
     return ResonanceRegion(
         amp_pkpk_m=combined, peak_revolution=np.full(nb, strongest.peak if strongest else 0, np.int64),
         half_power_width=np.full(nb, float(strongest.half_power_width) if strongest else np.nan),
@@ -614,8 +616,8 @@ def _region(amp0: np.ndarray, crossings, n_rev: int) -> ResonanceRegion:
 class _Flat:
     """The offset-removed, unsmoothed displacements ``d_m - offset_m``, computed for the
     revolutions asked for (``flat[rows]``: the same numbers as the whole array's rows) instead
-    of held for the whole run. ``d_m``: an array or rows computed when asked for
-    (:class:`~.displacement.DisplacementRows`); ``offset_m``: an array (e.g. a column's
+    of held for the whole run. ``d_m``: an array or rows computed or read when asked for
+    (:class:`~.displacement.DisplacementRows`, :class:`~.history.ScratchRows`); ``offset_m``: an array (e.g. a column's
     median broadcast over the run), a :class:`~.prep.Baseline` (evaluated for those rows) or
     a float."""
 
@@ -628,7 +630,11 @@ class _Flat:
 
     def __getitem__(self, rows) -> np.ndarray:
         off = self.offset_m if isinstance(self.offset_m, (int, float)) else self.offset_m[rows]
-        return self.d_m[rows] - off
+        if isinstance(self.d_m, np.ndarray):  # a view of the array: a new one
+            return self.d_m[rows] - off
+        d = self.d_m[rows]  # rows read or computed for this call: subtracted in place (the same numbers)
+        d -= off
+        return d
 
 
 @dataclass(frozen=True, slots=True, eq=False)

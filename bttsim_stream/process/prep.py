@@ -119,8 +119,9 @@ class ResonanceRegion:
 
     Attributes
     ----------
-    amp_pkpk_m : ndarray, shape (n_rev, n_blades)
-        Smoothed first-pass amplitude (all engine orders combined), m.
+    amp_pkpk_m : ndarray, shape (n_rev, n_blades), or None
+        Smoothed first-pass amplitude (all engine orders combined), m (None where not made:
+        the report alone).
     peak_revolution : ndarray of int, shape (n_blades,)
     half_power_width : ndarray, shape (n_blades,)
         Revolutions where the smoothed amplitude exceeds ``peak / sqrt(2)``.
