@@ -47,7 +47,7 @@ def replaceable_file(path, flag: str = "--out") -> Path:
 #: File-system errors that are the environment's, not a bug: a full disk, no permission, a
 #: read-only file system, a missing folder... (one line, status 2, like bad input).
 _FILE_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT,
-                          errno.ENOTDIR, errno.EISDIR, errno.EFBIG, errno.EEXIST))
+                          errno.ENOTDIR, errno.EISDIR, errno.EFBIG, errno.EEXIST, errno.EIO))
 
 
 def comma_values(text, convert, what: str, expected: str) -> list:

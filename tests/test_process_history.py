@@ -2,6 +2,8 @@
 displacements, the TOA history spilled to a scratch file, and the streaming processor with
 both giving the same outputs and final report as with everything held."""
 
+import errno
+
 import numpy as np
 import pytest
 
@@ -101,6 +103,12 @@ def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
     rows = rng.normal(size=(100, 4))
     for r in rows:
         spilled.append(r)
+    broken = ScratchRows((3,))  # a file shorter than its rows (a failing disk): an I/O error, one line
+    broken.write(np.zeros((5, 3)))
+    broken.written = 10
+    with pytest.raises(OSError, match="scratch file .* is short") as err:
+        broken[:]
+    assert err.value.errno == errno.EIO
     empty = ScratchRows.of(np.zeros((5, 3, 0)))  # rows of no values (a truth without per-order envelopes)
     assert empty.shape == (5, 3, 0) and empty[1:4].shape == (3, 3, 0)
     copy = spilled.scratch(block=7)  # from the file and from memory, a block at a time

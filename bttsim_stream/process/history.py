@@ -17,6 +17,7 @@ Pure numpy and the standard library; no bus, no formats.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 import weakref
@@ -143,7 +144,8 @@ class SpilledRows:
             view = memoryview(out[:m]).cast("B")
             got = self._file.readinto(view)
             if got != view.nbytes:
-                raise OSError(f"the scratch file of the run's history is short ({got} of {view.nbytes} bytes)")
+                raise OSError(errno.EIO, f"the scratch file of the run's history is short "
+                                         f"({got} of {view.nbytes} bytes)")
         m = max(m, 0)
         out[m:] = self._buf[a + m - self._start:b - self._start]
         return out
@@ -225,7 +227,7 @@ class ScratchRows:
         view = memoryview(out).cast("B")
         got = os.preadv(f.fileno(), [view], offset * self.dtype.itemsize)
         if got != view.nbytes:
-            raise OSError(f"a scratch file of the run's arrays is short ({got} of {view.nbytes} bytes)")
+            raise OSError(errno.EIO, f"a scratch file of the run's arrays is short ({got} of {view.nbytes} bytes)")
 
     def __getitem__(self, rows) -> np.ndarray:
         """Rows ``rows`` (a slice, an int or an integer array; or a tuple whose first item is
