@@ -3,6 +3,7 @@ feeding, the viewer node, and the web viewer (browser)."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -13,6 +14,7 @@ import sys
 import textwrap
 import time
 import warnings
+from collections import deque
 from itertools import combinations
 from pathlib import Path
 
@@ -691,6 +693,75 @@ def test_live_views_fed_message_by_message(processed_mcap, tmp_path):
     assert ent["/fit/eo_8/amp_pkpk_mm"]["rows"] == N_REV and ent[f"/{paths.TW_ND}"]["rows"] == N_REV
     assert ent[f"/{paths.tw_path(0)}"]["rows"] > 1 and not ent[f"/{paths.tw_path(0)}"]["static"]  # rolling window
     assert ent[f"/{paths.RESONANCE_TABLE}"]["rows"] == 1
+
+
+def _held_bytes(obj, seen: set) -> int:
+    """Bytes the views hold in ``obj``: arrays, byte strings and containers, followed through
+    this package's objects (not Rerun's: its stream is measured by ``bench_memory.py``)."""
+    if id(obj) in seen or obj is None or isinstance(obj, (bool, int, float, str, type)):
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if isinstance(obj, (bytes, bytearray)):
+        return len(obj)
+    if isinstance(obj, dict):
+        return 8 * len(obj) + sum(_held_bytes(k, seen) + _held_bytes(v, seen) for k, v in obj.items())
+    if isinstance(obj, (list, tuple, set, frozenset, deque)):
+        return 8 * len(obj) + sum(_held_bytes(v, seen) for v in obj)
+    if not type(obj).__module__.startswith("bttsim_stream"):
+        return 0
+    names = list(getattr(obj, "__dict__", {})) + [n for c in type(obj).__mro__ for n in getattr(c, "__slots__", ())]
+    return sum(_held_bytes(getattr(obj, n, None), seen) for n in names if n != "rec")
+
+
+@pytest.mark.integration
+def test_live_views_hold_the_same_whatever_the_runs_length(processed_mcap, tmp_path, monkeypatch):
+    """The live views' state is bounded: N and 4N revolutions of fits, travelling waves and
+    truth (the short run's, repeated at later revolutions) leave the same held bytes."""
+    monkeypatch.setattr("bttsim_stream.views.fits.TRUTH_HISTORY", 256)  # the bound, reached quickly
+    msgs = read_recording(processed_mcap).messages
+    meta = msgs[0]
+    kept = [(keys.parse_key(m.key), codec.decode_message(m.key, m.payload)) for m in msgs[1:]]
+    kept = [(info, d) for info, d in kept if info.kind in ("truth", "fit", "tw")]
+
+    def held(copies: int) -> int:
+        rec, _ = views.open_recording(rrd_path=tmp_path / f"held{copies}.rrd")
+        live = views.LiveViews(rec, live=True, flush_period_s=1e9, tw_window=64, tw_period_s=0.0)
+        live.feed(meta.key, meta.payload)
+        for c in range(copies):
+            for info, d in kept:
+                h = d.header
+                header = dataclasses.replace(h, revolution=h.revolution + c * N_REV, t_s=h.t_s + c * 3.0)
+                live.feed_decoded(views.live.Incoming(info.kind, info.rig, dataclasses.replace(d, header=header)))
+            live.flush()
+        size = _held_bytes(live, set())
+        live.close()
+        rec.disconnect()
+        assert live.stats["fits"] == copies * N_REV and live.stats["tw"] == copies * N_REV * 5
+        return size
+
+    short, long = held(4), held(16)
+    assert long <= 1.05 * short, (short, long)
+
+
+def test_viewer_node_keeps_few_samples_waiting_in_zenoh(tmp_path, monkeypatch):
+    """The viewer's live FIFO is small: a sample waiting there holds Zenoh's memory."""
+    from bttsim_stream.nodes import viewer_node
+
+    asked = {}
+
+    def node_session(*args, **kwargs):
+        asked.update(kwargs)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(viewer_node, "node_session", node_session)
+    parser = argparse.ArgumentParser()
+    viewer_node.add_arguments(parser)
+    args = parser.parse_args(["--rrd", str(tmp_path / "v.rrd")])
+    with pytest.raises(RuntimeError, match="stop here"):
+        viewer_node.main(None, args)
+    assert asked["fifo_size"] == viewer_node.FIFO_SIZE <= 256
 
 
 @pytest.mark.integration
