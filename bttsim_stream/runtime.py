@@ -325,6 +325,14 @@ WAKE_AT = 64
 #: about 40 MB of 10 kB TOA batches, whatever the run's length.
 FIFO_SIZE = 1 << 12
 
+#: The live FIFO of the nodes that only take the stream in (the recorder's ``--queue``, the
+#: viewer): samples waiting there, and the network buffers they came in, are memory of
+#: Zenoh's threads, which swung by up to 160 MB with 4096 in a recorder or viewer lagging
+#: behind a fast run, its peak the higher the longer the run (``bttsim run``, 130 s / 1000 s
+#: run-ups: recorder 193 / 250 MB, viewer 303 / 393 MB; with 256: 79 / 86 and 213 / 246).
+#: 256 keep the run as fast; past them Zenoh's delivery blocks and the publishers slow down.
+SINK_FIFO_SIZE = 1 << 8
+
 
 class Inbox:
     """A bounded FIFO from Zenoh's receiving threads to the node's main thread.

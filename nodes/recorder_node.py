@@ -56,8 +56,8 @@ from typing import TYPE_CHECKING
 
 from bttsim_stream.bus import keys
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.runtime import EXIT_INCOMPLETE, FIFO_SIZE, NodeProgram, add_drain_argument, add_duration_argument, \
-    add_name_argument, add_status_argument, node_session, positive_count, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, SINK_FIFO_SIZE, NodeProgram, add_drain_argument, \
+    add_duration_argument, add_name_argument, add_status_argument, node_session, positive_count, run_node
 
 if TYPE_CHECKING:
     from bttsim_stream.bus.admission import RecordGate
@@ -216,8 +216,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma-separated nodes whose end ends the recording ('sim'; '' = only a signal "
                         "or --duration)")
     add_drain_argument(p)
-    p.add_argument("--queue", type=positive_count, default=FIFO_SIZE, metavar="N",
-                   help=f"live samples buffered before the network is slowed down ({FIFO_SIZE})")
+    p.add_argument("--queue", type=positive_count, default=SINK_FIFO_SIZE, metavar="N",
+                   help=f"live samples buffered before the network is slowed down ({SINK_FIFO_SIZE})")
     add_name_argument(p, "recorder")
     add_status_argument(p)
 

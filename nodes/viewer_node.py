@@ -37,21 +37,14 @@ from typing import TYPE_CHECKING
 from bttsim_stream.bus import keys
 from bttsim_stream.defaults import DEFAULT_RIG
 from bttsim_stream.bus.session import StopFlag
-from bttsim_stream.runtime import EXIT_INCOMPLETE, NodeProgram, add_drain_argument, add_duration_argument, \
-    add_name_argument, add_status_argument, add_web_arguments, node_session, run_node
+from bttsim_stream.runtime import EXIT_INCOMPLETE, SINK_FIFO_SIZE, NodeProgram, add_drain_argument, \
+    add_duration_argument, add_name_argument, add_status_argument, add_web_arguments, node_session, run_node
 
 if TYPE_CHECKING:
     from bttsim_stream.bus.admission import RecordGate
 
 log = logging.getLogger("bttsim.viewer")
 
-#: Live samples that may wait in Zenoh's FIFO for the views (the runtime's default is
-#: :data:`~bttsim_stream.runtime.FIFO_SIZE`, 4096). Samples waiting there, and the network
-#: buffers they came in, are memory of Zenoh's threads: with 4096, a viewer lagging behind
-#: a fast run swung by up to 160 MB, its peak the higher the longer the run (303 MB at 130 s,
-#: 393 MB at 1000 s in ``bttsim run``; 210 and 234 MB with 256). 256 keep the run as fast;
-#: past them Zenoh's delivery blocks and the publishers slow down.
-FIFO_SIZE = 256
 
 
 def main(conf, args: argparse.Namespace) -> dict:
@@ -73,7 +66,7 @@ def main(conf, args: argparse.Namespace) -> dict:
     # its report expected too)
     gate = RecordGate(rig, decode=True, report="processor" in until)
     try:
-        with node_session(conf, rig, args.name, fifo_size=FIFO_SIZE, status_file=args.status_file) as node:
+        with node_session(conf, rig, args.name, fifo_size=SINK_FIFO_SIZE, status_file=args.status_file) as node:
             node.url = sinks.web_url or ""
             # subscriber before the token: a simulator waiting for our token finds our subscription
             node.subscribe(keys.all_key(rig), history=True)

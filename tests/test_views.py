@@ -748,6 +748,7 @@ def test_live_views_hold_the_same_whatever_the_runs_length(processed_mcap, tmp_p
 def test_viewer_node_keeps_few_samples_waiting_in_zenoh(tmp_path, monkeypatch):
     """The viewer's live FIFO is small: a sample waiting there holds Zenoh's memory."""
     from bttsim_stream.nodes import viewer_node
+    from bttsim_stream.runtime import SINK_FIFO_SIZE
 
     asked = {}
 
@@ -761,7 +762,7 @@ def test_viewer_node_keeps_few_samples_waiting_in_zenoh(tmp_path, monkeypatch):
     args = parser.parse_args(["--rrd", str(tmp_path / "v.rrd")])
     with pytest.raises(RuntimeError, match="stop here"):
         viewer_node.main(None, args)
-    assert asked["fifo_size"] == viewer_node.FIFO_SIZE <= 256
+    assert asked["fifo_size"] == SINK_FIFO_SIZE <= 256
 
 
 @pytest.mark.integration
