@@ -83,6 +83,14 @@ def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
     for rows in (np.array([3, 4, 5, 9, 2, 2, 999]), 42, -1, slice(0, 100, 7), (slice(3, 50), slice(2, 5)),
                  (7, 1), (np.array([4, 8]), slice(None), 2)):
         np.testing.assert_array_equal(s[rows], a[rows])
+    mask = np.zeros(1000, bool)
+    mask[[0, 5, 999]] = True
+    np.testing.assert_array_equal(s[mask], a[mask])
+    for bad in ((np.array([1, 2]), np.array([0, 2])), (Ellipsis, 0), 1000, np.array([[1, 2]]), np.array([1.5])):
+        with pytest.raises(IndexError):  # not what numpy would give, or out of range: refused
+            s[bad]
+    with pytest.raises(TypeError):  # never made into the whole array implicitly
+        np.asarray(s)
     flat = a.reshape(1000, 21)
     for cols in (slice(0, 21), slice(4, 11), slice(20, 21)):
         got = s.columns(cols)

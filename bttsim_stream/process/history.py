@@ -209,8 +209,7 @@ class ScratchRows:
         block = np.ascontiguousarray(block, dtype=self.dtype)
         block = block.reshape(block.shape[0] if block.ndim > len(self.tail) else 1, self._n_cols)
         if block.size:
-            offset = self.written * self._n_cols * self.dtype.itemsize
-            os.pwrite(self._rows.fileno(), memoryview(block).cast("B"), offset)
+            _write_all(self._rows, block, self.written * self._n_cols * self.dtype.itemsize)
         self.written += block.shape[0]
 
     def patch(self, i: int, row) -> None:
@@ -218,21 +217,25 @@ class ScratchRows:
         if not 0 <= i < self.written:
             raise IndexError(f"row {i} is not written (rows 0 .. {self.written - 1})")
         row = np.ascontiguousarray(row, dtype=self.dtype).reshape(self._n_cols)
-        os.pwrite(self._rows.fileno(), memoryview(row).cast("B"), i * self._n_cols * self.dtype.itemsize)
+        _write_all(self._rows, row, i * self._n_cols * self.dtype.itemsize)
         self._cols_n = 0  # the column-major copy is made again when read
 
     def _read(self, f, offset: int, out: np.ndarray) -> None:
-        if out.size == 0:
-            return
-        view = memoryview(out).cast("B")
-        got = os.preadv(f.fileno(), [view], offset * self.dtype.itemsize)
-        if got != view.nbytes:
-            raise OSError(errno.EIO, f"a scratch file of the run's arrays is short ({got} of {view.nbytes} bytes)")
+        """``out`` from element ``offset`` of file ``f`` (in as many reads as it takes)."""
+        view = memoryview(out).cast("B") if out.size else memoryview(b"")
+        at, pos = 0, offset * self.dtype.itemsize
+        while at < view.nbytes:
+            got = os.preadv(f.fileno(), [view[at:]], pos + at)
+            if got <= 0:
+                raise OSError(errno.EIO, f"a scratch file of the run's arrays is short ({at} of {view.nbytes} bytes)")
+            at += got
 
     def __getitem__(self, rows) -> np.ndarray:
         """Rows ``rows`` (a slice, an int or an integer array; or a tuple whose first item is
         one of these, the rest indexing each row, e.g. ``[a:b, blades]``), a copy."""
         if isinstance(rows, tuple):
+            if any(k is Ellipsis or k is None for k in rows) or sum(np.ndim(k) > 0 for k in rows) > 1:
+                raise IndexError("ScratchRows takes [rows] or [rows, basic indices of each row]")
             head = self[rows[0]]
             one = not isinstance(rows[0], slice) and np.ndim(rows[0]) == 0
             return head[rows[1:]] if one else head[(slice(None),) + rows[1:]]
@@ -242,7 +245,7 @@ class ScratchRows:
             out = np.empty((max(b - a, 0), self._n_cols), self.dtype)
             self._read(self._rows, a * self._n_cols, out)
             return out.reshape((out.shape[0],) + self.tail)
-        idx = np.arange(n)[rows]
+        idx = _row_numbers(rows, n)
         flat = np.atleast_1d(idx)
         out = np.empty((flat.size, self._n_cols), self.dtype)
         cuts = np.flatnonzero(np.diff(flat) != 1) + 1  # runs of consecutive rows, one read each
@@ -252,16 +255,20 @@ class ScratchRows:
         out = out.reshape(flat.shape + self.tail)
         return out[0] if idx.ndim == 0 else out.reshape(idx.shape + self.tail)
 
+    def __array__(self, dtype=None, copy=None):
+        raise TypeError("a ScratchRows is read by rows (x[a:b], x[rows, ...]): not made into the whole array "
+                        "implicitly")
+
     def _transpose(self, block: int = 4096) -> None:
         """The column-major copy of every row written, from the row-major file by blocks."""
         if self._cols is None:
             self._cols = tempfile.TemporaryFile(prefix="bttsim-cols-")
             self._files.append(self._cols)
-        n, size, fd = self.written, self.dtype.itemsize, self._cols.fileno()
+        n, size = self.written, self.dtype.itemsize
         for a in range(0, n, block):
             cols = np.ascontiguousarray(self[a:a + block].reshape(-1, self._n_cols).T)
             for j in range(self._n_cols):  # each column's segment of these rows
-                os.pwrite(fd, memoryview(cols[j]).cast("B"), (j * n + a) * size)
+                _write_all(self._cols, cols[j], (j * n + a) * size)
         self._cols_n = n
 
     def columns(self, cols: slice) -> np.ndarray:
@@ -280,6 +287,31 @@ class ScratchRows:
     def close(self) -> None:
         """Delete the scratch files (also done when the object is dropped)."""
         self._finalizer()
+
+
+def _row_numbers(rows, n: int) -> np.ndarray:
+    """The row numbers ``rows`` (a slice, an int, a 1-D integer or boolean array) picks among
+    ``n``, as ``np.arange(n)[rows]`` without making that array; IndexError as numpy's."""
+    if isinstance(rows, slice):
+        return np.arange(*rows.indices(n))
+    idx = np.asarray(rows)
+    if idx.dtype == bool:
+        if idx.shape != (n,):
+            raise IndexError(f"a boolean index of {idx.shape} for {n} rows")
+        return np.flatnonzero(idx)
+    if idx.dtype.kind not in "iu" or idx.ndim > 1:
+        raise IndexError(f"ScratchRows takes a slice, an int or a 1-D integer array of rows, got {rows!r:.60}")
+    idx = np.where(idx < 0, idx + n, idx).astype(np.intp)
+    if np.any((idx < 0) | (idx >= n)):
+        raise IndexError(f"row index out of range for {n} rows")
+    return idx
+
+
+def _write_all(f, a: np.ndarray, offset: int) -> None:
+    """All of ``a``'s bytes into file ``f`` at byte ``offset`` (in as many writes as it takes)."""
+    view, at = memoryview(np.ascontiguousarray(a)).cast("B"), 0
+    while at < view.nbytes:
+        at += os.pwrite(f.fileno(), view[at:], offset + at)
 
 
 def _close_all(files: list) -> None:

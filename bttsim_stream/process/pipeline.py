@@ -174,8 +174,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     """
     geometry = Geometry.from_info(info)
     opr = np.asarray(opr_s, dtype=float)
-    scratch = isinstance(toa_s, ScratchRows)
-    toa = toa_s if scratch and not spectra else np.asarray(toa_s[:] if scratch else toa_s, dtype=float)
+    scratch = isinstance(toa_s, ScratchRows) and toa_s.dtype == np.float64  # (else: read and converted)
+    toa = toa_s if scratch and not spectra else np.asarray(
+        toa_s[:] if isinstance(toa_s, ScratchRows) else toa_s, dtype=float)
     if not spectra and not scratch:  # the report alone: the TOAs read back by blocks from scratch files
         toa = ScratchRows.of(toa)  # (a handed-over array is freed)
     del toa_s
