@@ -204,3 +204,31 @@ def test_report_only_is_the_same_report(options):
         assert all(held[dw.start:dw.stop].all() for dw in only.segments.dwells)
     assert (only.fit.n_samples is None) == (opts.window == 1)
     assert _same(toa, kept)
+
+
+def test_report_only_fits_the_zeroing_skirt_again_by_blocks(monkeypatch):
+    """The zeroing correction's skirt (from the reference to the crossing: as long as the run
+    between them) is not held with the report's fits but fitted again when the correction
+    reads it, by blocks: the same report as the whole run's fits give, and none of the
+    skirt's revolutions held outside the crossings' margins."""
+    import json
+
+    from bttsim_stream.process import fit as fitting
+    from bttsim_stream.process import zeroing
+    from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
+
+    opr, toa, geo, omega = _run(900, seed=3)
+    opts = ProcessOptions(engine_orders=(3,))
+    full = process_arrays(opr, toa, geo, opts)
+    read = []
+    gain = zeroing.tail_gain
+    monkeypatch.setattr(zeroing, "tail_gain", lambda g, P, block=None: read.append(g.size) or gain(g, P, block))
+    monkeypatch.setattr(zeroing, "TAIL_BLOCK", 37)
+    monkeypatch.setattr(fitting, "FIT_CHUNK", 29)
+    only = process_arrays(opr, toa, geo, opts, spectra=False)
+    assert read and min(read) > 37  # a correction was made, over several blocks
+    assert json.dumps(only.summary, sort_keys=True) == json.dumps(full.summary, sort_keys=True)
+    c = only.crossings[0]
+    tail = zeroing.tail_revolutions(only.reference, False, list(only.crossings), full.fit.omega_rad_s, c)[2]
+    held = only.fit.coeffs.held()
+    assert not held[tail].all() and held[c.lo:c.hi + 1].all()

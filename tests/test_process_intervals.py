@@ -309,3 +309,30 @@ def test_no_crossing_note_names_a_strongly_changing_response():
     assert f"({hi / lo:.1f} x)" in note
     flat = 1e-4 * (1.0 + 0.3 * np.sin(np.linspace(0, 6, n)))[:, None, None] * np.ones((1, nb, 1))
     assert no_crossing_note(flat, omega, (8,), 2.0) is None
+
+
+def test_zeroing_gain_by_blocks_recovers_k_and_equals_the_whole_sum():
+    """``P = K g`` over the skirt gives back ``K`` per blade (0 for a blade with no data), and
+    reading the skirt's responses by blocks (any size, array or reader) gives the very same
+    numbers as the sums over the whole array -- one column (summed pairwise by numpy) too."""
+    from bttsim_stream.process.zeroing import tail_gain
+
+    rng = np.random.default_rng(7)
+    n, nb = 9000, 5
+    g = rng.normal(size=n) + 1j * rng.normal(size=n)
+    K = (rng.normal(size=nb) + 1j * rng.normal(size=nb)) * 1e-5
+    P = g[:, None] * K[None, :] + 1e-9 * (rng.normal(size=(n, nb)) + 1j * rng.normal(size=(n, nb)))
+    P[rng.random((n, nb)) < 0.1] = np.nan
+    P[:, 3] = np.nan
+    whole = tail_gain(g, P, block=n)
+    assert np.allclose(whole[[0, 1, 2, 4]], K[[0, 1, 2, 4]], rtol=1e-5) and whole[3] == 0.0
+    ok = np.isfinite(P)  # the sums written out, row after row, as numpy adds along axis 0
+    w = np.where(ok, np.abs(g)[:, None] ** 2, 0.0).sum(axis=0)
+    with np.errstate(all="ignore"):
+        ref = np.where(ok, np.conj(g)[:, None] * np.where(ok, P, 0.0), 0.0).sum(axis=0) / w
+    assert np.array_equal(whole, np.where(w > 0, ref, 0.0))
+    for block in (1, 13, 1024, 4096):
+        assert np.array_equal(tail_gain(g, P, block), whole)
+        assert np.array_equal(tail_gain(g, lambda rows: P[rows], block), whole)
+    one = P[:, :1]
+    assert np.array_equal(tail_gain(g, one, block=64), tail_gain(g, one, block=n))

@@ -17,7 +17,8 @@ pipeline over its history for the final report. Options are in :mod:`.options`, 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -29,9 +30,10 @@ from .history import ScratchRows
 from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
-from .span_fits import (blade_mean, chunk_fits, fit_spans, held_fit, merge_spans, read_spans, run_amplitudes)
+from .span_fits import (blade_mean, chunk_fits, fit_spans, held_fit, merge_spans, order_phasors, read_spans,
+                        run_amplitudes)
 from .spans import SpanRows, angle
-from .zeroing import correction_size, zeroing_correction
+from .zeroing import correction_size, tail_revolutions, zeroing_correction
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
 from . import crb
 from .nsv import NsvScan, detect_nsv, is_rigid_body, nsv_note, nsv_truth_rows, rigid_body_note, score_nsv
@@ -209,7 +211,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, region, options, notes, keep_offset=spectra,
                         rows_only=not spectra and options.window == 1)
     d = prepared.d_m if prepared is not None else disp.d_m
-    fit, raw, d_flat = _report_fits(d, disp, prepared, geometry, survey, options, not spectra, reference)
+    fit, raw, d_flat, tails = _report_fits(d, disp, prepared, geometry, survey, options, not spectra, reference)
     eo = survey.eos[0]
     probe_tw = probe_spectra(d, eo) if spectra else None
     del d
@@ -222,7 +224,9 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                    gain_weights=1.0 / (survey.omega * survey.omega) if options.prep_options.noise_weighting else None,
                    truth=rows_truth, revolution0=revolution0, options=options, reference=reference,
                    crossings=tuple(survey.crossings),
-                   offset_removed=bool(prepared is not None and prepared.options.remove_offset), nsv=tuple(survey.nsv))
+                   offset_removed=bool(prepared is not None and prepared.options.remove_offset), nsv=tuple(survey.nsv),
+                   tail_phasors=tails)
+    del tails
     report = _report(ctx, survey, eos_asked, info, ref_info, notes)
     # 5. travelling waves and the resonance revolutions of the first order
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
@@ -421,22 +425,27 @@ def _prepare(d: np.ndarray, angles: np.ndarray, survey: _Survey, region: Resonan
 
 def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | None, geometry: Geometry,
                  survey: _Survey, options: ProcessOptions, report_only: bool,
-                 reference: Reference | None = None) -> tuple[SineFit, "_Raw", "_Flat"]:
+                 reference: Reference | None = None) -> tuple[SineFit, "_Raw", "_Flat", object]:
     """Eq. 16 fits of the prepared displacements ``d`` (at the sampling angles inside the
     crossings and dwells, :func:`~.span_fits.fit_spans`), the unsmoothed fits where those need them, and
     the offset-removed, unsmoothed displacements (:class:`_Flat`: computed for the revolutions
     asked for). ``report_only`` with one revolution per fit: what the report reads -- the
     coefficients, amplitudes and phases of the revolutions it reads (:func:`~.span_fits.read_spans`,
-    ``reference`` the zeroing's), :func:`~.span_fits.held_fit` -- and no run-sized fit."""
+    ``reference`` the zeroing's), :func:`~.span_fits.held_fit` -- and no run-sized fit; the
+    skirts the zeroing corrections read, as long as the run between the reference and a crossing,
+    are fitted again when read (the last item: ``(i, revolutions) -> phasors``,
+    :func:`~.span_fits.order_phasors`; None: read from the fit)."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
                         + [(dw.start, dw.stop) for dw in survey.segments.dwells])
     held = report_only and options.window == 1
+    removed = bool(prepared is not None and prepared.options.remove_offset)
+    refit = held and any(tail_revolutions(reference, removed, survey.crossings, omega, c) is not None
+                         for c in survey.crossings)
     if held:
-        removed = bool(prepared is not None and prepared.options.remove_offset)
         fit = held_fit(d, angles, eos, joint, omega, radius, spans,
-                       read_spans(survey.crossings, omega, spans, reference, removed, d.shape[0]))
+                       read_spans(survey.crossings, omega, spans, reference, removed, d.shape[0], tails=False))
     else:
         fit = fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
     d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
@@ -455,7 +464,8 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
         raw = _Raw(amp_r, ph_r)
     if held:
         raw = replace(raw, **run_amplitudes(d, fit, survey.crossings, eos, joint, angles, omega))
-    return fit, raw, d_flat
+    tails = partial(order_phasors, d, angles, eos, joint, omega, radius, spans) if refit else None
+    return fit, raw, d_flat, tails
 
 
 def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: dict, notes: list) -> ResonanceReport:
@@ -672,6 +682,10 @@ class _Context:
     crossings: tuple = ()
     offset_removed: bool = False
     nsv: tuple = ()
+    #: ``(i, revolutions) -> phasors`` of the zeroing skirts, fitted when read (None: ``fit``'s)
+    tail_phasors: object = None
+    #: the zeroing corrections made, by (engine order, crossing peak, order index)
+    corrections: dict = field(default_factory=dict)
 
 
 def _nd(ctx: _Context, i: int, eo: int, rows) -> int:

@@ -20,7 +20,7 @@ from .spans import SpanRows
 from .zeroing import tail_revolutions
 
 __all__ = ["fit_orders", "merge_spans", "fit_spans", "held_fit", "read_spans", "blade_mean", "run_amplitudes",
-           "chunk_fits"]
+           "chunk_fits", "order_phasors"]
 
 
 def fit_orders(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int,
@@ -75,6 +75,34 @@ def fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int
     return fit
 
 
+def _angle_parts(a: int, b: int, spans: list, radius):
+    """``(lo, hi, radius)`` pieces of revolutions ``a .. b - 1``: at the probe angles (None)
+    outside ``spans``, at the sampling angles (``radius``) inside them (none without one)."""
+    cuts = [(max(s, a), min(e, b)) for s, e in (spans if radius is not None else []) if s < b and e > a]
+    parts = [(p, q, None) for p, q in zip([a] + [e for _, e in cuts], [s for s, _ in cuts] + [b]) if p < q]
+    return parts + [(s, e, radius) for s, e in cuts]
+
+
+def order_phasors(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, i: int,
+                  revs: np.ndarray) -> np.ndarray:
+    """Order ``i``'s complex responses ``phasor[revs, :, i]`` of the report's fits (those of
+    :func:`held_fit` and :func:`fit_spans`: the same numbers), fitted for the revolutions
+    ``revs`` (sorted) now rather than held: by runs of consecutive revolutions, by blocks."""
+    revs = np.asarray(revs, dtype=np.intp)
+    out = np.empty((revs.size, d.shape[1]), complex)
+    if not revs.size:
+        return out
+    runs = np.split(revs, np.flatnonzero(np.diff(revs) != 1) + 1)
+    at = 0
+    for run in runs:
+        a = int(run[0])
+        for lo, hi, r in _angle_parts(a, int(run[-1]) + 1, spans, radius):
+            for l0, h0, f in chunk_fits(d, lo, hi, angles, eos, joint, omega, r):
+                out[at + l0 - a:at + h0 - a] = f.coeffs[:, :, 1 + 2 * i] + 1j * f.coeffs[:, :, 2 + 2 * i]
+        at += run.size
+    return out
+
+
 def held_fit(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, held: list) -> SineFit:
     """:func:`fit_spans` with one revolution per fit, its coefficients, amplitudes and phases
     held on the revolutions ``held`` only (:class:`~.spans.SpanRows`: the same numbers there,
@@ -84,9 +112,7 @@ def held_fit(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, hel
     coeffs = SpanRows.filled(n_rev, held, (nb, 1 + 2 * n_eo))
     amp, phase = coeffs.like((nb, n_eo)), coeffs.like((nb, n_eo))
     for a, b in held:  # inside the spans at the sampling angles (radius), the rest at the probe angles
-        cuts = [(s, e) for s, e in (spans if radius is not None else []) if a <= s < b]
-        parts = [(p, q, None) for p, q in zip([a] + [e for _, e in cuts], [s for s, _ in cuts] + [b])]
-        for lo, hi, r in parts + [(s, e, radius) for s, e in cuts]:
+        for lo, hi, r in _angle_parts(a, b, spans, radius):
             for l0, h0, f in chunk_fits(d, lo, hi, angles, eos, joint, omega, r):
                 coeffs[l0:h0], amp[l0:h0], phase[l0:h0] = f.coeffs, f.amp_pkpk_m, f.phase_rad
     om = np.asarray(omega, dtype=float)
@@ -96,19 +122,20 @@ def held_fit(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, hel
                    cn=fit_orders(d[:1], angles, eos, joint, om[:1], 1, None).cn)
 
 
-def read_spans(crossings: list, omega: np.ndarray, spans: list, reference, offset_removed: bool, n_rev: int) -> list:
+def read_spans(crossings: list, omega: np.ndarray, spans: list, reference, offset_removed: bool, n_rev: int,
+               *, tails: bool = True) -> list:
     """The revolutions whose fits the report reads (merged ``[start, stop)`` spans): the
     crossings and dwells (``spans``), each crossing widened by what its peak's parabolas read
     (``W`` its half-power width: :func:`~.methods.peak_method`'s around the pick, at most
     ``max(2, W / 4)``, the SDOF peak up to one revolution past ``hi``, then
     :func:`~.intervals.crossing_intervals`' parabola and sampling, ``max(2, W // 6)``), and
-    the skirt its zeroing correction fits (:func:`~.zeroing.tail_revolutions`)."""
+    (``tails``) the skirt its zeroing correction fits (:func:`~.zeroing.tail_revolutions`)."""
     out = list(spans)
     for c in crossings:
         w = int(c.half_power_width)
         m = max(2, int(round(max(w, 1) / 4.0))) + max(2, w // 6) + 2
         out.append((max(0, c.lo - m), min(n_rev, c.hi + 1 + m)))
-        tail = tail_revolutions(reference, offset_removed, crossings, omega, c)
+        tail = tail_revolutions(reference, offset_removed, crossings, omega, c) if tails else None
         if tail is not None:
             idx = tail[2]
             out += [(int(r[0]), int(r[-1]) + 1) for r in np.split(idx, np.flatnonzero(np.diff(idx) != 1) + 1)]

@@ -2,7 +2,7 @@
 crossing's growth and added back (``docs/processing.md``, "Zeroing away from the resonances").
 
 ``ctx`` is the pipeline's processing context (its ``reference``, ``offset_removed``,
-``crossings``, ``omega`` and report ``fit``).
+``crossings``, ``omega``, report ``fit``, ``tail_phasors`` and the ``corrections`` made).
 """
 
 from __future__ import annotations
@@ -14,11 +14,16 @@ import numpy as np
 from .detect import Crossing, predicted_response
 from .fit import quiet
 
-__all__ = ["TAIL_LEVEL", "zeroing_correction", "zeroing_tail", "tail_revolutions", "tail_gain", "correction_size"]
+__all__ = ["TAIL_LEVEL", "TAIL_BLOCK", "zeroing_correction", "tail_revolutions", "tail_gain", "correction_size"]
 
 #: The zeroing correction fits the response's growth where the predicted response is at most
 #: this fraction of the peak (the skirt between the reference and the crossing).
 TAIL_LEVEL = 0.3
+
+#: Revolutions of the skirt read at a time by :func:`tail_gain`: the skirt runs from the
+#: reference to the crossing, as long as the run between them, and its responses are summed
+#: block by block instead of read whole.
+TAIL_BLOCK = 1 << 12
 
 
 def zeroing_correction(ctx, c: Crossing, i: int) -> np.ndarray | None:
@@ -34,28 +39,24 @@ def zeroing_correction(ctx, c: Crossing, i: int) -> np.ndarray | None:
     around the reference, that baseline took the reference's response already: no
     correction.
     """
-    tail = zeroing_tail(ctx, c, i)
-    if tail is None:
-        return None
-    h_ref, g, P = tail
-    return tail_gain(g, P) * h_ref
-
-
-def zeroing_tail(ctx, c: Crossing, i: int):
-    """``(h_ref, g, P)`` of :func:`zeroing_correction` (None: no correction): the growth law
-    at the reference, its rise ``g = h - h_ref`` over the skirt's revolutions (in revolution
-    order) and the responses there."""
-    tail = tail_revolutions(ctx.reference, ctx.offset_removed, ctx.crossings, ctx.omega, c)
-    if tail is None:
-        return None
-    h_ref, g, idx = tail
-    return h_ref, g, ctx.fit.phasor_at(i, idx)
+    key = (c.eo, c.peak, i)
+    if key not in ctx.corrections:  # one per crossing and order: its crossing and the dwells read it
+        tail = tail_revolutions(ctx.reference, ctx.offset_removed, ctx.crossings, ctx.omega, c)
+        if tail is None:
+            ctx.corrections[key] = None
+        else:
+            h_ref, g, idx = tail
+            read = ctx.fit.phasor_at if ctx.tail_phasors is None else ctx.tail_phasors
+            ctx.corrections[key] = tail_gain(g, lambda rows: read(i, idx[rows])) * h_ref
+    corr = ctx.corrections[key]
+    return None if corr is None else corr.copy()
 
 
 def tail_revolutions(ref, offset_removed: bool, crossings, omega: np.ndarray, c: Crossing):
-    """``(h_ref, g, idx)``: :func:`zeroing_tail` without the responses, ``idx`` the skirt's
-    revolutions whose responses it reads (None: no correction). ``ref``: the zeroing
-    reference; ``crossings``: every crossing of the run."""
+    """``(h_ref, g, idx)`` of :func:`zeroing_correction` (None: no correction): the growth law
+    at the reference, its rise ``g = h - h_ref`` over the skirt's revolutions ``idx`` (in
+    revolution order), whose responses it reads. ``ref``: the zeroing reference;
+    ``crossings``: every crossing of the run."""
     if ref is None or ref.start is None or offset_removed:
         return None
     same = [k for k in crossings if k.eo == c.eo]
@@ -68,12 +69,34 @@ def tail_revolutions(ref, offset_removed: bool, crossings, omega: np.ndarray, c:
     return h_ref, h[idx] - h_ref, idx
 
 
-def tail_gain(g: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Least-squares ``K`` per blade of ``P = K g`` (0 where no data)."""
-    ok = np.isfinite(P)
-    w = np.where(ok, np.abs(g)[:, None] ** 2, 0.0).sum(axis=0)
+def tail_gain(g: np.ndarray, P, block: int | None = None) -> np.ndarray:
+    """Least-squares ``K`` per blade of ``P = K g`` (0 where no data).
+
+    ``P``: the responses, shape ``(g.size, n_blades)``, or a function giving the rows of a
+    slice of them, read ``block`` rows (default :data:`TAIL_BLOCK`) at a time. The sums over the rows go on from one block
+    to the next in row order, the order numpy adds the rows of a whole array in (a sum along
+    axis 0 adds row after row; a single column is summed pairwise, so one blade's responses
+    are read at once): the same numbers as from the whole array."""
+    read = P if callable(P) else P.__getitem__
+    block = TAIL_BLOCK if block is None else int(block)
+    n = int(g.size)
+    first = read(slice(0, min(n, block)))
+    if first.ndim != 2 or first.shape[1] < 2:
+        block = max(n, 1)  # one column: numpy sums it pairwise, not row after row
+        first = read(slice(0, n))
+    w = num = None
+    for a in range(0, max(n, 1), block):
+        Pb = first if a == 0 else read(slice(a, a + block))
+        gb = g[a:a + block]  # (the products' loops, and so their rounding, follow the layout)
+        ok = np.isfinite(Pb)
+        wb = np.where(ok, np.abs(gb)[:, None] ** 2, 0.0)
+        with np.errstate(all="ignore"):
+            nb = np.where(ok, np.conj(gb)[:, None] * np.where(ok, Pb, 0.0), 0.0)
+        if w is not None:  # the running sums as the first row: added on in row order
+            wb, nb = np.concatenate([w[None], wb]), np.concatenate([num[None], nb])
+        w, num = wb.sum(axis=0), nb.sum(axis=0)
     with np.errstate(all="ignore"):
-        K = np.where(ok, np.conj(g)[:, None] * np.where(ok, P, 0.0), 0.0).sum(axis=0) / w
+        K = num / w
     return np.where(w > 0, K, 0.0)
 
 
