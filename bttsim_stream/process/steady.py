@@ -19,7 +19,35 @@ from .resonance import Detection, ResonanceEntry, ResonancePeaks, window_truth
 from .travelling_wave import fit_spectra, identify_nd
 from .zeroing import correction_size, zeroing_correction
 
-__all__ = ["dwell_entries"]
+__all__ = ["dwell_entries", "DWELL_BLOCK", "row_sums", "nanmean_rows"]
+
+#: Revolutions of a dwell read at a time: a dwell's means go over every revolution of it
+#: (at constant speed a test may dwell for hours), summed block by block.
+DWELL_BLOCK = 1 << 12
+
+
+def row_sums(read, n: int, block: int | None = None) -> np.ndarray:
+    """``x.sum(axis=0)`` of the ``n`` rows of an array ``x`` that ``read(slice)`` gives by
+    blocks of ``block`` rows (default :data:`DWELL_BLOCK`): the same numbers. Along axis 0
+    numpy adds the rows one after the other, and so do the blocks, each onto the sums so far;
+    a single column numpy sums pairwise, so then the rows are read at once."""
+    block = DWELL_BLOCK if block is None else int(block)
+    first = read(slice(0, min(n, block)))
+    if first[0:1].size < 2:  # one column (or none): summed pairwise by numpy
+        return read(slice(0, n)).sum(axis=0)
+    acc = first.sum(axis=0)
+    for a in range(block, n, block):
+        acc = np.concatenate([acc[None], read(slice(a, min(a + block, n)))]).sum(axis=0)
+    return acc
+
+
+def nanmean_rows(read, n: int, block: int | None = None) -> np.ndarray:
+    """``np.nanmean(x, axis=0)`` of the ``n`` rows ``read(slice)`` gives, by blocks
+    (:func:`row_sums`): the sum with NaN taken as 0 over the count of the others, divided
+    as numpy does (the count cast to the sum's type): the same numbers."""
+    tot = row_sums(lambda rows: _nan_zero(read(rows)), n, block)
+    cnt = row_sums(lambda rows: ~np.isnan(read(rows)), n, block).astype(np.intp)
+    return np.divide(tot, cnt, out=tot, casting="unsafe")
 
 
 def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
@@ -31,17 +59,20 @@ def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
     a, b = dw.start + skip, dw.stop  # revolutions [a, b)
     out = []
     opts = ctx.options
-    with quiet():
-        d_mean = np.nanmean(ctx.d_flat[a:b], axis=0)  # (blades, probes): the steady response at each probe
+    n = b - a  # the revolutions read by blocks: the means of the whole arrays' numbers
+    with quiet():  # (blades, probes): the steady response at each probe
+        d_mean = nanmean_rows(lambda r: ctx.d_flat[a + r.start:a + r.stop], n)
     radius = ctx.geometry.tip_radius_m if opts.sampling_angles else None
     for i, eo in enumerate(ctx.eos):
-        P = ctx.fit.phasor_at(i, slice(a, b))
-        Praw = ctx.raw.phasor[a:b, :, i]
+        P = lambda r: ctx.fit.phasor_at(i, slice(a + r.start, a + r.stop))  # noqa: E731
+        Praw = lambda r: ctx.raw.phasor[a + r.start:a + r.stop, :, i]  # noqa: E731
         corr, source = _dwell_correction(ctx, eo, i)
         with quiet():
-            mean = np.nanmean(P, axis=0) + (corr if corr is not None else 0.0)
-            cnt = np.sum(np.isfinite(Praw), axis=0)
-            spread = np.sqrt(np.nansum(np.abs(Praw - np.nanmean(Praw, axis=0)) ** 2, axis=0) / np.maximum(cnt - 1, 1))
+            mean = nanmean_rows(P, n) + (corr if corr is not None else 0.0)
+            cnt = row_sums(lambda r: np.isfinite(Praw(r)), n)
+            raw_mean = nanmean_rows(Praw, n)
+            spread = np.sqrt(row_sums(lambda r: _nan_zero(np.abs(Praw(r) - raw_mean) ** 2), n)
+                             / np.maximum(cnt - 1, 1))
         amp = 2.0 * np.abs(mean)
         std = 2.0 * spread / np.sqrt(np.maximum(cnt, 1))
         f = eo * float(np.mean(ctx.omega[a:b])) / TWO_PI
@@ -69,6 +100,11 @@ def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
             zeroing_correction=correction_size(corr, mean[None, :]))
         out.append(entry.with_truth(window_truth(ctx.truth, eo, a, b - 1, mean=True)))
     return out
+
+
+def _nan_zero(x: np.ndarray) -> np.ndarray:
+    """``x`` with NaN as 0 (what ``np.nansum`` adds)."""
+    return np.where(np.isnan(x), 0, x).astype(x.dtype, copy=False)
 
 
 def _dwell_correction(ctx, eo: int, i: int) -> tuple[np.ndarray | None, Crossing | None]:

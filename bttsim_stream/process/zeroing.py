@@ -73,10 +73,11 @@ def tail_gain(g: np.ndarray, P, block: int | None = None) -> np.ndarray:
     """Least-squares ``K`` per blade of ``P = K g`` (0 where no data).
 
     ``P``: the responses, shape ``(g.size, n_blades)``, or a function giving the rows of a
-    slice of them, read ``block`` rows (default :data:`TAIL_BLOCK`) at a time. The sums over the rows go on from one block
-    to the next in row order, the order numpy adds the rows of a whole array in (a sum along
-    axis 0 adds row after row; a single column is summed pairwise, so one blade's responses
-    are read at once): the same numbers as from the whole array."""
+    slice of them, read ``block`` rows (default :data:`TAIL_BLOCK`) at a time. The sums over
+    the rows go on from one block to the next in row order, the order numpy adds the rows of
+    a whole array in (a sum along axis 0 adds row after row; a single column is summed
+    pairwise, so one blade's responses are read at once): the same numbers as from the
+    whole array."""
     read = P if callable(P) else P.__getitem__
     block = TAIL_BLOCK if block is None else int(block)
     n = int(g.size)
@@ -86,7 +87,7 @@ def tail_gain(g: np.ndarray, P, block: int | None = None) -> np.ndarray:
         first = read(slice(0, n))
     w = num = None
     for a in range(0, max(n, 1), block):
-        Pb = first if a == 0 else read(slice(a, a + block))
+        Pb = first if a == 0 else read(slice(a, min(a + block, n)))
         gb = g[a:a + block]  # (the products' loops, and so their rounding, follow the layout)
         ok = np.isfinite(Pb)
         wb = np.where(ok, np.abs(gb)[:, None] ** 2, 0.0)
