@@ -20,7 +20,7 @@ from .spans import SpanRows
 from .zeroing import tail_revolutions
 
 __all__ = ["fit_orders", "merge_spans", "fit_spans", "held_fit", "read_spans", "blade_mean", "run_amplitudes",
-           "chunk_fits"]
+           "chunk_fits", "fit_rows"]
 
 
 def fit_orders(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int,
@@ -151,3 +151,15 @@ def chunk_fits(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radius
     for lo in range(a, b, fitting.FIT_CHUNK):
         hi = min(lo + fitting.FIT_CHUNK, b)
         yield lo, hi, fit_orders(d[lo:hi], angles, eos, joint, omega[lo:hi], 1, radius)
+
+
+def fit_rows(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radius, spans):
+    """``(lo, hi, fit)``: the one-revolution fits of revolutions ``a .. b - 1`` as
+    :func:`fit_spans` makes them (the same numbers), in revolution order: at the sampling
+    angles (``radius``) inside ``spans`` (sorted, non-overlapping ``[start, stop)``), at the
+    probe angles elsewhere, :func:`chunk_fits` of each stretch."""
+    inside = [(max(s, a), min(e, b)) for s, e in (spans if radius is not None else []) if s < b and e > a]
+    edges = sorted({a, b}.union(*inside))
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        r = radius if any(s <= lo and hi <= e for s, e in inside) else None
+        yield from chunk_fits(d, lo, hi, angles, eos, joint, omega, r)
