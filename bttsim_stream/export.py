@@ -266,7 +266,9 @@ def run_tables(run, result=None) -> RunTables:
     n_rev, n_b, n_p = run.toa_s.shape
     if result is None:
         try:
-            result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth, revolution0=r0)
+            # the run-sized arrays in scratch files, read by blocks as the tables are written
+            result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth, revolution0=r0,
+                                    scratch=True)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             raise BttsimError(f"the processing of the recording failed ({exc})") from None
     t: dict = {}  # name -> block iterator: the tables are built a block at a time, when written
@@ -278,7 +280,7 @@ def run_tables(run, result=None) -> RunTables:
         t["extra_edge"] = one(lambda: {k: np.array(v) for k, v in run.extra_edges.items()})
     disp = result.displacements
     t["displacement"] = lambda: _blocks(n_rev, n_b * n_p, lambda a, b: dict(
-        toa_idx(a, b), d_m=f64(disp.d_m[a:b]), t_exp_s=f64(disp.t_exp_s[a:b])))
+        toa_idx(a, b), d_m=f64(disp.d_m[a:b]), t_exp_s=f64(disp.t_exp_at(slice(a, b)))))
     fit = result.fit
     t["fit"] = lambda: _blocks(n_rev, n_b * len(fit.engine_orders), lambda a, b: _fit_table(fit, disp, rev, a, b))
     ftw = result.fit_tw
@@ -300,7 +302,7 @@ def run_tables(run, result=None) -> RunTables:
             long_cols((b - a, n_b), ("revolution", "blade"), rev[a:b]),
             opr_s=f64(np.repeat(tr.opr_s[a:b], n_b)), omega_mean_rad_s=f64(np.repeat(tr.omega_mean[a:b], n_b)),
             d_eqv_pkpk_m=f64(tr.d_eqv_pkpk_m[a:b])))
-        if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
+        if tr.eo_pkpk_m is not None and np.prod(tr.eo_pkpk_m.shape):  # (an array or scratch rows)
             t["truth_eo"] = lambda: _blocks(n_rev, int(np.prod(tr.eo_pkpk_m.shape[1:])),
                                             lambda a, b: _truth_eo_table(tr, rev, a, b))
         if tr.nsv_kind is not None and tr.nsv_kind.size:
@@ -389,14 +391,15 @@ def _fit_table(fit, disp, rev: np.ndarray, a: int, b: int) -> dict:
     n_eo = len(fit.engine_orders)
     fit_cols = long_cols((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev[a:b])
     fit_cols["engine_order"] = np.asarray(fit.engine_orders, dtype=np.int64)[fit_cols["engine_order"]]
-    per_rev_blade = lambda x: f64(np.broadcast_to(np.asarray(x, float)[a:b, :, None], (n_rev, n_b, n_eo)))  # noqa: E731
+    # rows a .. b-1 read first: the fit's arrays may be scratch rows
+    per_rev_blade = lambda x: f64(np.broadcast_to(np.asarray(x[a:b], float)[:, :, None], (n_rev, n_b, n_eo)))  # noqa: E731
     omega = np.asarray(fit.omega_rad_s if fit.omega_rad_s is not None else disp.omega_rad_s, float)[a:b]
     freq = (np.asarray(fit.freq_hz, float)[a:b] if fit.freq_hz is not None
             else np.outer(omega, fit.engine_orders) / (2 * np.pi))
     fit_cols.update(amp_pkpk_m=f64(fit.amp_pkpk_m[a:b]), phase_rad=f64(fit.phase_rad[a:b]),
                     amp_std_m=f64(fit.amp_std_m[a:b]), dc_m=per_rev_blade(fit.dc_m),
                     residual_rms_m=per_rev_blade(fit.residual_rms_m),
-                    n_samples=np.broadcast_to(np.asarray(fit.n_samples, np.int64)[a:b, :, None],
+                    n_samples=np.broadcast_to(np.asarray(fit.n_samples[a:b], np.int64)[:, :, None],
                                               (n_rev, n_b, n_eo)).ravel().copy(),
                     omega_rad_s=f64(np.broadcast_to(omega[:, None, None], (n_rev, n_b, n_eo))),
                     freq_hz=f64(np.broadcast_to(freq[:, None, :], (n_rev, n_b, n_eo))))
@@ -501,9 +504,9 @@ def export_run(path, out_dir, fmt: str = "csv", rig: str | None = None) -> "Expo
     out = Path(out_dir)
     kept = tuple(f.name for f in fields(Truth) if f.name not in TOA_TRUTH_FIELDS)
     try:  # the per-TOA truth read from the file as its table is written
-        return _export(load_run(path, truth_fields=kept, rig=rig), path, out, fmt)
+        return _export(load_run(path, truth_fields=kept, rig=rig, scratch=True), path, out, fmt)
     except Unstreamable:  # an odd truth stream: the whole run's arrays say what it holds
-        return _export(load_run(path, rig=rig), path, out, fmt)
+        return _export(load_run(path, rig=rig, scratch=True), path, out, fmt)
 
 
 class ExportCounts(dict):
