@@ -148,6 +148,9 @@ class RunTables:
 
 #: Rows of a block of a table (about; whole revolutions).
 BLOCK_ROWS = 100_000
+#: Rows of a block a CSV writer formats at once (their Python floats and text lines: about 0.8 kB
+#: a row of the widest tables while formatted).
+CSV_ROWS = 20_000
 #: The truth fields with one value per TOA: the ``truth`` table, read from the recording as
 #: it is written (not held for the whole run).
 TOA_TRUTH_FIELDS = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
@@ -409,7 +412,8 @@ def _fit_table(fit, disp, rev: np.ndarray, a: int, b: int) -> dict:
 def _write_csv(path: Path, blocks) -> tuple[int, dict]:
     """One table as CSV, a block at a time: ints as integers, floats with 17 significant
     digits (``repr`` exact), ``NaN`` for missing values; rows formatted in C by one ``%``
-    format per row. Returns the row count and the first block (its columns' dtypes)."""
+    format per row, :data:`CSV_ROWS` at a time. Returns the row count and the first block
+    (its columns' dtypes)."""
     n, first = 0, None
     with open(path, "w", newline="") as fh:
         for cols in blocks:
@@ -421,8 +425,8 @@ def _write_csv(path: Path, blocks) -> tuple[int, dict]:
             fmt = ",".join("%d" if a.dtype.kind in "iub" else "%.17g" if a.dtype.kind == "f" else "%s" for a in arrays)
             rows_in = arrays[0].shape[0] if arrays else 0
             int_first = bool(arrays) and arrays[0].dtype.kind in "iu"
-            for lo in range(0, rows_in, BLOCK_ROWS):
-                rows = zip(*(a[lo:lo + BLOCK_ROWS].tolist() for a in arrays))
+            for lo in range(0, rows_in, CSV_ROWS):
+                rows = zip(*(a[lo:lo + CSV_ROWS].tolist() for a in arrays))
                 text = "\n".join(fmt % r for r in rows)
                 # a whole field "nan" -> "NaN"; with an integer first column (every table here) it
                 # always follows a comma, which str.replace finds 3x faster than the regex
