@@ -154,11 +154,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         ``n_samples``, which the report does not read, and its other arrays are held on the
         revolutions the report reads only, :class:`~.spans.SpanRows`, NaN elsewhere).
     scratch : bool
-        With ``spectra`` and one revolution per fit, the full result's run-sized arrays in
-        scratch files (``bttsim export``), the same numbers read by rows: the report made as
-        with ``spectra=False``; TOAs and displacements :class:`~.history.ScratchRows`,
-        ``prepared.d_m`` a :class:`~.smoothing.PreparedRows` (``offset_m`` the Baseline), every
-        revolution's fits and spectra by blocks (:func:`~.scratch_result.scratch_result`).
+        With ``spectra``, one revolution per fit: the full result's run-sized arrays in scratch
+        files, the same numbers read by rows (``bttsim export``; the report as ``spectra=False``
+        makes it; ``prepared.d_m`` a :class:`~.smoothing.PreparedRows`; the fits and spectra
+        :func:`~.scratch_result.scratch_result`'s).
 
     Returns
     -------
@@ -233,9 +232,10 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     # 5. travelling waves and the resonance revolutions of the first order
     res_revs = _resonance_revolutions(fit, survey.crossings, eo, n_rev, raw.mean_m)
     fit_tw = fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad) if not lean else None
-    if rows:  # every revolution's fits and spectra, by blocks of revolutions, to scratch files
+    if rows:  # the report's fits freed first: every revolution's fits and spectra, by blocks, to scratch files
+        cn, fit, ctx, raw, d_flat = fit.cn, None, None, None, None
         fit, probe_tw, fit_tw = _scratch_arrays(prepared.d_m if prepared is not None else disp.d_m, geometry,
-                                                survey, options, fit.cn)
+                                                survey, options, cn)
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
                             displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_tw, fit_tw=fit_tw,
                             resonance_revolutions=res_revs, report=report, segments=survey.segments,
