@@ -148,6 +148,9 @@ class RunTables:
 
 #: Rows of a block of a table (about; whole revolutions).
 BLOCK_ROWS = 100_000
+#: Rows of a block a CSV writer formats at once (their Python floats and text lines: about 0.8 kB
+#: a row of the widest tables while formatted).
+CSV_ROWS = 20_000
 #: The truth fields with one value per TOA: the ``truth`` table, read from the recording as
 #: it is written (not held for the whole run).
 TOA_TRUTH_FIELDS = ("toa_s", "t_exp_s", "d_eqv_m", "d_tang_m", "d_z_m", "d_eq1_m")
@@ -266,7 +269,9 @@ def run_tables(run, result=None) -> RunTables:
     n_rev, n_b, n_p = run.toa_s.shape
     if result is None:
         try:
-            result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth, revolution0=r0)
+            # the run-sized arrays in scratch files, read by blocks as the tables are written
+            result = process_arrays(run.opr_s, run.toa_s, run.meta, ProcessOptions(), truth=run.truth, revolution0=r0,
+                                    scratch=True)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             raise BttsimError(f"the processing of the recording failed ({exc})") from None
     t: dict = {}  # name -> block iterator: the tables are built a block at a time, when written
@@ -278,7 +283,7 @@ def run_tables(run, result=None) -> RunTables:
         t["extra_edge"] = one(lambda: {k: np.array(v) for k, v in run.extra_edges.items()})
     disp = result.displacements
     t["displacement"] = lambda: _blocks(n_rev, n_b * n_p, lambda a, b: dict(
-        toa_idx(a, b), d_m=f64(disp.d_m[a:b]), t_exp_s=f64(disp.t_exp_s[a:b])))
+        toa_idx(a, b), d_m=f64(disp.d_m[a:b]), t_exp_s=f64(disp.t_exp_at(slice(a, b)))))
     fit = result.fit
     t["fit"] = lambda: _blocks(n_rev, n_b * len(fit.engine_orders), lambda a, b: _fit_table(fit, disp, rev, a, b))
     ftw = result.fit_tw
@@ -300,7 +305,7 @@ def run_tables(run, result=None) -> RunTables:
             long_cols((b - a, n_b), ("revolution", "blade"), rev[a:b]),
             opr_s=f64(np.repeat(tr.opr_s[a:b], n_b)), omega_mean_rad_s=f64(np.repeat(tr.omega_mean[a:b], n_b)),
             d_eqv_pkpk_m=f64(tr.d_eqv_pkpk_m[a:b])))
-        if tr.eo_pkpk_m is not None and tr.eo_pkpk_m.size:
+        if tr.eo_pkpk_m is not None and np.prod(tr.eo_pkpk_m.shape):  # (an array or scratch rows)
             t["truth_eo"] = lambda: _blocks(n_rev, int(np.prod(tr.eo_pkpk_m.shape[1:])),
                                             lambda a, b: _truth_eo_table(tr, rev, a, b))
         if tr.nsv_kind is not None and tr.nsv_kind.size:
@@ -389,14 +394,15 @@ def _fit_table(fit, disp, rev: np.ndarray, a: int, b: int) -> dict:
     n_eo = len(fit.engine_orders)
     fit_cols = long_cols((n_rev, n_b, n_eo), ("revolution", "blade", "engine_order"), rev[a:b])
     fit_cols["engine_order"] = np.asarray(fit.engine_orders, dtype=np.int64)[fit_cols["engine_order"]]
-    per_rev_blade = lambda x: f64(np.broadcast_to(np.asarray(x, float)[a:b, :, None], (n_rev, n_b, n_eo)))  # noqa: E731
+    # rows a .. b-1 read first: the fit's arrays may be scratch rows
+    per_rev_blade = lambda x: f64(np.broadcast_to(np.asarray(x[a:b], float)[:, :, None], (n_rev, n_b, n_eo)))  # noqa: E731
     omega = np.asarray(fit.omega_rad_s if fit.omega_rad_s is not None else disp.omega_rad_s, float)[a:b]
     freq = (np.asarray(fit.freq_hz, float)[a:b] if fit.freq_hz is not None
             else np.outer(omega, fit.engine_orders) / (2 * np.pi))
     fit_cols.update(amp_pkpk_m=f64(fit.amp_pkpk_m[a:b]), phase_rad=f64(fit.phase_rad[a:b]),
                     amp_std_m=f64(fit.amp_std_m[a:b]), dc_m=per_rev_blade(fit.dc_m),
                     residual_rms_m=per_rev_blade(fit.residual_rms_m),
-                    n_samples=np.broadcast_to(np.asarray(fit.n_samples, np.int64)[a:b, :, None],
+                    n_samples=np.broadcast_to(np.asarray(fit.n_samples[a:b], np.int64)[:, :, None],
                                               (n_rev, n_b, n_eo)).ravel().copy(),
                     omega_rad_s=f64(np.broadcast_to(omega[:, None, None], (n_rev, n_b, n_eo))),
                     freq_hz=f64(np.broadcast_to(freq[:, None, :], (n_rev, n_b, n_eo))))
@@ -406,7 +412,8 @@ def _fit_table(fit, disp, rev: np.ndarray, a: int, b: int) -> dict:
 def _write_csv(path: Path, blocks) -> tuple[int, dict]:
     """One table as CSV, a block at a time: ints as integers, floats with 17 significant
     digits (``repr`` exact), ``NaN`` for missing values; rows formatted in C by one ``%``
-    format per row. Returns the row count and the first block (its columns' dtypes)."""
+    format per row, :data:`CSV_ROWS` at a time. Returns the row count and the first block
+    (its columns' dtypes)."""
     n, first = 0, None
     with open(path, "w", newline="") as fh:
         for cols in blocks:
@@ -418,8 +425,8 @@ def _write_csv(path: Path, blocks) -> tuple[int, dict]:
             fmt = ",".join("%d" if a.dtype.kind in "iub" else "%.17g" if a.dtype.kind == "f" else "%s" for a in arrays)
             rows_in = arrays[0].shape[0] if arrays else 0
             int_first = bool(arrays) and arrays[0].dtype.kind in "iu"
-            for lo in range(0, rows_in, BLOCK_ROWS):
-                rows = zip(*(a[lo:lo + BLOCK_ROWS].tolist() for a in arrays))
+            for lo in range(0, rows_in, CSV_ROWS):
+                rows = zip(*(a[lo:lo + CSV_ROWS].tolist() for a in arrays))
                 text = "\n".join(fmt % r for r in rows)
                 # a whole field "nan" -> "NaN"; with an integer first column (every table here) it
                 # always follows a comma, which str.replace finds 3x faster than the regex
@@ -501,9 +508,9 @@ def export_run(path, out_dir, fmt: str = "csv", rig: str | None = None) -> "Expo
     out = Path(out_dir)
     kept = tuple(f.name for f in fields(Truth) if f.name not in TOA_TRUTH_FIELDS)
     try:  # the per-TOA truth read from the file as its table is written
-        return _export(load_run(path, truth_fields=kept, rig=rig), path, out, fmt)
+        return _export(load_run(path, truth_fields=kept, rig=rig, scratch=True), path, out, fmt)
     except Unstreamable:  # an odd truth stream: the whole run's arrays say what it holds
-        return _export(load_run(path, rig=rig), path, out, fmt)
+        return _export(load_run(path, rig=rig, scratch=True), path, out, fmt)
 
 
 class ExportCounts(dict):

@@ -13,6 +13,7 @@ from bttsim_stream import export
 from bttsim_stream.bus.recording import McapRecorder, RecordingScan, read_recording
 from bttsim_stream.cli import main
 from bttsim_stream.offline import load_run, with_processing
+from bttsim_stream.process import scratch_result
 from bttsim_stream.views import travelling_wave as tw
 
 SCENARIO = """
@@ -38,6 +39,8 @@ def _files(folder: Path) -> dict:
 def test_export_blocks_give_the_bytes_of_one_block(recording, tmp_path, monkeypatch):
     export.export_run(recording, tmp_path / "one", "csv")  # a 3 s run: one block per table
     monkeypatch.setattr(export, "BLOCK_ROWS", 700)  # many blocks, cut inside tables of every shape
+    monkeypatch.setattr(export, "CSV_ROWS", 333)  # each formatted in pieces
+    monkeypatch.setattr(scratch_result, "SCRATCH_BLOCK", 50)  # the fits and spectra written by short blocks
     export.export_run(recording, tmp_path / "many", "csv")
     one, many = _files(tmp_path / "one"), _files(tmp_path / "many")
     assert set(one) >= {"toa.csv", "truth.csv", "fit.csv", "tw_probe.csv"} and one == many

@@ -466,6 +466,14 @@ class Displacements:
             return self.exact_t_exp_s
         return expected_times(self.phase, self.arrival_angles_rad, self.toa_s)
 
+    def t_exp_at(self, rows: slice) -> np.ndarray:
+        """``t_exp_s[rows]`` (a slice of revolutions; the same numbers: :func:`expected_times`
+        is element-wise) without the whole run's array; the TOAs read for those rows only
+        (an array or a :class:`~.history.ScratchRows`)."""
+        if self.exact_t_exp_s is not None:
+            return np.asarray(self.exact_t_exp_s[rows], dtype=float)
+        return expected_times(self.phase.rows(rows), self.arrival_angles_rad, self.toa_s[rows])
+
 
 def _run_arrays(opr_s, toa_s, geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """OPR times and TOAs as float arrays, their shapes checked against each other and the

@@ -39,6 +39,7 @@ from . import crb
 from .nsv import NsvScan, detect_nsv, is_rigid_body, nsv_note, nsv_truth_rows, rigid_body_note, score_nsv
 from .options import ProcessOptions, engine_orders_of, fits_jointly, layout_condition_numbers
 from .prep import PREP_BLOCK, Baseline, PreparedData, PrepOptions, ResonanceRegion, prepare, smoothing_gain
+from .scratch_result import scratch_result
 from .resonance import (Detection, ResonanceEntry, ResonancePeaks, ResonanceReport, TruthPeaks, TruthPeakTracker,
                         TruthRows, find_peaks, own_envelope, window_truth)
 from .results import ProcessingResult, RevolutionFit, RevolutionOutput
@@ -124,7 +125,8 @@ def check_window(window: int, n_rev: int) -> None:
 
 
 def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessOptions = ProcessOptions(),
-                   truth=None, *, revolution0: int = 0, spectra: bool = True) -> ProcessingResult:
+                   truth=None, *, revolution0: int = 0, spectra: bool = True,
+                   scratch: bool = False) -> ProcessingResult:
     """Process a whole run: find every resonance crossing and dwell, and report them.
 
     Parameters
@@ -153,6 +155,11 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
         revolution per fit, so are the fit's ``amp_std_m``, ``residual_rms_m`` and
         ``n_samples``, which the report does not read, and its other arrays are held on the
         revolutions the report reads only, :class:`~.spans.SpanRows`, NaN elsewhere).
+    scratch : bool
+        With ``spectra``, one revolution per fit: the full result's run-sized arrays in scratch
+        files, the same numbers read by rows (``bttsim export``; the report as ``spectra=False``
+        makes it; ``prepared.d_m`` a :class:`~.smoothing.PreparedRows`; the fits and spectra
+        :func:`~.scratch_result.scratch_result`'s).
 
     Returns
     -------
@@ -176,18 +183,16 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     """
     geometry = Geometry.from_info(info)
     opr = np.asarray(opr_s, dtype=float)
-    scratch = isinstance(toa_s, ScratchRows) and toa_s.dtype == np.float64  # (else: read and converted)
-    toa = toa_s if scratch and not spectra else np.asarray(
-        toa_s[:] if isinstance(toa_s, ScratchRows) else toa_s, dtype=float)
-    if not spectra and not scratch:  # the report alone: the TOAs read back by blocks from scratch files
-        toa = ScratchRows.of(toa)  # (a handed-over array is freed)
-    del toa_s
+    rows = spectra and scratch and options.window == 1  # the full result in scratch files
+    lean = not spectra or rows  # the report made with bounded memory
+    toa, given = _toas(toa_s, lean)
+    del toa_s  # (a handed-over array is freed)
     n_rev = opr.size
     if n_rev < 3:
         raise ValueError(f"at least three revolutions are needed for a resonance report, got {n_rev}")
     notes: list[str] = []
     eos_asked, cns, joint = _orders_asked(info, geometry, options, notes)
-    rows_truth = _truth_rows(truth, n_rev, revolution0, scratch=not spectra)
+    rows_truth = _truth_rows(truth, n_rev, revolution0, scratch=lean)
     t_exp = _exact_times(truth, options)
     # 1. first pass: nominal geometry (or exact times) zeroed on the run's median
     first = first_pass_rows(opr, toa, geometry, t_exp_s=t_exp)  # computed by blocks when needed, not held
@@ -195,25 +200,25 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     # 2. zeroing reference, Eq. 1 again
     # the report alone, one revolution per fit: the displacements are read by rows and columns from scratch files
     disp, reference, ref_info = _zeroing(opr, toa, geometry, survey, options, t_exp, revolution0, notes,
-                                         scratch=not spectra and options.window == 1)
+                                         scratch=lean and options.window == 1)
     del first
-    t_sample = _sample_times(toa, scratch=not spectra) if survey.crossings else None
+    t_sample = _sample_times(toa, scratch=lean) if survey.crossings else None
     if not spectra:  # the report alone: this function's last use of the TOAs
         disp = replace(disp, toa_s=None)
-        if not scratch:  # its own scratch files
+        if not given:  # its own scratch files
             toa.close()
         del toa
     # 3. data preparation, and the fits of the report
     # the report alone (one revolution per fit): the prepared displacements made by blocks as the fits read them
-    region = _region(survey.amp0, survey.crossings, n_rev, combined=spectra) if options.prep else None
-    if not spectra:  # the report alone: the first pass's amplitudes are done with
+    region = _region(survey.amp0, survey.crossings, n_rev, combined=not lean) if options.prep else None
+    if lean:  # the first pass's amplitudes are done with
         survey = replace(survey, amp0=None)
-    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, region, options, notes, keep_offset=spectra,
-                        rows_only=not spectra and options.window == 1)
+    prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, region, options, notes, keep_offset=not lean,
+                        rows_only=lean and options.window == 1)
     d = prepared.d_m if prepared is not None else disp.d_m
-    fit, raw, d_flat, tails = _report_fits(d, disp, prepared, geometry, survey, options, not spectra, reference)
+    fit, raw, d_flat, tails = _report_fits(d, disp, prepared, geometry, survey, options, lean, reference)
     eo = survey.eos[0]
-    probe_tw = probe_spectra(d, eo) if spectra else None
+    probe_tw = probe_spectra(d, eo) if not lean else None
     del d
     if not spectra and prepared is not None:  # the report alone: the prepared displacements are done with
         prepared = replace(prepared, d_m=None, region=None)
@@ -226,16 +231,36 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                    crossings=tuple(survey.crossings),
                    offset_removed=bool(prepared is not None and prepared.options.remove_offset), nsv=tuple(survey.nsv),
                    tail_phasors=tails)
-    del tails
     report = _report(ctx, survey, eos_asked, info, ref_info, notes)
     # 5. travelling waves and the resonance revolutions of the first order
+    res_revs = _resonance_revolutions(fit, survey.crossings, eo, n_rev, raw.mean_m)
+    fit_tw = fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad) if not lean else None
+    if rows:  # the report's fits freed first: every revolution's fits and spectra, by blocks, to scratch files
+        cn, fit, ctx, raw, d_flat = fit.cn, None, None, None, None
+        fit, probe_tw, fit_tw = _scratch_arrays(prepared.d_m if prepared is not None else disp.d_m, geometry,
+                                                survey, options, cn)
     return ProcessingResult(geometry=geometry, options=options, engine_orders=survey.eos, opr_s=opr,
-                            displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_tw,
-                            fit_tw=fit_spectra(_first_phasor(fit), eo, geometry.blade_angles_rad) if spectra else None,
-                            resonance_revolutions=_resonance_revolutions(fit, survey.crossings, eo, n_rev,
-                                                                         raw.mean_m),
-                            report=report, segments=survey.segments, crossings=tuple(survey.crossings),
-                            reference=reference, joint=bool(survey.joint), nsv_scan=survey.nsv_scan, nsv=survey.nsv)
+                            displacements=disp, prepared=prepared, fit=fit, probe_tw=probe_tw, fit_tw=fit_tw,
+                            resonance_revolutions=res_revs, report=report, segments=survey.segments,
+                            crossings=tuple(survey.crossings), reference=reference, joint=bool(survey.joint),
+                            nsv_scan=survey.nsv_scan, nsv=survey.nsv)
+
+
+def _toas(toa_s, lean: bool) -> tuple:
+    """The TOAs as the pipeline reads them (``lean``: :class:`~.history.ScratchRows`, the one
+    given or a copy of the array, read back by blocks; else a float array) and whether they
+    are the caller's scratch rows."""
+    given = isinstance(toa_s, ScratchRows) and toa_s.dtype == np.float64  # (else: read and converted)
+    toa = toa_s if given and lean else np.asarray(toa_s[:] if isinstance(toa_s, ScratchRows) else toa_s, dtype=float)
+    return (ScratchRows.of(toa) if lean and not given else toa), given
+
+
+def _scratch_arrays(d, geometry: Geometry, survey: "_Survey", options: ProcessOptions, cn: float) -> tuple:
+    """Every revolution's fits and first-order spectra of ``d`` (prepared rows, or the
+    displacements) in scratch files (:func:`~.scratch_result.scratch_result`)."""
+    return scratch_result(d, geometry.probe_angles_rad, survey.eos, survey.joint, survey.omega,
+                          geometry.tip_radius_m if options.sampling_angles else None, _spans(survey),
+                          geometry.blade_angles_rad, cn)
 
 
 def _sample_times(toa: np.ndarray, scratch: bool = False) -> np.ndarray:
@@ -437,8 +462,7 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
     :func:`~.span_fits.order_phasors`; None: read from the fit)."""
     angles, omega, eos, joint = geometry.probe_angles_rad, survey.omega, survey.eos, survey.joint
     radius = geometry.tip_radius_m if options.sampling_angles else None
-    spans = merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
-                        + [(dw.start, dw.stop) for dw in survey.segments.dwells])
+    spans = _spans(survey)
     held = report_only and options.window == 1
     removed = bool(prepared is not None and prepared.options.remove_offset)
     refit = held and any(tail_revolutions(reference, removed, survey.crossings, omega, c) is not None
@@ -466,6 +490,12 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
         raw = replace(raw, **run_amplitudes(d, fit, survey.crossings, eos, joint, angles, omega))
     tails = partial(order_phasors, d, angles, eos, joint, omega, radius, spans) if refit else None
     return fit, raw, d_flat, tails
+
+
+def _spans(survey: _Survey) -> list:
+    """The revolutions fitted at the sampling angles: the crossings and dwells (merged)."""
+    return merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]
+                       + [(dw.start, dw.stop) for dw in survey.segments.dwells])
 
 
 def _report(ctx: "_Context", survey: _Survey, eos_asked: tuple, info, ref_info: dict, notes: list) -> ResonanceReport:

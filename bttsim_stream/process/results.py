@@ -146,12 +146,16 @@ class ProcessingResult:
         (``spectra=False``) and one revolution per fit, its ``amp_std_m``, ``residual_rms_m``
         and ``n_samples`` are None and its ``coeffs``, ``amp_pkpk_m``, ``phase_rad`` (and
         ``dc_m``) are :class:`~.spans.SpanRows`: held on the revolutions the report reads
-        (the crossings and dwells and their margins), NaN elsewhere.
+        (the crossings and dwells and their margins), NaN elsewhere. With the full result in
+        scratch files (``process_arrays(..., scratch=True)``, one revolution per fit) its
+        run-sized arrays are :class:`~.history.ScratchRows` (read by rows), every revolution's.
     probe_tw : TravellingWaveSpectra or None
         Per revolution and probe, shape (n_rev, n_probes, n_nd), first EO (None when the
         report alone was asked for: ``process_arrays(..., spectra=False)``).
     fit_tw : TravellingWaveSpectra or None
-        Per revolution from the fits, shape (n_rev, n_nd), first EO (None likewise).
+        Per revolution from the fits, shape (n_rev, n_nd), first EO (None likewise). Both
+        spectra's magnitudes are :class:`~.history.ScratchRows` with the full result in
+        scratch files, as are the displacements' ``d_m`` and ``toa_s``.
     resonance_revolutions : ndarray of bool, shape (n_rev,)
         The half-power regions of the first EO's crossings (or, without any, where the
         blade-mean amplitude exceeds half its peak).

@@ -20,7 +20,7 @@ from .spans import SpanRows
 from .zeroing import tail_revolutions
 
 __all__ = ["fit_orders", "merge_spans", "fit_spans", "held_fit", "read_spans", "blade_mean", "run_amplitudes",
-           "chunk_fits", "order_phasors"]
+           "chunk_fits", "fit_rows", "order_phasors"]
 
 
 def fit_orders(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int,
@@ -75,14 +75,6 @@ def fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int
     return fit
 
 
-def _angle_parts(a: int, b: int, spans: list, radius):
-    """``(lo, hi, radius)`` pieces of revolutions ``a .. b - 1``: at the probe angles (None)
-    outside ``spans``, at the sampling angles (``radius``) inside them (none without one)."""
-    cuts = [(max(s, a), min(e, b)) for s, e in (spans if radius is not None else []) if s < b and e > a]
-    parts = [(p, q, None) for p, q in zip([a] + [e for _, e in cuts], [s for s, _ in cuts] + [b]) if p < q]
-    return parts + [(s, e, radius) for s, e in cuts]
-
-
 def order_phasors(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, i: int,
                   revs: np.ndarray) -> np.ndarray:
     """Order ``i``'s complex responses ``phasor[revs, :, i]`` of the report's fits (those of
@@ -96,9 +88,8 @@ def order_phasors(d, angles, eos: tuple, joint: bool, omega, radius, spans: list
     at = 0
     for run in runs:
         a = int(run[0])
-        for lo, hi, r in _angle_parts(a, int(run[-1]) + 1, spans, radius):
-            for l0, h0, f in chunk_fits(d, lo, hi, angles, eos, joint, omega, r):
-                out[at + l0 - a:at + h0 - a] = f.coeffs[:, :, 1 + 2 * i] + 1j * f.coeffs[:, :, 2 + 2 * i]
+        for lo, hi, f in fit_rows(d, a, int(run[-1]) + 1, angles, eos, joint, omega, radius, spans):
+            out[at + lo - a:at + hi - a] = f.coeffs[:, :, 1 + 2 * i] + 1j * f.coeffs[:, :, 2 + 2 * i]
         at += run.size
     return out
 
@@ -112,9 +103,8 @@ def held_fit(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, hel
     coeffs = SpanRows.filled(n_rev, held, (nb, 1 + 2 * n_eo))
     amp, phase = coeffs.like((nb, n_eo)), coeffs.like((nb, n_eo))
     for a, b in held:  # inside the spans at the sampling angles (radius), the rest at the probe angles
-        for lo, hi, r in _angle_parts(a, b, spans, radius):
-            for l0, h0, f in chunk_fits(d, lo, hi, angles, eos, joint, omega, r):
-                coeffs[l0:h0], amp[l0:h0], phase[l0:h0] = f.coeffs, f.amp_pkpk_m, f.phase_rad
+        for lo, hi, f in fit_rows(d, a, b, angles, eos, joint, omega, radius, spans):
+            coeffs[lo:hi], amp[lo:hi], phase[lo:hi] = f.coeffs, f.amp_pkpk_m, f.phase_rad
     om = np.asarray(omega, dtype=float)
     return SineFit(engine_orders=tuple(eos), window=1, coeffs=coeffs, amp_pkpk_m=amp, phase_rad=phase, amp_std_m=None,
                    dc_m=coeffs[..., 0], residual_rms_m=None, n_samples=None, omega_rad_s=om,
@@ -178,3 +168,15 @@ def chunk_fits(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radius
     for lo in range(a, b, fitting.FIT_CHUNK):
         hi = min(lo + fitting.FIT_CHUNK, b)
         yield lo, hi, fit_orders(d[lo:hi], angles, eos, joint, omega[lo:hi], 1, radius)
+
+
+def fit_rows(d, a: int, b: int, angles, eos: tuple, joint: bool, omega, radius, spans):
+    """``(lo, hi, fit)``: the one-revolution fits of revolutions ``a .. b - 1`` as
+    :func:`fit_spans` makes them (the same numbers), in revolution order: at the sampling
+    angles (``radius``) inside ``spans`` (sorted, non-overlapping ``[start, stop)``), at the
+    probe angles elsewhere, :func:`chunk_fits` of each stretch."""
+    inside = [(max(s, a), min(e, b)) for s, e in (spans if radius is not None else []) if s < b and e > a]
+    edges = sorted({a, b}.union(*inside))
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        r = radius if any(s <= lo and hi <= e for s, e in inside) else None
+        yield from chunk_fits(d, lo, hi, angles, eos, joint, omega, r)
