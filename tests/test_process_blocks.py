@@ -232,3 +232,34 @@ def test_report_only_fits_the_zeroing_skirt_again_by_blocks(monkeypatch):
     tail = zeroing.tail_revolutions(only.reference, False, list(only.crossings), full.fit.omega_rad_s, c)[2]
     held = only.fit.coeffs.held()
     assert not held[tail].all() and held[c.lo:c.hi + 1].all()
+
+
+@pytest.mark.parametrize("options", [dict(engine_orders=(3,)), dict(engine_orders=(3, 5), prep=False)])
+def test_report_only_fits_a_dwell_again_by_blocks(options, monkeypatch):
+    """A dwell's fits (as long as the dwell) are not held with the report's fits: its means
+    fit them again by blocks of revolutions as they read them (the unsmoothed fits too), and
+    give the same steady entries as the whole run's fits, number for number."""
+    import json
+
+    from bttsim_stream.process import fit as fitting
+    from bttsim_stream.process import steady
+    from bttsim_stream.process.pipeline import ProcessOptions, process_arrays
+
+    rng = np.random.default_rng(5)
+    omega = np.concatenate([np.linspace(150.0, 250.0, 600), np.full(500, 250.0), np.linspace(250.0, 300.0, 300)])
+    opr = np.concatenate([[0.0], np.cumsum(2 * np.pi / omega[:-1])])
+    geo = Geometry(n_blades=NB, probe_angles_rad=PROBES, tip_radius_m=0.2)
+    toa = opr[:, None, None] + geo.nominal_arrival_angles()[None] / omega[:, None, None]
+    toa += 1e-6 * np.sin(3 * opr)[:, None, None] * rng.uniform(0.5, 1.5, (1, NB, PROBES.size))
+    toa += rng.normal(0.0, 2e-8, toa.shape)
+    toa[rng.random(toa.shape) < 0.002] = np.nan
+    opts = ProcessOptions(**options)
+    full = process_arrays(opr, toa, geo, opts)
+    assert full.segments.dwells and full.report.steady
+    monkeypatch.setattr(steady, "DWELL_BLOCK", 37)
+    monkeypatch.setattr(fitting, "FIT_CHUNK", 29)
+    only = process_arrays(opr, toa, geo, opts, spectra=False)
+    assert json.dumps(only.summary, sort_keys=True) == json.dumps(full.summary, sort_keys=True)
+    dw = only.segments.dwells[0]
+    held = only.fit.coeffs.held()
+    assert not held[dw.start:dw.stop].all()

@@ -339,30 +339,31 @@ def test_zeroing_gain_by_blocks_recovers_k_and_equals_the_whole_sum():
 
 
 def test_dwell_means_by_blocks_are_numpys():
-    """A dwell's means read by blocks of revolutions (the dwell inside a longer run: no row
-    past its end is read) are ``np.nanmean`` / ``np.nansum`` / the counts of the dwell's
-    rows, number for number: (revolution, blade, probe) displacements, complex responses,
-    a single column (summed pairwise by numpy), all-NaN columns."""
+    """A dwell's sums and means given by blocks of revolutions (:class:`RowSums`,
+    :class:`NanMean`) are ``np.nanmean`` / ``np.nansum`` / the counts of the dwell's rows,
+    number for number: (revolution, blade, probe) displacements, complex responses, all-NaN
+    columns; a single column (summed pairwise by numpy) given whole."""
     import warnings
 
-    from bttsim_stream.process.steady import nanmean_rows, row_sums
+    from bttsim_stream.process.steady import NanMean, RowSums
 
     rng = np.random.default_rng(3)
-    run = rng.normal(size=(12000, 6, 4)) * 1e-5
+    run = rng.normal(size=(9000, 6, 4)) * 1e-5
     run[rng.random(run.shape) < 0.05] = np.nan
     run[:, 2, 1] = np.nan
-    a, n = 1000, 9000  # the dwell: rows a .. a + n - 1 of the run
     cplx = run[..., 0] + 1j * run[..., 1]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for x in (run, cplx, cplx[:, :1]):
-            want = np.nanmean(x[a:a + n], axis=0)
-            for block in (1, 999, 4096):
-                read = lambda r, x=x: x[a + r.start:a + r.stop]  # noqa: E731
-                got = nanmean_rows(read, n, block)
+            want = np.nanmean(x, axis=0)
+            for block in ((1, 999, 4096) if x.shape[1] > 1 else (len(x),)):
+                mean, fin, sq = NanMean(), RowSums(), RowSums()
+                for lo in range(0, len(x), block):
+                    mean.add(x[lo:lo + block])
+                    fin.add(np.isfinite(x[lo:lo + block]))
+                got = mean.mean()
                 assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
-                assert np.array_equal(row_sums(lambda r: np.isfinite(read(r)), n, block),
-                                      np.sum(np.isfinite(x[a:a + n]), axis=0))
-                sq = np.abs(x[a:a + n] - want) ** 2
-                assert np.array_equal(row_sums(lambda r: np.nan_to_num(np.abs(read(r) - want) ** 2, nan=0.0), n, block),
-                                      np.nansum(sq, axis=0))
+                assert np.array_equal(fin.total, np.sum(np.isfinite(x), axis=0))
+                for lo in range(0, len(x), block):
+                    sq.add(np.nan_to_num(np.abs(x[lo:lo + block] - got) ** 2, nan=0.0))
+                assert np.array_equal(sq.total, np.nansum(np.abs(x - want) ** 2, axis=0))

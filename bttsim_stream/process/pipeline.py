@@ -31,7 +31,7 @@ from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
 from .span_fits import (blade_mean, chunk_fits, fit_spans, held_fit, merge_spans, order_phasors, read_spans,
-                        run_amplitudes)
+                        run_amplitudes, span_phasors)
 from .spans import SpanRows, angle
 from .zeroing import correction_size, tail_revolutions, zeroing_correction
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
@@ -216,7 +216,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
     prepared = _prepare(disp.d_m, geometry.probe_angles_rad, survey, region, options, notes, keep_offset=not lean,
                         rows_only=lean and options.window == 1)
     d = prepared.d_m if prepared is not None else disp.d_m
-    fit, raw, d_flat, tails = _report_fits(d, disp, prepared, geometry, survey, options, lean, reference)
+    fit, raw, d_flat, (tails, dwells) = _report_fits(d, disp, prepared, geometry, survey, options, lean, reference)
     eo = survey.eos[0]
     probe_tw = probe_spectra(d, eo) if not lean else None
     del d
@@ -230,7 +230,7 @@ def process_arrays(opr_s: np.ndarray, toa_s: np.ndarray, info, options: ProcessO
                    truth=rows_truth, revolution0=revolution0, options=options, reference=reference,
                    crossings=tuple(survey.crossings),
                    offset_removed=bool(prepared is not None and prepared.options.remove_offset), nsv=tuple(survey.nsv),
-                   tail_phasors=tails)
+                   tail_phasors=tails, dwell_fits=dwells)
     report = _report(ctx, survey, eos_asked, info, ref_info, notes)
     # 5. travelling waves and the resonance revolutions of the first order
     res_revs = _resonance_revolutions(fit, survey.crossings, eo, n_rev, raw.mean_m)
@@ -464,32 +464,38 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = _spans(survey)
     held = report_only and options.window == 1
+    # held: the crossings' fits; a dwell's (as long as the dwell) are fitted again as its means read them
+    crossing_spans = merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]) if held else spans
     removed = bool(prepared is not None and prepared.options.remove_offset)
     refit = held and any(tail_revolutions(reference, removed, survey.crossings, omega, c) is not None
                          for c in survey.crossings)
     if held:
         fit = held_fit(d, angles, eos, joint, omega, radius, spans,
-                       read_spans(survey.crossings, omega, spans, reference, removed, d.shape[0], tails=False))
+                       read_spans(survey.crossings, omega, crossing_spans, reference, removed, d.shape[0],
+                                  tails=False))
     else:
         fit = fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
     d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
-    if (prepared is None or not options.prep_options.smooth) and options.window == 1:
+    unsmoothed = (prepared is None or not options.prep_options.smooth) and options.window == 1
+    if unsmoothed:  # the fits are the unsmoothed fits
         raw = _Raw(fit.amp_pkpk_m, fit.phasor)
     else:  # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
-        if held:  # held on the spans alone (NaN elsewhere, as the whole arrays)
-            amp_r = SpanRows.filled(d.shape[0], spans, fit.amp_pkpk_m.shape[1:])
+        if held:  # held on the crossings alone (NaN elsewhere, as the whole arrays)
+            amp_r = SpanRows.filled(d.shape[0], crossing_spans, fit.amp_pkpk_m.shape[1:])
             ph_r = amp_r.like(amp_r.shape[1:], complex, np.nan + 0j)
         else:
             amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
             ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
-        for a, b in spans:
+        for a, b in crossing_spans:
             for lo, hi, f_r in chunk_fits(d_flat, a, b, angles, eos, joint, omega, radius):
                 amp_r[lo:hi], ph_r[lo:hi] = f_r.amp_pkpk_m, f_r.phasor
         raw = _Raw(amp_r, ph_r)
     if held:
-        raw = replace(raw, **run_amplitudes(d, fit, survey.crossings, eos, joint, angles, omega))
+        raw = replace(raw, **run_amplitudes(d, survey.crossings, eos, joint, angles, omega, radius, spans))
     tails = partial(order_phasors, d, angles, eos, joint, omega, radius, spans) if refit else None
-    return fit, raw, d_flat, tails
+    dwells = partial(span_phasors, d, None if unsmoothed else d_flat, angles, eos, joint, omega, radius, spans) \
+        if held and survey.segments.dwells else None
+    return fit, raw, d_flat, (tails, dwells)
 
 
 def _spans(survey: _Survey) -> list:
@@ -714,6 +720,9 @@ class _Context:
     nsv: tuple = ()
     #: ``(i, revolutions) -> phasors`` of the zeroing skirts, fitted when read (None: ``fit``'s)
     tail_phasors: object = None
+    #: ``(lo, hi, fits) -> (phasors, unsmoothed phasors)`` of a dwell's revolutions, fitted when
+    #: read (None: ``fit``'s and ``raw``'s)
+    dwell_fits: object = None
     #: the zeroing corrections made, by (engine order, crossing peak, order index)
     corrections: dict = field(default_factory=dict)
 

@@ -20,7 +20,7 @@ from .spans import SpanRows
 from .zeroing import tail_revolutions
 
 __all__ = ["fit_orders", "merge_spans", "fit_spans", "held_fit", "read_spans", "blade_mean", "run_amplitudes",
-           "chunk_fits", "fit_rows", "order_phasors"]
+           "chunk_fits", "fit_rows", "order_phasors", "span_phasors"]
 
 
 def fit_orders(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int,
@@ -73,6 +73,23 @@ def fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int
         for k, arr in arrays.items():
             arr[a:b] = getattr(f, k)[a - lo:b - lo]
     return fit
+
+
+def span_phasors(d, d_flat, angles, eos: tuple, joint: bool, omega, radius, spans: list, a: int, b: int,
+                 fits: bool = True) -> tuple:
+    """``(phasor, raw)``: the complex responses, shape ``(b - a, n_blades, n_eo)``, of
+    revolutions ``a .. b - 1`` in the report's fits (``fits``, else None) and in its
+    unsmoothed fits (of the offset-removed displacements ``d_flat``; None: the report's fits
+    are the unsmoothed ones), fitted now (:func:`fit_rows`: the numbers :func:`held_fit` and
+    the unsmoothed fits hold)."""
+    def fitted(src) -> np.ndarray:
+        ph = np.empty((b - a, d.shape[1], len(eos)), complex)
+        for lo, hi, f in fit_rows(src, a, b, angles, eos, joint, omega, radius, spans):
+            ph[lo - a:hi - a] = f.phasor
+        return ph
+
+    phasor = fitted(d) if fits or d_flat is None else None
+    return (phasor if fits else None), (phasor if d_flat is None else fitted(d_flat))
 
 
 def order_phasors(d, angles, eos: tuple, joint: bool, omega, radius, spans: list, i: int,
@@ -138,9 +155,10 @@ def blade_mean(amp: np.ndarray) -> np.ndarray:
     return np.where(ok, amp, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
 
 
-def run_amplitudes(d, fit: SineFit, crossings: list, eos: tuple, joint: bool, angles, omega) -> dict:
+def run_amplitudes(d, crossings: list, eos: tuple, joint: bool, angles, omega, radius, spans) -> dict:
     """With the fits held on some revolutions (:func:`held_fit`): what the report reads of the
-    whole run's amplitudes, by blocks of revolutions (each revolution's own: the same numbers)
+    whole run's amplitudes, by blocks of revolutions (each revolution's own: the same numbers;
+    :func:`fit_rows`, at the sampling angles inside ``spans``)
     -- without a crossing, the blade medians (:func:`~.intervals.no_crossing_note`); without one
     of the first order, its blade means (:func:`blade_mean`, the resonance revolutions' fallback)."""
     medians, means = not any(c.eo in eos for c in crossings), not any(c.eo == eos[0] for c in crossings)
@@ -148,10 +166,8 @@ def run_amplitudes(d, fit: SineFit, crossings: list, eos: tuple, joint: bool, an
         return {}
     n = d.shape[0]
     med, mean = np.empty((n, len(eos))) if medians else None, np.empty(n) if means else None
-    held = fit.amp_pkpk_m.held()
-    for lo, hi, f in chunk_fits(d, 0, n, angles, eos, joint, omega, None):
-        amp, h = f.amp_pkpk_m, held[lo:hi]
-        amp[h] = fit.amp_pkpk_m[np.arange(lo, hi)[h]]  # the held rows: the report's fit (sampling angles)
+    for lo, hi, f in fit_rows(d, 0, n, angles, eos, joint, omega, radius, spans):  # the report's fits
+        amp = f.amp_pkpk_m
         if medians:
             med[lo:hi] = blade_medians(amp)
         if means:

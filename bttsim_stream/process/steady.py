@@ -19,35 +19,44 @@ from .resonance import Detection, ResonanceEntry, ResonancePeaks, window_truth
 from .travelling_wave import fit_spectra, identify_nd
 from .zeroing import correction_size, zeroing_correction
 
-__all__ = ["dwell_entries", "DWELL_BLOCK", "row_sums", "nanmean_rows"]
+__all__ = ["dwell_entries", "DWELL_BLOCK", "RowSums", "NanMean"]
 
 #: Revolutions of a dwell read at a time: a dwell's means go over every revolution of it
 #: (at constant speed a test may dwell for hours), summed block by block.
 DWELL_BLOCK = 1 << 12
 
 
-def row_sums(read, n: int, block: int | None = None) -> np.ndarray:
-    """``x.sum(axis=0)`` of the ``n`` rows of an array ``x`` that ``read(slice)`` gives by
-    blocks of ``block`` rows (default :data:`DWELL_BLOCK`): the same numbers. Along axis 0
-    numpy adds the rows one after the other, and so do the blocks, each onto the sums so far;
-    a single column numpy sums pairwise, so then the rows are read at once."""
-    block = DWELL_BLOCK if block is None else int(block)
-    first = read(slice(0, min(n, block)))
-    if first[0:1].size < 2:  # one column (or none): summed pairwise by numpy
-        return read(slice(0, n)).sum(axis=0)
-    acc = first.sum(axis=0)
-    for a in range(block, n, block):
-        acc = np.concatenate([acc[None], read(slice(a, min(a + block, n)))]).sum(axis=0)
-    return acc
+class RowSums:
+    """``x.sum(axis=0)`` of an array given by blocks of rows (:meth:`add`, in row order): the
+    same numbers. Along axis 0 numpy adds the rows one after the other, and so do the blocks,
+    each onto the sums so far -- except for a single column, which numpy sums pairwise: give
+    that one whole."""
+
+    __slots__ = ("total",)
+
+    def __init__(self) -> None:
+        self.total = None
+
+    def add(self, x: np.ndarray) -> None:
+        self.total = x.sum(axis=0) if self.total is None else np.concatenate([self.total[None], x]).sum(axis=0)
 
 
-def nanmean_rows(read, n: int, block: int | None = None) -> np.ndarray:
-    """``np.nanmean(x, axis=0)`` of the ``n`` rows ``read(slice)`` gives, by blocks
-    (:func:`row_sums`): the sum with NaN taken as 0 over the count of the others, divided
-    as numpy does (the count cast to the sum's type): the same numbers."""
-    tot = row_sums(lambda rows: _nan_zero(read(rows)), n, block)
-    cnt = row_sums(lambda rows: ~np.isnan(read(rows)), n, block).astype(np.intp)
-    return np.divide(tot, cnt, out=tot, casting="unsafe")
+class NanMean:
+    """``np.nanmean(x, axis=0)`` of an array given by blocks of rows (:class:`RowSums`): the
+    sum with NaN taken as 0 over the count of the others, divided as numpy divides them (the
+    count cast to the sum's type): the same numbers."""
+
+    __slots__ = ("tot", "cnt")
+
+    def __init__(self) -> None:
+        self.tot, self.cnt = RowSums(), RowSums()
+
+    def add(self, x: np.ndarray) -> None:
+        self.tot.add(_nan_zero(x))
+        self.cnt.add(~np.isnan(x))
+
+    def mean(self) -> np.ndarray:
+        return np.divide(self.tot.total, self.cnt.total.astype(np.intp), out=self.tot.total, casting="unsafe")
 
 
 def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
@@ -59,20 +68,34 @@ def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
     a, b = dw.start + skip, dw.stop  # revolutions [a, b)
     out = []
     opts = ctx.options
-    n = b - a  # the revolutions read by blocks: the means of the whole arrays' numbers
-    with quiet():  # (blades, probes): the steady response at each probe
-        d_mean = nanmean_rows(lambda r: ctx.d_flat[a + r.start:a + r.stop], n)
+    n, n_eo = b - a, len(ctx.eos)
+    # by blocks of revolutions (one blade: its column is summed pairwise by numpy, read at once)
+    block = DWELL_BLOCK if ctx.d_flat[a:a + 1].shape[1] > 1 else max(n, 1)
+    d_sum, p_sum = NanMean(), [NanMean() for _ in range(n_eo)]
+    r_sum, r_cnt = [NanMean() for _ in range(n_eo)], [RowSums() for _ in range(n_eo)]
+    with quiet():
+        for lo in range(a, b, block):
+            hi = min(lo + block, b)
+            d_sum.add(ctx.d_flat[lo:hi])
+            P, R = _dwell_phasors(ctx, lo, hi)
+            for i in range(n_eo):
+                p_sum[i].add(P[i])
+                r_sum[i].add(R[i])
+                r_cnt[i].add(np.isfinite(R[i]))
+        d_mean = d_sum.mean()  # (blades, probes): the steady response at each probe
+        r_mean = [m.mean() for m in r_sum]
+        r_var = [RowSums() for _ in range(n_eo)]
+        for lo in range(a, b, block):  # the scatter about the unsmoothed mean: a second pass
+            R = _dwell_phasors(ctx, lo, min(lo + block, b), fits=False)[1]
+            for i in range(n_eo):
+                r_var[i].add(_nan_zero(np.abs(R[i] - r_mean[i]) ** 2))
     radius = ctx.geometry.tip_radius_m if opts.sampling_angles else None
     for i, eo in enumerate(ctx.eos):
-        P = lambda r: ctx.fit.phasor_at(i, slice(a + r.start, a + r.stop))  # noqa: E731
-        Praw = lambda r: ctx.raw.phasor[a + r.start:a + r.stop, :, i]  # noqa: E731
         corr, source = _dwell_correction(ctx, eo, i)
+        cnt = r_cnt[i].total
         with quiet():
-            mean = nanmean_rows(P, n) + (corr if corr is not None else 0.0)
-            cnt = row_sums(lambda r: np.isfinite(Praw(r)), n)
-            raw_mean = nanmean_rows(Praw, n)
-            spread = np.sqrt(row_sums(lambda r: _nan_zero(np.abs(Praw(r) - raw_mean) ** 2), n)
-                             / np.maximum(cnt - 1, 1))
+            mean = p_sum[i].mean() + (corr if corr is not None else 0.0)
+            spread = np.sqrt(r_var[i].total / np.maximum(cnt - 1, 1))
         amp = 2.0 * np.abs(mean)
         std = 2.0 * spread / np.sqrt(np.maximum(cnt, 1))
         f = eo * float(np.mean(ctx.omega[a:b])) / TWO_PI
@@ -100,6 +123,18 @@ def dwell_entries(ctx, dw) -> list[ResonanceEntry]:
             zeroing_correction=correction_size(corr, mean[None, :]))
         out.append(entry.with_truth(window_truth(ctx.truth, eo, a, b - 1, mean=True)))
     return out
+
+
+def _dwell_phasors(ctx, lo: int, hi: int, fits: bool = True) -> tuple:
+    """Each order's complex responses of revolutions ``lo .. hi - 1``: the report's fits'
+    (``fits``, else None) and the unsmoothed fits', lists by order; fitted now where the
+    report does not hold the dwell's fits (``ctx.dwell_fits``: the same numbers)."""
+    n_eo = len(ctx.eos)
+    if ctx.dwell_fits is not None:
+        P, R = ctx.dwell_fits(lo, hi, fits)
+        return ([P[..., i] for i in range(n_eo)] if fits else None), [R[..., i] for i in range(n_eo)]
+    P = [ctx.fit.phasor_at(i, slice(lo, hi)) for i in range(n_eo)] if fits else None
+    return P, [ctx.raw.phasor[lo:hi, :, i] for i in range(n_eo)]
 
 
 def _nan_zero(x: np.ndarray) -> np.ndarray:
