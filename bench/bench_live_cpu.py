@@ -16,6 +16,15 @@ In one run, side by side, on the same scenario:
 CPU is user + system seconds (the machine is shared: wall time would measure the
 neighbours). ``ratio`` = all nodes / simulate; the target is <= 3. With ``--repeat`` each
 measurement is repeated and the smallest CPU of each process kept.
+
+``--floor`` also measures what the live chain costs before any work per message, with the
+bus as it is (one message per key and revolution): each node's start-up (``bttsim run`` of
+a 0.3 s run), the CPU of Zenoh's own threads in each node (``rx-*``, ``tx-*``, ... read
+from ``/proc/PID/task`` while the run goes: receiving and sending the messages), and
+``bttsim process`` of the run's recording (the work the processor's final report repeats).
+``floor_ratio`` = (the simulation itself, ``bttsim simulate``'s CPU + the other nodes'
+start-ups + every node's Zenoh threads + the report) / simulate: a lower bound of
+``ratio`` that no change inside the nodes' code per message can go below.
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ import resource
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -71,11 +81,45 @@ def simulate_cpu(scenario: str | None, work: Path) -> float:
     return _cpu(ru)
 
 
-def run_cpu(scenario: str | None, work: Path) -> dict:
-    """Each node's CPU seconds in ``bttsim run`` of the scenario, and the run's own."""
+#: Zenoh's runtime threads (by name prefix): what they spend is the bus's, not the node's code.
+ZENOH_THREADS = ("rx-", "tx-", "acc-", "net-", "app-")
+
+
+def _zenoh_cpu(procs: list, stop: threading.Event, out: dict) -> None:
+    """Until ``stop``: each node's Zenoh threads' CPU seconds, the latest read of each thread
+    (``/proc/PID/task/TID/stat``, every 50 ms) summed into ``out[node]``."""
+    tick = os.sysconf("SC_CLK_TCK")
+    last: dict = {}
+    while not stop.wait(0.05):
+        for name, p in list(procs):
+            try:
+                tids = os.listdir(f"/proc/{p.pid}/task")
+            except OSError:
+                continue
+            for tid in tids:
+                try:
+                    with open(f"/proc/{p.pid}/task/{tid}/stat") as f:
+                        stat = f.read()
+                except OSError:
+                    continue
+                comm, rest = stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+                if comm.startswith(ZENOH_THREADS):
+                    last[(name, p.pid, tid)] = (int(rest[11]) + int(rest[12])) / tick
+        for name, _ in procs:
+            out[name] = sum(v for (n, _, _), v in last.items() if n == name)
+
+
+def run_cpu(scenario: str | None, work: Path, zenoh: bool = False) -> dict:
+    """Each node's CPU seconds in ``bttsim run`` of the scenario, and the run's own
+    (``zenoh``: also each node's Zenoh threads')."""
     from bttsim_stream import orchestrate
 
     procs: list = []
+    threads: dict = {}
+    stop = threading.Event()
+    watch = threading.Thread(target=_zenoh_cpu, args=(procs, stop, threads), daemon=True)
+    if zenoh:
+        watch.start()
 
     class Popen(_RusagePopen):
         def __init__(self, args, *a, **kw):
@@ -89,24 +133,56 @@ def run_cpu(scenario: str | None, work: Path) -> dict:
         result = orchestrate.run_all(scenario, str(work / "run"), quiet=True)
     finally:
         orchestrate.subprocess.Popen = real
+        stop.set()
+        if zenoh:
+            watch.join()
     after = resource.getrusage(resource.RUSAGE_SELF)
     if result["failed"] or not (result["summary"] or {}).get("complete"):
         raise SystemExit(f"bttsim run failed: {result['failed']} {result['recording']}")
     nodes = {name: _cpu(p.rusage) for name, p in procs}
     return {"nodes": nodes, "orchestrator": _cpu(after) - _cpu(before), "wall_s": result["wall_s"],
-            "revolutions": result["summary"].get("revolutions_processed")}
+            "revolutions": result["summary"].get("revolutions_processed"), "zenoh": threads,
+            "recording": str(work / "run" / "run.mcap")}
 
 
-def main(scenario: str | None = None, repeat: int = 1) -> dict:
+#: A 0.3 s run of the default wheel: the nodes' start-up and end, almost no revolutions.
+SHORT_RUN = "[speed]\nstart_rpm = 2970.0\nend_rpm = 3030.0\nduration_s = 0.3\n"
+
+
+def process_cpu(recording: str) -> float:
+    """CPU seconds of ``bttsim process`` of a recording."""
+    p = subprocess.Popen([*BTTSIM, "process", recording], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, ru = os.wait4(p.pid, 0)
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"bttsim process failed: {p.stderr.read().decode(errors='replace')[-400:]}")
+    return _cpu(ru)
+
+
+def floor(scenario: str | None, work: Path, sim: float, run: dict) -> dict:
+    """What the live chain costs before any work per message (see the module's docstring)."""
+    short = work / "short.toml"
+    short.write_text(SHORT_RUN)
+    start = run_cpu(str(short), work / "short")["nodes"]
+    report = process_cpu(run["recording"])
+    consumers = [n for n in run["nodes"] if n != "sim"]
+    total = sim + sum(start[n] for n in consumers) + sum(run["zenoh"].values()) + report
+    return {"startup_cpu_s": {n: round(v, 3) for n, v in start.items()},
+            "zenoh_threads_cpu_s": {n: round(v, 3) for n, v in run["zenoh"].items()},
+            "process_cpu_s": round(report, 3),
+            "floor_cpu_s": round(total, 3), "floor_ratio": round(total / sim, 2)}
+
+
+def main(scenario: str | None = None, repeat: int = 1, with_floor: bool = False) -> dict:
     sims, runs = [], []
     with tempfile.TemporaryDirectory(prefix="bench-live-cpu-") as tmp:
-        for _ in range(repeat):
+        for k in range(repeat):
             sims.append(simulate_cpu(scenario, Path(tmp)))
-            runs.append(run_cpu(scenario, Path(tmp)))
-    nodes = {n: min(r["nodes"][n] for r in runs) for n in runs[0]["nodes"]}
-    total = sum(nodes.values())
-    sim = min(sims)
-    return {"scenario": scenario or "default", "repeat": repeat,
+            runs.append(run_cpu(scenario, Path(tmp) / f"run{k}", zenoh=with_floor))
+        nodes = {n: min(r["nodes"][n] for r in runs) for n in runs[0]["nodes"]}
+        total = sum(nodes.values())
+        sim = min(sims)
+        extra = floor(scenario, Path(tmp), sim, runs[0]) if with_floor else {}
+    return extra | {"scenario": scenario or "default", "repeat": repeat,
             "simulate_cpu_s": round(sim, 3),
             "run_node_cpu_s": {n: round(v, 3) for n, v in nodes.items()},
             "run_all_nodes_cpu_s": round(total, 3),
@@ -121,5 +197,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scenario", nargs="?", help="scenario TOML (default: the paper's Table 1)")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--floor", action="store_true",
+                    help="also the cost before any work per message: start-ups, Zenoh's threads, the report")
     a = ap.parse_args()
-    print(json.dumps(main(a.scenario, a.repeat), indent=2))
+    print(json.dumps(main(a.scenario, a.repeat, a.floor), indent=2))
