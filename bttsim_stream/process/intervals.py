@@ -411,13 +411,13 @@ def dwell_intervals(peaks, layout_m=None, probes_m=None, dof: int = 0, zeroing_m
     turned by at most ``asin(h / A)``; the frequency ``+- 1.96`` its standard uncertainty."""
     from dataclasses import replace
 
-    from scipy.stats import t as student_t
+    from scipy.special import stdtrit  # = scipy.stats.t.ppf, without importing scipy.stats (0.3 s, 36 MB)
 
     A = np.asarray(peaks.amp_pkpk_m, dtype=float)
     s = np.asarray(peaks.amp_std_m, dtype=float)
     lay = np.zeros_like(A) if layout_m is None else np.asarray(layout_m, dtype=float)
     sys_ = np.zeros_like(A) if probes_m is None or dof <= 0 else np.asarray(probes_m, dtype=float)
-    t95 = float(student_t.ppf(0.975, dof)) if dof > 0 else 0.0
+    t95 = float(stdtrit(dof, 0.975)) if dof > 0 else 0.0
     h = Z95 * np.sqrt(s * s + lay * lay) + t95 * sys_ + zeroing_m  # a blade whose misfit is unseen: no interval
     fs = np.asarray(peaks.freq_std_hz, dtype=float)
     f = np.asarray(peaks.freq_hz, dtype=float)
