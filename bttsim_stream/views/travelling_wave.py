@@ -3,7 +3,8 @@
 ``tw/probe_<j>``: a tensor ``[nodal_diameter, revolution]`` of magnitudes (mm), rows by
 signed ND from ``+(n_nd - 1)`` (forward, top) through 0 to ``-(n_nd - 1)`` (backward,
 bottom) (:meth:`~bttsim_stream.process.travelling_wave.ProbeWave.signed_spectrum`);
-revolutions without a message are 0. A whole recording logs it once, static; live it is a
+revolutions without a message are 0. A whole recording logs it once, static (the spectra wait in
+scratch files until then, and the probes are drawn one at a time); live it is a
 rolling window of the last ``window`` revolutions, re-logged on the ``revolution``
 timeline at most every ``period_s`` (re-logging the whole run each time would cost
 O(n^2)). ``tw/nd``: the revolution's signed ND as identified by the processor from the fits
