@@ -416,9 +416,11 @@ def _cmd_view(args: argparse.Namespace) -> None:
     from .views import log_recording  # rerun takes 0.5 s to import: after the checks above
 
     t0 = time.perf_counter()
-    run = load_run(args.mcap, truth_fields=(), rig=args.rig)  # checked as a run
+    # checked as a run; its TOAs in a scratch file (only completeness and metadata are used)
+    run = load_run(args.mcap, truth_fields=(), rig=args.rig, scratch=True)
     whole, meta = completeness(run), run.meta
-    del run  # its arrays: not held while the processor session rebuilds its own
+    run.toa_s.close()
+    del run
     with tempfile.TemporaryDirectory(prefix="bttsim-view-") as tmp:
         src = with_processing(args.mcap, Path(tmp) / "processed.mcap", meta=meta)
         try:

@@ -173,3 +173,37 @@ def test_dense_wave_store_is_the_dict_of_spectra(live):
         np.testing.assert_array_equal(got, want)
     if live:  # the window only is kept
         assert all(s._seen.size <= 2 * window + 64 for s in view._spectra.values())
+
+
+def test_whole_recording_travelling_waves_are_not_held_in_memory():
+    """A whole recording's spectra wait for the final draw in scratch files: 16 times the
+    revolutions leave the view's memory as it was."""
+    import tracemalloc
+
+    class Out:
+        live = False
+
+        def style(self, *a):
+            pass
+
+        def scalars(self, *a):
+            pass
+
+    def held(n_rev: int) -> int:
+        rng = np.random.default_rng(1)
+        view = tw.TravellingWaveView(Out())
+        tracemalloc.start()
+        base = tracemalloc.get_traced_memory()[0]
+        for lo in range(0, n_rev, 500):
+            for rev in range(lo, min(lo + 500, n_rev)):
+                for probe in range(3):
+                    view.add(_Msg(rev, probe, rng.random(15) * 1e-4, rng.random(15) * 1e-4))
+            view.flush()
+        size = tracemalloc.get_traced_memory()[0] - base
+        tracemalloc.stop()
+        last = {p: s.matrix(s.lo, s.hi) for p, s in view._spectra.items()}
+        assert all(m.shape == (29, n_rev) and m.any() for m in last.values())
+        return size
+
+    short, long = held(500), held(8000)
+    assert long < short + 64_000, (short, long)  # 8000 revolutions of 3 probes would be 2.8 MB

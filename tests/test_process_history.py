@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bttsim_stream.process import history
-from bttsim_stream.process.history import RecentRows, ScratchRows, SpilledRows
+from bttsim_stream.process.history import RecentRows, ScratchRows, SparseRows, SpilledRows
 from bttsim_stream.process.options import ProcessOptions
 from bttsim_stream.process.streaming import StreamingProcessor
 
@@ -123,6 +123,29 @@ def test_scratch_rows_read_back_what_was_written_by_rows_and_by_columns():
     np.testing.assert_array_equal(copy[:], rows)
     copy.close()
     spilled.close()
+
+
+def test_sparse_rows_read_back_the_latest_row_written_and_zeros_elsewhere():
+    """Rows written in any order, above and below the first index, some twice (in one write
+    and across writes): every range reads what a dict index -> row gives, zeros elsewhere."""
+    rng = np.random.default_rng(5)
+    s = SparseRows((2, 3), np.float32)
+    assert s.read(-4, 6).shape == (10, 2, 3) and not s.read(-4, 6).any()  # nothing written: zeros
+    want: dict = {}
+    for _ in range(12):
+        index = rng.integers(-300, 300, size=rng.integers(1, 40))
+        rows = rng.normal(size=(index.size, 2, 3)).astype(np.float32)
+        s.write(index, rows)
+        for i, r in zip(index.tolist(), rows):
+            want[i] = r
+    s.write([], np.zeros((0, 2, 3)))  # nothing
+    for a, b in ((-400, 400), (-300, -299), (0, 1), (17, 180), (-120, 5), (250, 500), (5, 5), (9, 3)):
+        expect = np.zeros((max(b - a, 0), 2, 3), np.float32)
+        for i, r in want.items():
+            if a <= i < b:
+                expect[i - a] = r
+        np.testing.assert_array_equal(s.read(a, b), expect)
+    s.close()
 
 
 def test_streaming_processor_state_is_bounded_and_gives_the_same_results(monkeypatch):

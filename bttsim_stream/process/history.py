@@ -11,6 +11,9 @@
   by rows or by blocks of columns (the report's TOAs, displacements and arrival times):
   held in unnamed scratch files, row-major (and column-major once columns are read), not
   in memory.
+* :class:`SparseRows`: rows indexed by any integer (a revolution number), written in any order
+  and read back by ranges, rows never written reading as zeros (a whole recording's
+  travelling-wave spectra, for the view drawn at its end): in unnamed scratch files.
 
 Pure numpy and the standard library; no bus, no formats.
 """
@@ -24,7 +27,7 @@ import weakref
 
 import numpy as np
 
-__all__ = ["RecentRows", "SpilledRows", "ScratchRows", "SPILL_BYTES"]
+__all__ = ["RecentRows", "SpilledRows", "ScratchRows", "SparseRows", "SPILL_BYTES"]
 
 #: Bytes of recent rows a :class:`SpilledRows` keeps in memory before it writes the older half
 #: to its scratch file (twice this at most).
@@ -283,6 +286,88 @@ class ScratchRows:
         out = np.empty((max(b - a, 0), self.written), self.dtype)
         self._read(self._cols, a * self.written, out)
         return np.ascontiguousarray(out.T)
+
+    def close(self) -> None:
+        """Delete the scratch files (also done when the object is dropped)."""
+        self._finalizer()
+
+
+class SparseRows:
+    """Rows of shape ``tail`` indexed by any integer, written in any order (:meth:`write`: a
+    row written again is replaced) and read back by ranges of indices (:meth:`read`: a copy,
+    the values written; a row never written reads as zeros). Held in unnamed scratch files
+    (``TMPDIR``; deleted when closed or when dropped), not in memory: the rows from the first
+    index written upwards in one file, those below it (in reverse) in another; the gaps
+    between rows written are the files' holes (on a file system without sparse files, zeros
+    on disk).
+    """
+
+    def __init__(self, tail: tuple = (), dtype=np.float64) -> None:
+        self.tail = tuple(int(n) for n in tail)
+        self.dtype = np.dtype(dtype)
+        self._n_cols = int(np.prod(self.tail, dtype=np.int64))
+        self._origin: int | None = None  # the index of the first row of the upward file
+        self._files: list = []
+        self._up = self._down = None
+        self._finalizer = weakref.finalize(self, _close_all, self._files)
+
+    def _file(self, up: bool):
+        f = self._up if up else self._down
+        if f is None:
+            f = tempfile.TemporaryFile(prefix="bttsim-sparse-")
+            self._files.append(f)
+            if up:
+                self._up = f
+            else:
+                self._down = f
+        return f
+
+    def write(self, index, rows) -> None:
+        """Rows ``rows`` (shape ``(k,) + tail``) at indices ``index`` (k,); of an index given
+        twice, the later row holds."""
+        idx = np.asarray(index, np.int64).reshape(-1)
+        rows = np.ascontiguousarray(rows, dtype=self.dtype).reshape(idx.size, self._n_cols)
+        if idx.size == 0:
+            return
+        last = idx.size - 1 - np.unique(idx[::-1], return_index=True)[1]  # sorted, the later of each
+        idx, rows = idx[last], rows[last]
+        if self._origin is None:
+            self._origin = int(idx[0])
+        below = int(np.searchsorted(idx, self._origin))
+        # upwards: position index - origin; downwards: origin - 1 - index (reversed, ascending)
+        for up, pos, block in ((True, idx[below:] - self._origin, rows[below:]),
+                               (False, self._origin - 1 - idx[:below][::-1], rows[:below][::-1])):
+            if pos.size == 0:
+                continue
+            f = self._file(up)
+            cuts = np.flatnonzero(np.diff(pos) != 1) + 1
+            for a, b in zip(np.r_[0, cuts], np.r_[cuts, pos.size]):  # one write per run of positions
+                _write_all(f, block[a:b], int(pos[a]) * self._n_cols * self.dtype.itemsize)
+
+    def read(self, a: int, b: int) -> np.ndarray:
+        """Rows of indices ``a .. b - 1``, shape ``(b - a,) + tail`` (zeros where none)."""
+        a, b = int(a), max(int(b), int(a))
+        out = np.zeros((b - a, self._n_cols), self.dtype)
+        o = self._origin
+        if o is not None and b > o and self._up is not None:
+            lo = max(a, o)
+            self._read(self._up, lo - o, out[lo - a:])
+        if o is not None and a < o and self._down is not None:
+            hi = min(b, o)
+            part = np.zeros((hi - a, self._n_cols), self.dtype)
+            self._read(self._down, o - hi, part)  # positions o - hi .. o - 1 - a: indices hi - 1 .. a
+            out[:hi - a] = part[::-1]
+        return out.reshape((b - a,) + self.tail)
+
+    def _read(self, f, position: int, out: np.ndarray) -> None:
+        """``out`` from row ``position`` of file ``f``; what lies beyond its end stays zero."""
+        view = memoryview(out).cast("B") if out.size else memoryview(b"")
+        at, pos = 0, position * self._n_cols * self.dtype.itemsize
+        while at < view.nbytes:
+            got = os.preadv(f.fileno(), [view[at:]], pos + at)
+            if got <= 0:
+                break
+            at += got
 
     def close(self) -> None:
         """Delete the scratch files (also done when the object is dropped)."""

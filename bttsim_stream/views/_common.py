@@ -85,6 +85,11 @@ class ViewOutput:
         self._styled: set[str] = set()
         self._index: tuple | None = None  # (RevIndex, its time columns): views log one index to many entities
 
+    def flush(self) -> None:
+        """Hand what is logged to the sinks, and wait for it (after a large log: Rerun's
+        batcher holds it until then)."""
+        self.rec.flush()
+
     def style(self, path: str, archetype) -> None:
         """Log a static style (series names, colours...) once per entity."""
         if path not in self._styled:
@@ -146,11 +151,12 @@ def turbo(x) -> np.ndarray:
     6 levels of 255 from matplotlib's table (32 at the dark ends). A map and its colour bar
     drawn with it agree exactly.
     """
-    x = np.clip(np.nan_to_num(np.asarray(x, float)), 0.0, 1.0)
+    x = np.asarray(x)
     flat = x.reshape(-1)
     out = np.empty((flat.size, 3), np.uint8)
-    for lo in range(0, flat.size, _TURBO_BLOCK):  # in blocks: a whole-run map needs no (n, 6) temporaries
-        powers = flat[lo:lo + _TURBO_BLOCK, None] ** np.arange(6.0)
+    for lo in range(0, flat.size, _TURBO_BLOCK):  # in blocks: a whole-run map needs no run-sized temporaries
+        level = np.clip(np.nan_to_num(flat[lo:lo + _TURBO_BLOCK].astype(float)), 0.0, 1.0)
+        powers = level[:, None] ** np.arange(6.0)
         out[lo:lo + _TURBO_BLOCK] = np.round(255.0 * np.clip(powers @ _TURBO.T, 0.0, 1.0))
     return out.reshape(x.shape + (3,))
 

@@ -3,7 +3,8 @@
 ``tw/probe_<j>``: a tensor ``[nodal_diameter, revolution]`` of magnitudes (mm), rows by
 signed ND from ``+(n_nd - 1)`` (forward, top) through 0 to ``-(n_nd - 1)`` (backward,
 bottom) (:meth:`~bttsim_stream.process.travelling_wave.ProbeWave.signed_spectrum`);
-revolutions without a message are 0. A whole recording logs it once, static; live it is a
+revolutions without a message are 0. A whole recording logs it once, static (the spectra wait in
+scratch files until then, and the probes are drawn one at a time); live it is a
 rolling window of the last ``window`` revolutions, re-logged on the ``revolution``
 timeline at most every ``period_s`` (re-logging the whole run each time would cost
 O(n^2)). ``tw/nd``: the revolution's signed ND as identified by the processor from the fits
@@ -25,6 +26,7 @@ import time
 import numpy as np
 import rerun as rr
 
+from ..process.history import SparseRows
 from . import paths
 from ._common import DARK, MM, RevIndex, ViewOutput, nice_step, nice_ticks, turbo
 from ._plot2d import CHAR_W, LINE_H, PLOT_HEIGHT, PlotFrame, ui
@@ -88,7 +90,10 @@ class _WaveMap:
         if self.frame is None or (self.window is None and self.frame.x_range != (first - 0.5, last + 0.5)):
             self.frame = self._frame((first - 0.5, last + 0.5), self._top)
         n_rows, n_cols = mat_mm.shape
-        rgb = turbo((np.clip(mat_mm, 0.0, None) / (top_mm or 1.0)) ** GAMMA)
+        level = np.clip(mat_mm, 0.0, None)  # (magnitude / top) ** GAMMA, in place: one temporary
+        level /= top_mm or 1.0
+        rgb = turbo(np.power(level, GAMMA, out=level))
+        del level
         self.out.static(f"{self.root}/image", rr.Transform3D(translation=[0.0, -PLOT_HEIGHT, 0.0],
                                                              scale=[1.0 / n_cols, PLOT_HEIGHT / n_rows, 1.0]))
         self.out.latest(f"{self.root}/image", rr.Image(rgb, color_model="RGB", magnification_filter="Nearest"), last)
@@ -179,6 +184,44 @@ class _Spectra:
         return np.nan_to_num(mat, copy=False)
 
 
+class _RecordedSpectra:
+    """A whole recording's :class:`_Spectra` of one probe, held in scratch files
+    (:class:`~bttsim_stream.process.history.SparseRows`), not in memory: its matrix is read
+    back once, when drawn. ``first`` is ``lo`` (a whole recording forgets nothing)."""
+
+    def __init__(self, n_rows: int) -> None:
+        self.n_rows = int(n_rows)
+        self.lo = self.hi = None  # smallest and largest revolution stored
+        self._rows = SparseRows((self.n_rows,), np.float32)
+
+    @property
+    def first(self) -> int | None:
+        return self.lo
+
+    def put(self, revolution: np.ndarray, spec: np.ndarray) -> None:
+        """As :meth:`_Spectra.put` (the later of two of one revolution wins)."""
+        rev = np.asarray(revolution, np.int64)
+        self._rows.write(rev, spec)
+        lo, hi = int(rev.min()), int(rev.max())
+        self.lo = lo if self.lo is None else min(self.lo, lo)
+        self.hi = hi if self.hi is None else max(self.hi, hi)
+
+    def matrix(self, first: int, last: int) -> np.ndarray:
+        """As :meth:`_Spectra.matrix`, read back by blocks of revolutions."""
+        mat = np.empty((self.n_rows, last - first + 1), np.float32)
+        for a in range(first, last + 1, _READ_BLOCK):
+            b = min(a + _READ_BLOCK, last + 1)
+            mat[:, a - first:b - first] = self._rows.read(a, b).T
+        return np.nan_to_num(mat, copy=False)
+
+    def close(self) -> None:
+        self._rows.close()
+
+
+#: Revolutions of spectra read back at a time (:meth:`_RecordedSpectra.matrix`).
+_READ_BLOCK = 4096
+
+
 def _by_size(rows: list) -> list[list]:
     """Messages grouped by their number of nodal diameters (all of one run's share it)."""
     n = rows[0].body.forward_m.size
@@ -258,7 +301,9 @@ class TravellingWaveView:
         probe = np.array([d.body.probe for d in group])
         rev = np.array([d.header.revolution for d in group], np.int64)
         for p in np.unique(probe).tolist():
-            store = self._spectra.setdefault(p, _Spectra(spec.shape[1]))
+            store = self._spectra.get(p)
+            if store is None:  # live: the window in memory; a whole recording: in scratch files
+                store = self._spectra[p] = (_Spectra if self.out.live else _RecordedSpectra)(spec.shape[1])
             mine = probe == p
             top = int(rev[mine].max()) if store.hi is None else max(store.hi, int(rev[mine].max()))
             if self.out.live:  # what is older than the window is never shown
@@ -285,9 +330,15 @@ class TravellingWaveView:
             first = last - self.window + 1 if self.out.live else spectra.lo
             n_rows = spectra.n_rows
             mat = spectra.matrix(first, last)
-            tensor = rr.Tensor(mat, dim_names=["nodal_diameter", "revolution"], value_range=(0.0, self._max_mm or 1.0))
-            self.out.latest(paths.tw_path(probe), tensor, last)
+            self.out.latest(paths.tw_path(probe), rr.Tensor(mat, dim_names=["nodal_diameter", "revolution"],
+                                                            value_range=(0.0, self._max_mm or 1.0)), last)
+            whole = not self.out.live
+            if whole:  # a whole run's matrices go to the sinks one at a time: Rerun holds them until flushed
+                self.out.flush()
             wave_map = self._maps.get(probe)
             if wave_map is None:
-                wave_map = self._maps[probe] = _WaveMap(self.out, probe, n_rows, self.window if self.out.live else None)
+                wave_map = self._maps[probe] = _WaveMap(self.out, probe, n_rows, None if whole else self.window)
             wave_map.log(mat, first, last, self._max_mm)
+            del mat
+            if whole:
+                self.out.flush()
