@@ -30,8 +30,8 @@ from .history import ScratchRows
 from .fit import SineFit, fit_revolutions, quiet
 from .intervals import crossing_intervals, crossing_notes, layout_gain, no_crossing_note
 from .steady import dwell_entries
-from .span_fits import (blade_mean, chunk_fits, fit_spans, held_fit, merge_spans, order_phasors, read_spans,
-                        run_amplitudes, span_phasors)
+from .span_fits import (blade_mean, chunk_fits, fit_spans, held_fit, merge_spans, order_phasors, overlap_spans,
+                        read_spans, run_amplitudes, span_phasors)
 from .spans import SpanRows, angle
 from .zeroing import correction_size, tail_revolutions, zeroing_correction
 from .methods import METHODS, amplitude_noise, cff_method, cff_window, peak_method, sdof_method
@@ -464,15 +464,16 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
     radius = geometry.tip_radius_m if options.sampling_angles else None
     spans = _spans(survey)
     held = report_only and options.window == 1
-    # held: the crossings' fits; a dwell's (as long as the dwell) are fitted again as its means read them
-    crossing_spans = merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]) if held else spans
     removed = bool(prepared is not None and prepared.options.remove_offset)
     refit = held and any(tail_revolutions(reference, removed, survey.crossings, omega, c) is not None
                          for c in survey.crossings)
-    if held:
-        fit = held_fit(d, angles, eos, joint, omega, radius, spans,
-                       read_spans(survey.crossings, omega, crossing_spans, reference, removed, d.shape[0],
-                                  tails=False))
+    raw_spans = spans  # the unsmoothed fits: the crossings' and dwells' revolutions (NaN elsewhere)
+    if held:  # the crossings' fits, with what their readers reach; a dwell's (as long as the dwell) are
+        # fitted again as its means read them, the zeroing skirts' as the corrections read them
+        read = read_spans(survey.crossings, omega, merge_spans([(c.lo, c.hi + 1) for c in survey.crossings]),
+                          reference, removed, d.shape[0], tails=False)
+        fit = held_fit(d, angles, eos, joint, omega, radius, spans, read)
+        raw_spans = overlap_spans(read, spans)
     else:
         fit = fit_spans(d, angles, eos, joint, omega, options.window, radius, spans)
     d_flat = _Flat(disp.d_m, prepared.offset_m if prepared is not None else 0.0)  # offset removed, unsmoothed
@@ -480,13 +481,13 @@ def _report_fits(d: np.ndarray, disp: Displacements, prepared: PreparedData | No
     if unsmoothed:  # the fits are the unsmoothed fits
         raw = _Raw(fit.amp_pkpk_m, fit.phasor)
     else:  # unsmoothed fits, only where a crossing or a dwell needs them (noise, SDOF)
-        if held:  # held on the crossings alone (NaN elsewhere, as the whole arrays)
-            amp_r = SpanRows.filled(d.shape[0], crossing_spans, fit.amp_pkpk_m.shape[1:])
+        if held:  # held where the crossings' readers reach (NaN elsewhere, as the whole arrays)
+            amp_r = SpanRows.filled(d.shape[0], raw_spans, fit.amp_pkpk_m.shape[1:])
             ph_r = amp_r.like(amp_r.shape[1:], complex, np.nan + 0j)
         else:
             amp_r = np.full(fit.amp_pkpk_m.shape, np.nan)
             ph_r = np.full(fit.amp_pkpk_m.shape, np.nan + 0j)
-        for a, b in crossing_spans:
+        for a, b in raw_spans:
             for lo, hi, f_r in chunk_fits(d_flat, a, b, angles, eos, joint, omega, radius):
                 amp_r[lo:hi], ph_r[lo:hi] = f_r.amp_pkpk_m, f_r.phasor
         raw = _Raw(amp_r, ph_r)

@@ -146,7 +146,8 @@ class ProcessingResult:
         (``spectra=False``) and one revolution per fit, its ``amp_std_m``, ``residual_rms_m``
         and ``n_samples`` are None and its ``coeffs``, ``amp_pkpk_m``, ``phase_rad`` (and
         ``dc_m``) are :class:`~.spans.SpanRows`: held on the revolutions the report reads
-        (the crossings and dwells and their margins), NaN elsewhere. With the full result in
+        (the crossings and their margins: a dwell's and a zeroing skirt's are fitted again
+        as the report reads them), NaN elsewhere. With the full result in
         scratch files (``process_arrays(..., scratch=True)``, one revolution per fit) its
         run-sized arrays are :class:`~.history.ScratchRows` (read by rows), every revolution's.
     probe_tw : TravellingWaveSpectra or None

@@ -20,7 +20,7 @@ from .spans import SpanRows
 from .zeroing import tail_revolutions
 
 __all__ = ["fit_orders", "merge_spans", "fit_spans", "held_fit", "read_spans", "blade_mean", "run_amplitudes",
-           "chunk_fits", "fit_rows", "order_phasors", "span_phasors"]
+           "chunk_fits", "fit_rows", "order_phasors", "span_phasors", "overlap_spans"]
 
 
 def fit_orders(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int,
@@ -48,6 +48,14 @@ def merge_spans(spans) -> list:
         else:
             out.append((a, b))
     return out
+
+
+def overlap_spans(a: list, b: list) -> list:
+    """The revolutions in both of two lists of sorted, non-overlapping ``[start, stop)`` spans."""
+    out = []
+    for s0, e0 in a:
+        out += [(max(s0, s1), min(e0, e1)) for s1, e1 in b if s1 < e0 and e1 > s0]
+    return merge_spans(out)
 
 
 def fit_spans(d: np.ndarray, angles, eos: tuple, joint: bool, omega, window: int, radius, spans) -> SineFit:
